@@ -1,0 +1,23 @@
+"""lightfield_jax: differentiable light transport in thin scattering media.
+
+The method of Mukaigawa, Raskar & Yagi, "Analysis of Light Transport in Scattering
+Media" (CVPR 2010) in JAX. Pipeline: medium & grid → illumination → render
+(bounce propagator) → separate → fit → report.
+"""
+
+from ._grid import Grid as Grid
+from ._grid import default_n_theta as default_n_theta
+from ._illumination import Beam as Beam
+from ._illumination import Full as Full
+from ._illumination import Stripes as Stripes
+from ._medium import Medium as Medium
+from ._medium import bounces_for_tolerance as bounces_for_tolerance
+from ._medium import phase_function as phase_function
+from ._medium import phase_integral as phase_integral
+from ._render import DivergentSeriesWarning as DivergentSeriesWarning
+from ._render import Renderer as Renderer
+from ._render import RenderResult as RenderResult
+from ._render import render as render
+from ._render import single_scatter_closed_form as single_scatter_closed_form
+
+__version__ = "0.1.0"

@@ -1,0 +1,142 @@
+"""The homogeneous medium and its in-plane phase function (MODEL.md section 2).
+
+Units: coefficients are per pixel (lengths are in pixels). Angles are radians.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+PhaseConvention = Literal["paper", "normalized"]
+PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
+
+# Nodes of the periodic trapezoid rule for A(g). The rule converges like
+# exp(-N (1 - |g|)), so 4096 nodes are exact to float64 for |g| <= 0.99.
+_A_NODES = 4096
+
+
+def phase_function(theta: ArrayLike, g: ArrayLike) -> Float[Array, "..."]:
+    """The paper's phase function, eq. (2): the 3-D Henyey-Greenstein function
+    evaluated at the in-plane angle ``theta`` between incoming and outgoing direction,
+
+    p(θ) = (1/4π) (1 − g²) / (1 + g² − 2 g cos θ)^{3/2}.
+
+    It is *not* normalised in the plane: see :func:`phase_integral`.
+    """
+    theta = jnp.asarray(theta)
+    g = jnp.asarray(g)
+    return (1.0 - g**2) / (4.0 * jnp.pi * (1.0 + g**2 - 2.0 * g * jnp.cos(theta)) ** 1.5)
+
+
+def phase_integral(g: ArrayLike) -> Float[Array, ""]:
+    """A(g) = ∫_{−π}^{π} p(θ) dθ, the in-plane integral of the paper's phase function.
+
+    A(0) = 0.5, A(0.4) ≈ 0.619, A(0.8) ≈ 1.622; A(−g) = A(g). Computed with the
+    periodic trapezoid rule (spectrally accurate, differentiable in g).
+    """
+    theta = jnp.arange(_A_NODES) * (2.0 * jnp.pi / _A_NODES)
+    g = jnp.asarray(g)
+    return jnp.sum(phase_function(theta, g[..., None]), axis=-1) * (2.0 * jnp.pi / _A_NODES)
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+class Medium(eqx.Module):
+    """A homogeneous scattering medium.
+
+    Attributes:
+        sigma_t: extinction coefficient σt > 0 (per pixel).
+        sigma_s: scattering coefficient 0 ≤ σs ≤ σt (per pixel).
+        g: Henyey-Greenstein asymmetry, −1 < g < 1.
+        phase: ``"paper"`` (p used as is in the plane, the paper's model; each bounce
+            multiplies in-plane energy by at most ρ = ω·A(g), which may be ≥ 1) or
+            ``"normalized"`` (redistribution by p/A(g), ρ = ω < 1). The camera term
+            σs·p(π/2) is the same under both.
+
+    The physical values are JAX arrays (traced under ``jit``): new values never
+    recompile. Concrete values are validated on construction.
+    """
+
+    sigma_t: Float[Array, ""]
+    sigma_s: Float[Array, ""]
+    g: Float[Array, ""]
+    phase: str = eqx.field(static=True, default="paper")
+
+    def __init__(self, sigma_t, sigma_s, g, phase: PhaseConvention = "paper"):
+        if phase not in PHASE_CONVENTIONS:
+            raise ValueError(
+                f"medium.phase: unknown phase convention {phase!r}; "
+                f"expected one of {', '.join(PHASE_CONVENTIONS)}"
+            )
+        for name, value in (("sigma_t", sigma_t), ("sigma_s", sigma_s), ("g", g)):
+            if _is_concrete(value) and not bool(jnp.all(jnp.isfinite(jnp.asarray(value)))):
+                raise ValueError(f"medium.{name}: must be finite, got {value!r}")
+        if _is_concrete(sigma_t) and float(jnp.min(jnp.asarray(sigma_t))) <= 0.0:
+            raise ValueError(f"medium.sigma_t: must be > 0 (per pixel), got {sigma_t!r}")
+        if _is_concrete(sigma_s) and _is_concrete(sigma_t):
+            s, t = jnp.asarray(sigma_s), jnp.asarray(sigma_t)
+            if bool(jnp.any(s < 0)) or bool(jnp.any(s > t * (1 + 1e-6))):
+                raise ValueError(
+                    f"medium.sigma_s: must satisfy 0 <= sigma_s <= sigma_t = {sigma_t!r}, "
+                    f"got {sigma_s!r}"
+                )
+        if _is_concrete(g) and bool(jnp.any(jnp.abs(jnp.asarray(g)) >= 1.0)):
+            raise ValueError(f"medium.g: must satisfy -1 < g < 1, got {g!r}")
+        self.sigma_t = jnp.asarray(sigma_t, dtype=jnp.result_type(float))
+        self.sigma_s = jnp.asarray(sigma_s, dtype=jnp.result_type(float))
+        self.g = jnp.asarray(g, dtype=jnp.result_type(float))
+        self.phase = phase
+
+    @property
+    def sigma_a(self) -> Float[Array, ""]:
+        """Absorption coefficient σa = σt − σs."""
+        return self.sigma_t - self.sigma_s
+
+    @property
+    def albedo(self) -> Float[Array, ""]:
+        """Single-scattering albedo ω = σs/σt."""
+        return self.sigma_s / self.sigma_t
+
+    @property
+    def rho(self) -> Float[Array, ""]:
+        """Bound on the per-bounce in-plane energy ratio: ω·A(g) (paper) or ω (normalized)."""
+        if self.phase == "paper":
+            return self.albedo * phase_integral(self.g)
+        return self.albedo
+
+
+def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int = 500) -> int:
+    """Smallest K whose neglected tail Σ_{k>K} I_k is at most ``tolerance`` of the total.
+
+    In-plane energy of bounce k is at most ρ^{k−1} times that of the single scatter, so
+    the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
+    when ρ ≥ 1 (the series does not converge: there is no such K).
+    """
+    rho = float(rho)
+    if not 0.0 < tolerance < 1.0:
+        raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
+    if rho >= 1.0:
+        raise ValueError(
+            f"bounces: auto is impossible: rho = albedo*A(g) = {rho:.4f} >= 1, so the "
+            "bounce series of the 'paper' phase convention diverges for this medium. "
+            "Use phase: normalized, or give an explicit bounce count (the result will "
+            "say that the series does not converge)."
+        )
+    if rho <= 0.0:
+        return 1
+    k = math.ceil(math.log(tolerance * (1.0 - rho)) / math.log(rho))
+    k = max(1, k)
+    if k > max_bounces:
+        raise ValueError(
+            f"bounces: auto needs {k} bounces for rho = {rho:.6f} at tolerance "
+            f"{tolerance:g} (more than {max_bounces}); raise the tolerance"
+        )
+    return k

@@ -1,0 +1,322 @@
+"""The bounce-by-bounce renderer: per-bounce images I_k and light fields L_k (MODEL.md §4).
+
+Scheme (see NUMERICS.md for why):
+
+- I_1 is exact: σs·p(π/2)·S with S the pixel-averaged unscattered fluence.
+- L_1 is semi-analytic: S convolved with a per-direction-bin kernel
+  (:mod:`lightfield_jax._first_scatter`), so the thin beam never smears on the grid.
+- From the second bounce on, L_k = T[Q_k] on the (x, y, θ) grid
+  (:mod:`lightfield_jax._transport`), with Q_k = σs·∫ p(θ − θ') L_{k−1}(θ') dθ' as one
+  matmul with the bin-averaged circulant phase matrix; the camera sum
+  I_k = σs·p(π/2)·Σ_θ L_{k−1}·Δθ is one more output row of the same matmul.
+- Bounces are a ``lax.scan``; light fields are stacked only on request.
+
+Images are in units of the source (unit irradiance) times the gain; light fields are
+radiance per radian, averaged over each pixel and each direction bin.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._first_scatter import convolve_first_scatter, first_scatter_kernel, kernel_nodes
+from ._grid import Grid
+from ._illumination import Illumination, Stripes, source_moments
+from ._medium import Medium, bounces_for_tolerance, phase_function, phase_integral
+from ._transport import direction_groups, transport, transport_tables
+
+# Sub-samples per bin of the triangle-weighted bin average of p (phase matrix).
+_PHASE_SUBSAMPLES = 16
+
+
+_TRACES = {"renderer": 0}
+
+
+def _count_trace() -> None:
+    """Called once per trace of :meth:`Renderer.__call__` (a Python side effect that
+    runs at trace time only): tests use it to prove new values never recompile."""
+    _TRACES["renderer"] += 1
+
+
+def trace_count() -> int:
+    """How many times the renderer has been traced (compiled) in this process."""
+    return _TRACES["renderer"]
+
+
+class DivergentSeriesWarning(RuntimeWarning):
+    """The bounce series of the ``paper`` phase convention diverges (ρ = ω·A(g) ≥ 1)."""
+
+
+@functools.lru_cache(maxsize=8)
+def _groups(n_theta: int):
+    return direction_groups(n_theta)
+
+
+def _phase_matrix_taps(g, n_theta: int):
+    """c_m = bin-pair average of p at bin offset m: (1/Δθ²)∫_{bin j}∫_{bin j'} p(θ − θ') dθ dθ'."""
+    n = _PHASE_SUBSAMPLES
+    dtheta = 2 * math.pi / n_theta
+    dtype = jnp.result_type(g)
+    fine = phase_function((jnp.arange(n_theta * n) * (dtheta / n)).astype(dtype), g)
+    s = np.arange(-n, n + 1)
+    weights = (1.0 - np.abs(s) / n) / n
+    taps = (np.arange(n_theta)[:, None] * n + s[None, :]) % (n_theta * n)
+    return jnp.sum(fine[taps] * weights.astype(dtype), axis=1)
+
+
+class Renderer(eqx.Module):
+    """A compiled forward model for one grid, illumination and bounce count.
+
+    Construction precomputes every static table (source moments, kernel quadrature,
+    sweep stencils); calling it with (σt, σs, g, gain) runs one jit-compiled function
+    in which those values are traced, so new values never recompile.
+
+    Call signature: ``renderer(sigma_t, sigma_s, g, gain=1.0, lightfield=False)``
+    returns ``(images, lightfields)``: images Float[Array, "patterns bounces H W"]
+    (index k−1 holds I_k) and, when requested, lightfields
+    Float[Array, "bounces+1 patterns H W n_theta"] (L_0..L_K), else ``None``.
+    """
+
+    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    n_theta: int = eqx.field(static=True)
+    bounces: int = eqx.field(static=True)
+    phase: str = eqx.field(static=True)
+    theta0_bin: int = eqx.field(static=True)
+    coverage: Float[Array, "patterns H W"]
+    mean_depth: Float[Array, "patterns H W"]
+    var_depth: Float[Array, "patterns H W"]
+    nodes: dict
+    node_angle: Float[Array, " nodes"]
+    tables: dict
+    circulant: Array
+
+    def __init__(self, grid: Grid, illumination: Illumination, bounces: int, phase: str = "paper"):
+        if grid.n_theta is None:
+            raise ValueError("Renderer needs grid.n_theta: call Grid.resolve(g) first")
+        if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+            raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
+        Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
+        self.height, self.width, self.n_theta = grid.height, grid.width, grid.n_theta
+        self.bounces = int(bounces)
+        self.phase = phase
+        cov, mean, var = source_moments(illumination, grid.width, grid.height)
+        self.coverage = jnp.asarray(cov)
+        self.mean_depth = jnp.asarray(mean)
+        self.var_depth = jnp.asarray(var)
+        theta0 = math.radians(illumination.direction_deg)
+        self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
+        nodes = kernel_nodes(grid.width, grid.height, grid.n_theta)
+        self.nodes = {k: jnp.asarray(v) for k, v in nodes.items() if k != "phi"}
+        self.node_angle = jnp.asarray(nodes["phi"] - theta0)
+        self.tables = transport_tables(_groups(grid.n_theta))
+        j = np.arange(grid.n_theta)
+        self.circulant = jnp.asarray((j[:, None] - j[None, :]) % grid.n_theta, dtype=jnp.int32)
+
+    @property
+    def n_patterns(self) -> int:
+        return self.coverage.shape[0]
+
+    def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        # Python scalars would be static under filter_jit (a recompile per value):
+        # make every physical value an array first.
+        values = [jnp.asarray(v) for v in (sigma_t, sigma_s, g, gain)]
+        dtype = jnp.result_type(*values[:3])
+        if not jnp.issubdtype(dtype, jnp.floating):
+            dtype = jnp.result_type(float)
+        return self._render(*(v.astype(dtype) for v in values), lightfield)
+
+    @eqx.filter_jit
+    def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
+        dtype = sigma_t.dtype
+        n = self.n_theta
+        dtheta = 2 * math.pi / n
+        groups = _groups(n)
+
+        _count_trace()
+        source = self.coverage.astype(dtype) * jnp.exp(
+            -sigma_t * self.mean_depth.astype(dtype)
+            + 0.5 * sigma_t**2 * self.var_depth.astype(dtype)
+        )
+        p_camera = phase_function(jnp.asarray(math.pi / 2, dtype), g)
+        taps = _phase_matrix_taps(g, n)
+        node_p = phase_function(self.node_angle.astype(dtype), g)
+        if self.phase == "normalized":
+            in_plane = jnp.sum(taps) * dtheta
+            taps = taps / in_plane
+            node_p = node_p / in_plane
+        # Rows 0..n−1: in-plane redistribution (Q/σs); row n: the camera (I/σs).
+        mixing = jnp.concatenate(
+            [taps[self.circulant] * dtheta, jnp.full((1, n), p_camera * dtheta, dtype)], axis=0
+        )
+
+        def scatter(field):  # field: (patterns, n_theta, H, W), direction-major
+            out = jnp.einsum("ij,pjhw->pihw", mixing, field)
+            return sigma_s * out[:, :n], sigma_s * out[:, n]
+
+        images = [sigma_s * p_camera * source]
+        fields = []
+        if lightfield:
+            l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
+            fields.append(l0.at[:, self.theta0_bin].set(source / dtheta))
+        if self.bounces > 1 or lightfield:
+            kernel = first_scatter_kernel(
+                self.nodes, node_p, sigma_t, n, self.height, self.width
+            )
+            l1 = sigma_s * convolve_first_scatter(source, kernel)
+            if lightfield:
+                fields.append(l1)
+        q_last = None
+        if self.bounces > 1:
+            q, image = scatter(l1)
+            images.append(image)
+            q_last = q
+
+            def bounce(q, _):
+                field = transport(q, sigma_t, groups, self.tables)
+                q_next, image = scatter(field)
+                return q_next, (image, field if lightfield else None)
+
+            if self.bounces > 2:
+                q_last, (more, more_fields) = jax.lax.scan(
+                    bounce, q, None, length=self.bounces - 2
+                )
+                images = [jnp.stack(images), more]
+                if lightfield:
+                    fields = [jnp.stack(fields), more_fields]
+            else:
+                images = [jnp.stack(images)]
+                fields = [jnp.stack(fields)] if lightfield else []
+        else:
+            images = [jnp.stack(images)]
+            fields = [jnp.stack(fields)] if lightfield else []
+        if lightfield and self.bounces > 1:
+            fields.append(transport(q_last, sigma_t, groups, self.tables)[None])
+        stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
+        lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
+        return stacked, lf
+
+
+class RenderResult(eqx.Module):
+    """What :func:`render` returns.
+
+    Attributes:
+        images: per-bounce images, index k−1 holds I_k: Float[Array, "K H W"] for a
+            beam or full illumination, Float[Array, "patterns K H W"] for stripes.
+        lightfields: L_0..L_K (radiance per radian), Float[Array, "K+1 H W n_theta"]
+            (with a leading pattern axis for stripes), or ``None``.
+        bounces: K.
+        n_theta: number of direction bins used.
+        rho: ω·A(g) (paper) or ω (normalized), the per-bounce energy ratio bound.
+        converges: whether the bounce series converges (ρ < 1).
+    """
+
+    images: Array
+    lightfields: Array | None
+    bounces: int = eqx.field(static=True)
+    n_theta: int = eqx.field(static=True)
+    rho: Float[Array, ""]
+    converges: bool = eqx.field(static=True)
+
+    @property
+    def total(self) -> Array:
+        """Σ_k I_k (the image a camera sees)."""
+        return jnp.sum(self.images, axis=-3)
+
+
+@functools.lru_cache(maxsize=16)
+def renderer_for(grid: Grid, illumination: Illumination, bounces: int, phase: str) -> Renderer:
+    """A cached :class:`Renderer` (its tables are built once per static configuration)."""
+    return Renderer(grid, illumination, bounces, phase)
+
+
+def resolve_bounces(medium: Medium, bounces: int | str, tolerance: float = 1e-4) -> int:
+    """An explicit bounce count, or ``"auto"``: the tail bound ρ^K/(1 − ρ) ≤ tolerance."""
+    if isinstance(bounces, str):
+        if bounces != "auto":
+            raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
+        return bounces_for_tolerance(float(medium.rho), tolerance)
+    if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+        raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
+    return int(bounces)
+
+
+def render(
+    medium: Medium,
+    grid: Grid,
+    illumination: Illumination,
+    bounces: int | str = "auto",
+    *,
+    tolerance: float = 1e-4,
+    gain=1.0,
+    lightfield: bool = False,
+) -> RenderResult:
+    """Render per-bounce images (and optionally light fields) of a scene.
+
+    Args:
+        medium: the medium (σt, σs, g per pixel; phase convention).
+        grid: the grid; ``n_theta=None`` picks it from g.
+        illumination: :class:`Beam`, :class:`Stripes` or :class:`Full`.
+        bounces: K, or ``"auto"`` for the smallest K whose tail bound is below
+            ``tolerance`` (refused with ``ValueError`` when ρ ≥ 1).
+        gain: source gain c multiplying every image.
+        lightfield: also return L_0..L_K.
+
+    Under ``phase="paper"`` with ρ ≥ 1 an explicit K still renders, the result has
+    ``converges=False`` and a :class:`DivergentSeriesWarning` is issued.
+    """
+    grid = grid.resolve(float(medium.g))
+    k = resolve_bounces(medium, bounces, tolerance)
+    rho = medium.rho
+    converges = bool(rho < 1.0)
+    if not converges:
+        warnings.warn(
+            f"rho = albedo*A(g) = {float(rho):.4f} >= 1: the bounce series of the 'paper' "
+            f"phase convention does not converge; the {k} rendered bounces are a truncation "
+            "of a divergent series",
+            DivergentSeriesWarning,
+            stacklevel=2,
+        )
+    renderer = renderer_for(grid, illumination, k, medium.phase)
+    images, fields = renderer(medium.sigma_t, medium.sigma_s, medium.g, gain, lightfield)
+    if not isinstance(illumination, Stripes):
+        images = images[0]
+        fields = fields[:, 0] if fields is not None else None
+    return RenderResult(
+        images=images,
+        lightfields=fields,
+        bounces=k,
+        n_theta=grid.n_theta,
+        rho=rho,
+        converges=converges,
+    )
+
+
+def single_scatter_closed_form(
+    sigma_t: float, sigma_s: float, g: float, width: int
+) -> Float[np.ndarray, " W"]:
+    """I_1 along a unit beam heading +x from the left wall, pixel-averaged per column
+    (MODEL.md §4): σs p(π/2) e^{−σt c} (1 − e^{−σt})/σt."""
+    c = np.arange(width)
+    p90 = float(phase_function(math.pi / 2, g))
+    return sigma_s * p90 * np.exp(-sigma_t * c) * (-np.expm1(-sigma_t)) / sigma_t
+
+
+__all__ = [
+    "DivergentSeriesWarning",
+    "Renderer",
+    "RenderResult",
+    "render",
+    "renderer_for",
+    "resolve_bounces",
+    "single_scatter_closed_form",
+    "phase_integral",
+]
