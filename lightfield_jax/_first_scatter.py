@@ -109,16 +109,16 @@ def kernel_nodes(width: int, height: int, n_theta: int):
     }
 
 
-def first_scatter_kernel(
-    nodes: dict, phase_values, sigma_t, n_theta: int, height: int, width: int
-):
+def first_scatter_kernel(nodes: dict, phase_values, sigma_t, n_theta: int, height: int, width: int):
     """Evaluate K_j[Δ] (without σs) as an (n_theta, 2H, 2W) array.
 
     ``phase_values`` are p(φ − θ0) at the nodes (already divided by A(g) under the
     normalised convention).
     """
     dtype = phase_values.dtype
-    values = phase_values * jnp.exp(-sigma_t * nodes["r"].astype(dtype)) * nodes["weight"].astype(dtype)
+    values = (
+        phase_values * jnp.exp(-sigma_t * nodes["r"].astype(dtype)) * nodes["weight"].astype(dtype)
+    )
     contrib = (values[:, None] * nodes["splat"].astype(dtype)).reshape(-1)
     size = n_theta * 2 * height * 2 * width
     kernel = jnp.zeros(size, values.dtype).at[nodes["index"].reshape(-1)].add(contrib)
@@ -126,7 +126,7 @@ def first_scatter_kernel(
 
 
 def convolve_first_scatter(source, kernel):
-    """L_1 / σs for each pattern: (patterns, H, W) ⊛ (n_theta, 2H, 2W) → (patterns, n_theta, H, W)."""
+    """L_1/σs per pattern: (patterns, H, W) ⊛ (n_theta, 2H, 2W) → (patterns, n_theta, H, W)."""
     n_pat, height, width = source.shape
     two_h, two_w = kernel.shape[-2:]
     src_f = jnp.fft.rfft2(source, s=(two_h, two_w))

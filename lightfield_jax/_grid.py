@@ -17,6 +17,25 @@ _N_THETA_RULE: tuple[tuple[float, int], ...] = ((0.5, 32), (0.85, 64), (0.93, 12
 _N_THETA_MAX = 256
 
 
+# Spatial refinement chosen from |g| (see Grid.refine).
+_REFINE_RULE: tuple[tuple[float, int], ...] = ((0.65, 1),)
+_REFINE_MAX = 2
+
+
+def default_refine(g: float) -> int:
+    """Spatial refinement of the transport grid for a phase function of asymmetry g.
+
+    Forward-peaked light scattered off a thin beam stays near it; the grid transport's
+    interpolation diffuses it across rows (measured: I_3 4-5% off for g = 0.8 on the
+    native grid, about half that on a 2x grid).
+    """
+    ag = abs(float(g))
+    for limit, r in _REFINE_RULE:
+        if ag <= limit:
+            return r
+    return _REFINE_MAX
+
+
 def default_n_theta(g: float) -> int:
     """Number of direction bins for a phase function of asymmetry ``g``.
 
@@ -38,11 +57,15 @@ class Grid:
         height: number of pixel rows (y), ≥ 2.
         n_theta: number of direction bins, a multiple of 8 (≥ 8), or ``None`` to choose
             it from g with :func:`default_n_theta` (see :meth:`resolve`).
+        refine: the renderer works on a grid ``refine`` times finer in x and y and
+            averages back to these pixels (accuracy for forward-peaked scattering at
+            refine² the cost), or ``None`` to choose it from g (:func:`default_refine`).
     """
 
     width: int
     height: int
     n_theta: int | None = None
+    refine: int | None = None
 
     def __post_init__(self):
         for name in ("width", "height"):
@@ -54,12 +77,17 @@ class Grid:
             not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 8 or n % 8
         ):
             raise ValueError(f"grid.n_theta: must be a multiple of 8 (>= 8), got {n!r}")
+        r = self.refine
+        if r is not None and (
+            not isinstance(r, (int, np.integer)) or isinstance(r, bool) or not 1 <= r <= 8
+        ):
+            raise ValueError(f"grid.refine: must be an integer in [1, 8], got {r!r}")
 
     def resolve(self, g: float) -> Grid:
-        """This grid with ``n_theta`` filled in from g when it was not given."""
-        if self.n_theta is not None:
-            return self
-        return dataclasses.replace(self, n_theta=default_n_theta(g))
+        """This grid with ``n_theta`` and ``refine`` filled in from g where not given."""
+        n = default_n_theta(g) if self.n_theta is None else self.n_theta
+        r = default_refine(g) if self.refine is None else self.refine
+        return dataclasses.replace(self, n_theta=n, refine=r)
 
     @property
     def shape(self) -> tuple[int, int]:

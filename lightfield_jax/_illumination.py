@@ -34,7 +34,12 @@ _INWARD_DEG = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}
 
 def _check_direction(entry: str, direction_deg: float, what: str) -> None:
     t = math.radians(direction_deg)
-    inward = {"left": math.cos(t), "right": -math.cos(t), "top": math.sin(t), "bottom": -math.sin(t)}
+    inward = {
+        "left": math.cos(t),
+        "right": -math.cos(t),
+        "top": math.sin(t),
+        "bottom": -math.sin(t),
+    }
     if inward[entry] <= 1e-6:
         raise ValueError(
             f"{what}.direction_deg: {direction_deg!r} degrees does not point into the medium "
@@ -113,8 +118,10 @@ class Stripes:
     def __post_init__(self):
         if not isinstance(self.period, int) or isinstance(self.period, bool) or self.period < 2:
             raise ValueError(f"illumination.period: must be an integer >= 2, got {self.period!r}")
-        if not isinstance(self.lit, int) or isinstance(self.lit, bool) or not (
-            1 <= self.lit < self.period
+        if (
+            not isinstance(self.lit, int)
+            or isinstance(self.lit, bool)
+            or not (1 <= self.lit < self.period)
         ):
             raise ValueError(
                 f"illumination.lit: must be an integer in [1, period-1] = [1, {self.period - 1}], "
@@ -170,6 +177,25 @@ class Full:
 Illumination = Beam | Stripes | Full
 
 
+def scaled(illum: Illumination, factor: int) -> Illumination:
+    """The same illumination on a grid refined ``factor`` times (lengths × factor)."""
+    if factor == 1:
+        return illum
+    if isinstance(illum, Beam):
+        return dataclasses.replace(
+            illum, x=illum.x * factor, y=illum.y * factor, width=illum.width * factor
+        )
+    if isinstance(illum, Stripes):
+        # Wall cell r of the coarse grid is fine cells [r·f, r·f + f).
+        return dataclasses.replace(
+            illum,
+            period=illum.period * factor,
+            lit=illum.lit * factor,
+            phases=tuple(p * factor for p in illum.phases),
+        )
+    return illum
+
+
 def _check_entry(entry) -> None:
     if entry not in WALLS:
         raise ValueError(f"illumination.entry: must be one of {', '.join(WALLS)}, got {entry!r}")
@@ -183,25 +209,39 @@ def _direction_for(entry: str, direction_deg) -> float:
     return d
 
 
-def _lit(illum: Illumination, wall: str, u: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Lit mask (patterns, ...) for wall coordinates ``u`` (y on left/right, x on top/bottom)."""
-    extent = height if wall in ("left", "right") else width
-    inside = (u >= 0.0) & (u <= extent)
-    if isinstance(illum, Beam):
-        t = math.radians(illum.direction_deg)
-        normal_cos = abs(math.cos(t)) if wall in ("left", "right") else abs(math.sin(t))
-        centre = illum.y if wall in ("left", "right") else illum.x
-        half = 0.5 * illum.width / normal_cos
-        return (inside & (np.abs(u - centre) <= half))[None]
-    if isinstance(illum, Full):
-        return inside[None]
-    cell = np.floor(u).astype(np.int64)
-    phases = np.asarray(illum.phases).reshape((-1,) + (1,) * u.ndim)
-    return inside[None] & (np.mod(cell[None] + phases, illum.period) < illum.lit)
+def _lit_measure(illum: Illumination, wall: str, lo: np.ndarray, hi: np.ndarray, extent: int):
+    """Length of [lo, hi] (wall coordinates) that is lit, per pattern: shape (P, ...)."""
+
+    def cumulative(u):
+        u = np.clip(u, 0.0, extent)
+        if isinstance(illum, Beam):
+            t = math.radians(illum.direction_deg)
+            normal_cos = abs(math.cos(t)) if wall in ("left", "right") else abs(math.sin(t))
+            centre = illum.y if wall in ("left", "right") else illum.x
+            half = 0.5 * illum.width / normal_cos
+            return (np.clip(u, centre - half, centre + half) - (centre - half))[None]
+        if isinstance(illum, Full):
+            return u[None]
+        # Stripes: lit cells r with (r + phase) mod period < lit, counted in closed form.
+        period, lit = illum.period, illum.lit
+        phases = np.asarray(illum.phases).reshape((-1,) + (1,) * u.ndim)
+        cell = np.floor(u)
+        frac = u - cell
+
+        def lit_cells_before(m):  # number of lit cells r in [0, m)
+            def count(n):
+                return (n // period) * lit + np.minimum(np.mod(n, period), lit)
+
+            return count(m + phases) - count(phases)
+
+        in_cell = (np.mod(cell + phases, period) < lit) & (cell < extent)
+        return lit_cells_before(cell) + frac * in_cell
+
+    return cumulative(hi) - cumulative(lo)
 
 
 def source_moments(
-    illum: Illumination, width: int, height: int, supersample: int = 16
+    illum: Illumination, width: int, height: int, supersample: int = 64
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-pixel moments of the unscattered light, for each pattern.
 
@@ -210,41 +250,35 @@ def source_moments(
     entry wall, pixels) over its lit part. The pixel-averaged unscattered fluence is then
     coverage·exp(−σt·mean + σt²·var/2) (second-order cumulant expansion; exact to
     O(σt⁴/2880) for the uniform spread of d0 across a pixel).
+
+    d0 depends only on the coordinate normal to the entry wall; along the wall the lit
+    length is computed exactly (the wall coordinate is a shift of the pixel's extent),
+    and the normal coordinate is sampled at ``supersample`` midpoints per pixel.
     """
     wall = illum.entry_wall(width, height)
     t0 = math.radians(illum.direction_deg)
     c, s = math.cos(t0), math.sin(t0)
-    n = supersample
-    sub = (np.arange(n) + 0.5) / n
-    n_pat = illum.n_patterns
-    cov = np.zeros((n_pat, height, width))
-    mean = np.zeros((n_pat, height, width))
-    var = np.zeros((n_pat, height, width))
-    xs = (np.arange(width)[:, None] + sub[None, :]).reshape(-1)  # (width*n,)
-    for r in range(height):  # one pixel row at a time keeps memory O(width·n²)
-        ys = r + sub  # (n,)
-        px = xs[None, :]
-        py = ys[:, None]
-        if wall == "left":
-            d0 = px / c + 0 * py
-            u = py - d0 * s
-        elif wall == "right":
-            d0 = (px - width) / c + 0 * py
-            u = py - d0 * s
-        elif wall == "top":
-            d0 = py / s + 0 * px
-            u = px - d0 * c
-        else:
-            d0 = (py - height) / s + 0 * px
-            u = px - d0 * c
-        lit = _lit(illum, wall, u, width, height)  # (P, n, width*n)
-        lit = lit.reshape(n_pat, n, width, n).astype(np.float64)
-        d = d0.reshape(n, width, n)
-        cnt = lit.sum(axis=(1, 3))
-        m1 = (lit * d[None]).sum(axis=(1, 3))
-        m2 = (lit * d[None] ** 2).sum(axis=(1, 3))
-        safe = np.maximum(cnt, 1.0)
-        cov[:, r] = cnt / (n * n)
-        mean[:, r] = m1 / safe
-        var[:, r] = np.maximum(m2 / safe - (m1 / safe) ** 2, 0.0)
-    return cov, mean, var
+    sub = (np.arange(supersample) + 0.5) / supersample
+    if wall in ("left", "right"):
+        normal_n, along_n, extent = width, height, height
+        wall_pos, cos_n, slope = (0.0 if wall == "left" else float(width)), c, s
+    else:
+        normal_n, along_n, extent = height, width, width
+        wall_pos, cos_n, slope = (0.0 if wall == "top" else float(height)), s, c
+    # Normal coordinate samples (normal_n, supersample) and their depth d0 ≥ 0.
+    xn = np.arange(normal_n)[:, None] + sub[None, :]
+    d0 = (xn - wall_pos) / cos_n
+    # Pixel k along the wall covers [k, k+1]; its wall coordinate is shifted by −d0·slope.
+    k = np.arange(along_n)[:, None, None]
+    lo = k - d0[None] * slope
+    lit = _lit_measure(illum, wall, lo, lo + 1.0, extent)  # (P, along, normal, sub)
+    cnt = lit.sum(axis=-1)
+    m1 = (lit * d0).sum(axis=-1)
+    m2 = (lit * d0**2).sum(axis=-1)
+    safe = np.where(cnt > 0, cnt, 1.0)
+    cov = cnt / supersample
+    mean = m1 / safe
+    var = np.maximum(m2 / safe - mean**2, 0.0)
+    if wall in ("left", "right"):  # (P, along=y, normal=x) is already (P, H, W)
+        return cov, mean, var
+    return (np.swapaxes(a, 1, 2) for a in (cov, mean, var))

@@ -29,7 +29,7 @@ from jaxtyping import Array, Float
 
 from ._first_scatter import convolve_first_scatter, first_scatter_kernel, kernel_nodes
 from ._grid import Grid
-from ._illumination import Illumination, Stripes, source_moments
+from ._illumination import Illumination, Stripes, scaled, source_moments
 from ._medium import Medium, bounces_for_tolerance, phase_function, phase_integral
 from ._transport import direction_groups, transport, transport_tables
 
@@ -85,9 +85,10 @@ class Renderer(eqx.Module):
     Float[Array, "bounces+1 patterns H W n_theta"] (L_0..L_K), else ``None``.
     """
 
-    height: int = eqx.field(static=True)
+    height: int = eqx.field(static=True)  # of the (refined) working grid
     width: int = eqx.field(static=True)
     n_theta: int = eqx.field(static=True)
+    refine: int = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
     phase: str = eqx.field(static=True)
     theta0_bin: int = eqx.field(static=True)
@@ -105,16 +106,18 @@ class Renderer(eqx.Module):
         if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
             raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
         Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
-        self.height, self.width, self.n_theta = grid.height, grid.width, grid.n_theta
+        f = self.refine = 1 if grid.refine is None else grid.refine
+        self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.bounces = int(bounces)
         self.phase = phase
-        cov, mean, var = source_moments(illumination, grid.width, grid.height)
+        illumination.entry_wall(grid.width, grid.height)  # validates the entry point
+        cov, mean, var = source_moments(scaled(illumination, f), self.width, self.height)
         self.coverage = jnp.asarray(cov)
         self.mean_depth = jnp.asarray(mean)
         self.var_depth = jnp.asarray(var)
         theta0 = math.radians(illumination.direction_deg)
         self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
-        nodes = kernel_nodes(grid.width, grid.height, grid.n_theta)
+        nodes = kernel_nodes(self.width, self.height, grid.n_theta)
         self.nodes = {k: jnp.asarray(v) for k, v in nodes.items() if k != "phi"}
         self.node_angle = jnp.asarray(nodes["phi"] - theta0)
         self.tables = transport_tables(_groups(grid.n_theta))
@@ -132,7 +135,17 @@ class Renderer(eqx.Module):
         dtype = jnp.result_type(*values[:3])
         if not jnp.issubdtype(dtype, jnp.floating):
             dtype = jnp.result_type(float)
-        return self._render(*(v.astype(dtype) for v in values), lightfield)
+        sigma_t, sigma_s, g, gain = (v.astype(dtype) for v in values)
+        f = self.refine
+        images, fields = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
+        if f == 1:
+            return images, fields
+        # Per-pixel coefficients on the refined grid are σ/f and its unit irradiance is
+        # f times ours: images scale by f, light fields by 1; then average f×f blocks.
+        images = f * _block_mean(images, f, (-2, -1))
+        if fields is not None:
+            fields = _block_mean(fields, f, (-3, -2))
+        return images, fields
 
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
@@ -168,9 +181,7 @@ class Renderer(eqx.Module):
             l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
             fields.append(l0.at[:, self.theta0_bin].set(source / dtheta))
         if self.bounces > 1 or lightfield:
-            kernel = first_scatter_kernel(
-                self.nodes, node_p, sigma_t, n, self.height, self.width
-            )
+            kernel = first_scatter_kernel(self.nodes, node_p, sigma_t, n, self.height, self.width)
             l1 = sigma_s * convolve_first_scatter(source, kernel)
             if lightfield:
                 fields.append(l1)
@@ -186,9 +197,7 @@ class Renderer(eqx.Module):
                 return q_next, (image, field if lightfield else None)
 
             if self.bounces > 2:
-                q_last, (more, more_fields) = jax.lax.scan(
-                    bounce, q, None, length=self.bounces - 2
-                )
+                q_last, (more, more_fields) = jax.lax.scan(bounce, q, None, length=self.bounces - 2)
                 images = [jnp.stack(images), more]
                 if lightfield:
                     fields = [jnp.stack(fields), more_fields]
@@ -205,6 +214,13 @@ class Renderer(eqx.Module):
         return stacked, lf
 
 
+def _block_mean(a, f: int, axes: tuple[int, int]):
+    """Average f×f blocks over two adjacent axes."""
+    ay, ax = (ax_ % a.ndim for ax_ in axes)
+    shape = a.shape[:ay] + (a.shape[ay] // f, f, a.shape[ax] // f, f) + a.shape[ax + 1 :]
+    return a.reshape(shape).mean(axis=(ay + 1, ay + 3))
+
+
 class RenderResult(eqx.Module):
     """What :func:`render` returns.
 
@@ -215,6 +231,7 @@ class RenderResult(eqx.Module):
             (with a leading pattern axis for stripes), or ``None``.
         bounces: K.
         n_theta: number of direction bins used.
+        refine: spatial refinement of the working grid used.
         rho: ω·A(g) (paper) or ω (normalized), the per-bounce energy ratio bound.
         converges: whether the bounce series converges (ρ < 1).
     """
@@ -223,6 +240,7 @@ class RenderResult(eqx.Module):
     lightfields: Array | None
     bounces: int = eqx.field(static=True)
     n_theta: int = eqx.field(static=True)
+    refine: int = eqx.field(static=True)
     rho: Float[Array, ""]
     converges: bool = eqx.field(static=True)
 
@@ -295,6 +313,7 @@ def render(
         lightfields=fields,
         bounces=k,
         n_theta=grid.n_theta,
+        refine=grid.refine,
         rho=rho,
         converges=converges,
     )

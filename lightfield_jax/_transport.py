@@ -49,9 +49,11 @@ class DirectionGroups:
     x_neg: np.ndarray  # along −x
     y_pos: np.ndarray
     y_neg: np.ndarray
-    x_shift: np.ndarray  # Δy per column step, for x_pos then x_neg
+    x_lo: np.ndarray  # weight of row y−1 per column step, for x_pos then x_neg
+    x_hi: np.ndarray  # weight of row y+1
     x_step: np.ndarray  # Δs per column step
-    y_shift: np.ndarray  # Δx per row step, for y_pos then y_neg
+    y_lo: np.ndarray  # the same per row step, for y_pos then y_neg
+    y_hi: np.ndarray
     y_step: np.ndarray
     inverse: np.ndarray  # permutation back from [x_pos, x_neg, y_pos, y_neg] order
 
@@ -66,23 +68,50 @@ def direction_groups(n_theta: int) -> DirectionGroups:
     xs = np.concatenate([x_pos, x_neg])
     ys = np.concatenate([y_pos, y_neg])
     order = np.concatenate([xs, ys])
+    x_lo, x_hi = _bin_averaged_weights(theta[xs], 2 * np.pi / n_theta, along_x=True)
+    y_lo, y_hi = _bin_averaged_weights(theta[ys], 2 * np.pi / n_theta, along_x=False)
     return DirectionGroups(
         x_pos=x_pos,
         x_neg=x_neg,
         y_pos=y_pos,
         y_neg=y_neg,
-        x_shift=s[xs] / np.abs(c[xs]),
+        x_lo=x_lo,
+        x_hi=x_hi,
         x_step=1.0 / np.abs(c[xs]),
-        y_shift=c[ys] / np.abs(s[ys]),
+        y_lo=y_lo,
+        y_hi=y_hi,
         y_step=1.0 / np.abs(s[ys]),
         inverse=np.argsort(order),
     )
 
 
-def _step_weights(shift, step, sigma_t):
+def _bin_averaged_weights(theta_c, dtheta, along_x: bool, samples: int = 64):
+    """Linear-interpolation weights of the upstream point, averaged over the directions
+    of each bin (not only its centre).
+
+    Per step the transverse offset of a ray at θ is s(θ) = tan θ (x sweep) or cot θ
+    (y sweep); the upstream value is (1 − |s|)·v[y] + s⁺·v[y−1] + s⁻·v[y+1]. Averaging
+    over θ in the bin leaves every bin whose offsets keep one sign unchanged, but gives
+    the bins around the axes (s = 0 at their centre) the transverse spread their width
+    implies; with centre directions alone they would carry a thin forward-scattered
+    beam along a pixel row without ever spreading it (the ray effect), measured as
+    +20% of I_3 on the beam row for g = 0.8.
+    """
+    u = (np.arange(samples) + 0.5) / samples - 0.5
+    theta = theta_c[:, None] + u[None, :] * dtheta
+    if along_x:
+        shift = np.sin(theta) / np.abs(np.cos(theta))
+    else:
+        shift = np.cos(theta) / np.abs(np.sin(theta))
+    shift = np.clip(shift, -1.0, 1.0)
+    return np.maximum(shift, 0.0).mean(axis=1), np.maximum(-shift, 0.0).mean(axis=1)
+
+
+def _step_weights(lo, hi, step, sigma_t):
     """Per-direction weights of one march step (column vectors over directions)."""
     step = step.astype(sigma_t.dtype)
-    shift = shift.astype(sigma_t.dtype)
+    lo = lo.astype(sigma_t.dtype)
+    hi = hi.astype(sigma_t.dtype)
     tau = sigma_t * step
     col = (slice(None), None)
     w_upstream = step * _phi2(tau)
@@ -90,9 +119,9 @@ def _step_weights(shift, step, sigma_t):
         "decay": jnp.exp(-tau)[col],
         "upstream": w_upstream[col],
         "current": (step * _phi1(tau) - w_upstream)[col],
-        "mid": (1.0 - jnp.abs(shift))[col],
-        "lo": jnp.maximum(shift, 0.0)[col],  # upstream point between y−1 and y
-        "hi": jnp.maximum(-shift, 0.0)[col],  # upstream point between y and y+1
+        "mid": (1.0 - lo - hi)[col],
+        "lo": lo[col],  # weight of v[y−1]
+        "hi": hi[col],  # weight of v[y+1]
         "first": (0.5 * step * _phi1(0.5 * tau))[col],
     }
 
@@ -167,21 +196,21 @@ def transport(q, sigma_t, groups: DirectionGroups, tables):
     qy = jnp.concatenate(
         [_take(qt, groups.y_pos, -2), jnp.flip(_take(qt, groups.y_neg, -2), axis=0)], axis=-2
     )
-    wx = _step_weights(tables["x_shift"], tables["x_step"], sigma_t)
-    wy = _step_weights(tables["y_shift"], tables["y_step"], sigma_t)
+    wx = _step_weights(tables["x_lo"], tables["x_hi"], tables["x_step"], sigma_t)
+    wy = _step_weights(tables["y_lo"], tables["y_hi"], tables["y_step"], sigma_t)
     lx, ly = jax.lax.optimization_barrier(_sweep_both(qx, qy, wx, wy))
     lx = jnp.concatenate([lx[..., :nxp, :], jnp.flip(lx[..., nxp:, :], axis=0)], axis=-2)
     ly = jnp.concatenate([ly[..., :nyp, :], jnp.flip(ly[..., nyp:, :], axis=0)], axis=-2)
     # (W, ..., n_x, H) and (H, ..., n_y, W) back to (..., n, H, W).
-    lx = jnp.transpose(jax.lax.optimization_barrier(lx), (*range(1, lead + 1), lead + 1, lead + 2, 0))
-    ly = jnp.transpose(jax.lax.optimization_barrier(ly), (*range(1, lead + 1), lead + 1, 0, lead + 2))
+    lx = jnp.transpose(
+        jax.lax.optimization_barrier(lx), (*range(1, lead + 1), lead + 1, lead + 2, 0)
+    )
+    ly = jnp.transpose(
+        jax.lax.optimization_barrier(ly), (*range(1, lead + 1), lead + 1, 0, lead + 2)
+    )
     return _take(jnp.concatenate([lx, ly], axis=-3), groups.inverse, -3)
 
 
 def transport_tables(groups: DirectionGroups) -> dict:
-    return {
-        "x_shift": jnp.asarray(groups.x_shift),
-        "x_step": jnp.asarray(groups.x_step),
-        "y_shift": jnp.asarray(groups.y_shift),
-        "y_step": jnp.asarray(groups.y_step),
-    }
+    names = ("x_lo", "x_hi", "x_step", "y_lo", "y_hi", "y_step")
+    return {name: jnp.asarray(getattr(groups, name)) for name in names}

@@ -1,0 +1,348 @@
+"""YAML configs parsed into typed, validated, frozen objects.
+
+The ``simulate`` config (lengths in pixels, coefficients per pixel, angles in degrees)::
+
+    grid: {width: 128, height: 96, n_theta: 64}     # n_theta optional: chosen from g
+    medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}  # phase optional
+    illumination: {kind: beam, x: 0.0, y: 48.5, direction_deg: 0.0, width: 1.0}
+    #   kind: stripes -> period, lit, shifts: N (phases 0..N-1) or phases: [..],
+    #                    direction_deg, entry: left|right|top|bottom
+    #   kind: full    -> direction_deg, entry
+    bounces: 10          # or auto (the default)
+    tolerance: 1e-4      # only with bounces: auto
+
+Every error is a :class:`ConfigError` whose message starts with the file name, then
+the key's path (``medium.sigma_t``) and the offending value. Unknown keys, duplicate
+keys, wrong types and out-of-range values are all errors. Float keys accept numeric
+strings (YAML 1.1 reads ``1e-4`` as one); integer keys accept only integers.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import math
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from ._grid import Grid
+from ._illumination import WALLS, Beam, Full, Illumination, Stripes
+from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
+
+ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
+_TOP_KEYS = ("grid", "medium", "illumination", "bounces", "tolerance")
+_GRID_KEYS = ("width", "height", "n_theta")
+_MEDIUM_KEYS = ("sigma_t", "sigma_s", "g", "phase")
+_ILLUMINATION_KEYS = {
+    "beam": ("kind", "x", "y", "direction_deg", "width"),
+    "stripes": ("kind", "period", "lit", "shifts", "phases", "direction_deg", "entry"),
+    "full": ("kind", "direction_deg", "entry"),
+}
+_REQUIRED = object()
+
+
+class ConfigError(ValueError):
+    """An invalid config. The message starts with the file name and names the key."""
+
+
+# --------------------------------------------------------------------------- YAML
+
+
+class _Loader(yaml.SafeLoader):
+    """Safe YAML with duplicate keys refused and YAML 1.2 floats (``1e-4`` is a float)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if key in seen:
+                mark = key_node.start_mark
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} (line {mark.line + 1})", mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def load_yaml(path: str | os.PathLike) -> dict:
+    """Parse a YAML file whose top level is a mapping; errors are :class:`ConfigError`."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{path}: cannot read ({e})") from None
+    try:
+        data = yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{path}: the top level must be a mapping of keys, got {type(data).__name__}"
+        )
+    return data
+
+
+# --------------------------------------------------------------------------- typed values
+
+
+class _Section:
+    """One mapping of a config, at a key path, checked against its allowed keys."""
+
+    def __init__(
+        self,
+        source: str,
+        path: str,
+        value: Any,
+        allowed: tuple[str, ...] | None,
+        label: str = "",
+    ):
+        self.source = source
+        self.path = path
+        if not isinstance(value, Mapping):
+            self.fail(path, f"must be a mapping of keys, got {_show(value)}")
+        self.data = dict(value)
+        for key in self.data:
+            if not isinstance(key, str):
+                self.fail(self.key(str(key)), f"keys must be strings, got {key!r}")
+            if allowed is not None and key not in allowed:
+                near = difflib.get_close_matches(key, allowed, n=1)
+                hint = f" (did you mean {near[0]!r}?)" if near else ""
+                self.fail(
+                    self.key(key),
+                    f"unknown key{hint}; allowed keys{label}: {', '.join(allowed)}",
+                )
+
+    def key(self, name: str) -> str:
+        return f"{self.path}.{name}" if self.path else name
+
+    def fail(self, where: str, message: str):
+        raise ConfigError(f"{self.source}: {where}: {message}")
+
+    def get(self, name: str, default: Any = _REQUIRED) -> Any:
+        if name not in self.data:
+            if default is _REQUIRED:
+                self.fail(self.key(name), "required key is missing")
+            return default
+        return self.data[name]
+
+    def float(self, name: str, default: Any = _REQUIRED) -> float | None:
+        """A number; a null value only where the default is None."""
+        if name not in self.data or (self.data[name] is None and default is None):
+            return self.get(name, default)
+        return _as_float(self, self.key(name), self.data[name])
+
+    def int(self, name: str, default: Any = _REQUIRED) -> int | None:
+        """An integer; a null value only where the default is None."""
+        if name not in self.data or (self.data[name] is None and default is None):
+            return self.get(name, default)
+        return _as_int(self, self.key(name), self.data[name])
+
+    def choice(self, name: str, choices: tuple[str, ...], default: Any = _REQUIRED) -> str:
+        if name not in self.data and default is _REQUIRED:
+            self.fail(self.key(name), f"required key is missing; one of {', '.join(choices)}")
+        value = self.get(name, default)
+        if value not in choices:
+            self.fail(self.key(name), f"must be one of {', '.join(choices)}, got {_show(value)}")
+        return value
+
+
+def _show(value: Any) -> str:
+    return f"{value!r} ({type(value).__name__})"
+
+
+def _as_float(section: _Section, where: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        section.fail(where, f"must be a number, got {_show(value)}")
+    try:
+        v = float(value)
+    except ValueError:
+        section.fail(where, f"must be a number, got {_show(value)}")
+    if not math.isfinite(v):
+        section.fail(where, f"must be finite, got {value!r}")
+    return v
+
+
+def _as_int(section: _Section, where: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        section.fail(where, f"must be an integer, got {_show(value)}")
+    return value
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+@dataclasses.dataclass(frozen=True)
+class MediumConfig:
+    """The medium's parameters as plain floats (per pixel); see :class:`Medium`.
+
+    Validated on construction (σt > 0, 0 ≤ σs ≤ σt, −1 < g < 1, a known phase
+    convention); :meth:`medium` builds the JAX :class:`Medium`.
+    """
+
+    sigma_t: float
+    sigma_s: float
+    g: float
+    phase: Literal["paper", "normalized"] = "paper"
+
+    def __post_init__(self):
+        self.medium()
+
+    def medium(self) -> Medium:
+        return Medium(self.sigma_t, self.sigma_s, self.g, self.phase)
+
+
+@dataclasses.dataclass(frozen=True)
+class SimulationConfig:
+    """A validated ``simulate`` config.
+
+    Attributes:
+        grid: the grid (``n_theta`` is ``None`` when the file leaves it to g).
+        medium: σt, σs, g (per pixel) and the phase convention.
+        illumination: a :class:`Beam`, :class:`Stripes` or :class:`Full`.
+        bounces: K, or ``"auto"`` (the smallest K whose tail bound is ≤ tolerance).
+        tolerance: the relative tail bound for ``bounces: auto``.
+        source: the file (or ``"<dict>"``) the config came from.
+        raw: the parsed YAML, for metadata.
+    """
+
+    grid: Grid
+    medium: MediumConfig
+    illumination: Illumination
+    bounces: int | Literal["auto"] = "auto"
+    tolerance: float = 1e-4
+    source: str = "<dict>"
+    raw: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+    def n_bounces(self) -> int:
+        """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
+        if self.bounces == "auto":
+            return bounces_for_tolerance(float(self.medium.medium().rho), self.tolerance)
+        return self.bounces
+
+
+def load_simulation_config(path: str | os.PathLike) -> SimulationConfig:
+    """Read and validate a ``simulate`` YAML config (see the module docstring)."""
+    return parse_simulation_config(load_yaml(path), source=str(path))
+
+
+def parse_simulation_config(data: Mapping, source: str = "<dict>") -> SimulationConfig:
+    """Validate an already parsed ``simulate`` config; errors name ``source``."""
+    top = _Section(source, "", data, _TOP_KEYS)
+    grid = _grid(_Section(source, "grid", top.get("grid"), _GRID_KEYS))
+    medium = _medium(_Section(source, "medium", top.get("medium"), _MEDIUM_KEYS))
+    illumination = _illumination(source, top.get("illumination"), grid)
+    bounces, tolerance = _bounces(top, medium)
+    return SimulationConfig(
+        grid=grid,
+        medium=medium,
+        illumination=illumination,
+        bounces=bounces,
+        tolerance=tolerance,
+        source=source,
+        raw=copy.deepcopy(dict(data)),
+    )
+
+
+def _build(section: _Section, make, *args, **kwargs):
+    """Call a validating constructor, turning its ``ValueError`` into a ConfigError."""
+    try:
+        return make(*args, **kwargs)
+    except ValueError as e:
+        raise ConfigError(f"{section.source}: {e}") from None
+
+
+def _grid(s: _Section) -> Grid:
+    return _build(s, Grid, s.int("width"), s.int("height"), s.int("n_theta", None))
+
+
+def _medium(s: _Section) -> MediumConfig:
+    return _build(
+        s,
+        MediumConfig,
+        sigma_t=s.float("sigma_t"),
+        sigma_s=s.float("sigma_s"),
+        g=s.float("g"),
+        phase=s.choice("phase", PHASE_CONVENTIONS, "paper"),
+    )
+
+
+def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
+    kind = _Section(source, "illumination", value, None).choice("kind", ILLUMINATION_KINDS)
+    s = _Section(source, "illumination", value, _ILLUMINATION_KEYS[kind], f" for kind {kind}")
+    direction = s.float("direction_deg", None)
+    if kind == "beam":
+        beam = _build(
+            s,
+            Beam,
+            x=s.float("x"),
+            y=s.float("y"),
+            direction_deg=0.0 if direction is None else direction,
+            width=s.float("width", 1.0),
+        )
+        _build(s, beam.entry_wall, grid.width, grid.height)
+        return beam
+    entry = s.choice("entry", WALLS, "left")
+    if kind == "full":
+        return _build(s, Full, direction_deg=direction, entry=entry)
+    period, lit = s.int("period", 6), s.int("lit", 3)
+    if "shifts" in s.data and "phases" in s.data:
+        s.fail("illumination", "give either shifts or phases, not both")
+    if "phases" in s.data:
+        phases = s.get("phases")
+        if not isinstance(phases, list) or not phases:
+            s.fail(s.key("phases"), f"must be a non-empty list of integers, got {_show(phases)}")
+        phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+        return _build(s, Stripes, period, lit, tuple(phases), direction_deg=direction, entry=entry)
+    shifts = s.int("shifts", period)
+    if shifts < 1:
+        s.fail(s.key("shifts"), f"must be a positive integer, got {shifts!r}")
+    return _build(
+        s, Stripes, period, lit, tuple(range(shifts)), direction_deg=direction, entry=entry
+    )
+
+
+def _bounces(top: _Section, medium: MediumConfig) -> tuple[int | str, float]:
+    bounces = top.get("bounces", "auto")
+    if bounces != "auto":
+        if isinstance(bounces, str):
+            top.fail("bounces", f"must be a positive integer or 'auto', got {bounces!r}")
+        bounces = _as_int(top, "bounces", bounces)
+        if bounces < 1:
+            top.fail("bounces", f"must be a positive integer or 'auto', got {bounces!r}")
+        if "tolerance" in top.data:
+            top.fail("tolerance", f"is used only with bounces: auto (bounces is {bounces})")
+    tolerance = top.float("tolerance", 1e-4)
+    if not 0.0 < tolerance < 1.0:
+        top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
+    if bounces == "auto":
+        try:
+            bounces_for_tolerance(float(medium.medium().rho), tolerance)
+        except ValueError as e:
+            top.fail("bounces", str(e).removeprefix("bounces: "))
+    return bounces, tolerance
+
+
+__all__ = [
+    "ILLUMINATION_KINDS",
+    "ConfigError",
+    "MediumConfig",
+    "SimulationConfig",
+    "load_simulation_config",
+    "load_yaml",
+    "parse_simulation_config",
+]

@@ -1,0 +1,526 @@
+"""Image and file I/O: captures in, renders and reports out.
+
+Reading: :func:`read_image` loads OpenEXR, TIFF (8/16-bit, float), PNG (8/16-bit) and
+``.npy`` files into an ``(height, width, channels)`` float array in the image frame of
+MODEL.md section 1 (row 0 at the top). Integer samples are scaled to [0, 1] by their
+type's maximum (255 or 65535); float samples are kept as they are. The source sample
+type is reported, so a caller can tell a saturated 8-bit pixel from a bright HDR one.
+
+Writing: every writer is atomic. It writes a temporary file in the target's directory
+and renames it over the target with :func:`os.replace`, so a reader (or a crash) never
+sees a half-written file. :func:`atomic_directory` does the same for a command that
+writes several files into one folder: nothing appears in the folder unless the whole
+command succeeds.
+
+OpenImageIO is imported inside the functions that need it, so ``import lightfield_jax``
+does not load it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import errno
+import json
+import os
+import secrets
+import shutil
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+IMAGE_EXTENSIONS: tuple[str, ...] = (".exr", ".tif", ".tiff", ".png", ".npy")
+# The attribute in which write_exr records the channel order: OpenEXR stores channels
+# sorted by name (I1, I10, I2, ...), and OpenImageIO moves R, G, B, A to the front.
+_CHANNEL_ORDER_ATTR = "lightfield_jax:channels"
+# Default channel names by channel count, as OpenImageIO names them.
+_DEFAULT_NAMES = ("R", "G", "B", "A")
+
+
+class CaptureError(ValueError):
+    """An input image or file that cannot be used; the message names the file."""
+
+
+class CaptureFileNotFoundError(CaptureError, FileNotFoundError):
+    """An input file that does not exist."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ImageData:
+    """An image read by :func:`read_image`.
+
+    Attributes:
+        pixels: float array (height, width, channels); float32, or float64 when the
+            source holds doubles. Integer sources are scaled to [0, 1].
+        channel_names: one name per channel (e.g. ``("R", "G", "B")``, ``("I1", "I2")``).
+        bit_depth: bits per sample in the source (8, 16, 32, 64; 12 for a 12-bit file).
+        path: the file read.
+        sample_type: the source's sample type: ``"uint8"``, ``"uint16"``, ``"half"``,
+            ``"float"`` or ``"double"`` (others as OpenImageIO or numpy name them).
+    """
+
+    pixels: np.ndarray
+    channel_names: tuple[str, ...]
+    bit_depth: int
+    path: Path
+    sample_type: str = "float"
+
+    def __repr__(self) -> str:
+        return (
+            f"ImageData(shape={self.pixels.shape}, dtype={self.pixels.dtype}, "
+            f"channel_names={self.channel_names}, bit_depth={self.bit_depth}, "
+            f"sample_type={self.sample_type!r}, path={str(self.path)!r})"
+        )
+
+    @property
+    def is_integer(self) -> bool:
+        """True when the source stored integer samples (scaled here to [0, 1])."""
+        return self.sample_type.startswith(("uint", "int"))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.pixels.shape
+
+    def channel(self, name: str) -> np.ndarray:
+        """The (height, width) plane of the channel called ``name``."""
+        return self.pixels[..., _channel_index(self.channel_names, name, self.path)]
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_image(
+    path: str | os.PathLike,
+    channel: str | int | Sequence[str | int] | None = None,
+    *,
+    n_channels: int | None = None,
+) -> ImageData:
+    """Read an image as (height, width, channels) floats.
+
+    Args:
+        path: an ``.exr``, ``.tif``/``.tiff``, ``.png`` or ``.npy`` file. A ``.npy``
+            array is (height, width) or (height, width, channels); uint8/uint16 arrays
+            are scaled like image files, float arrays kept.
+        channel: keep only this channel (a name or an index) or these channels, in the
+            order given; ``None`` keeps all.
+        n_channels: when given, the number of channels the caller expects (after the
+            selection); anything else is an error.
+
+    Raises:
+        CaptureFileNotFoundError: the file does not exist.
+        CaptureError: unsupported extension, unreadable file, unknown channel, or an
+            unexpected channel count. Every message names the file.
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if not path.exists():
+        raise CaptureFileNotFoundError(f"{path}: file not found")
+    if path.is_dir():
+        raise CaptureError(f"{path}: is a directory, not an image file")
+    if ext not in IMAGE_EXTENSIONS:
+        raise CaptureError(
+            f"{path}: unsupported image extension {path.suffix!r}; "
+            f"supported: {', '.join(IMAGE_EXTENSIONS)}"
+        )
+    image = _read_npy(path) if ext == ".npy" else _read_oiio(path)
+    if channel is not None:
+        wanted = [channel] if isinstance(channel, (str, int, np.integer)) else list(channel)
+        index = [_channel_index(image.channel_names, c, path) for c in wanted]
+        image = dataclasses.replace(
+            image,
+            pixels=np.ascontiguousarray(image.pixels[..., index]),
+            channel_names=tuple(image.channel_names[i] for i in index),
+        )
+    if n_channels is not None and image.pixels.shape[-1] != n_channels:
+        raise CaptureError(
+            f"{path}: expected {n_channels} channel(s), found {image.pixels.shape[-1]} "
+            f"({', '.join(image.channel_names)})"
+        )
+    return image
+
+
+def _channel_index(names: Sequence[str], channel: str | int, path: Path) -> int:
+    if isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
+        if not 0 <= channel < len(names):
+            raise CaptureError(
+                f"{path}: channel index {channel} out of range for {len(names)} channel(s)"
+            )
+        return int(channel)
+    if channel not in names:
+        raise CaptureError(f"{path}: no channel named {channel!r}; channels: {', '.join(names)}")
+    return list(names).index(channel)
+
+
+def _default_names(n: int) -> tuple[str, ...]:
+    if n == 1:
+        return ("Y",)
+    return tuple(_DEFAULT_NAMES[i] if i < 4 else f"channel{i}" for i in range(n))
+
+
+def _read_npy(path: Path) -> ImageData:
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3:
+        raise CaptureError(
+            f"{path}: expected a (height, width) or (height, width, channels) array, "
+            f"got shape {a.shape}"
+        )
+    if a.dtype in (np.uint8, np.uint16):
+        pixels = a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
+    elif a.dtype in (np.float16, np.float32):
+        pixels = a.astype(np.float32)
+    elif a.dtype == np.float64:
+        pixels = a
+    else:
+        raise CaptureError(
+            f"{path}: unsupported array dtype {a.dtype}; expected uint8, uint16, "
+            "float16, float32 or float64"
+        )
+    sample_type = {"float16": "half", "float32": "float", "float64": "double"}.get(
+        a.dtype.name, a.dtype.name
+    )
+    return ImageData(
+        pixels=np.ascontiguousarray(pixels),
+        channel_names=_default_names(a.shape[-1]),
+        bit_depth=a.dtype.itemsize * 8,
+        path=path,
+        sample_type=sample_type,
+    )
+
+
+def _read_oiio(path: Path) -> ImageData:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
+    try:
+        spec = inp.spec()
+        if spec.deep or spec.depth > 1:
+            raise CaptureError(f"{path}: deep and volume images are not supported")
+        if (spec.x, spec.y, spec.width, spec.height) != (
+            spec.full_x,
+            spec.full_y,
+            spec.full_width,
+            spec.full_height,
+        ):
+            raise CaptureError(
+                f"{path}: the data window ({spec.x}, {spec.y}, {spec.width}x{spec.height}) "
+                f"differs from the display window ({spec.full_x}, {spec.full_y}, "
+                f"{spec.full_width}x{spec.full_height}); crop or pad the image first"
+            )
+        base = spec.format.basetype
+        # Reading with an explicit type; OpenImageIO scales integers to [0, 1].
+        fmt = oiio.DOUBLE if base == oiio.DOUBLE else oiio.FLOAT
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if pixels is None:
+            raise CaptureError(f"{path}: cannot read pixels ({inp.geterror() or oiio.geterror()})")
+        bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
+        sample_type = str(spec.format)
+        names = tuple(spec.channelnames)
+        order = spec.get_string_attribute(_CHANNEL_ORDER_ATTR, "")
+    finally:
+        inp.close()
+    pixels = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
+    stored = tuple(order.split(",")) if order else ()
+    if sorted(stored) == sorted(names):
+        pixels = pixels[..., [names.index(n) for n in stored]]
+        names = stored
+    return ImageData(
+        pixels=np.ascontiguousarray(pixels),
+        channel_names=names,
+        bit_depth=int(bits),
+        path=path,
+        sample_type=sample_type,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_exr(
+    path: str | os.PathLike,
+    channels: Mapping[str, np.ndarray],
+    *,
+    metadata: Mapping[str, str | int | float] | None = None,
+) -> Path:
+    """Write a float32 OpenEXR file with named channels (atomically).
+
+    Args:
+        path: the ``.exr`` file.
+        channels: channel name → (height, width) array, e.g. ``{"I1": i1, "I2": i2}``.
+            The order is recorded, and :func:`read_image` returns channels in it.
+        metadata: extra header attributes (string, int or float values).
+    """
+    path = Path(path)
+    if not channels:
+        raise ValueError(f"{path}: write_exr needs at least one channel")
+    names = list(channels)
+    for name in names:
+        if not isinstance(name, str) or not name or "," in name:
+            raise ValueError(f"{path}: channel names must be non-empty strings without ','")
+    planes = [np.asarray(channels[n]) for n in names]
+    shape = planes[0].shape
+    for name, plane in zip(names, planes, strict=True):
+        if plane.ndim != 2 or plane.shape != shape:
+            raise ValueError(
+                f"{path}: channel {name!r} has shape {plane.shape}; every channel must be "
+                f"a 2-D array of the same shape (first is {shape})"
+            )
+    pixels = np.stack(planes, axis=-1).astype(np.float32)
+    attrs = {"compression": "zip", **(metadata or {}), _CHANNEL_ORDER_ATTR: ",".join(names)}
+    _write_oiio(path, pixels, "float", names, attrs)
+    return path
+
+
+def write_png(path: str | os.PathLike, array: np.ndarray, bits: int = 8) -> Path:
+    """Write an 8- or 16-bit PNG (atomically).
+
+    ``array`` is (height, width) or (height, width, 1–4 channels). Float arrays must lie
+    in [0, 1] and are scaled to the integer range (rounded); integer arrays are written
+    as codes and must fit in ``bits``; boolean arrays map to 0 and the maximum.
+    """
+    if bits not in (8, 16):
+        raise ValueError(f"write_png: bits must be 8 or 16, got {bits!r}")
+    pixels = _to_hwc(path, array)
+    if not 1 <= pixels.shape[-1] <= 4:
+        raise ValueError(f"{path}: a PNG holds 1 to 4 channels, got {pixels.shape[-1]}")
+    return _write_oiio(Path(path), _quantize(path, pixels, bits), f"uint{bits}", None, {})
+
+
+def write_tiff(path: str | os.PathLike, array: np.ndarray, bits: int = 16) -> Path:
+    """Write a 16-bit integer or 32-bit float TIFF (atomically).
+
+    ``bits=16`` quantises like :func:`write_png`; ``bits=32`` writes float32 values as
+    they are. ``array`` is (height, width) or (height, width, channels).
+    """
+    if bits not in (16, 32):
+        raise ValueError(f"write_tiff: bits must be 16 or 32, got {bits!r}")
+    pixels = _to_hwc(path, array)
+    if bits == 16:
+        data, fmt = _quantize(path, pixels, 16), "uint16"
+    else:
+        data, fmt = pixels.astype(np.float32), "float"
+    return _write_oiio(Path(path), data, fmt, None, {"compression": "zip"})
+
+
+def _to_hwc(path, array) -> np.ndarray:
+    a = np.asarray(array)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or 0 in a.shape:
+        raise ValueError(
+            f"{path}: expected a (height, width) or (height, width, channels) array, "
+            f"got shape {np.shape(array)}"
+        )
+    return a
+
+
+def _quantize(path, a: np.ndarray, bits: int) -> np.ndarray:
+    top = (1 << bits) - 1
+    dtype = np.uint8 if bits == 8 else np.uint16
+    if a.dtype == bool:
+        return np.where(a, top, 0).astype(dtype)
+    if np.issubdtype(a.dtype, np.integer):
+        if a.min() < 0 or a.max() > top:
+            raise ValueError(
+                f"{path}: integer codes must lie in [0, {top}] for {bits}-bit output, "
+                f"got [{a.min()}, {a.max()}]"
+            )
+        return a.astype(dtype)
+    if not np.all(np.isfinite(a)) or a.min() < 0.0 or a.max() > 1.0:
+        raise ValueError(
+            f"{path}: float values must be finite and lie in [0, 1] for {bits}-bit output, "
+            f"got [{a.min()}, {a.max()}]"
+        )
+    return np.rint(a * top).astype(dtype)
+
+
+def _write_oiio(
+    path: Path,
+    pixels: np.ndarray,
+    fmt: str,
+    names: Sequence[str] | None,
+    attrs: Mapping[str, str | int | float],
+) -> Path:
+    import OpenImageIO as oiio
+
+    pixels = np.ascontiguousarray(pixels)  # (H, W, C): a 2-D array is written wrongly
+    height, width, n = pixels.shape
+    spec = oiio.ImageSpec(width, height, n, getattr(oiio, fmt.upper()))
+    if names is not None:
+        spec.channelnames = tuple(names)
+    for key, value in attrs.items():
+        spec.attribute(key, value)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise OSError(f"{path}: cannot create an image writer ({oiio.geterror()})")
+        try:
+            if not out.open(str(tmp), spec):
+                raise OSError(f"{path}: cannot open for writing ({out.geterror()})")
+            if not out.write_image(pixels):
+                raise OSError(f"{path}: write failed ({out.geterror()})")
+        finally:
+            out.close()
+    return path
+
+
+# --------------------------------------------------------------------------- atomic files
+
+
+def _reserve(path: Path, make) -> Path:
+    """Create a uniquely named sibling of ``path`` (hidden, same extension) with ``make``."""
+    stem = path.name[:200]
+    for _ in range(100):
+        candidate = path.with_name(f".{stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
+        try:
+            make(candidate)
+        except FileExistsError:
+            continue
+        return candidate
+    raise FileExistsError(f"{path}: could not create a temporary name beside it")
+
+
+def _make_file(p: Path) -> None:
+    # Mode 0o666 lets the umask decide permissions, as for any new file.
+    os.close(os.open(p, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+
+
+def _fsync(p: Path) -> None:
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success it replaces ``path``.
+
+    Write the file's content to the yielded path (any writer: numpy, OpenImageIO,
+    matplotlib; the temporary keeps the extension). When the block raises, the
+    temporary is removed and ``path`` is left as it was. Parent folders are created.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"{path}: is a directory")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _reserve(path, _make_file)
+    try:
+        yield tmp
+        _fsync(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str, encoding: str = "utf-8") -> Path:
+    """Write ``text`` to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode(encoding))
+
+
+def _json_default(obj: Any):
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    raise TypeError(f"Object of type {type(obj).__name__} is not JSON serializable")
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
+    """Write ``obj`` as JSON atomically (numpy scalars and arrays, paths allowed).
+
+    Strict JSON: NaN and infinity are refused (``ValueError``); write ``None`` for a
+    missing value.
+    """
+    text = json.dumps(obj, indent=indent, allow_nan=False, default=_json_default)
+    return atomic_write_text(path, text + "\n")
+
+
+def atomic_write_npy(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """Save ``array`` as ``.npy`` atomically (no pickled objects)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, np.asarray(array), allow_pickle=False)
+    return Path(path)
+
+
+@contextlib.contextmanager
+def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
+    """Stage a folder's output; publish it into ``path`` only when the block succeeds.
+
+    Yields a hidden staging folder beside ``path``: write every output file there.
+    On success, a ``path`` that did not exist (or was empty) becomes the staging folder
+    in one rename; an existing ``path`` receives the staged files one ``os.replace``
+    each, so files it held that the block did not write are kept. On an exception the
+    staging folder is deleted and ``path`` is untouched.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(f"{path}: exists and is not a directory")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stage = _reserve(path, lambda p: os.mkdir(p, 0o777))
+    try:
+        yield stage
+        _publish(stage, path)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+def _publish(stage: Path, path: Path) -> None:
+    if not path.is_symlink():
+        try:
+            os.rename(stage, path)  # replaces a missing or empty folder atomically
+            return
+        except OSError as e:
+            if e.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+    moves = []
+    for root, _dirs, files in os.walk(stage):
+        rel = Path(root).relative_to(stage)
+        target_dir = path / rel
+        if target_dir.exists() and not target_dir.is_dir():
+            raise NotADirectoryError(f"{target_dir}: exists and is not a directory")
+        for name in files:
+            if (target_dir / name).is_dir():
+                raise IsADirectoryError(f"{target_dir / name}: is a directory")
+            moves.append((Path(root) / name, target_dir / name))
+    for src, dst in moves:
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(src, dst)
+
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "CaptureError",
+    "CaptureFileNotFoundError",
+    "ImageData",
+    "atomic_directory",
+    "atomic_path",
+    "atomic_write_bytes",
+    "atomic_write_json",
+    "atomic_write_npy",
+    "atomic_write_text",
+    "read_image",
+    "write_exr",
+    "write_png",
+    "write_tiff",
+]
