@@ -5,11 +5,19 @@ Media" (CVPR 2010) in JAX. Pipeline: medium & grid → illumination → render
 (bounce propagator) → separate → fit → report.
 """
 
+from ._capture import Capture as Capture
+from ._capture import CaptureWarning as CaptureWarning
+from ._capture import load_capture as load_capture
+from ._capture import write_capture_yaml as write_capture_yaml
+from ._config import ConfigError as ConfigError
+from ._config import SimulationConfig as SimulationConfig
+from ._config import load_simulation_config as load_simulation_config
 from ._grid import Grid as Grid
 from ._grid import default_n_theta as default_n_theta
 from ._illumination import Beam as Beam
 from ._illumination import Full as Full
 from ._illumination import Stripes as Stripes
+from ._io import CaptureError as CaptureError
 from ._medium import Medium as Medium
 from ._medium import bounces_for_tolerance as bounces_for_tolerance
 from ._medium import phase_function as phase_function
@@ -19,5 +27,7 @@ from ._render import Renderer as Renderer
 from ._render import RenderResult as RenderResult
 from ._render import render as render
 from ._render import single_scatter_closed_form as single_scatter_closed_form
+from ._simulate import SimulatedCapture as SimulatedCapture
+from ._simulate import simulate_capture as simulate_capture
 
 __version__ = "0.1.0"

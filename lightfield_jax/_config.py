@@ -11,6 +11,23 @@ The ``simulate`` config (lengths in pixels, coefficients per pixel, angles in de
     bounces: 10          # or auto (the default)
     tolerance: 1e-4      # only with bounces: auto
 
+Optional keys (all absent by default):
+
+- ``grid.refine``: spatial refinement of the working grid, an integer in [1, 8]
+  (absent: chosen from g, see :class:`Grid`).
+- ``gain: 1.0``: the source gain c > 0 (projector power × camera response) that
+  multiplies every rendered image and light field.
+- ``noise: {photons: 1e4, read: 0.002, seed: 0}``: camera noise on the captured images
+  (``total.exr``, ``shift_XX.exr``, ``dark.exr``; never on the per-bounce renders).
+  ``photons`` > 0 is the expected photon count at image value 1.0 (Poisson shot noise:
+  image = Poisson(photons·image)/photons); ``read`` ≥ 0 is the standard deviation of
+  Gaussian read noise in image units; ``seed`` ≥ 0 seeds the generator (default 0).
+  At least one of ``photons`` and ``read`` must be given.
+- ``black_level: 0.05`` (stripes only), in [0, 1): a dark stripe still emits b times
+  a lit one, so a shift's image is (1 − b)·R_pattern + b·R_full (MODEL.md section 5).
+- ``dark_level: 0.01`` ≥ 0: a constant (image units) added to every captured image; a
+  dark frame with that constant (plus noise) is written as ``dark.exr``.
+
 Every error is a :class:`ConfigError` whose message starts with the file name, then
 the key's path (``medium.sigma_t``) and the offending value. Unknown keys, duplicate
 keys, wrong types and out-of-range values are all errors. Float keys accept numeric
@@ -29,6 +46,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 
 from ._grid import Grid
@@ -36,8 +54,19 @@ from ._illumination import WALLS, Beam, Full, Illumination, Stripes
 from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
-_TOP_KEYS = ("grid", "medium", "illumination", "bounces", "tolerance")
-_GRID_KEYS = ("width", "height", "n_theta")
+_TOP_KEYS = (
+    "grid",
+    "medium",
+    "illumination",
+    "bounces",
+    "tolerance",
+    "gain",
+    "noise",
+    "black_level",
+    "dark_level",
+)
+_GRID_KEYS = ("width", "height", "n_theta", "refine")
+_NOISE_KEYS = ("photons", "read", "seed")
 _MEDIUM_KEYS = ("sigma_t", "sigma_s", "g", "phase")
 _ILLUMINATION_KEYS = {
     "beam": ("kind", "x", "y", "direction_deg", "width"),
@@ -77,23 +106,22 @@ _Loader.add_implicit_resolver(
 )
 
 
-def load_yaml(path: str | os.PathLike) -> dict:
-    """Parse a YAML file whose top level is a mapping; errors are :class:`ConfigError`."""
+def load_yaml(path: str | os.PathLike, error: type[ValueError] = ConfigError) -> dict:
+    """Parse a YAML file whose top level is a mapping; errors are ``error`` (a
+    :class:`ConfigError` unless the caller reads another kind of file)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise ConfigError(f"{path}: file not found") from None
+        raise error(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{path}: cannot read ({e})") from None
+        raise error(f"{path}: cannot read ({e})") from None
     try:
         data = yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+        raise error(f"{path}: invalid YAML: {e}") from None
     if not isinstance(data, dict):
-        raise ConfigError(
-            f"{path}: the top level must be a mapping of keys, got {type(data).__name__}"
-        )
+        raise error(f"{path}: the top level must be a mapping of keys, got {type(data).__name__}")
     return data
 
 
@@ -101,7 +129,10 @@ def load_yaml(path: str | os.PathLike) -> dict:
 
 
 class _Section:
-    """One mapping of a config, at a key path, checked against its allowed keys."""
+    """One mapping of a config, at a key path, checked against its allowed keys.
+
+    Failures raise ``error`` (:class:`ConfigError` unless the file is of another kind,
+    e.g. a capture file's ``CaptureError``)."""
 
     def __init__(
         self,
@@ -110,9 +141,11 @@ class _Section:
         value: Any,
         allowed: tuple[str, ...] | None,
         label: str = "",
+        error: type[ValueError] = ConfigError,
     ):
         self.source = source
         self.path = path
+        self.error = error
         if not isinstance(value, Mapping):
             self.fail(path, f"must be a mapping of keys, got {_show(value)}")
         self.data = dict(value)
@@ -130,8 +163,12 @@ class _Section:
     def key(self, name: str) -> str:
         return f"{self.path}.{name}" if self.path else name
 
+    def section(self, name: str, allowed: tuple[str, ...] | None, label: str = "") -> _Section:
+        """The mapping under key ``name`` (required), checked against ``allowed``."""
+        return _Section(self.source, self.key(name), self.get(name), allowed, label, self.error)
+
     def fail(self, where: str, message: str):
-        raise ConfigError(f"{self.source}: {where}: {message}")
+        raise self.error(f"{self.source}: {where}: {message}")
 
     def get(self, name: str, default: Any = _REQUIRED) -> Any:
         if name not in self.data:
@@ -207,6 +244,31 @@ class MediumConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class NoiseConfig:
+    """Camera noise on captured images (see the module docstring).
+
+    Attributes:
+        photons: expected photon count at image value 1.0 (Poisson shot noise), or
+            ``None`` for no shot noise.
+        read: standard deviation of Gaussian read noise, image units (≥ 0).
+        seed: seed of the noise generator.
+    """
+
+    photons: float | None = None
+    read: float = 0.0
+    seed: int = 0
+
+    def apply(self, image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """``image`` (image units, ≥ 0) with shot and read noise drawn from ``rng``."""
+        out = np.asarray(image, dtype=np.float64)
+        if self.photons is not None:
+            out = rng.poisson(np.clip(out, 0.0, None) * self.photons) / self.photons
+        if self.read > 0:
+            out = out + rng.normal(0.0, self.read, out.shape)
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
 class SimulationConfig:
     """A validated ``simulate`` config.
 
@@ -216,6 +278,10 @@ class SimulationConfig:
         illumination: a :class:`Beam`, :class:`Stripes` or :class:`Full`.
         bounces: K, or ``"auto"`` (the smallest K whose tail bound is ≤ tolerance).
         tolerance: the relative tail bound for ``bounces: auto``.
+        gain: source gain c multiplying every rendered image (> 0).
+        noise: camera noise on the captured images, or ``None``.
+        black_level: stripes only: b in [0, 1), or ``None`` (no black level).
+        dark_level: constant added to every captured image, or ``None`` (no dark frame).
         source: the file (or ``"<dict>"``) the config came from.
         raw: the parsed YAML, for metadata.
     """
@@ -225,6 +291,10 @@ class SimulationConfig:
     illumination: Illumination
     bounces: int | Literal["auto"] = "auto"
     tolerance: float = 1e-4
+    gain: float = 1.0
+    noise: NoiseConfig | None = None
+    black_level: float | None = None
+    dark_level: float | None = None
     source: str = "<dict>"
     raw: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
@@ -253,6 +323,7 @@ def parse_simulation_config(data: Mapping, source: str = "<dict>") -> Simulation
         illumination=illumination,
         bounces=bounces,
         tolerance=tolerance,
+        **_camera(top, illumination),
         source=source,
         raw=copy.deepcopy(dict(data)),
     )
@@ -267,7 +338,9 @@ def _build(section: _Section, make, *args, **kwargs):
 
 
 def _grid(s: _Section) -> Grid:
-    return _build(s, Grid, s.int("width"), s.int("height"), s.int("n_theta", None))
+    return _build(
+        s, Grid, s.int("width"), s.int("height"), s.int("n_theta", None), s.int("refine", None)
+    )
 
 
 def _medium(s: _Section) -> MediumConfig:
@@ -316,6 +389,38 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     )
 
 
+def _camera(top: _Section, illumination: Illumination) -> dict:
+    """The optional gain, noise, black-level and dark-level keys."""
+    gain = top.float("gain", 1.0)
+    if gain <= 0:
+        top.fail("gain", f"must be > 0, got {gain!r}")
+    noise = None
+    if "noise" in top.data:
+        s = top.section("noise", _NOISE_KEYS)
+        if not s.data:
+            s.fail("noise", "give photons and/or read")
+        photons = s.float("photons", None)
+        if photons is not None and photons <= 0:
+            s.fail(s.key("photons"), f"must be > 0, got {photons!r}")
+        read = s.float("read", 0.0)
+        if read < 0:
+            s.fail(s.key("read"), f"must be >= 0 (image units), got {read!r}")
+        seed = s.int("seed", 0)
+        if seed < 0:
+            s.fail(s.key("seed"), f"must be a non-negative integer, got {seed!r}")
+        noise = NoiseConfig(photons, read, seed)
+    black_level = top.float("black_level", None)
+    if black_level is not None:
+        if not isinstance(illumination, Stripes):
+            top.fail("black_level", "applies only to illumination kind stripes")
+        if not 0.0 <= black_level < 1.0:
+            top.fail("black_level", f"must lie in [0, 1), got {black_level!r}")
+    dark_level = top.float("dark_level", None)
+    if dark_level is not None and dark_level < 0:
+        top.fail("dark_level", f"must be >= 0 (image units), got {dark_level!r}")
+    return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
+
+
 def _bounces(top: _Section, medium: MediumConfig) -> tuple[int | str, float]:
     bounces = top.get("bounces", "auto")
     if bounces != "auto":
@@ -341,6 +446,7 @@ __all__ = [
     "ILLUMINATION_KINDS",
     "ConfigError",
     "MediumConfig",
+    "NoiseConfig",
     "SimulationConfig",
     "load_simulation_config",
     "load_yaml",

@@ -159,18 +159,15 @@ def _default_names(n: int) -> tuple[str, ...]:
     return tuple(_DEFAULT_NAMES[i] if i < 4 else f"channel{i}" for i in range(n))
 
 
-def _read_npy(path: Path) -> ImageData:
+def _load_npy(path: Path) -> np.ndarray:
     try:
-        a = np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
         raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
-    if a.ndim == 2:
-        a = a[..., None]
-    if a.ndim != 3:
-        raise CaptureError(
-            f"{path}: expected a (height, width) or (height, width, channels) array, "
-            f"got shape {a.shape}"
-        )
+
+
+def _npy_image(a: np.ndarray, path: Path) -> ImageData:
+    """An (..., height, width, channels) array as image data (integers scaled to [0, 1])."""
     if a.dtype in (np.uint8, np.uint16):
         pixels = a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
     elif a.dtype in (np.float16, np.float32):
@@ -192,6 +189,39 @@ def _read_npy(path: Path) -> ImageData:
         path=path,
         sample_type=sample_type,
     )
+
+
+def _read_npy(path: Path) -> ImageData:
+    a = _load_npy(path)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3:
+        raise CaptureError(
+            f"{path}: expected a (height, width) or (height, width, channels) array, "
+            f"got shape {a.shape}"
+        )
+    return _npy_image(a, path)
+
+
+def read_npy_stack(path: str | os.PathLike) -> list[ImageData]:
+    """Read a ``.npy`` stack of images, (images, height, width) or (images, height,
+    width, channels), as one :class:`ImageData` per image (scaled like
+    :func:`read_image`)."""
+    path = Path(path)
+    if not path.exists():
+        raise CaptureFileNotFoundError(f"{path}: file not found")
+    if path.suffix.lower() != ".npy":
+        raise CaptureError(f"{path}: an image stack must be a .npy file")
+    a = _load_npy(path)
+    if a.ndim == 3:
+        a = a[..., None]
+    if a.ndim != 4 or 0 in a.shape:
+        raise CaptureError(
+            f"{path}: expected an (images, height, width) or (images, height, width, "
+            f"channels) stack, got shape {a.shape}"
+        )
+    stack = _npy_image(a, path)
+    return [dataclasses.replace(stack, pixels=frame) for frame in stack.pixels]
 
 
 def _read_oiio(path: Path) -> ImageData:
@@ -520,6 +550,7 @@ __all__ = [
     "atomic_write_npy",
     "atomic_write_text",
     "read_image",
+    "read_npy_stack",
     "write_exr",
     "write_png",
     "write_tiff",

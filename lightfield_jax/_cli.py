@@ -1,0 +1,315 @@
+"""The ``lightfield-jax`` command line.
+
+Each subcommand is one function decorated with :func:`command`, which registers its
+name, one-line help and arguments; its docstring is the command's ``--help`` text. The
+function receives the parsed arguments (with the common options ``quiet``, ``debug``
+and a ``warnings`` list of the warnings issued so far) and returns an exit status
+(``None`` for 0). Adding a subcommand is that one function::
+
+    @command("inspect", "summarise a capture file", arg("capture", metavar="CAPTURE.yaml"))
+    def _inspect(args: argparse.Namespace) -> int | None:
+        \"\"\"Print what a capture holds.\"\"\"
+        ...
+
+Conventions every command keeps:
+
+- Errors in the user's input (a bad config or capture, a missing file, an invalid
+  value: the :data:`USER_ERRORS`) print one line, ``lightfield-jax: error: ...``, on
+  stderr and exit with status 2, without a traceback (``--debug`` shows it). Command
+  line syntax errors exit 2 the same way.
+- Validate every input before the long work starts; write output folders through
+  :func:`~lightfield_jax._io.atomic_directory` (single files through the ``atomic_*``
+  writers), so a failure leaves no partial output.
+- Warnings print as ``lightfield-jax: warning: ...`` and are collected in
+  ``args.warnings`` (e.g. for a metadata file).
+- Long work reports its stages through :func:`_progress`: a display on stderr that
+  appears when stderr is a terminal and the work takes more than two seconds.
+- Results and summaries go to stdout (silenced by ``--quiet``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+from ._progress import progress
+
+PROG = "lightfield-jax"
+USER_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError,  # ConfigError, CaptureError and every validation error are ValueErrors
+    FileNotFoundError,
+    NotADirectoryError,
+    IsADirectoryError,
+    PermissionError,
+)
+
+Handler = Callable[[argparse.Namespace], "int | None"]
+_COMMANDS: dict[str, tuple[str, tuple, Handler]] = {}
+
+
+def arg(*flags: str, **options: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
+    """One argument of a subcommand, as :meth:`argparse.ArgumentParser.add_argument`
+    takes it."""
+    return flags, options
+
+
+def command(name: str, help: str, *arguments: tuple[tuple[str, ...], dict[str, Any]]):
+    """Register the decorated function as subcommand ``name`` (see the module docstring)."""
+
+    def register(handler: Handler) -> Handler:
+        if name in _COMMANDS:
+            raise ValueError(f"subcommand {name!r} is registered twice")
+        _COMMANDS[name] = (help, arguments, handler)
+        return handler
+
+    return register
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose syntax errors are one line on stderr, status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The parser of every registered subcommand."""
+    from . import __version__
+
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress display and no summary"
+    )
+    common.add_argument(
+        "--debug", action="store_true", help="show a traceback for errors in the input"
+    )
+    parser = _Parser(
+        prog=PROG,
+        description="Light transport in thin scattering media (Mukaigawa, Raskar & Yagi, "
+        "CVPR 2010): simulate, separate and fit.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (help_text, arguments, handler) in _COMMANDS.items():
+        p = sub.add_parser(
+            name,
+            help=help_text,
+            description=handler.__doc__,
+            parents=[common],
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        for flags, options in arguments:
+            p.add_argument(*flags, **options)
+        p.set_defaults(handler=handler)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit status (0 success, 2 bad input)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help, --version, syntax errors
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    args.warnings = []
+    try:
+        with _warnings_to_stderr(args.warnings):
+            status = args.handler(args)
+    except USER_ERRORS as e:
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    return 0 if status is None else int(status)
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _describe(error: BaseException) -> str:
+    if isinstance(error, OSError) and error.filename is not None and error.strerror:
+        return _one_line(f"{error.filename}: {error.strerror}")
+    return _one_line(str(error)) or type(error).__name__
+
+
+@contextlib.contextmanager
+def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
+    """Show the package's warnings as one line each on stderr, every time, and collect
+    them; other warnings keep the filters in force."""
+    from ._capture import CaptureWarning
+    from ._render import DivergentSeriesWarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = _one_line(str(message))
+        collected.append(text)
+        print(f"{PROG}: warning: {text}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        for category in (DivergentSeriesWarning, CaptureWarning):
+            warnings.simplefilter("always", category)
+        warnings.showwarning = show
+        yield
+
+
+def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
+    """The stage display of a command (off with ``--quiet``)."""
+    return progress(desc, total, enabled=False if args.quiet else None)
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text)
+
+
+def _writable_folder(path: str) -> Path:
+    """``path`` as an output folder: refused early when a file is in the way."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: exists and is not a directory")
+    return folder
+
+
+def _writable_file(path: str) -> Path:
+    file = Path(path)
+    if file.is_dir():
+        raise IsADirectoryError(f"{file}: is a directory, expected a file name")
+    return file
+
+
+# --------------------------------------------------------------------------- simulate
+
+
+@command(
+    "simulate",
+    "render a config into per-bounce and captured images",
+    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax._config)"),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--lightfield",
+        action="store_true",
+        help="also write lightfield.npy, L_0..L_K (memory: (K+1)*P*H*W*n_theta floats)",
+    ),
+)
+def _simulate(args: argparse.Namespace) -> None:
+    """Render a simulate config and write into DIR:
+
+      bounces.npy     float32 per-bounce images [K, H, W] (index k-1 holds I_k);
+                      stripes: [P, K, H, W], one row per phase
+      bounces.exr     channels I1..IK (beam, full)
+      bounces_XX.exr  channels I1..IK of shift XX (stripes)
+      total.exr       channel Y: the captured image, sum of the bounces (beam, full)
+      shift_XX.exr    channel Y: the captured image of shift XX (stripes)
+      capture.yaml    the shifts as a capture file, input of the inverse pipeline
+                      (stripes)
+      dark.exr        channel Y: dark frame (when the config has dark_level)
+      lightfield.npy  with --lightfield: float32 [K+1, H, W, n_theta], L_0..L_K in
+                      radiance per radian; stripes: [P, K+1, H, W, n_theta]
+      metadata.json   config, K, rho, convergence, n_theta, refine, timings, versions
+
+    Per-bounce images and light fields include the gain and (stripes) the black level;
+    captured images add the dark level and noise. Nothing is written unless the whole
+    command succeeds.
+    """
+    from ._config import load_simulation_config
+    from ._io import atomic_directory
+    from ._simulate import simulate_capture, write_simulation
+
+    config = load_simulation_config(args.config)
+    out = _writable_folder(args.out)
+    with _progress(args, "simulate") as stage:
+        sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
+        stage("write files")
+        with atomic_directory(out) as staging:
+            files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
+    converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
+    _say(
+        args,
+        f"wrote {len(files)} files to {out}: K = {sim.n_bounces} bounces, rho = {sim.rho:.4f} "
+        f"({converges}), n_theta = {sim.n_theta}, refine = {sim.refine}; "
+        f"compile {sim.timing['compile']:.2f} s, run {sim.timing['run']:.2f} s",
+    )
+
+
+# --------------------------------------------------------------------------- bench
+
+
+def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
+    """``64x64x32,128x128x64`` → ((64, 64, 32), (128, 128, 64)), validated as grids."""
+    from ._grid import Grid
+
+    sizes = []
+    for item in text.split(","):
+        parts = item.strip().lower().split("x")
+        try:
+            size = tuple(int(p) for p in parts)
+        except ValueError:
+            size = ()
+        if len(size) != 3:
+            raise argparse.ArgumentTypeError(
+                f"{item.strip()!r} is not WIDTHxHEIGHTxN_THETA (e.g. 64x64x32)"
+            )
+        try:
+            Grid(*size)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{item.strip()!r}: {e}") from None
+        sizes.append(size)
+    return tuple(sizes)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+@command(
+    "bench",
+    "time the forward model on a few grid sizes",
+    arg(
+        "--sizes",
+        type=_grid_sizes,
+        default="64x64x32,128x128x64,256x256x128",
+        metavar="WxHxN,...",
+        help="grid sizes WIDTHxHEIGHTxN_THETA (default: %(default)s)",
+    ),
+    arg("--repeats", type=_positive_int, default=5, help="timed runs per measurement"),
+    arg("--out", default="bench.json", metavar="FILE", help="JSON results (default: %(default)s)"),
+)
+def _bench(args: argparse.Namespace) -> None:
+    """Measure compile time, time per bounce, gradient time and peak memory of the
+    forward model (a single beam, float32) for each grid size, print a line per size
+    and write all numbers to a JSON file. Asserts nothing."""
+    from ._bench import run_benchmark
+    from ._io import atomic_write_json
+
+    out = _writable_file(args.out)
+    sizes = args.sizes
+    with _progress(args, "bench", len(sizes)) as stage:
+        names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])
+        stage(f"{sizes[0][0]}x{sizes[0][1]}x{sizes[0][2]}")
+
+        def report(line: str) -> None:
+            _say(args, line)
+            following = next(names, None)
+            if following is not None:
+                stage(following)
+
+        result = run_benchmark(sizes, args.repeats, progress=report)
+    atomic_write_json(out, result)
+    _say(args, f"wrote {out}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

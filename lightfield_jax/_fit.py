@@ -1,0 +1,723 @@
+"""The inverse problem (MODEL.md sections 5-6): recover σt, σs, g (and the gain) from a
+stripe capture.
+
+Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
+
+- ``grid`` (the paper's baseline): σt from the decay of the separated direct image D;
+  per g on a grid, render I_k^{(g)} with σs = 1 under full illumination (``lax.map``
+  over g), take the gain from the single scatter (D ≈ a·I_1^{(g)}, a = c·σs), solve the
+  σs polynomial of the paper's eq. 10, M ≈ a·Σ_{k≥2} σs^{k−1} I_k^{(g)}, and keep the
+  best g. It inherits the separation's bias (MODEL.md §6): that is its honest result.
+- ``gradient``: the same residual and model, solved with optimistix Levenberg-Marquardt
+  over (σs, g), differentiated through the renderer.
+- ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
+  capture does not give it) fitted straight to the raw shifted images by rendering each
+  stripe pattern, so no separation bias remains. Starts from the ``gradient`` result.
+
+Every result carries 1σ uncertainties from the Jacobian (noise estimated from the
+residual), correlations, the solver's convergence status (never swallowed), iterations,
+residual, wall time split into compile and run, and the model used.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._decay import fit_decay
+from ._grid import Grid, default_n_theta, default_refine
+from ._illumination import Full, Stripes
+from ._medium import bounces_for_tolerance, phase_function, phase_integral
+from ._render import Renderer
+from ._separate import separate
+
+METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
+_PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Settings of a fit (all optional).
+
+    Attributes:
+        method: ``joint`` (default), ``gradient`` or ``grid``.
+        phase: phase convention of the model (``paper`` or ``normalized``).
+        bounces: K, or ``"auto"`` from the tail bound at the starting estimate.
+        tolerance: relative tail tolerance for ``bounces: auto``.
+        max_bounces: cap on ``auto`` (the paper series near ρ = 1 needs many).
+        n_theta: direction bins, or ``None`` to choose them from the starting g.
+        refine: spatial refinement, or ``None`` to choose it from the starting g.
+        g_grid: number of g values of the ``grid`` method's search on (−0.95, 0.95).
+        start_grid: number of g values of the coarse search that starts ``gradient``.
+        max_cells: cap on the model's working size (W·H·n_theta·refine²): the
+            refinement, then n_theta, are lowered to fit it.
+        crop: crop the model along the propagation direction to where the signal is
+            above ``crop_fraction`` of its peak.
+        crop_fraction: see ``crop``.
+        max_steps: iteration limit of the optimistix solves.
+        rtol, atol: solver tolerances (relative, absolute on the unconstrained values).
+    """
+
+    method: str = "joint"
+    phase: str = "paper"
+    bounces: int | str = "auto"
+    tolerance: float = 1e-4
+    max_bounces: int = 60
+    n_theta: int | None = None
+    refine: int | None = None
+    g_grid: int = 39
+    start_grid: int = 9
+    max_cells: int = 2_000_000
+    crop: bool = True
+    crop_fraction: float = 1e-4
+    max_steps: int = 100
+    rtol: float = 1e-7
+    atol: float = 1e-9
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.g_grid < 3:
+            raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """What a fit recovered, and how much to trust it.
+
+    Values are per pixel (σ's), the gain in image units per unit source irradiance.
+    ``uncertainty`` holds 1σ errors (NaN where not estimated), ``correlation`` the
+    correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
+    """
+
+    method: str
+    sigma_t: float
+    sigma_s: float
+    g: float
+    gain: float
+    black_level: float | None
+    uncertainty: dict
+    correlation: dict
+    converged: bool
+    message: str
+    iterations: int
+    residual: float
+    seconds: dict
+    model: dict
+    phase: str = "paper"
+    pixel_size_mm: float | None = None
+    condition_number: float = math.nan
+
+    @property
+    def sigma_a(self) -> float:
+        return self.sigma_t - self.sigma_s
+
+    @property
+    def albedo(self) -> float:
+        return self.sigma_s / self.sigma_t
+
+    @property
+    def rho(self) -> float:
+        a = float(phase_integral(self.g)) if self.phase == "paper" else 1.0
+        return self.albedo * a
+
+    def to_dict(self) -> dict:
+        """The ``results.json`` form (MODEL.md units: per pixel; also mm⁻¹ if known)."""
+        unc = dict(self.uncertainty)
+        if "sigma_a" not in unc:
+            unc["sigma_a"] = _combine(unc, self.correlation, "sigma_t", "sigma_s", -1.0)
+        if "albedo" not in unc:
+            unc["albedo"] = _albedo_error(self, unc)
+        out = {
+            "method": self.method,
+            "sigma_t": self.sigma_t,
+            "sigma_s": self.sigma_s,
+            "sigma_a": self.sigma_a,
+            "g": self.g,
+            "albedo": self.albedo,
+            "gain": self.gain,
+            "black_level": self.black_level,
+            "rho": self.rho,
+            "phase": self.phase,
+            "uncertainty": {k: _json_float(v) for k, v in unc.items()},
+            "correlation": {k: _json_float(v) for k, v in self.correlation.items()},
+            "condition_number": _json_float(self.condition_number),
+            "converged": self.converged,
+            "message": self.message,
+            "iterations": self.iterations,
+            "residual": self.residual,
+            "seconds": self.seconds,
+            "model": self.model,
+        }
+        if self.pixel_size_mm:
+            mm = self.pixel_size_mm
+            out["per_mm"] = {
+                "pixel_size_mm": mm,
+                "sigma_t": self.sigma_t / mm,
+                "sigma_s": self.sigma_s / mm,
+                "sigma_a": self.sigma_a / mm,
+                "uncertainty": {
+                    k: _json_float(unc[k] / mm) for k in ("sigma_t", "sigma_s", "sigma_a")
+                },
+            }
+        return out
+
+
+def _json_float(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _combine(unc, corr, a, b, sign):
+    ua, ub = unc.get(a, math.nan), unc.get(b, math.nan)
+    r = corr.get(f"{a},{b}", corr.get(f"{b},{a}", 0.0))
+    return math.sqrt(max(ua**2 + ub**2 + 2 * sign * r * ua * ub, 0.0))
+
+
+def _albedo_error(res: FitResult, unc) -> float:
+    ut, us = unc.get("sigma_t", math.nan), unc.get("sigma_s", math.nan)
+    if math.isnan(ut):
+        ut = 0.0
+    r = res.correlation.get("sigma_t,sigma_s", 0.0)
+    w = res.albedo
+    rel2 = (us / res.sigma_s) ** 2 + (ut / res.sigma_t) ** 2
+    rel2 -= 2 * r * (us / res.sigma_s) * (ut / res.sigma_t)
+    return w * math.sqrt(max(rel2, 0.0))
+
+
+# ---------------------------------------------------------------------------- model size
+
+
+@dataclasses.dataclass(frozen=True)
+class _Model:
+    grid: Grid
+    bounces: int
+    crop: tuple[int, int, int, int]  # x0, y0, x1, y1 inside the image
+    converges: bool
+
+    def as_dict(self) -> dict:
+        return {
+            "width": self.grid.width,
+            "height": self.grid.height,
+            "n_theta": self.grid.n_theta,
+            "refine": self.grid.refine,
+            "bounces": self.bounces,
+            "crop": list(self.crop),
+            "series_converges": self.converges,
+        }
+
+
+def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple[int, ...]:
+    """Crop along the propagation direction to where Imax stays above ``fraction`` of its
+    peak (beyond it the signal is below what a capture resolves). The entry wall stays."""
+    p, h, w = images.shape
+    profile_img = np.nanmax(images, axis=0)
+    along_x = pattern.entry in ("left", "right")
+    prof = np.nanmax(profile_img, axis=0 if along_x else 1)
+    peak = np.nanmax(prof)
+    keep = np.flatnonzero(prof >= fraction * peak)
+    n = w if along_x else h
+    minimum = min(n, 16)
+    if pattern.entry in ("left", "top"):
+        end = max(int(keep.max()) + 1 if keep.size else n, minimum)
+        lo, hi = 0, min(n, end)
+    else:
+        start = min(int(keep.min()) if keep.size else 0, n - minimum)
+        lo, hi = max(0, start), n
+    return (lo, 0, hi, h) if along_x else (0, lo, w, hi)
+
+
+def size_model(
+    images: np.ndarray,
+    pattern: Stripes,
+    albedo: float,
+    g: float,
+    options: FitOptions,
+) -> _Model:
+    """The smallest model the capture needs: bounces from the tail bound at the starting
+    estimate (with margin), θ bins and refinement from g, crop from the signal."""
+    p, h, w = images.shape
+    crop = _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
+    gw = min(0.99, abs(g) + 0.1)
+    n_theta = options.n_theta or default_n_theta(gw)
+    refine = options.refine or default_refine(abs(g))
+    width, height = crop[2] - crop[0], crop[3] - crop[1]
+    while width * height * n_theta * refine**2 > options.max_cells:
+        if refine > 1 and options.refine is None:
+            refine -= 1
+        elif n_theta > 32 and options.n_theta is None:
+            n_theta //= 2
+        else:
+            break
+    grid = Grid(width, height, n_theta, refine)
+    a = float(phase_integral(gw)) if options.phase == "paper" else 1.0
+    rho = min(1.0, albedo * 1.15 + 0.02) * a
+    converges = rho < 1.0
+    if isinstance(options.bounces, int):
+        k = options.bounces
+    elif converges:
+        k = min(bounces_for_tolerance(rho, options.tolerance), options.max_bounces)
+    else:
+        k = options.max_bounces
+    return _Model(grid=grid, bounces=max(k, 2), crop=crop, converges=converges)
+
+
+# ---------------------------------------------------------------------- shared pieces
+
+
+def _masked_dot(a, b, mask):
+    return jnp.sum(jnp.where(mask, a * b, 0.0))
+
+
+def _covariance(jac: np.ndarray, residual: np.ndarray, names: list[str]):
+    """1σ errors and correlations: cov = s²(JᵀJ)⁻¹, s² = ‖r‖²/(n − p)."""
+    n, p = jac.shape
+    jtj = jac.T @ jac
+    try:
+        cond = float(np.linalg.cond(jtj))
+        inv = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        return {k: math.inf for k in names}, {}, math.inf
+    s2 = float(residual @ residual) / max(n - p, 1)
+    cov = s2 * inv
+    err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    unc = {k: float(e) for k, e in zip(names, err, strict=True)}
+    corr = {}
+    for i in range(p):
+        for j in range(i + 1, p):
+            d = err[i] * err[j]
+            corr[f"{names[i]},{names[j]}"] = float(cov[i, j] / d) if d > 0 else math.nan
+    return unc, corr, cond
+
+
+def _with_column_jacobian(fn):
+    """``fn(y)`` whose JVP materialises the Jacobian one column at a time (``lax.map``
+    over the unit vectors, forward mode).
+
+    optimistix linearises the residual with ``jax.linearize``, which keeps every
+    intermediate of the forward pass (every bounce of every pattern): tens of GB for a
+    long bounce series. With few parameters, p forward-mode passes are cheaper than that
+    and keep nothing but the n×p Jacobian.
+    """
+
+    @jax.custom_jvp
+    def wrapped(y):
+        return fn(y)
+
+    @wrapped.defjvp
+    def _jvp(primals, tangents):
+        (y,), (ty,) = primals, tangents
+        basis = jnp.eye(y.shape[0], dtype=y.dtype)
+        columns = jax.lax.map(lambda e: jax.jvp(fn, (y,), (e,))[1], basis)
+        return fn(y), columns.T @ ty
+
+    return wrapped
+
+
+def _timed_compile(fn, *args):
+    """AOT-compile ``fn`` for ``args``: (compiled, seconds)."""
+    t = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    return compiled, time.perf_counter() - t
+
+
+def _result_message(result) -> tuple[bool, str]:
+    ok = bool(result == optx.RESULTS.successful)
+    if ok:
+        return True, "converged"
+    return False, str(optx.RESULTS[result]) if hasattr(optx.RESULTS, "__getitem__") else "failed"
+
+
+def _logit(x):
+    return math.log(x / (1.0 - x))
+
+
+# ------------------------------------------------------------------- data preparation
+
+
+@dataclasses.dataclass
+class _Data:
+    images: np.ndarray  # (P, h, w), cropped, dark-subtracted
+    mask: np.ndarray  # (h, w) valid in every shift
+    direct: np.ndarray
+    multiple: np.ndarray
+    sigma_t0: float
+    sigma_t0_err: float
+    decay_converged: bool
+
+
+def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation):
+    sep = separate(
+        jnp.asarray(images),
+        lit_fraction=pattern.lit_fraction,
+        black_level=0.0 if black_level is None else float(black_level),
+    )
+    direct = np.asarray(sep.direct)
+    decay = fit_decay(
+        direct,
+        direction_deg=pattern.direction_deg,
+        entry=pattern.entry,
+        mask=jnp.asarray(mask),
+        saturation=saturation,
+    )
+    return direct, np.asarray(sep.multiple), decay
+
+
+# ------------------------------------------------------------------ grid and gradient
+
+
+def _full_for(pattern: Stripes) -> Full:
+    return Full(direction_deg=pattern.direction_deg, entry=pattern.entry)
+
+
+def _poly_fit_sigma_s(d, m, i1, ik, mask, sigma_t, n_grid: int = 2001):
+    """The paper's eq. 10 for one g: gain from the single scatter, then
+    σs* = argmin_{0≤σs≤σt} ‖M − a Σ_{k≥2} σs^{k−1} I_k‖² (exact polynomial minimisation:
+    dense evaluation, then Newton on the derivative). Returns (σs*, a, residual²)."""
+    a = _masked_dot(d, i1, mask) / _masked_dot(i1, i1, mask)
+    kk = ik.shape[0]
+    gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
+    mk = jnp.einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
+    mm = _masked_dot(m, m, mask)
+    powers = jnp.arange(1, kk + 1)
+
+    def cost(s):
+        sp = s ** powers
+        return mm - 2 * a * sp @ mk + a**2 * sp @ gram @ sp
+
+    grid = jnp.linspace(0.0, 1.0, n_grid) * sigma_t
+    costs = jax.vmap(cost)(grid)
+    s = grid[jnp.argmin(costs)]
+    d1 = jax.grad(cost)
+    d2 = jax.grad(d1)
+    for _ in range(6):
+        s = jnp.clip(s - d1(s) / jnp.where(d2(s) > 0, d2(s), jnp.inf), 0.0, sigma_t)
+    return s, a, cost(s)
+
+
+def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
+    """The paper's two-step problem after σt: ``grid`` searches g on a grid; ``gradient``
+    searches a coarse grid, then solves (σs, g) with Levenberg-Marquardt. One compiled
+    function (search, solve and the Jacobian for the uncertainties)."""
+    renderer = Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+    dtype = jnp.result_type(float)
+    d = jnp.asarray(data.direct, dtype)
+    m = jnp.asarray(data.multiple, dtype)
+    mask = jnp.asarray(data.mask)
+    # Residuals in units of the data's RMS, so solver tolerances mean the same for any
+    # exposure.
+    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
+    n_g = options.g_grid if method == "grid" else options.start_grid
+    gs = jnp.linspace(-0.95, 0.95, n_g, dtype=dtype)
+
+    def run(renderer, sigma_t, d, m, mask, gs):
+        def per_g(g):
+            images = renderer(sigma_t, 1.0, g)[0][0]
+            return _poly_fit_sigma_s(d, m, images[0], images[1:], mask, sigma_t)
+
+        def residual(p):  # p = (σs, g)
+            images = renderer(sigma_t, 1.0, p[1])[0][0]
+            a = _masked_dot(d, images[0], mask) / _masked_dot(images[0], images[0], mask)
+            kk = images.shape[0] - 1
+            model = a * jnp.einsum("k,khw->hw", p[0] ** jnp.arange(1, kk + 1), images[1:])
+            return jnp.where(mask, (m - model) / scale, 0.0).reshape(-1), a
+
+        s_all, a_all, cost = jax.lax.map(per_g, gs)
+        best = jnp.argmin(cost)
+        s, g = s_all[best], gs[best]
+        if method == "grid":
+            p = jnp.stack([s, g])
+            r, a = residual(p)
+            jac = jax.jacfwd(_with_column_jacobian(lambda q: residual(q)[0]))(p)
+            return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(n_g)
+
+        frac = jnp.clip(s / sigma_t, 1e-3, 1 - 1e-3)
+        y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g, -0.95, 0.95))])
+
+        def unpack(y):
+            return jnp.stack([sigma_t * jax.nn.sigmoid(y[0]), jnp.tanh(y[1])])
+
+        fn = _with_column_jacobian(lambda y: residual(unpack(y))[0])
+        solver = optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol)
+        sol = optx.least_squares(
+            lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
+        )
+        s, g = unpack(sol.value)
+        # The Jacobian at the accepted point, from the solver's state (no second
+        # compilation of the renderer's derivative), mapped to (σs, g).
+        info = sol.state.f_info
+        sig = jax.nn.sigmoid(sol.value[0])
+        jac = info.jac.as_matrix() / jnp.stack([sigma_t * sig * (1 - sig), 1 - g**2])
+        # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
+        a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
+        return s, g, a, info.residual, jac, sol.result, sol.stats["num_steps"]
+
+    compiled, t_compile = _timed_compile(run, renderer, sigma_t, d, m, mask, gs)
+    s, g, a, r, jac, result, steps = compiled(renderer, jnp.asarray(sigma_t, dtype), d, m, mask, gs)
+    r = np.asarray(r)
+    unc, corr, cond = _covariance(np.asarray(jac), r, ["sigma_s", "g"])
+    rms = scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1)))
+    s, g = float(s), float(g)
+    gain = float(a) / s if s > 0 else math.inf
+    ok, msg = _result_message(result)
+    if method == "grid":
+        msg = f"grid search over {n_g} values of g"
+    return s, g, gain, rms, unc, corr, cond, ok, msg, int(steps), t_compile
+
+
+# ---------------------------------------------------------------------------- joint
+
+
+def _joint_parts(pattern: Stripes, model: _Model, options: FitOptions):
+    renderer = Renderer(model.grid, pattern, model.bounces, options.phase)
+    all_phases = sorted(set(pattern.phases)) == list(range(pattern.period))
+    full = None if all_phases else Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+    return renderer, full
+
+
+def _joint_model(renderer, full, lit: int, sigma_t, sigma_s, g, black):
+    """Σ_k I_k of every pattern at unit gain, with the projector's black level b:
+    (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
+    r = jnp.sum(renderer(sigma_t, sigma_s, g)[0], axis=1)  # (P, h, w)
+    r_full = jnp.sum(r, axis=0) / lit if full is None else jnp.sum(full(sigma_t, sigma_s, g)[0][0], 0)
+    return (1.0 - black) * r + black * r_full[None]
+
+
+def _unpack(y, fit_black: bool, black_fixed):
+    sigma_t = jnp.exp(y[0])
+    sigma_s = sigma_t * jax.nn.sigmoid(y[1])
+    g = jnp.tanh(y[2])
+    black = -0.2 + 1.2 * jax.nn.sigmoid(y[3]) if fit_black else black_fixed
+    return sigma_t, sigma_s, g, black
+
+
+def _joint_weights(images, mask):
+    floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
+    w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
+    return np.where(mask[None], w, 0.0)
+
+
+def _joint_solve(data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black):
+    renderer, full = _joint_parts(pattern, model, options)
+    obs = jnp.asarray(data.images)
+    weights = jnp.asarray(_joint_weights(data.images, data.mask))
+    fit_black = black is None
+    st0, ss0, g0, b0 = start
+    frac = min(max(ss0 / st0, 1e-3), 1 - 1e-3)
+    y0 = [math.log(st0), _logit(frac), math.atanh(max(min(g0, 0.95), -0.95))]
+    if fit_black:
+        y0.append(_logit((min(max(b0, -0.15), 0.95) + 0.2) / 1.2))
+    y0 = jnp.asarray(y0, obs.dtype)
+    black_fixed = 0.0 if black is None else float(black)
+    lit = pattern.lit
+
+    def solve(renderer, full, obs, weights, y0):
+        def residual(y):
+            st, ss, g, b = _unpack(y, fit_black, black_fixed)
+            r = _joint_model(renderer, full, lit, st, ss, g, b)
+            wr = weights * r
+            gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
+            return (weights * (gain * r - obs)).reshape(-1)
+
+        fn = _with_column_jacobian(residual)
+        solver = optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol)
+        sol = optx.least_squares(
+            lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
+        )
+        return sol.value, sol.result, sol.stats["num_steps"]
+
+    compiled, t_compile = _timed_compile(solve, renderer, full, obs, weights, y0)
+    t = time.perf_counter()
+    y, result, steps = jax.block_until_ready(compiled(renderer, full, obs, weights, y0))
+    t_run = time.perf_counter() - t
+    st, ss, g, b = (float(v) for v in _unpack(y, fit_black, black_fixed))
+
+    # Uncertainties in physical parameters (gain included) from the full Jacobian.
+    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if fit_black else [])
+    r_unit = _joint_model(renderer, full, lit, st, ss, g, b)
+    wr = weights * r_unit
+    gain = float(jnp.sum(wr * weights * obs) / jnp.sum(wr * wr))
+
+    def phys_residual(p):
+        bb = p[4] if fit_black else black_fixed
+        r = _joint_model(renderer, full, lit, p[0], p[1], p[2], bb)
+        return (weights * (p[3] * r - obs)).reshape(-1)
+
+    p = jnp.asarray([st, ss, g, gain] + ([b] if fit_black else []), obs.dtype)
+    t = time.perf_counter()
+    jac_fn = jax.jit(lambda p: (jax.jacfwd(_with_column_jacobian(phys_residual))(p), phys_residual(p)))
+    jac, res = (np.asarray(a) for a in jac_fn(p))
+    t_unc = time.perf_counter() - t
+    unc, corr, cond = _covariance(jac, res, names)
+    n = int(np.sum(data.mask)) * obs.shape[0]
+    rms = float(np.sqrt(np.sum(res**2) / max(n, 1)))
+    return {
+        "sigma_t": st, "sigma_s": ss, "g": g, "gain": gain,
+        "black_level": b if fit_black else black_fixed,
+        "result": result, "steps": int(steps), "compile": t_compile, "run": t_run + t_unc,
+        "unc": unc, "corr": corr, "cond": cond, "rms": rms,
+    }
+
+
+# ------------------------------------------------------------------------- driver
+
+
+def fit_images(
+    images,
+    pattern: Stripes,
+    *,
+    mask=None,
+    black_level: float | None = None,
+    saturation: float | None = None,
+    pixel_size_mm: float | None = None,
+    options: FitOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    **overrides,
+) -> FitResult:
+    """Fit one channel of a stripe capture.
+
+    Args:
+        images: the shifted images, ``(shifts, height, width)``, dark frame already
+            subtracted, cropped to the medium (its edges are the walls).
+        pattern: the stripes that lit them (one phase per image).
+        mask: ``True`` where a pixel is valid (finite, unsaturated) in every shift.
+        black_level: the projector's dark-stripe level relative to a lit stripe, or
+            ``None`` (unknown: ``joint`` estimates it, the two-step methods assume 0).
+        saturation: value at or above which pixels are clipped (excluded).
+        pixel_size_mm: to report coefficients in mm⁻¹ as well.
+        options: :class:`FitOptions`; keyword ``overrides`` replace its fields.
+        progress: called with a short description of each stage.
+    """
+    options = dataclasses.replace(options or FitOptions(), **overrides)
+    say = progress or (lambda _msg: None)
+    t_start = time.perf_counter()
+    images = np.asarray(images, dtype=jnp.result_type(float))
+    if images.ndim != 3 or images.shape[0] != pattern.n_patterns:
+        raise ValueError(
+            f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
+            f"phases, got shape {images.shape}"
+        )
+    finite = np.all(np.isfinite(images), axis=0)
+    mask = finite if mask is None else (np.asarray(mask, bool) & finite)
+    images = np.where(mask[None], images, 0.0)
+
+    say("separating direct and multiple scattering")
+    direct, multiple, decay = _separate_and_decay(images, mask, pattern, black_level, saturation)
+    sigma_t0 = float(decay.sigma_t)
+    if not math.isfinite(sigma_t0) or sigma_t0 <= 0:
+        raise ValueError(f"the direct image's decay gives no usable sigma_t ({sigma_t0!r})")
+
+    # A first model for the two-step estimate. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ)
+    # sizes the bounces (with margin: the separation biases M low).
+    ratio = float(np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30))
+    rho0 = min(max(ratio, 0.0) / (1.0 + max(ratio, 0.0)) * 1.5 + 0.05, 0.95)
+    model = size_model(images, pattern, albedo=rho0, g=0.0, options=options)
+    x0, y0, x1, y1 = model.crop
+    data = _Data(
+        images=images[:, y0:y1, x0:x1],
+        mask=mask[y0:y1, x0:x1],
+        direct=direct[y0:y1, x0:x1],
+        multiple=multiple[y0:y1, x0:x1],
+        sigma_t0=sigma_t0,
+        sigma_t0_err=float(decay.sigma_t_stderr),
+        decay_converged=bool(decay.converged),
+    )
+    seconds = {"compile": 0.0, "run": 0.0}
+    two_step_unc = {"sigma_t": data.sigma_t0_err}
+
+    if options.method in ("grid", "gradient"):
+        name = options.method
+        say(f"{name}: search over g" + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else ""))
+        s, g, gain, rms, unc, corr, cond, ok, msg, steps, tc = _two_step(
+            data, pattern, model, options, sigma_t0, name
+        )
+        seconds["compile"] += tc
+        if not data.decay_converged:
+            ok, msg = False, "the decay fit of sigma_t did not converge"
+        iterations = options.g_grid if name == "grid" else steps
+        return _finish(
+            options, name, sigma_t0, s, g, gain, black_level, {**two_step_unc, **unc}, corr,
+            ok, msg, iterations, rms, seconds, model, pixel_size_mm, cond, t_start,
+        )
+
+    say(f"two-step start: search over {options.start_grid} values of g, then (sigma_s, g)")
+    s, g, *_ignored, tc = _two_step(data, pattern, model, options, sigma_t0, "gradient")
+    seconds["compile"] += tc
+
+    # Joint, in two stages: a coarse model (32 θ bins, native grid) from the two-step
+    # estimate, then the model the stage-1 estimate needs, polished from there.
+    b0 = 0.0 if black_level is None else black_level
+    start = (sigma_t0, s, g, b0)
+    coarse = dataclasses.replace(options, n_theta=options.n_theta or 32, refine=options.refine or 1)
+    stages = [("coarse", coarse), ("final", options)]
+    total_steps = 0
+    prev_model = None
+    for name, opts in stages:
+        albedo = min(start[1] / start[0] * (2.0 if name == "coarse" else 1.0), 0.98)
+        model = size_model(images, pattern, albedo=albedo, g=start[2], options=opts)
+        if prev_model is not None and _covers(prev_model, model):
+            break  # the coarse model is already as large as the estimate needs
+        x0, y0, x1, y1 = model.crop
+        data.images = images[:, y0:y1, x0:x1]
+        data.mask = mask[y0:y1, x0:x1]
+        say(
+            f"joint fit ({name} model {model.grid.width}x{model.grid.height}, "
+            f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces)"
+        )
+        out = _joint_solve(data, pattern, model, opts, start, black_level)
+        seconds["compile"] += out["compile"]
+        seconds["run"] += out["run"]
+        total_steps += out["steps"]
+        say(f"  {name}: {out['steps']} steps, {out['compile']:.1f} s compile, {out['run']:.1f} s run")
+        start = (out["sigma_t"], out["sigma_s"], out["g"], out["black_level"])
+        prev_model = model
+    ok, msg = _result_message(out["result"])
+    return _finish(
+        options, "joint", out["sigma_t"], out["sigma_s"], out["g"], out["gain"],
+        out["black_level"], out["unc"], out["corr"], ok, msg, total_steps, out["rms"],
+        seconds, prev_model, pixel_size_mm, out["cond"], t_start,
+    )
+
+
+def _covers(have: _Model, need: _Model) -> bool:
+    return (
+        have.crop == need.crop
+        and have.bounces >= need.bounces
+        and have.grid.n_theta >= need.grid.n_theta
+        and have.grid.refine >= need.grid.refine
+    )
+
+
+def _finish(options, method, st, ss, g, gain, black, unc, corr, ok, msg, iters, rms, seconds,
+            model, pixel_size_mm, cond, t_start) -> FitResult:
+    seconds = dict(seconds)
+    seconds["total"] = time.perf_counter() - t_start
+    # Everything that is not XLA compilation counts as run time.
+    seconds["run"] = seconds["total"] - seconds["compile"]
+    unc = {k: unc.get(k, math.nan) for k in _PARAMS if k in unc or k != "black_level"}
+    return FitResult(
+        method=method,
+        sigma_t=float(st),
+        sigma_s=float(ss),
+        g=float(g),
+        gain=float(gain),
+        black_level=None if black is None else float(black),
+        uncertainty=unc,
+        correlation=corr,
+        converged=bool(ok),
+        message=msg,
+        iterations=int(iters),
+        residual=float(rms),
+        seconds=seconds,
+        model=model.as_dict(),
+        phase=options.phase,
+        pixel_size_mm=pixel_size_mm,
+        condition_number=float(cond),
+    )

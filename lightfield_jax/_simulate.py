@@ -1,0 +1,314 @@
+"""Simulated captures: render a ``simulate`` config as a camera would record it.
+
+:func:`simulate_capture` renders the per-bounce images of a config and turns them into
+captured images: gain c, the projector's black level b (stripes), the camera's dark
+level and noise (see :mod:`lightfield_jax._config` for the keys).
+:func:`write_simulation` writes the result into a folder (the ``simulate`` command).
+
+Per-bounce images are noise-free and exclude the dark level; they include the gain
+and, for stripes, the black level, so for every pattern Σ_k I_k is the captured image
+before dark level and noise. With black level b a shift's image is
+(1 − b)·R_pattern + b·R_full (MODEL.md section 5), where R_full, the render under full
+illumination, is Σ_shifts R_pattern / lit when the phases are 0..period−1 (each row is
+then lit in exactly ``lit`` shifts), and is rendered separately otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import importlib.metadata
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._config import SimulationConfig, load_simulation_config
+from ._illumination import Full, Stripes
+from ._progress import Stage, quiet
+from ._render import RenderResult, render
+from ._timing import stopwatch
+
+_VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "numpy", "lightfield_jax")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SimulatedCapture:
+    """A rendered capture. Arrays are float32 numpy arrays in the image frame.
+
+    Attributes:
+        config: the simulation config.
+        bounces: per-bounce images, index k−1 holds I_k: [K, H, W], or [P, K, H, W] for
+            stripes (one row per phase). Gain and black level included; no dark level,
+            no noise.
+        images: the captured images: [H, W] (beam, full), or [P, H, W] for stripes:
+            Σ_k I_k + dark level, with noise.
+        dark: the dark frame (dark level with noise) [H, W], or ``None`` without a
+            ``dark_level``.
+        lightfields: L_0..L_K, radiance per radian, gain and black level included:
+            [K+1, H, W, n_theta], or [P, K+1, H, W, n_theta] for stripes; ``None``
+            unless requested.
+        n_bounces: K.
+        rho: ω·A(g) (``paper``) or ω (``normalized``).
+        converges: whether the bounce series converges (ρ < 1).
+        n_theta: direction bins used.
+        refine: spatial refinement used.
+        full_illumination: for stripes with a black level, how R_full was obtained
+            (``"sum of shifts / lit"`` or ``"rendered"``), else ``None``.
+        timing: seconds: ``compile`` (tracing and XLA compilation), ``run`` (the
+            rest), ``total``.
+    """
+
+    config: SimulationConfig
+    bounces: np.ndarray
+    images: np.ndarray
+    dark: np.ndarray | None
+    lightfields: np.ndarray | None
+    n_bounces: int
+    rho: float
+    converges: bool
+    n_theta: int
+    refine: int
+    full_illumination: str | None
+    timing: dict[str, float]
+
+    @property
+    def is_stripes(self) -> bool:
+        return isinstance(self.config.illumination, Stripes)
+
+    def truth(self) -> dict[str, Any]:
+        """The true parameters, as a capture file's ``truth`` key holds them."""
+        m = self.config.medium
+        truth = {"sigma_t": m.sigma_t, "sigma_s": m.sigma_s, "g": m.g, "gain": self.config.gain}
+        truth["phase"] = m.phase
+        if self.config.black_level is not None:
+            truth["black_level"] = self.config.black_level
+        return truth
+
+    def metadata(self) -> dict[str, Any]:
+        """What was simulated, how, with which software, and when (JSON-ready)."""
+        c = self.config
+        return {
+            "config_file": c.source,
+            "config": c.raw,
+            "illumination": type(c.illumination).__name__.lower(),
+            "bounces": self.n_bounces,
+            "rho": self.rho,
+            "converges": self.converges,
+            "n_theta": self.n_theta,
+            "refine": self.refine,
+            "gain": c.gain,
+            "black_level": c.black_level,
+            "dark_level": c.dark_level,
+            "noise": None if c.noise is None else dataclasses.asdict(c.noise),
+            "full_illumination": self.full_illumination,
+            "timings": {f"{k}_s": v for k, v in self.timing.items()},
+            "versions": _versions(),
+            "device": _device(),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        }
+
+
+def _versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in _VERSIONED:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def _device() -> str:
+    import jax
+
+    return str(jax.devices()[0])
+
+
+def _full_from_shifts(stripes: Stripes) -> bool:
+    """Whether Σ over the shifts is exactly ``lit`` times full illumination."""
+    return sorted(p % stripes.period for p in stripes.phases) == list(range(stripes.period))
+
+
+def _render(config: SimulationConfig, illumination, k: int, lightfield: bool) -> RenderResult:
+    return render(
+        config.medium.medium(),
+        config.grid,
+        illumination,
+        k,
+        gain=config.gain,
+        lightfield=lightfield,
+    )
+
+
+def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: Stage):
+    """(1 − b)·R_pattern + b·R_full for the per-bounce images and light fields; returns
+    them and how R_full was obtained."""
+    illum, b = config.illumination, config.black_level
+    if _full_from_shifts(illum):
+        how = "sum of shifts / lit"
+        full = bounces.sum(axis=0) / illum.lit
+        full_field = None if fields is None else fields.sum(axis=0) / illum.lit
+    else:
+        how = "rendered"
+        stage("render full illumination (black level)")
+        result = _render(config, Full(illum.direction_deg, illum.entry), k, fields is not None)
+        full = np.asarray(result.images, dtype=np.float64)
+        full_field = None if fields is None else np.asarray(result.lightfields)
+    bounces = (1.0 - b) * bounces + b * full[None]
+    if fields is not None:
+        fields = ((1.0 - b) * fields + b * full_field[None]).astype(np.float32)
+    return bounces, fields, how
+
+
+def simulate_capture(
+    config: SimulationConfig | str | os.PathLike,
+    *,
+    lightfield: bool = False,
+    stage: Stage = quiet,
+) -> SimulatedCapture:
+    """Render a config as a captured data set (see the module docstring).
+
+    Args:
+        config: a :class:`SimulationConfig`, or the path of a ``simulate`` YAML file.
+        lightfield: also keep the light fields L_0..L_K (memory: (K+1)·P·H·W·n_theta
+            floats).
+        stage: progress callback, called with the name of each stage as it starts.
+
+    Raises:
+        ConfigError: an invalid config file.
+        ValueError: an invalid config object.
+
+    A :class:`~lightfield_jax.DivergentSeriesWarning` is issued when the bounce series
+    of the ``paper`` convention diverges (an explicit bounce count is then a reported
+    truncation, ``converges`` is ``False``).
+    """
+    if not isinstance(config, SimulationConfig):
+        config = load_simulation_config(config)
+    illum = config.illumination
+    k = config.n_bounces()
+    stripes = isinstance(illum, Stripes)
+    with stopwatch() as timing:
+        stage(f"render {type(illum).__name__.lower()} ({k} bounces)")
+        result = _render(config, illum, k, lightfield)
+        bounces = np.asarray(result.images, dtype=np.float64)
+        fields = None
+        if lightfield:
+            fields = np.asarray(result.lightfields, dtype=np.float32)
+            if stripes:  # render gives [K+1, P, ...]: pattern-major here
+                fields = np.moveaxis(fields, 1, 0)
+        full_how = None
+        if stripes and config.black_level:
+            bounces, fields, full_how = _add_black_level(config, k, bounces, fields, stage)
+        stage("camera")
+        images, dark = _camera(config, bounces.sum(axis=-3))
+    return SimulatedCapture(
+        config=config,
+        bounces=bounces.astype(np.float32),
+        images=images,
+        dark=dark,
+        lightfields=fields,
+        n_bounces=k,
+        rho=float(result.rho),
+        converges=result.converges,
+        n_theta=result.n_theta,
+        refine=result.refine,
+        full_illumination=full_how,
+        timing={"compile": timing.compile, "run": timing.run, "total": timing.total},
+    )
+
+
+def _camera(config: SimulationConfig, totals: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Captured images and dark frame: dark level added, then noise (seeded)."""
+    dark_level = config.dark_level or 0.0
+    images = totals + dark_level
+    dark = None if config.dark_level is None else np.full(totals.shape[-2:], dark_level)
+    if config.noise is not None:
+        rng = np.random.default_rng(config.noise.seed)
+        images = config.noise.apply(images, rng)
+        if dark is not None:
+            dark = config.noise.apply(dark, rng)
+    return images.astype(np.float32), None if dark is None else dark.astype(np.float32)
+
+
+# --------------------------------------------------------------------------- files
+
+
+def shift_names(n: int, stem: str) -> list[str]:
+    """``stem_00.exr``, ``stem_01.exr``, ... (two digits, more when n > 100)."""
+    width = max(2, len(str(n - 1)))
+    return [f"{stem}_{i:0{width}d}.exr" for i in range(n)]
+
+
+def _bounce_channels(bounces: np.ndarray) -> dict[str, np.ndarray]:
+    return {f"I{k + 1}": plane for k, plane in enumerate(bounces)}
+
+
+def write_simulation(
+    sim: SimulatedCapture, folder: str | os.PathLike, *, extra_metadata: dict | None = None
+) -> dict[str, str]:
+    """Write a simulated capture's files into ``folder`` (which must exist).
+
+    Not atomic by itself: callers stage the folder with
+    :func:`~lightfield_jax._io.atomic_directory`. Returns file name → description (also
+    recorded in ``metadata.json``). The files:
+
+    - ``bounces.npy``: float32 per-bounce images, [K, H, W] (index k−1 holds I_k), or
+      [P, K, H, W] for stripes.
+    - beam/full: ``bounces.exr`` (channels I1..IK), ``total.exr`` (channel ``Y``: the
+      captured image Σ_k I_k + dark level, with noise).
+    - stripes: per shift p, ``bounces_XX.exr`` (channels I1..IK) and ``shift_XX.exr``
+      (channel ``Y``, the captured image), and ``capture.yaml`` (the capture format of
+      :mod:`lightfield_jax._capture`, the inverse pipeline's input).
+    - ``dark.exr`` (channel ``Y``) when the config has a ``dark_level``.
+    - ``lightfield.npy`` when light fields were rendered: float32 [K+1, H, W, n_theta]
+      (L_0..L_K, radiance per radian), or [P, K+1, H, W, n_theta] for stripes.
+    - ``metadata.json``: :meth:`SimulatedCapture.metadata`, the file list and
+      ``extra_metadata``.
+    """
+    from ._capture import write_capture_yaml
+    from ._io import atomic_write_json, atomic_write_npy, write_exr
+
+    folder = Path(folder)
+    k = sim.n_bounces
+    shape = "[P, K, H, W]" if sim.is_stripes else "[K, H, W]"
+    files = {"bounces.npy": f"float32 {shape} per-bounce images, index k-1 holds I_k"}
+    atomic_write_npy(folder / "bounces.npy", sim.bounces)
+    if sim.is_stripes:
+        n = len(sim.images)
+        for name, bounces in zip(shift_names(n, "bounces"), sim.bounces, strict=True):
+            write_exr(folder / name, _bounce_channels(bounces))
+            files[name] = f"channels I1..I{k}: per-bounce images of one shift"
+        shifts = shift_names(n, "shift")
+        for name, image in zip(shifts, sim.images, strict=True):
+            write_exr(folder / name, {"Y": image})
+            files[name] = "channel Y: the captured image of one shift"
+    else:
+        write_exr(folder / "bounces.exr", _bounce_channels(sim.bounces))
+        files["bounces.exr"] = f"channels I1..I{k}: per-bounce images"
+        write_exr(folder / "total.exr", {"Y": sim.images})
+        files["total.exr"] = "channel Y: the captured image (sum of bounces, dark level, noise)"
+    if sim.dark is not None:
+        write_exr(folder / "dark.exr", {"Y": sim.dark})
+        files["dark.exr"] = "channel Y: dark frame (dark level with noise)"
+    if sim.lightfields is not None:
+        lf_shape = "[P, K+1, H, W, n_theta]" if sim.is_stripes else "[K+1, H, W, n_theta]"
+        atomic_write_npy(folder / "lightfield.npy", sim.lightfields)
+        files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K, radiance per radian"
+    if sim.is_stripes:
+        illum = sim.config.illumination
+        write_capture_yaml(
+            folder / "capture.yaml",
+            images=shifts,
+            pattern=illum,
+            dark_frame="dark.exr" if sim.dark is not None else None,
+            black_level=sim.config.black_level,
+            truth=sim.truth(),
+        )
+        files["capture.yaml"] = "the shifted images as a capture (input of the inverse pipeline)"
+    files["metadata.json"] = "this file"
+    metadata = {**sim.metadata(), "files": files, **(extra_metadata or {})}
+    atomic_write_json(folder / "metadata.json", metadata)
+    return files

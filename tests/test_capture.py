@@ -1,0 +1,337 @@
+"""The capture format: simulate → load round trip, and every documented bad input."""
+
+import re
+
+import numpy as np
+import pytest
+import yaml
+
+from lightfield_jax import Stripes
+from lightfield_jax._capture import (
+    Capture,
+    CaptureWarning,
+    load_capture,
+    write_capture_yaml,
+)
+from lightfield_jax._config import parse_simulation_config
+from lightfield_jax._io import (
+    CaptureError,
+    CaptureFileNotFoundError,
+    atomic_directory,
+    write_exr,
+    write_png,
+)
+from lightfield_jax._simulate import simulate_capture, write_simulation
+
+H, W, P = 8, 12, 3
+PATTERN = Stripes(period=6, lit=3, phases=(0, 2, 4))
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """A stripe capture written by simulate (black level, dark level, no noise)."""
+    config = parse_simulation_config(
+        {
+            "grid": {"width": 24, "height": 16, "n_theta": 16, "refine": 1},
+            "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3},
+            "illumination": {"kind": "stripes", "period": 6, "lit": 3},
+            "bounces": 3,
+            "gain": 1.5,
+            "black_level": 0.05,
+            "dark_level": 0.02,
+        }
+    )
+    sim = simulate_capture(config)
+    folder = tmp_path_factory.mktemp("simulated")
+    with atomic_directory(folder) as staging:
+        write_simulation(sim, staging)
+    return sim, folder
+
+
+def test_round_trip_simulate_then_load(simulated):
+    sim, folder = simulated
+    capture = load_capture(folder / "capture.yaml")
+    assert isinstance(capture, Capture)
+    assert capture.images.shape == (6, 16, 24, 1) and capture.channel_names == ("Y",)
+    assert capture.pattern == sim.config.illumination
+    assert capture.black_level == 0.05
+    assert capture.dark_frame == folder / "dark.exr"
+    assert capture.image_paths == tuple(folder / f"shift_{i:02d}.exr" for i in range(6))
+    assert capture.mask.shape == (16, 24, 1) and capture.mask.all()
+    assert capture.n_masked == {"nonfinite": 0, "saturated": 0, "total": 0}
+    assert capture.warnings == () and capture.roi is None
+    assert capture.geometry == {"kind": "plane"}
+    assert capture.truth == {
+        "sigma_t": 0.2,
+        "sigma_s": 0.1,
+        "g": 0.3,
+        "gain": 1.5,
+        "black_level": 0.05,
+        "phase": "paper",
+    }
+    # Dark frame subtracted: what is left is Σ_k I_k of each shift.
+    np.testing.assert_allclose(capture.images[..., 0], sim.bounces.sum(1), atol=1e-7)
+
+
+def _images(folder, n=P, shape=(H, W), fill=None, prefix="s"):
+    rng = np.random.default_rng(0)
+    names = []
+    for i in range(n):
+        plane = rng.uniform(0.1, 0.5, shape) if fill is None else np.full(shape, fill)
+        names.append(f"{prefix}{i}.exr")
+        write_exr(folder / names[-1], {"Y": plane})
+    return names
+
+
+def _capture(folder, text=None, **keys):
+    """Write capture.yaml (from keys, or literally from text) and load it."""
+    path = folder / "capture.yaml"
+    if text is None:
+        keys.setdefault("pattern", PATTERN)
+        write_capture_yaml(path, **keys)
+    else:
+        path.write_text(text)
+    return load_capture(path)
+
+
+def _error(folder, match, error=CaptureError, **keys):
+    with pytest.raises(error) as info:
+        _capture(folder, **keys)
+    message = str(info.value)
+    assert message.startswith(str(folder / "capture.yaml") + ": "), message
+    assert re.search(match, message), message
+    assert "\n" not in message
+    return message
+
+
+def test_write_capture_yaml_all_keys_round_trip(tmp_path):
+    names = _images(tmp_path)
+    write_exr(tmp_path / "dark.exr", {"Y": np.full((H, W), 0.05)})
+    capture = _capture(
+        tmp_path,
+        images=names,
+        dark_frame="dark.exr",
+        black_level=0.1,
+        medium_roi=[2, 1, 10, 7],
+        pixel_size_mm=0.05,
+        saturation=0.98,
+        channel="Y",
+        geometry={"kind": "plane"},
+        truth={"sigma_t": np.float64(0.2), "phase": "normalized"},
+    )
+    assert capture.images.shape == (P, 6, 8, 1)
+    assert capture.roi == (2, 1, 10, 7) and capture.pixel_size_mm == 0.05
+    assert capture.saturation == 0.98 and capture.black_level == 0.1
+    assert capture.truth == {"sigma_t": 0.2, "phase": "normalized"}
+    data = yaml.safe_load((tmp_path / "capture.yaml").read_text())
+    assert list(data) == [
+        "images",
+        "pattern",
+        "dark_frame",
+        "black_level",
+        "medium_roi",
+        "pixel_size_mm",
+        "saturation",
+        "channel",
+        "geometry",
+        "truth",
+    ]
+
+
+def test_roi_crops_and_counts_pattern_rows_from_its_edge(tmp_path):
+    names = _images(tmp_path)
+    capture = _capture(tmp_path, images=names, medium_roi=[3, 2, 11, 8])
+    whole = _capture(tmp_path, images=names)
+    np.testing.assert_array_equal(capture.images, whole.images[:, 2:8, 3:11])
+    # Row r of the frame is row r - 2 of the ROI: phase φ becomes (φ + 2) mod 6.
+    assert capture.pattern.phases == (2, 4, 0)
+    top = _capture(
+        tmp_path,
+        images=names,
+        pattern=Stripes(6, 3, (0, 2, 4), entry="top"),
+        medium_roi=[3, 2, 11, 8],
+    )
+    assert top.pattern.phases == (3, 5, 1) and top.pattern.entry == "top"
+
+
+def test_npy_stack_channel_selection_and_integer_scaling(tmp_path):
+    stack = np.zeros((P, H, W, 3), np.uint16)
+    stack[..., 1] = 30000
+    np.save(tmp_path / "stack.npy", stack)
+    capture = _capture(tmp_path, images="stack.npy", channel="G")
+    assert capture.images.shape == (P, H, W, 1) and capture.channel_names == ("G",)
+    np.testing.assert_allclose(capture.images, 30000 / 65535, rtol=1e-6)
+    every = _capture(tmp_path, images="stack.npy")
+    assert every.channel_names == ("R", "G", "B") and every.images.shape == (P, H, W, 3)
+    by_index = _capture(tmp_path, images="stack.npy", channel=2)
+    assert by_index.channel_names == ("B",)
+    _error(tmp_path, r"images: .*stack\.npy: no channel named 'Q'", images="stack.npy", channel="Q")
+    np.save(tmp_path / "flat.npy", np.zeros((H, W)))
+    _error(tmp_path, r"images: .*flat\.npy: expected an \(images, height", images="flat.npy")
+    _error(tmp_path, r"images: a single file must be a \.npy stack", images="s0.exr")
+
+
+def test_missing_unreadable_and_empty_images(tmp_path):
+    names = _images(tmp_path)
+    _error(
+        tmp_path,
+        r"images\[1\]: .*nope\.exr: file not found",
+        error=CaptureFileNotFoundError,
+        images=[names[0], "nope.exr", names[2]],
+    )
+    (tmp_path / "junk.exr").write_bytes(b"not an image")
+    _error(tmp_path, r"images\[2\]: .*junk\.exr: cannot read", images=[*names[:2], "junk.exr"])
+    (tmp_path / "x.gif").write_bytes(b"GIF89a")
+    _error(tmp_path, r"images\[0\]: .*unsupported image extension", images=["x.gif"] * 3)
+    _error(tmp_path, r"images: the list is empty", images=[])
+    _error(tmp_path, r"images\[1\]: must be a file path, got 3", text=f"images: [{names[0]}, 3]\n")
+    _error(tmp_path, r"images: required key is missing", text="pattern: {period: 6}\n")
+    with pytest.raises(CaptureFileNotFoundError, match=r"gone\.yaml: file not found"):
+        load_capture(tmp_path / "gone.yaml")
+
+
+def test_images_of_different_sizes(tmp_path):
+    names = _images(tmp_path, n=2)
+    names += _images(tmp_path, n=1, shape=(H + 1, W), prefix="big")
+    _error(
+        tmp_path,
+        r"images\[2\]: big0\.exr is 12x9 pixels .* images\[0\] \(s0\.exr\) is 12x8",
+        images=names,
+    )
+
+
+def test_phases_inconsistent_with_image_count(tmp_path):
+    names = _images(tmp_path)
+    _error(
+        tmp_path,
+        r"pattern\.phases: lists 2 phase\(s\) for 3 image\(s\)",
+        images=names,
+        pattern=Stripes(6, 3, (0, 3)),
+    )
+    # Phases default to 0..P-1.
+    text = f"images: {names}\npattern: {{period: 4, lit: 2}}\n"
+    assert _capture(tmp_path, text=text).pattern == Stripes(4, 2, (0, 1, 2))
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        (
+            "imagez: []\n",
+            r"imagez: unknown key \(did you mean 'images'\?\); allowed keys: images, pattern",
+        ),
+        ("pattern: {perod: 6}\n", r"pattern\.perod: unknown key \(did you mean 'period'\?\)"),
+        ("pattern: {period: 6.5}\n", r"pattern\.period: must be an integer, got 6\.5"),
+        ("pattern: {lit: 7}\n", r"pattern\.lit: must be an integer in \[1, period-1\]"),
+        ("pattern: {phases: [0, x, 2]}\n", r"pattern\.phases\[1\]: must be an integer, got 'x'"),
+        ("pattern: {entry: north}\n", r"pattern\.entry: must be one of left, right, top"),
+        ("pattern: {direction_deg: 180}\n", r"pattern\.direction_deg: 180\.0 degrees does not"),
+        ("pattern: [6, 3]\n", r"pattern: must be a mapping of keys"),
+        ("black_level: dim\n", r"black_level: must be a number, got 'dim'"),
+        ("black_level: 1.0\n", r"black_level: must lie in \[0, 1\), got 1\.0"),
+        ("medium_roi: [0, 0, 4]\n", r"medium_roi: must be a list of 4 integers"),
+        ("medium_roi: [0, 0, 4.5, 4]\n", r"medium_roi: must be a list of 4 integers"),
+        ("pixel_size_mm: 0\n", r"pixel_size_mm: must be > 0, got 0"),
+        ("saturation: -1\n", r"saturation: must be > 0"),
+        ("channel: [R]\n", r"channel: must be a channel name, an index or 'all'"),
+        ("channel: R\n", r"images\[0\]: .*s0\.exr: no channel named 'R'; channels: Y"),
+        ("geometry: {kind: slab, thickness: 6.4}\n", r"geometry\.kind: 'slab' is not supported"),
+        ("geometry: {kind: plane, n: 1.3}\n", r"geometry\.n: unknown key"),
+        ("truth: {sigma: 0.2}\n", r"truth\.sigma: unknown key"),
+        ("truth: {phase: flat}\n", r"truth\.phase: must be one of paper, normalized"),
+        ("truth: {g: high}\n", r"truth\.g: must be a number"),
+    ],
+)
+def test_bad_keys_and_values(tmp_path, extra, match):
+    names = _images(tmp_path)
+    base = {"images": f"images: {names}\n", "pattern": "pattern: {period: 6, lit: 3}\n"}
+    key = extra.split(":")[0]
+    text = "".join(v for k, v in base.items() if k != key) + extra
+    _error(tmp_path, match, text=text)
+
+
+def test_dark_frame_size_and_channels(tmp_path):
+    names = _images(tmp_path)
+    write_exr(tmp_path / "small.exr", {"Y": np.zeros((H, W - 1))})
+    _error(
+        tmp_path,
+        r"dark_frame: small\.exr is 11x8 pixels .* images are 12x8",
+        images=names,
+        dark_frame="small.exr",
+    )
+    write_exr(tmp_path / "two.exr", {"A": np.zeros((H, W)), "B": np.zeros((H, W))})
+    _error(tmp_path, r"dark_frame: two\.exr is .*2 channel", images=names, dark_frame="two.exr")
+    _error(
+        tmp_path,
+        r"dark_frame: .*void\.exr: file not found",
+        error=CaptureFileNotFoundError,
+        images=names,
+        dark_frame="void.exr",
+    )
+
+
+@pytest.mark.parametrize("roi", [[0, 0, 13, 8], [-1, 0, 5, 5], [4, 4, 5, 8], [0, 6, 12, 9]])
+def test_roi_outside_the_image(tmp_path, roi):
+    names = _images(tmp_path)
+    _error(tmp_path, r"medium_roi: .* does not fit the 12x8 image", images=names, medium_roi=roi)
+
+
+def test_nonfinite_pixels_are_masked_with_a_warning(tmp_path):
+    names = _images(tmp_path)
+    bad = np.full((H, W), 0.3)
+    bad[1, 2] = np.nan
+    bad[3, 4] = np.inf
+    write_exr(tmp_path / names[1], {"Y": bad})
+    dark = np.zeros((H, W))
+    dark[5, 5] = np.nan
+    write_exr(tmp_path / "dark.exr", {"Y": dark})
+    with pytest.warns(
+        CaptureWarning,
+        match=r"3 pixel value\(s\) are NaN or Inf \(s1\.exr: 2, dark\.exr: 1\); 3 pixel",
+    ):
+        capture = _capture(tmp_path, images=names, dark_frame="dark.exr")
+    assert capture.n_masked == {"nonfinite": 3, "saturated": 0, "total": 3}
+    assert not capture.mask[1, 2, 0] and not capture.mask[3, 4, 0] and not capture.mask[5, 5, 0]
+    assert np.isfinite(capture.images).all() and capture.images[1, 1, 2, 0] == 0
+    assert len(capture.warnings) == 1
+
+
+def test_saturation_threshold_and_all_saturated_frame(tmp_path):
+    names = _images(tmp_path)
+    write_exr(tmp_path / names[2], {"Y": np.full((H, W), 0.99)})
+    with pytest.warns(CaptureWarning) as record:
+        _error(tmp_path, r"images: no usable pixel", images=names, saturation=0.98)
+    messages = [str(w.message) for w in record]
+    assert any("every pixel is saturated in s2.exr" in m for m in messages)
+    hot = np.full((H, W), 0.3)
+    hot[0, :4] = 0.99
+    write_exr(tmp_path / names[2], {"Y": hot})
+    with pytest.warns(
+        CaptureWarning, match=r"at or above saturation 0\.98 \(s2\.exr: 4\); 4 pixel"
+    ):
+        capture = _capture(tmp_path, images=names, saturation=0.98)
+    assert capture.n_masked["saturated"] == 4 and not capture.mask[0, :4].any()
+    # Float frames without a saturation key keep bright values.
+    hot[0, :4] = 5.0
+    write_exr(tmp_path / names[2], {"Y": hot})
+    assert _capture(tmp_path, images=names).mask.all()
+
+
+def test_clipped_8bit_frames_warn_and_mask(tmp_path):
+    rng = np.random.default_rng(1)
+    names = []
+    for i in range(P):
+        frame = rng.uniform(0.1, 0.6, (H, W))
+        lit = (np.arange(H) + 2 * i) % 6 < 3
+        frame[lit, :3] = 1.0  # lit rows clipped at 255 near the entry wall
+        names.append(f"p{i}.png")
+        write_png(tmp_path / names[-1], frame)
+    with pytest.warns(
+        CaptureWarning, match=r"integer frames clipped at their top code 255 \(8-bit\)"
+    ):
+        capture = _capture(tmp_path, images=names)
+    assert capture.n_masked["saturated"] == (~capture.mask).sum() == H * 3
+    assert not capture.mask[:, :3].any() and capture.mask[:, 3:].all()
+    # An explicit saturation replaces the default threshold.
+    with pytest.warns(CaptureWarning, match="at or above saturation 0.5"):
+        _capture(tmp_path, images=names, saturation=0.5)
