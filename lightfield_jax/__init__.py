@@ -12,8 +12,17 @@ from ._capture import write_capture_yaml as write_capture_yaml
 from ._config import ConfigError as ConfigError
 from ._config import SimulationConfig as SimulationConfig
 from ._config import load_simulation_config as load_simulation_config
+from ._decay import DecayFit as DecayFit
+from ._decay import fit_decay as fit_decay
+from ._fit import CaptureFit as CaptureFit
+from ._fit import FitOptions as FitOptions
+from ._fit import FitResult as FitResult
+from ._fit import fit_capture as fit_capture
+from ._fit import fit_images as fit_images
+from ._fit import fitted_images as fitted_images
 from ._grid import Grid as Grid
 from ._grid import default_n_theta as default_n_theta
+from ._grid import default_refine as default_refine
 from ._illumination import Beam as Beam
 from ._illumination import Full as Full
 from ._illumination import Stripes as Stripes
@@ -27,6 +36,8 @@ from ._render import Renderer as Renderer
 from ._render import RenderResult as RenderResult
 from ._render import render as render
 from ._render import single_scatter_closed_form as single_scatter_closed_form
+from ._separate import Separation as Separation
+from ._separate import separate as separate
 from ._simulate import SimulatedCapture as SimulatedCapture
 from ._simulate import simulate_capture as simulate_capture
 

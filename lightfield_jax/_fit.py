@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -62,7 +62,10 @@ class FitOptions:
             above ``crop_fraction`` of its peak.
         crop_fraction: see ``crop``.
         max_steps: iteration limit of the optimistix solves.
-        rtol, atol: solver tolerances (relative, absolute on the unconstrained values).
+        rtol, atol: solver tolerances (relative, absolute on the unconstrained values);
+            ``None`` picks them from the data's dtype (float32: 1e-5, 1e-6; float64:
+            1e-8, 1e-10: float32 cannot meet tighter ones, and LM would run to
+            ``max_steps``).
     """
 
     method: str = "joint"
@@ -78,8 +81,8 @@ class FitOptions:
     crop: bool = True
     crop_fraction: float = 1e-4
     max_steps: int = 100
-    rtol: float = 1e-7
-    atol: float = 1e-9
+    rtol: float | None = None
+    atol: float | None = None
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -215,22 +218,28 @@ class _Model:
 
 
 def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple[int, ...]:
-    """Crop along the propagation direction to where Imax stays above ``fraction`` of its
-    peak (beyond it the signal is below what a capture resolves). The entry wall stays."""
+    """Crop along the propagation direction to where the signal stands out: Imax,
+    averaged across the light, must exceed its noise floor (the median of the farthest
+    tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
+    wall stays; at least 16 pixels are kept."""
     p, h, w = images.shape
-    profile_img = np.nanmax(images, axis=0)
     along_x = pattern.entry in ("left", "right")
-    prof = np.nanmax(profile_img, axis=0 if along_x else 1)
-    peak = np.nanmax(prof)
-    keep = np.flatnonzero(prof >= fraction * peak)
-    n = w if along_x else h
-    minimum = min(n, 16)
+    imax = np.nanmax(images, axis=0)
+    prof = np.nanmean(imax, axis=0 if along_x else 1)
+    if pattern.entry in ("right", "bottom"):
+        prof = prof[::-1]
+    n = prof.size
+    tail = prof[-max(n // 10, 2) :]
+    floor = float(np.median(tail))
+    scatter = float(np.median(np.abs(tail - floor))) * 1.4826
+    peak = float(np.max(prof))
+    above = prof - floor > max(fraction * (peak - floor), 3.0 * scatter)
+    last = int(np.flatnonzero(above).max()) + 1 if above.any() else n
+    keep = min(n, max(last + 2, 16))
     if pattern.entry in ("left", "top"):
-        end = max(int(keep.max()) + 1 if keep.size else n, minimum)
-        lo, hi = 0, min(n, end)
+        lo, hi = 0, keep
     else:
-        start = min(int(keep.min()) if keep.size else 0, n - minimum)
-        lo, hi = max(0, start), n
+        lo, hi = n - keep, n
     return (lo, 0, hi, h) if along_x else (0, lo, w, hi)
 
 
@@ -328,6 +337,13 @@ def _timed_compile(fn, *args):
     return compiled, time.perf_counter() - t
 
 
+def _solver(options: FitOptions, dtype) -> optx.LevenbergMarquardt:
+    wide = jnp.finfo(dtype).bits > 32
+    rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-5)
+    atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-6)
+    return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+
 def _result_message(result) -> tuple[bool, str]:
     ok = bool(result == optx.RESULTS.successful)
     if ok:
@@ -353,13 +369,21 @@ class _Data:
     decay_converged: bool
 
 
-def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation):
-    sep = separate(
-        jnp.asarray(images),
-        lit_fraction=pattern.lit_fraction,
-        black_level=0.0 if black_level is None else float(black_level),
-    )
-    direct = np.asarray(sep.direct)
+def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation, split=None):
+    if split is None:
+        sep = separate(
+            jnp.asarray(images),
+            lit_fraction=pattern.lit_fraction,
+            black_level=0.0 if black_level is None else float(black_level),
+        )
+        direct, multiple = np.asarray(sep.direct), np.asarray(sep.multiple)
+    else:
+        direct, multiple = (np.asarray(a, dtype=images.dtype) for a in split)
+        if direct.shape != images.shape[1:] or multiple.shape != images.shape[1:]:
+            raise ValueError(
+                f"split: direct and multiple must have the images' shape {images.shape[1:]}, "
+                f"got {direct.shape} and {multiple.shape}"
+            )
     decay = fit_decay(
         direct,
         direction_deg=pattern.direction_deg,
@@ -367,7 +391,7 @@ def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation)
         mask=jnp.asarray(mask),
         saturation=saturation,
     )
-    return direct, np.asarray(sep.multiple), decay
+    return direct, multiple, decay
 
 
 # ------------------------------------------------------------------ grid and gradient
@@ -389,7 +413,7 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, sigma_t, n_grid: int = 2001):
     powers = jnp.arange(1, kk + 1)
 
     def cost(s):
-        sp = s ** powers
+        sp = s**powers
         return mm - 2 * a * sp @ mk + a**2 * sp @ gram @ sp
 
     grid = jnp.linspace(0.0, 1.0, n_grid) * sigma_t
@@ -445,7 +469,7 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
             return jnp.stack([sigma_t * jax.nn.sigmoid(y[0]), jnp.tanh(y[1])])
 
         fn = _with_column_jacobian(lambda y: residual(unpack(y))[0])
-        solver = optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol)
+        solver = _solver(options, y0.dtype)
         sol = optx.least_squares(
             lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
         )
@@ -477,8 +501,12 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
 
 def _joint_parts(pattern: Stripes, model: _Model, options: FitOptions):
     renderer = Renderer(model.grid, pattern, model.bounces, options.phase)
-    all_phases = sorted(set(pattern.phases)) == list(range(pattern.period))
-    full = None if all_phases else Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+    all_phases = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
+    full = (
+        None
+        if all_phases
+        else Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+    )
     return renderer, full
 
 
@@ -486,7 +514,9 @@ def _joint_model(renderer, full, lit: int, sigma_t, sigma_s, g, black):
     """Σ_k I_k of every pattern at unit gain, with the projector's black level b:
     (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
     r = jnp.sum(renderer(sigma_t, sigma_s, g)[0], axis=1)  # (P, h, w)
-    r_full = jnp.sum(r, axis=0) / lit if full is None else jnp.sum(full(sigma_t, sigma_s, g)[0][0], 0)
+    r_full = (
+        jnp.sum(r, axis=0) / lit if full is None else jnp.sum(full(sigma_t, sigma_s, g)[0][0], 0)
+    )
     return (1.0 - black) * r + black * r_full[None]
 
 
@@ -504,7 +534,14 @@ def _joint_weights(images, mask):
     return np.where(mask[None], w, 0.0)
 
 
-def _joint_solve(data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black):
+def _joint_solve(
+    data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black, reweight
+):
+    """Levenberg-Marquardt on the raw images, weighted by 1/√(I + floor) (shot noise).
+
+    With ``reweight``, a second solve uses weights from the fitted model instead of the
+    noisy data (weights from the data itself bias a weighted fit toward low values).
+    """
     renderer, full = _joint_parts(pattern, model, options)
     obs = jnp.asarray(data.images)
     weights = jnp.asarray(_joint_weights(data.images, data.mask))
@@ -527,15 +564,23 @@ def _joint_solve(data: _Data, pattern: Stripes, model: _Model, options: FitOptio
             return (weights * (gain * r - obs)).reshape(-1)
 
         fn = _with_column_jacobian(residual)
-        solver = optx.LevenbergMarquardt(rtol=options.rtol, atol=options.atol)
+        solver = _solver(options, y0.dtype)
         sol = optx.least_squares(
             lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
         )
-        return sol.value, sol.result, sol.stats["num_steps"]
+        return sol.value, sol.result, sol.stats["num_steps"], sol.state.f_info.residual
 
     compiled, t_compile = _timed_compile(solve, renderer, full, obs, weights, y0)
     t = time.perf_counter()
-    y, result, steps = jax.block_until_ready(compiled(renderer, full, obs, weights, y0))
+    y, result, steps, res = jax.block_until_ready(compiled(renderer, full, obs, weights, y0))
+    if reweight:
+        w = np.asarray(weights)
+        fitted = np.asarray(obs) + np.where(
+            w > 0, np.asarray(res).reshape(w.shape) / np.where(w > 0, w, 1), 0
+        )
+        weights = jnp.asarray(_joint_weights(fitted, data.mask), obs.dtype)
+        y, result, more, res = jax.block_until_ready(compiled(renderer, full, obs, weights, y))
+        steps = steps + more
     t_run = time.perf_counter() - t
     st, ss, g, b = (float(v) for v in _unpack(y, fit_black, black_fixed))
 
@@ -552,17 +597,28 @@ def _joint_solve(data: _Data, pattern: Stripes, model: _Model, options: FitOptio
 
     p = jnp.asarray([st, ss, g, gain] + ([b] if fit_black else []), obs.dtype)
     t = time.perf_counter()
-    jac_fn = jax.jit(lambda p: (jax.jacfwd(_with_column_jacobian(phys_residual))(p), phys_residual(p)))
+    jac_fn = jax.jit(
+        lambda p: (jax.jacfwd(_with_column_jacobian(phys_residual))(p), phys_residual(p))
+    )
     jac, res = (np.asarray(a) for a in jac_fn(p))
     t_unc = time.perf_counter() - t
     unc, corr, cond = _covariance(jac, res, names)
     n = int(np.sum(data.mask)) * obs.shape[0]
     rms = float(np.sqrt(np.sum(res**2) / max(n, 1)))
     return {
-        "sigma_t": st, "sigma_s": ss, "g": g, "gain": gain,
+        "sigma_t": st,
+        "sigma_s": ss,
+        "g": g,
+        "gain": gain,
         "black_level": b if fit_black else black_fixed,
-        "result": result, "steps": int(steps), "compile": t_compile, "run": t_run + t_unc,
-        "unc": unc, "corr": corr, "cond": cond, "rms": rms,
+        "result": result,
+        "steps": int(steps),
+        "compile": t_compile,
+        "run": t_run + t_unc,
+        "unc": unc,
+        "corr": corr,
+        "cond": cond,
+        "rms": rms,
     }
 
 
@@ -579,6 +635,7 @@ def fit_images(
     pixel_size_mm: float | None = None,
     options: FitOptions | None = None,
     progress: Callable[[str], None] | None = None,
+    split=None,
     **overrides,
 ) -> FitResult:
     """Fit one channel of a stripe capture.
@@ -594,6 +651,9 @@ def fit_images(
         pixel_size_mm: to report coefficients in mm⁻¹ as well.
         options: :class:`FitOptions`; keyword ``overrides`` replace its fields.
         progress: called with a short description of each stage.
+        split: ``(direct, multiple)`` images to use instead of separating the capture
+            (e.g. a perfect split from a renderer: I_1 and Σ_{k≥2} I_k under full
+            illumination). Used by the two-step methods and the joint fit's start.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
     say = progress or (lambda _msg: None)
@@ -609,14 +669,18 @@ def fit_images(
     images = np.where(mask[None], images, 0.0)
 
     say("separating direct and multiple scattering")
-    direct, multiple, decay = _separate_and_decay(images, mask, pattern, black_level, saturation)
+    direct, multiple, decay = _separate_and_decay(
+        images, mask, pattern, black_level, saturation, split
+    )
     sigma_t0 = float(decay.sigma_t)
     if not math.isfinite(sigma_t0) or sigma_t0 <= 0:
         raise ValueError(f"the direct image's decay gives no usable sigma_t ({sigma_t0!r})")
 
     # A first model for the two-step estimate. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ)
     # sizes the bounces (with margin: the separation biases M low).
-    ratio = float(np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30))
+    ratio = float(
+        np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30)
+    )
     rho0 = min(max(ratio, 0.0) / (1.0 + max(ratio, 0.0)) * 1.5 + 0.05, 0.95)
     model = size_model(images, pattern, albedo=rho0, g=0.0, options=options)
     x0, y0, x1, y1 = model.crop
@@ -634,7 +698,10 @@ def fit_images(
 
     if options.method in ("grid", "gradient"):
         name = options.method
-        say(f"{name}: search over g" + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else ""))
+        say(
+            f"{name}: search over g"
+            + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else "")
+        )
         s, g, gain, rms, unc, corr, cond, ok, msg, steps, tc = _two_step(
             data, pattern, model, options, sigma_t0, name
         )
@@ -643,8 +710,24 @@ def fit_images(
             ok, msg = False, "the decay fit of sigma_t did not converge"
         iterations = options.g_grid if name == "grid" else steps
         return _finish(
-            options, name, sigma_t0, s, g, gain, black_level, {**two_step_unc, **unc}, corr,
-            ok, msg, iterations, rms, seconds, model, pixel_size_mm, cond, t_start,
+            options,
+            name,
+            sigma_t0,
+            s,
+            g,
+            gain,
+            black_level,
+            {**two_step_unc, **unc},
+            corr,
+            ok,
+            msg,
+            iterations,
+            rms,
+            seconds,
+            model,
+            pixel_size_mm,
+            cond,
+            t_start,
         )
 
     say(f"two-step start: search over {options.start_grid} values of g, then (sigma_s, g)")
@@ -671,18 +754,36 @@ def fit_images(
             f"joint fit ({name} model {model.grid.width}x{model.grid.height}, "
             f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces)"
         )
-        out = _joint_solve(data, pattern, model, opts, start, black_level)
+        out = _joint_solve(data, pattern, model, opts, start, black_level, reweight=True)
         seconds["compile"] += out["compile"]
         seconds["run"] += out["run"]
         total_steps += out["steps"]
-        say(f"  {name}: {out['steps']} steps, {out['compile']:.1f} s compile, {out['run']:.1f} s run")
+        say(
+            f"  {name}: {out['steps']} steps, "
+            f"{out['compile']:.1f} s compile, {out['run']:.1f} s run"
+        )
         start = (out["sigma_t"], out["sigma_s"], out["g"], out["black_level"])
         prev_model = model
     ok, msg = _result_message(out["result"])
     return _finish(
-        options, "joint", out["sigma_t"], out["sigma_s"], out["g"], out["gain"],
-        out["black_level"], out["unc"], out["corr"], ok, msg, total_steps, out["rms"],
-        seconds, prev_model, pixel_size_mm, out["cond"], t_start,
+        options,
+        "joint",
+        out["sigma_t"],
+        out["sigma_s"],
+        out["g"],
+        out["gain"],
+        out["black_level"],
+        out["unc"],
+        out["corr"],
+        ok,
+        msg,
+        total_steps,
+        out["rms"],
+        seconds,
+        prev_model,
+        pixel_size_mm,
+        out["cond"],
+        t_start,
     )
 
 
@@ -695,8 +796,26 @@ def _covers(have: _Model, need: _Model) -> bool:
     )
 
 
-def _finish(options, method, st, ss, g, gain, black, unc, corr, ok, msg, iters, rms, seconds,
-            model, pixel_size_mm, cond, t_start) -> FitResult:
+def _finish(
+    options,
+    method,
+    st,
+    ss,
+    g,
+    gain,
+    black,
+    unc,
+    corr,
+    ok,
+    msg,
+    iters,
+    rms,
+    seconds,
+    model,
+    pixel_size_mm,
+    cond,
+    t_start,
+) -> FitResult:
     seconds = dict(seconds)
     seconds["total"] = time.perf_counter() - t_start
     # Everything that is not XLA compilation counts as run time.
@@ -721,3 +840,119 @@ def _finish(options, method, st, ss, g, gain, black, unc, corr, ok, msg, iters, 
         pixel_size_mm=pixel_size_mm,
         condition_number=float(cond),
     )
+
+
+# --------------------------------------------------------------------------- captures
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureFit:
+    """The fit of every channel of a capture (one :class:`FitResult` each)."""
+
+    channels: tuple[str, ...]
+    results: tuple[FitResult, ...]
+
+    @property
+    def converged(self) -> bool:
+        return all(r.converged for r in self.results)
+
+    def __getitem__(self, channel: str) -> FitResult:
+        return self.results[self.channels.index(channel)]
+
+    def to_dict(self) -> dict:
+        """``results.json``: the result's keys for one channel; for several, each key
+        holds a list in channel order and ``per_channel`` the full results."""
+        if len(self.results) == 1:
+            return {**self.results[0].to_dict(), "channel": self.channels[0]}
+        dicts = [r.to_dict() for r in self.results]
+        keys = (
+            "sigma_t",
+            "sigma_s",
+            "sigma_a",
+            "g",
+            "albedo",
+            "gain",
+            "black_level",
+            "rho",
+            "iterations",
+            "residual",
+        )
+        out = {k: [d[k] for d in dicts] for k in keys}
+        out["uncertainty"] = {
+            k: [d["uncertainty"].get(k) for d in dicts] for k in dicts[0]["uncertainty"]
+        }
+        out.update(
+            method=dicts[0]["method"],
+            converged=self.converged,
+            seconds={"total": sum(d["seconds"]["total"] for d in dicts)},
+            model=[d["model"] for d in dicts],
+            channels=list(self.channels),
+            per_channel=dict(zip(self.channels, dicts, strict=True)),
+        )
+        return out
+
+
+def fit_capture(
+    capture,
+    method: str = "joint",
+    *,
+    channels: Sequence[str] | None = None,
+    options: FitOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    **overrides,
+) -> CaptureFit:
+    """Fit a loaded capture (:func:`~lightfield_jax.load_capture`), channel by channel.
+
+    Args:
+        capture: the capture (images dark-subtracted and cropped to the medium).
+        method: ``joint`` (default), ``gradient`` or ``grid``.
+        channels: channel names to fit (default: every channel the capture holds).
+        options, overrides: see :func:`fit_images`.
+        progress: called with a description of each stage.
+    """
+    names = tuple(capture.channel_names)
+    chosen = names if channels is None else tuple(channels)
+    for c in chosen:
+        if c not in names:
+            raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
+    results = []
+    say = progress or (lambda _m: None)
+    for c in chosen:
+        i = names.index(c)
+        results.append(
+            fit_images(
+                capture.images[..., i],
+                capture.pattern,
+                mask=np.all(capture.mask[..., i : i + 1], axis=-1),
+                black_level=capture.black_level,
+                saturation=capture.saturation,
+                pixel_size_mm=capture.pixel_size_mm,
+                options=options,
+                progress=(lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
+                method=method,
+                **overrides,
+            )
+        )
+    return CaptureFit(channels=chosen, results=tuple(results))
+
+
+def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
+    """The fitted model's per-bounce images of every pattern and under full illumination,
+    gain and black level included, over the cropped model region placed in an image of
+    ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``."""
+    m = result.model
+    grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+    st, ss, g, c = result.sigma_t, result.sigma_s, result.g, result.gain
+    b = result.black_level or 0.0
+    stripes = np.asarray(Renderer(grid, pattern, m["bounces"], result.phase)(st, ss, g)[0])
+    full = np.asarray(
+        Renderer(grid, _full_for(pattern), m["bounces"], result.phase)(st, ss, g)[0][0]
+    )
+    stripes = c * ((1 - b) * stripes + b * full[None])
+    full = c * full
+    x0, y0, x1, y1 = m["crop"]
+    out_s = np.zeros(stripes.shape[:2] + tuple(shape))
+    out_f = np.zeros(full.shape[:1] + tuple(shape))
+    out_s[..., y0:y1, x0:x1] = stripes
+    out_f[..., y0:y1, x0:x1] = full
+    return out_s, out_f

@@ -228,7 +228,7 @@ class RenderResult(eqx.Module):
         images: per-bounce images, index k−1 holds I_k: Float[Array, "K H W"] for a
             beam or full illumination, Float[Array, "patterns K H W"] for stripes.
         lightfields: L_0..L_K (radiance per radian), Float[Array, "K+1 H W n_theta"]
-            (with a leading pattern axis for stripes), or ``None``.
+            (``"patterns K+1 H W n_theta"`` for stripes), or ``None``.
         bounces: K.
         n_theta: number of direction bins used.
         refine: spatial refinement of the working grid used.
@@ -308,6 +308,8 @@ def render(
     if not isinstance(illumination, Stripes):
         images = images[0]
         fields = fields[:, 0] if fields is not None else None
+    elif fields is not None:
+        fields = jnp.moveaxis(fields, 1, 0)  # pattern-major, like the images
     return RenderResult(
         images=images,
         lightfields=fields,

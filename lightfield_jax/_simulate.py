@@ -197,8 +197,6 @@ def simulate_capture(
         fields = None
         if lightfield:
             fields = np.asarray(result.lightfields, dtype=np.float32)
-            if stripes:  # render gives [K+1, P, ...]: pattern-major here
-                fields = np.moveaxis(fields, 1, 0)
         full_how = None
         if stripes and config.black_level:
             bounces, fields, full_how = _add_black_level(config, k, bounces, fields, stage)
