@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import sys
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -416,8 +417,9 @@ DEMO_CONFIG = {
 def _demo(args: argparse.Namespace) -> int | None:
     """Simulate the paper's milk (sigma_t 0.2051, sigma_s 0.0366, g 0.4 per pixel) as a
     six-shift stripe capture with shot and read noise (gain 400: about 20000 photons
-    at image value 1) and a projector black level of 0.01, write it to DIR as a capture, fit it with each method, print a
-    table (truth, each method, error, time) and write DIR/results.json and
+    at image value 1) and a projector black level of 0.01, write it to DIR as a
+    capture, fit it with each method, print a table (truth, each method, error,
+    time) and write DIR/results.json and
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from ._capture import load_capture
     from ._config import parse_simulation_config
@@ -474,6 +476,28 @@ def _demo(args: argparse.Namespace) -> int | None:
         f"wrote {out}/ (capture, results.json" + (", demo_fit.png)" if "joint" in results else ")"),
     )
     return None if all(r.converged for _, r in rows) else 1
+
+
+# --------------------------------------------------------------------------- experiment
+
+
+@command(
+    "experiment",
+    "run a config-driven experiment (experiments/NAME.py with configs/NAME.yaml)",
+    arg("config", metavar="CONFIG.yaml", help="an experiment config (configs/)"),
+    arg("--out", metavar="DIR", help="results folder (default: results/NAME)"),
+    arg("--reduced", action="store_true", help="the config's reduced size (as the tests run)"),
+)
+def _experiment(args: argparse.Namespace) -> None:
+    """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
+    summary.json with the config, software versions, machine and date. A rerun into
+    the same DIR resumes from the work already stored in DIR/cache."""
+    from ._experiment import run_experiment
+
+    with _progress(args, "experiment") as stage:
+        record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
+    _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
+    _say(args, f"experiment {record['experiment']} done in {record['seconds']:.1f} s")
 
 
 if __name__ == "__main__":  # pragma: no cover

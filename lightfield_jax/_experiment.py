@@ -1,0 +1,162 @@
+"""Config-driven experiments: ``lightfield-jax experiment configs/NAME.yaml [--out DIR]``.
+
+An experiment is a short script ``experiments/NAME.py`` (one question each) defining
+
+    def run(config: dict, out: pathlib.Path, ctx: Context) -> dict
+
+which writes its data (JSON/CSV) and figures (PNG) into ``out`` through ``ctx`` and
+returns a summary (JSON-ready) that the runner stores in ``out/summary.json`` together
+with the config, software versions, machine and date. Its config ``configs/NAME.yaml``
+holds ``experiment: NAME`` (the script's name), the parameters, and an optional
+``reduced:`` mapping whose keys replace the top-level ones for ``--reduced`` (the small
+size the test suite runs, so experiments cannot rot).
+
+Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
+as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import importlib.util
+import json
+import platform
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from ._io import atomic_write_json
+
+EXPERIMENTS_DIR = Path(__file__).resolve().parent.parent / "experiments"
+
+
+def versions() -> dict[str, str]:
+    """Versions of the software an experiment ran with."""
+    import equinox
+    import jax
+    import numpy
+    import optimistix
+
+    from . import __version__
+
+    return {
+        "lightfield_jax": __version__,
+        "python": sys.version.split()[0],
+        "jax": jax.__version__,
+        "equinox": equinox.__version__,
+        "optimistix": optimistix.__version__,
+        "numpy": numpy.__version__,
+    }
+
+
+def machine() -> dict[str, Any]:
+    import os
+
+    import jax
+
+    return {
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "devices": [str(d) for d in jax.devices()],
+    }
+
+
+@dataclasses.dataclass
+class Context:
+    """What an experiment gets besides its config: where to write, progress, resume."""
+
+    out: Path
+    progress: Callable[[str], None]
+    reduced: bool
+
+    def cached(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()``'s JSON-ready result, stored once under ``out/cache``."""
+        safe = hashlib.sha1(key.encode()).hexdigest()[:16]
+        path = self.out / "cache" / f"{safe}.json"
+        if path.exists():
+            stored = json.loads(path.read_text())
+            if stored.get("key") == key:
+                return stored["value"]
+        value = compute()
+        atomic_write_json(path, {"key": key, "value": value})
+        return value
+
+    def write_json(self, name: str, data: Any) -> Path:
+        path = self.out / name
+        atomic_write_json(path, data)
+        return path
+
+    def figure_path(self, name: str) -> Path:
+        return self.out / name
+
+
+def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
+    """Read an experiment config; ``reduced`` applies its ``reduced:`` overrides."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such experiment config")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: not valid YAML: {e}") from None
+    if not isinstance(data, dict) or "experiment" not in data:
+        raise ValueError(f"{path}: an experiment config needs the key 'experiment: NAME'")
+    small = data.pop("reduced", None) or {}
+    if not isinstance(small, dict):
+        raise ValueError(f"{path}: reduced: must be a mapping of overrides")
+    if reduced:
+        unknown = sorted(set(small) - set(data))
+        if unknown:
+            raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
+        data.update(small)
+    return data
+
+
+def _load_script(name: str):
+    script = EXPERIMENTS_DIR / f"{name}.py"
+    if not script.is_file():
+        known = sorted(p.stem for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
+        raise ValueError(f"experiment: no script {script} (known: {', '.join(known)})")
+    spec = importlib.util.spec_from_file_location(f"lightfield_jax_experiments.{name}", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    if not hasattr(module, "run"):
+        raise ValueError(f"experiment: {script} defines no run(config, out, ctx)")
+    return module
+
+
+def run_experiment(
+    config_path: str | Path,
+    out: str | Path | None = None,
+    *,
+    reduced: bool = False,
+    progress: Callable[[str], None] = lambda _m: None,
+) -> dict:
+    """Run one experiment; returns its summary (also written to ``out/summary.json``)."""
+    config = load_experiment_config(config_path, reduced)
+    name = str(config["experiment"])
+    out = Path(out) if out is not None else Path("results") / name
+    out.mkdir(parents=True, exist_ok=True)
+    module = _load_script(name)
+    started = datetime.datetime.now(datetime.UTC)
+    ctx = Context(out=out, progress=progress, reduced=reduced)
+    summary = module.run(config, out, ctx)
+    record = {
+        "experiment": name,
+        "config_file": str(config_path),
+        "config": config,
+        "reduced": reduced,
+        "started_utc": started.isoformat(timespec="seconds"),
+        "seconds": (datetime.datetime.now(datetime.UTC) - started).total_seconds(),
+        "versions": versions(),
+        "machine": machine(),
+        "summary": summary,
+    }
+    atomic_write_json(out / "summary.json", record)
+    return record
