@@ -254,3 +254,22 @@ def test_lightfield_shapes_and_camera_consistency():
 def test_bad_scene_values_raise_clear_errors(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_refined_grid_keeps_closed_forms_and_agrees_with_native():
+    medium = lfj.Medium(0.2, 0.1, 0.5)
+    beam = lfj.Beam(0.0, 8.5)
+    fine = _images(medium, lfj.Grid(32, 16, 16, refine=2), beam, 3)
+    native = _images(medium, lfj.Grid(32, 16, 16, refine=1), beam, 3)
+    expected = lfj.single_scatter_closed_form(0.2, 0.1, 0.5, 32)
+    np.testing.assert_allclose(fine[0, 8], expected, rtol=1e-3)
+    doubled = _images(lfj.Medium(0.2, 0.2, 0.5), lfj.Grid(32, 16, 16, refine=2), beam, 3)
+    for k in range(3):
+        np.testing.assert_allclose(doubled[k], 2.0 ** (k + 1) * fine[k], rtol=1e-9, atol=1e-300)
+        assert np.abs(fine[k] - native[k]).sum() / native[k].sum() < 0.05
+
+
+def test_default_resolution_follows_g():
+    assert lfj.Grid(8, 8).resolve(0.4) == lfj.Grid(8, 8, 32, 1)
+    assert lfj.Grid(8, 8).resolve(-0.8) == lfj.Grid(8, 8, 64, 2)
+    assert lfj.Grid(8, 8, 128).resolve(0.95).n_theta == 128

@@ -1,0 +1,30 @@
+# Set-up and the two commands of the README. Everything installs into .venv with the
+# versions pinned in constraints.txt (tested on Python 3.11).
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: setup demo test test-slow bench lint
+
+$(BIN)/lightfield-jax: pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]"
+	touch $@
+
+setup: $(BIN)/lightfield-jax
+
+demo: setup
+	$(BIN)/lightfield-jax demo --out demo_out
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
+
+bench: setup
+	$(BIN)/lightfield-jax bench --out bench.json
+
+lint: setup
+	$(BIN)/ruff check lightfield_jax tests experiments
