@@ -286,11 +286,16 @@ def _masked_dot(a, b, mask):
 
 
 def _covariance(jac: np.ndarray, residual: np.ndarray, names: list[str]):
-    """1σ errors and correlations: cov = s²(JᵀJ)⁻¹, s² = ‖r‖²/(n − p)."""
+    """1σ errors and correlations: cov = s²(JᵀJ)⁻¹, s² = ‖r‖²/(n − p).
+
+    The condition number is that of JᵀJ scaled to unit diagonal (free of the
+    parameters' units): large means some combination of parameters is barely
+    constrained (e.g. the σt-g valley at high albedo and forward scattering)."""
     n, p = jac.shape
     jtj = jac.T @ jac
     try:
-        cond = float(np.linalg.cond(jtj))
+        d = np.sqrt(np.clip(np.diag(jtj), 1e-300, None))
+        cond = float(np.linalg.cond(jtj / np.outer(d, d)))
         inv = np.linalg.inv(jtj)
     except np.linalg.LinAlgError:
         return {k: math.inf for k in names}, {}, math.inf
@@ -711,23 +716,23 @@ def fit_images(
         iterations = options.g_grid if name == "grid" else steps
         return _finish(
             options,
-            name,
-            sigma_t0,
-            s,
-            g,
-            gain,
-            black_level,
-            {**two_step_unc, **unc},
-            corr,
-            ok,
-            msg,
-            iterations,
-            rms,
+            t_start,
             seconds,
             model,
-            pixel_size_mm,
-            cond,
-            t_start,
+            method=name,
+            sigma_t=sigma_t0,
+            sigma_s=s,
+            g=g,
+            gain=gain,
+            black_level=black_level,
+            uncertainty={**two_step_unc, **unc},
+            correlation=corr,
+            converged=ok,
+            message=msg,
+            iterations=iterations,
+            residual=rms,
+            pixel_size_mm=pixel_size_mm,
+            condition_number=cond,
         )
 
     say(f"two-step start: search over {options.start_grid} values of g, then (sigma_s, g)")
@@ -767,23 +772,23 @@ def fit_images(
     ok, msg = _result_message(out["result"])
     return _finish(
         options,
-        "joint",
-        out["sigma_t"],
-        out["sigma_s"],
-        out["g"],
-        out["gain"],
-        out["black_level"],
-        out["unc"],
-        out["corr"],
-        ok,
-        msg,
-        total_steps,
-        out["rms"],
+        t_start,
         seconds,
         prev_model,
-        pixel_size_mm,
-        out["cond"],
-        t_start,
+        method="joint",
+        sigma_t=out["sigma_t"],
+        sigma_s=out["sigma_s"],
+        g=out["g"],
+        gain=out["gain"],
+        black_level=out["black_level"],
+        uncertainty=out["unc"],
+        correlation=out["corr"],
+        converged=ok,
+        message=msg,
+        iterations=total_steps,
+        residual=out["rms"],
+        pixel_size_mm=pixel_size_mm,
+        condition_number=out["cond"],
     )
 
 
@@ -796,49 +801,26 @@ def _covers(have: _Model, need: _Model) -> bool:
     )
 
 
-def _finish(
-    options,
-    method,
-    st,
-    ss,
-    g,
-    gain,
-    black,
-    unc,
-    corr,
-    ok,
-    msg,
-    iters,
-    rms,
-    seconds,
-    model,
-    pixel_size_mm,
-    cond,
-    t_start,
-) -> FitResult:
+def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, **values):
+    """The :class:`FitResult`, with total time and the model used."""
     seconds = dict(seconds)
     seconds["total"] = time.perf_counter() - t_start
     # Everything that is not XLA compilation counts as run time.
     seconds["run"] = seconds["total"] - seconds["compile"]
+    unc = values.pop("uncertainty")
     unc = {k: unc.get(k, math.nan) for k in _PARAMS if k in unc or k != "black_level"}
+    black = values.pop("black_level")
+    numbers = ("sigma_t", "sigma_s", "g", "gain", "residual", "condition_number")
     return FitResult(
-        method=method,
-        sigma_t=float(st),
-        sigma_s=float(ss),
-        g=float(g),
-        gain=float(gain),
+        **{k: float(values.pop(k)) for k in numbers},
         black_level=None if black is None else float(black),
         uncertainty=unc,
-        correlation=corr,
-        converged=bool(ok),
-        message=msg,
-        iterations=int(iters),
-        residual=float(rms),
+        converged=bool(values.pop("converged")),
+        iterations=int(values.pop("iterations")),
         seconds=seconds,
         model=model.as_dict(),
         phase=options.phase,
-        pixel_size_mm=pixel_size_mm,
-        condition_number=float(cond),
+        **values,
     )
 
 
