@@ -1,13 +1,17 @@
 """The capture format: shifted stripe images of a medium, and how they were taken.
 
 A capture is a YAML file next to its images (``lightfield-jax simulate`` writes one for
-stripe illumination; the inverse pipeline reads it)::
+stripe illumination, ``lightfield-jax pattern`` a template for a real camera; the
+inverse pipeline reads it)::
 
     images: [shift_00.exr, shift_01.exr, shift_02.exr, shift_03.exr, shift_04.exr, shift_05.exr]
     pattern: {period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5], direction_deg: 0.0, entry: left}
     dark_frame: dark.exr         # optional
-    black_level: 0.0             # optional
-    medium_roi: [x0, y0, x1, y1] # optional
+    black_frame: black.tif       # optional
+    white_frame: white.tif       # optional
+    flat_field: flat.tif         # optional
+    black_level: 0.0             # optional (or auto)
+    medium_roi: [x0, y0, x1, y1] # optional (or auto)
     pixel_size_mm: 0.05          # optional
     saturation: 0.98             # optional
     channel: all                 # optional
@@ -17,9 +21,16 @@ stripe illumination; the inverse pipeline reads it)::
 Keys:
 
 - ``images``: a list of image files (paths relative to the capture file; OpenEXR,
-  TIFF, PNG or ``.npy``, all the same size and channel count), one per phase; or one
-  ``.npy`` stack of shape [P, H, W] or [P, H, W, C]. Integer samples are scaled to
-  [0, 1] by their type's maximum (see :func:`~lightfield_jax._io.read_image`).
+  TIFF, PNG or ``.npy``, all the same size, channel count and sample format), one per
+  phase; or one ``.npy`` stack of shape [P, H, W] or [P, H, W, C]. Integer samples are
+  scaled to [0, 1] by their type's maximum (see :func:`~lightfield_jax._io.read_image`).
+  Camera files: 16-bit TIFF or PNG from a raw converter (linear, demosaiced), or float
+  EXR from an HDR merge. Refused with a clear error: images of different sample
+  formats (8- and 16-bit, integer and float), 1-channel images that are an
+  undemosaiced Bayer mosaic, 4-channel images that are not RGB with a constant alpha
+  (a constant alpha channel is dropped). 16-bit files that hold 10-, 12- or 14-bit data
+  clipped at its top code (4095 for 12 bits) have those pixels masked as saturated.
+  See :mod:`lightfield_jax._calibration`.
 - ``pattern``: the projected stripes (MODEL.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
@@ -27,7 +38,16 @@ Keys:
   of phase φ iff (r + φ) mod period < lit, counted in the full image frame; with a
   ``medium_roi`` the loaded pattern's phases are shifted to count from the ROI's edge.
 - ``dark_frame``: an image taken with the projector off, subtracted from every image
-  first. Same size as the images; one channel or as many as the images.
+  (and from the other calibration frames) first.
+- ``black_frame``, ``white_frame``: the camera's images of the projector showing all
+  black and all white. The black frame measures the black level (``black_level:
+  auto``); the white frame, if given, is where the medium's ROI is found.
+- ``flat_field``: an image of a uniformly lit white target (the camera's vignetting),
+  taken with the images' settings; the dark frame is subtracted from it, it is divided
+  by its median, and every image is divided by it. Pixels where it is not positive
+  are masked.
+  Calibration frames (dark, black, white, flat) have the images' size and one channel
+  or as many as the images, and an integer one the images' bit depth.
 - ``black_level``: b in [0, 1): a dark stripe emits b times a lit one (MODEL.md
   section 5). Absent: unknown (a joint fit may estimate it).
 - ``medium_roi``: [x0, y0, x1, y1] in pixels, x1 and y1 exclusive: the medium's
@@ -35,7 +55,8 @@ Keys:
 - ``pixel_size_mm``: pixel pitch in mm (> 0), to report coefficients in mm⁻¹.
 - ``saturation``: image value (after integer scaling) at or above which a raw pixel
   is saturated and masked. Absent: integer frames mask pixels at their top code (255
-  or 65535, i.e. 1.0), float frames mask nothing.
+  or 65535, i.e. 1.0, or a 16-bit file's sensor top code, see ``images``), float
+  frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
   (default: every channel, fitted separately).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default). Other kinds (the
@@ -43,16 +64,36 @@ Keys:
 - ``truth``: the true parameters of a simulated capture (``sigma_t``, ``sigma_s``,
   ``g``, ``gain``, ``phase``, ``black_level``), for reports.
 
+Measured values (``auto``). Five keys take the value ``auto``: ``medium_roi``,
+``pattern.entry``, ``pattern.direction_deg``, ``pattern.phases`` and ``black_level``.
+Each is then measured from the images instead of given (a key that is given is used
+as it is, and constrains the measurement of the others; a key that is absent keeps its
+default above, so existing captures load unchanged):
+
+- ``medium_roi``, ``pattern.entry``, ``pattern.direction_deg``, ``pattern.phases``:
+  :func:`~lightfield_jax._geometry.detect_geometry` on the dark-subtracted,
+  flat-fielded images over the whole frame (the ROI in the white frame when there is
+  one): the lit medium's rectangle, the wall the light enters, its heading from the
+  stripes' ridges (oblique stripes are modelled by ``direction_deg``), and where the
+  stripes fall on the camera's rows. Its result is ``Capture.detected``.
+- ``black_level``: from the black frame (against the white frame or the mean of the
+  shifts), or, without one, Imin/Imax at the entry wall, which is an upper bound
+  (:mod:`lightfield_jax._calibration`). Its result is ``Capture.black_level_estimate``.
+
+What was measured is written to ``Capture.notes``; a detection whose confidence is
+below 0.5 is also a :class:`CaptureWarning`. ``lightfield-jax inspect`` shows it all.
+
 :func:`load_capture` validates all of it: every error is a
 :class:`~lightfield_jax._io.CaptureError` whose message starts with the capture file and
 names the key and value (or the image file). Pixels that cannot be used (NaN or Inf in
-an image or the dark frame, saturated or clipped) are masked, with a
+an image, the dark frame or the flat field, saturated or clipped) are masked, with a
 :class:`CaptureWarning` that counts them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -62,7 +103,16 @@ from typing import Any
 import numpy as np
 import yaml
 
+from ._calibration import (
+    BlackLevel,
+    check_not_mosaic,
+    check_sample_formats,
+    drop_constant_alpha,
+    estimate_black_level,
+    sensor_top_code,
+)
 from ._config import _as_int, _Section, load_yaml
+from ._geometry import LOW_CONFIDENCE, Geometry, detect_geometry
 from ._illumination import WALLS, Stripes
 from ._io import (
     CaptureError,
@@ -86,8 +136,13 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "channel",
     "geometry",
     "truth",
+    "black_frame",
+    "white_frame",
+    "flat_field",
 )
+AUTO = "auto"
 GEOMETRY_KINDS: tuple[str, ...] = ("plane",)
+_AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
 _PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
 _TRUTH_FLOATS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 _TRUTH_KEYS = (*_TRUTH_FLOATS, "phase")
@@ -120,6 +175,14 @@ class Capture:
         geometry: the geometry mapping (``{"kind": "plane"}``).
         truth: the true parameters of a simulated capture, or ``None``.
         warnings: the messages of the :class:`CaptureWarning` s issued while loading.
+        notes: what loading measured or decided on its own (``auto`` values, a dropped
+            alpha channel, the sensor's bit depth), one line each.
+        detected: what :func:`~lightfield_jax._geometry.detect_geometry` found, when a
+            key asked for ``auto``; else ``None``.
+        black_level_estimate: the estimate behind ``black_level: auto``, else ``None``.
+        overview: the mean of the shifts over the whole camera frame (dark frame
+            subtracted, flat-fielded), [H, W, C], before the ROI crop.
+        black_frame, white_frame, flat_field: the files given for these keys, or ``None``.
     """
 
     images: np.ndarray
@@ -137,6 +200,13 @@ class Capture:
     geometry: dict[str, Any]
     truth: dict[str, Any] | None
     warnings: tuple[str, ...]
+    notes: tuple[str, ...] = ()
+    detected: Geometry | None = None
+    black_level_estimate: BlackLevel | None = None
+    overview: np.ndarray | None = None
+    black_frame: Path | None = None
+    white_frame: Path | None = None
+    flat_field: Path | None = None
 
     @property
     def n_images(self) -> int:
@@ -165,39 +235,105 @@ def load_capture(path: str | os.PathLike) -> Capture:
     top = _Section(str(path), "", load_yaml(path, CaptureError), CAPTURE_KEYS, error=CaptureError)
     base = path.parent
     channel = _channel(top)
+    notes: list[str] = []  # what was measured or decided: Capture.notes
+    issues: list[str] = []  # what the user must know: CaptureWarnings
     frames = _frames(top, base, channel)
+    try:
+        frames = drop_constant_alpha(frames, notes)
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: images: {e}") from None
     height, width, n_channels = frames[0].pixels.shape
-    pattern = _pattern(top, len(frames))
-    dark = _dark_frame(top, base, channel, frames[0])
+    spec = _pattern_spec(top, len(frames))
+    aux = {key: _aux_frame(top, key, base, channel, frames[0]) for key in _AUX_FRAMES}
+    try:
+        check_sample_formats(
+            [(f"images[{i}]", f) for i, f in enumerate(frames)],
+            [(k, v) for k, v in aux.items() if v is not None],
+        )
+        check_not_mosaic(frames)
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: {e}") from None
     roi = _roi(top, width, height)
-    black_level = top.float("black_level", None)
-    if black_level is not None and not 0.0 <= black_level < 1.0:
-        top.fail("black_level", f"must lie in [0, 1), got {black_level!r}")
+    black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
     saturation = _positive(top, "saturation")
     geometry = _geometry(top)
     truth = _truth(top)
 
     raw = np.stack([f.pixels for f in frames])
+    if frames[0].is_integer and frames[0].bit_depth == 8:
+        notes.append(
+            "8-bit images: 256 levels quantise the light's decay, and cameras usually "
+            "write 8-bit files gamma-encoded (not linear); prefer 16-bit linear output"
+        )
+    sensor = None if saturation is not None else sensor_top_code(raw, frames)
+    dark = aux["dark_frame"]
     dark_pixels = None if dark is None else dark.pixels
+    flat_pixels = _flat(top, aux["flat_field"], dark_pixels)
+
+    overview = _calibrate(np.mean(raw, axis=0), dark_pixels, flat_pixels)
+    detected = None
+    if AUTO in (roi, spec["phases"], spec["entry"], spec["direction_deg"]):
+        white = aux["white_frame"]
+        detected = _detect(
+            top,
+            spec,
+            roi,
+            _calibrate(raw, dark_pixels, flat_pixels),
+            None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels),
+            dark_subtracted=dark is not None,
+        )
+        notes.append("detected: " + detected.summary().replace("\n", "; "))
+        if detected.confidence < LOW_CONFIDENCE:
+            issues.append(
+                f"the detected geometry has a low confidence {detected.confidence:.2f} "
+                f"({detected.summary().splitlines()[-1]}): check it with lightfield-jax "
+                "inspect, or give the values"
+            )
+        roi = detected.roi if roi == AUTO else roi
+    pattern = _stripes(top, spec, detected)
+
+    calibration_frames = {k: v.pixels for k, v in aux.items() if v is not None}
     if roi is not None:
         x0, y0, x1, y1 = roi
         raw = raw[:, y0:y1, x0:x1]
-        dark_pixels = None if dark_pixels is None else dark_pixels[y0:y1, x0:x1]
+        calibration_frames = {k: v[y0:y1, x0:x1] for k, v in calibration_frames.items()}
+        dark_pixels = calibration_frames.get("dark_frame")
+        if flat_pixels is not None:
+            flat_pixels = flat_pixels[y0:y1, x0:x1]
         pattern = _crop_pattern(pattern, x0, y0)
     names = [f.path.name for f in frames]
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
-    notes: list[str] = []
-    nonfinite = _nonfinite(raw, dark_pixels, names, dark, notes)
-    saturated = _saturated(raw, frames, names, saturation, notes) & ~nonfinite
+    checked = [(dark, dark_pixels)] if dark is not None else []
+    if flat_pixels is not None:
+        checked.append((aux["flat_field"], flat_pixels))
+    nonfinite = _nonfinite(raw, checked, names, issues)
+    saturated = _saturated(raw, frames, names, saturation, sensor, issues) & ~nonfinite
     mask = ~(nonfinite | saturated)
-    for note in notes:
-        warnings.warn(f"{path}: {note}", CaptureWarning, stacklevel=2)
+    for issue in issues:
+        warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     if not mask.any():
         top.fail("images", "no usable pixel: every pixel is non-finite or saturated in some image")
-    images = raw if dark_pixels is None else raw - dark_pixels
+    images = _calibrate(raw, dark_pixels, flat_pixels)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)
+
+    estimate = None
+    if black_level == AUTO:
+        frames_used = {
+            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels)
+            for k in ("black_frame", "white_frame")
+            if k in calibration_frames
+        }
+        estimate = _estimate_black_level(top, images, pattern, mask, frames_used)
+        black_level = estimate.value
+        notes.append(
+            f"black_level: auto: {estimate.value:.4f}"
+            + (f" ± {estimate.stderr:.4f}" if math.isfinite(estimate.stderr) else "")
+            + f" ({estimate.method}; per channel "
+            + ", ".join(f"{v:.4f}" for v in estimate.per_channel)
+            + ")"
+        )
     return Capture(
         images=images,
         channel_names=frames[0].channel_names,
@@ -217,7 +353,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
         },
         geometry=geometry,
         truth=truth,
-        warnings=tuple(notes),
+        warnings=tuple(issues),
+        notes=tuple(notes),
+        detected=detected,
+        black_level_estimate=estimate,
+        overview=np.where(np.isfinite(overview), overview, 0.0).astype(raw.dtype),
+        black_frame=None if aux["black_frame"] is None else aux["black_frame"].path,
+        white_frame=None if aux["white_frame"] is None else aux["white_frame"].path,
+        flat_field=None if aux["flat_field"] is None else aux["flat_field"].path,
     )
 
 
@@ -295,28 +438,65 @@ def _size(image: ImageData) -> str:
     return f"{w}x{h} pixels with {c} channel(s)"
 
 
-def _pattern(top: _Section, n_images: int) -> Stripes:
+def _pattern_spec(top: _Section, n_images: int) -> dict[str, Any]:
+    """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
+    ``"auto"`` (measured from the images)."""
     s = top.section("pattern", _PATTERN_KEYS)
-    period, lit = s.int("period", 6), s.int("lit", 3)
+    spec: dict[str, Any] = {"period": s.int("period", 6), "lit": s.int("lit", 3)}
     phases = s.get("phases", None)
     if phases is None:
         phases = list(range(n_images))
+    elif phases == AUTO:
+        pass
     elif not isinstance(phases, list) or not phases:
-        s.fail(s.key("phases"), f"must be a non-empty list of integers, got {phases!r}")
+        s.fail(s.key("phases"), f"must be a non-empty list of integers or 'auto', got {phases!r}")
     else:
         phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
-    if len(phases) != n_images:
+    if phases != AUTO and len(phases) != n_images:
         s.fail(
             s.key("phases"),
             f"lists {len(phases)} phase(s) for {n_images} image(s); give one phase per image",
         )
-    direction = s.float("direction_deg", None)
-    entry = s.choice("entry", WALLS, "left")
+    spec["phases"] = phases
+    spec["direction_deg"] = (
+        AUTO if s.get("direction_deg", None) == AUTO else (s.float("direction_deg", None))
+    )
+    spec["entry"] = s.choice("entry", (*WALLS, AUTO), "left")
+    # Validate what is given now, before any detection.
+    _stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
+    return spec
+
+
+def _stripes(top: _Section, spec: dict[str, Any], detected: Geometry | None, check=False):
+    """The Stripes of a pattern spec, ``auto`` values taken from ``detected``."""
+
+    def pick(key, measured):
+        value = spec[key]
+        if value != AUTO:
+            return value
+        return None if detected is None else measured
+
+    entry = pick("entry", detected and detected.entry)
+    direction = pick("direction_deg", detected and detected.direction_deg)
+    phases = pick("phases", detected and detected.phases)
+    if check and entry is None:
+        entry = "left" if direction is None else _any_wall(direction)
     try:
-        return Stripes(period, lit, tuple(phases), direction_deg=direction, entry=entry)
+        return Stripes(
+            spec["period"], spec["lit"], tuple(phases), direction_deg=direction, entry=entry
+        )
     except ValueError as e:
         message = str(e).replace("illumination.", "pattern.").replace("illumination:", "pattern:")
         raise CaptureError(f"{top.source}: {message}") from None
+
+
+def _any_wall(direction_deg: float) -> str:
+    """A wall that light heading ``direction_deg`` can enter (for validation only)."""
+    t = math.radians(direction_deg)
+    c, s = math.cos(t), math.sin(t)
+    if abs(c) >= abs(s):
+        return "left" if c > 0 else "right"
+    return "top" if s > 0 else "bottom"
 
 
 def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
@@ -326,32 +506,116 @@ def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
     return dataclasses.replace(pattern, phases=phases)
 
 
-def _dark_frame(top: _Section, base: Path, channel, first: ImageData) -> ImageData | None:
-    value = top.get("dark_frame", None)
+def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData):
+    """A calibration frame (dark, black, white, flat): the images' size, and one
+    channel or as many as they have."""
+    value = top.get(key, None)
     if value is None:
         return None
-    dark = _read(top, "dark_frame", _file(top, "dark_frame", value, base), channel)
+    frame = _read(top, key, _file(top, key, value, base), channel)
     h, w, c = first.pixels.shape
-    dh, dw, dc = dark.pixels.shape
-    if (dh, dw) != (h, w) or dc not in (1, c):
-        top.fail(
-            "dark_frame",
-            f"{value} is {_size(dark)}, but the images are {_size(first)} (a dark frame has "
-            "the images' size and one channel or as many as they have)",
+    fh, fw, fc = frame.pixels.shape
+    if fc == c + 1 and frame.channel_names[-1] == "A":
+        frame = dataclasses.replace(
+            frame, pixels=frame.pixels[..., :c], channel_names=frame.channel_names[:c]
         )
-    return dark
+        fc = c
+    if (fh, fw) != (h, w) or fc not in (1, c):
+        top.fail(
+            key,
+            f"{value} is {_size(frame)}, but the images are {_size(first)} (a "
+            f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
+            "they have)",
+        )
+    return frame
 
 
-def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | None:
-    value = top.get("medium_roi", None)
-    if value is None:
+def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None):
+    """The flat field, dark frame subtracted, divided by its median: NaN where it is
+    not positive (those pixels are masked)."""
+    if flat is None:
         return None
+    f = flat.pixels if dark is None else flat.pixels - dark
+    good = np.isfinite(f) & (f > 0)
+    if good.mean() < 0.5:
+        top.fail(
+            "flat_field",
+            f"{flat.path.name} is not positive in {100 * (1 - good.mean()):.0f}% of its "
+            "pixels (after the dark frame): not a flat field",
+        )
+    return np.where(good, f / np.median(f[good]), np.nan)
+
+
+def _black_level(top: _Section) -> float | str | None:
+    if top.get("black_level", None) == AUTO:
+        return AUTO
+    value = top.float("black_level", None)
+    if value is not None and not 0.0 <= value < 1.0:
+        top.fail("black_level", f"must lie in [0, 1), got {value!r} (or 'auto': measured)")
+    return value
+
+
+def _calibrate(a: np.ndarray, dark: np.ndarray | None, flat: np.ndarray | None) -> np.ndarray:
+    """(a − dark) / flat: the images (or a calibration frame) in linear units."""
+    if dark is not None:
+        a = a - dark
+    return a if flat is None else a / flat
+
+
+def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
+    """Measure what the capture leaves ``auto`` (see :mod:`lightfield_jax._geometry`)."""
+    asked = [k for k in ("phases", "entry", "direction_deg") if spec[k] == AUTO]
+    asked = (["medium_roi"] if roi == AUTO else []) + [f"pattern.{k}" for k in asked]
+    try:
+        return detect_geometry(
+            images,
+            period=spec["period"],
+            lit=spec["lit"],
+            reference=white,
+            floor=0.0 if dark_subtracted else None,
+            roi=None if roi == AUTO else roi,
+            entry=None if spec["entry"] == AUTO else spec["entry"],
+            direction_deg=None if spec["direction_deg"] == AUTO else spec["direction_deg"],
+        )
+    except ValueError as e:
+        raise CaptureError(f"{top.source}: {', '.join(asked)}: auto: {e}") from None
+
+
+def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:
+    black, white = frames.get("black_frame"), frames.get("white_frame")
+    tiles = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
+    try:
+        return estimate_black_level(
+            images,
+            pattern.lit_fraction,
+            tiles_period=tiles,
+            mask=mask,
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+            black=None if black is None else _broadcast(black, images),
+            white=None if white is None else _broadcast(white, images),
+        )
+    except ValueError as e:
+        raise CaptureError(f"{top.source}: {e}") from None
+
+
+def _broadcast(frame: np.ndarray, images: np.ndarray) -> np.ndarray:
+    return np.broadcast_to(frame, images.shape[1:])
+
+
+def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
+    value = top.get("medium_roi", None)
+    if value is None or value == AUTO:
+        return value
     if (
         not isinstance(value, list)
         or len(value) != 4
         or any(isinstance(v, bool) or not isinstance(v, int) for v in value)
     ):
-        top.fail("medium_roi", f"must be a list of 4 integers [x0, y0, x1, y1], got {value!r}")
+        top.fail(
+            "medium_roi",
+            f"must be a list of 4 integers [x0, y0, x1, y1] or 'auto', got {value!r}",
+        )
     x0, y0, x1, y1 = value
     if not (0 <= x0 and x0 + 2 <= x1 <= width and 0 <= y0 and y0 + 2 <= y1 <= height):
         top.fail(
@@ -395,20 +659,21 @@ def _truth(top: _Section) -> dict[str, Any] | None:
 
 def _nonfinite(
     raw: np.ndarray,
-    dark: np.ndarray | None,
+    frames: Sequence[tuple[ImageData, np.ndarray]],
     names: Sequence[str],
-    dark_image: ImageData | None,
     notes: list[str],
 ) -> np.ndarray:
-    """[H, W, C] True where an image or the dark frame is NaN or Inf; notes the counts."""
+    """[H, W, C] True where an image or a calibration frame (dark, flat: each with its
+    cropped pixels; a flat field is NaN where not positive) is NaN or Inf; notes the
+    counts."""
     bad = ~np.isfinite(raw)
     counts = {n: int(c) for n, c in zip(names, bad.sum(axis=(1, 2, 3)), strict=True) if c}
     out = bad.any(axis=0)
-    if dark is not None:
-        dark_bad = ~np.isfinite(dark)
-        if dark_bad.any():
-            counts[dark_image.path.name] = int(dark_bad.sum())
-        out = out | np.broadcast_to(dark_bad, out.shape)
+    for image, pixels in frames:
+        frame_bad = ~np.isfinite(pixels)
+        if frame_bad.any():
+            counts[image.path.name] = int(frame_bad.sum())
+        out = out | np.broadcast_to(frame_bad, out.shape)
     if counts:
         listed = ", ".join(f"{n}: {c}" for n, c in counts.items())
         notes.append(
@@ -423,16 +688,18 @@ def _saturated(
     frames: Sequence[ImageData],
     names: Sequence[str],
     saturation: float | None,
+    sensor: tuple[float, int] | None,
     notes: list[str],
 ) -> np.ndarray:
     """[H, W, C] True where a raw image is saturated (>= saturation) or clipped (at the
-    top code of an integer frame, when no saturation is given); notes what was found."""
+    top code of an integer frame, or of the sensor's bits in a 16-bit file, when no
+    saturation is given); notes what was found."""
     with np.errstate(invalid="ignore"):
         if saturation is not None:
             hit = raw >= saturation
         else:
             integer = np.array([f.is_integer for f in frames])[:, None, None, None]
-            hit = integer & (raw >= 1.0)
+            hit = integer & (raw >= (1.0 if sensor is None else sensor[0]))
     per_frame = hit.sum(axis=(1, 2, 3))
     finite = np.isfinite(raw).sum(axis=(1, 2, 3))
     full = [n for n, h, f in zip(names, per_frame, finite, strict=True) if f and h == f]
@@ -448,6 +715,8 @@ def _saturated(
     elif listed:
         bits = sorted({f.bit_depth for f, h in zip(frames, per_frame, strict=True) if h})
         codes = ", ".join(f"{(1 << b) - 1} ({b}-bit)" for b in bits)
+        if sensor is not None:
+            codes = f"{(1 << sensor[1]) - 1} ({sensor[1]}-bit data in 16-bit files)"
         notes.append(
             f"integer frames clipped at their top code {codes} ({listed}); "
             f"{int(out.sum())} pixel(s) masked (set saturation: to change the threshold)"
@@ -464,18 +733,22 @@ def write_capture_yaml(
     images: Sequence[str | os.PathLike] | str | os.PathLike,
     pattern: Stripes,
     dark_frame: str | os.PathLike | None = None,
-    black_level: float | None = None,
-    medium_roi: Sequence[int] | None = None,
+    black_level: float | str | None = None,
+    medium_roi: Sequence[int] | str | None = None,
     pixel_size_mm: float | None = None,
     saturation: float | None = None,
     channel: str | int | None = None,
     geometry: dict[str, Any] | None = None,
     truth: dict[str, Any] | None = None,
+    black_frame: str | os.PathLike | None = None,
+    white_frame: str | os.PathLike | None = None,
+    flat_field: str | os.PathLike | None = None,
 ) -> Path:
     """Write a capture file (atomically); keys left ``None`` are omitted.
 
-    ``images`` is a list of image files or one ``.npy`` stack, and ``dark_frame`` a
-    file, all given relative to the capture file's folder.
+    ``images`` is a list of image files or one ``.npy`` stack, and ``dark_frame``,
+    ``black_frame``, ``white_frame`` and ``flat_field`` files, all given relative to the
+    capture file's folder. ``medium_roi`` and ``black_level`` may be ``"auto"``.
     """
 
     def plain(value):
@@ -506,6 +779,9 @@ def write_capture_yaml(
         "channel": channel,
         "geometry": geometry,
         "truth": truth,
+        "black_frame": black_frame,
+        "white_frame": white_frame,
+        "flat_field": flat_field,
     }
     data = plain({k: v for k, v in data.items() if v is not None})
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)

@@ -160,6 +160,15 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
         yield
 
 
+def _warn(args: argparse.Namespace, text: str) -> None:
+    """A warning of the command itself: one line on stderr, collected like the
+    package's, whatever the Python warning filters are (``-W error`` must not turn an
+    exit status 1 into a traceback)."""
+    text = _one_line(text)
+    args.warnings.append(text)
+    print(f"{PROG}: warning: {text}", file=sys.stderr)
+
+
 def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
     """The stage display of a command (off with ``--quiet``)."""
     return progress(desc, total, enabled=False if args.quiet else None)
@@ -331,6 +340,25 @@ def _fit_summary(fit) -> str:
     return "\n".join(lines)
 
 
+def _fit_figures(capture, fit, plot: Path, stage) -> list[Path]:
+    """FIG.png: the profiles and residuals of the fit; with several channels, FIG.png
+    holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles."""
+    from .viz import plot_channels, plot_fit
+
+    stage("plot")
+    if len(fit.channels) == 1:
+        i = capture.channel_names.index(fit.channels[0])
+        plot_fit(capture.images[..., i], capture.pattern, fit.results[0], plot)
+        return [plot]
+    figures = [plot_channels(fit, plot, pixel_size_mm=capture.pixel_size_mm)]
+    for name, result in zip(fit.channels, fit.results, strict=True):
+        i = capture.channel_names.index(name)
+        target = plot.with_name(f"{plot.stem}_{name}{plot.suffix}")
+        plot_fit(capture.images[..., i], capture.pattern, result, target)
+        figures.append(target)
+    return figures
+
+
 @command(
     "fit",
     "recover sigma_t, sigma_s and g from a stripe capture",
@@ -348,12 +376,23 @@ def _fit_summary(fit) -> str:
         help="fit only this channel (repeatable; default: the capture's channel key)",
     ),
     arg("--out", default="results.json", metavar="FILE", help="JSON results (%(default)s)"),
-    arg("--plot", metavar="FIG.png", help="also write the profiles and residual figure"),
+    arg(
+        "--plot",
+        metavar="FIG.png",
+        help="also write the profiles and residual figure; with several channels FIG.png "
+        "shows sigma_t, sigma_s, g per channel and FIG_<channel>.png each one's profiles",
+    ),
     arg(
         "--phase",
         choices=("paper", "normalized"),
         default="paper",
         help="phase convention of the model (default: %(default)s)",
+    ),
+    arg(
+        "--max-steps",
+        type=_positive_int,
+        metavar="N",
+        help="iteration limit of the solves (default: FitOptions.max_steps)",
     ),
 )
 def _fit(args: argparse.Namespace) -> int | None:
@@ -369,28 +408,27 @@ def _fit(args: argparse.Namespace) -> int | None:
     plot = _writable_file(args.plot) if args.plot else None
     capture = load_capture(args.capture)
     with _progress(args, f"fit ({args.method})") as stage:
+        limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         fit = fit_capture(
-            capture, args.method, channels=args.channel, progress=stage, phase=args.phase
+            capture,
+            args.method,
+            channels=args.channel,
+            progress=stage,
+            phase=args.phase,
+            **limits,
         )
         result = fit.to_dict()
         result["capture"] = str(capture.source)
         if capture.truth:
             result["truth"] = capture.truth
         atomic_write_json(out, result)
-        if plot is not None:
-            stage("plot")
-            from .viz import plot_fit
-
-            i = capture.channel_names.index(fit.channels[0])
-            plot_fit(capture.images[..., i], capture.pattern, fit.results[0], plot)
+        figures = _fit_figures(capture, fit, plot, stage) if plot is not None else []
+    for note in capture.notes:
+        _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
-    _say(args, f"wrote {out}" + (f" and {plot}" if plot else ""))
+    _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")
     if not fit.converged:
-        warnings.warn(
-            "the fit did not converge: results were written with converged: false",
-            RuntimeWarning,
-            stacklevel=1,
-        )
+        _warn(args, "the fit did not converge: results were written with converged: false")
         return 1
     return None
 
@@ -476,6 +514,94 @@ def _demo(args: argparse.Namespace) -> int | None:
         f"wrote {out}/ (capture, results.json" + (", demo_fit.png)" if "joint" in results else ")"),
     )
     return None if all(r.converged for _, r in rows) else 1
+
+
+# --------------------------------------------------------------------------- pattern
+
+
+@command(
+    "pattern",
+    "write the projector's stripe images and a capture.yaml template for them",
+    arg("--width", type=_positive_int, required=True, help="projector width (pixels)"),
+    arg("--height", type=_positive_int, required=True, help="projector height (pixels)"),
+    arg("--period", type=_positive_int, default=6, help="stripe period (%(default)s)"),
+    arg("--lit", type=_positive_int, default=3, help="lit rows per period (%(default)s)"),
+    arg("--shifts", type=_positive_int, help="shifted images (default: the period)"),
+    arg(
+        "--orientation",
+        choices=("rows", "columns"),
+        default="rows",
+        help="stripes along projector rows or columns (%(default)s)",
+    ),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+)
+def _pattern(args: argparse.Namespace) -> None:
+    """Write into DIR the images to project, 8-bit PNG of WIDTHxHEIGHT:
+
+      stripe_XX.png  the shifted stripes: in stripe_XX, projector row r (column, with
+                     --orientation columns) is white iff (r + phase) mod period < lit;
+                     phases spread evenly over the period
+      white.png      all white (finds the medium; with black.png, the black level)
+      black.png      all black (the projector's black level)
+      capture.yaml   a capture file for the camera's images of them: replace the
+                     camera_*.tif names by your files; the ROI, entry wall,
+                     direction, stripe phases and black level are measured from the
+                     images (auto); every key is explained in a comment
+
+    Nothing is written unless the whole command succeeds."""
+    from ._io import atomic_directory
+    from ._pattern import pattern_phases, write_patterns
+
+    out = _writable_folder(args.out)
+    phases = pattern_phases(args.period, args.lit, args.shifts)
+    with atomic_directory(out) as staging:
+        files = write_patterns(
+            staging, args.width, args.height, args.period, args.lit, args.shifts, args.orientation
+        )
+    _say(
+        args,
+        f"wrote {len(files)} files to {out}: {len(phases)} stripe images (period {args.period}, "
+        f"lit {args.lit}, phases {list(phases)}, {args.orientation}), white.png, black.png, "
+        "capture.yaml",
+    )
+
+
+# --------------------------------------------------------------------------- inspect
+
+
+@command(
+    "inspect",
+    "show what the pipeline sees in a capture before fitting it",
+    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see lightfield_jax._capture)"),
+    arg("--plot", metavar="FIG.png", help="also write the figure"),
+    arg("--json", metavar="FILE", help="also write the findings as JSON"),
+)
+def _inspect_command(args: argparse.Namespace) -> None:
+    """Load a capture (measuring what it leaves auto), separate it, and print: the
+    medium's ROI, the entry wall, the light's direction, the stripe phases, the black
+    level, the masked pixels and, per channel, the direct light's SNR along the beam.
+    --plot draws the frame with the ROI, entry wall and direction, the separated direct
+    and multiple images, the saturation mask and the SNR along the beam."""
+    from ._capture import load_capture
+    from ._inspect import inspect_capture
+    from ._io import atomic_write_json
+
+    plot = _writable_file(args.plot) if args.plot else None
+    out = _writable_file(args.json) if args.json else None
+    capture = load_capture(args.capture)
+    with _progress(args, "inspect") as stage:
+        stage("separate")
+        inspection = inspect_capture(capture)
+        if plot is not None:
+            stage("plot")
+            from .viz import plot_inspect
+
+            plot_inspect(inspection, plot)
+        if out is not None:
+            atomic_write_json(out, inspection.to_dict())
+    _say(args, inspection.summary())
+    if plot is not None or out is not None:
+        _say(args, f"wrote {', '.join(str(f) for f in (plot, out) if f is not None)}")
 
 
 # --------------------------------------------------------------------------- experiment

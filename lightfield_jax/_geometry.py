@@ -1,0 +1,458 @@
+"""Geometry of a stripe capture, measured from its images: where the medium is, which
+wall the light enters, where it heads, and where the stripes fall on the camera's rows.
+
+A real capture comes without these numbers, and measuring them by hand (a ruler on the
+tank, a protractor on the projector) is the error-prone step. :func:`detect_geometry`
+finds them in the images themselves, in the image frame of MODEL.md section 1:
+
+- **Medium (ROI).** The signal S is the mean over the shifts (every row is lit in some
+  shift, so S has no stripes) or the all-white frame. Its noise floor is read from the
+  frame's dimmest border band (or given, e.g. 0 after a dark frame); pixels above the
+  floor by eight times its scatter (and by 2·10⁻³ of the peak) are "lit". After a 3×3
+  opening (isolated noise pixels), the largest connected lit region's bounding box is
+  the ROI ``(x0, y0, x1, y1)``, x1 and y1 exclusive. Each edge is classified: ``wall``
+  (a sharp step: the band just inside is well above the threshold, the band just
+  outside below it), ``frame`` (the ROI reaches the image's edge), or ``faded`` (the
+  light fades out before a wall: typically the far wall of a dense medium; the crop
+  then ends where the light does, which is where a fit's crop ends anyway).
+- **Orientation and stripe phase.** Along the wall (the transverse axis) each shifted
+  image is a square wave of period T = ``period`` camera pixels. Its Fourier
+  coefficient at frequency 1/T, per line along the light (a Hann-windowed sum across
+  the ROI), c_p(x) = Σ_u w(u)·I_p(u, x)·exp(−2πi u/T), has a phase that drifts
+  linearly along the light, arg c_p(x) = α_p − 2π·x·tan(θ')/T, where tan(θ') is the
+  ridges' slope (dy/dx for the left and right walls, dx/dy for the top and bottom
+  walls). The axis with the stronger 1/T component is the transverse one (stripes
+  crossing the wrong axis repeat every T/tan θ' pixels, not T).
+- **Entry wall.** Of the two walls across the light, the one where the signal is
+  brighter (light decays away from the wall it enters).
+- **Direction.** The common slope of the phases of every shift, by weighted least
+  squares (weights |c|², the inverse variance of a phase) on the phases detrended by a
+  first slope from the mean phase increment between neighbouring lines (no phase
+  unwrapping), refined twice, with lines whose residual exceeds four robust standard
+  deviations dropped (a robust line fit). θ0 = atan(tan θ') from the left wall, 180° +
+  atan from the right wall, 90° − atan from the top and 270° − atan from the bottom
+  wall. Its standard error comes from the fit's residual.
+- **Phases.** The stripe centre on the entry wall, u_c = −T·arg c_p(x_wall)/(2π), gives
+  the phase of each image: rows r with (r + φ) mod T < lit are lit, whose centre is
+  −φ + lit/2, so φ = lit/2 − u_c (mod T), rounded to an integer. The fractional part
+  left over (``phase_offset``, in pixels) says how far the projector's stripes are from
+  the camera's rows, which the capture format cannot express (MODEL.md section 3).
+- **Period.** The transverse frequency whose Fourier power is largest near 1/T (a dense
+  search between 1/(1.5T) and 1.5/T) gives the stripes' period in camera pixels: it
+  must be T for the capture format to describe them.
+
+Measured on renders (48×36 px media embedded in a dark frame with shot and read noise,
+θ0 from −20° to 25°, three media, 54 captures): lit walls within 0 px, θ0 within 0.09°
+(rms 0.04°; the reported standard error, 0.005-0.02°, is the statistical part only: the
+window and the oblique shadow edge add a bias of a few hundredths of a degree), every
+phase right. The far wall of a dense medium is not seen: for the paper's milk (σt 0.2)
+the ROI ends 26 px short of a 48 px tank, where the light has fallen to about 1 % of its
+peak, an edge reported as ``faded``.
+
+Stripes not aligned with the pixel grid are thus described by an oblique
+``direction_deg``, which the renderer models (MODEL.md section 3). Confidence is a
+number in [0, 1], the smallest of the parts' confidences (``Geometry.parts``): ``roi``
+(1 when the entry wall and both side walls are sharp steps or the frame's edge, minus
+0.25 for each that is not), ``entry`` (1 − the far side's signal / the entry side's),
+``orientation`` (1 − the weaker axis's stripe power / the stronger's), ``direction``
+(1/(1 + (stderr/0.5°)²)), ``phases`` (1 − 2·|phase_offset|) and ``period``
+(1 − |measured/T − 1|/0.1, clipped). A detection with a confidence below 0.5 deserves
+a look (``lightfield-jax inspect``).
+
+scikit-image is imported inside the functions that use it, so ``import lightfield_jax``
+does not load it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from ._illumination import WALLS, _check_direction
+
+_OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top"}
+_ACROSS = {"left": "rows", "right": "rows", "top": "columns", "bottom": "columns"}
+LOW_CONFIDENCE = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class Geometry:
+    """What :func:`detect_geometry` found (image frame of MODEL.md section 1).
+
+    Attributes:
+        roi: the medium's rectangle ``(x0, y0, x1, y1)`` in pixels, x1, y1 exclusive.
+        entry: the wall the light enters through (left, right, top, bottom).
+        direction_deg: the light's heading θ0 (degrees from +x toward +y).
+        direction_stderr_deg: its standard error (0 when it was given, not measured).
+        phases: one stripe phase per image, counted in the full frame (a row r, or a
+            column for the top and bottom walls, is lit iff (r + φ) mod period < lit).
+        phase_offset: the largest distance (pixels) between a measured stripe position
+            and the nearest whole row; 0 means the stripes fall on the camera's rows.
+        period_px: the stripes' measured period along the wall (camera pixels).
+        confidence: the smallest of ``parts`` (see the module docstring).
+        parts: confidence of each measured part, in [0, 1].
+        edges: how each ROI edge was found: ``wall``, ``frame``, ``faded`` or ``given``.
+        given: the parts that were given rather than measured.
+        floor: the signal's noise floor (image units) and ``noise`` its scatter;
+            ``threshold`` the level above which a pixel counted as lit.
+    """
+
+    roi: tuple[int, int, int, int]
+    entry: str
+    direction_deg: float
+    direction_stderr_deg: float
+    phases: tuple[int, ...]
+    phase_offset: float
+    period_px: float
+    confidence: float
+    parts: dict[str, float]
+    edges: dict[str, str]
+    given: tuple[str, ...]
+    floor: float
+    noise: float
+    threshold: float
+
+    def summary(self) -> str:
+        """One line per finding, for a report or the command line."""
+        x0, y0, x1, y1 = self.roi
+        edges = ", ".join(f"{k} {v}" for k, v in self.edges.items())
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in self.parts.items())
+        return "\n".join(
+            [
+                f"medium_roi [{x0}, {y0}, {x1}, {y1}] ({x1 - x0}x{y1 - y0} px; edges: {edges})",
+                f"entry {self.entry}, direction_deg {self.direction_deg:.3f}"
+                f" ± {self.direction_stderr_deg:.3f}",
+                f"phases {list(self.phases)} (stripes {self.phase_offset:.2f} px off the "
+                f"camera's rows; period measured {self.period_px:.3f} px)",
+                f"confidence {self.confidence:.2f} ({parts})"
+                + (f"; given: {', '.join(self.given)}" if self.given else ""),
+            ]
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["roi"] = list(self.roi)
+        d["phases"] = list(self.phases)
+        d["given"] = list(self.given)
+        for key in ("threshold", "floor", "noise"):
+            d[key] = d[key] if math.isfinite(d[key]) else None
+        return d
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _mad_sigma(values: np.ndarray) -> float:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return 0.0
+    return 1.4826 * float(np.median(np.abs(v - np.median(v))))
+
+
+def _signal(images: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+    """The unstriped signal S (H, W): the all-white frame, or the mean over the shifts,
+    summed over the channels; non-finite pixels count as 0."""
+    s = np.mean(images, axis=0) if reference is None else reference
+    s = np.where(np.isfinite(s), s, 0.0)
+    return s.sum(axis=-1) if s.ndim == 3 else s
+
+
+def _floor(s: np.ndarray, floor: float | None) -> tuple[float, float]:
+    """(floor, noise) of the signal: the dimmest border band's median (or the given
+    floor) and the noise of that band, from differences between neighbouring pixels
+    along it (so a slow variation, the medium's own light, does not count as noise)."""
+    h, w = s.shape
+    k = max(1, min(2, h // 8, w // 8))
+    bands = [s[:k], s[-k:], s[:, :k].T, s[:, -k:].T]  # each (k, length)
+    dim = min(bands, key=lambda b: float(np.median(b)))
+    level = float(np.median(dim)) if floor is None else float(floor)
+    return level, _mad_sigma(np.diff(dim, axis=1).ravel()) / math.sqrt(2.0)
+
+
+def _edge_kind(s: np.ndarray, region: np.ndarray, roi, side: str, level: float, threshold: float):
+    x0, y0, x1, y1 = roi
+    h, w = s.shape
+    if side == "left":
+        at_frame, inside = x0 == 0, (s[y0:y1, x0], region[y0:y1, x0])
+        outside = None if at_frame else s[y0:y1, x0 - 1]
+    elif side == "right":
+        at_frame, inside = x1 == w, (s[y0:y1, x1 - 1], region[y0:y1, x1 - 1])
+        outside = None if at_frame else s[y0:y1, x1]
+    elif side == "top":
+        at_frame, inside = y0 == 0, (s[y0, x0:x1], region[y0, x0:x1])
+        outside = None if at_frame else s[y0 - 1, x0:x1]
+    else:
+        at_frame, inside = y1 == h, (s[y1 - 1, x0:x1], region[y1 - 1, x0:x1])
+        outside = None if at_frame else s[y1, x0:x1]
+    if at_frame:
+        return "frame"
+    values, lit = inside
+    # The lit part of the band (light may reach only part of a side wall).
+    step = float(np.percentile(values[lit], 90)) if lit.any() else level
+    dark = float(np.percentile(outside[lit], 50)) if lit.any() else math.inf
+    return "wall" if step - level > 4.0 * (threshold - level) and dark <= threshold else "faded"
+
+
+def _detect_roi(s: np.ndarray, floor: float | None):
+    from skimage.measure import label
+    from skimage.morphology import opening
+
+    level, noise = _floor(s, floor)
+    peak = float(np.percentile(s, 99.5))
+    threshold = level + max(8.0 * noise, 2e-3 * (peak - level), np.finfo(float).tiny)
+    lit = s > threshold
+    cleaned = opening(lit, np.ones((3, 3), bool))
+    labels = label(cleaned if cleaned.any() else lit, connectivity=2)
+    if labels.max() == 0:
+        raise ValueError(
+            "detect_geometry: no lit medium found: no pixel stands above the noise floor "
+            f"{level:.4g} (scatter {noise:.3g}) of the images' dimmest border"
+        )
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    region = labels == int(np.argmax(sizes))
+    rows, cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
+    roi = (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1)
+    if roi[2] - roi[0] < 4 or roi[3] - roi[1] < 4:
+        raise ValueError(
+            f"detect_geometry: the lit region {list(roi)} is smaller than 4x4 pixels; "
+            "give medium_roi"
+        )
+    edges = {side: _edge_kind(s, region, roi, side, level, threshold) for side in WALLS}
+    return roi, edges, (level, noise, threshold)
+
+
+def _across_first(a: np.ndarray, entry: str) -> np.ndarray:
+    """(..., H, W) → (..., across, along): the axis along the entry wall first."""
+    return a if _ACROSS[entry] == "rows" else np.swapaxes(a, -1, -2)
+
+
+def _coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
+    """Hann-windowed Fourier coefficient at ``frequency`` across axis −2 of a
+    (P, across, along) stack whose first across pixel is u0: (P, along)."""
+    n = a.shape[-2]
+    w = np.hanning(n + 2)[1:-1]
+    u = u0 + np.arange(n) + 0.5
+    mean = np.einsum("u,puj->pj", w, a) / w.sum()
+    basis = w * np.exp(-2j * np.pi * frequency * u)
+    return np.einsum("u,puj->pj", basis, a - mean[:, None, :])
+
+
+def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
+    return float(np.sum(np.abs(_coefficients(a, u0, 1.0 / period)) ** 2))
+
+
+def _measured_period(a: np.ndarray, u0: int, period: int) -> float:
+    freqs = np.linspace(1.0 / (1.5 * period), 1.5 / period, 301)
+    power = [np.sum(np.abs(_coefficients(a, u0, f)) ** 2) for f in freqs]
+    return float(1.0 / freqs[int(np.argmax(power))])
+
+
+def _phase_line(c: np.ndarray, x: np.ndarray, slope: float | None):
+    """Common slope k and per-image intercepts α_p of arg c_p(x) ≈ α_p + k·x, weights
+    |c|²; returns (k, stderr of k, α_p, fraction of lines kept)."""
+    weight = np.abs(c) ** 2
+    keep = weight > 1e-6 * weight.max()
+    fixed = slope is not None
+    if not fixed:
+        z = np.sum(c[:, 1:] * np.conj(c[:, :-1]))
+        slope = float(np.angle(z))
+    stderr = 0.0
+    for _ in range(3):
+        detrended = c * np.exp(-1j * slope * x)[None]
+        alpha = np.angle(np.sum(np.where(keep, detrended, 0.0), axis=1))
+        resid = np.angle(detrended * np.exp(-1j * alpha)[:, None])
+        if fixed:
+            break
+        w = np.where(keep, weight, 0.0)
+        sw = w.sum(axis=1, keepdims=True)
+        xm = (w * x).sum(axis=1, keepdims=True) / np.where(sw > 0, sw, 1.0)
+        dx = x[None] - xm
+        den = float(np.sum(w * dx**2))
+        if den <= 0:
+            raise ValueError("detect_geometry: the stripes are not visible along the light")
+        delta = float(np.sum(w * dx * resid)) / den
+        slope += delta
+        e = (resid - delta * dx) * np.sqrt(w)
+        n, p = int(keep.sum()), c.shape[0] + 1
+        s2 = float(np.sum(np.where(keep, e, 0.0) ** 2)) / max(n - p, 1)
+        stderr = math.sqrt(s2 / den)
+        scatter = _mad_sigma(e[keep])
+        if scatter > 0:
+            keep = keep & (np.abs(e) <= 4.0 * scatter)
+    detrended = c * np.exp(-1j * slope * x)[None]
+    alpha = np.angle(np.sum(np.where(keep, detrended, 0.0), axis=1))
+    total = (weight > 1e-6 * weight.max()).sum()
+    return slope, stderr, alpha, float(keep.sum()) / max(int(total), 1)
+
+
+def _direction_from_slope(entry: str, t: float) -> float:
+    a = math.degrees(math.atan(t))
+    return {"left": a, "right": 180.0 + a, "top": 90.0 - a, "bottom": 270.0 - a}[entry]
+
+
+def _slope_from_direction(entry: str, direction_deg: float) -> float:
+    t = math.radians(direction_deg)
+    if _ACROSS[entry] == "rows":
+        return math.tan(t)
+    return math.cos(t) / math.sin(t)
+
+
+def _clip01(v: float) -> float:
+    return float(min(max(v, 0.0), 1.0))
+
+
+# --------------------------------------------------------------------------- detection
+
+
+def detect_geometry(
+    images,
+    *,
+    period: int = 6,
+    lit: int = 3,
+    reference=None,
+    floor: float | None = None,
+    roi: tuple[int, int, int, int] | None = None,
+    entry: str | None = None,
+    direction_deg: float | None = None,
+) -> Geometry:
+    """Find the medium's ROI, the entry wall, the light's direction and the stripes'
+    phases in a stripe capture (see the module docstring for how).
+
+    Args:
+        images: the shifted stripe images over the whole camera frame, ``(P, H, W)`` or
+            ``(P, H, W, C)`` (channels are summed), dark frame subtracted if there is
+            one. Non-finite pixels count as 0; saturated pixels are used as they are
+            (clipping keeps a stripe's centre where it is).
+        period, lit: the projected stripes (MODEL.md section 3), in camera pixels.
+        reference: an all-white frame ``(H, W[, C])`` to find the ROI in (default: the
+            mean of the shifts).
+        floor: the signal level of an unlit pixel (0 after a dark frame); default: the
+            median of the image's dimmest border band.
+        roi, entry, direction_deg: known values, used instead of measured ones.
+
+    Returns:
+        A :class:`Geometry`.
+
+    Raises:
+        ValueError: no lit medium, no visible stripes, or given values that contradict
+            each other; the message says which.
+    """
+    a = np.asarray(images, dtype=np.float64)
+    if a.ndim == 4:
+        a = np.where(np.isfinite(a), a, 0.0).sum(axis=-1)
+    if a.ndim != 3 or a.shape[0] < 1:
+        raise ValueError(
+            f"detect_geometry: images must be (P, H, W) or (P, H, W, C), got {a.shape}"
+        )
+    a = np.where(np.isfinite(a), a, 0.0)
+    s = _signal(a, None if reference is None else np.asarray(reference, np.float64))
+    given = []
+    if roi is None:
+        roi, edges, (level, noise, threshold) = _detect_roi(s, floor)
+    else:
+        given.append("roi")
+        roi = tuple(int(v) for v in roi)
+        edges = dict.fromkeys(WALLS, "given")
+        level, noise = _floor(s, floor)
+        threshold = math.nan
+    x0, y0, x1, y1 = roi
+    crop = a[:, y0:y1, x0:x1]
+    parts: dict[str, float] = {}
+
+    if direction_deg is not None and entry is not None:
+        _check_direction(entry, direction_deg, "pattern")
+    candidates = [entry] if entry is not None else list(WALLS)
+    if direction_deg is not None:
+        candidates = [e for e in candidates if _points_in(e, direction_deg)]
+    axes = sorted({_ACROSS[e] for e in candidates})
+    power = {}
+    for ax in axes:
+        stack = crop if ax == "rows" else np.swapaxes(crop, 1, 2)
+        power[ax] = _stripe_power(stack, y0 if ax == "rows" else x0, period)
+    across = max(power, key=power.get)
+    if len(power) == 2:
+        weaker = min(power.values()) / max(max(power.values()), np.finfo(float).tiny)
+        parts["orientation"] = _clip01(1.0 - weaker)
+    if power[across] <= 0:
+        raise ValueError(
+            f"detect_geometry: no stripes of period {period} px are visible in the ROI "
+            f"{list(roi)}; check pattern.period and the images"
+        )
+    pair = [e for e in candidates if _ACROSS[e] == across]
+    profile = np.mean(_signal(_across_first(crop, pair[0]), None), axis=0)
+    ends = {
+        "left": profile[0],
+        "top": profile[0],
+        "right": profile[-1],
+        "bottom": profile[-1],
+    }
+    if entry is None:
+        entry = max(pair, key=lambda e: ends[e])
+        parts["entry"] = _clip01(
+            1.0 - ends[_OPPOSITE[entry]] / max(ends[entry], np.finfo(float).tiny)
+        )
+    else:
+        given.append("entry")
+    if "roi" not in given:
+        near = [edges[e] for e in WALLS if e != _OPPOSITE[entry]]
+        parts["roi"] = _clip01(1.0 - 0.25 * sum(e not in ("wall", "frame") for e in near))
+    if direction_deg is not None:
+        _check_direction(entry, direction_deg, "pattern")
+
+    stack = _across_first(crop, entry)
+    u0, along0 = (y0, x0) if across == "rows" else (x0, y0)
+    c = _coefficients(stack, u0, 1.0 / period)
+    x = along0 + np.arange(stack.shape[-1]) + 0.5
+    fixed = None
+    if direction_deg is not None:
+        fixed = -2.0 * math.pi * _slope_from_direction(entry, direction_deg) / period
+        given.append("direction")
+    slope, slope_err, alpha, kept = _phase_line(c, x, fixed)
+    t = -slope * period / (2.0 * math.pi)
+    if direction_deg is None:
+        direction_deg = _direction_from_slope(entry, t)
+        # d(angle)/d(t) = 1/(1 + t²), in degrees.
+        stderr = math.degrees(slope_err * period / (2.0 * math.pi) / (1.0 + t * t))
+        parts["direction"] = 1.0 / (1.0 + (stderr / 0.5) ** 2) * _clip01(kept / 0.8)
+    else:
+        stderr = 0.0
+    wall = along0 if entry in ("left", "top") else along0 + stack.shape[-1]
+    centre = (-(alpha + slope * wall) * period / (2.0 * math.pi)) % period
+    raw = (lit / 2.0 - centre) % period
+    whole = np.round(raw)
+    offset = float(np.max(np.abs(raw - whole))) if raw.size else 0.0
+    phases = tuple(int(v) % period for v in whole)
+    parts["phases"] = _clip01(1.0 - 2.0 * offset)
+    period_px = _measured_period(stack, u0, period)
+    parts["period"] = _clip01(1.0 - abs(period_px / period - 1.0) / 0.1)
+    return Geometry(
+        roi=roi,
+        entry=entry,
+        direction_deg=float(direction_deg),
+        direction_stderr_deg=float(stderr),
+        phases=phases,
+        phase_offset=offset,
+        period_px=period_px,
+        confidence=float(min(parts.values())) if parts else 1.0,
+        parts=parts,
+        edges=edges,
+        given=tuple(given),
+        floor=float(level),
+        noise=float(noise),
+        threshold=float(threshold),
+    )
+
+
+def _points_in(entry: str, direction_deg: float) -> bool:
+    try:
+        _check_direction(entry, direction_deg, "pattern")
+    except ValueError:
+        return False
+    return True
+
+
+__all__ = ["Geometry", "LOW_CONFIDENCE", "detect_geometry"]

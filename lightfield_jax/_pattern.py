@@ -1,0 +1,175 @@
+"""The projector's side of a real capture: stripe images to project, and the capture
+file that will describe the camera's images of them.
+
+:func:`stripe_patterns` makes the paper's shifted stripes (MODEL.md section 3) as
+8-bit projector frames: in the image of phase φ, projector row r (column, for
+``orientation="columns"``) is white iff (r + φ) mod period < lit. Phases are spread
+evenly over the period (0..period−1 for as many shifts as the period has rows), and
+every row must be lit in at least one shift and dark in at least one, or the direct
+and multiple light cannot be separated (MODEL.md section 5).
+
+:func:`write_patterns` writes them with the all-white and all-black frames and a
+``capture.yaml`` template: one camera file name per projected image (to be replaced by
+the camera's files), ``auto`` for what is measured from the images (the medium's ROI,
+the entry wall, the light's direction, where the stripes fall on the camera's rows,
+the projector's black level; see :mod:`lightfield_jax._capture`), and a comment on
+every key.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ._io import atomic_write_text, write_png
+
+ORIENTATIONS: tuple[str, ...] = ("rows", "columns")
+
+
+def pattern_phases(period: int = 6, lit: int = 3, shifts: int | None = None) -> tuple[int, ...]:
+    """Phases of ``shifts`` stripe images spread evenly over the period (default: one
+    per row of the period), checked so that every row is lit and dark in some shift."""
+    for name, value, low in (("period", period, 2), ("lit", lit, 1)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            raise ValueError(f"pattern.{name}: must be an integer >= {low}, got {value!r}")
+    if lit >= period:
+        raise ValueError(f"pattern.lit: must be smaller than the period {period}, got {lit}")
+    n = period if shifts is None else shifts
+    if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= period:
+        raise ValueError(
+            f"pattern.shifts: must be an integer in [2, period] = [2, {period}], got {shifts!r}"
+        )
+    phases = tuple(int(round(k * period / n)) % period for k in range(n))
+    lit_rows = (np.arange(period)[:, None] + np.array(phases)[None]) % period < lit
+    never = np.flatnonzero(~lit_rows.any(axis=1))
+    always = np.flatnonzero(lit_rows.all(axis=1))
+    if never.size or always.size:
+        which = "never lit" if never.size else "never dark"
+        raise ValueError(
+            f"pattern.shifts: {n} shifts of a period-{period} pattern with {lit} lit rows "
+            f"leave rows {which} (phases {list(phases)}): direct and multiple light cannot "
+            f"be separated there; use more shifts (up to {period})"
+        )
+    return phases
+
+
+def stripe_patterns(
+    width: int,
+    height: int,
+    period: int = 6,
+    lit: int = 3,
+    shifts: int | None = None,
+    orientation: str = "rows",
+) -> tuple[tuple[int, ...], list[np.ndarray]]:
+    """The projector frames: (phases, one uint8 (height, width) image per phase)."""
+    for name, value in (("width", width), ("height", height)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < period:
+            raise ValueError(
+                f"pattern.{name}: must be an integer >= the period {period}, got {value!r}"
+            )
+    if orientation not in ORIENTATIONS:
+        raise ValueError(
+            f"pattern.orientation: must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}"
+        )
+    phases = pattern_phases(period, lit, shifts)
+    across = height if orientation == "rows" else width
+    images = []
+    for phase in phases:
+        line = np.where((np.arange(across) + phase) % period < lit, 255, 0).astype(np.uint8)
+        if orientation == "rows":
+            images.append(np.repeat(line[:, None], width, axis=1))
+        else:
+            images.append(np.repeat(line[None, :], height, axis=0))
+    return phases, images
+
+
+def capture_template(
+    phases: tuple[int, ...],
+    period: int,
+    lit: int,
+    orientation: str,
+    pattern_names: list[str],
+    camera_names: list[str],
+) -> str:
+    """The text of ``capture.yaml`` for camera images of the projected frames."""
+    images = "\n".join(
+        f"  - {c}  # camera image of {p} (projector phase {ph})"
+        for c, p, ph in zip(camera_names, pattern_names, phases, strict=True)
+    )
+    return f"""\
+# lightfield_jax capture file: a template written by `lightfield-jax pattern`
+# (format: lightfield_jax._capture).
+#
+# Project each image in turn and take one camera image of the medium for each,
+# all with the same exposure, gain and white balance, in a linear format: 16-bit
+# TIFF or PNG from the camera's raw files (demosaiced, no gamma, no auto exposure),
+# or float EXR from an HDR merge. Replace the camera_*.tif names below by your
+# camera's files (paths relative to this file). The projector's stripes must fall
+# on the camera's rows at one camera pixel per projector pixel (MODEL.md section 3).
+# Then check what the pipeline sees with `lightfield-jax inspect capture.yaml`
+# and fit with `lightfield-jax fit capture.yaml`.
+
+# One camera image per projected stripe image, in this order.
+images:
+{images}
+
+pattern:
+  period: {period}          # stripe period in projector (= camera) pixels
+  lit: {lit}             # lit rows per period
+  # `auto` measures a value from the images; give a value to override it.
+  phases: auto       # where the stripes fall on the camera's rows, one per image
+  entry: auto        # the wall the light enters through: left, right, top or bottom
+  direction_deg: auto  # heading of the light, degrees from +x toward +y
+
+medium_roi: auto     # the medium's rectangle [x0, y0, x1, y1] in camera pixels (x1, y1 exclusive)
+
+# Camera images of the projector showing all white and all black: the white frame
+# is where the medium's ROI is found; the black frame measures the projector's
+# black level (the light a dark stripe still emits, relative to a lit one).
+white_frame: camera_white.tif   # camera image of white.png
+black_frame: camera_black.tif   # camera image of black.png
+black_level: auto    # or a number in [0, 1)
+
+# Optional calibration (uncomment to use):
+# dark_frame: camera_dark.tif   # lens capped or projector off, same exposure; subtracted first
+# flat_field: camera_flat.tif   # a uniformly lit white target; divides every image
+# saturation: 0.98              # value (scaled to [0, 1]) at or above which a pixel is clipped
+# pixel_size_mm: 0.05           # camera pixel pitch on the medium, to report per-mm coefficients
+channel: all         # R, G, B, an index, or all (each channel is fitted on its own)
+"""
+
+
+def write_patterns(
+    out: str | os.PathLike,
+    width: int,
+    height: int,
+    period: int = 6,
+    lit: int = 3,
+    shifts: int | None = None,
+    orientation: str = "rows",
+) -> list[Path]:
+    """Write ``stripe_XX.png`` (one per phase), ``white.png``, ``black.png`` (8-bit,
+    width × height) and ``capture.yaml`` into the folder ``out``; returns the files."""
+    phases, images = stripe_patterns(width, height, period, lit, shifts, orientation)
+    out = Path(out)
+    files = []
+    names = [f"stripe_{i:02d}.png" for i in range(len(images))]
+    for name, image in zip(names, images, strict=True):
+        files.append(write_png(out / name, image))
+    files.append(write_png(out / "white.png", np.full((height, width), 255, np.uint8)))
+    files.append(write_png(out / "black.png", np.zeros((height, width), np.uint8)))
+    camera = [f"camera_{Path(n).stem}.tif" for n in names]
+    text = capture_template(phases, period, lit, orientation, names, camera)
+    files.append(atomic_write_text(out / "capture.yaml", text))
+    return files
+
+
+__all__ = [
+    "ORIENTATIONS",
+    "capture_template",
+    "pattern_phases",
+    "stripe_patterns",
+    "write_patterns",
+]
