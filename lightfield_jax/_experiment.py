@@ -125,6 +125,7 @@ def _load_script(name: str):
         raise ValueError(f"experiment: no script {script} (known: {', '.join(known)})")
     spec = importlib.util.spec_from_file_location(f"lightfield_jax_experiments.{name}", script)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses in the script look their module up
     spec.loader.exec_module(module)
     if not hasattr(module, "run"):
         raise ValueError(f"experiment: {script} defines no run(config, out, ctx)")

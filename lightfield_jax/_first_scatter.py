@@ -132,4 +132,7 @@ def convolve_first_scatter(source, kernel):
     src_f = jnp.fft.rfft2(source, s=(two_h, two_w))
     ker_f = jnp.fft.rfft2(kernel)
     field = jnp.fft.irfft2(src_f[:, None] * ker_f[None], s=(two_h, two_w))
-    return field[:, :, :height, :width]
+    # Both factors are non-negative; FFT round-off (about 1e-7 of the maximum in
+    # float32) leaves small negative values that would break logarithms and 1/model
+    # weights downstream.
+    return jnp.maximum(field[:, :, :height, :width], 0.0)
