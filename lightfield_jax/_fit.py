@@ -72,7 +72,7 @@ class FitOptions:
     phase: str = "paper"
     bounces: int | str = "auto"
     tolerance: float = 1e-4
-    max_bounces: int = 60
+    max_bounces: int = 80
     n_theta: int | None = None
     refine: int | None = None
     g_grid: int = 39
@@ -128,6 +128,8 @@ class FitResult:
 
     @property
     def rho(self) -> float:
+        if not math.isfinite(self.g):
+            return math.nan
         a = float(phase_integral(self.g)) if self.phase == "paper" else 1.0
         return self.albedo * a
 
@@ -140,14 +142,14 @@ class FitResult:
             unc["albedo"] = _albedo_error(self, unc)
         out = {
             "method": self.method,
-            "sigma_t": self.sigma_t,
-            "sigma_s": self.sigma_s,
-            "sigma_a": self.sigma_a,
-            "g": self.g,
-            "albedo": self.albedo,
-            "gain": self.gain,
-            "black_level": self.black_level,
-            "rho": self.rho,
+            "sigma_t": _json_float(self.sigma_t),
+            "sigma_s": _json_float(self.sigma_s),
+            "sigma_a": _json_float(self.sigma_a),
+            "g": _json_float(self.g),
+            "albedo": _json_float(self.albedo),
+            "gain": _json_float(self.gain),
+            "black_level": None if self.black_level is None else _json_float(self.black_level),
+            "rho": _json_float(self.rho),
             "phase": self.phase,
             "uncertainty": {k: _json_float(v) for k, v in unc.items()},
             "correlation": {k: _json_float(v) for k, v in self.correlation.items()},
@@ -155,7 +157,7 @@ class FitResult:
             "converged": self.converged,
             "message": self.message,
             "iterations": self.iterations,
-            "residual": self.residual,
+            "residual": _json_float(self.residual),
             "seconds": self.seconds,
             "model": self.model,
         }
@@ -163,9 +165,9 @@ class FitResult:
             mm = self.pixel_size_mm
             out["per_mm"] = {
                 "pixel_size_mm": mm,
-                "sigma_t": self.sigma_t / mm,
-                "sigma_s": self.sigma_s / mm,
-                "sigma_a": self.sigma_a / mm,
+                "sigma_t": _json_float(self.sigma_t / mm),
+                "sigma_s": _json_float(self.sigma_s / mm),
+                "sigma_a": _json_float(self.sigma_a / mm),
                 "uncertainty": {
                     k: _json_float(unc[k] / mm) for k in ("sigma_t", "sigma_s", "sigma_a")
                 },
@@ -204,8 +206,10 @@ class _Model:
     bounces: int
     crop: tuple[int, int, int, int]  # x0, y0, x1, y1 inside the image
     converges: bool
+    rho: float  # ρ at the estimate the model was sized for
 
     def as_dict(self) -> dict:
+        tail = self.rho**self.bounces / (1 - self.rho) if self.converges else None
         return {
             "width": self.grid.width,
             "height": self.grid.height,
@@ -214,6 +218,8 @@ class _Model:
             "bounces": self.bounces,
             "crop": list(self.crop),
             "series_converges": self.converges,
+            "rho_estimate": self.rho,
+            "tail_bound": tail,
         }
 
 
@@ -229,10 +235,15 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     if pattern.entry in ("right", "bottom"):
         prof = prof[::-1]
     n = prof.size
-    tail = prof[-max(n // 10, 2) :]
+    tenth = max(n // 10, 2)
+    tail = prof[-tenth:]
     floor = float(np.median(tail))
     scatter = float(np.median(np.abs(tail - floor))) * 1.4826
     peak = float(np.max(prof))
+    before = float(np.median(prof[-2 * tenth : -tenth]))
+    if before - floor > 3.0 * scatter + fraction * (peak - floor):
+        # Still decaying at the far wall: the farthest tenth is signal, not a floor.
+        return (0, 0, w, h)
     above = prof - floor > max(fraction * (peak - floor), 3.0 * scatter)
     last = int(np.flatnonzero(above).max()) + 1 if above.any() else n
     keep = min(n, max(last + 2, 16))
@@ -249,9 +260,11 @@ def size_model(
     albedo: float,
     g: float,
     options: FitOptions,
+    margin: float = 1.15,
 ) -> _Model:
-    """The smallest model the capture needs: bounces from the tail bound at the starting
-    estimate (with margin), θ bins and refinement from g, crop from the signal."""
+    """The smallest model the capture needs: bounces from the tail bound at the estimate
+    (ρ × ``margin``, capped below 1), θ bins and refinement from g, crop from the
+    signal. ``series_converges`` is judged at the estimate itself."""
     p, h, w = images.shape
     crop = _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
     gw = min(0.99, abs(g) + 0.1)
@@ -266,16 +279,17 @@ def size_model(
         else:
             break
     grid = Grid(width, height, n_theta, refine)
-    a = float(phase_integral(gw)) if options.phase == "paper" else 1.0
-    rho = min(1.0, albedo * 1.15 + 0.02) * a
+    a = float(phase_integral(g)) if options.phase == "paper" else 1.0
+    rho = min(albedo, 1.0) * a
     converges = rho < 1.0
     if isinstance(options.bounces, int):
         k = options.bounces
     elif converges:
-        k = min(bounces_for_tolerance(rho, options.tolerance), options.max_bounces)
+        bound = min(rho * margin + 0.01, 0.995)
+        k = min(bounces_for_tolerance(bound, options.tolerance), options.max_bounces)
     else:
         k = options.max_bounces
-    return _Model(grid=grid, bounces=max(k, 2), crop=crop, converges=converges)
+    return _Model(grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho)
 
 
 # ---------------------------------------------------------------------- shared pieces
@@ -406,10 +420,12 @@ def _full_for(pattern: Stripes) -> Full:
     return Full(direction_deg=pattern.direction_deg, entry=pattern.entry)
 
 
-def _poly_fit_sigma_s(d, m, i1, ik, mask, sigma_t, n_grid: int = 2001):
-    """The paper's eq. 10 for one g: gain from the single scatter, then
-    σs* = argmin_{0≤σs≤σt} ‖M − a Σ_{k≥2} σs^{k−1} I_k‖² (exact polynomial minimisation:
-    dense evaluation, then Newton on the derivative). Returns (σs*, a, residual²)."""
+def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
+    """The paper's eq. 10 for one g, on images rendered at a reference σs_ref:
+    I_k(σs) = u^k I_k(σs_ref), u = σs/σs_ref. The gain from the single scatter,
+    a = ⟨D, I_1⟩/⟨I_1, I_1⟩, then u* = argmin_{0≤u≤u_max} ‖M − a Σ_{k≥2} u^{k−1} I_k‖²
+    (exact polynomial minimisation: dense evaluation, then Newton on the derivative).
+    Returns (u*, a, residual²)."""
     a = _masked_dot(d, i1, mask) / _masked_dot(i1, i1, mask)
     kk = ik.shape[0]
     gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
@@ -417,18 +433,33 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, sigma_t, n_grid: int = 2001):
     mm = _masked_dot(m, m, mask)
     powers = jnp.arange(1, kk + 1)
 
-    def cost(s):
-        sp = s**powers
-        return mm - 2 * a * sp @ mk + a**2 * sp @ gram @ sp
+    def cost(u):
+        up = u**powers
+        return mm - 2 * a * up @ mk + a**2 * up @ gram @ up
 
-    grid = jnp.linspace(0.0, 1.0, n_grid) * sigma_t
+    grid = jnp.linspace(0.0, 1.0, n_grid) * u_max
     costs = jax.vmap(cost)(grid)
-    s = grid[jnp.argmin(costs)]
+    u = grid[jnp.argmin(costs)]
     d1 = jax.grad(cost)
     d2 = jax.grad(d1)
     for _ in range(6):
-        s = jnp.clip(s - d1(s) / jnp.where(d2(s) > 0, d2(s), jnp.inf), 0.0, sigma_t)
-    return s, a, cost(s)
+        u = jnp.clip(u - d1(u) / jnp.where(d2(u) > 0, d2(u), jnp.inf), 0.0, u_max)
+    return u, a, cost(u)
+
+
+# ρ of the reference render of the two-step methods: I_k grows like ρ^k, so rendering
+# at σs = 1 (the paper's choice) overflows float32 within a few dozen bounces at high
+# albedo; at ρ_ref ≤ 0.9 every I_k stays below I_1.
+_RHO_REF = 0.9
+
+
+def _reference_sigma_s(sigma_t, g, phase: str):
+    """σs_ref for the two-step renders at g, and u_max = σs_max/σs_ref: the largest σs
+    that is both ≤ σt and inside the convergent region ρ ≤ 1."""
+    in_plane = phase_integral(g) if phase == "paper" else 1.0
+    ref = sigma_t * jnp.minimum(1.0, _RHO_REF / in_plane)
+    rho_ref = ref / sigma_t * in_plane
+    return ref, jnp.minimum(sigma_t / ref, 1.0 / rho_ref)
 
 
 def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
@@ -448,15 +479,19 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
 
     def run(renderer, sigma_t, d, m, mask, gs):
         def per_g(g):
-            images = renderer(sigma_t, 1.0, g)[0][0]
-            return _poly_fit_sigma_s(d, m, images[0], images[1:], mask, sigma_t)
+            ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
+            images = renderer(sigma_t, ref, g)[0][0]
+            u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
+            return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
 
         def residual(p):  # p = (σs, g)
-            images = renderer(sigma_t, 1.0, p[1])[0][0]
-            a = _masked_dot(d, images[0], mask) / _masked_dot(images[0], images[0], mask)
+            ref, _ = _reference_sigma_s(sigma_t, p[1], options.phase)
+            images = renderer(sigma_t, ref, p[1])[0][0]
+            a_ref = _masked_dot(d, images[0], mask) / _masked_dot(images[0], images[0], mask)
             kk = images.shape[0] - 1
-            model = a * jnp.einsum("k,khw->hw", p[0] ** jnp.arange(1, kk + 1), images[1:])
-            return jnp.where(mask, (m - model) / scale, 0.0).reshape(-1), a
+            u = p[0] / ref
+            model = a_ref * jnp.einsum("k,khw->hw", u ** jnp.arange(1, kk + 1), images[1:])
+            return jnp.where(mask, (m - model) / scale, 0.0).reshape(-1), a_ref * ref
 
         s_all, a_all, cost = jax.lax.map(per_g, gs)
         best = jnp.argmin(cost)
@@ -467,11 +502,16 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
             jac = jax.jacfwd(_with_column_jacobian(lambda q: residual(q)[0]))(p)
             return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(n_g)
 
-        frac = jnp.clip(s / sigma_t, 1e-3, 1 - 1e-3)
+        def s_max(g):
+            ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
+            return ref * u_max
+
+        frac = jnp.clip(s / s_max(g), 1e-3, 1 - 1e-3)
         y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g, -0.95, 0.95))])
 
-        def unpack(y):
-            return jnp.stack([sigma_t * jax.nn.sigmoid(y[0]), jnp.tanh(y[1])])
+        def unpack(y):  # 0 < σs < min(σt, the σs where ρ = 1), |g| < 1
+            g = jnp.tanh(y[1])
+            return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
 
         fn = _with_column_jacobian(lambda y: residual(unpack(y))[0])
         solver = _solver(options, y0.dtype)
@@ -482,8 +522,7 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
         # The Jacobian at the accepted point, from the solver's state (no second
         # compilation of the renderer's derivative), mapped to (σs, g).
         info = sol.state.f_info
-        sig = jax.nn.sigmoid(sol.value[0])
-        jac = info.jac.as_matrix() / jnp.stack([sigma_t * sig * (1 - sig), 1 - g**2])
+        jac = info.jac.as_matrix() @ jnp.linalg.inv(jax.jacfwd(unpack)(sol.value))
         # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
         a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
         return s, g, a, info.residual, jac, sol.result, sol.stats["num_steps"]
@@ -748,8 +787,18 @@ def fit_images(
     total_steps = 0
     prev_model = None
     for name, opts in stages:
-        albedo = min(start[1] / start[0] * (2.0 if name == "coarse" else 1.0), 0.98)
-        model = size_model(images, pattern, albedo=albedo, g=start[2], options=opts)
+        # The coarse stage starts from the separation's estimate (σs biased low, MODEL.md
+        # §6): double it; the final stage starts from the coarse fit (small margin).
+        coarse_stage = name == "coarse"
+        albedo = min(start[1] / start[0] * (2.0 if coarse_stage else 1.0), 0.98)
+        model = size_model(
+            images,
+            pattern,
+            albedo=albedo,
+            g=start[2],
+            options=opts,
+            margin=1.15 if coarse_stage else 1.03,
+        )
         if prev_model is not None and _covers(prev_model, model):
             break  # the coarse model is already as large as the estimate needs
         x0, y0, x1, y1 = model.crop
@@ -811,6 +860,10 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, *
     unc = {k: unc.get(k, math.nan) for k in _PARAMS if k in unc or k != "black_level"}
     black = values.pop("black_level")
     numbers = ("sigma_t", "sigma_s", "g", "gain", "residual", "condition_number")
+    bad = [k for k in numbers[:4] if not math.isfinite(float(values[k]))]
+    if bad:  # never a silent NaN: the fit failed
+        values["converged"] = False
+        values["message"] = f"non-finite result ({', '.join(bad)}); {values['message']}"
     return FitResult(
         **{k: float(values.pop(k)) for k in numbers},
         black_level=None if black is None else float(black),

@@ -1,0 +1,386 @@
+"""The ``fit`` and ``demo`` commands: results.json, the figure, per-channel results,
+non-convergence (exit 1) and every bad input (exit 2, one line, nothing written)."""
+
+import json
+import math
+import re
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+
+import lightfield_jax as lfj
+from lightfield_jax._capture import write_capture_yaml
+from lightfield_jax._cli import main
+from lightfield_jax._io import read_image, write_exr, write_png
+
+H, W, P = 24, 32, 6
+MILK = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}
+SIMULATE = f"""\
+grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
+medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}}
+illumination: {{kind: stripes, period: 6, lit: 3}}
+gain: 400.0
+black_level: 0.02
+dark_level: 0.01
+noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
+"""
+RESULT_KEYS = {
+    "sigma_t",
+    "sigma_s",
+    "sigma_a",
+    "g",
+    "albedo",
+    "gain",
+    "uncertainty",
+    "method",
+    "converged",
+    "iterations",
+    "residual",
+    "seconds",
+    "model",
+}
+ESTIMATES = ("sigma_t", "sigma_s", "sigma_a", "g", "albedo", "gain")
+
+
+def _run(capsys, *argv):
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """The milk as a 32x24 stripe capture written by ``simulate`` (shot and read noise,
+    dark frame, black level)."""
+    folder = tmp_path_factory.mktemp("fit_cli")
+    config = folder / "sim.yaml"
+    config.write_text(SIMULATE)
+    assert main(["simulate", str(config), "--out", str(folder / "capture"), "-q"]) == 0
+    return folder / "capture"
+
+
+def _copy(simulated, tmp_path):
+    folder = tmp_path / "capture"
+    shutil.copytree(simulated, folder)
+    return folder
+
+
+def _edit_yaml(folder, **changes):
+    """Rewrite capture.yaml with keys replaced (a value of ``None`` removes the key)."""
+    path = folder / "capture.yaml"
+    data = yaml.safe_load(path.read_text())
+    for key, value in changes.items():
+        if value is None:
+            data.pop(key, None)
+        else:
+            data[key] = value
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def _lines(err):
+    return err.splitlines()
+
+
+# ------------------------------------------------------------------------- a good fit
+
+
+def test_fit_writes_results_and_plot_and_masks_nonfinite_pixels(simulated, tmp_path, capsys):
+    folder = _copy(simulated, tmp_path)
+    shot = read_image(folder / "shift_02.exr").pixels[..., 0].copy()
+    shot[3, 5], shot[7, 9], shot[10, 2] = np.nan, np.inf, -np.inf
+    write_exr(folder / "shift_02.exr", {"Y": shot})
+    out, plot = tmp_path / "r.json", tmp_path / "f.png"
+    status, stdout, err = _run(
+        capsys,
+        "fit",
+        folder / "capture.yaml",
+        "--method",
+        "gradient",
+        "--out",
+        out,
+        "--plot",
+        plot,
+    )
+    assert status == 0, err
+    # The non-finite pixels are counted in one warning line, masked, and the fit runs.
+    assert _lines(err) == [
+        f"lightfield-jax: warning: {folder / 'capture.yaml'}: 3 pixel value(s) are NaN or Inf "
+        "(shift_02.exr: 3); 3 pixel(s) masked"
+    ]
+    assert "[Y] gradient: sigma_t" in stdout
+    assert "wrote" in stdout and str(out) in stdout and str(plot) in stdout
+
+    result = json.loads(out.read_text())
+    assert RESULT_KEYS <= set(result)
+    assert set(ESTIMATES) <= set(result["uncertainty"])
+    assert result["method"] == "gradient" and result["converged"] is True
+    assert result["channel"] == "Y" and result["iterations"] > 0
+    assert result["residual"] > 0 and result["seconds"]["total"] > 0
+    assert result["truth"]["sigma_t"] == MILK["sigma_t"]
+    for key in ("width", "height", "n_theta", "bounces", "crop"):
+        assert key in result["model"]
+    assert result["model"]["width"] <= W and result["model"]["height"] == H
+    for key in ESTIMATES:
+        assert math.isfinite(result[key]), key
+    # Two-step: σs and g from the Jacobian, σt from the decay fit (the gain is not
+    # estimated: null).
+    for key in ("sigma_t", "sigma_s", "sigma_a", "g", "albedo"):
+        assert result["uncertainty"][key] > 0, key
+    assert result["sigma_a"] == pytest.approx(result["sigma_t"] - result["sigma_s"])
+    # σt comes from the direct image's decay, which separation leaves nearly unbiased.
+    assert result["sigma_t"] == pytest.approx(MILK["sigma_t"], rel=0.05)
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+CHANNEL_MEDIA = {
+    "R": (0.2051, 0.0366, 0.4),
+    "G": (0.3, 0.06, 0.2),
+    "B": (0.12, 0.024, 0.5),
+}
+
+
+def test_fit_per_channel_results(tmp_path, capsys):
+    """An RGB .npy stack with a different medium in each channel: results hold a list
+    per key in channel order, and each channel finds its own σt."""
+    grid = lfj.Grid(W, H, 16, 1)
+    planes = [
+        3.0 * np.asarray(lfj.render(lfj.Medium(*m), grid, lfj.Stripes(), "auto").total)
+        for m in CHANNEL_MEDIA.values()
+    ]
+    np.save(tmp_path / "stack.npy", np.stack(planes, axis=-1).astype(np.float32))
+    capture = write_capture_yaml(
+        tmp_path / "capture.yaml", images="stack.npy", pattern=lfj.Stripes(), black_level=0.0
+    )
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", capture, "--method", "grid", "--channel", "R", "--channel", "B", "--out", out
+    )
+    assert status == 0, err
+    assert err == ""
+    assert "[R] grid:" in stdout and "[B] grid:" in stdout and "[G]" not in stdout
+    result = json.loads(out.read_text())
+    assert result["channels"] == ["R", "B"]
+    assert result["method"] == "grid" and result["converged"] is True
+    for key in ESTIMATES + ("iterations", "residual"):
+        assert len(result[key]) == 2, key
+    for key in ESTIMATES:
+        assert len(result["uncertainty"][key]) == 2, key
+    assert set(result["per_channel"]) == {"R", "B"}
+    for i, channel in enumerate(("R", "B")):
+        truth = CHANNEL_MEDIA[channel][0]
+        assert result["sigma_t"][i] == pytest.approx(truth, rel=0.05), channel
+        assert result["per_channel"][channel]["sigma_t"] == result["sigma_t"][i]
+        assert result["per_channel"][channel]["method"] == "grid"
+    assert len(result["model"]) == 2
+
+
+def test_fit_that_does_not_converge_writes_results_and_exits_1(simulated, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys,
+        "fit",
+        simulated / "capture.yaml",
+        "--method",
+        "gradient",
+        "--max-steps",
+        1,
+        "--out",
+        out,
+    )
+    assert status == 1, err
+    assert _lines(err) == [
+        "lightfield-jax: warning: the fit did not converge: results were written with "
+        "converged: false"
+    ]
+    assert "NOT CONVERGED" in stdout
+    result = json.loads(out.read_text())
+    assert result["converged"] is False and result["iterations"] <= 1
+    assert result["message"] != "converged"
+
+
+def test_clipped_8bit_frames_are_masked_and_fitted(simulated, tmp_path, capsys):
+    """8-bit frames whose lit rows clip at 255 near the entry wall: a warning counts the
+    clipped pixels, they are masked, and the fit runs on the rest."""
+    images = np.stack(
+        [read_image(simulated / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)]
+    )
+    frames = np.clip(images / (0.6 * images.max()), 0.0, 1.0)
+    clipped = int(np.sum(frames.max(axis=0) >= 1.0))
+    assert 0 < clipped < H * W // 4
+    names = []
+    for i, frame in enumerate(frames):
+        names.append(f"frame_{i}.png")
+        write_png(tmp_path / names[-1], frame)
+    capture = write_capture_yaml(
+        tmp_path / "capture.yaml", images=names, pattern=lfj.Stripes(), black_level=0.02
+    )
+    out = tmp_path / "r.json"
+    status, _, err = _run(capsys, "fit", capture, "--method", "grid", "--out", out)
+    assert status == 0, err
+    (line,) = _lines(err)
+    assert line.startswith("lightfield-jax: warning: ")
+    assert "integer frames clipped at their top code 255 (8-bit)" in line
+    assert f"{clipped} pixel(s) masked" in line
+    result = json.loads(out.read_text())
+    assert result["converged"] is True and math.isfinite(result["sigma_t"])
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _missing_image(folder):
+    _edit_yaml(
+        folder, images=["shift_00.exr", "nope.exr"] + [f"shift_{i:02d}.exr" for i in (2, 3, 4, 5)]
+    )
+
+
+def _unreadable_image(folder):
+    (folder / "shift_01.exr").write_bytes(b"not an image")
+
+
+def _different_sizes(folder):
+    write_exr(folder / "shift_02.exr", {"Y": np.zeros((H + 1, W), np.float32)})
+
+
+def _all_saturated_8bit(folder):
+    names = []
+    for i in range(P):
+        names.append(f"frame_{i}.png")
+        write_png(folder / names[-1], np.ones((H, W)))
+    _edit_yaml(folder, images=names, dark_frame=None)
+
+
+def _dark_of_another_size(folder):
+    write_exr(folder / "dark.exr", {"Y": np.zeros((H, W - 1), np.float32)})
+
+
+@pytest.mark.parametrize(
+    ("corrupt", "message"),
+    [
+        (_missing_image, r"images\[1\]: .*nope\.exr: file not found"),
+        (_unreadable_image, r"images\[1\]: .*shift_01\.exr: cannot read"),
+        (_different_sizes, r"images\[2\]: shift_02\.exr is 32x25 pixels .* is 32x24"),
+        (lambda f: _edit_yaml(f, images=[]), r"images: the list is empty"),
+        (_all_saturated_8bit, r"images: no usable pixel"),
+        (
+            lambda f: _edit_yaml(f, pattern={"period": 6, "lit": 3, "phases": [0, 1, 2]}),
+            r"pattern\.phases: lists 3 phase\(s\) for 6 image\(s\)",
+        ),
+        (
+            lambda f: _edit_yaml(f, dark_fram="dark.exr"),
+            r"dark_fram: unknown key \(did you mean 'dark_frame'\?\)",
+        ),
+        (lambda f: _edit_yaml(f, black_level="dim"), r"black_level: must be a number"),
+        (_dark_of_another_size, r"dark_frame: dark\.exr is 31x24 pixels"),
+        (
+            lambda f: _edit_yaml(f, medium_roi=[0, 0, W + 1, H]),
+            r"medium_roi: \[0, 0, 33, 24\] does not fit the 32x24 image",
+        ),
+        (lambda f: (f / "capture.yaml").unlink(), r"capture\.yaml: file not found"),
+    ],
+    ids=[
+        "missing-image",
+        "unreadable-image",
+        "different-sizes",
+        "empty-list",
+        "all-saturated-8bit",
+        "phases-vs-images",
+        "mistyped-key",
+        "mistyped-value",
+        "dark-frame-size",
+        "roi-outside",
+        "missing-capture",
+    ],
+)
+def test_bad_capture_exits_2_with_one_line_and_writes_nothing(
+    simulated, tmp_path, capsys, corrupt, message
+):
+    folder = _copy(simulated, tmp_path)
+    corrupt(folder)
+    out, plot = tmp_path / "r.json", tmp_path / "f.png"
+    status, stdout, err = _run(capsys, "fit", folder / "capture.yaml", "--out", out, "--plot", plot)
+    assert status == 2
+    assert stdout == ""
+    assert "Traceback" not in err
+    *warned, last = _lines(err)
+    assert last.startswith("lightfield-jax: error: ")
+    assert all(w.startswith("lightfield-jax: warning: ") for w in warned)
+    assert re.search(message, last), last
+    assert not out.exists() and not plot.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture"]
+
+
+def test_all_saturated_frames_are_named_in_a_warning(simulated, tmp_path, capsys):
+    folder = _copy(simulated, tmp_path)
+    _all_saturated_8bit(folder)
+    status, _, err = _run(capsys, "fit", folder / "capture.yaml", "--out", tmp_path / "r.json")
+    assert status == 2
+    assert "every pixel is saturated in frame_0.png, frame_1.png" in err
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--channel", "Q"], "channel: 'Q' is not in the capture (it has Y)"),
+        (["--max-steps", "0"], "argument --max-steps: must be a positive integer, got '0'"),
+        (["--method", "newton"], "argument --method: invalid choice: 'newton'"),
+    ],
+)
+def test_bad_fit_options_exit_2(simulated, tmp_path, capsys, argv, message):
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(capsys, "fit", simulated / "capture.yaml", "--out", out, *argv)
+    assert status == 2 and stdout == ""
+    assert err.count("\n") == 1 and err.startswith("lightfield-jax") and " error: " in err
+    assert message in err
+    assert not out.exists()
+
+
+def test_out_is_a_directory(simulated, tmp_path, capsys):
+    status, _, err = _run(capsys, "fit", simulated / "capture.yaml", "--out", tmp_path)
+    assert status == 2 and "is a directory, expected a file name" in err
+
+
+@pytest.mark.parametrize(
+    ("medium", "message"),
+    [
+        (
+            "sigma_t: -0.1, sigma_s: 0.0, g: 0.3",
+            "medium.sigma_t: must be > 0 (per pixel), got -0.1",
+        ),
+        ("sigma_t: 0.2, sigma_s: -0.1, g: 0.3", "medium.sigma_s: must satisfy 0 <= sigma_s"),
+        ("sigma_t: 0.2, sigma_s: 0.1, g: 1.0", "medium.g: must satisfy -1 < g < 1, got 1.0"),
+        ("sigma_t: 0.2, sigma_s: 0.1, g: -1.5", "medium.g: must satisfy -1 < g < 1, got -1.5"),
+    ],
+)
+def test_simulate_config_out_of_range_exits_2(tmp_path, capsys, medium, message):
+    config = tmp_path / "sim.yaml"
+    config.write_text(SIMULATE.replace("sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4", medium))
+    out = tmp_path / "out"
+    status, stdout, err = _run(capsys, "simulate", config, "--out", out)
+    assert status == 2 and stdout == ""
+    assert err.count("\n") == 1 and err.startswith("lightfield-jax: error: ")
+    assert message in err
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------------------- demo
+
+
+def test_demo_with_the_gradient_method(tmp_path, capsys):
+    out = tmp_path / "demo"
+    status, stdout, err = _run(capsys, "demo", "--out", out, "--methods", "gradient")
+    assert status == 0, err
+    assert "gradient" in stdout and "truth" in stdout
+    names = {p.name for p in out.iterdir()}
+    assert {"capture.yaml", "results.json", "shift_00.exr", "metadata.json"} <= names
+    assert "demo_fit.png" not in names  # drawn for the joint fit only
+    record = json.loads((out / "results.json").read_text())
+    assert set(record["fits"]) == {"gradient"}
+    fit, truth = record["fits"]["gradient"], record["truth"]
+    assert truth["sigma_t"] == MILK["sigma_t"] and fit["converged"] is True
+    # The paper's method on period-6 stripes: σt fine, σs far low, g far high.
+    assert fit["sigma_t"] == pytest.approx(truth["sigma_t"], rel=0.05)
+    assert fit["sigma_s"] < 0.6 * truth["sigma_s"]
+    assert fit["g"] > truth["g"] + 0.15
