@@ -9,7 +9,7 @@ BIN := $(VENV)/bin
 $(BIN)/lightfield-jax: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test]"
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e ".[test,experiments]"
 	touch $@
 
 setup: $(BIN)/lightfield-jax

@@ -1,0 +1,341 @@
+"""Shared pieces of the inverse-problem experiments (speed/accuracy, stability, model size).
+
+- Captures: :func:`simulate` renders a stripe capture of a medium (the package's
+  :func:`~lightfield_jax.simulate_capture`: Poisson photons + Gaussian read noise, gain,
+  black level) and :func:`perfect_split` the true direct/multiple split (I_1 and
+  Σ_{k≥2} I_k under full illumination), which removes the separation's bias.
+- Errors: σt and σs relative, g absolute; ``error`` (the charts' one number) is the
+  largest of the three, |Δσt|/σt, |Δσs|/σs and |Δg|.
+- :func:`fit_record`: one :func:`~lightfield_jax.fit_images` call as a JSON-ready record
+  (an exception becomes a record with ``error_message``), and :func:`failure`, why a fit
+  failed: ``timeout``, ``exception``, ``non-finite``, ``divergent`` (ρ = ω·A(g) ≥ 1
+  under ``phase: paper``), ``not converged``, ``ill-conditioned``, ``biased``, or ``ok``;
+  :func:`fit_record_limited` runs a fit in a child process with a time limit.
+- :func:`camera`: a capture scaled to peak 1 with the package's noise model, so that
+  photon counts and read noise are relative to the brightest pixel.
+- :func:`precision`: the dtype the experiment runs in, whatever the caller's x64 flag.
+- :func:`xla_cache`: JAX's persistent compilation cache for a block (sweeps refit
+  captures of the same shape; compile times under it are not cold ones).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+import time
+import warnings
+from collections.abc import Iterator
+
+import jax
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax._config import NoiseConfig, parse_simulation_config
+
+PARAMS = ("sigma_t", "sigma_s", "g")
+
+
+@contextlib.contextmanager
+def precision(dtype: str) -> Iterator[None]:
+    """Run in ``float32`` (the package's default) or ``float64``."""
+    if dtype not in ("float32", "float64"):
+        raise ValueError(f"dtype: must be float32 or float64, got {dtype!r}")
+    with jax.enable_x64(dtype == "float64"):
+        yield
+
+
+@contextlib.contextmanager
+def xla_cache(folder) -> Iterator[None]:
+    """JAX's persistent compilation cache in ``folder`` for the block (``None``: off)."""
+    if folder is None:
+        yield
+        return
+    from jax.experimental.compilation_cache import compilation_cache
+
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+    )
+    before = {n: getattr(jax.config, n) for n in names}
+    os.makedirs(folder, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    compilation_cache.reset_cache()  # the cache is set up once per process otherwise
+    try:
+        yield
+    finally:
+        for n, v in before.items():
+            jax.config.update(n, v)
+        compilation_cache.reset_cache()
+
+
+def capture_config(
+    medium: dict,
+    width: int,
+    height: int,
+    *,
+    period: int = 6,
+    lit: int = 3,
+    phases=None,
+    noise: dict | None = None,
+    black_level: float | None = None,
+    gain: float = 1.0,
+    bounces: int | str = "auto",
+    n_theta: int | None = None,
+) -> dict:
+    """A ``simulate`` config (plain dict) of a stripe capture of ``medium``
+    (keys sigma_t, sigma_s, g, optional phase)."""
+    grid = {"width": width, "height": height}
+    if n_theta is not None:
+        grid["n_theta"] = n_theta
+    illum = {"kind": "stripes", "period": period, "lit": lit}
+    illum["phases"] = list(range(period)) if phases is None else list(phases)
+    cfg = {
+        "grid": grid,
+        "medium": {k: medium[k] for k in ("sigma_t", "sigma_s", "g", "phase") if k in medium},
+        "illumination": illum,
+        "bounces": bounces,
+        "gain": gain,
+    }
+    if noise:
+        cfg["noise"] = dict(noise)
+    if black_level is not None:
+        cfg["black_level"] = black_level
+    return cfg
+
+
+def simulate(cfg: dict) -> lfj.SimulatedCapture:
+    """The capture of a :func:`capture_config`; a divergent truth (ρ ≥ 1 under ``paper``,
+    an explicit truncation) is allowed here: the caller records ``sim.converges``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
+        return lfj.simulate_capture(parse_simulation_config(cfg, source="experiment capture"))
+
+
+def camera(images: np.ndarray, noise, seed: int) -> np.ndarray:
+    """Noise-free images scaled to peak 1, with the package's camera noise:
+    ``noise = (photons at value 1 or None, read noise σ)``, or ``None`` for none."""
+    images = images / float(np.max(images))
+    if noise is None:
+        return images.astype(np.float32)
+    photons, read = noise
+    cfg = NoiseConfig(photons=photons, read=read, seed=seed)
+    return cfg.apply(images, np.random.default_rng(seed)).astype(np.float32)
+
+
+def perfect_split(sim: lfj.SimulatedCapture) -> tuple[np.ndarray, np.ndarray]:
+    """(I_1, Σ_{k≥2} I_k) under full illumination, gain included: what an exact
+    separation would give. Needs phases that tile the period and no black level."""
+    illum = sim.config.illumination
+    if sorted(p % illum.period for p in illum.phases) != list(range(illum.period)):
+        raise ValueError("perfect_split: the phases must tile the stripe period")
+    if sim.config.black_level:
+        raise ValueError("perfect_split: needs a capture without black level")
+    full = sim.bounces.sum(axis=0) / illum.lit
+    return full[0], full[1:].sum(axis=0)
+
+
+def truth_of(medium: dict) -> dict:
+    return {k: float(medium[k]) for k in PARAMS}
+
+
+def errors(values: dict, truth: dict) -> dict:
+    """σt, σs relative, g absolute errors and ``error``, the largest magnitude."""
+    e = {
+        "sigma_t": values["sigma_t"] / truth["sigma_t"] - 1.0,
+        "sigma_s": values["sigma_s"] / truth["sigma_s"] - 1.0,
+        "g": values["g"] - truth["g"],
+    }
+    mags = [abs(v) for v in e.values()]
+    e["error"] = max(mags) if all(math.isfinite(m) for m in mags) else math.inf
+    return e
+
+
+def _finite_or_none(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def result_record(res: lfj.FitResult, truth: dict) -> dict:
+    """The JSON-ready record of a fit: values, errors and how far to trust them."""
+    values = {k: float(getattr(res, k)) for k in PARAMS}
+    finite = all(math.isfinite(v) for v in values.values())
+    return {
+        **{k: _finite_or_none(v) for k, v in values.items()},
+        "errors": {k: _finite_or_none(v) for k, v in errors(values, truth).items()},
+        "finite": finite,
+        "converged": bool(res.converged),
+        "message": res.message,
+        "iterations": int(res.iterations),
+        "rho": _finite_or_none(res.rho) if finite else None,
+        "condition_number": _finite_or_none(res.condition_number),
+        "uncertainty": {k: _finite_or_none(res.uncertainty.get(k, math.nan)) for k in PARAMS},
+        "seconds": {k: float(v) for k, v in res.seconds.items()},
+        "model": res.model,
+    }
+
+
+def fit_record(images, pattern, truth: dict, **kwargs) -> dict:
+    """:func:`~lightfield_jax.fit_images` on ``images`` as a record; an exception is
+    recorded (``error_message``), not raised: failures are data here."""
+    t = time.perf_counter()
+    load = os.getloadavg()[0]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
+            res = lfj.fit_images(images, pattern, **kwargs)
+    except (ValueError, FloatingPointError, RuntimeError) as e:
+        return {
+            "error_message": f"{type(e).__name__}: {e}",
+            "finite": False,
+            "converged": False,
+            "errors": {k: None for k in (*PARAMS, "error")},
+            "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
+            "load_avg": load,
+        }
+    return {**result_record(res, truth), "load_avg": load}
+
+
+def fit_record_limited(
+    images,
+    pattern: lfj.Stripes,
+    truth: dict,
+    *,
+    timeout: float,
+    dtype: str,
+    xla_cache_dir,
+    **kwargs,
+) -> dict:
+    """:func:`fit_record` in a child process killed after ``timeout`` seconds (a fit's
+    cost follows the model its start asks for and is otherwise unbounded); a killed fit
+    is recorded with ``timeout`` set. The child shares the persistent XLA cache."""
+    import json
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    t = time.perf_counter()
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        np.save(tmp / "images.npy", np.asarray(images))
+        request = {
+            "images": str(tmp / "images.npy"),
+            "out": str(tmp / "record.json"),
+            "pattern": {
+                "period": pattern.period,
+                "lit": pattern.lit,
+                "phases": list(pattern.phases),
+                "direction_deg": pattern.direction_deg,
+                "entry": pattern.entry,
+            },
+            "truth": truth,
+            "kwargs": kwargs,
+            "dtype": dtype,
+            "xla_cache_dir": None if xla_cache_dir is None else str(xla_cache_dir),
+        }
+        (tmp / "request.json").write_text(json.dumps(request))
+        try:
+            done = subprocess.run(
+                [sys.executable, __file__, str(tmp / "request.json")],
+                capture_output=True,
+                text=True,
+                timeout=timeout,
+            )
+        except subprocess.TimeoutExpired:
+            return {
+                "error_message": f"timeout: no result within {timeout:g} s",
+                "timeout": True,
+                "finite": False,
+                "converged": False,
+                "errors": {k: None for k in (*PARAMS, "error")},
+                "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
+                "load_avg": load,
+            }
+        if done.returncode != 0:
+            raise RuntimeError(f"fit child process failed:\n{done.stderr[-3000:]}")
+        rec = json.loads((tmp / "record.json").read_text())
+    rec["load_avg"] = load
+    return rec
+
+
+def _child(request_path: str) -> None:
+    import json
+
+    req = json.loads(open(request_path).read())
+    images = np.load(req["images"])
+    pattern = lfj.Stripes(**{**req["pattern"], "phases": tuple(req["pattern"]["phases"])})
+    with precision(req["dtype"]), xla_cache(req["xla_cache_dir"]):
+        rec = fit_record(images, pattern, req["truth"], **req["kwargs"])
+    with open(req["out"], "w") as f:
+        json.dump(jsonable(rec), f)
+
+
+def failure(
+    rec: dict,
+    *,
+    truth_rho: float | None = None,
+    bias: float = 0.05,
+    ill_conditioned: float = 1e6,
+) -> str:
+    """Why a fit failed (the first that applies), or ``ok``.
+
+    ``divergent`` is the truth's ρ ≥ 1 (``paper``): no convergent model exists.
+    ``biased``: converged, finite, but ``error`` above ``bias``; ``ill-conditioned`` when
+    such a result's condition number (unit-free, of JᵀJ) also exceeds
+    ``ill_conditioned``: the data barely constrain some combination of parameters.
+    """
+    if rec.get("timeout"):
+        return "timeout"
+    if "error_message" in rec:
+        return "exception"
+    if not rec["finite"]:
+        return "non-finite"
+    if truth_rho is not None and truth_rho >= 1.0:
+        return "divergent"
+    if not rec["converged"]:
+        return "not converged"
+    if rec["errors"]["error"] is None or rec["errors"]["error"] > bias:
+        cond = rec.get("condition_number")
+        return "ill-conditioned" if cond is None or cond > ill_conditioned else "biased"
+    return "ok"
+
+
+FAILURES = (
+    "ok",
+    "biased",
+    "ill-conditioned",
+    "not converged",
+    "divergent",
+    "non-finite",
+    "exception",
+)
+
+
+def jsonable(obj):
+    """``obj`` with NaN and infinities as ``None`` (strict JSON) and tuples as lists."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def median(values) -> float:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(np.median(v)) if v else math.nan
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1])

@@ -1,0 +1,303 @@
+"""Is the ``auto`` model size a safe default? Accuracy lost against time saved.
+
+The fit sizes its model from the data (FitOptions defaults, ``auto``): bounces from
+the tail bound ρ^K/(1 − ρ) ≤ tolerance at the starting estimate, θ bins (and spatial
+refinement) from g, and a crop along the light to where the signal stands above the
+noise. This experiment fits the same captures with that model and with a ``large``
+fixed one (by default 128 θ bins, 40 bounces, no crop), per scene:
+
+- ``gradient_split``: the two-step ``gradient`` method fed the perfect split of a
+  noiseless capture: the model's own error, free of separation bias and noise;
+- ``joint``: the default method on a noisy capture (photons and read noise relative to
+  the brightest pixel), as a user runs it; in a child process stopped after
+  ``joint_timeout`` seconds (recorded as a timeout: too slow to be a usable default).
+
+Truths are rendered finer than either model: at least ``truth.n_theta_min`` θ bins,
+refinement from g, bounces from the tail bound at ``truth.tolerance``.
+
+Per scene: error of each parameter (σt, σs relative; g absolute) with each model, the
+accuracy ``auto`` loses (|error_auto| − |error_large|, positive = worse) and the time it
+saves (t_large / t_auto, wall time including compilation). ``auto`` counts as safe for
+a scene when it loses no more than ``safe`` per parameter and converges wherever the
+large model does.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import lightfield_jax as lfj
+
+
+def _sibling(name: str):
+    """A helper module next to this script (the runner loads scripts by path)."""
+    full = f"lightfield_jax_experiments.{name}"
+    if full not in sys.modules:
+        spec = importlib.util.spec_from_file_location(full, Path(__file__).with_name(f"{name}.py"))
+        sys.modules[full] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[full]
+
+
+inv = _sibling("_inverse")
+
+_KEYS = {
+    "experiment",
+    "dtype",
+    "width",
+    "height",
+    "noise",
+    "seed",
+    "large",
+    "truth",
+    "methods",
+    "scenes",
+    "safe",
+    "joint_timeout",
+}
+METHODS = ("gradient_split", "joint")
+MODELS = ("auto", "large")
+
+
+def _check(config: dict) -> None:
+    unknown = sorted(set(config) - _KEYS)
+    if unknown:
+        raise ValueError(f"model_size: unknown config keys {unknown}")
+    for m in config["methods"]:
+        if m not in METHODS:
+            raise ValueError(f"methods: unknown {m!r} (known: {', '.join(METHODS)})")
+
+
+def _truth(scene: dict, config: dict) -> lfj.SimulatedCapture:
+    medium = lfj.Medium(scene["sigma_t"], scene["sigma_s"], scene["g"], scene.get("phase", "paper"))
+    spec = config["truth"]
+    k = lfj.bounces_for_tolerance(float(medium.rho), spec["tolerance"], max_bounces=100_000)
+    cfg = inv.capture_config(
+        scene,
+        config["width"],
+        config["height"],
+        bounces=min(k, spec["max_bounces"]),
+        n_theta=max(spec["n_theta_min"], lfj.default_n_theta(scene["g"])),
+    )
+    return inv.simulate(cfg)
+
+
+def _fit(scene: dict, method: str, model: str, sim, config: dict) -> dict:
+    truth = inv.truth_of(scene)
+    peak = float(np.max(sim.images))
+    options = dict(config["large"]) if model == "large" else {}
+    options["phase"] = scene.get("phase", "paper")
+    pattern = sim.config.illumination
+    if method == "gradient_split":
+        split = tuple(a / peak for a in inv.perfect_split(sim))
+        images = inv.camera(sim.images, None, 0)
+        rec = inv.fit_record(
+            images, pattern, truth, method="gradient", black_level=0.0, split=split, **options
+        )
+    else:
+        images = inv.camera(sim.images, tuple(config["noise"]), config["seed"])
+        rec = inv.fit_record_limited(
+            images,
+            pattern,
+            truth,
+            timeout=config["joint_timeout"],
+            dtype=config["dtype"],
+            xla_cache_dir=None,
+            method="joint",
+            black_level=0.0,
+            **options,
+        )
+    rec["truth_model"] = {"bounces": sim.n_bounces, "n_theta": sim.n_theta, "refine": sim.refine}
+    return inv.jsonable(rec)
+
+
+def _compare(recs: dict, safe: dict) -> dict:
+    """What ``auto`` loses against ``large`` and the time it saves. Without a large
+    result (timeout, exception) auto is judged against the truth instead: it must
+    converge with errors within ``safe``; the speed-up is then a lower bound."""
+    auto, large = recs["auto"], recs["large"]
+    lost = {}
+    for k in inv.PARAMS:
+        a, b = auto["errors"][k], large["errors"][k]
+        lost[k] = None if a is None or b is None else abs(a) - abs(b)
+    t_a, t_l = auto["seconds"]["total"], large["seconds"]["total"]
+    if auto["errors"]["error"] is None:
+        safe_here, basis = False, "auto gave no result"
+    elif large["errors"]["error"] is None:
+        within = all(abs(auto["errors"][k]) <= safe[k] for k in inv.PARAMS)
+        safe_here, basis = within and auto["converged"], "against the truth (large: no result)"
+    else:
+        within = all(v <= safe[k] for k, v in lost.items())
+        safe_here = within and (auto["converged"] or not large["converged"])
+        basis = "against the large model"
+    return {
+        "accuracy_lost": lost,
+        "speedup": t_l / t_a if t_a else math.nan,
+        "speedup_is_bound": large["errors"]["error"] is None,
+        "seconds_saved": t_l - t_a,
+        "safe": bool(safe_here),
+        "judged": basis,
+        "auto_model": auto.get("model"),
+        "large_model": large.get("model"),
+    }
+
+
+def run(config: dict, out: Path, ctx) -> dict:
+    _check(config)
+    records: dict = {}
+    with inv.precision(config["dtype"]):
+        for scene in config["scenes"]:
+            sims: dict = {}
+
+            def sim(scene=scene, sims=sims):
+                if "sim" not in sims:
+                    sims["sim"] = _truth(scene, config)
+                return sims["sim"]
+
+            for method in config["methods"]:
+                for model in MODELS:
+                    ctx.progress(f"{scene['name']}: {method}, {model} model")
+                    key = (
+                        f"{config['dtype']}|{config['width']}x{config['height']}|{scene}|"
+                        f"{method}|{model}|{config['large'] if model == 'large' else ''}|"
+                        f"{config['truth']}|{config['noise']}|{config['seed']}"
+                    )
+                    records[(scene["name"], method, model)] = ctx.cached(
+                        key,
+                        lambda s=scene, m=method, mo=model: _fit(s, m, mo, sim(s), config),
+                    )
+    comparison = {
+        method: {
+            s["name"]: _compare(
+                {mo: records[(s["name"], method, mo)] for mo in MODELS}, config["safe"]
+            )
+            for s in config["scenes"]
+        }
+        for method in config["methods"]
+    }
+    ctx.write_json(
+        "model_size.json",
+        inv.jsonable(
+            {
+                "comparison": comparison,
+                "records": [
+                    {"scene": s, "method": m, "model": mo, **r} for (s, m, mo), r in records.items()
+                ],
+            }
+        ),
+    )
+    figure = _plot(config, records, comparison, out)
+    speedups = [c["speedup"] for per in comparison.values() for c in per.values()]
+    return inv.jsonable(
+        {
+            "figures": [figure],
+            "data": ["model_size.json"],
+            "auto_safe": all(c["safe"] for per in comparison.values() for c in per.values()),
+            "unsafe": [
+                f"{m}/{s}" for m, per in comparison.items() for s, c in per.items() if not c["safe"]
+            ],
+            "median_speedup": inv.median(speedups),
+            "per_scene": {
+                m: {
+                    s: {
+                        "accuracy_lost": c["accuracy_lost"],
+                        "speedup": c["speedup"],
+                        "speedup_is_bound": c["speedup_is_bound"],
+                        "safe": c["safe"],
+                        "judged": c["judged"],
+                        "auto_model": _short(c["auto_model"]),
+                        "errors": {mo: records[(s, m, mo)]["errors"] for mo in MODELS},
+                        "seconds": {mo: records[(s, m, mo)]["seconds"]["total"] for mo in MODELS},
+                        "converged": {mo: records[(s, m, mo)]["converged"] for mo in MODELS},
+                    }
+                    for s, c in per.items()
+                }
+                for m, per in comparison.items()
+            },
+            "timing_note": "one fit each; the machine may have been shared (load_avg per record)",
+        }
+    )
+
+
+def _short(model: dict | None) -> str | None:
+    if not model:
+        return None
+    crop = model["crop"]
+    return (
+        f"{model['bounces']} bounces, {model['n_theta']} θ, refine {model['refine']}, "
+        f"{crop[2] - crop[0]}×{crop[3] - crop[1]} px"
+    )
+
+
+def _plot(config, records, comparison, out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = config["methods"]
+    scenes = [s["name"] for s in config["scenes"]]
+    fig, axes = plt.subplots(len(methods), 2, figsize=(12, 4.2 * len(methods)), squeeze=False)
+    x = np.arange(len(scenes))
+    colors = {"auto": "tab:blue", "large": "tab:gray"}
+    for i, method in enumerate(methods):
+        ax = axes[i, 0]
+        for j, (k, hatch) in enumerate((("sigma_t", ""), ("sigma_s", "//"), ("g", ".."))):
+            for mo, dx in (("auto", -0.2), ("large", 0.2)):
+                vals = [records[(s, method, mo)]["errors"][k] for s in scenes]
+                ys = [max(abs(v), 1e-6) if v is not None else 1.0 for v in vals]
+                ax.bar(
+                    x + dx + (j - 1) * 0.12,
+                    ys,
+                    0.12,
+                    color=colors[mo],
+                    hatch=hatch,
+                    edgecolor="k",
+                    lw=0.3,
+                    label=f"{mo}: {k}" if i == 0 else None,
+                )
+        ax.set_yscale("log")
+        ax.set_xticks(x, scenes, rotation=20, fontsize=8)
+        ax.set_ylabel("|error| (σ's relative, g absolute)")
+        ax.set_title(f"{method}: accuracy, auto (blue) vs large (gray)", fontsize=9)
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+        if i == 0:
+            ax.legend(fontsize=6, ncol=2)
+        ax = axes[i, 1]
+        for mo, dx in (("auto", -0.2), ("large", 0.2)):
+            t = [records[(s, method, mo)]["seconds"]["total"] for s in scenes]
+            ax.bar(x + dx, t, 0.4, color=colors[mo], label=mo)
+        for xi, s in zip(x, scenes, strict=True):
+            c = comparison[method][s]
+            ax.annotate(
+                ("≥" if c["speedup_is_bound"] else "")
+                + f"×{c['speedup']:.1f}"
+                + ("" if c["safe"] else "\nunsafe"),
+                (xi, records[(s, method, "large")]["seconds"]["total"]),
+                ha="center",
+                va="bottom",
+                fontsize=8,
+                color="k" if c["safe"] else "tab:red",
+            )
+        ax.set_yscale("log")
+        ax.set_xticks(x, scenes, rotation=20, fontsize=8)
+        ax.set_ylabel("wall time per fit [s] (compile included)")
+        ax.set_title(f"{method}: time, auto vs large (×: speed-up of auto)", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(True, axis="y", which="both", alpha=0.3)
+    lg = config["large"]
+    fig.suptitle(
+        f"auto model vs large (n_theta {lg.get('n_theta')}, bounces {lg.get('bounces')}, "
+        f"crop {lg.get('crop')}), {config['width']}×{config['height']} captures",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    name = "model_size.png"
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return name

@@ -1,0 +1,821 @@
+"""Where does each inverse method fail, and why?
+
+Recovery error and convergence of ``grid``, ``gradient`` and ``joint`` (``methods``)
+on small simulated stripe captures (``width`` × ``height``), over:
+
+- ``albedo_g``: albedo ω × asymmetry g at fixed σt (noiseless). The region where the
+  paper's bounce series diverges, ρ = ω·A(g) ≥ 1 under ``phase: paper``, is drawn as
+  the contour ρ = 1; captures there are an explicit truncation after
+  ``divergent_bounces`` bounces (no convergent truth exists), captures near it are
+  truncated at ``max_truth_bounces`` (the record keeps the tail bound). These truths are
+  rendered in batches, one per (g, bounces) group: ``vmap`` over the albedos
+  (``experiments/_batch.py``, sharded when several devices exist).
+- ``noise``: photons at the brightest pixel (Poisson) and Gaussian read noise (as a
+  fraction of the brightest pixel): every capture is scaled to peak 1 first.
+- ``period``: stripe period against the mean free path 1/σt (the separation's bias).
+- ``shifts``: the number of shifted images (phases of a period-6, lit-3 pattern).
+- ``black_level``: the projector's dark-stripe level b, given to the fit (``known``)
+  or not (two-step methods then assume 0; ``joint`` estimates it).
+- ``start`` (``joint`` only): the joint solve started away from the truth, σs × a
+  factor, g + an offset, σt × a factor, on the model the truth needs (the package's
+  ``_joint_solve``: fit_images has no start argument).
+
+Each fit's outcome is classified (:func:`_inverse.failure`): ``ok`` (error at most
+``bias_threshold``), ``biased`` (converged, finite, error above it), ``ill-conditioned``
+(biased and the unit-free condition number of JᵀJ above ``ill_conditioned``), ``not
+converged`` (the solver says so), ``divergent`` (the truth has ρ ≥ 1), ``non-finite``
+(NaN or inf returned), ``exception``, ``timeout`` (``joint`` runs in a child process
+killed after ``joint_timeout`` seconds: its cost follows the model its start asks for,
+up to 256 θ bins, refinement 2 and 60 bounces). Error = max(|Δσt|/σt, |Δσs|/σs, |Δg|).
+
+Every fit is one cached unit (resume). With ``xla_cache`` the persistent XLA cache
+(``OUT/xla_cache``) spares recompiling identical solves: compile times here are then
+not cold ones (``inverse_speed_accuracy`` measures those).
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import importlib.util
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax._fit import METHODS
+
+
+def _sibling(name: str):
+    """A helper module next to this script (the runner loads scripts by path)."""
+    full = f"lightfield_jax_experiments.{name}"
+    if full not in sys.modules:
+        spec = importlib.util.spec_from_file_location(full, Path(__file__).with_name(f"{name}.py"))
+        sys.modules[full] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[full]
+
+
+inv = _sibling("_inverse")
+batch = _sibling("_batch")
+
+_KEYS = {
+    "experiment",
+    "dtype",
+    "width",
+    "height",
+    "methods",
+    "base",
+    "xla_cache",
+    "bias_threshold",
+    "ill_conditioned",
+    "divergent_bounces",
+    "max_truth_bounces",
+    "tolerance",
+    "joint_timeout",
+    "albedo_g",
+    "noise",
+    "period",
+    "shifts",
+    "black_level",
+    "start",
+}
+SWEEPS = ("noise", "period", "shifts", "black_level")
+
+
+def _check(config: dict) -> None:
+    unknown = sorted(set(config) - _KEYS)
+    if unknown:
+        raise ValueError(f"stability_maps: unknown config keys {unknown}")
+    for m in config["methods"]:
+        if m not in METHODS:
+            raise ValueError(f"methods: unknown {m!r}")
+
+
+# ------------------------------------------------------------------------ captures
+
+
+def _rho(medium: dict) -> float:
+    return medium["sigma_s"] / medium["sigma_t"] * float(lfj.phase_integral(medium["g"]))
+
+
+def _truth_bounces(medium: dict, config: dict) -> tuple[int, str]:
+    """Bounces of a truth and how they were chosen (``auto``, ``capped``, ``divergent``)."""
+    rho = _rho(medium)
+    if rho >= 1.0:
+        return config["divergent_bounces"], "divergent"
+    k = lfj.bounces_for_tolerance(rho, config["tolerance"], max_bounces=100_000)
+    if k > config["max_truth_bounces"]:
+        return config["max_truth_bounces"], "capped"
+    return k, "auto"
+
+
+def _simulated(cell: dict, config: dict) -> np.ndarray:
+    """A cell's noise-free capture through ``simulate_capture`` (stripes, black level)."""
+    k, _how = _truth_bounces(cell["medium"], config)
+    cfg = inv.capture_config(
+        cell["medium"],
+        config["width"],
+        config["height"],
+        period=cell["period"],
+        lit=cell["lit"],
+        phases=cell["phases"],
+        black_level=cell.get("black_level") or None,
+        bounces=k,
+    )
+    return inv.simulate(cfg).images
+
+
+class _BatchedTruths:
+    """Noise-free stripe captures of many media, rendered in groups of equal (g, K):
+    one :func:`_batch.batched_render` call (vmap over σt, σs) per group."""
+
+    def __init__(self, cells: list[dict], config: dict):
+        self.config = config
+        self.groups: dict = {}
+        for i, cell in enumerate(cells):
+            k, _ = _truth_bounces(cell["medium"], config)
+            self.groups.setdefault((cell["medium"]["g"], k), []).append(i)
+        self.cells = cells
+        self.done: dict[int, np.ndarray] = {}
+
+    def images(self, i: int) -> np.ndarray:
+        if i not in self.done:
+            self._render_group(i)
+        return self.done[i]
+
+    def _render_group(self, i: int) -> None:
+        (g, k), members = next((key, m) for key, m in self.groups.items() if i in m)
+        cell = self.cells[i]
+        grid = lfj.Grid(self.config["width"], self.config["height"]).resolve(g)
+        stripes = lfj.Stripes(cell["period"], cell["lit"], tuple(cell["phases"]))
+        renderer = lfj.Renderer(grid, stripes, k, "paper")
+        params = np.array(
+            [[self.cells[j]["medium"][p] for p in ("sigma_t", "sigma_s", "g")] for j in members]
+        )
+        images = np.asarray(batch.batched_render(renderer, params)).sum(axis=2)
+        for j, im in zip(members, images, strict=True):
+            self.done[j] = im
+
+
+def _cell(config: dict, **changes) -> dict:
+    """The base cell (the config's ``base`` medium, period 6, 6 shifts, no noise) with
+    ``changes``."""
+    base = config["base"]
+    cell = {
+        "medium": {k: float(base[k]) for k in ("sigma_t", "sigma_s", "g")},
+        "period": 6,
+        "lit": 3,
+        "phases": list(range(6)),
+        "noise": None,
+        "black_level": 0.0,
+        "known_black": True,
+        "seed": 0,
+    }
+    cell.update(changes)
+    return cell
+
+
+def _key(cell: dict, method: str, config: dict) -> str:
+    return (
+        f"{config['dtype']}|{config['width']}x{config['height']}|{method}|{cell['medium']}|"
+        f"p{cell['period']}/{cell['lit']}|{cell['phases']}|n{cell['noise']}|s{cell['seed']}|"
+        f"b{cell['black_level']}/{cell['known_black']}|K{config['divergent_bounces']}/"
+        f"{config['max_truth_bounces']}|tol{config['tolerance']}"
+    )
+
+
+def _fit(cell: dict, method: str, images: np.ndarray, config: dict, xla_dir) -> dict:
+    medium = cell["medium"]
+    pattern = lfj.Stripes(cell["period"], cell["lit"], tuple(cell["phases"]))
+    black = cell["black_level"] if cell["known_black"] else None
+    truth = inv.truth_of(medium)
+    if method == "joint":
+        rec = inv.fit_record_limited(
+            images,
+            pattern,
+            truth,
+            timeout=config["joint_timeout"],
+            dtype=config["dtype"],
+            xla_cache_dir=xla_dir,
+            method=method,
+            black_level=black,
+        )
+    else:
+        rec = inv.fit_record(images, pattern, truth, method=method, black_level=black)
+    k, how = _truth_bounces(medium, config)
+    rec["truth"] = {"rho": _rho(medium), "bounces": k, "bounces_how": how}
+    rec["failure"] = inv.failure(
+        rec,
+        truth_rho=rec["truth"]["rho"],
+        bias=config["bias_threshold"],
+        ill_conditioned=config["ill_conditioned"],
+    )
+    return inv.jsonable(rec)
+
+
+def _run_cells(name, cells, images_of, config, ctx) -> list[dict]:
+    rows = []
+    xla_dir = ctx.out / "xla_cache" if config["xla_cache"] else None
+    for i, cell in enumerate(cells):
+        for method in config["methods"]:
+            ctx.progress(f"{name} {i + 1}/{len(cells)}: {method}")
+            rec = ctx.cached(
+                f"{name}|{_key(cell, method, config)}",
+                lambda c=cell, m=method, i=i: _fit(c, m, images_of(i), config, xla_dir),
+            )
+            if method == "joint" and rec["seconds"]["total"] > config["joint_timeout"]:
+                # A result that came later than the limit (a run before the limit
+                # existed) counts as a timeout too; its values stay in the record.
+                rec = {**rec, "failure": "timeout", "late": True}
+            rows.append({"sweep": name, "cell": i, "method": method, "setting": cell, **rec})
+    return rows
+
+
+def _albedo_g(config: dict, ctx) -> tuple[list[dict], list[dict]]:
+    spec = config["albedo_g"]
+    st = float(spec["sigma_t"])
+    cells = [
+        _cell(config, medium={"sigma_t": st, "sigma_s": st * w, "g": float(g)})
+        for w in spec["albedo"]
+        for g in spec["g"]
+    ]
+    truths = _BatchedTruths(cells, config)
+    return cells, _run_cells(
+        "albedo_g", cells, lambda i: inv.camera(truths.images(i), None, 0), config, ctx
+    )
+
+
+def _sweep_cells(name: str, config: dict) -> list[dict]:
+    spec = config[name]
+    if name == "noise":
+        return [_cell(config, noise=(p, r), seed=i) for i, (p, r) in enumerate(spec["levels"])]
+    if name == "period":
+        base = config["base"]
+        w, g = base["sigma_s"] / base["sigma_t"], base["g"]
+        return [
+            _cell(
+                config,
+                medium={"sigma_t": float(st), "sigma_s": float(st) * w, "g": float(g)},
+                period=int(p),
+                lit=int(p) // 2,
+                phases=list(range(int(p))),
+            )
+            for st in spec["sigma_t"]
+            for p in spec["period"]
+        ]
+    if name == "shifts":
+        return [_cell(config, phases=list(ph)) for ph in spec["phases"]]
+    if name == "black_level":
+        return [
+            _cell(config, black_level=float(b), known_black=bool(known))
+            for b in spec["levels"]
+            for known in spec["known"]
+        ]
+    raise ValueError(name)
+
+
+def _sweep(name: str, config: dict, ctx) -> tuple[list[dict], list[dict]]:
+    cells = _sweep_cells(name, config)
+    memo: dict[int, np.ndarray] = {}
+
+    def images_of(i):
+        if i not in memo:
+            c = cells[i]
+            memo[i] = inv.camera(_simulated(c, config), c["noise"], c["seed"])
+        return memo[i]
+
+    return cells, _run_cells(name, cells, images_of, config, ctx)
+
+
+# ------------------------------------------------------------------- initial guess
+
+
+def _start_solve(medium: dict, start: tuple, images, config: dict) -> dict:
+    """One joint solve (coarse stage skipped) from ``start`` on the truth's model."""
+    from lightfield_jax import _fit
+
+    pattern = lfj.Stripes()
+    options = _fit.FitOptions()
+    t0 = time.perf_counter()
+    mask = np.ones(images.shape[1:], bool)
+    direct, multiple, decay = _fit._separate_and_decay(images, mask, pattern, 0.0, None)
+    model = _fit.size_model(
+        images, pattern, medium["sigma_s"] / medium["sigma_t"], medium["g"], options
+    )
+    x0, y0, x1, y1 = model.crop
+    data = _fit._Data(
+        images=images[:, y0:y1, x0:x1],
+        mask=mask[y0:y1, x0:x1],
+        direct=direct[y0:y1, x0:x1],
+        multiple=multiple[y0:y1, x0:x1],
+        sigma_t0=float(decay.sigma_t),
+        sigma_t0_err=float(decay.sigma_t_stderr),
+        decay_converged=bool(decay.converged),
+    )
+    out = _fit._joint_solve(data, pattern, model, options, start, 0.0, reweight=True)
+    ok, msg = _fit._result_message(out["result"])
+    values = {k: out[k] for k in inv.PARAMS}
+    finite = all(math.isfinite(v) for v in values.values())
+    rec = {
+        **values,
+        "start": list(start[:3]),
+        "errors": inv.errors(values, inv.truth_of(medium)),
+        "finite": finite,
+        "converged": ok,
+        "message": msg,
+        "iterations": int(out["steps"]),
+        "condition_number": out["cond"],
+        "seconds": {
+            "compile": out["compile"],
+            "total": time.perf_counter() - t0,
+        },
+        "model": model.as_dict(),
+    }
+    rec["failure"] = inv.failure(
+        rec, bias=config["bias_threshold"], ill_conditioned=config["ill_conditioned"]
+    )
+    return inv.jsonable(rec)
+
+
+def _starts(config: dict, ctx) -> list[dict]:
+    spec = config["start"]
+    rows = []
+    for medium in spec["media"]:
+        m = {k: float(medium[k]) for k in ("sigma_t", "sigma_s", "g")}
+        cell = _cell(config, medium=m)
+        images = functools.cache(lambda c=cell: inv.camera(_simulated(c, config), None, 0))
+        offsets = [(1.0, fs, dg) for fs in spec["sigma_s_factor"] for dg in spec["g_offset"]]
+        offsets += [(ft, 1.0, 0.0) for ft in spec["sigma_t_factor"] if ft != 1.0]
+        for i, (ft, fs, dg) in enumerate(offsets):
+            ctx.progress(f"start {medium['name']} {i + 1}/{len(offsets)}")
+            st0 = m["sigma_t"] * ft
+            start = (
+                st0,
+                min(m["sigma_s"] * fs, 0.98 * st0),
+                float(np.clip(m["g"] + dg, -0.95, 0.95)),
+                0.0,
+            )
+            rec = ctx.cached(
+                f"start|{_key(cell, 'joint', config)}|{start}",
+                lambda m=m, start=start, images=images: _start_solve(m, start, images(), config),
+            )
+            offset = {"sigma_t_factor": ft, "sigma_s_factor": fs, "g_offset": dg}
+            rows.append({"medium": medium["name"], **offset, **rec})
+    return rows
+
+
+# ------------------------------------------------------------------------ driver
+
+
+def run(config: dict, out: Path, ctx) -> dict:
+    _check(config)
+    cache = out / "xla_cache" if config["xla_cache"] else None
+    results = {}
+    with inv.precision(config["dtype"]), inv.xla_cache(cache):
+        cells, rows = _albedo_g(config, ctx)
+        results["albedo_g"] = rows
+        for name in SWEEPS:
+            if config.get(name):
+                results[name] = _sweep(name, config, ctx)[1]
+        starts = _starts(config, ctx) if config.get("start") else []
+    all_rows = [r for rows in results.values() for r in rows]
+    _write_csv(out / "stability.csv", all_rows, starts)
+    ctx.write_json("stability.json", inv.jsonable({"fits": all_rows, "starts": starts}))
+    figures = [_plot_albedo_g(config, results["albedo_g"], out)]
+    figures.append(_plot_sweeps(config, results, out))
+    if starts:
+        figures.append(_plot_starts(config, starts, out))
+    return inv.jsonable(_summary(config, results, starts, figures))
+
+
+def _counts(rows) -> dict:
+    out = {}
+    for r in rows:
+        out.setdefault(r["method"], {}).setdefault(r["failure"], 0)
+        out[r["method"]][r["failure"]] += 1
+    return out
+
+
+def _summary(config, results, starts, figures) -> dict:
+    def brief(r):
+        s = r["setting"]
+        m = s["medium"]
+        e = r["errors"]
+        return {
+            "medium": [round(m["sigma_t"], 4), round(m["sigma_s"], 4), m["g"]],
+            "rho": round(_rho(m), 3),
+            "failure": r["failure"],
+            "error": e["error"],
+            "condition_number": r.get("condition_number"),
+            "message": r.get("message", r.get("error_message")),
+        }
+
+    summary = {
+        "figures": figures,
+        "data": ["stability.json", "stability.csv"],
+        "failure_counts": {name: _counts(rows) for name, rows in results.items()},
+        "albedo_g_failures": {
+            m: [brief(r) for r in results["albedo_g"] if r["method"] == m and r["failure"] != "ok"]
+            for m in config["methods"]
+        },
+        "sweeps": {
+            name: [
+                {
+                    "method": r["method"],
+                    "setting": _setting_label(name, r["setting"]),
+                    "error": r["errors"]["error"],
+                    "failure": r["failure"],
+                    "converged": r["converged"],
+                }
+                for r in rows
+            ]
+            for name, rows in results.items()
+            if name != "albedo_g"
+        },
+        "timing_note": "compile times use the persistent XLA cache when xla_cache is on",
+    }
+    if starts:
+        summary["start"] = {
+            "counts": {
+                med: {
+                    f: sum(1 for s in starts if s["medium"] == med and s["failure"] == f)
+                    for f in inv.FAILURES
+                    if any(s["medium"] == med and s["failure"] == f for s in starts)
+                }
+                for med in dict.fromkeys(s["medium"] for s in starts)
+            },
+            "failed_starts": [
+                {
+                    "medium": s["medium"],
+                    "start_factor": [s["sigma_t_factor"], s["sigma_s_factor"], s["g_offset"]],
+                    "failure": s["failure"],
+                    "error": s["errors"]["error"],
+                }
+                for s in starts
+                if s["failure"] != "ok"
+            ],
+        }
+    return summary
+
+
+def _setting_label(name: str, s: dict) -> str:
+    if name == "noise":
+        p, r = s["noise"]
+        return f"photons {p:g}, read {r:g}" if p else f"read {r:g}"
+    if name == "period":
+        st = s["medium"]["sigma_t"]
+        return f"period {s['period']}, sigma_t {st:g} ({s['period'] * st:.2f} mfp)"
+    if name == "shifts":
+        return f"{len(s['phases'])} shifts {s['phases']}"
+    return f"b {s['black_level']:g} ({'known' if s['known_black'] else 'unknown'})"
+
+
+def _write_csv(path: Path, rows, starts) -> None:
+    from lightfield_jax._io import atomic_path
+
+    cols = [
+        "sweep",
+        "cell",
+        "method",
+        "sigma_t_true",
+        "sigma_s_true",
+        "g_true",
+        "rho",
+        "period",
+        "shifts",
+        "photons",
+        "read",
+        "black_level",
+        "black_known",
+        "sigma_t",
+        "sigma_s",
+        "g",
+        "err_sigma_t",
+        "err_sigma_s",
+        "err_g",
+        "error",
+        "failure",
+        "converged",
+        "iterations",
+        "condition_number",
+        "total_s",
+    ]
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for r in rows:
+            s, m, e = r["setting"], r["setting"]["medium"], r["errors"]
+            noise = s["noise"] or (None, None)
+            w.writerow(
+                [
+                    r["sweep"],
+                    r["cell"],
+                    r["method"],
+                    m["sigma_t"],
+                    m["sigma_s"],
+                    m["g"],
+                    _rho(m),
+                    s["period"],
+                    len(s["phases"]),
+                    noise[0],
+                    noise[1],
+                    s["black_level"],
+                    s["known_black"],
+                    r.get("sigma_t"),
+                    r.get("sigma_s"),
+                    r.get("g"),
+                    e["sigma_t"],
+                    e["sigma_s"],
+                    e["g"],
+                    e["error"],
+                    r["failure"],
+                    r["converged"],
+                    r.get("iterations"),
+                    r.get("condition_number"),
+                    r["seconds"]["total"],
+                ]
+            )
+        for s in starts:
+            e = s["errors"]
+            w.writerow(
+                [
+                    f"start:{s['medium']}",
+                    f"{s['sigma_t_factor']}/{s['sigma_s_factor']}/{s['g_offset']}",
+                    "joint",
+                    None,
+                    None,
+                    None,
+                    None,
+                    6,
+                    6,
+                    None,
+                    None,
+                    0.0,
+                    True,
+                    s["sigma_t"],
+                    s["sigma_s"],
+                    s["g"],
+                    e["sigma_t"],
+                    e["sigma_s"],
+                    e["g"],
+                    e["error"],
+                    s["failure"],
+                    s["converged"],
+                    s["iterations"],
+                    s["condition_number"],
+                    s["seconds"]["total"],
+                ]
+            )
+
+
+# ------------------------------------------------------------------------ figures
+
+_CODES = {
+    "ok": "ok",
+    "biased": "bias",
+    "ill-conditioned": "cond",
+    "not converged": "n.c.",
+    "divergent": "div",
+    "non-finite": "NaN",
+    "exception": "exc",
+    "timeout": "time",
+}
+_MARKERS = {
+    "ok": "o",
+    "biased": "s",
+    "ill-conditioned": "D",
+    "not converged": "x",
+    "divergent": "^",
+    "non-finite": "*",
+    "exception": "P",
+    "timeout": "v",
+}
+_COLORS = {"grid": "tab:red", "gradient": "tab:blue", "joint": "tab:green"}
+
+
+def _edges(values) -> np.ndarray:
+    v = np.asarray(values, float)
+    if v.size == 1:
+        return np.array([v[0] - 0.05, v[0] + 0.05])
+    mid = (v[1:] + v[:-1]) / 2
+    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+
+
+def _plot_albedo_g(config, rows, out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    spec = config["albedo_g"]
+    albedos, gs = list(spec["albedo"]), list(spec["g"])
+    methods = config["methods"]
+    xe, ye = _edges(gs), _edges(albedos)
+    gg, ww = np.meshgrid(np.linspace(xe[0], xe[-1], 200), np.linspace(ye[0], ye[-1], 200))
+    rho = ww * np.asarray(lfj.phase_integral(np.clip(gg, -0.99, 0.99)))
+    fig, axes = plt.subplots(2, len(methods), figsize=(4.4 * len(methods), 7.6), squeeze=False)
+    for j, method in enumerate(methods):
+        err = np.full((len(albedos), len(gs)), np.nan)
+        cond = np.full_like(err, np.nan)
+        codes = {}
+        for r in rows:
+            if r["method"] != method:
+                continue
+            m = r["setting"]["medium"]
+            a = albedos.index(min(albedos, key=lambda w: abs(w - m["sigma_s"] / m["sigma_t"])))
+            b = gs.index(m["g"])
+            e = r["errors"]["error"]
+            err[a, b] = np.nan if e is None else max(e, 1e-4)
+            c = r.get("condition_number")
+            cond[a, b] = np.nan if c is None else c
+            codes[(a, b)] = (r["failure"], e)
+        for i, (data, label, norm) in enumerate(
+            (
+                (err, "error", LogNorm(1e-4, 1.0)),
+                (cond, "condition number (unit-free JᵀJ)", LogNorm(1.0, 1e8)),
+            )
+        ):
+            ax = axes[i, j]
+            mesh = ax.pcolormesh(xe, ye, np.ma.masked_invalid(data), norm=norm, cmap="viridis")
+            fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
+            cs = ax.contour(gg, ww, rho, levels=[1.0], colors="w", linewidths=2)
+            ax.clabel(cs, fmt={1.0: "ρ = 1"}, fontsize=8)
+            for (a, b), (f, e) in codes.items():
+                txt = _CODES[f] if i == 1 or e is None else f"{_CODES[f]}\n{e:.2g}"
+                ax.text(
+                    gs[b],
+                    albedos[a],
+                    txt,
+                    ha="center",
+                    va="center",
+                    fontsize=7,
+                    color="w" if f == "ok" else "orange",
+                )
+            ax.set_xticks(gs)
+            ax.set_yticks(albedos)
+            ax.set_xlabel("g")
+            ax.set_ylabel("albedo ω = σs/σt")
+            ax.set_title(f"{method}: {label.split(' (')[0]}", fontsize=9)
+    fig.suptitle(
+        f"σt {spec['sigma_t']} px⁻¹, {config['width']}×{config['height']}, noiseless\n"
+        "ρ = ω·A(g) ≥ 1 (phase: paper) beyond the white contour",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    name = "albedo_g.png"
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def _plot_sweeps(config, results, out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+
+    names = [n for n in SWEEPS if n in results]
+    fig, axes = plt.subplots(
+        1, max(len(names), 1), figsize=(4.6 * max(len(names), 1), 4.4), squeeze=False
+    )
+    for ax, name in zip(axes[0], names, strict=False):
+        rows = results[name]
+        for method in config["methods"]:
+            mine = [r for r in rows if r["method"] == method]
+            if name == "black_level":
+                for known, ls in ((True, "-"), (False, "--")):
+                    sel = [r for r in mine if r["setting"]["known_black"] == known]
+                    _line(ax, [r["setting"]["black_level"] for r in sel], sel, method, ls)
+                ax.set_xlabel("black level b (solid: given, dashed: unknown)")
+            elif name == "period":
+                sts = sorted({r["setting"]["medium"]["sigma_t"] for r in mine})
+                for st, ls in zip(sts, ("-", "--", ":", "-."), strict=False):
+                    sel = [r for r in mine if r["setting"]["medium"]["sigma_t"] == st]
+                    _line(ax, [r["setting"]["period"] * st for r in sel], sel, method, ls)
+                ax.set_xscale("log")
+                ax.set_xlabel(
+                    "stripe period / mean free path (σt·period)\n"
+                    + ", ".join(
+                        f"{ls}: σt {st:g}"
+                        for st, ls in zip(sts, ("—", "--", ":", "-."), strict=False)
+                    )
+                )
+            elif name == "shifts":
+                _line(ax, [len(r["setting"]["phases"]) for r in mine], mine, method, "-")
+                ax.set_xlabel("number of shifts (period 6)")
+            else:
+                labels = [_setting_label("noise", r["setting"]) for r in mine]
+                _line(ax, list(range(len(mine))), mine, method, "-")
+                ax.set_xticks(range(len(mine)), labels, rotation=45, ha="right", fontsize=7)
+                ax.set_xlabel("noise (photons at the peak, read noise / peak)")
+        ax.set_yscale("log")
+        ax.axhline(config["bias_threshold"], color="k", lw=0.8, ls=":")
+        ax.set_ylabel("error")
+        ax.set_title(name.replace("_", " "), fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+    handles = [
+        Line2D([], [], color=c, label=m) for m, c in _COLORS.items() if m in config["methods"]
+    ]
+    handles += [
+        Line2D([], [], color="gray", marker=mk, ls="none", label=f) for f, mk in _MARKERS.items()
+    ]
+    axes[0, 0].legend(handles=handles, fontsize=7)
+    fig.suptitle(
+        f"base: σt {config['base']['sigma_t']}, σs {config['base']['sigma_s']}, "
+        f"g {config['base']['g']}; dotted: the 'ok' threshold",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    name = "sweeps.png"
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def _line(ax, xs, rows, method, ls) -> None:
+    ys = [
+        max(r["errors"]["error"] if r["errors"]["error"] is not None else 10.0, 1e-5) for r in rows
+    ]
+    ax.plot(xs, ys, ls, color=_COLORS.get(method, "k"), lw=1)
+    for x, y, r in zip(xs, ys, rows, strict=True):
+        ax.plot(x, y, _MARKERS[r["failure"]], color=_COLORS.get(method, "k"), ms=6)
+
+
+def _plot_starts(config, starts, out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    spec = config["start"]
+    media = list(dict.fromkeys(s["medium"] for s in starts))
+    fs, dg = list(spec["sigma_s_factor"]), list(spec["g_offset"])
+    with_st = any(s["sigma_t_factor"] != 1.0 for s in starts)
+    fig, axes = plt.subplots(
+        len(media),
+        2 if with_st else 1,
+        figsize=(10 if with_st else 7, 3.8 * len(media)),
+        squeeze=False,
+        gridspec_kw={"width_ratios": [3, 1.3] if with_st else [1]},
+    )
+    for i, med in enumerate(media):
+        mine = [s for s in starts if s["medium"] == med]
+        grid = np.full((len(fs), len(dg)), np.nan)
+        ax = axes[i, 0]
+        for s in mine:
+            if s["sigma_t_factor"] != 1.0:
+                continue
+            a, b = fs.index(s["sigma_s_factor"]), dg.index(s["g_offset"])
+            e = s["errors"]["error"]
+            grid[a, b] = np.nan if e is None else max(e, 1e-5)
+            ax.text(
+                b,
+                a,
+                f"{_CODES[s['failure']]}\n{s['iterations']} it",
+                ha="center",
+                va="center",
+                fontsize=7,
+                color="w",
+            )
+        im = ax.imshow(
+            np.ma.masked_invalid(grid),
+            norm=LogNorm(1e-5, 1.0),
+            origin="lower",
+            cmap="viridis",
+            aspect="auto",
+        )
+        fig.colorbar(im, ax=ax, label="final error")
+        ax.set_xticks(range(len(dg)), [f"{d:+g}" for d in dg])
+        ax.set_yticks(range(len(fs)), [f"×{f:g}" for f in fs])
+        ax.set_xlabel("start g − true g")
+        ax.set_ylabel("start σs / true σs")
+        ax.set_title(f"joint from offset starts: {med} (σt start = truth)", fontsize=9)
+        if not with_st:
+            continue
+        ax = axes[i, 1]
+        line = sorted(
+            (s for s in mine if s["g_offset"] == 0 and s["sigma_s_factor"] == 1.0),
+            key=lambda s: s["sigma_t_factor"],
+        )
+        xs = [s["sigma_t_factor"] for s in line]
+        ys = [max(s["errors"]["error"] or 10.0, 1e-5) for s in line]
+        ax.plot(xs, ys, "-", color="tab:green")
+        for x, y, s in zip(xs, ys, line, strict=True):
+            ax.plot(x, y, _MARKERS[s["failure"]], color="tab:green")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("start σt / true σt")
+        ax.set_ylabel("final error")
+        ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    name = "start_basin.png"
+    fig.savefig(out / name, dpi=110)
+    plt.close(fig)
+    return name
