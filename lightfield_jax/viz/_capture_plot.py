@@ -9,30 +9,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 
 from .._fit import CaptureFit
 from .._inspect import SNR_USABLE, Inspection
-from .._io import atomic_path
+from ._common import finish as _finish
+from ._common import new_figure as _figure
 
 _CHANNEL_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
-
-
-def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(width, height), layout="constrained")
-
-
-def _finish(fig, path):
-    if path is None:
-        return fig
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    return path
 
 
 def _colour(name: str, i: int) -> str:

@@ -20,34 +20,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 
 from .._decay import DecayFit, entry_coordinates
 from .._illumination import _INWARD_DEG, Beam, Full, Illumination, Stripes
-from .._io import atomic_path
+from ._common import finish as _finish
+from ._common import new_figure as _figure
 
 _UNITS = "source units"
 
 
 # ---------------------------------------------------------------------------- helpers
-
-
-def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(width, height), layout="constrained")
-
-
-def _finish(fig, path):
-    """Write ``fig`` to ``path`` atomically (returning the path), or return ``fig``."""
-    if path is None:
-        return fig
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    return path
 
 
 def _array(a, ndim: tuple[int, ...], name: str) -> np.ndarray:
