@@ -16,11 +16,13 @@
 - :func:`precision`: the dtype the experiment runs in, whatever the caller's x64 flag.
 - :func:`xla_cache`: JAX's persistent compilation cache for a block (sweeps refit
   captures of the same shape; compile times under it are not cold ones).
+- :func:`library_fingerprint`: a hash of the package's source, in every cache key.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 import sys
@@ -35,6 +37,21 @@ import lightfield_jax as lfj
 from lightfield_jax._config import NoiseConfig, parse_simulation_config
 
 PARAMS = ("sigma_t", "sigma_s", "g")
+
+
+@functools.cache
+def library_fingerprint() -> str:
+    """A hash of the package's source: part of every cache key, so that a rerun after
+    the package changed recomputes instead of mixing results of two versions."""
+    import hashlib
+    from pathlib import Path
+
+    root = Path(lfj.__file__).resolve().parent
+    h = hashlib.sha1()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:12]
 
 
 @contextlib.contextmanager
@@ -330,6 +347,18 @@ def jsonable(obj):
     if isinstance(obj, np.bool_):
         return bool(obj)
     return obj
+
+
+def log_axes(ax, x: bool = True, y: bool = True) -> None:
+    """Log axes labelled at 1, 2, 5 × 10^k (short ranges get labels too)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    for on, axis, scale in ((x, ax.xaxis, ax.set_xscale), (y, ax.yaxis, ax.set_yscale)):
+        if on:
+            scale("log")
+            axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:.3g}"))
+            axis.set_minor_formatter(NullFormatter())
 
 
 def median(values) -> float:

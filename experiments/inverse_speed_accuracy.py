@@ -423,7 +423,8 @@ def run(config: dict, out: Path, ctx) -> dict:
     labels_by_capture = {c: _labels(config, c) for c in config["captures"]}
     records: dict = {}
     tag = (
-        f"{config['dtype']}|{config['width']}x{config['height']}|{config['medium']}|"
+        f"lib{inv.library_fingerprint()}|{config['dtype']}|"
+        f"{config['width']}x{config['height']}|{config['medium']}|"
         f"p{config['period']}/{config['lit']}|gain{config['gain']}|noise{config['noise']}|"
         f"start{config['start_grid']}|steps{config['max_steps']}"
     )
@@ -465,6 +466,7 @@ def run(config: dict, out: Path, ctx) -> dict:
             "timing_note": (
                 "medians over repeats; the machine may have been shared (load_avg per record)"
             ),
+            "library_fingerprint": inv.library_fingerprint(),
             "captures": {
                 c: {
                     "methods": {
@@ -578,18 +580,6 @@ _TITLES = {
 }
 
 
-def _log_axes(ax) -> None:
-    """Log-log axes labelled at 1, 2, 5 × 10^k (short ranges get labels too)."""
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
-
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    for axis in (ax.xaxis, ax.yaxis):
-        axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
-        axis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:.3g}"))
-        axis.set_minor_formatter(NullFormatter())
-
-
 def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
     import matplotlib
 
@@ -639,7 +629,7 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
                     ls="none",
                     label=lb,
                 )
-            _log_axes(ax)
+            inv.log_axes(ax)
             ax.grid(True, which="both", alpha=0.3)
             ax.set_xlabel(f"{'wall' if part == 'total' else 'run (no compile)'} time per fit [s]")
             ax.set_ylabel("error: max(|Δσt|/σt, |Δσs|/σs, |Δg|)")
@@ -686,7 +676,7 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
                         xytext=(3, 3),
                         fontsize=6,
                     )
-            _log_axes(ax)
+            inv.log_axes(ax)
             ax.grid(True, which="both", alpha=0.3)
             ax.set_ylabel(what)
             if i == 0:

@@ -163,7 +163,8 @@ def run(config: dict, out: Path, ctx) -> dict:
                 for model in MODELS:
                     ctx.progress(f"{scene['name']}: {method}, {model} model")
                     key = (
-                        f"{config['dtype']}|{config['width']}x{config['height']}|{scene}|"
+                        f"lib{inv.library_fingerprint()}|{config['dtype']}|"
+                        f"{config['width']}x{config['height']}|{scene}|"
                         f"{method}|{model}|{config['large'] if model == 'large' else ''}|"
                         f"{config['truth']}|{config['noise']}|{config['seed']}"
                     )
@@ -220,6 +221,7 @@ def run(config: dict, out: Path, ctx) -> dict:
                 for m, per in comparison.items()
             },
             "timing_note": "one fit each; the machine may have been shared (load_avg per record)",
+            "library_fingerprint": inv.library_fingerprint(),
         }
     )
 

@@ -181,6 +181,7 @@ def _cell(config: dict, **changes) -> dict:
 
 def _key(cell: dict, method: str, config: dict) -> str:
     return (
+        f"lib{inv.library_fingerprint()}|"
         f"{config['dtype']}|{config['width']}x{config['height']}|{method}|{cell['medium']}|"
         f"p{cell['period']}/{cell['lit']}|{cell['phases']}|n{cell['noise']}|s{cell['seed']}|"
         f"b{cell['black_level']}/{cell['known_black']}|K{config['divergent_bounces']}/"
@@ -437,6 +438,7 @@ def _summary(config, results, starts, figures) -> dict:
             if name != "albedo_g"
         },
         "timing_note": "compile times use the persistent XLA cache when xla_cache is on",
+        "library_fingerprint": inv.library_fingerprint(),
     }
     if starts:
         summary["start"] = {
@@ -597,12 +599,17 @@ _MARKERS = {
 _COLORS = {"grid": "tab:red", "gradient": "tab:blue", "joint": "tab:green"}
 
 
-def _edges(values) -> np.ndarray:
+def _index_coords(values, n: int = 200):
+    """Cell-index coordinates spanning the cells (one unit per cell, however the values
+    are spaced) and the values there (linear between centres, extended half a cell)."""
     v = np.asarray(values, float)
-    if v.size == 1:
-        return np.array([v[0] - 0.05, v[0] + 0.05])
-    mid = (v[1:] + v[:-1]) / 2
-    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+    idx = np.linspace(-0.5, len(v) - 0.5, n)
+    if len(v) == 1:
+        return idx, np.full(n, v[0])
+    inside = np.interp(idx, np.arange(len(v)), v)
+    below = np.minimum(idx, 0.0) * (v[1] - v[0])
+    above = np.maximum(idx - (len(v) - 1), 0.0) * (v[-1] - v[-2])
+    return idx, inside + below + above
 
 
 def _plot_albedo_g(config, rows, out: Path) -> str:
@@ -615,10 +622,12 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
     spec = config["albedo_g"]
     albedos, gs = list(spec["albedo"]), list(spec["g"])
     methods = config["methods"]
-    xe, ye = _edges(gs), _edges(albedos)
-    gg, ww = np.meshgrid(np.linspace(xe[0], xe[-1], 200), np.linspace(ye[0], ye[-1], 200))
+    xi, gv = _index_coords(gs)
+    yi, wv = _index_coords(albedos)
+    gg, ww = np.meshgrid(gv, wv)
     rho = ww * np.asarray(lfj.phase_integral(np.clip(gg, -0.99, 0.99)))
-    fig, axes = plt.subplots(2, len(methods), figsize=(4.4 * len(methods), 7.6), squeeze=False)
+    xx, yy = np.meshgrid(xi, yi)
+    fig, axes = plt.subplots(2, len(methods), figsize=(4.6 * len(methods), 7.8), squeeze=False)
     for j, method in enumerate(methods):
         err = np.full((len(albedos), len(gs)), np.nan)
         cond = np.full_like(err, np.nan)
@@ -641,29 +650,38 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             )
         ):
             ax = axes[i, j]
-            mesh = ax.pcolormesh(xe, ye, np.ma.masked_invalid(data), norm=norm, cmap="viridis")
+            ax.set_facecolor("0.85")  # no result (timeout, exception, NaN)
+            mesh = ax.imshow(
+                np.ma.masked_invalid(data),
+                norm=norm,
+                cmap="viridis",
+                origin="lower",
+                aspect="auto",
+                extent=(-0.5, len(gs) - 0.5, -0.5, len(albedos) - 0.5),
+            )
             fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
-            cs = ax.contour(gg, ww, rho, levels=[1.0], colors="w", linewidths=2)
+            cs = ax.contour(xx, yy, rho, levels=[1.0], colors="r", linewidths=2)
             ax.clabel(cs, fmt={1.0: "ρ = 1"}, fontsize=8)
             for (a, b), (f, e) in codes.items():
                 txt = _CODES[f] if i == 1 or e is None else f"{_CODES[f]}\n{e:.2g}"
                 ax.text(
-                    gs[b],
-                    albedos[a],
+                    b,
+                    a,
                     txt,
                     ha="center",
                     va="center",
                     fontsize=7,
-                    color="w" if f == "ok" else "orange",
+                    bbox={"boxstyle": "round,pad=0.15", "fc": "w", "alpha": 0.7, "lw": 0},
                 )
-            ax.set_xticks(gs)
-            ax.set_yticks(albedos)
+            ax.set_xticks(range(len(gs)), [f"{g:g}" for g in gs])
+            ax.set_yticks(range(len(albedos)), [f"{w:g}" for w in albedos])
             ax.set_xlabel("g")
             ax.set_ylabel("albedo ω = σs/σt")
             ax.set_title(f"{method}: {label.split(' (')[0]}", fontsize=9)
     fig.suptitle(
-        f"σt {spec['sigma_t']} px⁻¹, {config['width']}×{config['height']}, noiseless\n"
-        "ρ = ω·A(g) ≥ 1 (phase: paper) beyond the white contour",
+        f"σt {spec['sigma_t']} px⁻¹, {config['width']}×{config['height']}, noiseless; "
+        "gray: no result\nρ = ω·A(g) ≥ 1 (phase: paper) beyond the red contour; "
+        "codes: ok, bias, cond, n.c. (not converged), div, NaN, exc, time",
         fontsize=10,
     )
     fig.tight_layout()
@@ -698,7 +716,7 @@ def _plot_sweeps(config, results, out: Path) -> str:
                 for st, ls in zip(sts, ("-", "--", ":", "-."), strict=False):
                     sel = [r for r in mine if r["setting"]["medium"]["sigma_t"] == st]
                     _line(ax, [r["setting"]["period"] * st for r in sel], sel, method, ls)
-                ax.set_xscale("log")
+                inv.log_axes(ax, y=False)
                 ax.set_xlabel(
                     "stripe period / mean free path (σt·period)\n"
                     + ", ".join(
@@ -794,7 +812,7 @@ def _plot_starts(config, starts, out: Path) -> str:
         fig.colorbar(im, ax=ax, label="final error")
         ax.set_xticks(range(len(dg)), [f"{d:+g}" for d in dg])
         ax.set_yticks(range(len(fs)), [f"×{f:g}" for f in fs])
-        ax.set_xlabel("start g − true g")
+        ax.set_xlabel("start g − true g (start |g| clipped to 0.95)")
         ax.set_ylabel("start σs / true σs")
         ax.set_title(f"joint from offset starts: {med} (σt start = truth)", fontsize=9)
         if not with_st:
@@ -809,8 +827,7 @@ def _plot_starts(config, starts, out: Path) -> str:
         ax.plot(xs, ys, "-", color="tab:green")
         for x, y, s in zip(xs, ys, line, strict=True):
             ax.plot(x, y, _MARKERS[s["failure"]], color="tab:green")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        inv.log_axes(ax)
         ax.set_xlabel("start σt / true σt")
         ax.set_ylabel("final error")
         ax.grid(True, which="both", alpha=0.3)
