@@ -37,30 +37,18 @@ from __future__ import annotations
 
 import csv
 import functools
-import importlib.util
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import lightfield_jax as lfj
+from lightfield_jax._experiment import load_helper
 from lightfield_jax._fit import METHODS
 
-
-def _sibling(name: str):
-    """A helper module next to this script (the runner loads scripts by path)."""
-    full = f"lightfield_jax_experiments.{name}"
-    if full not in sys.modules:
-        spec = importlib.util.spec_from_file_location(full, Path(__file__).with_name(f"{name}.py"))
-        sys.modules[full] = module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    return sys.modules[full]
-
-
-inv = _sibling("_inverse")
-batch = _sibling("_batch")
+inv = load_helper("_inverse")
+batch = load_helper("_batch")
 
 _KEYS = {
     "experiment",

@@ -11,6 +11,9 @@ holds ``experiment: NAME`` (the script's name), the parameters, and an optional
 ``reduced:`` mapping whose keys replace the top-level ones for ``--reduced`` (the small
 size the test suite runs, so experiments cannot rot).
 
+Scripts share helper modules in ``experiments/`` (names starting with ``_``) through
+:func:`load_helper`.
+
 Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
 as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing.
 """
@@ -118,15 +121,40 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     return data
 
 
+def _exec_module(name: str, path: Path):
+    """Execute ``path`` as the module ``lightfield_jax_experiments.NAME``, registered in
+    ``sys.modules`` first (dataclasses in a script look their module up)."""
+    spec = importlib.util.spec_from_file_location(f"lightfield_jax_experiments.{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[spec.name]
+        raise
+    return module
+
+
+def load_helper(name: str):
+    """A helper module shared by the experiment scripts, ``experiments/NAME.py`` (e.g.
+    ``_inverse``, ``_batch``): loaded once per process, then the same module object.
+    The scripts are loaded by path, not from a package, so they import helpers this way:
+    ``inv = load_helper("_inverse")``."""
+    full = f"lightfield_jax_experiments.{name}"
+    if full in sys.modules:
+        return sys.modules[full]
+    path = EXPERIMENTS_DIR / f"{name}.py"
+    if not path.is_file():
+        raise ValueError(f"experiment: no helper module {path}")
+    return _exec_module(name, path)
+
+
 def _load_script(name: str):
     script = EXPERIMENTS_DIR / f"{name}.py"
     if not script.is_file():
         known = sorted(p.stem for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
         raise ValueError(f"experiment: no script {script} (known: {', '.join(known)})")
-    spec = importlib.util.spec_from_file_location(f"lightfield_jax_experiments.{name}", script)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses in the script look their module up
-    spec.loader.exec_module(module)
+    module = _exec_module(name, script)
     if not hasattr(module, "run"):
         raise ValueError(f"experiment: {script} defines no run(config, out, ctx)")
     return module

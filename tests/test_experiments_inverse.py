@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import run_experiment
+from lightfield_jax._experiment import load_helper, run_experiment
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -81,6 +81,18 @@ def test_model_size_reduced(tmp_path):
     assert isinstance(summary["auto_safe"], bool) and milk["speedup"] > 0
     for errors in milk["errors"].values():
         assert abs(errors["sigma_s"]) < 0.02 and abs(errors["g"]) < 0.02
+
+
+def test_load_helper_shares_one_module():
+    inv = load_helper("_inverse")
+    assert load_helper("_inverse") is inv and inv.__name__ == "lightfield_jax_experiments._inverse"
+    assert callable(inv.fit_record)
+    try:
+        load_helper("_no_such_helper")
+    except ValueError as e:
+        assert "_no_such_helper" in str(e)
+    else:
+        raise AssertionError("an unknown helper must raise")
 
 
 def _batch_module():
