@@ -42,10 +42,14 @@ from ._pattern import write_patterns as write_patterns
 from ._render import DivergentSeriesWarning as DivergentSeriesWarning
 from ._render import Renderer as Renderer
 from ._render import RenderResult as RenderResult
+from ._render import make_renderer as make_renderer
 from ._render import render as render
 from ._render import single_scatter_closed_form as single_scatter_closed_form
 from ._separate import Separation as Separation
 from ._separate import separate as separate
+from ._slab import Plane as Plane
+from ._slab import Slab as Slab
+from ._slab import SlabRenderer as SlabRenderer
 from ._simulate import SimulatedCapture as SimulatedCapture
 from ._simulate import simulate_capture as simulate_capture
 

@@ -59,8 +59,10 @@ Keys:
   frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
   (default: every channel, fitted separately).
-- ``geometry``: ``{kind: plane}``, the paper's 2-D model (default). Other kinds (the
-  slab of MODEL.md section 7) are not supported yet.
+- ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
+  depth modelled in 3-D (MODEL.md section 7): ``{kind: slab, thickness: 6.4,
+  boundary: absorbing}`` (thickness in pixels; ``boundary: refractive`` with ``n:
+  1.33``; optional ``n_mu``, the elevation nodes). Every fit method uses it.
 - ``truth``: the true parameters of a simulated capture (``sigma_t``, ``sigma_s``,
   ``g``, ``gain``, ``phase``, ``black_level``), for reports.
 
@@ -124,6 +126,7 @@ from ._io import (
     read_npy_stack,
 )
 from ._medium import PHASE_CONVENTIONS
+from ._slab import parse_geometry
 
 CAPTURE_KEYS: tuple[str, ...] = (
     "images",
@@ -141,7 +144,7 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "flat_field",
 )
 AUTO = "auto"
-GEOMETRY_KINDS: tuple[str, ...] = ("plane",)
+GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
 _AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
 _PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
 _TRUTH_FLOATS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
@@ -634,17 +637,13 @@ def _positive(top: _Section, key: str) -> float | None:
 
 
 def _geometry(top: _Section) -> dict[str, Any]:
+    """The model geometry: ``{kind: plane}`` (default) or a slab (MODEL.md §7)."""
     if "geometry" not in top.data:
         return {"kind": "plane"}
-    kind = top.section("geometry", None).get("kind")
-    if kind not in GEOMETRY_KINDS:
-        top.fail(
-            "geometry.kind",
-            f"{kind!r} is not supported; this version fits the paper's 2-D model only "
-            f"(kind: {', '.join(GEOMETRY_KINDS)})",
-        )
-    top.section("geometry", ("kind",), f" for kind {kind}")
-    return {"kind": kind}
+    try:
+        return parse_geometry(top.data["geometry"], top.key("geometry")).as_dict()
+    except ValueError as err:
+        raise top.error(f"{top.source}: {err}") from None
 
 
 def _truth(top: _Section) -> dict[str, Any] | None:

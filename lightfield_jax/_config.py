@@ -25,6 +25,10 @@ Optional keys (all absent by default):
   At least one of ``photons`` and ``read`` must be given.
 - ``black_level: 0.05`` (stripes only), in [0, 1): a dark stripe still emits b times
   a lit one, so a shift's image is (1 − b)·R_pattern + b·R_full (MODEL.md section 5).
+- ``geometry: {kind: slab, thickness: 6.4, boundary: absorbing}``: the tank's depth
+  modelled in 3-D (MODEL.md section 7; thickness in pixels, ``boundary: refractive``
+  with ``n: 1.33``, optional ``n_mu`` elevation nodes). Absent or ``{kind: plane}``:
+  the paper's 2-D model.
 - ``dark_level: 0.01`` ≥ 0: a constant (image units) added to every captured image; a
   dark frame with that constant (plus noise) is written as ``dark.exr``.
 
@@ -52,6 +56,7 @@ import yaml
 from ._grid import Grid
 from ._illumination import WALLS, Beam, Full, Illumination, Stripes
 from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
+from ._slab import Plane, Slab, parse_geometry
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
 _TOP_KEYS = (
@@ -64,6 +69,7 @@ _TOP_KEYS = (
     "noise",
     "black_level",
     "dark_level",
+    "geometry",
 )
 _GRID_KEYS = ("width", "height", "n_theta", "refine")
 _NOISE_KEYS = ("photons", "read", "seed")
@@ -282,6 +288,7 @@ class SimulationConfig:
         noise: camera noise on the captured images, or ``None``.
         black_level: stripes only: b in [0, 1), or ``None`` (no black level).
         dark_level: constant added to every captured image, or ``None`` (no dark frame).
+        geometry: :class:`Plane` (the paper's 2-D model, default) or a :class:`Slab`.
         source: the file (or ``"<dict>"``) the config came from.
         raw: the parsed YAML, for metadata.
     """
@@ -295,13 +302,17 @@ class SimulationConfig:
     noise: NoiseConfig | None = None
     black_level: float | None = None
     dark_level: float | None = None
+    geometry: Plane | Slab = Plane()
     source: str = "<dict>"
     raw: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
 
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
         if self.bounces == "auto":
-            return bounces_for_tolerance(float(self.medium.medium().rho), self.tolerance)
+            medium = self.medium.medium()
+            # The slab's 3-D phase function is normalised on the sphere: ρ = ω.
+            rho = medium.albedo if isinstance(self.geometry, Slab) else medium.rho
+            return bounces_for_tolerance(float(rho), self.tolerance)
         return self.bounces
 
 
@@ -316,7 +327,8 @@ def parse_simulation_config(data: Mapping, source: str = "<dict>") -> Simulation
     grid = _grid(_Section(source, "grid", top.get("grid"), _GRID_KEYS))
     medium = _medium(_Section(source, "medium", top.get("medium"), _MEDIUM_KEYS))
     illumination = _illumination(source, top.get("illumination"), grid)
-    bounces, tolerance = _bounces(top, medium)
+    geometry = _geometry(top)
+    bounces, tolerance = _bounces(top, medium, geometry)
     return SimulationConfig(
         grid=grid,
         medium=medium,
@@ -324,9 +336,19 @@ def parse_simulation_config(data: Mapping, source: str = "<dict>") -> Simulation
         bounces=bounces,
         tolerance=tolerance,
         **_camera(top, illumination),
+        geometry=geometry,
         source=source,
         raw=copy.deepcopy(dict(data)),
     )
+
+
+def _geometry(top: _Section) -> Plane | Slab:
+    if "geometry" not in top.data:
+        return Plane()
+    try:
+        return parse_geometry(top.data["geometry"], top.key("geometry"))
+    except ValueError as err:
+        raise top.error(f"{top.source}: {err}") from None
 
 
 def _build(section: _Section, make, *args, **kwargs):
@@ -421,7 +443,7 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
     return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
 
 
-def _bounces(top: _Section, medium: MediumConfig) -> tuple[int | str, float]:
+def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | str, float]:
     bounces = top.get("bounces", "auto")
     if bounces != "auto":
         if isinstance(bounces, str):
@@ -436,7 +458,9 @@ def _bounces(top: _Section, medium: MediumConfig) -> tuple[int | str, float]:
         top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
     if bounces == "auto":
         try:
-            bounces_for_tolerance(float(medium.medium().rho), tolerance)
+            m = medium.medium()
+            rho = m.albedo if isinstance(geometry, Slab) else m.rho
+            bounces_for_tolerance(float(rho), tolerance)
         except ValueError as e:
             top.fail("bounces", str(e).removeprefix("bounces: "))
     return bounces, tolerance

@@ -39,7 +39,8 @@ def kernel_nodes(width: int, height: int, n_theta: int):
     """Static polar quadrature of the first-scatter kernel, splatted onto offsets.
 
     Returns a dict of numpy arrays:
-      ``r``, ``phi`` (node radius, angle), ``weight`` (dr·dθ/Δθ) of shape (N,),
+      ``r``, ``phi`` (node radius, angle), ``weight`` (dr·dθ/Δθ), ``dr`` (the node's
+      ring width) of shape (N,),
       ``index`` (N, 4) flat indices into an (n_theta, 2H, 2W) kernel array (offsets
       wrapped modulo the FFT size) and ``splat`` (N, 4) bilinear weights.
     """
@@ -62,7 +63,7 @@ def kernel_nodes(width: int, height: int, n_theta: int):
     ).astype(np.int64)
 
     two_h, two_w = 2 * height, 2 * width
-    rs, phis, ws, idxs, spl = [], [], [], [], []
+    rs, phis, ws, drs, idxs, spl = [], [], [], [], [], []
     for m in np.unique(per_bin):
         rings = per_bin == m
         r = radii[rings][:, None]
@@ -98,12 +99,14 @@ def kernel_nodes(width: int, height: int, n_theta: int):
         rs.append(np.broadcast_to(r, dx.shape)[keep])
         phis.append(np.broadcast_to(phi, dx.shape)[keep])
         ws.append(np.broadcast_to(h / m, dx.shape)[keep])
+        drs.append(np.broadcast_to(h, dx.shape)[keep])
         idxs.append(corner_idx[keep])
         spl.append(corner_w[keep])
     return {
         "r": np.concatenate(rs),
         "phi": np.concatenate(phis),
         "weight": np.concatenate(ws),
+        "dr": np.concatenate(drs),
         "index": np.concatenate(idxs).astype(np.int32),
         "splat": np.concatenate(spl),
     }

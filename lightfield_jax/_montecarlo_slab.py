@@ -88,6 +88,8 @@ from lightfield_jax._montecarlo import (
     phase_function,
 )
 
+from lightfield_jax._slab import fresnel_reflectance
+
 Boundary = Literal["absorbing", "refractive"]
 
 
@@ -126,30 +128,6 @@ class SlabMonteCarloResult:
 def phase_function_cos(mu: np.ndarray | float, g: float) -> np.ndarray:
     """p(μ) = (1/4π)(1 − g²)/(1 + g² − 2gμ)^{3/2}, μ = cos(scattering angle); per sr."""
     return phase_function(np.arccos(np.clip(mu, -1.0, 1.0)), g)
-
-
-def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
-    """Unpolarised Fresnel reflectance of a face seen from inside the slab.
-
-    Args:
-        cos_incidence: cosine of the angle between the ray and the face normal, in [0, 1].
-        n: relative index n_medium / n_outside (> 0). For n > 1, R = 1 (total internal
-            reflection) where sin θi ≥ 1/n.
-
-    Returns R = (r_s² + r_p²)/2 with r_s = (n cos θi − cos θt)/(n cos θi + cos θt),
-    r_p = (cos θi − n cos θt)/(cos θi + n cos θt), n sin θi = sin θt. R(1) =
-    ((n − 1)/(n + 1))².
-    """
-    ci = np.clip(np.asarray(cos_incidence, dtype=np.float64), 0.0, 1.0)
-    if n == 1.0:  # index matched: no interface (and no 0/0 at grazing incidence)
-        return np.zeros_like(ci)
-    sin_t2 = n * n * (1.0 - ci * ci)
-    tir = sin_t2 > 1.0
-    ct = np.sqrt(np.maximum(1.0 - sin_t2, 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rs = (n * ci - ct) / (n * ci + ct)
-        rp = (ci - n * ct) / (ci + n * ct)
-    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
 def slab_single_scatter_sheet(

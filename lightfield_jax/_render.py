@@ -118,7 +118,7 @@ class Renderer(eqx.Module):
         theta0 = math.radians(illumination.direction_deg)
         self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
         nodes = kernel_nodes(self.width, self.height, grid.n_theta)
-        self.nodes = {k: jnp.asarray(v) for k, v in nodes.items() if k != "phi"}
+        self.nodes = {k: jnp.asarray(v) for k, v in nodes.items() if k not in ("phi", "dr")}
         self.node_angle = jnp.asarray(nodes["phi"] - theta0)
         self.tables = transport_tables(_groups(grid.n_theta))
         j = np.arange(grid.n_theta)
@@ -250,10 +250,41 @@ class RenderResult(eqx.Module):
         return jnp.sum(self.images, axis=-3)
 
 
-@functools.lru_cache(maxsize=16)
-def renderer_for(grid: Grid, illumination: Illumination, bounces: int, phase: str) -> Renderer:
-    """A cached :class:`Renderer` (its tables are built once per static configuration)."""
+def make_renderer(grid: Grid, illumination: Illumination, bounces: int, phase: str, geometry=None):
+    """The compiled forward model of a scene: a :class:`Renderer` for the plane (the
+    paper's 2-D model, ``geometry`` ``None`` or :class:`~lightfield_jax.Plane`) or a
+    :class:`~lightfield_jax.SlabRenderer` for a :class:`~lightfield_jax.Slab`. Both
+    have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``) must
+    be resolved."""
+    from ._slab import Slab, SlabRenderer
+
+    if isinstance(geometry, Slab):
+        return SlabRenderer(grid, illumination, bounces, geometry, phase)
     return Renderer(grid, illumination, bounces, phase)
+
+
+@functools.lru_cache(maxsize=16)
+def renderer_for(
+    grid: Grid, illumination: Illumination, bounces: int, phase: str, geometry=None
+) -> Renderer:
+    """A cached renderer (its tables are built once per static configuration)."""
+    return make_renderer(grid, illumination, bounces, phase, geometry)
+
+
+def resolve_model(medium: Medium, grid: Grid, geometry=None):
+    """``(grid, geometry, rho)`` with the discretisation filled in from g: the plane's
+    defaults (:meth:`Grid.resolve`) or the slab's (:func:`resolve_slab_grid`), and ρ
+    the per-bounce energy ratio bound (the slab's 3-D phase function is normalised on
+    the sphere: ρ = ω)."""
+    from ._slab import Plane, Slab, resolve_slab_grid
+
+    g = float(medium.g)
+    if isinstance(geometry, Slab):
+        grid, geometry = resolve_slab_grid(grid, geometry, g)
+        return grid, geometry, medium.albedo
+    if geometry is not None and not isinstance(geometry, Plane):
+        raise ValueError(f"geometry: must be a Plane or a Slab, got {geometry!r}")
+    return grid.resolve(g), None, medium.rho
 
 
 def resolve_bounces(medium: Medium, bounces: int | str, tolerance: float = 1e-4) -> int:
@@ -276,6 +307,7 @@ def render(
     tolerance: float = 1e-4,
     gain=1.0,
     lightfield: bool = False,
+    geometry=None,
 ) -> RenderResult:
     """Render per-bounce images (and optionally light fields) of a scene.
 
@@ -287,13 +319,18 @@ def render(
             ``tolerance`` (refused with ``ValueError`` when ρ ≥ 1).
         gain: source gain c multiplying every image.
         lightfield: also return L_0..L_K.
+        geometry: ``None`` or :class:`~lightfield_jax.Plane` (the paper's 2-D model) or
+            a :class:`~lightfield_jax.Slab` (the tank's depth in 3-D, MODEL.md §7: the
+            3-D Henyey–Greenstein phase function whatever ``medium.phase`` says; light
+            fields are integrated over depth and elevation).
 
     Under ``phase="paper"`` with ρ ≥ 1 an explicit K still renders, the result has
     ``converges=False`` and a :class:`DivergentSeriesWarning` is issued.
     """
-    grid = grid.resolve(float(medium.g))
+    grid, geometry, rho = resolve_model(medium, grid, geometry)
+    if isinstance(bounces, str) and bounces == "auto":
+        bounces = bounces_for_tolerance(float(rho), tolerance)
     k = resolve_bounces(medium, bounces, tolerance)
-    rho = medium.rho
     converges = bool(rho < 1.0)
     if not converges:
         warnings.warn(
@@ -303,7 +340,7 @@ def render(
             DivergentSeriesWarning,
             stacklevel=2,
         )
-    renderer = renderer_for(grid, illumination, k, medium.phase)
+    renderer = renderer_for(grid, illumination, k, medium.phase, geometry)
     images, fields = renderer(medium.sigma_t, medium.sigma_s, medium.g, gain, lightfield)
     if not isinstance(illumination, Stripes):
         images = images[0]
@@ -335,8 +372,10 @@ __all__ = [
     "DivergentSeriesWarning",
     "Renderer",
     "RenderResult",
+    "make_renderer",
     "render",
     "renderer_for",
+    "resolve_model",
     "resolve_bounces",
     "single_scatter_closed_form",
     "phase_integral",

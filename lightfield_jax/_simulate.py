@@ -29,6 +29,7 @@ from ._config import SimulationConfig, load_simulation_config
 from ._illumination import Full, Stripes
 from ._progress import Stage, quiet
 from ._render import RenderResult, render
+from ._slab import Slab
 from ._timing import stopwatch
 
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "numpy", "lightfield_jax")
@@ -99,6 +100,7 @@ class SimulatedCapture:
             "converges": self.converges,
             "n_theta": self.n_theta,
             "refine": self.refine,
+            "geometry": c.geometry.as_dict(),
             "gain": c.gain,
             "black_level": c.black_level,
             "dark_level": c.dark_level,
@@ -140,6 +142,7 @@ def _render(config: SimulationConfig, illumination, k: int, lightfield: bool) ->
         k,
         gain=config.gain,
         lightfield=lightfield,
+        geometry=config.geometry,
     )
 
 
@@ -303,6 +306,9 @@ def write_simulation(
             pattern=illum,
             dark_frame="dark.exr" if sim.dark is not None else None,
             black_level=sim.config.black_level,
+            geometry=sim.config.geometry.as_dict()
+            if isinstance(sim.config.geometry, Slab)
+            else None,
             truth=sim.truth(),
         )
         files["capture.yaml"] = "the shifted images as a capture (input of the inverse pipeline)"

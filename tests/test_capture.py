@@ -235,7 +235,11 @@ def test_phases_inconsistent_with_image_count(tmp_path):
         ("saturation: -1\n", r"saturation: must be > 0"),
         ("channel: [R]\n", r"channel: must be a channel name, an index or 'all'"),
         ("channel: R\n", r"images\[0\]: .*s0\.exr: no channel named 'R'; channels: Y"),
-        ("geometry: {kind: slab, thickness: 6.4}\n", r"geometry\.kind: 'slab' is not supported"),
+        ("geometry: {kind: slab}\n", r"geometry\.thickness: required for kind 'slab'"),
+        (
+            "geometry: {kind: slab, thickness: 0}\n",
+            r"geometry\.thickness: must be a finite number > 0",
+        ),
         ("geometry: {kind: plane, n: 1.3}\n", r"geometry\.n: unknown key"),
         ("truth: {sigma: 0.2}\n", r"truth\.sigma: unknown key"),
         ("truth: {phase: flat}\n", r"truth\.phase: must be one of paper, normalized"),

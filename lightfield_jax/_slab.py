@@ -1,0 +1,619 @@
+"""The slab geometry (MODEL.md section 7): a tank of depth h, modelled in 3-D, cheaply.
+
+Design (docs/slab_design.md, option B, "depth-averaged kernels"): the light field is
+kept as its average over the depth, L̄(x, y, θ, μ), with θ the azimuth (the plane
+model's bins) and μ = ω·ẑ on Gauss–Legendre nodes in [0, 1]. Both faces are symmetric
+and the sheet is horizontal, so a depth-averaged field is even in μ (fact 4): only
+μ ≥ 0 is stored. With the black side walls every order is an exact free-space
+transport of the previous order's source (fact 1), and for a source uniform in depth
+the depth integrals are analytic (fact 3):
+
+- transport: L̄(x, ω) = ∫ e^{−σt t} S(t|μ|/h) Q(x − t ω_h, ω) dt with the survival
+  S(v) = R^⌊v⌋ (1 − f (1 − R)), f = v − ⌊v⌋, R = R(|μ|) the face's reflectance
+  (R = 0 for absorbing faces: S = (1 − v)_+; R = 1 under total internal reflection);
+- camera: I(x) = T σs ∫ dω p(ω_arrival·ẑ) ∫ e^{−σt t} C(t, μ) Q(x − t ω_h, ω) dt, the
+  depth integral of the camera's attenuation e^{−σt (h − z)} over the unfolded ray's
+  at most two cells, weighted by R^m, with the arrival direction (−1)^m μ.
+
+Each is a 2-D convolution per direction (θ bin, μ node) with a kernel built like the
+plane model's first-scatter kernel (:mod:`lightfield_jax._first_scatter`: polar rings,
+pixel-pair averaging by bilinear splats), evaluated with a 3-point Gauss rule across
+each ring, and applied as an FFT over a (2H, 2W) zero-padded domain (exact: no
+wrap-around). Per bounce: one forward FFT of the source Q_k, one inverse FFT for L̄_k,
+one for the image, and one matmul with the discrete 3-D phase matrix (bin-averaged in
+θ, balanced so a bounce conserves ω·energy exactly).
+
+What is exact and what is not: I_1 is exact; I_2 is exact up to the discretisation
+(the first source is uniform in depth, fact 2); from I_3 on the model keeps each
+order's source as its depth average, which ``monte_carlo_slab(..., depth_layers=1)``
+reproduces exactly (its difference from the true slab is measured in
+docs/slab_design.md section 4 and in tests/test_slab.py).
+
+Units as the Monte Carlo oracle (:mod:`lightfield_jax._montecarlo_slab`): the sheet
+has unit irradiance (power per unit area normal to θ0), lengths are pixels, σ per
+pixel, images are power per unit area of the top face (times the gain).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._first_scatter import kernel_nodes
+from ._grid import Grid
+from ._illumination import Illumination, scaled, source_moments
+
+Boundary = Literal["absorbing", "refractive"]
+BOUNDARIES = ("absorbing", "refractive")
+
+# Gauss points across each polar ring of the kernels (the radial profile is an
+# exponential times piecewise-linear depth factors: 3 points are exact to ~1e-6 on the
+# rings that matter).
+_RING_GAUSS = 3
+# Sub-samples per azimuth bin of the triangle-weighted bin average of the phase matrix.
+_PHASE_SUBSAMPLES = 8
+_BALANCE_ITERATIONS = 4
+
+
+def _positive_finite(value, what: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    """The paper's 2-D model: all light stays in the image plane (MODEL.md §1-4)."""
+
+    kind: Literal["plane"] = "plane"
+
+    def as_dict(self) -> dict:
+        return {"kind": "plane"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Slab:
+    """A tank of depth ``thickness`` (pixels) with 3-D directions (MODEL.md §7).
+
+    Attributes:
+        thickness: depth h of the medium in pixels (> 0).
+        boundary: ``"absorbing"`` (index-matched faces: light that reaches them is gone)
+            or ``"refractive"`` (relative index ``n``: Fresnel reflection and total
+            internal reflection at the top and bottom faces; the camera sees through
+            the top face with transmission 1 − R(normal)).
+        n: relative refractive index of the medium (used with ``refractive``; ≥ 1).
+        n_mu: elevation nodes in μ ∈ [0, 1] (the discretisation, like ``n_theta``), or
+            ``None`` to choose from g (:func:`default_n_mu`).
+    """
+
+    thickness: float
+    boundary: Boundary = "absorbing"
+    n: float = 1.33
+    n_mu: int | None = None
+    kind: Literal["slab"] = "slab"
+
+    def __post_init__(self):
+        object.__setattr__(
+            self, "thickness", _positive_finite(self.thickness, "geometry.thickness")
+        )
+        if self.boundary not in BOUNDARIES:
+            raise ValueError(
+                f"geometry.boundary: must be one of {', '.join(BOUNDARIES)}, got {self.boundary!r}"
+            )
+        n = _positive_finite(self.n, "geometry.n")
+        if n < 1.0:
+            raise ValueError(f"geometry.n: must be >= 1 (medium denser than outside), got {n!r}")
+        object.__setattr__(self, "n", n)
+        if self.n_mu is not None and (
+            not isinstance(self.n_mu, (int, np.integer))
+            or isinstance(self.n_mu, bool)
+            or not 1 <= self.n_mu <= 64
+        ):
+            raise ValueError(f"geometry.n_mu: must be an integer in [1, 64], got {self.n_mu!r}")
+
+    def as_dict(self) -> dict:
+        d = {"kind": "slab", "thickness": self.thickness, "boundary": self.boundary}
+        if self.boundary == "refractive":
+            d["n"] = self.n
+        if self.n_mu is not None:
+            d["n_mu"] = int(self.n_mu)
+        return d
+
+    def resolve(self, g: float) -> Slab:
+        """This slab with ``n_mu`` chosen from g when it was not given."""
+        if self.n_mu is not None:
+            return self
+        return dataclasses.replace(self, n_mu=default_n_mu(g))
+
+    @property
+    def critical_cosine(self) -> float | None:
+        """cos of the critical angle of total internal reflection (refractive, n > 1)."""
+        if self.boundary == "absorbing" or self.n == 1.0:
+            return None
+        return math.sqrt(1.0 - 1.0 / self.n**2)
+
+    @property
+    def camera_transmission(self) -> float:
+        """T = 1 − R(1) through the top face (1 for absorbing faces)."""
+        if self.boundary == "absorbing":
+            return 1.0
+        return 1.0 - float(fresnel_reflectance(1.0, self.n))
+
+
+SceneGeometry = Plane | Slab
+
+
+def default_slab_n_theta(g: float) -> int:
+    """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
+    the phase function at every quadrature node, so only the phase matrix of the later
+    bounces is binned: against 128 bins, 8 bins change I_3..I_5 by ≤ 0.11 % for g ≤ 0.4
+    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (tests/test_slab.py)."""
+    a = abs(float(g))
+    if a <= 0.5:
+        return 8
+    if a <= 0.85:
+        return 16
+    return 32
+
+
+def resolve_slab_grid(grid: Grid, slab: Slab, g: float) -> tuple[Grid, Slab]:
+    """Grid and slab with the discretisation the slab model needs for g filled in:
+    ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
+    does not smear thin beams), ``n_mu`` from :func:`default_n_mu`."""
+    n = default_slab_n_theta(g) if grid.n_theta is None else grid.n_theta
+    r = 1 if grid.refine is None else grid.refine
+    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g)
+
+
+def default_n_mu(g: float) -> int:
+    """Elevation nodes for a phase function of asymmetry g (measured in
+    tests/test_slab.py: I_2, I_3 change by < 1 % beyond these counts)."""
+    a = abs(float(g))
+    if a <= 0.5:
+        return 4
+    if a <= 0.7:
+        return 8
+    if a <= 0.85:
+        return 16
+    return 24
+
+
+def parse_geometry(spec, where: str = "geometry") -> SceneGeometry:
+    """``geometry:`` of a simulate config or a capture file (absent: the plane)."""
+    if spec is None:
+        return Plane()
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: must be a mapping with 'kind', got {spec!r}")
+    kind = spec.get("kind", "plane")
+    allowed = {"plane": {"kind"}, "slab": {"kind", "thickness", "boundary", "n", "n_mu"}}
+    if kind not in allowed:
+        raise ValueError(f"{where}.kind: must be 'plane' or 'slab', got {kind!r}")
+    unknown = sorted(set(spec) - allowed[kind])
+    if unknown:
+        raise ValueError(
+            f"{where}.{unknown[0]}: unknown key for kind {kind!r}; allowed keys: "
+            f"{', '.join(sorted(allowed[kind]))}"
+        )
+    if kind == "plane":
+        return Plane()
+    if "thickness" not in spec:
+        raise ValueError(f"{where}.thickness: required for kind 'slab' (depth in pixels)")
+    boundary = spec.get("boundary", "absorbing")
+    if "n" in spec and boundary != "refractive":
+        raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
+    try:
+        return Slab(
+            thickness=spec["thickness"],
+            boundary=boundary,
+            n=spec.get("n", 1.33),
+            n_mu=spec.get("n_mu"),
+        )
+    except ValueError as err:
+        raise ValueError(str(err).replace("geometry", where, 1)) from None
+
+
+def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a face seen from inside the slab.
+
+    Args:
+        cos_incidence: cosine of the angle between the ray and the face normal, in [0, 1].
+        n: relative index n_medium / n_outside (> 0). For n > 1, R = 1 (total internal
+            reflection) where sin θi ≥ 1/n.
+
+    Returns R = (r_s² + r_p²)/2 with r_s = (n cos θi − cos θt)/(n cos θi + cos θt),
+    r_p = (cos θi − n cos θt)/(cos θi + n cos θt), n sin θi = sin θt. R(1) =
+    ((n − 1)/(n + 1))². (Shared with the Monte Carlo oracle, whose tests check it
+    against the angle form of the Fresnel equations.)
+    """
+    ci = np.clip(np.asarray(cos_incidence, dtype=np.float64), 0.0, 1.0)
+    if n == 1.0:  # index matched: no interface (and no 0/0 at grazing incidence)
+        return np.zeros_like(ci)
+    sin_t2 = n * n * (1.0 - ci * ci)
+    tir = sin_t2 > 1.0
+    ct = np.sqrt(np.maximum(1.0 - sin_t2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = (n * ci - ct) / (n * ci + ct)
+        rp = (ci - n * ct) / (ci + n * ct)
+    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+def hg(cos_angle, g):
+    """The 3-D Henyey–Greenstein phase function, normalised on the sphere."""
+    return (1.0 - g * g) / (4.0 * math.pi * (1.0 + g * g - 2.0 * g * cos_angle) ** 1.5)
+
+
+@functools.lru_cache(maxsize=16)
+def elevation_nodes(n_mu: int, split: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Legendre nodes μ_j in (0, 1) and weights (summing to 1).
+
+    With ``split`` (the critical cosine of refractive faces, where the reflectance
+    has its square-root kink and total internal reflection begins) the rule is
+    composite: half the nodes on [0, split], half on [split, 1].
+    """
+    if split is None or n_mu < 2:
+        x, w = np.polynomial.legendre.leggauss(n_mu)
+        return 0.5 * (x + 1.0), 0.5 * w
+    lo = n_mu // 2
+    parts = []
+    for count, a, b in ((lo, 0.0, split), (n_mu - lo, split, 1.0)):
+        x, w = np.polynomial.legendre.leggauss(count)
+        parts.append((a + 0.5 * (b - a) * (x + 1.0), 0.5 * (b - a) * w))
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+@functools.lru_cache(maxsize=8)
+def _slab_nodes(width: int, height: int, n_theta: int):
+    """The plane kernel's polar nodes, with Gauss points across each ring."""
+    nodes = kernel_nodes(width, height, n_theta)
+    xg, wg = np.polynomial.legendre.leggauss(_RING_GAUSS)
+    r_sub = nodes["r"][:, None] + 0.5 * nodes["dr"][:, None] * xg[None, :]
+    # dr·dθ/Δθ of the node, shared among the ring's Gauss points.
+    w_sub = nodes["weight"][:, None] * (0.5 * wg[None, :])
+    return {
+        "r_sub": r_sub,
+        "w_sub": w_sub,
+        "phi": nodes["phi"],
+        "index": nodes["index"],
+        "splat": nodes["splat"],
+    }
+
+
+def _cell_integrals(u, h, refl, sigma_t):
+    """Depth integrals of the camera's attenuation over a unit-density source layer.
+
+    A ray leaving depth z0 (uniform on [0, h]) travels a vertical distance u ≥ 0 "up"
+    in its unfolded frame; it ends in cell m0 = ⌊u/h⌋ or m0 + 1, weighted R^m.
+    Returns (a_up, a_down, b_up, b_down): for a source heading up (a) or down (b), the
+    ∫ dz0 R^m e^{−σt (h − z)} over the rays that arrive heading up or down.
+    ``u`` and ``refl`` (broadcastable) carry no derivative; ``sigma_t`` does.
+    """
+    dtype = sigma_t.dtype
+    u = jax.lax.stop_gradient(u.astype(dtype))
+    refl = jax.lax.stop_gradient(refl.astype(dtype))
+    v = u / h
+    m0 = jnp.floor(v)
+    f = v - m0
+    w0 = jnp.where(m0 == 0, 1.0, refl**m0)
+    w1 = refl ** (m0 + 1.0)
+    even0 = jnp.mod(m0, 2.0) == 0
+    # Physical-depth intervals ζ ∈ [lo, hi] covered in cell m0 and in cell m0 + 1
+    # (which has the other parity).
+    lo0 = jnp.where(even0, f * h, 0.0)
+    hi0 = jnp.where(even0, h, (1.0 - f) * h)
+    lo1 = jnp.where(even0, (1.0 - f) * h, 0.0)
+    hi1 = jnp.where(even0, h, f * h)
+
+    def ja(lo, hi):  # ∫ e^{−σt (h − ζ)} dζ  (source heading up, frame z)
+        return (jnp.exp(-sigma_t * (h - hi)) - jnp.exp(-sigma_t * (h - lo))) / sigma_t
+
+    def jb(lo, hi):  # ∫ e^{−σt ζ} dζ  (source heading down, mirrored frame w = h − z)
+        return (jnp.exp(-sigma_t * lo) - jnp.exp(-sigma_t * hi)) / sigma_t
+
+    a0, a1 = w0 * ja(lo0, hi0), w1 * ja(lo1, hi1)
+    b0, b1 = w0 * jb(lo0, hi0), w1 * jb(lo1, hi1)
+    # An up-going source arrives heading up in even cells; a down-going one (mirrored
+    # frame) arrives heading up in z in odd cells.
+    a_up = jnp.where(even0, a0, a1)
+    a_down = jnp.where(even0, a1, a0)
+    b_up = jnp.where(even0, b1, b0)
+    b_down = jnp.where(even0, b0, b1)
+    return a_up, a_down, b_up, b_down
+
+
+def _survival(v, refl):
+    """S(v) = R^⌊v⌋ (1 − f (1 − R)) (static numpy)."""
+    m0 = np.floor(v)
+    f = v - m0
+    rm = np.where(refl > 0, refl**m0, (m0 == 0).astype(float))
+    return rm * (1.0 - f * (1.0 - refl))
+
+
+class SlabRenderer(eqx.Module):
+    """A compiled slab forward model for one grid, illumination, slab and bounce count.
+
+    Same call signature and outputs as :class:`~lightfield_jax.Renderer`:
+    ``renderer(sigma_t, sigma_s, g, gain=1.0, lightfield=False)`` returns ``(images,
+    lightfields)`` with images Float[Array, "patterns bounces H W"] and light fields
+    (depth- and elevation-integrated: ∫_0^h ∫_{−1}^{1} L dμ dz per radian of azimuth)
+    Float[Array, "bounces+1 patterns H W n_theta"] or ``None``. The phase function is
+    the 3-D Henyey–Greenstein (normalised on the sphere) whatever ``phase`` says.
+    """
+
+    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+    n_theta: int = eqx.field(static=True)
+    n_mu: int = eqx.field(static=True)
+    refine: int = eqx.field(static=True)
+    bounces: int = eqx.field(static=True)
+    phase: str = eqx.field(static=True)
+    theta0_bin: int = eqx.field(static=True)
+    thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
+    camera_t: float = eqx.field(static=True)
+    coverage: Float[Array, "patterns H W"]
+    mean_depth: Float[Array, "patterns H W"]
+    var_depth: Float[Array, "patterns H W"]
+    survival: Float[Array, "n_mu nodes q"]  # S(tμ/h)/s · ring weight (static)
+    t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
+    cam_u: Float[Array, "n_mu nodes q"]  # vertical travel tμ
+    w_over_s: Float[Array, "n_mu nodes q"]
+    node_cos: Float[Array, "n_mu nodes"]  # ω_node·ω0 = s_j cos(φ − θ0)
+    index: Array
+    splat: Array
+    mu: Float[Array, " n_mu"]
+    w_mu: Float[Array, " n_mu"]
+    refl: Float[Array, " n_mu"]
+
+    def __init__(
+        self,
+        grid: Grid,
+        illumination: Illumination,
+        bounces: int,
+        slab: Slab,
+        phase: str = "normalized",
+    ):
+        if grid.n_theta is None:
+            raise ValueError("SlabRenderer needs grid.n_theta: call Grid.resolve(g) first")
+        if slab.n_mu is None:
+            raise ValueError("SlabRenderer needs slab.n_mu: call Slab.resolve(g) first")
+        if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+            raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
+        f = self.refine = 1 if grid.refine is None else grid.refine
+        self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
+        self.n_mu = int(slab.n_mu)
+        self.bounces = int(bounces)
+        self.phase = phase
+        self.thickness = float(slab.thickness) * f
+        self.camera_t = slab.camera_transmission
+        illumination.entry_wall(grid.width, grid.height)
+        cov, mean, var = source_moments(scaled(illumination, f), self.width, self.height)
+        self.coverage = jnp.asarray(cov)
+        self.mean_depth = jnp.asarray(mean)
+        self.var_depth = jnp.asarray(var)
+        theta0 = math.radians(illumination.direction_deg)
+        self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
+
+        mu, w_mu = elevation_nodes(self.n_mu, slab.critical_cosine)
+        s = np.sqrt(1.0 - mu * mu)
+        refl = (
+            np.zeros_like(mu) if slab.boundary == "absorbing" else fresnel_reflectance(mu, slab.n)
+        )
+        nodes = _slab_nodes(self.width, self.height, self.n_theta)
+        r = nodes["r_sub"][None]  # (1, N, q)
+        t = r / s[:, None, None]
+        h = self.thickness
+        w_over_s = nodes["w_sub"][None] / s[:, None, None]
+        self.t_sub = jnp.asarray(t)
+        self.cam_u = jnp.asarray(t * mu[:, None, None])
+        self.w_over_s = jnp.asarray(w_over_s)
+        self.survival = jnp.asarray(
+            _survival(t * mu[:, None, None] / h, refl[:, None, None]) * w_over_s
+        )
+        self.node_cos = jnp.asarray(s[:, None] * np.cos(nodes["phi"] - theta0)[None, :])
+        self.index = jnp.asarray(nodes["index"])
+        self.splat = jnp.asarray(nodes["splat"])
+        self.mu = jnp.asarray(mu)
+        self.w_mu = jnp.asarray(w_mu)
+        self.refl = jnp.asarray(refl)
+
+    @property
+    def n_patterns(self) -> int:
+        return self.coverage.shape[0]
+
+    def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        values = [jnp.asarray(v) for v in (sigma_t, sigma_s, g, gain)]
+        dtype = jnp.result_type(*values[:3])
+        if not jnp.issubdtype(dtype, jnp.floating):
+            dtype = jnp.result_type(float)
+        sigma_t, sigma_s, g, gain = (v.astype(dtype) for v in values)
+        f = self.refine
+        images, fields = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
+        if f == 1:
+            return images, fields
+        # σ/f, h·f on the refined grid: images (σs/σt-like ratios) are unchanged; the
+        # depth-integrated fields are in refined pixels of depth: divide by f.
+        from ._render import _block_mean
+
+        images = _block_mean(images, f, (-2, -1))
+        if fields is not None:
+            fields = _block_mean(fields, f, (-3, -2)) / f
+        return images, fields
+
+    # -- pieces -------------------------------------------------------------------
+
+    def _splat(self, values):
+        """values (n_mu, N) → kernels (n_mu, n_theta, 2H, 2W)."""
+        n_mu = values.shape[0]
+        size = self.n_theta * 2 * self.height * 2 * self.width
+        contrib = values[:, :, None] * self.splat.astype(values.dtype)[None]
+        offsets = (jnp.arange(n_mu, dtype=jnp.int32) * size)[:, None, None]
+        kernel = (
+            jnp.zeros(n_mu * size, values.dtype)
+            .at[(self.index[None] + offsets).reshape(-1)]
+            .add(contrib.reshape(-1))
+        )
+        return kernel.reshape(n_mu, self.n_theta, 2 * self.height, 2 * self.width)
+
+    def _phase_matrix(self, g, dtype):
+        """M[(j,i),(j',i')] (n_mu·n_theta square): Q = σs M L̄ for even fields.
+
+        Entries are dΩ_{j'} [p̄(ω_ji·ω_j'i'^+) + p̄(ω_ji·ω_j'i'^−)], p̄ the triangle-weighted
+        average over the two azimuth bins, balanced (symmetric scaling) so that the
+        discrete sphere integral of every row and every column is exactly 1.
+        """
+        n, J = self.n_theta, self.n_mu
+        dtheta = 2 * math.pi / n
+        ns = _PHASE_SUBSAMPLES
+        sub = np.arange(-ns, ns + 1)
+        tri = ((1.0 - np.abs(sub) / ns) / ns).astype(dtype)
+        delta = (np.arange(n)[:, None] + sub[None, :] / ns) * dtheta  # (n, 2ns+1)
+        mu = self.mu.astype(dtype)
+        s = jnp.sqrt(1.0 - mu * mu)
+        ss = (s[:, None] * s[None, :])[:, :, None, None]
+        mm = (mu[:, None] * mu[None, :])[:, :, None, None]
+        cosd = jnp.asarray(np.cos(delta), dtype)[None, None]
+        taps = jnp.sum((hg(ss * cosd + mm, g) + hg(ss * cosd - mm, g)) * tri, axis=-1)
+        j = np.arange(n)
+        circ = (j[:, None] - j[None, :]) % n
+        a = taps[:, :, circ]  # (J, J', n, n'): p̄(+) + p̄(−) for (j,i),(j',i')
+        a = jnp.transpose(a, (0, 2, 1, 3)).reshape(J * n, J * n)
+        domega = jnp.repeat(self.w_mu.astype(dtype) * dtheta, n)  # dΩ per stored node
+        # Symmetric balancing of the kernel a (symmetric) so Σ_c a[r, c] dΩ_c = 1.
+        d = jnp.ones(J * n, dtype)
+        for _ in range(_BALANCE_ITERATIONS):
+            row = (a * (d[None, :] * domega[None, :])).sum(axis=1) * d
+            d = d / jnp.sqrt(row)
+        a = a * d[:, None] * d[None, :]
+        col = (a * domega[:, None]).sum(axis=0)  # exact conservation per column
+        a = a / col[None, :]
+        return a * domega[None, :]
+
+    @staticmethod
+    def _convolve(field, kernel_f, shape):
+        """(…, H, W) fields ⊛ kernels given by their rfft2 (…, 2H, W+1) → (…, H, W)."""
+        height, width = field.shape[-2:]
+        out = jnp.fft.irfft2(jnp.fft.rfft2(field, s=shape) * kernel_f, s=shape)
+        return jnp.maximum(out[..., :height, :width], 0.0)
+
+    @eqx.filter_jit
+    def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
+        from ._render import _count_trace
+
+        _count_trace()
+        dtype = sigma_t.dtype
+        n, J = self.n_theta, self.n_mu
+        H, W = self.height, self.width
+        shape = (2 * H, 2 * W)
+        h = self.thickness
+        dtheta = 2 * math.pi / n
+        t_cam = jnp.asarray(self.camera_t, dtype)
+        mu = self.mu.astype(dtype)
+        w_mu = self.w_mu.astype(dtype)
+
+        source = self.coverage.astype(dtype) * jnp.exp(
+            -sigma_t * self.mean_depth.astype(dtype)
+            + 0.5 * sigma_t**2 * self.var_depth.astype(dtype)
+        )  # (P, H, W): pixel-averaged unscattered fluence, uniform in depth
+        depth_factor = -jnp.expm1(-sigma_t * h) / sigma_t
+        i1 = t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source
+        images = [i1]
+        fields = []
+        if lightfield:
+            l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
+            fields.append(l0.at[:, self.theta0_bin].set(h * source / dtheta))
+
+        def integrate(field):  # (P, J, n, H, W) → depth- and μ-integrated (P, n, H, W)
+            return h * 2.0 * jnp.einsum("j,pjnhw->pnhw", w_mu, field)
+
+        if self.bounces > 1 or lightfield:
+            att = jnp.exp(-sigma_t * self.t_sub.astype(dtype))  # (J, N, q)
+            transport = jnp.sum(att * self.survival.astype(dtype), axis=-1)  # (J, N)
+            a_up, a_dn, b_up, b_dn = _cell_integrals(
+                self.cam_u, h, self.refl[:, None, None], sigma_t
+            )
+            cam_w = att * self.w_over_s.astype(dtype)
+            up = jnp.sum(cam_w * (a_up + b_up), axis=-1)
+            down = jnp.sum(cam_w * (a_dn + b_dn), axis=-1)
+            # Camera weights per stored node: T dΩ_j [p(μ_j)·up + p(−μ_j)·down] (σs apart).
+            camera = (w_mu * dtheta)[:, None] * (
+                hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down
+            )
+            camera = t_cam * camera
+            # First scatter: node-level phase p(ω_node·ω0), normalised on the discrete
+            # sphere (so the first bounce conserves ω·energy).
+            p1 = hg(self.node_cos.astype(dtype), g)  # (J, N)
+            fine = (np.arange(n * 16) + 0.5) * (dtheta / 16)
+            ring = jnp.sum(
+                hg(jnp.sqrt(1 - mu * mu)[:, None] * jnp.asarray(np.cos(fine), dtype)[None], g),
+                axis=1,
+            ) * (dtheta / 16)
+            p1 = p1 / (2.0 * jnp.sum(w_mu * ring))
+            k1 = self._splat(p1 * transport)  # L̄_1/σs kernels (J, n, 2H, 2W)
+            k1_cam = jnp.sum(self._splat(p1 * camera), axis=(0, 1))  # I_2/σs² kernel
+            l1 = sigma_s * self._convolve(source[:, None, None], jnp.fft.rfft2(k1), shape)
+            images.append(sigma_s**2 * self._convolve(source, jnp.fft.rfft2(k1_cam), shape))
+            if lightfield:
+                fields.append(integrate(l1))
+        q_last = None
+        if self.bounces > 2 or (lightfield and self.bounces > 1):
+            mix = self._phase_matrix(g, dtype)
+            ktr_f = jnp.fft.rfft2(self._splat(transport))  # (J, n, 2H, W+1)
+            kcam_f = jnp.fft.rfft2(self._splat(camera))
+
+            def scatter(field):  # (P, J, n, H, W) → Q
+                p_ = field.shape[0]
+                flat = field.reshape(p_, J * n, H, W)
+                return sigma_s * jnp.einsum("ab,pbhw->pahw", mix, flat).reshape(field.shape)
+
+            def bounce(q, _):
+                q_f = jnp.fft.rfft2(q, s=shape)
+                image = jnp.fft.irfft2(jnp.sum(q_f * kcam_f, axis=(1, 2)), s=shape)
+                image = sigma_s * jnp.maximum(image[..., :H, :W], 0.0)
+                field = jnp.maximum(jnp.fft.irfft2(q_f * ktr_f, s=shape)[..., :H, :W], 0.0)
+                return scatter(field), (image, integrate(field) if lightfield else None)
+
+            q = scatter(l1)
+            if self.bounces > 2:
+                q_last, (more, more_fields) = jax.lax.scan(bounce, q, None, length=self.bounces - 2)
+                images = [jnp.stack(images), more]
+                if lightfield:
+                    fields = [jnp.stack(fields), more_fields]
+            else:
+                q_last = q
+                images = [jnp.stack(images)]
+                fields = [jnp.stack(fields)] if lightfield else []
+        else:
+            images = [jnp.stack(images)]
+            fields = [jnp.stack(fields)] if lightfield else []
+        if lightfield and self.bounces > 1:
+            last = self._convolve(q_last, ktr_f, shape)
+            fields.append(integrate(last)[None])
+        stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
+        lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
+        return stacked, lf
+
+
+__all__ = [
+    "Plane",
+    "Slab",
+    "SlabRenderer",
+    "SceneGeometry",
+    "default_n_mu",
+    "default_slab_n_theta",
+    "resolve_slab_grid",
+    "elevation_nodes",
+    "fresnel_reflectance",
+    "hg",
+    "parse_geometry",
+]
