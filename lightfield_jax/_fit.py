@@ -35,10 +35,22 @@ from ._decay import fit_decay
 from ._grid import Grid, default_n_theta, default_refine
 from ._illumination import Full, Stripes
 from ._medium import bounces_for_tolerance, phase_function, phase_integral
-from ._render import Renderer
+from ._model_choice import choose, misfit, relative_noise
+from ._render import make_renderer
 from ._separate import separate
+from ._slab import (
+    AutoGeometry,
+    Plane,
+    Slab,
+    default_slab_n_theta,
+    parse_geometry,
+    slab_bounce_ratio,
+)
 
 METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
+# A(g) of a Python float, compiled once (op by op, its dozen operations would each
+# compile on first use).
+_phase_integral = jax.jit(phase_integral)
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
 
@@ -62,10 +74,17 @@ class FitOptions:
             above ``crop_fraction`` of its peak.
         crop_fraction: see ``crop``.
         max_steps: iteration limit of the optimistix solves.
-        rtol, atol: solver tolerances (relative, absolute on the unconstrained values);
-            ``None`` picks them from the data's dtype (float32: 1e-5, 1e-6; float64:
-            1e-8, 1e-10: float32 cannot meet tighter ones, and LM would run to
-            ``max_steps``).
+        geometry: the model's geometry: ``None`` or :class:`Plane` (the paper's 2-D
+            model), a :class:`Slab` (the tank's depth, MODEL.md §7; its 3-D phase
+            function is normalised on the sphere, so ``phase`` is ``normalized``), or
+            :class:`AutoGeometry` (the plane where its misfit is below the capture's
+            noise, else the slab: :mod:`lightfield_jax._model_choice`).
+        rtol, atol: solver tolerances (relative, absolute on the unconstrained values
+            and on the residual's components); ``None`` picks them from the data's
+            dtype (float32: 1e-4, 1e-4; float64: 1e-8, 1e-10). float32 cannot resolve
+            changes of the residual much below 1e-4 of its scale: with tighter
+            tolerances LM converges within a few steps and then spends ten more
+            shrinking its step in rounding noise (same answer to 1e-6).
     """
 
     method: str = "joint"
@@ -83,6 +102,7 @@ class FitOptions:
     max_steps: int = 100
     rtol: float | None = None
     atol: float | None = None
+    geometry: Plane | Slab | AutoGeometry | None = None
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -130,7 +150,7 @@ class FitResult:
     def rho(self) -> float:
         if not math.isfinite(self.g):
             return math.nan
-        a = float(phase_integral(self.g)) if self.phase == "paper" else 1.0
+        a = float(_phase_integral(self.g)) if self.phase == "paper" else 1.0
         return self.albedo * a
 
     def to_dict(self) -> dict:
@@ -207,10 +227,12 @@ class _Model:
     crop: tuple[int, int, int, int]  # x0, y0, x1, y1 inside the image
     converges: bool
     rho: float  # ρ at the estimate the model was sized for
+    geometry: Slab | None = None  # resolved (n_mu set); None: the plane
 
     def as_dict(self) -> dict:
         tail = self.rho**self.bounces / (1 - self.rho) if self.converges else None
         return {
+            "geometry": (self.geometry or Plane()).as_dict(),
             "width": self.grid.width,
             "height": self.grid.height,
             "n_theta": self.grid.n_theta,
@@ -261,6 +283,7 @@ def size_model(
     g: float,
     options: FitOptions,
     margin: float = 1.15,
+    sigma_t: float | None = None,
 ) -> _Model:
     """The smallest model the capture needs: bounces from the tail bound at the estimate
     (ρ × ``margin``, capped below 1), θ bins and refinement from g, crop from the
@@ -268,8 +291,14 @@ def size_model(
     p, h, w = images.shape
     crop = _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
     gw = min(0.99, abs(g) + 0.1)
-    n_theta = options.n_theta or default_n_theta(gw)
-    refine = options.refine or default_refine(abs(g))
+    slab = options.geometry if isinstance(options.geometry, Slab) else None
+    if slab is not None:
+        n_theta = options.n_theta or default_slab_n_theta(gw)
+        refine = options.refine or 1
+        slab = slab.resolve(gw)
+    else:
+        n_theta = options.n_theta or default_n_theta(gw)
+        refine = options.refine or default_refine(abs(g))
     width, height = crop[2] - crop[0], crop[3] - crop[1]
     while width * height * n_theta * refine**2 > options.max_cells:
         if refine > 1 and options.refine is None:
@@ -279,8 +308,11 @@ def size_model(
         else:
             break
     grid = Grid(width, height, n_theta, refine)
-    a = float(phase_integral(g)) if options.phase == "paper" else 1.0
+    a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
     rho = min(albedo, 1.0) * a
+    if slab is not None and sigma_t is not None:
+        # Light leaves through the faces: the slab's measured per-bounce ratio, not ω.
+        rho = min(rho, slab_bounce_ratio(slab, sigma_t, min(albedo, 1.0), g, width, height))
     converges = rho < 1.0
     if isinstance(options.bounces, int):
         k = options.bounces
@@ -289,7 +321,9 @@ def size_model(
         k = min(bounces_for_tolerance(bound, options.tolerance), options.max_bounces)
     else:
         k = options.max_bounces
-    return _Model(grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho)
+    return _Model(
+        grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho, geometry=slab
+    )
 
 
 # ---------------------------------------------------------------------- shared pieces
@@ -325,26 +359,38 @@ def _covariance(jac: np.ndarray, residual: np.ndarray, names: list[str]):
     return unc, corr, cond
 
 
-def _with_column_jacobian(fn):
-    """``fn(y)`` whose JVP materialises the Jacobian one column at a time (``lax.map``
-    over the unit vectors, forward mode).
+def _with_forward_jacobian(heavy):
+    """``heavy(x, *fixed)`` returning ``(value, jacobian)``, whose JVP in ``x`` is
+    ``jacobian @ tx``; the Jacobian (``[..., len(x)]``) comes from one forward-mode pass
+    (``jax.jvp`` vmapped over the unit vectors: the primal once, all tangents at once).
 
     optimistix linearises the residual with ``jax.linearize``, which keeps every
     intermediate of the forward pass (every bounce of every pattern): tens of GB for a
-    long bounce series. With few parameters, p forward-mode passes are cheaper than that
-    and keep nothing but the n×p Jacobian.
+    long bounce series. With few parameters, a forward-mode pass is cheaper than that
+    and keeps nothing but the Jacobian. Returning the Jacobian as a value lets the
+    caller build derivatives in other parameters from it (and report them as ``aux``)
+    without another pass. ``fixed`` are held constant (their tangents are ignored:
+    pass ``lax.stop_gradient`` values), and the Jacobian's own tangent is zero (no
+    second derivatives).
     """
 
+    def value_and_jacobian(x, *fixed):
+        def value(x):
+            return heavy(x, *fixed)
+
+        basis = jnp.eye(x.shape[0], dtype=x.dtype)
+        return jax.vmap(lambda e: jax.jvp(value, (x,), (e,)), out_axes=(None, -1))(basis)
+
     @jax.custom_jvp
-    def wrapped(y):
-        return fn(y)
+    def wrapped(x, *fixed):
+        return value_and_jacobian(x, *fixed)
 
     @wrapped.defjvp
     def _jvp(primals, tangents):
-        (y,), (ty,) = primals, tangents
-        basis = jnp.eye(y.shape[0], dtype=y.dtype)
-        columns = jax.lax.map(lambda e: jax.jvp(fn, (y,), (e,))[1], basis)
-        return fn(y), columns.T @ ty
+        x, *fixed = primals
+        out, jac = value_and_jacobian(x, *fixed)
+        tangent = jax.tree.map(lambda j: j @ tangents[0], jac)
+        return (out, jac), (tangent, jax.tree.map(jnp.zeros_like, jac))
 
     return wrapped
 
@@ -358,8 +404,8 @@ def _timed_compile(fn, *args):
 
 def _solver(options: FitOptions, dtype) -> optx.LevenbergMarquardt:
     wide = jnp.finfo(dtype).bits > 32
-    rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-5)
-    atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-6)
+    rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
+    atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
     return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
 
@@ -462,11 +508,32 @@ def _reference_sigma_s(sigma_t, g, phase: str):
     return ref, jnp.minimum(sigma_t / ref, 1.0 / rho_ref)
 
 
+def _parabolic_minimum(xs, costs, best):
+    """The vertex of the parabola through the grid's best point and its two
+    neighbours (uniform spacing), kept within one spacing of the best point: (x, t)
+    with t the offset in spacings. At an end of the grid, the best point itself."""
+    n = xs.shape[0]
+    i = jnp.clip(best, 1, n - 2)
+    lo, mid, hi = costs[i - 1], costs[i], costs[i + 1]
+    curvature = lo - 2 * mid + hi
+    t = jnp.where(curvature > 0, 0.5 * (lo - hi) / jnp.where(curvature > 0, curvature, 1.0), 0.0)
+    t = jnp.where((best > 0) & (best < n - 1), jnp.clip(t, -1.0, 1.0), 0.0)
+    return xs[best] + t * (xs[1] - xs[0]), t
+
+
 def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
     """The paper's two-step problem after σt: ``grid`` searches g on a grid; ``gradient``
-    searches a coarse grid, then solves (σs, g) with Levenberg-Marquardt. One compiled
-    function (search, solve and the Jacobian for the uncertainties)."""
-    renderer = Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+    searches a coarse grid, then solves (σs, g) with Levenberg-Marquardt; ``start``
+    searches the coarse grid and refines its best g by a parabola (the joint fit's
+    start). One compiled function (search, solve and the Jacobian for the
+    uncertainties).
+
+    σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
+    derivative in σs is exact without the renderer, and one forward-mode pass through
+    the renderer along g gives the Jacobian of each step."""
+    renderer = make_renderer(
+        model.grid, _full_for(pattern), model.bounces, options.phase, model.geometry
+    )
     dtype = jnp.result_type(float)
     d = jnp.asarray(data.direct, dtype)
     m = jnp.asarray(data.multiple, dtype)
@@ -477,16 +544,22 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
     n_g = options.g_grid if method == "grid" else options.start_grid
     gs = jnp.linspace(-0.95, 0.95, n_g, dtype=dtype)
 
-    def run(renderer, sigma_t, d, m, mask, gs):
+    def run(renderer, sigma_t, d, m, mask, gs, scale):
+        def rendered(g):  # I_k at (σt, σs_ref(g), g): (K, h, w)
+            ref, _ = _reference_sigma_s(sigma_t, g, options.phase)
+            return renderer(sigma_t, ref, g)[0][0]
+
         def per_g(g):
             ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
-            images = renderer(sigma_t, ref, g)[0][0]
+            images = rendered(g)
             u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
             return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
 
+        rendered_and_slope = _with_forward_jacobian(lambda x: rendered(x[0]))
+
         def residual(p):  # p = (σs, g)
             ref, _ = _reference_sigma_s(sigma_t, p[1], options.phase)
-            images = renderer(sigma_t, ref, p[1])[0][0]
+            images, _slope = rendered_and_slope(p[1:])
             a_ref = _masked_dot(d, images[0], mask) / _masked_dot(images[0], images[0], mask)
             kk = images.shape[0] - 1
             u = p[0] / ref
@@ -496,27 +569,38 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
         s_all, a_all, cost = jax.lax.map(per_g, gs)
         best = jnp.argmin(cost)
         s, g = s_all[best], gs[best]
+        # The vertex of the parabola through the best g and its neighbours: the joint
+        # fit's start, and where Levenberg-Marquardt starts.
+        g_vertex, t = _parabolic_minimum(gs, cost, best)
+        near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, n_g - 1)
+        s_vertex = s + jnp.abs(t) * (s_all[near] - s)
+        if method == "start":
+            nan = jnp.full((1,), jnp.nan, dtype)
+            return s_vertex, g_vertex, a_all[best], nan, nan, optx.RESULTS.successful, 0
         if method == "grid":
             p = jnp.stack([s, g])
             r, a = residual(p)
-            jac = jax.jacfwd(_with_column_jacobian(lambda q: residual(q)[0]))(p)
+            jac = jax.jacfwd(lambda q: residual(q)[0])(p)
             return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(n_g)
 
         def s_max(g):
             ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
             return ref * u_max
 
-        frac = jnp.clip(s / s_max(g), 1e-3, 1 - 1e-3)
-        y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g, -0.95, 0.95))])
+        frac = jnp.clip(s_vertex / s_max(g_vertex), 1e-3, 1 - 1e-3)
+        y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
 
         def unpack(y):  # 0 < σs < min(σt, the σs where ρ = 1), |g| < 1
             g = jnp.tanh(y[1])
             return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
 
-        fn = _with_column_jacobian(lambda y: residual(unpack(y))[0])
         solver = _solver(options, y0.dtype)
         sol = optx.least_squares(
-            lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
+            lambda y, _: residual(unpack(y))[0],
+            solver,
+            y0,
+            max_steps=options.max_steps,
+            throw=False,
         )
         s, g = unpack(sol.value)
         # The Jacobian at the accepted point, from the solver's state (no second
@@ -527,12 +611,17 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
         a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
         return s, g, a, info.residual, jac, sol.result, sol.stats["num_steps"]
 
-    compiled, t_compile = _timed_compile(run, renderer, sigma_t, d, m, mask, gs)
-    s, g, a, r, jac, result, steps = compiled(renderer, jnp.asarray(sigma_t, dtype), d, m, mask, gs)
+    # Every value that depends on the data is an argument, not a constant of the
+    # program: a persistent compilation cache then serves any capture of this shape.
+    args = (renderer, jnp.asarray(sigma_t, dtype), d, m, mask, gs, jnp.asarray(scale, dtype))
+    compiled, t_compile = _timed_compile(run, *args)
+    s, g, a, r, jac, result, steps = compiled(*args)
+    s, g = float(s), float(g)
+    if method == "start":
+        return s, g, t_compile
     r = np.asarray(r)
     unc, corr, cond = _covariance(np.asarray(jac), r, ["sigma_s", "g"])
     rms = scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1)))
-    s, g = float(s), float(g)
     gain = float(a) / s if s > 0 else math.inf
     ok, msg = _result_message(result)
     if method == "grid":
@@ -544,22 +633,37 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
 
 
 def _joint_parts(pattern: Stripes, model: _Model, options: FitOptions):
-    renderer = Renderer(model.grid, pattern, model.bounces, options.phase)
+    renderer = make_renderer(model.grid, pattern, model.bounces, options.phase, model.geometry)
     all_phases = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
     full = (
         None
         if all_phases
-        else Renderer(model.grid, _full_for(pattern), model.bounces, options.phase)
+        else make_renderer(
+            model.grid, _full_for(pattern), model.bounces, options.phase, model.geometry
+        )
     )
     return renderer, full
 
 
-def _joint_model(renderer, full, lit: int, sigma_t, sigma_s, g, black):
-    """Σ_k I_k of every pattern at unit gain, with the projector's black level b:
-    (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
-    r = jnp.sum(renderer(sigma_t, sigma_s, g)[0], axis=1)  # (P, h, w)
+def _joint_bounces(x, sigma_s, renderer, full):
+    """Per-bounce images at unit gain at (σt, g) = ``x`` and ``sigma_s``: every
+    pattern's ``(P, K, h, w)`` and, when the phases do not tile the period, full
+    illumination's ``(K, h, w)`` (else ``None``)."""
+    images = renderer(x[0], sigma_s, x[1])[0]
+    return images, None if full is None else full(x[0], sigma_s, x[1])[0][0]
+
+
+def _joint_model(bounces, lit: int, u, black):
+    """Σ_k u^k I_k of every pattern at unit gain (I_k ∝ σs^k: ``u`` rescales σs from the
+    rendered one), with the projector's black level b: (1 − b)·R_p + b·R_full
+    (R_full = Σ_p R_p / lit when the phases tile the period)."""
+    images, full_images = bounces
+    powers = u ** jnp.arange(1, images.shape[1] + 1, dtype=images.dtype)
+    r = jnp.einsum("k,pkhw->phw", powers, images)
     r_full = (
-        jnp.sum(r, axis=0) / lit if full is None else jnp.sum(full(sigma_t, sigma_s, g)[0][0], 0)
+        jnp.sum(r, axis=0) / lit
+        if full_images is None
+        else jnp.einsum("k,khw->hw", powers, full_images)
     )
     return (1.0 - black) * r + black * r_full[None]
 
@@ -578,74 +682,94 @@ def _joint_weights(images, mask):
     return np.where(mask[None], w, 0.0)
 
 
-def _joint_solve(
-    data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black, reweight
-):
-    """Levenberg-Marquardt on the raw images, weighted by 1/√(I + floor) (shot noise).
-
-    With ``reweight``, a second solve uses weights from the fitted model instead of the
-    noisy data (weights from the data itself bias a weighted fit toward low values).
-    """
+def _joint_program(data: _Data, pattern: Stripes, model: _Model, options: FitOptions, black):
+    """The compiled joint solve: ``solve(weights, y0)`` runs Levenberg-Marquardt on the
+    raw images, weighted (1/√(I + floor): shot noise), with the gain eliminated (its
+    least-squares value at each point), and returns ``(y, result, steps, residual,
+    (R, J))``: R the model at unit gain and J its Jacobian in the physical parameters
+    (σt, σs, g and b if fitted) at the accepted point. One forward-mode pass along σt
+    and g per step; σs (I_k ∝ σs^k), b and the gain enter in closed form."""
     renderer, full = _joint_parts(pattern, model, options)
     obs = jnp.asarray(data.images)
-    weights = jnp.asarray(_joint_weights(data.images, data.mask))
     fit_black = black is None
+    black_fixed = jnp.asarray(0.0 if black is None else float(black), obs.dtype)
+    lit = pattern.lit
+    bounces_and_slopes = _with_forward_jacobian(_joint_bounces)
+
+    def solve(renderer, full, obs, black_fixed, weights, y0):
+        def residual(y, _args):
+            st, ss, g, b = _unpack(y, fit_black, black_fixed)
+            x = jnp.stack([st, g])
+            ref = jax.lax.stop_gradient(ss)
+            bounces, slopes = bounces_and_slopes(x, ref, renderer, full)
+            r = _joint_model(bounces, lit, ss / ref, b)
+            wr = weights * r
+            gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
+
+            # R and its Jacobian in the physical parameters, for the uncertainties: the
+            # rendered images extended linearly along the forward-mode slopes (exact
+            # first derivatives; no further pass through the renderer).
+            fixed = jax.lax.stop_gradient((x, bounces, slopes))
+
+            def unit_model(theta):
+                dx = jnp.stack([theta[0], theta[2]]) - fixed[0]
+                lin = jax.tree.map(lambda v, j: v + j @ dx, fixed[1], fixed[2])
+                return _joint_model(lin, lit, theta[1] / ref, theta[3] if fit_black else b)
+
+            theta = jax.lax.stop_gradient(jnp.stack([st, ss, g] + ([b] if fit_black else [])))
+            aux = (jax.lax.stop_gradient(r), jax.jacfwd(unit_model)(theta))
+            return (weights * (gain * r - obs)).reshape(-1), aux
+
+        solver = _solver(options, y0.dtype)
+        sol = optx.least_squares(
+            residual, solver, y0, max_steps=options.max_steps, has_aux=True, throw=False
+        )
+        return sol.value, sol.result, sol.stats["num_steps"], sol.state.f_info.residual, sol.aux
+
+    weights0 = jnp.asarray(_joint_weights(data.images, data.mask), obs.dtype)
+    y_shape = jnp.zeros(4 if fit_black else 3, obs.dtype)
+    args = (renderer, full, obs, black_fixed)
+    compiled, t_compile = _timed_compile(solve, *args, weights0, y_shape)
+
+    def run(weights, y0):
+        return jax.block_until_ready(compiled(*args, weights, y0))
+
+    return run, weights0, t_compile
+
+
+def _joint_start(start, fit_black: bool, dtype):
     st0, ss0, g0, b0 = start
     frac = min(max(ss0 / st0, 1e-3), 1 - 1e-3)
     y0 = [math.log(st0), _logit(frac), math.atanh(max(min(g0, 0.95), -0.95))]
     if fit_black:
         y0.append(_logit((min(max(b0, -0.15), 0.95) + 0.2) / 1.2))
-    y0 = jnp.asarray(y0, obs.dtype)
-    black_fixed = 0.0 if black is None else float(black)
-    lit = pattern.lit
+    return jnp.asarray(y0, dtype)
 
-    def solve(renderer, full, obs, weights, y0):
-        def residual(y):
-            st, ss, g, b = _unpack(y, fit_black, black_fixed)
-            r = _joint_model(renderer, full, lit, st, ss, g, b)
-            wr = weights * r
-            gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
-            return (weights * (gain * r - obs)).reshape(-1)
 
-        fn = _with_column_jacobian(residual)
-        solver = _solver(options, y0.dtype)
-        sol = optx.least_squares(
-            lambda y, _: fn(y), solver, y0, max_steps=options.max_steps, throw=False
-        )
-        return sol.value, sol.result, sol.stats["num_steps"], sol.state.f_info.residual
-
-    compiled, t_compile = _timed_compile(solve, renderer, full, obs, weights, y0)
-    t = time.perf_counter()
-    y, result, steps, res = jax.block_until_ready(compiled(renderer, full, obs, weights, y0))
-    if reweight:
-        w = np.asarray(weights)
-        fitted = np.asarray(obs) + np.where(
-            w > 0, np.asarray(res).reshape(w.shape) / np.where(w > 0, w, 1), 0
-        )
-        weights = jnp.asarray(_joint_weights(fitted, data.mask), obs.dtype)
-        y, result, more, res = jax.block_until_ready(compiled(renderer, full, obs, weights, y))
-        steps = steps + more
-    t_run = time.perf_counter() - t
-    st, ss, g, b = (float(v) for v in _unpack(y, fit_black, black_fixed))
-
-    # Uncertainties in physical parameters (gain included) from the full Jacobian.
-    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if fit_black else [])
-    r_unit = _joint_model(renderer, full, lit, st, ss, g, b)
-    wr = weights * r_unit
-    gain = float(jnp.sum(wr * weights * obs) / jnp.sum(wr * wr))
-
-    def phys_residual(p):
-        bb = p[4] if fit_black else black_fixed
-        r = _joint_model(renderer, full, lit, p[0], p[1], p[2], bb)
-        return (weights * (p[3] * r - obs)).reshape(-1)
-
-    p = jnp.asarray([st, ss, g, gain] + ([b] if fit_black else []), obs.dtype)
-    t = time.perf_counter()
-    jac_fn = jax.jit(
-        lambda p: (jax.jacfwd(_with_column_jacobian(phys_residual))(p), phys_residual(p))
+def _joint_reweighted(data: _Data, weights, res):
+    """Weights from the fitted model (data + residual/weight) instead of the noisy data
+    (weights from the data itself bias a weighted fit toward low values)."""
+    w = np.asarray(weights)
+    fitted = data.images + np.where(
+        w > 0, np.asarray(res).reshape(w.shape) / np.where(w > 0, w, 1), 0
     )
-    jac, res = (np.asarray(a) for a in jac_fn(p))
-    t_unc = time.perf_counter() - t
+    return jnp.asarray(_joint_weights(fitted, data.mask), weights.dtype)
+
+
+def _joint_result(data: _Data, black, weights, solved, steps, t_compile, t_run) -> dict:
+    """The values, uncertainties (full Jacobian in σt, σs, g, gain (, b)) and stats."""
+    y, result, _steps, res, (r_unit, jac_r) = solved
+    fit_black = black is None
+    black_fixed = 0.0 if black is None else float(black)
+    st, ss, g, b = (float(v) for v in _unpack(y, fit_black, black_fixed))
+    obs = np.asarray(data.images, np.float64)
+    w = np.asarray(weights, np.float64)
+    wr = w * np.asarray(r_unit, np.float64)
+    gain = float(np.sum(wr * w * obs) / np.sum(wr * wr))
+    cols = (w[..., None] * gain * np.asarray(jac_r, np.float64)).reshape(-1, jac_r.shape[-1])
+    jac = np.concatenate([cols[:, :3], wr.reshape(-1, 1), cols[:, 3:]], axis=1)
+    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if fit_black else [])
+    res = np.asarray(res, np.float64)
     unc, corr, cond = _covariance(jac, res, names)
     n = int(np.sum(data.mask)) * obs.shape[0]
     rms = float(np.sqrt(np.sum(res**2) / max(n, 1)))
@@ -658,12 +782,29 @@ def _joint_solve(
         "result": result,
         "steps": int(steps),
         "compile": t_compile,
-        "run": t_run + t_unc,
+        "run": t_run,
         "unc": unc,
         "corr": corr,
         "cond": cond,
         "rms": rms,
     }
+
+
+def _joint_solve(
+    data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black, reweight
+):
+    """Levenberg-Marquardt on the raw images (:func:`_joint_program`) from ``start``
+    = (σt, σs, g, b). With ``reweight``, a second solve from the first one's answer
+    uses weights from the fitted model (:func:`_joint_reweighted`)."""
+    run, weights, t_compile = _joint_program(data, pattern, model, options, black)
+    t = time.perf_counter()
+    solved = run(weights, _joint_start(start, black is None, weights.dtype))
+    steps = int(solved[2])
+    if reweight:
+        weights = _joint_reweighted(data, weights, solved[3])
+        solved = run(weights, solved[0])
+        steps += int(solved[2])
+    return _joint_result(data, black, weights, solved, steps, t_compile, time.perf_counter() - t)
 
 
 # ------------------------------------------------------------------------- driver
@@ -700,6 +841,27 @@ def fit_images(
             illumination). Used by the two-step methods and the joint fit's start.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
+    if isinstance(options.geometry, AutoGeometry):
+        return _fit_auto_geometry(
+            images,
+            pattern,
+            options,
+            progress,
+            mask=mask,
+            black_level=black_level,
+            saturation=saturation,
+            pixel_size_mm=pixel_size_mm,
+            split=split,
+        )
+    if isinstance(options.geometry, Plane):
+        options = dataclasses.replace(options, geometry=None)
+    elif isinstance(options.geometry, Slab):
+        # The slab's 3-D Henyey–Greenstein is normalised on the sphere: ρ = ω.
+        options = dataclasses.replace(options, phase="normalized")
+    elif options.geometry is not None:
+        raise ValueError(
+            f"geometry: must be a Plane, Slab or AutoGeometry, got {options.geometry!r}"
+        )
     say = progress or (lambda _msg: None)
     t_start = time.perf_counter()
     images = np.asarray(images, dtype=jnp.result_type(float))
@@ -726,7 +888,7 @@ def fit_images(
         np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30)
     )
     rho0 = min(max(ratio, 0.0) / (1.0 + max(ratio, 0.0)) * 1.5 + 0.05, 0.95)
-    model = size_model(images, pattern, albedo=rho0, g=0.0, options=options)
+    model = size_model(images, pattern, albedo=rho0, g=0.0, options=options, sigma_t=sigma_t0)
     x0, y0, x1, y1 = model.crop
     data = _Data(
         images=images[:, y0:y1, x0:x1],
@@ -774,33 +936,46 @@ def fit_images(
             condition_number=cond,
         )
 
-    say(f"two-step start: search over {options.start_grid} values of g, then (sigma_s, g)")
-    s, g, *_ignored, tc = _two_step(data, pattern, model, options, sigma_t0, "gradient")
+    say(f"joint start: search over {options.start_grid} values of g (two-step residual)")
+    s, g, tc = _two_step(data, pattern, model, options, sigma_t0, "start")
     seconds["compile"] += tc
 
     # Joint, in two stages: a coarse model (32 θ bins, native grid) from the two-step
-    # estimate, then the model the stage-1 estimate needs, polished from there.
-    b0 = 0.0 if black_level is None else black_level
-    start = (sigma_t0, s, g, b0)
-    coarse = dataclasses.replace(options, n_theta=options.n_theta or 32, refine=options.refine or 1)
-    stages = [("coarse", coarse), ("final", options)]
+    # estimate, then the model the coarse estimate needs, polished from there. The
+    # model-weighted refit runs once, on the last stage.
+    fit_black = black_level is None
+    start = (sigma_t0, s, g, 0.0 if fit_black else black_level)
+    coarse_theta = 8 if isinstance(options.geometry, Slab) else 32
+    coarse = dataclasses.replace(
+        options, n_theta=options.n_theta or coarse_theta, refine=options.refine or 1
+    )
     total_steps = 0
-    prev_model = None
-    for name, opts in stages:
+    prev_model = run = weights = solved = None
+    for name, opts in (("coarse", coarse), ("final", options)):
         # The coarse stage starts from the separation's estimate (σs biased low, MODEL.md
         # §6): double it; the final stage starts from the coarse fit (small margin).
         coarse_stage = name == "coarse"
-        albedo = min(start[1] / start[0] * (2.0 if coarse_stage else 1.0), 0.98)
         model = size_model(
             images,
             pattern,
-            albedo=albedo,
+            albedo=min(start[1] / start[0] * (2.0 if coarse_stage else 1.0), 0.98),
             g=start[2],
             options=opts,
             margin=1.15 if coarse_stage else 1.03,
+            sigma_t=start[0],
         )
+        t = time.perf_counter()
         if prev_model is not None and _covers(prev_model, model):
-            break  # the coarse model is already as large as the estimate needs
+            # The coarse model is already as large as the estimate needs: refit it with
+            # the model's weights, and that is the answer.
+            weights = _joint_reweighted(data, weights, solved[3])
+            solved = run(weights, solved[0])
+            out = _joint_result(
+                data, black_level, weights, solved, int(solved[2]), 0.0, time.perf_counter() - t
+            )
+            seconds["run"] += out["run"]
+            total_steps += out["steps"]
+            break
         x0, y0, x1, y1 = model.crop
         data.images = images[:, y0:y1, x0:x1]
         data.mask = mask[y0:y1, x0:x1]
@@ -808,7 +983,17 @@ def fit_images(
             f"joint fit ({name} model {model.grid.width}x{model.grid.height}, "
             f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces)"
         )
-        out = _joint_solve(data, pattern, model, opts, start, black_level, reweight=True)
+        run, weights, t_compile = _joint_program(data, pattern, model, opts, black_level)
+        t = time.perf_counter()
+        solved = run(weights, _joint_start(start, fit_black, weights.dtype))
+        steps = int(solved[2])
+        if not coarse_stage:
+            weights = _joint_reweighted(data, weights, solved[3])
+            solved = run(weights, solved[0])
+            steps += int(solved[2])
+        out = _joint_result(
+            data, black_level, weights, solved, steps, t_compile, time.perf_counter() - t
+        )
         seconds["compile"] += out["compile"]
         seconds["run"] += out["run"]
         total_steps += out["steps"]
@@ -874,6 +1059,54 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, *
         model=model.as_dict(),
         phase=options.phase,
         **values,
+    )
+
+
+def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, **kwargs):
+    """``geometry: auto``: the plane model's fit, kept where its misfit is below the
+    capture's relative noise; the slab's fit otherwise. The result carries the choice
+    and its evidence in ``model["geometry_choice"]``."""
+    say = progress or (lambda _msg: None)
+    auto: AutoGeometry = options.geometry
+    say("geometry auto: fitting the plane model")
+    plane = fit_images(
+        images,
+        pattern,
+        options=dataclasses.replace(options, geometry=None),
+        progress=progress,
+        **kwargs,
+    )
+    data = np.asarray(images, np.float64)
+    mask = kwargs.get("mask")
+    keep = np.all(np.isfinite(data), axis=0)
+    if mask is not None:
+        keep &= np.asarray(mask, bool)
+    model, _ = fitted_images(plane, pattern, data.shape[-2:])
+    x0, y0, x1, y1 = plane.model["crop"]
+    region = np.zeros_like(keep)
+    region[y0:y1, x0:x1] = True
+    noise = relative_noise(np.where(keep[None], data, np.nan), pattern)
+    decision = choose(misfit(model.sum(axis=1), data, keep & region), noise, auto.threshold)
+    say(
+        f"geometry auto: plane misfit {decision.plane_misfit:.2e} vs noise "
+        f"{decision.noise:.2e}: {decision.chosen}"
+    )
+    if decision.chosen == "plane":
+        result = plane
+    else:
+        result = fit_images(
+            images,
+            pattern,
+            options=dataclasses.replace(options, geometry=auto.slab),
+            progress=progress,
+            **kwargs,
+        )
+        seconds = dict(result.seconds)
+        seconds["plane_fit"] = plane.seconds.get("total", math.nan)
+        seconds["total"] = seconds.get("total", 0.0) + seconds["plane_fit"]
+        result = dataclasses.replace(result, seconds=seconds)
+    return dataclasses.replace(
+        result, model={**result.model, "geometry_choice": decision.as_dict()}
     )
 
 
@@ -952,6 +1185,10 @@ def fit_capture(
             raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
     results = []
     say = progress or (lambda _m: None)
+    opts = options or FitOptions()
+    if opts.geometry is None and "geometry" not in overrides:
+        geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
+        options = dataclasses.replace(opts, geometry=geometry)
     for c in chosen:
         i = names.index(c)
         results.append(
@@ -977,11 +1214,14 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``."""
     m = result.model
     grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+    geometry = parse_geometry(m.get("geometry"), "model.geometry")
+    geometry = geometry if isinstance(geometry, Slab) else None
     st, ss, g, c = result.sigma_t, result.sigma_s, result.g, result.gain
     b = result.black_level or 0.0
-    stripes = np.asarray(Renderer(grid, pattern, m["bounces"], result.phase)(st, ss, g)[0])
+    k = m["bounces"]
+    stripes = np.asarray(make_renderer(grid, pattern, k, result.phase, geometry)(st, ss, g)[0])
     full = np.asarray(
-        Renderer(grid, _full_for(pattern), m["bounces"], result.phase)(st, ss, g)[0][0]
+        make_renderer(grid, _full_for(pattern), k, result.phase, geometry)(st, ss, g)[0][0]
     )
     stripes = c * ((1 - b) * stripes + b * full[None])
     full = c * full
