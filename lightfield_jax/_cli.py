@@ -217,10 +217,12 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
         _warn(args, f"XLA compilation cache off: cannot create {folder} ({e.strerror})")
         return
     import jax
+    from jax.experimental.compilation_cache import compilation_cache
 
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    compilation_cache.reset_cache()  # set up once per process, at the first compilation
 
 
 def _writable_folder(path: str) -> Path:
@@ -451,8 +453,8 @@ def _fit(args: argparse.Namespace) -> int | None:
 
     out = _writable_file(args.out)
     plot = _writable_file(args.plot) if args.plot else None
-    capture = load_capture(args.capture)
     _use_xla_cache(args)
+    capture = load_capture(args.capture)
     with _progress(args, f"fit ({args.method})") as stage:
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         fit = fit_capture(

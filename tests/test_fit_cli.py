@@ -6,13 +6,14 @@ import math
 import re
 import shutil
 
+import jax
 import numpy as np
 import pytest
 import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax._capture import write_capture_yaml
-from lightfield_jax._cli import main
+from lightfield_jax._cli import XLA_CACHE_ENV, main, xla_cache_folder
 from lightfield_jax._io import read_image, write_exr, write_png
 
 H, W, P = 24, 32, 6
@@ -42,6 +43,12 @@ RESULT_KEYS = {
     "model",
 }
 ESTIMATES = ("sigma_t", "sigma_s", "sigma_a", "g", "albedo", "gain")
+
+
+@pytest.fixture(autouse=True)
+def _no_xla_cache(monkeypatch):
+    """Tests do not write compiled programs to the user's cache folder."""
+    monkeypatch.setenv(XLA_CACHE_ENV, "off")
 
 
 def _run(capsys, *argv):
@@ -384,3 +391,45 @@ def test_demo_with_the_gradient_method(tmp_path, capsys):
     assert fit["sigma_t"] == pytest.approx(truth["sigma_t"], rel=0.05)
     assert fit["sigma_s"] < 0.6 * truth["sigma_s"]
     assert fit["g"] > truth["g"] + 0.15
+
+
+# --------------------------------------------------------------- compilation cache
+
+
+def test_xla_cache_folder_follows_the_environment(tmp_path):
+    home = {"HOME": str(tmp_path), "XDG_CACHE_HOME": str(tmp_path / "xdg")}
+    assert xla_cache_folder(home) == tmp_path / "xdg" / "lightfield_jax" / "xla"
+    assert xla_cache_folder({**home, XLA_CACHE_ENV: str(tmp_path / "c")}) == tmp_path / "c"
+    for off in ("off", "0", "", "OFF"):
+        assert xla_cache_folder({**home, XLA_CACHE_ENV: off}) is None
+
+
+@pytest.fixture
+def restore_jax_cache_config():
+    from jax.experimental.compilation_cache import compilation_cache
+
+    names = (
+        "jax_compilation_cache_dir",
+        "jax_persistent_cache_min_compile_time_secs",
+        "jax_persistent_cache_min_entry_size_bytes",
+    )
+    before = {n: getattr(jax.config, n) for n in names}
+    yield
+    for n, v in before.items():
+        jax.config.update(n, v)
+    compilation_cache.reset_cache()
+
+
+def test_fit_stores_compiled_programs_unless_told_not_to(
+    simulated, tmp_path, capsys, monkeypatch, restore_jax_cache_config
+):
+    folder = _copy(simulated, tmp_path)
+    cache = tmp_path / "xla"
+    monkeypatch.setenv(XLA_CACHE_ENV, str(cache))
+    argv = ("fit", folder / "capture.yaml", "--method", "grid", "--out", tmp_path / "r.json")
+    status, _, err = _run(capsys, *argv, "--no-xla-cache")
+    assert status == 0, err
+    assert not cache.exists()
+    status, _, err = _run(capsys, *argv)
+    assert status == 0, err
+    assert any(cache.iterdir())  # the fit's programs, found by the next run
