@@ -104,3 +104,90 @@ def run_benchmark(sizes=DEFAULT_SIZES, repeats: int = 5, progress=print) -> dict
         "jax": jax.__version__,
         "results": results,
     }
+
+
+def bench_slab(
+    width: int = 128,
+    height: int = 128,
+    thickness: float = 6.4,
+    repeats: int = 3,
+    fits: bool = True,
+    progress=print,
+) -> dict:
+    """Slab against plane on a 6-phase stripe capture of the paper's milk (issue 7):
+    a forward render (compile, run), one forward-mode derivative column (what each
+    Levenberg–Marquardt step needs per parameter) and, with ``fits``, a noiseless joint
+    fit of each model to its own render (wall time, compile included)."""
+    from ._fit import FitOptions, fit_images
+    from ._illumination import Stripes
+    from ._medium import Medium
+    from ._render import make_renderer, resolve_model
+    from ._slab import Slab
+
+    stripes = Stripes(6, 3, tuple(range(6)))
+    medium = Medium(*_MILK)
+    dtype = jnp.float32
+    params = [jnp.asarray(v, dtype) for v in _MILK]
+    rows = []
+    for name, geometry in (
+        ("plane", None),
+        ("slab absorbing", Slab(thickness)),
+        ("slab refractive", Slab(thickness, "refractive")),
+    ):
+        grid, geo, rho = resolve_model(medium, Grid(width, height), geometry)
+        k = 6
+        r = make_renderer(grid, stripes, k, "paper", geo)
+        t0 = time.perf_counter()
+        images = jax.block_until_ready(r(*params)[0])
+        compile_s = time.perf_counter() - t0
+        run_s = _median_time(lambda r=r: r(*params)[0], repeats)
+        column = jax.jit(lambda p, v, r=r: jax.jvp(lambda q: r(q[0], q[1], q[2])[0], (p,), (v,))[1])
+        p0 = jnp.asarray(_MILK, dtype)
+        e = jnp.asarray([0.0, 0.0, 1.0], dtype)
+        t0 = time.perf_counter()
+        jax.block_until_ready(column(p0, e))
+        column_compile_s = time.perf_counter() - t0
+        column_s = _median_time(lambda column=column, p0=p0, e=e: column(p0, e), repeats)
+        row = {
+            "model": name,
+            "grid": [width, height, grid.n_theta],
+            "n_mu": getattr(geo, "n_mu", None),
+            "bounces": k,
+            "patterns": 6,
+            "compile_s": compile_s,
+            "forward_s": run_s,
+            "jvp_column_compile_s": column_compile_s,
+            "jvp_column_s": column_s,
+        }
+        if fits:
+            captured = np.asarray(images).sum(axis=1)
+            t0 = time.perf_counter()
+            fit = fit_images(captured, stripes, options=FitOptions(method="joint", geometry=geo))
+            row["joint_fit_s"] = time.perf_counter() - t0
+            row["joint_fit_errors"] = {
+                "sigma_t": fit.sigma_t / _MILK[0] - 1,
+                "sigma_s": fit.sigma_s / _MILK[1] - 1,
+                "g": fit.g - _MILK[2],
+            }
+            row["joint_fit_converged"] = bool(fit.converged)
+            row["joint_fit_iterations"] = fit.iterations
+        rows.append(row)
+        progress(
+            f"{name}: {width}x{height}, n_theta {grid.n_theta}"
+            + (f", n_mu {row['n_mu']}" if row["n_mu"] else "")
+            + f", 6 patterns, {k} bounces: compile {compile_s:.2f} s, forward {run_s:.3f} s, "
+            f"one derivative column {column_s:.3f} s"
+            + (
+                f", joint fit {row['joint_fit_s']:.1f} s ({row['joint_fit_iterations']} steps)"
+                if fits
+                else ""
+            )
+        )
+    return {
+        "benchmark": "slab vs plane",
+        "device": str(jax.devices()[0]),
+        "platform": platform.platform(),
+        "jax": jax.__version__,
+        "load_avg": list(__import__("os").getloadavg()),
+        "results": rows,
+    }

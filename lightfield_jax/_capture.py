@@ -63,6 +63,8 @@ Keys:
   depth modelled in 3-D (MODEL.md section 7): ``{kind: slab, thickness: 6.4,
   boundary: absorbing}`` (thickness in pixels; ``boundary: refractive`` with ``n:
   1.33``; optional ``n_mu``, the elevation nodes). Every fit method uses it.
+  ``{kind: auto, thickness: 6.4, ...}`` (the slab's keys): the fit uses the plane
+  model where its misfit is below the capture's noise, else the slab.
 - ``truth``: the true parameters of a simulated capture (``sigma_t``, ``sigma_s``,
   ``g``, ``gain``, ``phase``, ``black_level``), for reports.
 
@@ -641,7 +643,7 @@ def _geometry(top: _Section) -> dict[str, Any]:
     if "geometry" not in top.data:
         return {"kind": "plane"}
     try:
-        return parse_geometry(top.data["geometry"], top.key("geometry")).as_dict()
+        return parse_geometry(top.data["geometry"], top.key("geometry"), allow_auto=True).as_dict()
     except ValueError as err:
         raise top.error(f"{top.source}: {err}") from None
 

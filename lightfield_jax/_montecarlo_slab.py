@@ -87,7 +87,6 @@ from lightfield_jax._montecarlo import (
     _source,
     phase_function,
 )
-
 from lightfield_jax._slab import fresnel_reflectance
 
 Boundary = Literal["absorbing", "refractive"]

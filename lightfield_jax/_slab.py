@@ -152,6 +152,23 @@ class Slab:
         return 1.0 - float(fresnel_reflectance(1.0, self.n))
 
 
+@dataclasses.dataclass(frozen=True)
+class AutoGeometry:
+    """Plane or slab, chosen per capture by the fit (``geometry: {kind: auto, ...}``):
+    the plane model where its misfit is at most ``threshold`` × the capture's relative
+    noise, else ``slab`` (:mod:`lightfield_jax._model_choice`)."""
+
+    slab: Slab
+    threshold: float = 1.0
+    kind: Literal["auto"] = "auto"
+
+    def as_dict(self) -> dict:
+        d = {**self.slab.as_dict(), "kind": "auto"}
+        if self.threshold != 1.0:
+            d["threshold"] = self.threshold
+        return d
+
+
 SceneGeometry = Plane | Slab
 
 
@@ -190,16 +207,25 @@ def default_n_mu(g: float) -> int:
     return 24
 
 
-def parse_geometry(spec, where: str = "geometry") -> SceneGeometry:
-    """``geometry:`` of a simulate config or a capture file (absent: the plane)."""
+def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
+    """``geometry:`` of a simulate config or a capture file (absent: the plane).
+
+    ``kind: auto`` (captures only, ``allow_auto``) takes the slab's keys and an
+    optional ``threshold``; the fit chooses plane or slab (:class:`AutoGeometry`)."""
     if spec is None:
         return Plane()
     if not isinstance(spec, dict):
         raise ValueError(f"{where}: must be a mapping with 'kind', got {spec!r}")
     kind = spec.get("kind", "plane")
-    allowed = {"plane": {"kind"}, "slab": {"kind", "thickness", "boundary", "n", "n_mu"}}
+    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu"}
+    allowed = {"plane": {"kind"}, "slab": slab_keys}
+    if allow_auto:
+        allowed["auto"] = slab_keys | {"threshold"}
     if kind not in allowed:
-        raise ValueError(f"{where}.kind: must be 'plane' or 'slab', got {kind!r}")
+        raise ValueError(
+            f"{where}.kind: must be {' or '.join(repr(k) for k in allowed)}, got {kind!r}"
+            + ("" if allow_auto or kind != "auto" else " (auto is for fits: a capture file)")
+        )
     unknown = sorted(set(spec) - allowed[kind])
     if unknown:
         raise ValueError(
@@ -214,7 +240,7 @@ def parse_geometry(spec, where: str = "geometry") -> SceneGeometry:
     if "n" in spec and boundary != "refractive":
         raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
     try:
-        return Slab(
+        slab = Slab(
             thickness=spec["thickness"],
             boundary=boundary,
             n=spec.get("n", 1.33),
@@ -222,6 +248,10 @@ def parse_geometry(spec, where: str = "geometry") -> SceneGeometry:
         )
     except ValueError as err:
         raise ValueError(str(err).replace("geometry", where, 1)) from None
+    if kind == "slab":
+        return slab
+    threshold = _positive_finite(spec.get("threshold", 1.0), f"{where}.threshold")
+    return AutoGeometry(slab, threshold)
 
 
 def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
@@ -604,7 +634,36 @@ class SlabRenderer(eqx.Module):
         return stacked, lf
 
 
+@functools.lru_cache(maxsize=64)
+def _bounce_ratio_cached(slab: Slab, key: tuple, width: int, height: int) -> float:
+    sigma_t, albedo, g = key
+    from ._illumination import Full
+
+    f = max(1.0, max(width, height) / 24.0)  # the same tank, in pixels of f px
+    w, h = max(4, round(width / f)), max(4, round(height / f))
+    coarse = dataclasses.replace(slab, thickness=slab.thickness / f, n_mu=min(slab.n_mu or 4, 8))
+    grid = Grid(w, h, 8, 1)
+    k = 14
+    r = SlabRenderer(grid, Full(0.0, "left"), k, coarse)
+    images = np.asarray(r(sigma_t * f, albedo * sigma_t * f, g)[0], np.float64)[0]
+    totals = images.sum(axis=(1, 2))
+    ratios = totals[1:] / np.maximum(totals[:-1], 1e-300)
+    return float(np.max(ratios[4:]))
+
+
+def slab_bounce_ratio(
+    slab: Slab, sigma_t: float, albedo: float, g: float, width: int, height: int
+) -> float:
+    """The slab's per-bounce energy ratio ΣI_{k+1}/ΣI_k at these values, measured on a
+    coarse render of the same tank (≤ 24 px a side, 14 bounces; the largest ratio from
+    the fifth bounce on). Light leaving through the faces and walls makes it smaller
+    than the albedo bound ω, often by far: it sizes the bounce count of slab fits."""
+    key = (round(float(sigma_t), 4), round(float(albedo), 3), round(float(g), 2))
+    return _bounce_ratio_cached(slab.resolve(g), key, int(width), int(height))
+
+
 __all__ = [
+    "AutoGeometry",
     "Plane",
     "Slab",
     "SlabRenderer",
@@ -612,6 +671,7 @@ __all__ = [
     "default_n_mu",
     "default_slab_n_theta",
     "resolve_slab_grid",
+    "slab_bounce_ratio",
     "elevation_nodes",
     "fresnel_reflectance",
     "hg",

@@ -1,0 +1,272 @@
+"""When does the paper's plane model do for a real tank? (issue 7)
+
+A tank has a depth h; the paper's model keeps all light in one plane. Per scene (σt·h,
+the thickness in mean free paths; albedo; g; the faces) this experiment renders a
+noiseless 6-phase stripe capture with the slab model (MODEL.md section 7), fits the
+plane model to it with the default ``joint`` method, and records
+
+- the plane fit's relative misfit m = ‖fit − capture‖₂ / ‖capture‖₂ over the model's
+  region: the plane model is indistinguishable from the slab where m is below the
+  capture's relative noise ε (per-pixel noise std / signal), so ``geometry: auto``
+  picks the plane there and the slab elsewhere (:func:`lightfield_jax._model_choice.choose`);
+- the plane fit's parameter errors against the slab's true σt, σs, g: what a user
+  who fits the plane model to a tank is told.
+
+Figures: the misfit against σt·h per albedo and boundary with the noise levels as
+horizontal lines (the crossover), and the parameter errors.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax._experiment import load_helper
+
+inv = load_helper("_inverse")
+
+_KEYS = {
+    "experiment",
+    "dtype",
+    "width",
+    "height",
+    "sigma_t",
+    "optical_thickness",
+    "albedo",
+    "g",
+    "boundary",
+    "noise_levels",
+    "max_steps",
+}
+
+
+def _check(config: dict) -> None:
+    unknown = sorted(set(config) - _KEYS)
+    if unknown:
+        raise ValueError(f"plane_vs_slab: unknown config keys {unknown}")
+    for b in config["boundary"]:
+        if b not in ("absorbing", "refractive"):
+            raise ValueError(f"plane_vs_slab: boundary: unknown {b!r}")
+
+
+def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> dict:
+    import time
+
+    from lightfield_jax._fit import FitOptions, fit_images, fitted_images
+    from lightfield_jax._slab import Slab
+
+    st = float(config["sigma_t"])
+    h = tau / st
+    pattern = lfj.Stripes(6, 3, tuple(range(6)))
+    medium = lfj.Medium(st, albedo * st, g)
+    geometry = Slab(h, boundary)
+    res = lfj.render(
+        medium, lfj.Grid(config["width"], config["height"]), pattern, geometry=geometry
+    )
+    captured = np.asarray(res.total, np.float64)
+    t0 = time.perf_counter()
+    fit = fit_images(
+        captured.astype(np.float32),
+        pattern,
+        options=FitOptions(method="joint", max_steps=config["max_steps"]),
+    )
+    seconds = time.perf_counter() - t0
+    model, _ = fitted_images(fit, pattern, captured.shape[-2:])
+    model = model.sum(axis=1)
+    x0, y0, x1, y1 = fit.model["crop"]
+    obs = captured[..., y0:y1, x0:x1]
+    mis = model[..., y0:y1, x0:x1] - obs
+    misfit = float(np.sqrt(np.sum(mis**2) / np.sum(obs**2)))
+    single = float(np.asarray(res.images[:, 0]).sum() / captured.sum())
+    return {
+        "tau": tau,
+        "thickness": h,
+        "albedo": albedo,
+        "g": g,
+        "boundary": boundary,
+        "bounces": res.bounces,
+        "single_fraction": single,
+        "plane": {
+            "sigma_t": fit.sigma_t,
+            "sigma_s": fit.sigma_s,
+            "g": fit.g,
+            "converged": bool(fit.converged),
+            "seconds": seconds,
+        },
+        "errors": {
+            "sigma_t": fit.sigma_t / st - 1,
+            "sigma_s": fit.sigma_s / (albedo * st) - 1,
+            "g": fit.g - g,
+        },
+        "misfit": misfit,
+    }
+
+
+def run(config: dict, out: Path, ctx) -> dict:
+    _check(config)
+    rows = []
+    with inv.precision(config["dtype"]):
+        for boundary in config["boundary"]:
+            for g in config["g"]:
+                for albedo in config["albedo"]:
+                    for tau in config["optical_thickness"]:
+                        ctx.progress(f"{boundary}, g {g}, albedo {albedo}, σt·h {tau}")
+                        key = (
+                            f"lib{inv.library_fingerprint()}|{config['dtype']}|"
+                            f"{config['width']}x{config['height']}|st{config['sigma_t']}|"
+                            f"tau{tau}|w{albedo}|g{g}|{boundary}|steps{config['max_steps']}"
+                        )
+                        rows.append(
+                            ctx.cached(
+                                key,
+                                lambda t=tau, a=albedo, gg=g, b=boundary: _cell(
+                                    config, t, a, gg, b
+                                ),
+                            )
+                        )
+    ctx.write_json("plane_vs_slab.json", {"config": config, "rows": rows})
+    figures = [_plot_misfit(config, rows, out), _plot_errors(config, rows, out)]
+    crossover = _crossover(config, rows)
+    return {
+        "rows": len(rows),
+        "figures": figures,
+        "crossover": crossover,
+        "worst_plane_errors": {
+            k: max(abs(r["errors"][k]) for r in rows) for k in ("sigma_t", "sigma_s", "g")
+        },
+    }
+
+
+def _crossover(config: dict, rows: list[dict]) -> dict:
+    """Per boundary, albedo, g and noise level: the largest σt·h at which the plane's
+    misfit is still below the noise (None: nowhere on the sweep)."""
+    out: dict = {}
+    for boundary in config["boundary"]:
+        for g in config["g"]:
+            for albedo in config["albedo"]:
+                sel = sorted(
+                    (
+                        r
+                        for r in rows
+                        if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
+                    ),
+                    key=lambda r: r["tau"],
+                )
+                for eps in config["noise_levels"]:
+                    ok = [r["tau"] for r in sel if r["misfit"] < eps]
+                    out[f"{boundary}|g{g}|albedo{albedo}|noise{eps}"] = {
+                        "plane_ok_at_tau": ok,
+                    }
+    return out
+
+
+def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lightfield_jax.viz._common import finish
+
+    bounds, gs = config["boundary"], config["g"]
+    fig, axes = plt.subplots(
+        len(gs), len(bounds), figsize=(5.2 * len(bounds), 3.9 * len(gs)), squeeze=False
+    )
+    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config["albedo"])))
+    for i, g in enumerate(gs):
+        for j, boundary in enumerate(bounds):
+            ax = axes[i, j]
+            for albedo, color in zip(config["albedo"], colors, strict=True):
+                sel = sorted(
+                    (
+                        r
+                        for r in rows
+                        if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
+                    ),
+                    key=lambda r: r["tau"],
+                )
+                ax.plot(
+                    [r["tau"] for r in sel],
+                    [max(r["misfit"], 1e-6) for r in sel],
+                    "o-",
+                    color=color,
+                    label=f"albedo {albedo:g}",
+                )
+            for eps in config["noise_levels"]:
+                ax.axhline(eps, color="0.5", ls=":", lw=1)
+                ax.annotate(f"noise {eps:g}", (ax.get_xlim()[0], eps), fontsize=7, color="0.4")
+            inv.log_axes(ax)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.set_xlabel("slab thickness in mean free paths, σt·h")
+            ax.set_ylabel("plane fit's relative misfit ‖fit − capture‖/‖capture‖")
+            ax.set_title(f"{boundary} faces, g {g:g}", fontsize=10)
+            ax.legend(fontsize=8)
+    fig.suptitle(
+        f"Plane model fitted (joint) to noiseless slab captures: σt {config['sigma_t']} px⁻¹, "
+        f"{config['width']}×{config['height']}, 6-phase stripes (period 6).\n"
+        "geometry: auto keeps the plane model only below the capture's noise (dotted)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    path = out / "plane_misfit.png"
+    finish(fig, path)
+    plt.close(fig)
+    return path.name
+
+
+def _plot_errors(config: dict, rows: list[dict], out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lightfield_jax.viz._common import finish
+
+    params = (
+        ("sigma_t", "σt error (relative)"),
+        ("sigma_s", "σs error (relative)"),
+        ("g", "g error (absolute)"),
+    )
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.9))
+    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config["albedo"])))
+    styles = dict(zip(config["boundary"], ("-", "--"), strict=False))
+    markers = dict(zip(config["g"], ("o", "s", "^", "v"), strict=False))
+    for ax, (key, label) in zip(axes, params, strict=True):
+        for boundary in config["boundary"]:
+            for g in config["g"]:
+                for albedo, color in zip(config["albedo"], colors, strict=True):
+                    sel = sorted(
+                        (
+                            r
+                            for r in rows
+                            if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
+                        ),
+                        key=lambda r: r["tau"],
+                    )
+                    ax.plot(
+                        [r["tau"] for r in sel],
+                        [r["errors"][key] for r in sel],
+                        ls=styles[boundary],
+                        marker=markers[g],
+                        color=color,
+                        ms=4,
+                        label=f"{boundary[:4]}., g {g:g}, ω {albedo:g}",
+                    )
+        ax.axhline(0.0, color="k", lw=0.8)
+        inv.log_axes(ax, y=False)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.set_xlabel("σt·h (thickness in mean free paths)")
+        ax.set_ylabel(label)
+    axes[0].legend(fontsize=6, ncol=2)
+    fig.suptitle(
+        "What the plane model reports for a tank: its joint fit to noiseless slab captures "
+        f"(σt {config['sigma_t']} px⁻¹) against the slab's true coefficients",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    path = out / "plane_errors.png"
+    finish(fig, path)
+    plt.close(fig)
+    return path.name
