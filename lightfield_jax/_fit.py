@@ -292,10 +292,10 @@ def size_model(
     crop = _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
     gw = min(0.99, abs(g) + 0.1)
     slab = options.geometry if isinstance(options.geometry, Slab) else None
-    if slab is not None:
-        n_theta = options.n_theta or default_slab_n_theta(gw)
+    if slab is not None:  # less sensitive to g than the plane: a smaller margin
+        n_theta = options.n_theta or default_slab_n_theta(min(0.99, abs(g) + 0.05))
         refine = options.refine or 1
-        slab = slab.resolve(gw)
+        slab = slab.resolve(min(0.99, abs(g) + 0.05))
     else:
         n_theta = options.n_theta or default_n_theta(gw)
         refine = options.refine or default_refine(abs(g))
@@ -945,10 +945,14 @@ def fit_images(
     # model-weighted refit runs once, on the last stage.
     fit_black = black_level is None
     start = (sigma_t0, s, g, 0.0 if fit_black else black_level)
-    coarse_theta = 8 if isinstance(options.geometry, Slab) else 32
-    coarse = dataclasses.replace(
-        options, n_theta=options.n_theta or coarse_theta, refine=options.refine or 1
-    )
+    coarse = dataclasses.replace(options, n_theta=options.n_theta or 32, refine=options.refine or 1)
+    if isinstance(options.geometry, Slab):  # 8 azimuth bins, 4 elevation nodes
+        slab = options.geometry
+        coarse = dataclasses.replace(
+            coarse,
+            n_theta=options.n_theta or 8,
+            geometry=dataclasses.replace(slab, n_mu=slab.n_mu or 4),
+        )
     total_steps = 0
     prev_model = run = weights = solved = None
     for name, opts in (("coarse", coarse), ("final", options)):
@@ -1085,11 +1089,11 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     x0, y0, x1, y1 = plane.model["crop"]
     region = np.zeros_like(keep)
     region[y0:y1, x0:x1] = True
-    noise = relative_noise(np.where(keep[None], data, np.nan), pattern)
+    noise = relative_noise(data, pattern, keep & region)
     decision = choose(misfit(model.sum(axis=1), data, keep & region), noise, auto.threshold)
     say(
-        f"geometry auto: plane misfit {decision.plane_misfit:.2e} vs noise "
-        f"{decision.noise:.2e}: {decision.chosen}"
+        f"geometry auto: plane misfit {decision.plane_misfit:.2e}, noise "
+        f"{decision.noise:.2e}, plane error {decision.plane_error:.2e}: {decision.chosen}"
     )
     if decision.chosen == "plane":
         result = plane

@@ -10,12 +10,16 @@ capture.
 The noise is measured from the images, independently of any model: the fourth
 difference along the light's direction removes the smooth decay (the signal's
 fourth derivative is ~σt⁴ times the signal) and leaves white noise with variance
-70 σ² (1, −4, 6, −4, 1); divided by the local signal it gives the relative noise.
+70 σ² (1, −4, 6, −4, 1). Both the noise and the misfit are relative L2 norms over the
+same pixels, ‖·‖/‖capture‖, so a plane fit that only misses the noise has a misfit
+equal to the noise: the plane model's own error is e = √(misfit² − noise²), and the
+plane is kept where e ≤ threshold × noise.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -29,25 +33,26 @@ class GeometryChoice:
     Attributes:
         chosen: ``"plane"`` or ``"slab"``.
         plane_misfit: ‖plane fit − capture‖₂ / ‖capture‖₂ over the fitted region.
-        noise: the capture's relative per-pixel noise ε (std / signal).
-        threshold: the plane is kept when ``plane_misfit`` ≤ ``threshold`` · ``noise``.
+        noise: the capture's relative noise ‖noise‖₂ / ‖capture‖₂.
+        plane_error: the plane model's own error √(max(misfit² − noise², 0)).
+        threshold: the plane is kept when ``plane_error`` ≤ ``threshold`` · ``noise``.
     """
 
     chosen: str
     plane_misfit: float
     noise: float
+    plane_error: float
     threshold: float = 1.0
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
 
-def relative_noise(images, pattern: Stripes, floor_fraction: float = 0.1) -> float:
-    """The capture's relative per-pixel noise ε = std/signal, a robust median over the
-    pixels brighter than ``floor_fraction`` of the brightest (float; ~1e-5 and below
-    on noiseless renders).
+def relative_noise(images, pattern: Stripes, mask=None) -> float:
+    """The capture's relative noise ‖noise‖₂ / ‖capture‖₂ (a float; ~1e-3 on
+    noiseless renders of period-6 stripes: the signal's own fourth difference).
 
-    ``images``: [P, H, W] (NaN where masked).
+    ``images``: [P, H, W]; ``mask`` (H, W): the pixels to use (default: finite ones).
     """
     a = np.asarray(images, np.float64)
     if a.ndim != 3:
@@ -58,22 +63,27 @@ def relative_noise(images, pattern: Stripes, floor_fraction: float = 0.1) -> flo
             f"images: need at least 8 pixels along the light to measure the noise, "
             f"got {a.shape[axis]}"
         )
+    if mask is not None:
+        a = np.where(np.asarray(mask, bool)[None], a, np.nan)
     d4 = np.diff(a, n=4, axis=axis) / np.sqrt(70.0)
     sl = [slice(None)] * 3
     sl[axis] = slice(2, a.shape[axis] - 2)
     centre = a[tuple(sl)]
-    peak = np.nanmax(a)
-    ok = np.isfinite(d4) & np.isfinite(centre) & (centre > floor_fraction * peak)
+    ok = np.isfinite(d4) & np.isfinite(centre)
     if ok.sum() < 16:
-        raise ValueError("images: too few bright pixels to measure the noise")
-    ratio = np.abs(d4[ok]) / centre[ok]
-    return float(1.4826 * np.median(ratio))
+        raise ValueError("images: too few valid pixels to measure the noise")
+    signal = np.sum(centre[ok] ** 2)
+    if signal <= 0:
+        raise ValueError("images: no signal to measure the noise against")
+    return float(np.sqrt(np.sum(d4[ok] ** 2) / signal))
 
 
 def choose(plane_misfit: float, noise: float, threshold: float = 1.0) -> GeometryChoice:
-    """Keep the plane model iff its misfit is at most ``threshold`` × the noise."""
-    chosen = "plane" if plane_misfit <= threshold * noise else "slab"
-    return GeometryChoice(chosen, float(plane_misfit), float(noise), threshold)
+    """Keep the plane model iff its own error √(misfit² − noise²) is at most
+    ``threshold`` × the noise."""
+    error = math.sqrt(max(plane_misfit**2 - noise**2, 0.0))
+    chosen = "plane" if error <= threshold * noise else "slab"
+    return GeometryChoice(chosen, float(plane_misfit), float(noise), error, threshold)
 
 
 def misfit(model, observed, mask=None) -> float:
