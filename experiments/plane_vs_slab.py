@@ -139,6 +139,12 @@ def run(config: dict, out: Path, ctx) -> dict:
     }
 
 
+def _series(rows: list[dict], boundary: str, g: float, albedo: float) -> list[dict]:
+    """The rows of one (boundary, g, albedo), by increasing σt·h."""
+    sel = [r for r in rows if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)]
+    return sorted(sel, key=lambda r: r["tau"])
+
+
 def _crossover(config: dict, rows: list[dict]) -> dict:
     """Per boundary, albedo, g and noise level: the largest σt·h at which the plane's
     misfit is still below the noise (None: nowhere on the sweep)."""
@@ -146,14 +152,7 @@ def _crossover(config: dict, rows: list[dict]) -> dict:
     for boundary in config["boundary"]:
         for g in config["g"]:
             for albedo in config["albedo"]:
-                sel = sorted(
-                    (
-                        r
-                        for r in rows
-                        if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
-                    ),
-                    key=lambda r: r["tau"],
-                )
+                sel = _series(rows, boundary, g, albedo)
                 for eps in config["noise_levels"]:
                     ok = [r["tau"] for r in sel if r["misfit"] < eps]
                     out[f"{boundary}|g{g}|albedo{albedo}|noise{eps}"] = {
@@ -179,14 +178,7 @@ def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
         for j, boundary in enumerate(bounds):
             ax = axes[i, j]
             for albedo, color in zip(config["albedo"], colors, strict=True):
-                sel = sorted(
-                    (
-                        r
-                        for r in rows
-                        if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
-                    ),
-                    key=lambda r: r["tau"],
-                )
+                sel = _series(rows, boundary, g, albedo)
                 ax.plot(
                     [r["tau"] for r in sel],
                     [max(r["misfit"], 1e-6) for r in sel],
@@ -237,14 +229,7 @@ def _plot_errors(config: dict, rows: list[dict], out: Path) -> str:
         for boundary in config["boundary"]:
             for g in config["g"]:
                 for albedo, color in zip(config["albedo"], colors, strict=True):
-                    sel = sorted(
-                        (
-                            r
-                            for r in rows
-                            if (r["boundary"], r["g"], r["albedo"]) == (boundary, g, albedo)
-                        ),
-                        key=lambda r: r["tau"],
-                    )
+                    sel = _series(rows, boundary, g, albedo)
                     ax.plot(
                         [r["tau"] for r in sel],
                         [r["errors"][key] for r in sel],

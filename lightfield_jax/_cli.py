@@ -342,15 +342,32 @@ def _positive_int(text: str) -> int:
     ),
     arg("--repeats", type=_positive_int, default=5, help="timed runs per measurement"),
     arg("--out", default="bench.json", metavar="FILE", help="JSON results (default: %(default)s)"),
+    arg(
+        "--slab",
+        action="store_true",
+        help="instead: the slab geometry against the plane on a 128x128 6-phase stripe "
+        "capture (forward, one derivative column, a joint fit each)",
+    ),
+    arg("--no-fits", action="store_true", help="with --slab: skip the joint fits"),
 )
 def _bench(args: argparse.Namespace) -> None:
     """Measure compile time, time per bounce, gradient time and peak memory of the
     forward model (a single beam, float32) for each grid size, print a line per size
-    and write all numbers to a JSON file. Asserts nothing."""
-    from ._bench import run_benchmark
+    and write all numbers to a JSON file. Asserts nothing. With ``--slab``: the slab
+    model against the plane (forward, derivative, joint fit)."""
+    from ._bench import bench_slab, run_benchmark
     from ._io import atomic_write_json
 
     out = _writable_file(args.out)
+    if args.slab:
+        with _progress(args, "bench", 3) as stage:
+            stage("slab vs plane")
+            result = bench_slab(
+                repeats=args.repeats, fits=not args.no_fits, progress=lambda m: _say(args, m)
+            )
+        atomic_write_json(out, result)
+        _say(args, f"wrote {out}")
+        return
     sizes = args.sizes
     with _progress(args, "bench", len(sizes)) as stage:
         names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])

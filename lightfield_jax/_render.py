@@ -72,6 +72,39 @@ def _phase_matrix_taps(g, n_theta: int):
     return jnp.sum(fine[taps] * weights.astype(dtype), axis=1)
 
 
+def as_physical(sigma_t, sigma_s, g, gain):
+    """(σt, σs, g, gain) as arrays of one floating dtype. Python scalars would be static
+    under ``filter_jit`` (a recompile per value): every physical value becomes an array."""
+    values = [jnp.asarray(v) for v in (sigma_t, sigma_s, g, gain)]
+    dtype = jnp.result_type(*values[:3])
+    if not jnp.issubdtype(dtype, jnp.floating):
+        dtype = jnp.result_type(float)
+    return tuple(v.astype(dtype) for v in values)
+
+
+def render_refined(model, values, lightfield: bool, image_scale, field_scale):
+    """``model._render`` on its refined working grid (σ/f per refined pixel), then f×f
+    blocks averaged back, images × ``image_scale``, light fields × ``field_scale``."""
+    sigma_t, sigma_s, g, gain = as_physical(*values)
+    f = model.refine
+    images, fields = model._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
+    if f == 1:
+        return images, fields
+    images = image_scale * _block_mean(images, f, (-2, -1))
+    if fields is not None:
+        fields = field_scale * _block_mean(fields, f, (-3, -2))
+    return images, fields
+
+
+def unscattered_fluence(model, sigma_t):
+    """The pixel-averaged unscattered fluence (patterns, H, W) of a renderer's source
+    moments: coverage·exp(−σt·mean + σt²·var/2) (see :func:`source_moments`)."""
+    dtype = sigma_t.dtype
+    return model.coverage.astype(dtype) * jnp.exp(
+        -sigma_t * model.mean_depth.astype(dtype) + 0.5 * sigma_t**2 * model.var_depth.astype(dtype)
+    )
+
+
 class Renderer(eqx.Module):
     """A compiled forward model for one grid, illumination and bounce count.
 
@@ -129,23 +162,9 @@ class Renderer(eqx.Module):
         return self.coverage.shape[0]
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
-        # Python scalars would be static under filter_jit (a recompile per value):
-        # make every physical value an array first.
-        values = [jnp.asarray(v) for v in (sigma_t, sigma_s, g, gain)]
-        dtype = jnp.result_type(*values[:3])
-        if not jnp.issubdtype(dtype, jnp.floating):
-            dtype = jnp.result_type(float)
-        sigma_t, sigma_s, g, gain = (v.astype(dtype) for v in values)
-        f = self.refine
-        images, fields = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
-        if f == 1:
-            return images, fields
         # Per-pixel coefficients on the refined grid are σ/f and its unit irradiance is
-        # f times ours: images scale by f, light fields by 1; then average f×f blocks.
-        images = f * _block_mean(images, f, (-2, -1))
-        if fields is not None:
-            fields = _block_mean(fields, f, (-3, -2))
-        return images, fields
+        # f times ours: images scale by f, light fields by 1.
+        return render_refined(self, (sigma_t, sigma_s, g, gain), lightfield, self.refine, 1)
 
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
@@ -155,10 +174,7 @@ class Renderer(eqx.Module):
         groups = _groups(n)
 
         _count_trace()
-        source = self.coverage.astype(dtype) * jnp.exp(
-            -sigma_t * self.mean_depth.astype(dtype)
-            + 0.5 * sigma_t**2 * self.var_depth.astype(dtype)
-        )
+        source = unscattered_fluence(self, sigma_t)
         p_camera = phase_function(jnp.asarray(math.pi / 2, dtype), g)
         taps = _phase_matrix_taps(g, n)
         node_p = phase_function(self.node_angle.astype(dtype), g)

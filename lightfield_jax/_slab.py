@@ -50,6 +50,7 @@ from jaxtyping import Array, Float
 from ._first_scatter import kernel_nodes
 from ._grid import Grid
 from ._illumination import Illumination, scaled, source_moments
+from ._render import _count_trace, render_refined, unscattered_fluence
 
 Boundary = Literal["absorbing", "refractive"]
 BOUNDARIES = ("absorbing", "refractive")
@@ -462,23 +463,10 @@ class SlabRenderer(eqx.Module):
         return self.coverage.shape[0]
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
-        values = [jnp.asarray(v) for v in (sigma_t, sigma_s, g, gain)]
-        dtype = jnp.result_type(*values[:3])
-        if not jnp.issubdtype(dtype, jnp.floating):
-            dtype = jnp.result_type(float)
-        sigma_t, sigma_s, g, gain = (v.astype(dtype) for v in values)
+        # σ/f and h·f on the refined grid: images (ratios like σs/σt) are unchanged; the
+        # depth-integrated fields are in refined pixels of depth: divided by f.
         f = self.refine
-        images, fields = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
-        if f == 1:
-            return images, fields
-        # σ/f, h·f on the refined grid: images (σs/σt-like ratios) are unchanged; the
-        # depth-integrated fields are in refined pixels of depth: divide by f.
-        from ._render import _block_mean
-
-        images = _block_mean(images, f, (-2, -1))
-        if fields is not None:
-            fields = _block_mean(fields, f, (-3, -2)) / f
-        return images, fields
+        return render_refined(self, (sigma_t, sigma_s, g, gain), lightfield, 1, 1.0 / f)
 
     # -- pieces -------------------------------------------------------------------
 
@@ -538,8 +526,6 @@ class SlabRenderer(eqx.Module):
 
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
-        from ._render import _count_trace
-
         _count_trace()
         dtype = sigma_t.dtype
         n, J = self.n_theta, self.n_mu
@@ -551,10 +537,7 @@ class SlabRenderer(eqx.Module):
         mu = self.mu.astype(dtype)
         w_mu = self.w_mu.astype(dtype)
 
-        source = self.coverage.astype(dtype) * jnp.exp(
-            -sigma_t * self.mean_depth.astype(dtype)
-            + 0.5 * sigma_t**2 * self.var_depth.astype(dtype)
-        )  # (P, H, W): pixel-averaged unscattered fluence, uniform in depth
+        source = unscattered_fluence(self, sigma_t)  # (P, H, W), uniform in depth
         depth_factor = -jnp.expm1(-sigma_t * h) / sigma_t
         i1 = t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source
         images = [i1]

@@ -59,20 +59,16 @@ def test_single_scatter_of_a_sheet_matches_closed_form(boundary, sigma_t):
 
 
 def test_sigma_s_scaling_is_exact():
-    jax.config.update("jax_enable_x64", True)
-    try:
+    with jax.enable_x64(True):
         r = renderer(bounces=4)
         a = np.asarray(r(0.3, 0.1, 0.4)[0])
         b = np.asarray(r(0.3, 0.2, 0.4)[0])
         for k in range(4):
             np.testing.assert_allclose(b[:, k], a[:, k] * 2.0 ** (k + 1), rtol=1e-9)
-    finally:
-        jax.config.update("jax_enable_x64", False)
 
 
 def test_phase_matrix_conserves_energy_and_is_reciprocal():
-    jax.config.update("jax_enable_x64", True)
-    try:
+    with jax.enable_x64(True):
         for g, n_mu in ((0.4, 4), (-0.6, 6), (0.8, 16)):
             r = renderer(lfj.Grid(16, 16, 16), slab=Slab(5.0, n_mu=n_mu), g=g)
             mix = np.asarray(r._phase_matrix(jnp.asarray(g), jnp.float64))
@@ -86,8 +82,6 @@ def test_phase_matrix_conserves_energy_and_is_reciprocal():
             np.testing.assert_allclose(kern, kern.T, rtol=1e-4)
             # Mean cosine: a bounce of a direction keeps g of its momentum (3-D HG).
             assert np.all(kern > 0)
-    finally:
-        jax.config.update("jax_enable_x64", False)
 
 
 def test_first_scatter_normalisation_is_the_sphere():
@@ -148,8 +142,7 @@ def test_refined_grid_agrees_with_native():
 
 
 def test_gradients_match_central_differences():
-    jax.config.update("jax_enable_x64", True)
-    try:
+    with jax.enable_x64(True):
         for boundary in ("absorbing", "refractive"):
             r = renderer(lfj.Grid(24, 16, 8), lfj.Beam(0, 8), 4, Slab(5.0, boundary, n_mu=4))
             weights = jnp.linspace(0.5, 1.5, 24)
@@ -161,8 +154,6 @@ def test_gradients_match_central_differences():
             grad = np.asarray(jax.grad(loss)(p))
             fd = np.array([(loss(p + e * 1e-6) - loss(p - e * 1e-6)) / 2e-6 for e in jnp.eye(3)])
             np.testing.assert_allclose(grad, fd, rtol=1e-5)
-    finally:
-        jax.config.update("jax_enable_x64", False)
 
 
 def test_new_values_never_recompile():
