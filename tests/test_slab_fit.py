@@ -37,6 +37,23 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
     assert fit.phase == "normalized"  # the 3-D phase function is normalised
 
 
+@pytest.mark.parametrize("method", ["grid", "gradient"])
+def test_two_step_methods_with_the_slab_and_a_perfect_split(method):
+    st, ss, g = 0.2051, 0.11, 0.4
+    slab = Slab(6.4)
+    medium = lfj.Medium(st, ss, g)
+    stripes = np.asarray(lfj.render(medium, lfj.Grid(32, 24), PATTERN, 8, geometry=slab).total)
+    full = lfj.render(medium, lfj.Grid(32, 24), lfj.Full(0.0, "left"), 8, geometry=slab)
+    full = np.asarray(full.images)
+    split = (full[0], full[1:].sum(axis=0))
+    opts = FitOptions(method=method, geometry=slab, bounces=8)
+    fit = fit_images(stripes, PATTERN, options=opts, split=split)
+    assert fit.model["geometry"]["kind"] == "slab"
+    assert fit.sigma_t == pytest.approx(st, rel=1e-3)
+    assert fit.sigma_s == pytest.approx(ss, rel=0.01)
+    assert fit.g == pytest.approx(g, abs=0.01)
+
+
 @pytest.mark.slow
 def test_the_plane_model_is_biased_on_a_slab_capture():
     # The reason the slab exists (MODEL.md §7): with the plane model, σs or g are off.
