@@ -388,6 +388,8 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _fit_summary(fit) -> str:
+    from ._slab import describe_geometry
+
     lines = []
     for name, r in zip(fit.channels, fit.results, strict=True):
         u = r.uncertainty
@@ -397,8 +399,9 @@ def _fit_summary(fit) -> str:
             f"g {r.g:.4f} ± {u.get('g', float('nan')):.2g} (per px; albedo {r.albedo:.3f}, "
             f"rho {r.rho:.3f}); {'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
             f" in {r.iterations} iterations, {r.seconds['total']:.1f} s "
-            f"(compile {r.seconds['compile']:.1f} s); model {r.model['width']}x"
-            f"{r.model['height']}, n_theta {r.model['n_theta']}, K {r.model['bounces']}"
+            f"(compile {r.seconds['compile']:.1f} s); model {describe_geometry(r.model)}, "
+            f"{r.model['width']}x{r.model['height']}, n_theta {r.model['n_theta']}, "
+            f"K {r.model['bounces']}"
         )
     return "\n".join(lines)
 

@@ -617,6 +617,22 @@ class SlabRenderer(eqx.Module):
         return stacked, lf
 
 
+def describe_geometry(model: dict) -> str:
+    """A short description of a fit result's ``model`` geometry (and auto's choice)."""
+    geo = model.get("geometry") or {"kind": "plane"}
+    if geo.get("kind") == "slab":
+        text = f"slab h {geo['thickness']:g} px {geo['boundary']}"
+        if geo["boundary"] == "refractive":
+            text += f" n {geo['n']:g}"
+        text += f", n_mu {geo.get('n_mu')}"
+    else:
+        text = "plane"
+    choice = model.get("geometry_choice")
+    if choice:
+        text += f" (auto: plane error {choice['plane_error']:.2g} vs noise {choice['noise']:.2g})"
+    return text
+
+
 @functools.lru_cache(maxsize=64)
 def _bounce_ratio_cached(slab: Slab, key: tuple, width: int, height: int) -> float:
     sigma_t, albedo, g = key
@@ -652,6 +668,7 @@ __all__ = [
     "SlabRenderer",
     "SceneGeometry",
     "default_n_mu",
+    "describe_geometry",
     "default_slab_n_theta",
     "resolve_slab_grid",
     "slab_bounce_ratio",

@@ -9,6 +9,7 @@ from .._fit import FitResult, fitted_images
 from .._illumination import Stripes
 from .._io import atomic_path
 from .._separate import separate
+from .._slab import describe_geometry
 
 
 def _profile(image, s, mask, bins):
@@ -105,8 +106,9 @@ def plot_fit(images, pattern: Stripes, result: FitResult, path, *, title: str | 
         or (
             f"{result.method} fit: σt {result.sigma_t:.4g}, σs {result.sigma_s:.4g}, "
             f"g {result.g:.3f} ({'converged' if result.converged else 'NOT converged'}; "
-            f"model {result.model['width']}x{result.model['height']}, "
-            f"n_theta {result.model['n_theta']}, K {result.model['bounces']})"
+            f"model {describe_geometry(result.model)}, {result.model['width']}x"
+            f"{result.model['height']}, n_theta {result.model['n_theta']}, "
+            f"K {result.model['bounces']})"
         )
     )
     fig.tight_layout()
