@@ -47,10 +47,11 @@ from ._render import render as render
 from ._render import single_scatter_closed_form as single_scatter_closed_form
 from ._separate import Separation as Separation
 from ._separate import separate as separate
+from ._simulate import SimulatedCapture as SimulatedCapture
+from ._simulate import simulate_capture as simulate_capture
+from ._slab import AutoGeometry as AutoGeometry
 from ._slab import Plane as Plane
 from ._slab import Slab as Slab
 from ._slab import SlabRenderer as SlabRenderer
-from ._simulate import SimulatedCapture as SimulatedCapture
-from ._simulate import simulate_capture as simulate_capture
 
 __version__ = "0.1.0"
