@@ -25,6 +25,7 @@ large model does.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -174,8 +175,8 @@ def run(config: dict, out: Path, ctx) -> dict:
         inv.jsonable(
             {
                 "comparison": comparison,
-                "records": [
-                    {"scene": s, "method": m, "model": mo, **r} for (s, m, mo), r in records.items()
+                "records": [  # size: auto or large; model: the model the fit used
+                    {"scene": s, "method": m, "size": mo, **r} for (s, m, mo), r in records.items()
                 ],
             }
         ),
@@ -224,70 +225,137 @@ def _short(model: dict | None) -> str | None:
     )
 
 
+_METHOD_TEXT = {
+    "gradient_split": "gradient fed the perfect split, noiseless (the model's own error)",
+    "joint": "joint on a noisy capture (as a user runs it)",
+}
+
+
+def _no_result(rec: dict) -> str:
+    """Why a fit gave no values, shortly (timeout, auto's refusal, an exception)."""
+    msg = str(rec.get("error_message") or "no result")
+    if rec.get("timeout"):
+        return "timeout"
+    found = re.search(r"auto needs (\d+) bounces for rho = ([0-9.]+)", msg)
+    if found:
+        return f"auto refused: needs\n{found[1]} bounces (ρ {float(found[2]):.3g})"
+    return msg.split(":")[0][:20]
+
+
 def _plot(config, records, comparison, out: Path) -> str:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
     methods = config["methods"]
     scenes = [s["name"] for s in config["scenes"]]
-    fig, axes = plt.subplots(len(methods), 2, figsize=(12, 4.2 * len(methods)), squeeze=False)
+    fig, axes = plt.subplots(len(methods), 2, figsize=(13, 1.4 + 4.4 * len(methods)), squeeze=False)
     x = np.arange(len(scenes))
     colors = {"auto": "tab:blue", "large": "tab:gray"}
+    hatches = {"sigma_t": "", "sigma_s": "//", "g": ".."}
+    floor = 1e-7
     for i, method in enumerate(methods):
         ax = axes[i, 0]
-        for j, (k, hatch) in enumerate((("sigma_t", ""), ("sigma_s", "//"), ("g", ".."))):
+        for j, k in enumerate(hatches):
             for mo, dx in (("auto", -0.2), ("large", 0.2)):
                 vals = [records[(s, method, mo)]["errors"][k] for s in scenes]
-                ys = [max(abs(v), 1e-6) if v is not None else 1.0 for v in vals]
+                ys = [max(abs(v), floor) if v is not None else 0.0 for v in vals]
                 ax.bar(
                     x + dx + (j - 1) * 0.12,
                     ys,
                     0.12,
                     color=colors[mo],
-                    hatch=hatch,
+                    hatch=hatches[k],
                     edgecolor="k",
                     lw=0.3,
-                    label=f"{mo}: {k}" if i == 0 else None,
                 )
+        for xi, s in zip(x, scenes, strict=True):
+            for mo, dx in (("auto", -0.2), ("large", 0.2)):
+                rec = records[(s, method, mo)]
+                if rec["errors"]["error"] is None:
+                    ax.text(
+                        xi + dx,
+                        3 * floor,
+                        _no_result(rec),
+                        rotation=90,
+                        ha="center",
+                        va="bottom",
+                        fontsize=7,
+                        color="tab:red",
+                    )
         ax.set_yscale("log")
-        ax.set_xticks(x, scenes, rotation=20, fontsize=8)
-        ax.set_ylabel("|error| (σ's relative, g absolute)")
-        ax.set_title(f"{method}: accuracy, auto (blue) vs large (gray)", fontsize=9)
-        ax.grid(True, axis="y", which="both", alpha=0.3)
-        if i == 0:
-            ax.legend(fontsize=6, ncol=2)
+        ax.set_ylim(floor, 3.0)
+        ax.set_xticks(x, scenes, rotation=15, fontsize=8)
+        ax.set_ylabel(f"|error|: σt, σs relative, g absolute (floor {floor:g})", fontsize=8)
+        ax.set_title(f"{method}: accuracy — {_METHOD_TEXT.get(method, method)}", fontsize=9)
+        ax.grid(True, axis="y", which="major", alpha=0.3)
+        handles = [Patch(color=c, label=f"{mo} model") for mo, c in colors.items()]
+        handles += [
+            Patch(facecolor="w", edgecolor="k", hatch=h, label=k.replace("sigma_", "σ"))
+            for k, h in hatches.items()
+        ]
+        ax.legend(handles=handles, fontsize=7, ncol=5, loc="upper left")
         ax = axes[i, 1]
         for mo, dx in (("auto", -0.2), ("large", 0.2)):
             t = [records[(s, method, mo)]["seconds"]["total"] for s in scenes]
-            ax.bar(x + dx, t, 0.4, color=colors[mo], label=mo)
+            ax.bar(x + dx, t, 0.4, color=colors[mo], label=f"{mo} model")
         for xi, s in zip(x, scenes, strict=True):
             c = comparison[method][s]
+            top = max(records[(s, method, mo)]["seconds"]["total"] for mo in ("auto", "large"))
+            if records[(s, method, "auto")]["errors"]["error"] is None:
+                text = "auto:\nno result"
+            else:
+                text = ("≥" if c["speedup_is_bound"] else "") + f"×{c['speedup']:.1f}"
+                text += "" if c["safe"] else "\nunsafe"
             ax.annotate(
-                ("≥" if c["speedup_is_bound"] else "")
-                + f"×{c['speedup']:.1f}"
-                + ("" if c["safe"] else "\nunsafe"),
-                (xi, records[(s, method, "large")]["seconds"]["total"]),
+                text,
+                (xi, top),
+                xytext=(0, 2),
+                textcoords="offset points",
                 ha="center",
                 va="bottom",
                 fontsize=8,
                 color="k" if c["safe"] else "tab:red",
             )
-        ax.set_yscale("log")
-        ax.set_xticks(x, scenes, rotation=20, fontsize=8)
-        ax.set_ylabel("wall time per fit [s] (compile included)")
-        ax.set_title(f"{method}: time, auto vs large (×: speed-up of auto)", fontsize=9)
-        ax.legend(fontsize=7)
-        ax.grid(True, axis="y", which="both", alpha=0.3)
-    lg = config["large"]
+        inv.log_axes(ax, x=False)
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo, hi * 6)
+        ax.set_xticks(x, scenes, rotation=15, fontsize=8)
+        ax.set_ylabel(
+            "wall time per fit [s] (compilation included; a timeout: the limit)", fontsize=8
+        )
+        ax.set_title(
+            f"{method}: time (×: large time / auto time; unsafe: auto lost more than allowed)",
+            fontsize=9,
+        )
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(True, axis="y", which="major", alpha=0.3)
+    lg, tr, sf = config["large"], config["truth"], config["safe"]
+    parts = [
+        f"{s['name']} σt {s['sigma_t']:g}, σs {s['sigma_s']:g}, g {s['g']:g}"
+        + (f" ({s['phase']} phase)" if s.get("phase") else "")
+        for s in config["scenes"]
+    ]
+    scene_text = ";\n".join("; ".join(parts[i : i + 3]) for i in range(0, len(parts), 3))
+    photons, read = config["noise"]
+    loads = [r.get("load_avg") for r in records.values() if r.get("load_avg") is not None]
+    load_text = f"; load average {min(loads):.0f}–{max(loads):.0f} on this machine" if loads else ""
     fig.suptitle(
-        f"auto model vs large (n_theta {lg.get('n_theta')}, bounces {lg.get('bounces')}, "
-        f"crop {lg.get('crop')}), {config['width']}×{config['height']} captures",
-        fontsize=10,
+        f"The auto model (FitOptions defaults) against a large fixed one ({lg.get('n_theta')} θ "
+        f"bins, {lg.get('bounces')} bounces, crop {lg.get('crop')}), "
+        f"{config['width']}×{config['height']} px six-shift captures (period 6), "
+        f"{config['dtype']}\n"
+        f"truth rendered with ≥ {tr['n_theta_min']} θ bins, bounces to tail {tr['tolerance']:g}; "
+        f"joint's noise: {photons:g} photons at the peak, read {read:g} of the peak; "
+        f"joint stopped after {config['joint_timeout']:g} s{load_text}\n"
+        f"safe: auto loses at most σt {sf['sigma_t']:g}, σs {sf['sigma_s']:g} (relative), "
+        f"g {sf['g']:g} (absolute) against large\nscenes (σ in px⁻¹): " + scene_text,
+        fontsize=9,
     )
     fig.tight_layout()
     name = "model_size.png"
-    fig.savefig(out / name, dpi=110)
+    fig.savefig(out / name, dpi=100)
     plt.close(fig)
     return name

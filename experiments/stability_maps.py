@@ -585,6 +585,16 @@ _MARKERS = {
     "timeout": "v",
 }
 _COLORS = {"grid": "tab:red", "gradient": "tab:blue", "joint": "tab:green"}
+_ERROR = "error: max(|Δσt|/σt, |Δσs|/σs, |Δg|)"
+
+
+def _capture_text(config: dict) -> str:
+    """The captures' parameters, for the figures' captions."""
+    return (
+        f"{config['width']}×{config['height']} px stripe captures (period 6, lit 3, 6 shifts "
+        f"unless varied), {config['dtype']}; grid, gradient: two-step (Nayar split, then fit "
+        "the global part); joint: all parameters from the raw images"
+    )
 
 
 def _index_coords(values, n: int = 200):
@@ -633,7 +643,7 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             codes[(a, b)] = (r["failure"], e)
         for i, (data, label, norm) in enumerate(
             (
-                (err, "error", LogNorm(1e-4, 1.0)),
+                (err, _ERROR, LogNorm(1e-4, 1.0)),
                 (cond, "condition number (unit-free JᵀJ)", LogNorm(1.0, 1e8)),
             )
         ):
@@ -650,6 +660,9 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
             cs = ax.contour(xx, yy, rho, levels=[1.0], colors="r", linewidths=2)
             ax.clabel(cs, fmt={1.0: "ρ = 1"}, fontsize=8)
+            hatched = ax.contourf(xx, yy, rho, levels=[1.0, np.inf], colors="none", hatches=["///"])
+            hatched.set_edgecolor("r")
+            hatched.set_linewidth(0.0)
             for (a, b), (f, e) in codes.items():
                 txt = _CODES[f] if i == 1 or e is None else f"{_CODES[f]}\n{e:.2g}"
                 ax.text(
@@ -665,12 +678,18 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             ax.set_yticks(range(len(albedos)), [f"{w:g}" for w in albedos])
             ax.set_xlabel("g")
             ax.set_ylabel("albedo ω = σs/σt")
-            ax.set_title(f"{method}: {label.split(' (')[0]}", fontsize=9)
+            what = "error" if i == 0 else "condition number of JᵀJ"
+            ax.set_title(f"{method}: {what}", fontsize=9)
     fig.suptitle(
-        f"σt {spec['sigma_t']} px⁻¹, {config['width']}×{config['height']}, noiseless; "
-        "gray: no result\nρ = ω·A(g) ≥ 1 (phase: paper) beyond the red contour; "
-        "codes: ok, bias, cond, n.c. (not converged), div, NaN, exc, time",
-        fontsize=10,
+        f"Where each method fails over albedo × g: σt {spec['sigma_t']} px⁻¹, noiseless; "
+        f"cell text: outcome and error (floored at 1e-4); gray: no result\n"
+        f"red hatching: ρ = ω·A(g) ≥ 1 (phase: paper), the bounce series diverges, the truth "
+        f"is cut after {config['divergent_bounces']} bounces\n"
+        f"ok: error ≤ {config['bias_threshold']:g}; bias: converged, error above; cond: bias "
+        f"with condition number > {config['ill_conditioned']:.0e}; n.c.: not converged; "
+        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {config['joint_timeout']:g} s\n"
+        + _capture_text(config),
+        fontsize=9,
     )
     fig.tight_layout()
     name = "albedo_g.png"
@@ -695,10 +714,19 @@ def _plot_sweeps(config, results, out: Path) -> str:
         for method in config["methods"]:
             mine = [r for r in rows if r["method"] == method]
             if name == "black_level":
-                for known, ls in ((True, "-"), (False, "--")):
-                    sel = [r for r in mine if r["setting"]["known_black"] == known]
-                    _line(ax, [r["setting"]["black_level"] for r in sel], sel, method, ls)
-                ax.set_xlabel("black level b (solid: given, dashed: unknown)")
+                # one category per (b, given or not): a single level still reads
+                def label(st):
+                    given = "given" if st["known_black"] else "unknown"
+                    return f"b {st['black_level']:g}, {given}"
+
+                sel = sorted(
+                    mine,
+                    key=lambda r: (r["setting"]["black_level"], not r["setting"]["known_black"]),
+                )
+                _line(ax, list(range(len(sel))), sel, method, "-")
+                ax.set_xticks(range(len(sel)), [label(r["setting"]) for r in sel], fontsize=8)
+                ax.set_xlim(-0.5, len(sel) - 0.5)
+                ax.set_xlabel("projector black level b, given to the fit or estimated")
             elif name == "period":
                 sts = sorted({r["setting"]["medium"]["sigma_t"] for r in mine})
                 for st, ls in zip(sts, ("-", "--", ":", "-."), strict=False):
@@ -719,38 +747,55 @@ def _plot_sweeps(config, results, out: Path) -> str:
                 labels = [_setting_label("noise", r["setting"]) for r in mine]
                 _line(ax, list(range(len(mine))), mine, method, "-")
                 ax.set_xticks(range(len(mine)), labels, rotation=45, ha="right", fontsize=7)
-                ax.set_xlabel("noise (photons at the peak, read noise / peak)")
+                ax.set_xlabel("photons at the brightest pixel, read noise / brightest pixel")
         ax.set_yscale("log")
         ax.axhline(config["bias_threshold"], color="k", lw=0.8, ls=":")
-        ax.set_ylabel("error")
-        ax.set_title(name.replace("_", " "), fontsize=10)
+        ax.set_ylabel(_ERROR, fontsize=8)
+        ax.set_title(_SWEEP_TITLES.get(name, name), fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
     handles = [
-        Line2D([], [], color=c, label=m) for m, c in _COLORS.items() if m in config["methods"]
+        Line2D([], [], color=c, lw=_LW.get(m, 1), alpha=0.5 if m == "grid" else 1, label=m)
+        for m, c in _COLORS.items()
+        if m in config["methods"]
     ]
     handles += [
         Line2D([], [], color="gray", marker=mk, ls="none", label=f) for f, mk in _MARKERS.items()
     ]
-    axes[0, 0].legend(handles=handles, fontsize=7)
+    fig.legend(handles=handles, fontsize=8, loc="center right", title="method / outcome")
+    base = config["base"]
     fig.suptitle(
-        f"base: σt {config['base']['sigma_t']}, σs {config['base']['sigma_s']}, "
-        f"g {config['base']['g']}; dotted: the 'ok' threshold",
-        fontsize=10,
+        f"Recovery error against one capture setting at a time: σt {base['sigma_t']} px⁻¹, "
+        f"σs {base['sigma_s']} px⁻¹, g {base['g']} (the paper's milk) unless varied; "
+        f"dotted: the 'ok' threshold {config['bias_threshold']:g} (grid, wide pale red, lies "
+        "under gradient where they agree)\n" + _capture_text(config),
+        fontsize=9,
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 0.9, 1))
     name = "sweeps.png"
     fig.savefig(out / name, dpi=110)
     plt.close(fig)
     return name
 
 
+_LW = {"grid": 4.0}  # drawn wide and pale: gradient lies on top of it where they agree
+_SWEEP_TITLES = {
+    "noise": "noise (Poisson photons, Gaussian read noise)",
+    "period": "stripe period vs mean free path",
+    "shifts": "number of shifted images",
+    "black_level": "projector black level",
+}
+
+
 def _line(ax, xs, rows, method, ls) -> None:
+    """Errors (no result drawn at 10, floored at 1e-5) with the outcome's marker."""
     ys = [
         max(r["errors"]["error"] if r["errors"]["error"] is not None else 10.0, 1e-5) for r in rows
     ]
-    ax.plot(xs, ys, ls, color=_COLORS.get(method, "k"), lw=1)
+    wide = method in _LW
+    kw = {"color": _COLORS.get(method, "k"), "alpha": 0.5 if wide else 1.0}
+    ax.plot(xs, ys, ls, lw=_LW.get(method, 1.0), **kw)
     for x, y, r in zip(xs, ys, rows, strict=True):
-        ax.plot(x, y, _MARKERS[r["failure"]], color=_COLORS.get(method, "k"), ms=6)
+        ax.plot(x, y, _MARKERS[r["failure"]], ms=10 if wide else 6, **kw)
 
 
 def _plot_starts(config, starts, out: Path) -> str:
@@ -767,7 +812,7 @@ def _plot_starts(config, starts, out: Path) -> str:
     fig, axes = plt.subplots(
         len(media),
         2 if with_st else 1,
-        figsize=(10 if with_st else 7, 3.8 * len(media)),
+        figsize=(10 if with_st else 7, 0.8 + (2.4 + 0.5 * len(fs)) * len(media)),
         squeeze=False,
         gridspec_kw={"width_ratios": [3, 1.3] if with_st else [1]},
     )
@@ -784,11 +829,13 @@ def _plot_starts(config, starts, out: Path) -> str:
             ax.text(
                 b,
                 a,
-                f"{_CODES[s['failure']]}\n{s['iterations']} it",
+                f"{_CODES[s['failure']]}, {s['iterations']} it\nerror {e:.1g}"
+                if e is not None
+                else f"{_CODES[s['failure']]}, {s['iterations']} it",
                 ha="center",
                 va="center",
                 fontsize=7,
-                color="w",
+                bbox={"boxstyle": "round,pad=0.15", "fc": "w", "alpha": 0.7, "lw": 0},
             )
         im = ax.imshow(
             np.ma.masked_invalid(grid),
@@ -797,12 +844,18 @@ def _plot_starts(config, starts, out: Path) -> str:
             cmap="viridis",
             aspect="auto",
         )
-        fig.colorbar(im, ax=ax, label="final error")
+        fig.colorbar(im, ax=ax, label="final " + _ERROR, shrink=0.9)
         ax.set_xticks(range(len(dg)), [f"{d:+g}" for d in dg])
         ax.set_yticks(range(len(fs)), [f"×{f:g}" for f in fs])
-        ax.set_xlabel("start g − true g (start |g| clipped to 0.95)")
+        ax.set_xlabel("start g − true g")
         ax.set_ylabel("start σs / true σs")
-        ax.set_title(f"joint from offset starts: {med} (σt start = truth)", fontsize=9)
+        true = {m["name"]: m for m in spec["media"]}.get(med, {})
+        truth = ", ".join(
+            f"{sym} {true[k]:g}"
+            for sym, k in (("σt", "sigma_t"), ("σs", "sigma_s"), ("g", "g"))
+            if k in true
+        )
+        ax.set_title(f"{med} ({truth}): σs and g starts, σt start = truth", fontsize=9)
         if not with_st:
             continue
         ax = axes[i, 1]
@@ -811,14 +864,26 @@ def _plot_starts(config, starts, out: Path) -> str:
             key=lambda s: s["sigma_t_factor"],
         )
         xs = [s["sigma_t_factor"] for s in line]
-        ys = [max(s["errors"]["error"] or 10.0, 1e-5) for s in line]
+        ys = [max(s["errors"]["error"] or 10.0, 1e-7) for s in line]
         ax.plot(xs, ys, "-", color="tab:green")
         for x, y, s in zip(xs, ys, line, strict=True):
             ax.plot(x, y, _MARKERS[s["failure"]], color="tab:green")
-        inv.log_axes(ax)
+        inv.log_axes(ax, y=False)
+        ax.set_yscale("log")
+        ax.set_ylim(1e-7, 2.0)
+        ax.axhline(config["bias_threshold"], color="k", lw=0.8, ls=":")
         ax.set_xlabel("start σt / true σt")
-        ax.set_ylabel("final error")
+        ax.set_ylabel("final error (dotted: the 'ok' threshold)", fontsize=8)
+        ax.set_title(f"{med}: σt starts (σs, g = truth)", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
+    fig.suptitle(
+        "The joint fit's basin of convergence: one Levenberg–Marquardt solve from each start "
+        "(coarse stage skipped), on the model the truth needs\n"
+        f"noiseless {config['width']}×{config['height']} px captures, period 6, lit 3, "
+        f"6 shifts; ok: error ≤ {config['bias_threshold']:g}; n.c.: not converged; "
+        "it: iterations; start |g| clipped to 0.95, start σs to 0.98·σt",
+        fontsize=9,
+    )
     fig.tight_layout()
     name = "start_basin.png"
     fig.savefig(out / name, dpi=110)
