@@ -318,7 +318,11 @@ def size_model(
         k = options.bounces
     elif converges:
         bound = min(rho * margin + 0.01, 0.995)
-        k = min(bounces_for_tolerance(bound, options.tolerance), options.max_bounces)
+        # Capped at max_bounces (the model's tail bound is reported with the result).
+        k = min(
+            bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9),
+            options.max_bounces,
+        )
     else:
         k = options.max_bounces
     return _Model(
