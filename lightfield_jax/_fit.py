@@ -916,6 +916,44 @@ def fit_images(
             data, pattern, model, options, sigma_t0, name
         )
         seconds["compile"] += tc
+        # The first model was sized before g was known (g = 0). Where the estimate needs
+        # a much larger one (4× the θ bins, a finer grid, more bounces: a forward-peaked
+        # medium), solve once more with it; a 2× θ difference costs less than a refit.
+        if math.isfinite(s) and math.isfinite(g) and s > 0:
+            need = size_model(
+                images,
+                pattern,
+                albedo=min(s / sigma_t0, 0.98),
+                g=g,
+                options=options,
+                sigma_t=sigma_t0,
+            )
+            if need.crop == model.crop and (
+                need.grid.n_theta >= 4 * model.grid.n_theta
+                or need.grid.refine > model.grid.refine
+                or need.bounces > model.bounces
+            ):
+                say(
+                    f"{name}: again with the model the estimate needs (n_theta "
+                    f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
+                )
+                model = _Model(
+                    grid=Grid(
+                        need.grid.width,
+                        need.grid.height,
+                        max(need.grid.n_theta, model.grid.n_theta),
+                        max(need.grid.refine, model.grid.refine),
+                    ),
+                    bounces=max(need.bounces, model.bounces),
+                    crop=model.crop,
+                    converges=need.converges,
+                    rho=need.rho,
+                    geometry=need.geometry,
+                )
+                s, g, gain, rms, unc, corr, cond, ok, msg, steps, tc = _two_step(
+                    data, pattern, model, options, sigma_t0, name
+                )
+                seconds["compile"] += tc
         if not data.decay_converged:
             ok, msg = False, "the decay fit of sigma_t did not converge"
         iterations = options.g_grid if name == "grid" else steps
