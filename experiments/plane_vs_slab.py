@@ -186,13 +186,22 @@ def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
                     color=color,
                     label=f"albedo {albedo:g}",
                 )
+            inv.log_axes(ax)
             for eps in config["noise_levels"]:
                 ax.axhline(eps, color="0.5", ls=":", lw=1)
-                ax.annotate(f"noise {eps:g}", (ax.get_xlim()[0], eps), fontsize=7, color="0.4")
-            inv.log_axes(ax)
+                ax.text(
+                    0.99,
+                    eps,
+                    f"noise {eps:g}",
+                    transform=ax.get_yaxis_transform(),
+                    ha="right",
+                    va="bottom",
+                    fontsize=7,
+                    color="0.35",
+                )
             ax.grid(True, which="both", alpha=0.3)
             ax.set_xlabel("slab thickness in mean free paths, σt·h")
-            ax.set_ylabel("plane fit's relative misfit ‖fit − capture‖/‖capture‖")
+            ax.set_ylabel("plane fit's misfit ‖fit − capture‖ / ‖capture‖")
             ax.set_title(f"{boundary} faces, g {g:g}", fontsize=10)
             ax.legend(fontsize=8)
     fig.suptitle(
