@@ -134,3 +134,19 @@ def test_cli_fit_uses_the_capture_geometry(tmp_path):
     assert entry["model"]["geometry"]["kind"] == "slab"
     assert entry["model"]["geometry"]["boundary"] == "refractive"
     assert entry["sigma_s"] == pytest.approx(0.0366, rel=0.02)
+
+
+def test_plane_vs_slab_experiment_reduced(tmp_path):
+    from pathlib import Path
+
+    from lightfield_jax._experiment import run_experiment
+
+    config = Path(__file__).resolve().parent.parent / "configs" / "plane_vs_slab.yaml"
+    summary = run_experiment(config, tmp_path, reduced=True)["summary"]
+    for name in summary["figures"] + ["plane_vs_slab.json", "summary.json"]:
+        assert (tmp_path / name).stat().st_size > 0, name
+    rows = json.loads((tmp_path / "plane_vs_slab.json").read_text())["rows"]
+    assert len(rows) == 1
+    # Noiseless slab capture, plane model: a misfit well above float32 round-off.
+    assert 1e-3 < rows[0]["misfit"] < 0.5
+    assert set(rows[0]["errors"]) == {"sigma_t", "sigma_s", "g"}
