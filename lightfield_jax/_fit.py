@@ -307,6 +307,16 @@ def size_model(
             n_theta //= 2
         else:
             break
+    if slab is not None:
+        # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
+        user_mu = options.geometry.n_mu is not None
+        while width * height * 4 * n_theta * slab.n_mu * refine**2 > 4 * options.max_cells:
+            if n_theta > 8 and options.n_theta is None:
+                n_theta //= 2
+            elif slab.n_mu > 4 and not user_mu:
+                slab = dataclasses.replace(slab, n_mu=slab.n_mu // 2)
+            else:
+                break
     grid = Grid(width, height, n_theta, refine)
     a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
     rho = min(albedo, 1.0) * a
@@ -1114,6 +1124,20 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     and its evidence in ``model["geometry_choice"]``."""
     say = progress or (lambda _msg: None)
     auto: AutoGeometry = options.geometry
+    inward = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}[pattern.entry]
+    if abs((pattern.direction_deg - inward + 180.0) % 360.0 - 180.0) > 1e-6:
+        # The model-free noise estimate differences along a pixel axis; oblique stripes
+        # put their edges into it. Without a measurable noise, the slab (always valid).
+        say("geometry auto: oblique stripes, the noise is not measurable: slab")
+        result = fit_images(
+            images,
+            pattern,
+            options=dataclasses.replace(options, geometry=auto.slab),
+            progress=progress,
+            **kwargs,
+        )
+        reason = {"chosen": "slab", "reason": "oblique stripes: noise not measurable"}
+        return dataclasses.replace(result, model={**result.model, "geometry_choice": reason})
     say("geometry auto: fitting the plane model")
     plane = fit_images(
         images,

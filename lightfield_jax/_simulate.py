@@ -297,7 +297,12 @@ def write_simulation(
     if sim.lightfields is not None:
         lf_shape = "[P, K+1, H, W, n_theta]" if sim.is_stripes else "[K+1, H, W, n_theta]"
         atomic_write_npy(folder / "lightfield.npy", sim.lightfields)
-        files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K, radiance per radian"
+        unit = (
+            "depth- and elevation-integrated radiance (∫dz∫dμ L) per radian of azimuth"
+            if isinstance(sim.config.geometry, Slab)
+            else "radiance per radian"
+        )
+        files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K, {unit}"
     if sim.is_stripes:
         illum = sim.config.illumination
         write_capture_yaml(

@@ -47,15 +47,19 @@ def binned_rel_l1(a, b, f=4):
 
 
 @pytest.mark.parametrize("boundary", ["absorbing", "refractive"])
-@pytest.mark.parametrize("sigma_t", [0.05, 0.2051, 0.6])
+@pytest.mark.parametrize("sigma_t", [0.05, 0.2051, 0.6, 2.0, 5.0])
 def test_single_scatter_of_a_sheet_matches_closed_form(boundary, sigma_t):
     full = lfj.Full(0.0, "left")
     r = renderer(illum=full, bounces=1, slab=Slab(6.4, boundary))
     images = np.asarray(r(sigma_t, 0.5 * sigma_t, 0.4)[0])[0, 0]
     expected = slab_single_scatter_sheet(sigma_t, 0.5 * sigma_t, 0.4, 6.4, W, boundary=boundary)
-    # The pixel average of e^{−σt x} is a cumulant expansion, exact to O(σt⁴/2880).
-    rtol = 2e-6 + sigma_t**4 / 2880 * 1.2
-    np.testing.assert_allclose(images, np.broadcast_to(expected, images.shape), rtol=rtol)
+    # The pixel average of e^{−σt x} is exact for an axis-aligned sheet, dense media too,
+    # up to the 64-sample variance of the source moments (var × (1 − 1/64²)).
+    keep = expected > 1e-300
+    rtol = 2e-5 + 5e-5 * sigma_t
+    np.testing.assert_allclose(
+        images[:, keep], np.broadcast_to(expected[keep], images[:, keep].shape), rtol=rtol
+    )
 
 
 def test_sigma_s_scaling_is_exact():
@@ -80,12 +84,12 @@ def test_phase_matrix_conserves_energy_and_is_reciprocal():
             # Reciprocity: M/dΩ' is symmetric (up to the final exact column scaling).
             kern = mix / domega[None, :]
             np.testing.assert_allclose(kern, kern.T, rtol=1e-4)
-            # Mean cosine: a bounce of a direction keeps g of its momentum (3-D HG).
             assert np.all(kern > 0)
 
 
 def test_first_scatter_normalisation_is_the_sphere():
-    # The discrete first-scatter phase integrates to 1 over the sphere.
+    # The quadrature the renderer normalises its first scatter with (azimuth × μ nodes)
+    # integrates the 3-D HG to 1 over the sphere.
     for g in (-0.5, 0.4, 0.9):
         mu, w = elevation_nodes(24)
         th = (np.arange(4096) + 0.5) * 2 * np.pi / 4096
@@ -97,7 +101,6 @@ def test_first_scatter_normalisation_is_the_sphere():
 
 
 def test_mirror_symmetry_in_y_with_negative_control():
-    r = renderer(bounces=3)
     up = lfj.Beam(0.0, 10.0, 20.0, 1.0)
     down = lfj.Beam(0.0, H - 10.0, -20.0, 1.0)
     a = np.asarray(renderer(illum=up, bounces=3)(0.25, 0.15, 0.4)[0])[0]
@@ -105,7 +108,6 @@ def test_mirror_symmetry_in_y_with_negative_control():
     np.testing.assert_allclose(a, b[:, ::-1], rtol=2e-4, atol=1e-7 * a.max())
     # Negative control: the unmirrored image is different.
     assert np.abs(a - b).max() > 0.05 * a.max()
-    del r
 
 
 def test_stripes_over_all_phases_sum_to_lit_times_full():
@@ -186,6 +188,30 @@ def test_render_api_lightfields_and_auto_bounces():
     assert np.all(np.diff(totals[1:]) < 0)
 
 
+def test_thin_slab_has_enough_elevation_nodes():
+    """A slab thinner than a pixel keeps its light at grazing μ ≲ h/r: the default
+    node count follows the thickness (4 nodes lost 15 % of I_2 here)."""
+    st, ss, g, h = 0.1, 0.08, 0.4, 0.25
+    mc = monte_carlo_slab(W, H, h, st, ss, g, BEAM, 3, photons=400_000, depth_layers=1, seed=2)
+    r = renderer(bounces=3, slab=Slab(h), g=g)
+    assert r.n_mu >= 16
+    im = np.asarray(r(st, ss, g)[0])[0]
+    ratio = im.sum((1, 2)) / mc.images[0].sum((1, 2))
+    np.testing.assert_allclose(ratio, 1.0, atol=0.03)
+
+
+def test_k1_lightfield_and_renderer_dispatch():
+    r = renderer(lfj.Grid(24, 16, 8), lfj.Beam(0, 8), 1, Slab(5.0, n_mu=4))
+    images, fields = r(0.2, 0.1, 0.3, lightfield=True)
+    assert images.shape == (1, 1, 16, 24) and fields.shape == (2, 1, 16, 24, 8)
+    from lightfield_jax._slab import AutoGeometry
+
+    grid = lfj.Grid(24, 16, 8)
+    for bad in (AutoGeometry(Slab(5.0)), {"kind": "slab", "thickness": 5.0}, "slab"):
+        with pytest.raises(ValueError, match="geometry: must be None, a Plane or a Slab"):
+            lfj.make_renderer(grid, lfj.Beam(0, 8), 2, "paper", bad)
+
+
 def test_matches_the_layer_averaged_monte_carlo():
     """Per bounce against the oracle it is exact for (1e6 photons, 4×4-binned)."""
     st, ss, g, h = 0.3, 0.24, -0.3, 6.4
@@ -241,6 +267,10 @@ def test_depth_average_error_against_the_true_slab():
         ({"kind": "slab", "thickness": 5, "depth": 3}, r"geometry\.depth: unknown key"),
         ({"kind": "cube"}, "kind: must be 'plane' or 'slab'"),
         ({"kind": "slab", "thickness": 5, "n_mu": 0}, "n_mu: must be an integer"),
+        ({"kind": "slab", "thickness": 5, "boundary": "refractive", "n_mu": 2}, "at least 4"),
+        ({"kind": ["slab"], "thickness": 5}, "kind: must be a string"),
+        ({"thickness": 5}, "kind: missing"),
+        ({"kind": "slab", "thickness": True}, "thickness: must be a number"),
     ],
 )
 def test_bad_geometry_raises_clear_errors(spec, match):
