@@ -56,6 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
+from lightfield_jax._experiment import check_config
 from lightfield_jax._io import atomic_path
 from lightfield_jax._montecarlo import monte_carlo_render
 from lightfield_jax._render import renderer_for
@@ -118,9 +119,7 @@ def _scene(spec: dict) -> Scene:
 
 
 def _check_config(config: dict) -> dict:
-    unknown = sorted(set(config) - _KEYS)
-    if unknown:
-        raise ValueError(f"forward_accuracy: unknown config keys {unknown}")
+    check_config("forward_accuracy", config, _KEYS)
     missing = sorted(_KEYS - {"bin"} - set(config))
     if missing:
         raise ValueError(f"forward_accuracy: missing config keys {missing}")

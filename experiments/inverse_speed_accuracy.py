@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import load_helper
+from lightfield_jax._experiment import check_config, load_helper
 
 inv = load_helper("_inverse")
 
@@ -81,15 +81,9 @@ METHODS = ("grid", "gradient", "joint", "jaxopt_lm", "jaxopt_gn")
 
 
 def _check(config: dict) -> None:
-    unknown = sorted(set(config) - _KEYS)
-    if unknown:
-        raise ValueError(f"inverse_speed_accuracy: unknown config keys {unknown}")
-    for c in config["captures"]:
-        if c not in CAPTURES:
-            raise ValueError(f"captures: unknown {c!r} (known: {', '.join(CAPTURES)})")
-    for m in config["methods"]:
-        if m not in METHODS:
-            raise ValueError(f"methods: unknown {m!r} (known: {', '.join(METHODS)})")
+    check_config(
+        "inverse_speed_accuracy", config, _KEYS, {"captures": CAPTURES, "methods": METHODS}
+    )
 
 
 def _labels(config: dict, capture: str) -> list[str]:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import load_helper
+from lightfield_jax._experiment import check_config, load_helper
 
 inv = load_helper("_inverse")
 
@@ -54,12 +54,7 @@ MODELS = ("auto", "large")
 
 
 def _check(config: dict) -> None:
-    unknown = sorted(set(config) - _KEYS)
-    if unknown:
-        raise ValueError(f"model_size: unknown config keys {unknown}")
-    for m in config["methods"]:
-        if m not in METHODS:
-            raise ValueError(f"methods: unknown {m!r} (known: {', '.join(METHODS)})")
+    check_config("model_size", config, _KEYS, {"methods": METHODS})
 
 
 def _truth(scene: dict, config: dict) -> lfj.SimulatedCapture:

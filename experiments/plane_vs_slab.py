@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import load_helper
+from lightfield_jax._experiment import check_config, load_helper
+from lightfield_jax._slab import BOUNDARIES
 
 inv = load_helper("_inverse")
 
@@ -43,12 +44,7 @@ _KEYS = {
 
 
 def _check(config: dict) -> None:
-    unknown = sorted(set(config) - _KEYS)
-    if unknown:
-        raise ValueError(f"plane_vs_slab: unknown config keys {unknown}")
-    for b in config["boundary"]:
-        if b not in ("absorbing", "refractive"):
-            raise ValueError(f"plane_vs_slab: boundary: unknown {b!r}")
+    check_config("plane_vs_slab", config, _KEYS, {"boundary": BOUNDARIES})
 
 
 def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> dict:

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import load_helper
+from lightfield_jax._experiment import check_config, load_helper
 from lightfield_jax._fit import METHODS
 
 inv = load_helper("_inverse")
@@ -75,12 +75,7 @@ SWEEPS = ("noise", "period", "shifts", "black_level")
 
 
 def _check(config: dict) -> None:
-    unknown = sorted(set(config) - _KEYS)
-    if unknown:
-        raise ValueError(f"stability_maps: unknown config keys {unknown}")
-    for m in config["methods"]:
-        if m not in METHODS:
-            raise ValueError(f"methods: unknown {m!r}")
+    check_config("stability_maps", config, _KEYS, {"methods": METHODS})
 
 
 # ------------------------------------------------------------------------ captures

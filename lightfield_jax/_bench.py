@@ -4,6 +4,7 @@ measured in the same run. Prints a table and writes JSON; asserts nothing."""
 
 from __future__ import annotations
 
+import os
 import platform
 import resource
 import time
@@ -188,6 +189,6 @@ def bench_slab(
         "device": str(jax.devices()[0]),
         "platform": platform.platform(),
         "jax": jax.__version__,
-        "load_avg": list(__import__("os").getloadavg()),
+        "load_avg": list(os.getloadavg()),
         "results": rows,
     }

@@ -56,7 +56,7 @@ import yaml
 from ._grid import Grid
 from ._illumination import WALLS, Beam, Full, Illumination, Stripes
 from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
-from ._slab import Plane, Slab, parse_geometry
+from ._slab import Plane, Slab, parse_geometry, rho_bound
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
 _TOP_KEYS = (
@@ -309,9 +309,7 @@ class SimulationConfig:
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
         if self.bounces == "auto":
-            medium = self.medium.medium()
-            # The slab's 3-D phase function is normalised on the sphere: ρ = ω.
-            rho = medium.albedo if isinstance(self.geometry, Slab) else medium.rho
+            rho = rho_bound(self.medium.medium(), self.geometry)
             return bounces_for_tolerance(float(rho), self.tolerance)
         return self.bounces
 
@@ -458,9 +456,7 @@ def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | 
         top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
     if bounces == "auto":
         try:
-            m = medium.medium()
-            rho = m.albedo if isinstance(geometry, Slab) else m.rho
-            bounces_for_tolerance(float(rho), tolerance)
+            bounces_for_tolerance(float(rho_bound(medium.medium(), geometry)), tolerance)
         except ValueError as e:
             top.fail("bounces", str(e).removeprefix("bounces: "))
     return bounces, tolerance

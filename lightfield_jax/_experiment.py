@@ -97,6 +97,20 @@ class Context:
         return self.out / name
 
 
+def check_config(name: str, config: dict, allowed, choices: dict | None = None) -> None:
+    """Refuse an experiment config's unknown keys, and list values outside the known
+    ones: ``choices`` maps a key (whose value is a list) to its allowed values."""
+    unknown = sorted(set(config) - set(allowed))
+    if unknown:
+        raise ValueError(f"{name}: unknown config keys {unknown}")
+    for key, known in (choices or {}).items():
+        for value in config[key]:
+            if value not in known:
+                raise ValueError(
+                    f"{name}: {key}: unknown {value!r} (known: {', '.join(map(str, known))})"
+                )
+
+
 def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     """Read an experiment config; ``reduced`` applies its ``reduced:`` overrides."""
     import yaml

@@ -33,7 +33,7 @@ import optimistix as optx
 
 from ._decay import fit_decay
 from ._grid import Grid, default_n_theta, default_refine
-from ._illumination import Full, Stripes
+from ._illumination import _INWARD_DEG, Full, Stripes
 from ._medium import bounces_for_tolerance, phase_function, phase_integral
 from ._model_choice import choose, misfit, relative_noise
 from ._render import make_renderer
@@ -1124,28 +1124,22 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     and its evidence in ``model["geometry_choice"]``."""
     say = progress or (lambda _msg: None)
     auto: AutoGeometry = options.geometry
-    inward = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}[pattern.entry]
-    if abs((pattern.direction_deg - inward + 180.0) % 360.0 - 180.0) > 1e-6:
+
+    def fit_with(geometry) -> FitResult:
+        opts = dataclasses.replace(options, geometry=geometry)
+        return fit_images(images, pattern, options=opts, progress=progress, **kwargs)
+
+    def chose(result: FitResult, choice: dict) -> FitResult:
+        return dataclasses.replace(result, model={**result.model, "geometry_choice": choice})
+
+    if abs((pattern.direction_deg - _INWARD_DEG[pattern.entry] + 180.0) % 360.0 - 180.0) > 1e-6:
         # The model-free noise estimate differences along a pixel axis; oblique stripes
         # put their edges into it. Without a measurable noise, the slab (always valid).
         say("geometry auto: oblique stripes, the noise is not measurable: slab")
-        result = fit_images(
-            images,
-            pattern,
-            options=dataclasses.replace(options, geometry=auto.slab),
-            progress=progress,
-            **kwargs,
-        )
         reason = {"chosen": "slab", "reason": "oblique stripes: noise not measurable"}
-        return dataclasses.replace(result, model={**result.model, "geometry_choice": reason})
+        return chose(fit_with(auto.slab), reason)
     say("geometry auto: fitting the plane model")
-    plane = fit_images(
-        images,
-        pattern,
-        options=dataclasses.replace(options, geometry=None),
-        progress=progress,
-        **kwargs,
-    )
+    plane = fit_with(None)
     data = np.asarray(images, np.float64)
     mask = kwargs.get("mask")
     keep = np.all(np.isfinite(data), axis=0)
@@ -1162,22 +1156,12 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
         f"{decision.noise:.2e}, plane error {decision.plane_error:.2e}: {decision.chosen}"
     )
     if decision.chosen == "plane":
-        result = plane
-    else:
-        result = fit_images(
-            images,
-            pattern,
-            options=dataclasses.replace(options, geometry=auto.slab),
-            progress=progress,
-            **kwargs,
-        )
-        seconds = dict(result.seconds)
-        seconds["plane_fit"] = plane.seconds.get("total", math.nan)
-        seconds["total"] = seconds.get("total", 0.0) + seconds["plane_fit"]
-        result = dataclasses.replace(result, seconds=seconds)
-    return dataclasses.replace(
-        result, model={**result.model, "geometry_choice": decision.as_dict()}
-    )
+        return chose(plane, decision.as_dict())
+    result = fit_with(auto.slab)
+    seconds = dict(result.seconds)
+    seconds["plane_fit"] = plane.seconds.get("total", math.nan)
+    seconds["total"] = seconds.get("total", 0.0) + seconds["plane_fit"]
+    return chose(dataclasses.replace(result, seconds=seconds), decision.as_dict())
 
 
 # --------------------------------------------------------------------------- captures

@@ -257,7 +257,13 @@ def _launch(src: _Source, n: int, width: int, height: int, rng: np.random.Genera
     return x, y, klass
 
 
-def _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator):
+def _positive_int(name: str, v) -> None:
+    if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
+        raise ValueError(f"{name}: must be a positive integer, got {v!r}")
+
+
+def _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch) -> None:
+    """The checks both oracles share: positive integer sizes and counts, the medium."""
     for name, v in (
         ("width", width),
         ("height", height),
@@ -265,14 +271,17 @@ def _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, e
         ("photons", photons),
         ("batch", batch),
     ):
-        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
-            raise ValueError(f"{name}: must be a positive integer, got {v!r}")
+        _positive_int(name, v)
     if not (math.isfinite(sigma_t) and sigma_t > 0):
         raise ValueError(f"sigma_t: must be finite and > 0 per pixel, got {sigma_t!r}")
     if not (0 <= sigma_s <= sigma_t):
         raise ValueError(f"sigma_s: must lie in [0, sigma_t] = [0, {sigma_t}], got {sigma_s!r}")
     if not (-1 < g < 1):
         raise ValueError(f"g: must lie in (-1, 1), got {g!r}")
+
+
+def _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator):
+    _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
     if phase not in ("paper", "normalized"):
         raise ValueError(f"phase: must be 'paper' or 'normalized', got {phase!r}")
     if estimator not in ("track", "collision"):

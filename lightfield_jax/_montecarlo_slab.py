@@ -81,9 +81,11 @@ import numpy as np
 from lightfield_jax._illumination import Beam, Full, Stripes
 from lightfield_jax._montecarlo import (
     _add,
+    _check_scene,
     _distance_to_wall,
     _launch,
     _pixel,
+    _positive_int,
     _source,
     phase_function,
 )
@@ -241,28 +243,10 @@ def _fly(slab: _Slab, pos, u, w, free, klass, escaped, escaped_faces):
     return collided
 
 
-def _positive_int(name: str, v) -> None:
-    if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
-        raise ValueError(f"{name}: must be a positive integer, got {v!r}")
-
-
 def _check(width, height, thickness, sigma_t, sigma_s, g, bounces, boundary, n, photons, batch):
-    for name, v in (
-        ("width", width),
-        ("height", height),
-        ("bounces", bounces),
-        ("photons", photons),
-        ("batch", batch),
-    ):
-        _positive_int(name, v)
+    _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
     if not (math.isfinite(thickness) and thickness > 0):
         raise ValueError(f"thickness: must be finite and > 0 pixels, got {thickness!r}")
-    if not (math.isfinite(sigma_t) and sigma_t > 0):
-        raise ValueError(f"sigma_t: must be finite and > 0 per pixel, got {sigma_t!r}")
-    if not (0 <= sigma_s <= sigma_t):
-        raise ValueError(f"sigma_s: must lie in [0, sigma_t] = [0, {sigma_t}], got {sigma_s!r}")
-    if not (-1 < g < 1):
-        raise ValueError(f"g: must lie in (-1, 1), got {g!r}")
     if boundary not in ("absorbing", "refractive"):
         raise ValueError(f"boundary: must be 'absorbing' or 'refractive', got {boundary!r}")
     if not (math.isfinite(n) and n > 0):

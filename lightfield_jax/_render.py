@@ -308,23 +308,24 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     defaults (:meth:`Grid.resolve`) or the slab's (:func:`resolve_slab_grid`), and ρ
     the per-bounce energy ratio bound (the slab's 3-D phase function is normalised on
     the sphere: ρ = ω)."""
-    from ._slab import Plane, Slab, resolve_slab_grid
+    from ._slab import Plane, Slab, resolve_slab_grid, rho_bound
 
     g = float(medium.g)
     if isinstance(geometry, Slab):
         grid, geometry = resolve_slab_grid(grid, geometry, g)
-        return grid, geometry, medium.albedo
+        return grid, geometry, rho_bound(medium, geometry)
     if geometry is not None and not isinstance(geometry, Plane):
         raise ValueError(f"geometry: must be a Plane or a Slab, got {geometry!r}")
-    return grid.resolve(g), None, medium.rho
+    return grid.resolve(g), None, rho_bound(medium)
 
 
-def resolve_bounces(medium: Medium, bounces: int | str, tolerance: float = 1e-4) -> int:
-    """An explicit bounce count, or ``"auto"``: the tail bound ρ^K/(1 − ρ) ≤ tolerance."""
+def resolve_bounces(rho: float, bounces: int | str, tolerance: float = 1e-4) -> int:
+    """An explicit bounce count, or ``"auto"``: the tail bound ρ^K/(1 − ρ) ≤ tolerance,
+    with ρ the model's per-bounce energy ratio bound (see :func:`resolve_model`)."""
     if isinstance(bounces, str):
         if bounces != "auto":
             raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
-        return bounces_for_tolerance(float(medium.rho), tolerance)
+        return bounces_for_tolerance(float(rho), tolerance)
     if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
         raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
     return int(bounces)
@@ -360,9 +361,7 @@ def render(
     ``converges=False`` and a :class:`DivergentSeriesWarning` is issued.
     """
     grid, geometry, rho = resolve_model(medium, grid, geometry)
-    if isinstance(bounces, str) and bounces == "auto":
-        bounces = bounces_for_tolerance(float(rho), tolerance)
-    k = resolve_bounces(medium, bounces, tolerance)
+    k = resolve_bounces(float(rho), bounces, tolerance)
     converges = bool(rho < 1.0)
     if not converges:
         warnings.warn(

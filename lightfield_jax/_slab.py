@@ -180,6 +180,13 @@ class AutoGeometry:
 SceneGeometry = Plane | Slab
 
 
+def rho_bound(medium, geometry=None):
+    """The per-bounce energy ratio bound ρ of the tail bound: ω·A(g) (or ω) for the
+    plane per its phase convention, ω for a slab (its 3-D phase function is normalised
+    on the sphere, whatever ``medium.phase`` says)."""
+    return medium.albedo if isinstance(geometry, Slab) else medium.rho
+
+
 def default_slab_n_theta(g: float) -> int:
     """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
     the phase function at every quadrature node, so only the phase matrix of the later
@@ -698,6 +705,7 @@ __all__ = [
     "describe_geometry",
     "default_slab_n_theta",
     "resolve_slab_grid",
+    "rho_bound",
     "slab_bounce_ratio",
     "elevation_nodes",
     "fresnel_reflectance",
