@@ -130,12 +130,18 @@ def first_scatter_kernel(nodes: dict, phase_values, sigma_t, n_theta: int, heigh
 
 def convolve_first_scatter(source, kernel):
     """L_1/σs per pattern: (patterns, H, W) ⊛ (n_theta, 2H, 2W) → (patterns, n_theta, H, W)."""
+    # Both factors are non-negative; FFT round-off (about 1e-7 of the maximum in
+    # float32) leaves small negative values that would break logarithms and 1/model
+    # weights downstream.
+    return jnp.maximum(convolve_kernels(source, kernel), 0.0)
+
+
+def convolve_kernels(source, kernel):
+    """(patterns, H, W) ⊛ (kernels, 2H, 2W) → (patterns, kernels, H, W), the linear
+    FFT convolution (no clipping: kernels may be signed, e.g. derivatives)."""
     n_pat, height, width = source.shape
     two_h, two_w = kernel.shape[-2:]
     src_f = jnp.fft.rfft2(source, s=(two_h, two_w))
     ker_f = jnp.fft.rfft2(kernel)
     field = jnp.fft.irfft2(src_f[:, None] * ker_f[None], s=(two_h, two_w))
-    # Both factors are non-negative; FFT round-off (about 1e-7 of the maximum in
-    # float32) leaves small negative values that would break logarithms and 1/model
-    # weights downstream.
-    return jnp.maximum(field[:, :, :height, :width], 0.0)
+    return field[:, :, :height, :width]

@@ -21,6 +21,7 @@ residual, wall time split into compile and run, and the model used.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import time
@@ -395,6 +396,13 @@ def _with_forward_jacobian(heavy):
         basis = jnp.eye(x.shape[0], dtype=x.dtype)
         return jax.vmap(lambda e: jax.jvp(value, (x,), (e,)), out_axes=(None, -1))(basis)
 
+    return _with_jacobian(value_and_jacobian)
+
+
+def _with_jacobian(value_and_jacobian):
+    """``value_and_jacobian(x, *fixed)`` → ``(value, jacobian)`` as a function whose JVP
+    in ``x`` is ``jacobian @ tx`` (see :func:`_with_forward_jacobian`)."""
+
     @jax.custom_jvp
     def wrapped(x, *fixed):
         return value_and_jacobian(x, *fixed)
@@ -409,11 +417,58 @@ def _with_forward_jacobian(heavy):
     return wrapped
 
 
-def _timed_compile(fn, *args):
-    """AOT-compile ``fn`` for ``args``: (compiled, seconds)."""
+# Compiled fit programs of this process, by what they depend on (see _timed_compile).
+# A second fit of a capture of the same shape (another channel of an RGB capture, the
+# next capture of a series, a sweep over seeds) then runs without tracing or compiling.
+_COMPILED: collections.OrderedDict = collections.OrderedDict()
+_COMPILED_MAX = 32
+
+
+def clear_compiled() -> None:
+    """Forget the fit programs compiled in this process (the next fit compiles again,
+    or loads from the persistent XLA cache where that is on): for cold timings."""
+    _COMPILED.clear()
+
+
+def _program_key(static, args):
+    leaves, treedef = jax.tree.flatten(args)
+    avals = tuple(
+        (tuple(np.shape(v)), str(jnp.result_type(v)), bool(getattr(v, "weak_type", False)))
+        for v in leaves
+    )
+    return (static, treedef, avals, jax.config.jax_enable_x64, str(jax.devices()[0]))
+
+
+def _compiler_options() -> dict | None:
+    """XLA options of the fit programs: on the CPU, LLVM's optimisation level 1 instead
+    of the default 2. A fit program runs for well under a second and compiles for
+    several: level 1 compiles it about 15-25 % faster and it runs as fast (measured on
+    the demo capture: the same answers to float32 rounding)."""
+    if jax.default_backend() != "cpu":
+        return None
+    return {"xla_backend_optimization_level": 1}
+
+
+def _timed_compile(fn, *args, static=None):
+    """AOT-compile ``fn`` for ``args``: (compiled, seconds).
+
+    With ``static`` (a hashable description of everything ``fn`` depends on besides
+    ``args``: it is a fresh closure each call), the program is kept for this process and
+    a later call with the same ``static``, argument structure, shapes and dtypes reuses
+    it (0 s). The argument structure includes the renderer's static fields (grid,
+    illumination, bounces, phase, geometry)."""
+    key = None if static is None else _program_key(static, args)
+    if key is not None and key in _COMPILED:
+        _COMPILED.move_to_end(key)
+        return _COMPILED[key], 0.0
     t = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    return compiled, time.perf_counter() - t
+    compiled = jax.jit(fn).lower(*args).compile(compiler_options=_compiler_options())
+    seconds = time.perf_counter() - t
+    if key is not None:
+        _COMPILED[key] = compiled
+        while len(_COMPILED) > _COMPILED_MAX:
+            _COMPILED.popitem(last=False)
+    return compiled, seconds
 
 
 def _solver(options: FitOptions, dtype) -> optx.LevenbergMarquardt:
@@ -421,6 +476,10 @@ def _solver(options: FitOptions, dtype) -> optx.LevenbergMarquardt:
     rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
     atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
     return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+
+def _solver_key(options: FitOptions):
+    return (options.rtol, options.atol)
 
 
 def _result_message(result) -> tuple[bool, str]:
@@ -491,19 +550,31 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
     mk = jnp.einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
     mm = _masked_dot(m, m, mask)
-    powers = jnp.arange(1, kk + 1)
+    # cost(u) = mm − 2a·Σ_k u^k mk_k + a²·Σ_kl u^k u^l G_kl = Σ_n c_n u^n, n = 0..2K: its
+    # coefficients once, then values and derivatives of a polynomial (no autodiff of
+    # a Newton loop, which would be most of the compiled program).
+    n = 2 * kk + 1
+    degree = jnp.arange(1, kk + 1)
+    pairs = degree[:, None] + degree[None, :]
+    coef = jnp.zeros(n, gram.dtype).at[0].set(mm).at[degree].add(-2 * a * mk)
+    coef = coef.at[pairs.reshape(-1)].add((a**2 * gram).reshape(-1))
+    orders = jnp.arange(n, dtype=gram.dtype)
+
+    def powers(u, shift):  # u^(n − shift), 0 where n < shift
+        e = orders - shift
+        return jnp.where(e >= 0, u ** jnp.maximum(e, 0.0), 0.0)
 
     def cost(u):
-        up = u**powers
-        return mm - 2 * a * up @ mk + a**2 * up @ gram @ up
+        return powers(u, 0) @ coef
 
+    d1_coef = coef * orders
+    d2_coef = coef * orders * (orders - 1)
     grid = jnp.linspace(0.0, 1.0, n_grid) * u_max
     costs = jax.vmap(cost)(grid)
     u = grid[jnp.argmin(costs)]
-    d1 = jax.grad(cost)
-    d2 = jax.grad(d1)
     for _ in range(6):
-        u = jnp.clip(u - d1(u) / jnp.where(d2(u) > 0, d2(u), jnp.inf), 0.0, u_max)
+        d1, d2 = powers(u, 1) @ d1_coef, powers(u, 2) @ d2_coef
+        u = jnp.clip(u - d1 / jnp.where(d2 > 0, d2, jnp.inf), 0.0, u_max)
     return u, a, cost(u)
 
 
@@ -533,6 +604,57 @@ def _parabolic_minimum(xs, costs, best):
     t = jnp.where(curvature > 0, 0.5 * (lo - hi) / jnp.where(curvature > 0, curvature, 1.0), 0.0)
     t = jnp.where((best > 0) & (best < n - 1), jnp.clip(t, -1.0, 1.0), 0.0)
     return xs[best] + t * (xs[1] - xs[0]), t
+
+
+def _rendered_and_g_slope(renderer, sigma_t, phase: str):
+    """``x = [g]`` → (I_k at (σt, σs_ref(g), g) under full illumination, (K, h, w), and
+    dI_k/dg, (K, h, w, 1)), differentiable in ``x`` through that slope. The plane's
+    renderer gives the slope in one pass of its own code
+    (:meth:`~lightfield_jax.Renderer.images_and_g_slope`); I_k ∝ σs^k carries the
+    change of σs_ref with g. Other renderers go through ``jax.jvp``."""
+
+    def reference(g):
+        return _reference_sigma_s(sigma_t, g, phase)[0]
+
+    if not hasattr(renderer, "images_and_g_slope"):
+        return _with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
+
+    def value_and_jacobian(x):
+        g = x[0]
+        ref, dref = jax.jvp(reference, (g,), (jnp.ones_like(g),))
+        images, slope = renderer.images_and_g_slope(sigma_t, ref, g)
+        images, slope = images[0], slope[0]
+        k = jnp.arange(1, images.shape[0] + 1, dtype=images.dtype)[:, None, None]
+        return images, (slope + images * k * (dref / ref))[..., None]
+
+    return _with_jacobian(value_and_jacobian)
+
+
+def _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str, p):
+    """The residual of eq. 10 at p = (σs, g) and its Jacobian written out: ``(r,
+    ∂r/∂(σs, g) (N, 2), a = c·σs)``, r = mask·(M − a_ref Σ_{k≥2} u^{k−1} I_k)/scale with
+    the images rendered at σs_ref(g), u = σs/σs_ref and a_ref = ⟨D, I_1⟩/⟨I_1, I_1⟩.
+    The images' slope along g comes from ``rendered_and_slope``
+    (:func:`_rendered_and_g_slope`); σs and the gain enter in closed form, so the
+    Jacobian costs no autodiff of this code (a small program)."""
+    sigma_s, g = p[0], p[1]
+    ref, dref = jax.jvp(lambda g: _reference_sigma_s(sigma_t, g, phase)[0], (g,), (1.0 + 0 * g,))
+    images, slope = rendered_and_slope(p[1:])
+    slope = slope[..., 0]
+    i1, s1 = images[0], slope[0]
+    n1, n2 = _masked_dot(d, i1, mask), _masked_dot(i1, i1, mask)
+    a_ref = n1 / n2  # the gain from the single scatter, and its slope along g
+    da_ref = (_masked_dot(d, s1, mask) * n2 - 2 * n1 * _masked_dot(i1, s1, mask)) / n2**2
+    k = jnp.arange(1, images.shape[0], dtype=images.dtype)
+    u = sigma_s / ref  # I_k(σs) = u^k I_k(σs_ref)
+    series = jnp.einsum("k,khw->hw", u**k, images[1:])
+    d_series_du = jnp.einsum("k,khw->hw", k * u ** (k - 1), images[1:])
+    # along g at fixed σs: the images change, and u with σs_ref
+    d_series_dg = jnp.einsum("k,khw->hw", u**k, slope[1:]) - d_series_du * u * dref / ref
+    jac = jnp.stack([a_ref * d_series_du / ref, da_ref * series + a_ref * d_series_dg], axis=-1)
+    r = jnp.where(mask, (m - a_ref * series) / scale, 0.0).reshape(-1)
+    jac = -jnp.where(mask[..., None], jac / scale, 0.0).reshape(-1, 2)
+    return r, jac, a_ref * ref
 
 
 def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
@@ -569,16 +691,12 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
             u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
             return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
 
-        rendered_and_slope = _with_forward_jacobian(lambda x: rendered(x[0]))
+        rendered_and_slope = _rendered_and_g_slope(renderer, sigma_t, options.phase)
 
-        def residual(p):  # p = (σs, g)
-            ref, _ = _reference_sigma_s(sigma_t, p[1], options.phase)
-            images, _slope = rendered_and_slope(p[1:])
-            a_ref = _masked_dot(d, images[0], mask) / _masked_dot(images[0], images[0], mask)
-            kk = images.shape[0] - 1
-            u = p[0] / ref
-            model = a_ref * jnp.einsum("k,khw->hw", u ** jnp.arange(1, kk + 1), images[1:])
-            return jnp.where(mask, (m - model) / scale, 0.0).reshape(-1), a_ref * ref
+        def residual(p):
+            return _two_step_residual(
+                rendered_and_slope, sigma_t, d, m, mask, scale, options.phase, p
+            )
 
         s_all, a_all, cost = jax.lax.map(per_g, gs)
         best = jnp.argmin(cost)
@@ -592,9 +710,7 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
             nan = jnp.full((1,), jnp.nan, dtype)
             return s_vertex, g_vertex, a_all[best], nan, nan, optx.RESULTS.successful, 0
         if method == "grid":
-            p = jnp.stack([s, g])
-            r, a = residual(p)
-            jac = jax.jacfwd(lambda q: residual(q)[0])(p)
+            r, jac, a = residual(jnp.stack([s, g]))
             return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(n_g)
 
         def s_max(g):
@@ -608,19 +724,26 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
             g = jnp.tanh(y[1])
             return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
 
+        def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
+            r, jac, _a = residual(unpack(y))
+            return r, jac @ jax.jacfwd(unpack)(y)
+
+        # Levenberg-Marquardt linearises a matrix product J·δy (the custom JVP), not
+        # the residual's code: one copy of the renderer in the loop, a small program.
+        residual_y = _with_jacobian(residual_y)
         solver = _solver(options, y0.dtype)
         sol = optx.least_squares(
-            lambda y, _: residual(unpack(y))[0],
+            lambda y, _: residual_y(y)[0],
             solver,
             y0,
             max_steps=options.max_steps,
             throw=False,
         )
         s, g = unpack(sol.value)
-        # The Jacobian at the accepted point, from the solver's state (no second
-        # compilation of the renderer's derivative), mapped to (σs, g).
+        # The Jacobian at the accepted point, from the solver's state (no second copy
+        # of the renderer), with ∂(σs, g)/∂y to map it to (σs, g) outside.
         info = sol.state.f_info
-        jac = info.jac.as_matrix() @ jnp.linalg.inv(jax.jacfwd(unpack)(sol.value))
+        jac = (info.jac.as_matrix(), jax.jacfwd(unpack)(sol.value))
         # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
         a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
         return s, g, a, info.residual, jac, sol.result, sol.stats["num_steps"]
@@ -628,12 +751,16 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
     # Every value that depends on the data is an argument, not a constant of the
     # program: a persistent compilation cache then serves any capture of this shape.
     args = (renderer, jnp.asarray(sigma_t, dtype), d, m, mask, gs, jnp.asarray(scale, dtype))
-    compiled, t_compile = _timed_compile(run, *args)
+    static = ("two_step", method, options.phase, _solver_key(options), options.max_steps)
+    compiled, t_compile = _timed_compile(run, *args, static=static)
     s, g, a, r, jac, result, steps = compiled(*args)
     s, g = float(s), float(g)
     if method == "start":
         return s, g, t_compile
     r = np.asarray(r)
+    if isinstance(jac, tuple):  # ∂r/∂y and ∂(σs, g)/∂y: ∂r/∂(σs, g) = J_y (∂p/∂y)⁻¹
+        jac_y, dp_dy = (np.asarray(a, np.float64) for a in jac)
+        jac = jac_y @ np.linalg.inv(dp_dy)
     unc, corr, cond = _covariance(np.asarray(jac), r, ["sigma_s", "g"])
     rms = scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1)))
     gain = float(a) / s if s > 0 else math.inf
@@ -743,7 +870,8 @@ def _joint_program(data: _Data, pattern: Stripes, model: _Model, options: FitOpt
     weights0 = jnp.asarray(_joint_weights(data.images, data.mask), obs.dtype)
     y_shape = jnp.zeros(4 if fit_black else 3, obs.dtype)
     args = (renderer, full, obs, black_fixed)
-    compiled, t_compile = _timed_compile(solve, *args, weights0, y_shape)
+    static = ("joint", fit_black, lit, _solver_key(options), options.max_steps)
+    compiled, t_compile = _timed_compile(solve, *args, weights0, y_shape, static=static)
 
     def run(weights, y0):
         return jax.block_until_ready(compiled(*args, weights, y0))

@@ -27,7 +27,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._first_scatter import convolve_first_scatter, first_scatter_kernel, kernel_nodes
+from ._first_scatter import (
+    convolve_first_scatter,
+    convolve_kernels,
+    first_scatter_kernel,
+    kernel_nodes,
+)
 from ._grid import Grid
 from ._illumination import Illumination, Stripes, scaled, source_moments
 from ._medium import Medium, bounces_for_tolerance, phase_function, phase_integral
@@ -189,17 +194,7 @@ class Renderer(eqx.Module):
 
         _count_trace()
         source = unscattered_fluence(self, sigma_t)
-        p_camera = phase_function(jnp.asarray(math.pi / 2, dtype), g)
-        taps = _phase_matrix_taps(g, n)
-        node_p = phase_function(self.node_angle.astype(dtype), g)
-        if self.phase == "normalized":
-            in_plane = jnp.sum(taps) * dtheta
-            taps = taps / in_plane
-            node_p = node_p / in_plane
-        # Rows 0..n−1: in-plane redistribution (Q/σs); row n: the camera (I/σs).
-        mixing = jnp.concatenate(
-            [taps[self.circulant] * dtheta, jnp.full((1, n), p_camera * dtheta, dtype)], axis=0
-        )
+        p_camera, node_p, mixing = self._phase_parts(g)
 
         def scatter(field):  # field: (patterns, n_theta, H, W), direction-major
             out = jnp.einsum("ij,pjhw->pihw", mixing, field)
@@ -242,6 +237,92 @@ class Renderer(eqx.Module):
         stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
         lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
         return stacked, lf
+
+    def _phase_parts(self, g):
+        """What g changes in a render: p(π/2) (the camera), p at the first-scatter
+        kernel's nodes, and the mixing matrix (rows 0..n−1: the in-plane redistribution
+        Q/σs, row n: the camera I/σs)."""
+        dtype = g.dtype
+        n = self.n_theta
+        dtheta = 2 * math.pi / n
+        p_camera = phase_function(jnp.asarray(math.pi / 2, dtype), g)
+        taps = _phase_matrix_taps(g, n)
+        node_p = phase_function(self.node_angle.astype(dtype), g)
+        if self.phase == "normalized":
+            in_plane = jnp.sum(taps) * dtheta
+            taps = taps / in_plane
+            node_p = node_p / in_plane  # the camera keeps p(π/2) (MODEL.md §2)
+        mixing = jnp.concatenate(
+            [taps[self.circulant] * dtheta, jnp.full((1, n), p_camera * dtheta, dtype)], axis=0
+        )
+        return p_camera, node_p, mixing
+
+    def images_and_g_slope(self, sigma_t, sigma_s, g, gain=1.0):
+        """Per-bounce images and their derivative in g, ``(images, d images/dg)``, each
+        Float[Array, "patterns bounces H W"]: the forward-mode derivative along g in
+        about the cost of one render of twice the patterns, and, unlike ``jax.jvp``,
+        in one copy of the render's code (half the XLA compile of a JVP).
+
+        g enters a render only through the phase function (the camera's p(π/2), the
+        first-scatter kernel's node values and the mixing matrix); the unscattered
+        light, the FFT convolution and the transport are linear in what g changes and
+        do not depend on it. So the tangent travels beside the primal as extra
+        patterns through the same convolution and transport, and only the small
+        phase-function pieces are differentiated (by ``jax.jvp``)."""
+        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
+        f = self.refine
+        images, slopes = self._render_g_slope(sigma_t / f, sigma_s / f, g, gain)
+        if f == 1:
+            return images, slopes
+        return f * _block_mean(images, f, (-2, -1)), f * _block_mean(slopes, f, (-2, -1))
+
+    @eqx.filter_jit
+    def _render_g_slope(self, sigma_t, sigma_s, g, gain):
+        n = self.n_theta
+        groups = _groups(n)
+        _count_trace()
+        source = unscattered_fluence(self, sigma_t)
+        (p_camera, node_p, mixing), (dp_camera, dnode_p, dmixing) = jax.jvp(
+            self._phase_parts, (g,), (jnp.ones_like(g),)
+        )
+        n_pat = source.shape[0]
+        # I_1 of the primal's patterns, then of the tangent's: (1, 2·patterns, H, W).
+        bounces = [sigma_s * jnp.concatenate([p_camera * source, dp_camera * source])[None]]
+        if self.bounces > 1:
+            # The kernel is linear in the node values: K and dK/dg in one scatter, and
+            # L_1, dL_1/dg in one convolution (2n kernels of one source).
+            kernels = jax.vmap(
+                lambda p: first_scatter_kernel(self.nodes, p, sigma_t, n, self.height, self.width)
+            )(jnp.stack([node_p, dnode_p]))
+            both = sigma_s * convolve_kernels(source, kernels.reshape((-1,) + kernels.shape[2:]))
+            # (2·patterns, n, H, W): the primal's patterns, then the tangent's (the
+            # primal clipped at 0 as in a render, the tangent as jax.jvp gives it).
+            l1 = both[:, :n]
+            field = jnp.concatenate([jnp.maximum(l1, 0.0), jnp.where(l1 > 0, both[:, n:], 0.0)])
+            # d(M·L) = dM·L + M·dL: one matmul for the primal, one for the tangent.
+            tangent_mixing = jnp.concatenate([dmixing, mixing], axis=1)
+
+            def scatter(field):
+                fl, dfl = field[:n_pat], field[n_pat:]
+                out = jnp.einsum("ij,pjhw->pihw", mixing, fl)
+                dout = jnp.einsum(
+                    "ij,pjhw->pihw", tangent_mixing, jnp.concatenate([fl, dfl], axis=1)
+                )
+                both = sigma_s * jnp.concatenate([out, dout], axis=0)
+                return both[:, :n], both[:, n]
+
+            q, image = scatter(field)
+            bounces.append(image[None])
+
+            def bounce(q, _):
+                q_next, image = scatter(transport(q, sigma_t, groups, self.tables))
+                return q_next, image
+
+            if self.bounces > 2:
+                bounces.append(jax.lax.scan(bounce, q, None, length=self.bounces - 2)[1])
+        # (K, 2·patterns, H, W) → (patterns, K, H, W) each
+        both = gain * jnp.moveaxis(jnp.concatenate(bounces, axis=0), 0, 1)
+        return both[:n_pat], both[n_pat:]
 
 
 def _block_mean(a, f: int, axes: tuple[int, int]):

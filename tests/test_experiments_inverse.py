@@ -48,7 +48,9 @@ def test_inverse_speed_accuracy_reduced(tmp_path):
     assert methods["grid-5"]["error"] > 10 * methods["gradient"]["error"]
     for m in methods.values():
         assert m["total_s"] >= m["compile_s"] > 0
+        assert 0 < m["warm_s"] < m["total_s"]  # the second fit reuses the compiled programs
     data = json.loads((tmp_path / "speed_accuracy.json").read_text())
+    assert all(r["warm_same"] for r in data["records"])
     speedup = data["aggregate"]["perfect_split"]["speedup_vs_grid"]["gradient"]["total"]
     assert speedup["how"] == "bound" and speedup["speedup"] > 0
 

@@ -257,3 +257,102 @@ def test_float32_two_step_on_a_high_albedo_medium():
             refine=1,
         )
     assert math.isfinite(result.sigma_s) and math.isfinite(result.g)
+
+
+# ------------------------------------------------- compiled programs kept in the process
+
+
+def _backend_compiles(fn) -> int:
+    from jax import monitoring
+
+    count = []
+
+    def listener(name, secs, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            count.append(secs)
+
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        fn()
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
+    return len(count)
+
+
+@pytest.mark.parametrize("method", ["gradient", "joint"])
+def test_a_second_fit_of_the_same_shape_reuses_the_compiled_program(method):
+    from lightfield_jax._fit import clear_compiled
+
+    images = _stripe_images("milk", SMALL)
+    kwargs = dict(black_level=0.0, method=method, n_theta=16, refine=1)
+    clear_compiled()
+    first = lfj.fit_images(images, lfj.Stripes(), **kwargs)
+    assert first.seconds["compile"] > 0
+    # Other data of the same shape (another channel, the next capture): no compilation,
+    # the same answer as a fresh program gives.
+    other = 0.8 * images
+    results = []
+    assert (
+        _backend_compiles(lambda: results.append(lfj.fit_images(other, lfj.Stripes(), **kwargs)))
+        == 0
+    )
+    again = results[0]
+    assert again.seconds["compile"] == 0.0
+    clear_compiled()
+    fresh = lfj.fit_images(other, lfj.Stripes(), **kwargs)
+    assert fresh.seconds["compile"] > 0
+    for name in ("sigma_t", "sigma_s", "g"):
+        assert getattr(again, name) == getattr(fresh, name)
+    assert again.gain == pytest.approx(0.8 * first.gain, rel=1e-4)
+    # What the program was built from besides its arguments is part of its key: other
+    # solver settings compile a new one.
+    assert (
+        _backend_compiles(lambda: lfj.fit_images(other, lfj.Stripes(), **kwargs, max_steps=50)) > 0
+    )
+
+
+# -------------------------------------------- the two-step residual's written-out Jacobian
+
+
+# g 0.7 under ``paper``: A(g) > 0.9, so the reference σs changes with g too.
+@pytest.mark.parametrize("phase, g", [("paper", 0.3), ("paper", 0.7), ("normalized", 0.3)])
+def test_two_step_residual_jacobian_matches_autodiff_and_differences(phase, g):
+    """The Jacobian the two-step methods hand to Levenberg-Marquardt (and use for their
+    uncertainties) is written out: check it against forward-mode autodiff of the
+    residual and against central differences through the plain renderer."""
+    import jax.numpy as jnp
+
+    from lightfield_jax._fit import _rendered_and_g_slope, _two_step_residual
+    from lightfield_jax._render import renderer_for
+
+    grid = lfj.Grid(24, 16, 16, 1)
+    sigma_t = jnp.asarray(0.2051)
+    renderer = renderer_for(grid, lfj.Full(), 5, phase)
+    rng = np.random.default_rng(1)
+    d, m = (jnp.asarray(a) for a in _perfect_split("milk", grid))
+    d, m = d * (1 + 0.05 * rng.standard_normal(d.shape)), m * 1.3  # not at the minimum
+    mask = jnp.asarray(rng.random(d.shape) > 0.1)
+    slope = _rendered_and_g_slope(renderer, sigma_t, phase)
+
+    def residual(p):
+        return _two_step_residual(slope, sigma_t, d, m, mask, 0.7, phase, p)
+
+    p = jnp.asarray([0.05, g])
+    r, jac, _a = residual(p)
+    auto = jax.jacfwd(lambda q: residual(q)[0])(p)
+    assert float(jnp.max(jnp.abs(jac))) > 0
+    np.testing.assert_allclose(jac, auto, rtol=0, atol=1e-10 * float(jnp.max(jnp.abs(auto))))
+
+    def plain(q):  # the same residual through renders, no slopes
+        ref = lfj._fit._reference_sigma_s(sigma_t, q[1], phase)[0]
+        images = renderer(sigma_t, ref, q[1])[0][0]
+        a = jnp.sum(jnp.where(mask, d * images[0], 0)) / jnp.sum(jnp.where(mask, images[0] ** 2, 0))
+        u = q[0] / ref
+        model = a * jnp.einsum("k,khw->hw", u ** jnp.arange(1, 5), images[1:])
+        return jnp.where(mask, (m - model) / 0.7, 0.0).reshape(-1)
+
+    np.testing.assert_allclose(r, plain(p), rtol=1e-12, atol=1e-15)
+    for i in range(2):
+        e = jnp.zeros(2).at[i].set(1e-6)
+        fd = (plain(p + e) - plain(p - e)) / 2e-6
+        np.testing.assert_allclose(jac[:, i], fd, rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(fd))))

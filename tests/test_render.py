@@ -273,3 +273,30 @@ def test_default_resolution_follows_g():
     assert lfj.Grid(8, 8).resolve(0.4) == lfj.Grid(8, 8, 32, 1)
     assert lfj.Grid(8, 8).resolve(-0.8) == lfj.Grid(8, 8, 64, 2)
     assert lfj.Grid(8, 8, 128).resolve(0.95).n_theta == 128
+
+
+@pytest.mark.parametrize(
+    "illum, bounces, refine, phase",
+    [
+        (lfj.Full(), 1, 1, "paper"),
+        (lfj.Full(), 2, 1, "paper"),
+        (lfj.Full(), 5, 1, "paper"),
+        (lfj.Stripes(period=6, lit=3, phases=(0, 2, 4)), 4, 2, "normalized"),
+        (lfj.Beam(0.0, 4.0, 20.0, 1.0), 3, 1, "paper"),  # an oblique beam
+    ],
+)
+def test_images_and_g_slope_match_the_render_and_its_jvp(illum, bounces, refine, phase):
+    grid = lfj.Grid(20, 14, 16, refine=refine)
+    renderer = renderer_for(grid, illum, bounces, phase)
+    st, ss, g = 0.2, 0.12, 0.45
+    images, slope = renderer.images_and_g_slope(st, ss, g, 1.7)
+    want, want_slope = jax.jvp(lambda x: renderer(st, ss, x, 1.7)[0], (g,), (1.0,))
+    assert images.shape == slope.shape == want.shape
+    np.testing.assert_allclose(images, want, rtol=1e-12, atol=1e-15)
+    scale = float(jnp.max(jnp.abs(want_slope)))
+    assert scale > 0
+    np.testing.assert_allclose(slope, want_slope, rtol=0, atol=1e-12 * scale)
+    # and it is the derivative: central differences along g
+    h = 1e-6
+    fd = (renderer(st, ss, g + h, 1.7)[0] - renderer(st, ss, g - h, 1.7)[0]) / (2 * h)
+    np.testing.assert_allclose(slope, fd, rtol=0, atol=1e-6 * scale)
