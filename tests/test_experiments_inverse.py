@@ -55,6 +55,17 @@ def test_inverse_speed_accuracy_reduced(tmp_path):
     assert speedup["how"] == "bound" and speedup["speedup"] > 0
 
 
+def test_inverse_speed_accuracy_dense_grids_repeat_less():
+    script = load_helper("inverse_speed_accuracy")
+    config = {"repeats": 3, "g_grids": [9, 19], "dense_g_grids": [19, 321], "dense_repeats": 1}
+    assert script._repeats(config, "perfect_split", "grid-321") == 1
+    assert script._repeats(config, "perfect_split", "grid-19") == 3  # also a plain grid
+    assert script._repeats(config, "perfect_split", "gradient") == 3
+    assert script._repeats(config, "noisy", "grid-9") == 3
+    assert "grid-321" in script._labels({**config, "methods": ["grid"]}, "perfect_split")
+    assert "grid-321" not in script._labels({**config, "methods": ["grid"]}, "noisy")
+
+
 def test_stability_maps_reduced(tmp_path):
     config = CONFIGS / "stability_maps.yaml"
     summary = run_experiment(config, tmp_path, reduced=True)["summary"]
