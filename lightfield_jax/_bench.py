@@ -1,9 +1,12 @@
-"""Forward-model benchmark: compile time, time per bounce, gradient time, peak memory,
-and a hardware yardstick (one complex FFT pass over an array of the light field's size)
-measured in the same run. Prints a table and writes JSON; asserts nothing."""
+"""Benchmarks. The forward model: compile time, time per bounce, gradient time, peak
+memory, and a hardware yardstick (one complex FFT pass over an array of the light
+field's size) measured in the same run; the slab against the plane; and the fit
+methods, each in a fresh process. Each prints a table and writes JSON; asserts
+nothing."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import resource
@@ -190,5 +193,114 @@ def bench_slab(
         "platform": platform.platform(),
         "jax": jax.__version__,
         "load_avg": list(os.getloadavg()),
+        "results": rows,
+    }
+
+
+# ------------------------------------------------------------------- fit benchmark
+
+# One fit in a fresh process: nothing compiled, no persistent compilation cache.
+_FIT_CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import lightfield_jax
+from lightfield_jax._capture import load_capture
+from lightfield_jax._fit import fit_capture
+import_s = time.perf_counter() - t0
+capture = load_capture(sys.argv[1])
+out = {"import_s": import_s}
+for name in ("cold", "warm"):
+    t = time.perf_counter()
+    r = fit_capture(capture, sys.argv[2]).results[0]
+    out[name] = dict(r.seconds, wall=time.perf_counter() - t)
+out["values"] = {k: getattr(r, k) for k in ("sigma_t", "sigma_s", "g")}
+out["converged"], out["iterations"] = bool(r.converged), r.iterations
+print("RESULT " + json.dumps(out))
+"""
+
+
+def bench_fits(
+    config: dict,
+    methods: tuple[str, ...] = ("grid", "gradient", "joint"),
+    repeats: int = 3,
+    progress=print,
+) -> dict:
+    """Wall time of each fit method on a simulated capture (the demo's by default), each
+    fit in a fresh Python process with no compilation cache (what a first fit costs:
+    tracing, XLA compilation and the run), then once more in that process (``warm``:
+    its compiled programs reused, as for a second channel or the next capture of the
+    size). Medians over ``repeats`` processes; errors against the simulated truth."""
+    import statistics
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    from ._config import parse_simulation_config
+    from ._simulate import simulate_capture, write_simulation
+
+    sim = simulate_capture(parse_simulation_config(config, source="bench config"))
+    truth = sim.truth()
+    env = dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false", LIGHTFIELD_JAX_XLA_CACHE="off")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        write_simulation(sim, Path(tmp))
+        capture = str(Path(tmp) / "capture.yaml")
+        for method in methods:
+            runs = []
+            for _ in range(repeats):
+                load = os.getloadavg()[0]
+                done = subprocess.run(
+                    [sys.executable, "-c", _FIT_CHILD, capture, method],
+                    capture_output=True,
+                    text=True,
+                    env=env,
+                )
+                lines = [x for x in done.stdout.splitlines() if x.startswith("RESULT ")]
+                if done.returncode or not lines:
+                    raise RuntimeError(
+                        f"bench --fits: the {method} fit failed: {done.stderr.strip()[-2000:]}"
+                    )
+                runs.append({**json.loads(lines[-1][len("RESULT ") :]), "load_avg": load})
+
+            def median(get, runs=runs):
+                return float(statistics.median(get(r) for r in runs))
+
+            values = runs[0]["values"]
+            row = {
+                "method": method,
+                "cold_s": median(lambda r: r["cold"]["total"]),
+                "cold_compile_s": median(lambda r: r["cold"]["compile"]),
+                "cold_run_s": median(lambda r: r["cold"]["run"]),
+                "warm_s": median(lambda r: r["warm"]["total"]),
+                "import_s": median(lambda r: r["import_s"]),
+                "load_avg": median(lambda r: r["load_avg"]),
+                "values": values,
+                "errors": {
+                    "sigma_t": values["sigma_t"] / truth["sigma_t"] - 1,
+                    "sigma_s": values["sigma_s"] / truth["sigma_s"] - 1,
+                    "g": values["g"] - truth["g"],
+                },
+                "converged": runs[0]["converged"],
+                "iterations": runs[0]["iterations"],
+                "runs": runs,
+            }
+            rows.append(row)
+            e = row["errors"]
+            progress(
+                f"{method:<9} cold {row['cold_s']:6.2f} s (compile {row['cold_compile_s']:5.2f} s, "
+                f"run {row['cold_run_s']:5.2f} s), warm {row['warm_s']:5.2f} s; sigma_t "
+                f"{100 * e['sigma_t']:+.2f} %, sigma_s {100 * e['sigma_s']:+.1f} %, g "
+                f"{e['g']:+.3f}; load {row['load_avg']:.1f}"
+            )
+    return {
+        "benchmark": "fit methods, each in a fresh process (no compilation cache)",
+        "capture": config,
+        "truth": truth,
+        "repeats": repeats,
+        "device": str(jax.devices()[0]),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "jax": jax.__version__,
         "results": rows,
     }

@@ -340,7 +340,12 @@ def _positive_int(text: str) -> int:
         metavar="WxHxN,...",
         help="grid sizes WIDTHxHEIGHTxN_THETA (default: %(default)s)",
     ),
-    arg("--repeats", type=_positive_int, default=5, help="timed runs per measurement"),
+    arg(
+        "--repeats",
+        type=_positive_int,
+        default=None,
+        help="timed runs per measurement (default 5; with --fits 3 processes per method)",
+    ),
     arg("--out", default="bench.json", metavar="FILE", help="JSON results (default: %(default)s)"),
     arg(
         "--slab",
@@ -349,21 +354,40 @@ def _positive_int(text: str) -> int:
         "capture (forward, one derivative column, a joint fit each)",
     ),
     arg("--no-fits", action="store_true", help="with --slab: skip the joint fits"),
+    arg(
+        "--fits",
+        action="store_true",
+        help="instead: each fit method on the demo's capture (128x96, 6 stripes), each fit "
+        "in a fresh process with no compilation cache, then once more warm (--repeats "
+        "processes per method, default 3 here)",
+    ),
 )
 def _bench(args: argparse.Namespace) -> None:
     """Measure compile time, time per bounce, gradient time and peak memory of the
     forward model (a single beam, float32) for each grid size, print a line per size
     and write all numbers to a JSON file. Asserts nothing. With ``--slab``: the slab
-    model against the plane (forward, derivative, joint fit)."""
-    from ._bench import bench_slab, run_benchmark
+    model against the plane (forward, derivative, joint fit). With ``--fits``: the fit
+    methods' wall time, cold (a fresh process) and warm."""
+    from ._bench import bench_fits, bench_slab, run_benchmark
     from ._io import atomic_write_json
 
     out = _writable_file(args.out)
+    if args.fits and args.slab:
+        raise ValueError("bench: --fits and --slab are separate benchmarks: give one")
+    if args.fits:
+        with _progress(args, "bench", 1) as stage:
+            stage("fit methods, each in a fresh process")
+            result = bench_fits(
+                DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: _say(args, m)
+            )
+        atomic_write_json(out, result)
+        _say(args, f"wrote {out}")
+        return
     if args.slab:
         with _progress(args, "bench", 3) as stage:
             stage("slab vs plane")
             result = bench_slab(
-                repeats=args.repeats, fits=not args.no_fits, progress=lambda m: _say(args, m)
+                repeats=args.repeats or 5, fits=not args.no_fits, progress=lambda m: _say(args, m)
             )
         atomic_write_json(out, result)
         _say(args, f"wrote {out}")
@@ -379,7 +403,7 @@ def _bench(args: argparse.Namespace) -> None:
             if following is not None:
                 stage(following)
 
-        result = run_benchmark(sizes, args.repeats, progress=report)
+        result = run_benchmark(sizes, args.repeats or 5, progress=report)
     atomic_write_json(out, result)
     _say(args, f"wrote {out}")
 

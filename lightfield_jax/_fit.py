@@ -544,7 +544,10 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     I_k(σs) = u^k I_k(σs_ref), u = σs/σs_ref. The gain from the single scatter,
     a = ⟨D, I_1⟩/⟨I_1, I_1⟩, then u* = argmin_{0≤u≤u_max} ‖M − a Σ_{k≥2} u^{k−1} I_k‖²
     (exact polynomial minimisation: dense evaluation, then Newton on the derivative).
-    Returns (u*, a, residual²)."""
+    Returns (u*, a, residual²), the residual² summed from the residual itself: the
+    expanded polynomial is a difference of large terms, which in float32 cannot tell
+    apart values of g near the minimum (it left the grid's g error at ~1e-3 however
+    dense the grid)."""
     a = _masked_dot(d, i1, mask) / _masked_dot(i1, i1, mask)
     kk = ik.shape[0]
     gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
@@ -575,7 +578,8 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     for _ in range(6):
         d1, d2 = powers(u, 1) @ d1_coef, powers(u, 2) @ d2_coef
         u = jnp.clip(u - d1 / jnp.where(d2 > 0, d2, jnp.inf), 0.0, u_max)
-    return u, a, cost(u)
+    r = m - a * jnp.einsum("k,khw->hw", u ** degree.astype(ik.dtype), ik)
+    return u, a, _masked_dot(r, r, mask)
 
 
 # ρ of the reference render of the two-step methods: I_k grows like ρ^k, so rendering

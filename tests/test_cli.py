@@ -202,9 +202,29 @@ def test_bench_tiny(tmp_path, capsys):
     assert result["results"][0]["per_bounce_s"] is not None
 
 
+def test_bench_fits_runs_each_fit_in_a_fresh_process():
+    from lightfield_jax._bench import bench_fits
+
+    config = {
+        "grid": {"width": 32, "height": 24, "n_theta": 16},
+        "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+        "bounces": 4,
+    }
+    lines = []
+    result = bench_fits(config, methods=("gradient",), repeats=1, progress=lines.append)
+    (row,) = result["results"]
+    assert row["method"] == "gradient" and row["converged"]
+    # a fresh process compiles; the same fit again in it does not
+    assert row["cold_compile_s"] > 0 and row["runs"][0]["warm"]["compile"] == 0.0
+    assert row["warm_s"] < row["cold_s"]
+    assert len(lines) == 1 and lines[0].startswith("gradient  cold")
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
+        (["bench", "--fits", "--slab"], "--fits and --slab are separate benchmarks"),
         (["bench", "--sizes", "16x16"], "argument --sizes: '16x16' is not WIDTHxHEIGHTxN_THETA"),
         (["bench", "--sizes", "16x16x12"], "grid.n_theta: must be a multiple of 8"),
         (["bench", "--repeats", "0"], "argument --repeats: must be a positive integer"),
