@@ -11,6 +11,7 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 PhaseConvention = Literal["paper", "normalized"]
@@ -76,19 +77,27 @@ class Medium(eqx.Module):
                 f"medium.phase: unknown phase convention {phase!r}; "
                 f"expected one of {', '.join(PHASE_CONVENTIONS)}"
             )
-        for name, value in (("sigma_t", sigma_t), ("sigma_s", sigma_s), ("g", g)):
-            if _is_concrete(value) and not bool(jnp.all(jnp.isfinite(jnp.asarray(value)))):
-                raise ValueError(f"medium.{name}: must be finite, got {value!r}")
-        if _is_concrete(sigma_t) and float(jnp.min(jnp.asarray(sigma_t))) <= 0.0:
+        # Concrete values are checked on the host (NumPy): eager JAX operations would
+        # each compile a small program the first time (a few hundred ms per process).
+        concrete = {
+            name: np.asarray(value, dtype=np.float64)
+            for name, value in (("sigma_t", sigma_t), ("sigma_s", sigma_s), ("g", g))
+            if _is_concrete(value)
+        }
+        given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
+        for name, value in concrete.items():
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"medium.{name}: must be finite, got {given[name]!r}")
+        if "sigma_t" in concrete and float(np.min(concrete["sigma_t"])) <= 0.0:
             raise ValueError(f"medium.sigma_t: must be > 0 (per pixel), got {sigma_t!r}")
-        if _is_concrete(sigma_s) and _is_concrete(sigma_t):
-            s, t = jnp.asarray(sigma_s), jnp.asarray(sigma_t)
-            if bool(jnp.any(s < 0)) or bool(jnp.any(s > t * (1 + 1e-6))):
+        if "sigma_s" in concrete and "sigma_t" in concrete:
+            s, t = concrete["sigma_s"], concrete["sigma_t"]
+            if np.any(s < 0) or np.any(s > t * (1 + 1e-6)):
                 raise ValueError(
                     f"medium.sigma_s: must satisfy 0 <= sigma_s <= sigma_t = {sigma_t!r}, "
                     f"got {sigma_s!r}"
                 )
-        if _is_concrete(g) and bool(jnp.any(jnp.abs(jnp.asarray(g)) >= 1.0)):
+        if "g" in concrete and np.any(np.abs(concrete["g"]) >= 1.0):
             raise ValueError(f"medium.g: must satisfy -1 < g < 1, got {g!r}")
         self.sigma_t = jnp.asarray(sigma_t, dtype=jnp.result_type(float))
         self.sigma_s = jnp.asarray(sigma_s, dtype=jnp.result_type(float))
