@@ -79,12 +79,12 @@ class Medium(eqx.Module):
             )
         # Concrete values are checked on the host (NumPy): eager JAX operations would
         # each compile a small program the first time (a few hundred ms per process).
+        given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
         concrete = {
             name: np.asarray(value, dtype=np.float64)
-            for name, value in (("sigma_t", sigma_t), ("sigma_s", sigma_s), ("g", g))
+            for name, value in given.items()
             if _is_concrete(value)
         }
-        given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
         for name, value in concrete.items():
             if not np.all(np.isfinite(value)):
                 raise ValueError(f"medium.{name}: must be finite, got {given[name]!r}")
