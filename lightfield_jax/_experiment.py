@@ -14,6 +14,11 @@ size the test suite runs, so experiments cannot rot).
 Scripts share helper modules in ``experiments/`` (names starting with ``_``) through
 :func:`load_helper`.
 
+The scripts and configs ship inside the wheel (``lightfield_jax/_experiments``,
+``lightfield_jax/_configs``), so an installed package runs them too: a config is a
+path, or the name of a shipped one (``lightfield-jax experiment forward_accuracy``).
+In a source checkout the tree's ``experiments/`` and ``configs/`` are used.
+
 Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
 as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing.
 """
@@ -33,7 +38,17 @@ from typing import Any
 
 from ._io import atomic_write_json
 
-EXPERIMENTS_DIR = Path(__file__).resolve().parent.parent / "experiments"
+_HERE = Path(__file__).resolve().parent
+
+
+def _tree_or_packaged(tree: str, packaged: str) -> Path:
+    """The source tree's folder when running from a checkout, else the wheel's copy."""
+    source = _HERE.parent / tree
+    return source if source.is_dir() else _HERE / packaged
+
+
+EXPERIMENTS_DIR = _tree_or_packaged("experiments", "_experiments")
+CONFIGS_DIR = _tree_or_packaged("configs", "_configs")
 
 
 def versions() -> dict[str, str]:
@@ -116,8 +131,14 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     import yaml
 
     path = Path(path)
+    shipped = CONFIGS_DIR / f"{path.stem}.yaml"
+    if not path.is_file() and path.parent == Path(".") and shipped.is_file():
+        path = shipped  # a shipped config, by name
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such experiment config")
+        known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
+        raise FileNotFoundError(
+            f"{path}: no such experiment config (shipped: {', '.join(known)})"
+        )
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
