@@ -253,6 +253,12 @@ def _writable_file(path: str) -> Path:
         action="store_true",
         help="also write lightfield.npy, L_0..L_K (memory: (K+1)*P*H*W*n_theta floats)",
     ),
+    arg(
+        "--plot",
+        metavar="FIGDIR",
+        help="also write the paper's figures of the scene into FIGDIR (created; files "
+        "replaced): bounce_images.png, bounce_profiles.png, lightfield.png",
+    ),
 )
 def _simulate(args: argparse.Namespace) -> None:
     """Render a simulate config and write into DIR:
@@ -280,11 +286,20 @@ def _simulate(args: argparse.Namespace) -> None:
 
     config = load_simulation_config(args.config)
     out = _writable_folder(args.out)
+    plot = _writable_folder(args.plot) if args.plot else None
     with _progress(args, "simulate") as stage:
         sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
         stage("write files")
         with atomic_directory(out) as staging:
             files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
+        if plot is not None:
+            from ._views import plot_simulation
+
+            with atomic_directory(plot) as staging:
+                figures, notes = plot_simulation(sim, staging, stage=stage)
+            for note in notes:
+                _warn(args, note)
+            _say(args, f"wrote {', '.join(figures)} to {plot}")
     converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
     _say(
         args,
@@ -710,6 +725,48 @@ def _inspect_command(args: argparse.Namespace) -> None:
     _say(args, inspection.summary())
     if plot is not None or out is not None:
         _say(args, f"wrote {', '.join(str(f) for f in (plot, out) if f is not None)}")
+
+
+# --------------------------------------------------------------------------- render
+
+
+@command(
+    "render",
+    "render a fitted medium's per-bounce images and light fields in its capture's geometry",
+    arg("results", metavar="RESULTS.json", help="a results file of lightfield-jax fit"),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--plot",
+        action="store_true",
+        help="also write the paper's figures: bounce_images.png, bounce_profiles.png, "
+        "lightfield.png",
+    ),
+)
+def _render_command(args: argparse.Namespace) -> None:
+    """Render the medium a fit recovered (RESULTS.json names its capture, whose entry
+    wall and light direction are used) under full illumination, on the fit's model
+    (its region of the medium ROI, theta bins, bounces, geometry), and write into DIR
+    (one subfolder per channel when the results hold several):
+
+      bounces.npy     float32 [K, H, W] per-bounce images (index k-1 holds I_k),
+                      fitted gain included
+      bounces.exr     channels I1..IK
+      lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
+                      (left out, with a warning, above 5e7 floats)
+      render.json     the medium, model region, illumination
+      *.png           with --plot: the bounce images, each bounce's profile along
+                      the light, the light fields with direction glyphs
+
+    Nothing is written unless the whole command succeeds."""
+    from ._io import atomic_directory
+    from ._views import render_results
+
+    out = _writable_folder(args.out)
+    with _progress(args, "render") as stage, atomic_directory(out) as staging:
+        files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
+    for note in notes:
+        _warn(args, note)
+    _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
 
 
 # --------------------------------------------------------------------------- experiment
