@@ -453,15 +453,22 @@ def _fit_figures(capture, fit, plot: Path, stage) -> list[Path]:
     stage("plot")
     if len(fit.channels) == 1:
         i = capture.channel_names.index(fit.channels[0])
-        plot_fit(capture.images[..., i], capture.pattern, fit.results[0], plot)
+        plot_fit(
+            capture.images[..., i], capture.pattern, fit.results[0], plot, **_shown(capture, i)
+        )
         return [plot]
     figures = [plot_channels(fit, plot, pixel_size_mm=capture.pixel_size_mm)]
     for name, result in zip(fit.channels, fit.results, strict=True):
         i = capture.channel_names.index(name)
         target = plot.with_name(f"{plot.stem}_{name}{plot.suffix}")
-        plot_fit(capture.images[..., i], capture.pattern, result, target)
+        plot_fit(capture.images[..., i], capture.pattern, result, target, **_shown(capture, i))
         figures.append(target)
     return figures
+
+
+def _shown(capture, i: int) -> dict:
+    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
+    return {"mask": capture.mask[..., i], "truth": capture.truth}
 
 
 @command(
