@@ -705,20 +705,34 @@ def _pattern(args: argparse.Namespace) -> None:
     arg("capture", metavar="CAPTURE.yaml", help="a capture file (see lightfield_jax._capture)"),
     arg("--plot", metavar="FIG.png", help="also write the figure"),
     arg("--json", metavar="FILE", help="also write the findings as JSON"),
+    arg(
+        "--response",
+        metavar="FILE.csv",
+        help="exposure brackets: write the camera response the merge used (e.g. recovered "
+        "by response: auto), a table that response: FILE.csv reads",
+    ),
 )
 def _inspect_command(args: argparse.Namespace) -> None:
     """Load a capture (measuring what it leaves auto), separate it, and print: the
     medium's ROI, the entry wall, the light's direction, the stripe phases, the black
     level, the masked pixels and, per channel, the direct light's SNR along the beam.
     --plot draws the frame with the ROI, entry wall and direction, the separated direct
-    and multiple images, the saturation mask and the SNR along the beam."""
+    and multiple images, the saturation mask and the SNR along the beam; for exposure
+    brackets also a merged image, the response curve and the clipped samples."""
     from ._capture import load_capture
     from ._inspect import inspect_capture
     from ._io import atomic_write_json
 
     plot = _writable_file(args.plot) if args.plot else None
     out = _writable_file(args.json) if args.json else None
+    response = _writable_file(args.response) if args.response else None
     capture = load_capture(args.capture)
+    if response is not None:
+        from ._hdr import write_response
+
+        if capture.brackets is None:
+            raise ValueError(f"--response: {args.capture} has no exposure brackets")
+        write_response(response, capture.brackets.response, capture.channel_names)
     with _progress(args, "inspect") as stage:
         stage("separate")
         inspection = inspect_capture(capture)
@@ -730,8 +744,9 @@ def _inspect_command(args: argparse.Namespace) -> None:
         if out is not None:
             atomic_write_json(out, inspection.to_dict())
     _say(args, inspection.summary())
-    if plot is not None or out is not None:
-        _say(args, f"wrote {', '.join(str(f) for f in (plot, out) if f is not None)}")
+    if plot is not None or out is not None or response is not None:
+        written = (f for f in (plot, out, response) if f is not None)
+        _say(args, f"wrote {', '.join(str(f) for f in written)}")
 
 
 # --------------------------------------------------------------------------- render
