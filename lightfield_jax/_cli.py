@@ -466,6 +466,21 @@ def _fit_figures(capture, fit, plot: Path, stage) -> list[Path]:
     return figures
 
 
+def _roi_record(capture) -> dict:
+    """results.json's ``medium_roi``: the ROI, where it came from, how each edge was
+    found (wall, frame, faded) and what was done about a faded far edge."""
+    det = capture.detected
+    measured = det is not None and "roi" not in det.given
+    given = "given" if capture.roi is not None else "whole frame"
+    return {
+        "roi": None if capture.roi is None else list(capture.roi),
+        "source": "auto" if measured else given,
+        "edges": det.edges if measured else None,
+        "faded": det.faded if measured else None,
+        "note": det.fade_note() if measured and det.faded else None,
+    }
+
+
 def _shown(capture, i: int) -> dict:
     """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
     return {"mask": capture.mask[..., i], "truth": capture.truth}
@@ -535,6 +550,7 @@ def _fit(args: argparse.Namespace) -> int | None:
         result["capture"] = str(capture.source)
         if capture.truth:
             result["truth"] = capture.truth
+        result["medium_roi"] = _roi_record(capture)
         atomic_write_json(out, result)
         figures = _fit_figures(capture, fit, plot, stage) if plot is not None else []
     for note in capture.notes:
