@@ -613,9 +613,7 @@ def test_a_faded_far_edge_is_not_a_wall(lit_from):
     assert "not a wall" in g.summary()
 
 
-def test_a_faded_edge_is_reported_on_screen_and_in_results(
-    fitted, tmp_path, capsys, monkeypatch
-):
+def test_a_faded_edge_is_reported_on_screen_and_in_results(fitted, tmp_path, capsys, monkeypatch):
     # The record does not depend on the fit: any fit stands in for this capture's.
     monkeypatch.setattr(fit_module, "fit_capture", lambda *a, **k: fitted)
     names = []
