@@ -40,7 +40,9 @@ def radiance():
     return np.asarray(lfj.simulate_capture(config).images, np.float64)
 
 
-def _write_brackets(folder, radiance, gamma: float, response: str, dark: bool, seed=0):
+def _write_brackets(
+    folder, radiance, gamma: float, response: str, dark: bool, calibration=False, seed=0
+):
     """8-bit PNG brackets (the shortest exposure puts the peak at half of full scale,
     the longest clips 45 % of the samples) and their capture file."""
     rng = np.random.default_rng(seed)
@@ -65,6 +67,15 @@ def _write_brackets(folder, radiance, gamma: float, response: str, dark: bool, s
     if dark:
         zero = np.zeros(radiance.shape[1:])
         capture["dark_frame"] = [expose(zero, f"dark_{j}.png") for j in range(len(TIMES))]
+    if calibration:  # the projector's all-white and all-black frames, bracketed alike
+        white = radiance.sum(axis=0) / 3  # six shifts of lit 3 of period 6: 3 × white
+        capture["white_frame"] = [
+            expose(white * scale * t, f"white_{j}.png") for j, t in enumerate(TIMES)
+        ]
+        capture["black_frame"] = [  # a projector whose black is 5 % of its white
+            expose(0.05 * white * scale * t, f"black_{j}.png") for j, t in enumerate(TIMES)
+        ]
+        capture["black_level"] = "auto"
     path = folder / "capture.yaml"
     path.write_text(yaml.safe_dump(capture))
     return path
@@ -79,8 +90,11 @@ def _relative_errors(merged, truth):
 
 
 def test_linear_brackets_merge_to_the_radiance(radiance, tmp_path):
-    capture = load_capture(_write_brackets(tmp_path, radiance, 1.0, "linear", dark=True))
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True, calibration=True)
+    capture = load_capture(path)
     median, p90 = _relative_errors(capture.images[..., 0], radiance)
+    # The bracketed black and white frames merge alike: the projector's black is 5 %.
+    assert capture.black_level == pytest.approx(0.05, abs=0.003), capture.black_level_estimate
     assert median < 0.02 and p90 < 0.05, (median, p90)
     b = capture.brackets
     assert b.response.kind == "linear" and b.times == tuple(TIMES)

@@ -542,7 +542,7 @@ def test_new_modules_do_not_load_image_libraries():
     code = (
         "import sys, lightfield_jax, lightfield_jax._capture, lightfield_jax._geometry, "
         "lightfield_jax._calibration, lightfield_jax._pattern, lightfield_jax._inspect, "
-        "lightfield_jax._cli; "
+        "lightfield_jax._cli, lightfield_jax._hdr, lightfield_jax._views; "
         "bad = {'OpenImageIO', 'matplotlib', 'cv2', 'skimage'} & set(sys.modules); "
         "assert not bad, bad"
     )
