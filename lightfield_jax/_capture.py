@@ -530,17 +530,26 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         )
     try:
         check_sample_formats(
-            [(f"images[{i}][0]", row[0]) for i, row in enumerate(shifts)]
-            + [(f"images[0][{j}]", f) for j, f in enumerate(shifts[0])],
-            [(f"{k}[{j}]", f) for k, v in aux.items() if v for j, f in enumerate(v)],
+            listed, [(f"{k}[{j}]", f) for k, v in aux.items() if v for j, f in enumerate(v)]
         )
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
+    clip = _positive(top, "saturation")
+    # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
+    sensor = None
+    if clip is None:
+        sensor = sensor_top_code(images.reshape(-1, *images.shape[2:]), [f for _, f in listed])
+    full = 1.0 if sensor is None else sensor[0]
+    if sensor is not None:
+        levels = 1 << sensor[1]
+        notes.append(f"{sensor[1]}-bit data in 16-bit files: samples divided by its top code")
+    images = images / full
     response = _response(top, base, images, times, first.pixels.shape[-1])
-    clip = _positive(top, "saturation") or CLIP
+    clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
+    dark = None if dark is None else dark / full
     radiance, record = merge_capture(
         images, times, response, levels=levels, dark=dark, clip=clip,
         files=[[f.path for f in row] for row in shifts],
@@ -549,7 +558,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     merged: dict[str, ImageData | None] = dict.fromkeys(_AUX_FRAMES)
     for key in ("black_frame", "white_frame", "flat_field"):
         if aux[key] is not None:
-            stack = np.stack([f.pixels for f in aux[key]])
+            stack = np.stack([f.pixels for f in aux[key]]) / full
             m = merge_bracket(stack, times, response, levels=levels, dark=dark, clip=clip)
             merged[key] = _merged_frame(m.radiance, aux[key][-1])
     if dark is not None:

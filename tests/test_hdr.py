@@ -41,16 +41,21 @@ def radiance():
 
 
 def _write_brackets(
-    folder, radiance, gamma: float, response: str, dark: bool, calibration=False, seed=0
+    folder, radiance, gamma: float, response: str, dark: bool, calibration=False, bits=8
 ):
-    """8-bit PNG brackets (the shortest exposure puts the peak at half of full scale,
-    the longest clips 45 % of the samples) and their capture file."""
-    rng = np.random.default_rng(seed)
+    """PNG brackets (the shortest exposure puts the peak at half of full scale, the
+    longest clips 45 % of the samples) and their capture file: 8-bit, or ``bits`` of
+    sensor data in 16-bit files."""
+    rng = np.random.default_rng(0)
     scale = 0.5 / (radiance.max() * TIMES[0])
 
     def expose(signal, name):
         x = rng.poisson((signal + (PEDESTAL if dark else 0.0)) * PHOTONS) / PHOTONS
-        write_png(folder / name, np.clip(x, 0.0, 1.0) ** (1.0 / gamma), bits=8)
+        z = np.clip(x, 0.0, 1.0) ** (1.0 / gamma)
+        if bits == 8:
+            write_png(folder / name, z, bits=8)
+        else:  # the sensor's codes, as a raw converter writes them into 16 bits
+            write_png(folder / name, np.rint(z * ((1 << bits) - 1)) / 65535, bits=16)
         return name
 
     images = [
@@ -106,6 +111,15 @@ def test_linear_brackets_merge_to_the_radiance(radiance, tmp_path):
     assert capture.exposure.max() == pytest.approx(sum(TIMES) - TIMES[0], rel=1e-6)
     assert any(n.startswith("HDR: 6 brackets of 3 exposures") for n in capture.notes)
     assert any("dark_frame: subtracted from every exposure" in n for n in capture.notes)
+
+
+def test_12_bit_data_in_16_bit_files_clips_at_the_sensor_top_code(radiance, tmp_path):
+    capture = load_capture(_write_brackets(tmp_path, radiance, 1.0, "linear", False, bits=12))
+    assert "12-bit data in 16-bit files: samples divided by its top code" in capture.notes
+    # Clipped samples are found at the sensor's top code (not at 16 bits' one).
+    assert capture.brackets.clipped_fraction[-1].mean() > 0.2
+    median, p90 = _relative_errors(capture.images[..., 0], radiance)
+    assert median < 0.02 and p90 < 0.05, (median, p90)
 
 
 def test_gamma_brackets_recover_the_response_and_the_radiance(radiance, tmp_path):
