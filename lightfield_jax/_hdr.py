@@ -23,7 +23,12 @@ the truth over codes 16-232 with λ = 50, within 10 % with OpenCV's default 10).
 curve is not supported near the top code (few samples, and the calibration's hat weight
 vanishes there: 4-17 % off above code 240), so with an ``auto`` response samples above
 ``AUTO_CLIP`` = 0.9 count as clipped. An ``auto`` curve is normalised to x(0.5) = 1 and
-x(0) = 0 (Debevec's log curve leaves the black code undetermined).
+x(0) = 0 (Debevec's log curve leaves the black code undetermined). The calibration
+assumes z = f(E·t): light that scales with the exposure (ambient light is fine), no
+black pedestal under the non-linear curve (cameras that write gamma-encoded files
+subtract their black level before encoding). Measured with a pedestal of 2 % of full
+scale under γ 2.2, the recovered curve is 10-30 % low over z 0.25-0.4 and the fit's g
+0.025 low.
 
 **Merge.** OpenCV's ``mergeDebevec``/``mergeRobertson`` weight samples by a hat
 function of the code and take 8-bit input; neither drops a sample by how much light
@@ -36,11 +41,12 @@ valid (neither clipped nor near black),
 with d_j the dark frame's sample at the same exposure (a camera's black pedestal does
 not scale with t, so it is subtracted before merging, never after). A sample is
 **clipped** when z ≥ ``clip`` (default 0.98: sensors knee below their top code) and
-**near black** when its quantisation step exceeds 5 % of its value
-(f⁻¹'(z)·Δz / f⁻¹(z) > 0.05 with Δz one code; for 8-bit γ 2.2 that is z < 0.17) or
-z < 0.005 (read noise). A pixel without a valid sample takes its longest unclipped
-exposure (it is dark: the best there is) and, when every exposure is clipped, its
-shortest one, flagged ``clipped`` (the capture masks it). T goes to the joint fit's
+**near black** when one code exceeds 5 % of the signal it holds,
+f⁻¹(z + Δz) − f⁻¹(z) > 0.05·(x_j − d_j) with Δz one code (without a dark frame, for
+8-bit γ 2.2 that is z < 0.17; a pedestal raises it: the signal above the dark frame is
+what must be resolved), or z < 0.005 (read noise). A pixel without a valid sample takes
+its longest unclipped exposure (it is dark: the best there is) and, when every exposure
+is clipped, its shortest one, flagged ``clipped`` (the capture masks it). T goes to the joint fit's
 weights (w ∝ √(T / (E + floor)) instead of 1/√(E + floor)).
 
 OpenCV is imported inside :func:`calibrate_response`, so ``import lightfield_jax``
@@ -95,18 +101,21 @@ class Response:
             out[..., c] = np.interp(z[..., c], self.codes, column)
         return out
 
-    def near_black(self, levels: int | None) -> np.ndarray:
-        """Per channel, the code z below which a sample is near black (module
-        docstring); ``levels`` is the sample type's number of codes (None: float)."""
-        n = self.curve.shape[1]
+    def step(self, z: np.ndarray, levels: int | None) -> np.ndarray:
+        """f⁻¹(z + Δz) − f⁻¹(z): the linear size of one code at z (0 for float samples,
+        ``levels`` None)."""
         if levels is None:
-            return np.full(n, _NEAR_BLACK)
-        step = 1.0 / (levels - 1)
-        z = np.linspace(0.0, 1.0, 1025)
-        x = self.linearize(np.repeat(z[:, None], n, axis=1))
-        slope = np.gradient(x, z, axis=0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            coarse = ~(slope * step <= _MAX_QUANTISATION * x)
+            return np.zeros(np.shape(z))
+        return self.linearize(np.minimum(z + 1.0 / (levels - 1), 1.0)) - self.linearize(z)
+
+    def near_black(self, levels: int | None) -> np.ndarray:
+        """Per channel, the code z below which a sample without a dark frame is near
+        black (module docstring); ``levels``: the samples' number of codes (None: float)."""
+        n = self.curve.shape[1]
+        z = np.repeat(np.linspace(0.0, 1.0, 1025)[:, None], n, axis=1)
+        with np.errstate(invalid="ignore"):
+            coarse = ~(self.step(z, levels) <= _MAX_QUANTISATION * self.linearize(z))
+        z = z[:, 0]
         out = np.empty(n)
         for c in range(n):
             bad = np.flatnonzero(coarse[: int(CLIP * 1024), c])
@@ -224,15 +233,16 @@ class Merged:
             unclipped exposure's time where no sample is valid).
         clipped: (H, W, C) True where every exposure is clipped.
         dark: (H, W, C) True where no sample is valid and E comes from one dark sample.
-        clipped_samples, near_black_samples: per exposure, the samples dropped.
+        clipped_samples, near_black_samples: (J, H, W, C) True where a sample was
+            dropped as clipped, or as near black (and not clipped).
     """
 
     radiance: np.ndarray
     exposure: np.ndarray
     clipped: np.ndarray
     dark: np.ndarray
-    clipped_samples: tuple[int, ...]
-    near_black_samples: tuple[int, ...]
+    clipped_samples: np.ndarray
+    near_black_samples: np.ndarray
 
 
 def merge_bracket(
@@ -252,13 +262,14 @@ def merge_bracket(
     if response.kind == "auto":
         clip = min(clip, AUTO_CLIP)
     t = np.asarray(times, np.float64).reshape(-1, 1, 1, 1)
-    x = response.linearize(np.where(np.isfinite(z), z, 0.0))
+    z = np.where(np.isfinite(z), z, 0.0)
+    x = response.linearize(z)
     if dark is not None:
         d = np.asarray(dark, np.float64)
         x = x - response.linearize(np.broadcast_to(np.where(np.isfinite(d), d, 0.0), z.shape))
-    with np.errstate(invalid="ignore"):
-        clipped = ~(z < clip)
-        black = z < response.near_black(levels)
+    clipped = ~(z < clip)
+    # Near black: one code is more than 5 % of the signal left after the dark frame.
+    black = ~clipped & ((z < _NEAR_BLACK) | ~(response.step(z, levels) <= _MAX_QUANTISATION * x))
     valid = ~clipped & ~black
     total = np.sum(np.where(valid, t, 0.0), axis=0)
     merged = np.sum(np.where(valid, x, 0.0), axis=0)
@@ -276,8 +287,8 @@ def merge_bracket(
         exposure=np.where(empty, pick_t, total),
         clipped=none_ok,
         dark=empty & ~none_ok,
-        clipped_samples=tuple(int(v) for v in clipped.sum(axis=(1, 2, 3))),
-        near_black_samples=tuple(int(v) for v in (black & ~clipped).sum(axis=(1, 2, 3))),
+        clipped_samples=clipped,
+        near_black_samples=black,
     )
 
 
@@ -289,7 +300,8 @@ class Brackets:
         times: the exposure times t_j (seconds), shortest first as given.
         response: the inverse response used.
         clip: the sample value at or above which a sample counted as clipped.
-        near_black: per channel, the value below which a sample counted as near black.
+        near_black: per channel, the value below which a sample counted as near black
+            without a dark frame (with one: where one code exceeds 5 % of the signal).
         exposure: T (P, H, W, C) of every merged shift (seconds), whole frame.
         clipped: (H, W, C) True where every exposure of some shift is clipped.
         clipped_fraction, near_black_fraction: (J, H, W): per exposure, the fraction of a
@@ -355,20 +367,15 @@ def merge_capture(
     merged = [
         merge_bracket(b, times, response, levels=levels, dark=dark, clip=clip) for b in images
     ]
-    used = min(clip, AUTO_CLIP) if response.kind == "auto" else clip
-    black = response.near_black(levels)
-    with np.errstate(invalid="ignore"):
-        clipped = ~(images < used)
-        near = (images < black) & ~clipped
     record = Brackets(
         times=tuple(float(t) for t in times),
         response=response,
-        clip=used,
-        near_black=tuple(float(v) for v in black),
+        clip=min(clip, AUTO_CLIP) if response.kind == "auto" else clip,
+        near_black=tuple(float(v) for v in response.near_black(levels)),
         exposure=np.stack([m.exposure for m in merged]).astype(np.float32),
         clipped=np.any([m.clipped for m in merged], axis=0),
-        clipped_fraction=clipped.mean(axis=(0, 4)),
-        near_black_fraction=near.mean(axis=(0, 4)),
+        clipped_fraction=np.mean([m.clipped_samples for m in merged], axis=(0, 4)),
+        near_black_fraction=np.mean([m.near_black_samples for m in merged], axis=(0, 4)),
         dark_pixels=int(sum(m.dark.sum() for m in merged)),
         files=tuple(tuple(row) for row in files),
     )

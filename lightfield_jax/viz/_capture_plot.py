@@ -156,7 +156,13 @@ def _plot_brackets(fig, axes, c) -> None:
         ax.plot(z, x[:, i], color=_colour(name, i), label=f"{b.response.kind} response {name}")
     ax.axvline(b.clip, color="0.3", ls="--", lw=0.8, label=f"clipped above {b.clip:g}")
     for i, v in enumerate(b.near_black):
-        ax.axvline(v, color="0.6", ls=":", lw=0.8, label="near black below" if i == 0 else None)
+        ax.axvline(
+            v,
+            color="0.6",
+            ls=":",
+            lw=0.8,
+            label="near black below (no dark frame)" if i == 0 else None,
+        )
     ax.set_xlabel("sample value z (integer codes / their maximum)")
     ax.set_ylabel("linear exposure x = f⁻¹(z) (relative)")
     ax.set_title("camera response used by the merge", fontsize=9)
