@@ -743,12 +743,8 @@ def _inspect_command(args: argparse.Namespace) -> None:
     out = _writable_file(args.json) if args.json else None
     response = _writable_file(args.response) if args.response else None
     capture = load_capture(args.capture)
-    if response is not None:
-        from ._hdr import write_response
-
-        if capture.brackets is None:
-            raise ValueError(f"--response: {args.capture} has no exposure brackets")
-        write_response(response, capture.brackets.response, capture.channel_names)
+    if response is not None and capture.brackets is None:
+        raise ValueError(f"--response: {args.capture} has no exposure brackets")
     with _progress(args, "inspect") as stage:
         stage("separate")
         inspection = inspect_capture(capture)
@@ -759,6 +755,10 @@ def _inspect_command(args: argparse.Namespace) -> None:
             plot_inspect(inspection, plot)
         if out is not None:
             atomic_write_json(out, inspection.to_dict())
+        if response is not None:
+            from ._hdr import write_response
+
+            write_response(response, capture.brackets.response, capture.channel_names)
     _say(args, inspection.summary())
     if plot is not None or out is not None or response is not None:
         written = (f for f in (plot, out, response) if f is not None)

@@ -3,12 +3,15 @@ capture, as a camera would take them (shot noise, a dark pedestal, clipping, 8-b
 codes, linear or γ 2.2), are merged back to the capture's radiance; the fit recovers
 the medium from them (slow)."""
 
+import json
+
 import numpy as np
 import pytest
 import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax._capture import load_capture
+from lightfield_jax._cli import main
 from lightfield_jax._config import parse_simulation_config
 from lightfield_jax._fit import fit_capture
 from lightfield_jax._hdr import (
@@ -142,6 +145,23 @@ def test_gamma_brackets_recover_the_response_and_the_radiance(radiance, tmp_path
     again = load_capture(tmp_path / "from_file.yaml")
     assert again.brackets.response.kind == "file"
     np.testing.assert_allclose(again.images, capture.images, rtol=1e-5)
+
+
+def test_inspect_shows_the_merge(radiance, tmp_path, capsys):
+    path = _write_brackets(tmp_path, radiance, 2.2, "auto", dark=False)
+    files = [tmp_path / n for n in ("inspect.png", "inspect.json", "response.csv")]
+    args = ["inspect", str(path), "--plot", str(files[0]), "--json", str(files[1])]
+    assert main([*args, "--response", str(files[2])]) == 0
+    out = capsys.readouterr().out
+    assert "note: HDR: 6 brackets of 3 exposures merged, auto response" in out
+    record = json.loads(files[1].read_text())["brackets"]
+    assert record["exposure_times"] == TIMES and record["response"]["kind"] == "auto"
+    # The longest exposure clips near the entry wall; the shortest drops the dark tail.
+    assert record["clipped_fraction"][0] == 0 and record["clipped_fraction"][2] > 0.2
+    assert record["near_black_fraction"][0] > 0.3
+    assert files[0].stat().st_size > 50_000
+    curve = load_response(files[2], 1)
+    np.testing.assert_allclose(curve.curve[:, 0], record["response"]["curve"][0], rtol=1e-6)
 
 
 def test_merge_weights_samples_by_exposure_and_drops_clipped_and_black_ones():
