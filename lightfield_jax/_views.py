@@ -74,12 +74,28 @@ def write_transport(result: RenderResult, folder: Path) -> dict[str, str]:
     return files
 
 
+_FIT_KEYS = ("sigma_t", "sigma_s", "g", "gain")
+_MODEL_KEYS = ("width", "height", "n_theta", "refine", "bounces", "crop")
+
+
 def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, Any]]:
-    if "per_channel" in data:
-        return dict(data["per_channel"])
-    if "model" not in data or "sigma_t" not in data:
+    """Each channel's fit, checked: its values are numbers and its model is complete."""
+    if not isinstance(data, dict) or ("model" not in data and "per_channel" not in data):
         raise ValueError(f"{source}: not a results file of lightfield-jax fit (no model)")
-    return {str(data.get("channel", "Y")): data}
+    channels = (
+        dict(data["per_channel"]) if "per_channel" in data else {data.get("channel", "Y"): data}
+    )
+    for name, fit in channels.items():
+        model = fit.get("model")
+        missing = [k for k in _FIT_KEYS if not isinstance(fit.get(k), (int, float))]
+        missing += [
+            f"model.{k}" for k in _MODEL_KEYS if not isinstance(model, dict) or k not in model
+        ]
+        if missing:
+            raise ValueError(
+                f"{source}: channel {name}: no usable {', '.join(missing)} (a failed fit?)"
+            )
+    return {str(k): v for k, v in channels.items()}
 
 
 def render_results(

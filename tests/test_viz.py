@@ -95,10 +95,20 @@ def test_simulate_plot_and_render_a_fit(tmp_path, capsys):
     assert about["illumination"] == "full, left wall, 0 deg" and about["bounces"] == 6
 
 
-def test_render_refuses_a_file_that_is_not_results(tmp_path, capsys):
-    (tmp_path / "r.json").write_text(json.dumps({"sigma_t": 0.1}))
+@pytest.mark.parametrize(
+    "results, message",
+    [
+        ({"sigma_t": 0.1}, "not a results file of lightfield-jax fit"),
+        (
+            {**MEDIUM, "gain": None, "model": {"width": 3}},
+            "channel Y: no usable gain, model.height",
+        ),
+    ],
+)
+def test_render_refuses_a_file_that_is_not_results(tmp_path, capsys, results, message):
+    (tmp_path / "r.json").write_text(json.dumps(results))
     assert main(["render", str(tmp_path / "r.json"), "--out", str(tmp_path / "o")]) == 2
-    assert "not a results file of lightfield-jax fit" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
