@@ -9,6 +9,7 @@ and written as 16-bit TIFF (through the template of ``lightfield-jax pattern``) 
 16-bit PNG; the pipeline must recover what was put in.
 """
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -597,8 +598,24 @@ def _faded_frames(lit_from=None):
 
 
 @pytest.mark.parametrize("lit_from", [None, 60])
-def test_a_faded_far_edge_is_not_a_wall(lit_from):
-    g = detect_geometry(_faded_frames(lit_from), period=PERIOD, lit=LIT)
+@pytest.mark.parametrize("mirror", [False, True])
+def test_a_faded_far_edge_is_not_a_wall(lit_from, mirror):
+    frames = _faded_frames(lit_from)
+    g = detect_geometry(frames[..., ::-1] if mirror else frames, period=PERIOD, lit=LIT)
+    if mirror:  # back to the unmirrored frame: x → FRAME_W − x
+        x0, y0, x1, y1 = g.roi
+        g = dataclasses.replace(
+            g,
+            roi=(FRAME_W - x1, y0, FRAME_W - x0, y1),
+            entry={"right": "left"}.get(g.entry, g.entry),
+            edges={**g.edges, "left": g.edges["right"], "right": g.edges["left"]},
+            faded={
+                **g.faded,
+                "side": {"left": "right"}.get(g.faded["side"], g.faded["side"]),
+                "at": FRAME_W - g.faded["at"],
+                "extended_to": FRAME_W - g.faded["extended_to"],
+            },
+        )
     assert g.entry == "left" and g.edges["right"] == "faded", g.summary()
     assert {g.edges[k] for k in ("left", "top", "bottom")} == {"wall"}
     # The light faded inside the tank; the ROI goes on through the dark frame.
