@@ -31,6 +31,15 @@ Keys:
   (a constant alpha channel is dropped). 16-bit files that hold 10-, 12- or 14-bit data
   clipped at its top code (4095 for 12 bits) have those pixels masked as saturated.
   See :mod:`lightfield_jax._calibration`.
+- ``images`` as exposure brackets, one list per shift (``[[s0_1ms.png, s0_8ms.png],
+  [s1_1ms.png, s1_8ms.png], ...]``), with ``exposure_times`` (seconds, increasing, the
+  order of every list) and ``response`` (``linear``, default; ``auto``: recovered from
+  the brackets; or a table file): each bracket is merged to linear radiance
+  (:mod:`lightfield_jax._hdr`), clipped and near-black samples dropped; a calibration
+  frame is then a list of one file per exposure time too, and the dark frame is
+  subtracted from every exposure before the merge. ``saturation`` is then the sample
+  value at which a sample counts as clipped (default 0.98). The merged noise goes to the
+  joint fit (``Capture.exposure``); ``Capture.brackets`` says what the merge did.
 - ``pattern``: the projected stripes (MODEL.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
