@@ -88,7 +88,9 @@ default above, so existing captures load unchanged):
   flat-fielded images over the whole frame (the ROI in the white frame when there is
   one): the lit medium's rectangle, the wall the light enters, its heading from the
   stripes' ridges (oblique stripes are modelled by ``direction_deg``), and where the
-  stripes fall on the camera's rows. Its result is ``Capture.detected``.
+  stripes fall on the camera's rows. Its result is ``Capture.detected``. Where the
+  light fades before the far wall, that edge is not taken for a wall: the ROI goes on
+  through the dark frame and the fit crops where each channel's light meets its noise.
 - ``black_level``: from the black frame (against the white frame or the mean of the
   shifts), or, without one, Imin/Imax at the entry wall, which is an upper bound
   (:mod:`lightfield_jax._calibration`). Its result is ``Capture.black_level_estimate``.
