@@ -61,8 +61,7 @@ def _render_fields(result: RenderResult, show: int) -> tuple[np.ndarray, list[st
     """L_0..L_show and their sum over every bounce, with labels (stripes summed)."""
     if result.lightfields is None:
         raise ValueError(
-            "plot_lightfield: the RenderResult holds no light fields; render with "
-            "lightfield=True"
+            "plot_lightfield: the RenderResult holds no light fields; render with lightfield=True"
         )
     fields = np.asarray(result.lightfields, np.float64)
     if fields.ndim == 5:
