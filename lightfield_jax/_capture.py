@@ -31,6 +31,15 @@ Keys:
   (a constant alpha channel is dropped). 16-bit files that hold 10-, 12- or 14-bit data
   clipped at its top code (4095 for 12 bits) have those pixels masked as saturated.
   See :mod:`lightfield_jax._calibration`.
+- ``images`` as exposure brackets, one list per shift (``[[s0_1ms.png, s0_8ms.png],
+  [s1_1ms.png, s1_8ms.png], ...]``), with ``exposure_times`` (seconds, increasing, the
+  order of every list) and ``response`` (``linear``, default; ``auto``: recovered from
+  the brackets; or a table file): each bracket is merged to linear radiance
+  (:mod:`lightfield_jax._hdr`), clipped and near-black samples dropped; a calibration
+  frame is then a list of one file per exposure time too, and the dark frame is
+  subtracted from every exposure before the merge. ``saturation`` is then the sample
+  value at which a sample counts as clipped (default 0.98). The merged noise goes to the
+  joint fit (``Capture.exposure``); ``Capture.brackets`` says what the merge did.
 - ``pattern``: the projected stripes (MODEL.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
@@ -79,7 +88,9 @@ default above, so existing captures load unchanged):
   flat-fielded images over the whole frame (the ROI in the white frame when there is
   one): the lit medium's rectangle, the wall the light enters, its heading from the
   stripes' ridges (oblique stripes are modelled by ``direction_deg``), and where the
-  stripes fall on the camera's rows. Its result is ``Capture.detected``.
+  stripes fall on the camera's rows. Its result is ``Capture.detected``. Where the
+  light fades before the far wall, that edge is not taken for a wall: the ROI goes on
+  through the dark frame and the fit crops where each channel's light meets its noise.
 - ``black_level``: from the black frame (against the white frame or the mean of the
   shifts), or, without one, Imin/Imax at the entry wall, which is an upper bound
   (:mod:`lightfield_jax._calibration`). Its result is ``Capture.black_level_estimate``.
@@ -117,6 +128,7 @@ from ._calibration import (
 )
 from ._config import _as_int, _Section, load_yaml
 from ._geometry import LOW_CONFIDENCE, Geometry, detect_geometry
+from ._hdr import CLIP, RESPONSES, Brackets, linear_response, merge_bracket, merge_capture
 from ._illumination import WALLS, Stripes
 from ._io import (
     CaptureError,
@@ -144,6 +156,8 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "black_frame",
     "white_frame",
     "flat_field",
+    "exposure_times",
+    "response",
 )
 AUTO = "auto"
 GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
@@ -188,6 +202,10 @@ class Capture:
         overview: the mean of the shifts over the whole camera frame (dark frame
             subtracted, flat-fielded), [H, W, C], before the ROI crop.
         black_frame, white_frame, flat_field: the files given for these keys, or ``None``.
+        brackets: what merging exposure brackets did (:mod:`lightfield_jax._hdr`), or
+            ``None`` for single exposures.
+        exposure: the merged images' effective exposure T (seconds) [P, H, W, C] after
+            the ROI crop (their noise: Var ∝ image / T), or ``None``.
     """
 
     images: np.ndarray
@@ -212,6 +230,8 @@ class Capture:
     black_frame: Path | None = None
     white_frame: Path | None = None
     flat_field: Path | None = None
+    brackets: Brackets | None = None
+    exposure: np.ndarray | None = None
 
     @property
     def n_images(self) -> int:
@@ -242,14 +262,18 @@ def load_capture(path: str | os.PathLike) -> Capture:
     channel = _channel(top)
     notes: list[str] = []  # what was measured or decided: Capture.notes
     issues: list[str] = []  # what the user must know: CaptureWarnings
-    frames = _frames(top, base, channel)
+    merged = _brackets(top, base, channel, notes)
+    frames = _frames(top, base, channel) if merged is None else merged[0]
     try:
         frames = drop_constant_alpha(frames, notes)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     height, width, n_channels = frames[0].pixels.shape
     spec = _pattern_spec(top, len(frames))
-    aux = {key: _aux_frame(top, key, base, channel, frames[0]) for key in _AUX_FRAMES}
+    if merged is None:
+        aux = {key: _aux_frame(top, key, base, channel, frames[0]) for key in _AUX_FRAMES}
+    else:
+        aux, brackets = merged[1], merged[2]
     try:
         check_sample_formats(
             [(f"images[{i}]", f) for i, f in enumerate(frames)],
@@ -261,7 +285,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     roi = _roi(top, width, height)
     black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
-    saturation = _positive(top, "saturation")
+    saturation = _positive(top, "saturation") if merged is None else None
     geometry = _geometry(top)
     truth = _truth(top)
 
@@ -286,7 +310,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             roi,
             _calibrate(raw, dark_pixels, flat_pixels),
             None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels),
-            dark_subtracted=dark is not None,
+            dark_subtracted=dark is not None or bool(merged and "dark_frame" in top.data),
         )
         notes.append("detected: " + detected.summary().replace("\n", "; "))
         if detected.confidence < LOW_CONFIDENCE:
@@ -315,6 +339,12 @@ def load_capture(path: str | os.PathLike) -> Capture:
         checked.append((aux["flat_field"], flat_pixels))
     nonfinite = _nonfinite(raw, checked, names, issues)
     saturated = _saturated(raw, frames, names, saturation, sensor, issues) & ~nonfinite
+    exposure = None
+    if merged is not None:
+        x0, y0, x1, y1 = roi or (0, 0, width, height)
+        saturated |= brackets.clipped[y0:y1, x0:x1] & ~nonfinite
+        exposure = brackets.exposure[:, y0:y1, x0:x1]
+        notes.append(brackets.summary())
     mask = ~(nonfinite | saturated)
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
@@ -366,6 +396,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         black_frame=None if aux["black_frame"] is None else aux["black_frame"].path,
         white_frame=None if aux["white_frame"] is None else aux["white_frame"].path,
         flat_field=None if aux["flat_field"] is None else aux["flat_field"].path,
+        brackets=None if merged is None else brackets,
+        exposure=exposure,
     )
 
 
@@ -443,6 +475,150 @@ def _size(image: ImageData) -> str:
     return f"{w}x{h} pixels with {c} channel(s)"
 
 
+# --------------------------------------------------------------------------- brackets
+
+
+def _brackets(top: _Section, base: Path, channel, notes: list[str]):
+    """Exposure brackets merged to linear radiance (:mod:`lightfield_jax._hdr`):
+    ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
+    frame subtracted per exposure before merging (so the calibration frames hold no
+    dark frame any more); ``None`` when the images are not brackets (lists)."""
+    value = top.get("images")
+    rows = [isinstance(v, list) for v in value] if isinstance(value, list) else []
+    if not any(rows):
+        for key in ("exposure_times", "response"):
+            if key in top.data:
+                top.fail(key, "applies to bracketed images only (a list of exposures per shift)")
+        return None
+    if not all(rows):
+        top.fail(
+            "images",
+            "mixes files and brackets: give every shift as a list of exposures, or every "
+            "shift as one file",
+        )
+    times = _exposure_times(top)
+
+    def read(key, file, first=None):
+        if first is not None:
+            return _aux_frame(top, key, base, channel, first, value=file)
+        return _read(top, key, _file(top, key, file, base), channel)
+
+    shifts = []
+    for i, row in enumerate(value):
+        if len(row) != len(times):
+            top.fail(
+                f"images[{i}]",
+                f"lists {len(row)} exposure(s) for {len(times)} exposure_times; give one file "
+                "per exposure time, in the same order",
+            )
+        shifts.append([read(f"images[{i}][{j}]", v) for j, v in enumerate(row)])
+    listed = [(f"images[{i}][{j}]", f) for i, row in enumerate(shifts) for j, f in enumerate(row)]
+    first = listed[0][1]
+    for key, f in listed[1:]:
+        if f.pixels.shape != first.pixels.shape:
+            top.fail(
+                key,
+                f"{f.path.name} is {_size(f)}, but images[0][0] ({first.path.name}) is "
+                f"{_size(first)}; every image must have the same size and channels",
+            )
+    try:
+        kept = iter(drop_constant_alpha([f for _, f in listed], notes))
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: images: {e}") from None
+    shifts = [[next(kept) for _ in row] for row in shifts]
+    first = shifts[0][0]
+    aux: dict[str, list[ImageData] | None] = {}
+    for key in _AUX_FRAMES:
+        files = top.get(key, None)
+        if files is not None and (not isinstance(files, list) or len(files) != len(times)):
+            top.fail(
+                key,
+                f"with bracketed images give one file per exposure time ({len(times)}), in "
+                f"their order, got {files!r}",
+            )
+        aux[key] = (
+            None if files is None else [read(f"{key}[{j}]", f, first) for j, f in enumerate(files)]
+        )
+    try:
+        check_sample_formats(
+            listed, [(f"{k}[{j}]", f) for k, v in aux.items() if v for j, f in enumerate(v)]
+        )
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: {e}") from None
+    levels = (1 << first.bit_depth) if first.is_integer else None
+    images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
+    clip = _positive(top, "saturation")
+    # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
+    sensor = None
+    if clip is None:
+        sensor = sensor_top_code(images.reshape(-1, *images.shape[2:]), [f for _, f in listed])
+    full = 1.0 if sensor is None else sensor[0]
+    if sensor is not None:
+        levels = 1 << sensor[1]
+        notes.append(f"{sensor[1]}-bit data in 16-bit files: samples divided by its top code")
+    images = images / full
+    response = _response(top, base, images, times, first.pixels.shape[-1])
+    clip = clip or CLIP
+    dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
+    dark = None if dark is None else dark / full
+    radiance, record = merge_capture(
+        images, times, response, levels=levels, dark=dark, clip=clip,
+        files=[[f.path for f in row] for row in shifts],
+    )  # fmt: skip
+    frames = [_merged_frame(r, row[-1]) for r, row in zip(radiance, shifts, strict=True)]
+    merged: dict[str, ImageData | None] = dict.fromkeys(_AUX_FRAMES)
+    for key in ("black_frame", "white_frame", "flat_field"):
+        if aux[key] is not None:
+            stack = np.stack([f.pixels for f in aux[key]]) / full
+            m = merge_bracket(stack, times, response, levels=levels, dark=dark, clip=clip)
+            merged[key] = _merged_frame(m.radiance, aux[key][-1])
+    if dark is not None:
+        notes.append("dark_frame: subtracted from every exposure before the merge")
+    return frames, merged, record
+
+
+def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
+    """A merged bracket as a float frame, named after its longest exposure."""
+    return dataclasses.replace(
+        longest, pixels=radiance.astype(np.float32), bit_depth=32, sample_type="float"
+    )
+
+
+def _exposure_times(top: _Section) -> list[float]:
+    value = top.get("exposure_times", None)
+    if not isinstance(value, list) or len(value) < 2:
+        top.fail(
+            "exposure_times",
+            f"bracketed images need a list of at least two exposure times (seconds), got {value!r}",
+        )
+    for i, t in enumerate(value):
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < math.inf:
+            top.fail(f"exposure_times[{i}]", f"must be a positive number of seconds, got {t!r}")
+    if any(b <= a for a, b in zip(value, value[1:], strict=False)):
+        top.fail("exposure_times", f"must increase (shortest first), got {value!r}")
+    return [float(t) for t in value]
+
+
+def _response(top: _Section, base: Path, images: np.ndarray, times, n_channels: int):
+    """The inverse response: ``linear`` (default), ``auto`` (from the brackets) or a
+    table file (:func:`~lightfield_jax._hdr.load_response`)."""
+    from ._hdr import calibrate_response, load_response
+
+    value = top.get("response", "linear")
+    if not isinstance(value, str) or not value:
+        top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {value!r}")
+    try:
+        if value == "linear":
+            return linear_response()
+        if value == "auto":
+            p, j, h, w, c = images.shape
+            pooled = np.moveaxis(images, 1, 0).reshape(j, p * h * w, c)
+            return calibrate_response(pooled, times)
+        return load_response(_file(top, "response", value, base), n_channels)
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: response: {e}") from None
+
+
 def _pattern_spec(top: _Section, n_images: int) -> dict[str, Any]:
     """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
     ``"auto"`` (measured from the images)."""
@@ -511,10 +687,10 @@ def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
     return dataclasses.replace(pattern, phases=phases)
 
 
-def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData):
-    """A calibration frame (dark, black, white, flat): the images' size, and one
-    channel or as many as they have."""
-    value = top.get(key, None)
+def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, value=None):
+    """A calibration frame (dark, black, white, flat; ``value``: its file, default the
+    key's): the images' size, and one channel or as many as they have."""
+    value = top.get(key, None) if value is None else value
     if value is None:
         return None
     frame = _read(top, key, _file(top, key, value, base), channel)

@@ -253,6 +253,12 @@ def _writable_file(path: str) -> Path:
         action="store_true",
         help="also write lightfield.npy, L_0..L_K (memory: (K+1)*P*H*W*n_theta floats)",
     ),
+    arg(
+        "--plot",
+        metavar="FIGDIR",
+        help="also write the paper's figures of the scene into FIGDIR (created; files "
+        "replaced): bounce_images.png, bounce_profiles.png, lightfield.png",
+    ),
 )
 def _simulate(args: argparse.Namespace) -> None:
     """Render a simulate config and write into DIR:
@@ -280,11 +286,20 @@ def _simulate(args: argparse.Namespace) -> None:
 
     config = load_simulation_config(args.config)
     out = _writable_folder(args.out)
+    plot = _writable_folder(args.plot) if args.plot else None
     with _progress(args, "simulate") as stage:
         sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
         stage("write files")
         with atomic_directory(out) as staging:
             files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
+        if plot is not None:
+            from ._views import plot_simulation
+
+            with atomic_directory(plot) as staging:
+                figures, notes = plot_simulation(sim, staging, stage=stage)
+            for note in notes:
+                _warn(args, note)
+            _say(args, f"wrote {', '.join(figures)} to {plot}")
     converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
     _say(
         args,
@@ -438,15 +453,37 @@ def _fit_figures(capture, fit, plot: Path, stage) -> list[Path]:
     stage("plot")
     if len(fit.channels) == 1:
         i = capture.channel_names.index(fit.channels[0])
-        plot_fit(capture.images[..., i], capture.pattern, fit.results[0], plot)
+        plot_fit(
+            capture.images[..., i], capture.pattern, fit.results[0], plot, **_shown(capture, i)
+        )
         return [plot]
     figures = [plot_channels(fit, plot, pixel_size_mm=capture.pixel_size_mm)]
     for name, result in zip(fit.channels, fit.results, strict=True):
         i = capture.channel_names.index(name)
         target = plot.with_name(f"{plot.stem}_{name}{plot.suffix}")
-        plot_fit(capture.images[..., i], capture.pattern, result, target)
+        plot_fit(capture.images[..., i], capture.pattern, result, target, **_shown(capture, i))
         figures.append(target)
     return figures
+
+
+def _roi_record(capture) -> dict:
+    """results.json's ``medium_roi``: the ROI, where it came from, how each edge was
+    found (wall, frame, faded) and what was done about a faded far edge."""
+    det = capture.detected
+    measured = det is not None and "roi" not in det.given
+    given = "given" if capture.roi is not None else "whole frame"
+    return {
+        "roi": None if capture.roi is None else list(capture.roi),
+        "source": "auto" if measured else given,
+        "edges": det.edges if measured else None,
+        "faded": det.faded if measured else None,
+        "note": det.fade_note() if measured and det.faded else None,
+    }
+
+
+def _shown(capture, i: int) -> dict:
+    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
+    return {"mask": capture.mask[..., i], "truth": capture.truth}
 
 
 @command(
@@ -513,6 +550,7 @@ def _fit(args: argparse.Namespace) -> int | None:
         result["capture"] = str(capture.source)
         if capture.truth:
             result["truth"] = capture.truth
+        result["medium_roi"] = _roi_record(capture)
         atomic_write_json(out, result)
         figures = _fit_figures(capture, fit, plot, stage) if plot is not None else []
     for note in capture.notes:
@@ -683,20 +721,30 @@ def _pattern(args: argparse.Namespace) -> None:
     arg("capture", metavar="CAPTURE.yaml", help="a capture file (see lightfield_jax._capture)"),
     arg("--plot", metavar="FIG.png", help="also write the figure"),
     arg("--json", metavar="FILE", help="also write the findings as JSON"),
+    arg(
+        "--response",
+        metavar="FILE.csv",
+        help="exposure brackets: write the camera response the merge used (e.g. recovered "
+        "by response: auto), a table that response: FILE.csv reads",
+    ),
 )
 def _inspect_command(args: argparse.Namespace) -> None:
     """Load a capture (measuring what it leaves auto), separate it, and print: the
     medium's ROI, the entry wall, the light's direction, the stripe phases, the black
     level, the masked pixels and, per channel, the direct light's SNR along the beam.
     --plot draws the frame with the ROI, entry wall and direction, the separated direct
-    and multiple images, the saturation mask and the SNR along the beam."""
+    and multiple images, the saturation mask and the SNR along the beam; for exposure
+    brackets also a merged image, the response curve and the clipped samples."""
     from ._capture import load_capture
     from ._inspect import inspect_capture
     from ._io import atomic_write_json
 
     plot = _writable_file(args.plot) if args.plot else None
     out = _writable_file(args.json) if args.json else None
+    response = _writable_file(args.response) if args.response else None
     capture = load_capture(args.capture)
+    if response is not None and capture.brackets is None:
+        raise ValueError(f"--response: {args.capture} has no exposure brackets")
     with _progress(args, "inspect") as stage:
         stage("separate")
         inspection = inspect_capture(capture)
@@ -707,9 +755,56 @@ def _inspect_command(args: argparse.Namespace) -> None:
             plot_inspect(inspection, plot)
         if out is not None:
             atomic_write_json(out, inspection.to_dict())
+        if response is not None:
+            from ._hdr import write_response
+
+            write_response(response, capture.brackets.response, capture.channel_names)
     _say(args, inspection.summary())
-    if plot is not None or out is not None:
-        _say(args, f"wrote {', '.join(str(f) for f in (plot, out) if f is not None)}")
+    if plot is not None or out is not None or response is not None:
+        written = (f for f in (plot, out, response) if f is not None)
+        _say(args, f"wrote {', '.join(str(f) for f in written)}")
+
+
+# --------------------------------------------------------------------------- render
+
+
+@command(
+    "render",
+    "render a fitted medium's per-bounce images and light fields in its capture's geometry",
+    arg("results", metavar="RESULTS.json", help="a results file of lightfield-jax fit"),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--plot",
+        action="store_true",
+        help="also write the paper's figures: bounce_images.png, bounce_profiles.png, "
+        "lightfield.png",
+    ),
+)
+def _render_command(args: argparse.Namespace) -> None:
+    """Render the medium a fit recovered (RESULTS.json names its capture, whose entry
+    wall and light direction are used) under full illumination, on the fit's model
+    (its region of the medium ROI, theta bins, bounces, geometry), and write into DIR
+    (one subfolder per channel when the results hold several):
+
+      bounces.npy     float32 [K, H, W] per-bounce images (index k-1 holds I_k),
+                      fitted gain included
+      bounces.exr     channels I1..IK
+      lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
+                      (left out, with a warning, above 5e7 floats)
+      render.json     the medium, model region, illumination
+      *.png           with --plot: the bounce images, each bounce's profile along
+                      the light, the light fields with direction glyphs
+
+    Nothing is written unless the whole command succeeds."""
+    from ._io import atomic_directory
+    from ._views import render_results
+
+    out = _writable_folder(args.out)
+    with _progress(args, "render") as stage, atomic_directory(out) as staging:
+        files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
+    for note in notes:
+        _warn(args, note)
+    _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
 
 
 # --------------------------------------------------------------------------- experiment

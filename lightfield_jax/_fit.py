@@ -505,6 +505,7 @@ class _Data:
     sigma_t0: float
     sigma_t0_err: float
     decay_converged: bool
+    exposure: np.ndarray | None = None  # (P, h, w) merged brackets' T (s), or None
 
 
 def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation, split=None):
@@ -821,9 +822,12 @@ def _unpack(y, fit_black: bool, black_fixed):
     return sigma_t, sigma_s, g, black
 
 
-def _joint_weights(images, mask):
+def _joint_weights(images, mask, exposure=None):
+    """Shot noise: 1/√(I + floor), times √T for merged brackets (Var I ∝ I/T)."""
     floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
     w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
+    if exposure is not None:
+        w = w * np.sqrt(exposure / np.max(exposure))
     return np.where(mask[None], w, 0.0)
 
 
@@ -871,7 +875,7 @@ def _joint_program(data: _Data, pattern: Stripes, model: _Model, options: FitOpt
         )
         return sol.value, sol.result, sol.stats["num_steps"], sol.state.f_info.residual, sol.aux
 
-    weights0 = jnp.asarray(_joint_weights(data.images, data.mask), obs.dtype)
+    weights0 = jnp.asarray(_joint_weights(data.images, data.mask, data.exposure), obs.dtype)
     y_shape = jnp.zeros(4 if fit_black else 3, obs.dtype)
     args = (renderer, full, obs, black_fixed)
     static = ("joint", fit_black, lit, _solver_key(options), options.max_steps)
@@ -899,7 +903,7 @@ def _joint_reweighted(data: _Data, weights, res):
     fitted = data.images + np.where(
         w > 0, np.asarray(res).reshape(w.shape) / np.where(w > 0, w, 1), 0
     )
-    return jnp.asarray(_joint_weights(fitted, data.mask), weights.dtype)
+    return jnp.asarray(_joint_weights(fitted, data.mask, data.exposure), weights.dtype)
 
 
 def _joint_result(data: _Data, black, weights, solved, steps, t_compile, t_run) -> dict:
@@ -967,6 +971,7 @@ def fit_images(
     options: FitOptions | None = None,
     progress: Callable[[str], None] | None = None,
     split=None,
+    exposure=None,
     **overrides,
 ) -> FitResult:
     """Fit one channel of a stripe capture.
@@ -985,6 +990,8 @@ def fit_images(
         split: ``(direct, multiple)`` images to use instead of separating the capture
             (e.g. a perfect split from a renderer: I_1 and Σ_{k≥2} I_k under full
             illumination). Used by the two-step methods and the joint fit's start.
+        exposure: the effective exposure T of merged exposure brackets, like
+            ``images`` (:mod:`lightfield_jax._hdr`): the joint fit weights by √T.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
     if isinstance(options.geometry, AutoGeometry):
@@ -998,6 +1005,7 @@ def fit_images(
             saturation=saturation,
             pixel_size_mm=pixel_size_mm,
             split=split,
+            exposure=exposure,
         )
     if isinstance(options.geometry, Plane):
         options = dataclasses.replace(options, geometry=None)
@@ -1044,6 +1052,7 @@ def fit_images(
         sigma_t0=sigma_t0,
         sigma_t0_err=float(decay.sigma_t_stderr),
         decay_converged=bool(decay.converged),
+        exposure=None if exposure is None else np.asarray(exposure)[:, y0:y1, x0:x1],
     )
     seconds = {"compile": 0.0, "run": 0.0}
     two_step_unc = {"sigma_t": data.sigma_t0_err}
@@ -1167,6 +1176,8 @@ def fit_images(
         x0, y0, x1, y1 = model.crop
         data.images = images[:, y0:y1, x0:x1]
         data.mask = mask[y0:y1, x0:x1]
+        if exposure is not None:
+            data.exposure = np.asarray(exposure)[:, y0:y1, x0:x1]
         say(
             f"joint fit ({name} model {model.grid.width}x{model.grid.height}, "
             f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces)"
@@ -1385,6 +1396,7 @@ def fit_capture(
                 black_level=capture.black_level,
                 saturation=capture.saturation,
                 pixel_size_mm=capture.pixel_size_mm,
+                exposure=_channel_exposure(capture, i),
                 options=options,
                 progress=(lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
                 method=method,
@@ -1392,6 +1404,12 @@ def fit_capture(
             )
         )
     return CaptureFit(channels=chosen, results=tuple(results))
+
+
+def _channel_exposure(capture, i: int):
+    """Channel i of a capture's merged-bracket exposure T, or ``None``."""
+    exposure = getattr(capture, "exposure", None)
+    return None if exposure is None else exposure[..., i]
 
 
 def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):

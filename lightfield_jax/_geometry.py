@@ -13,8 +13,19 @@ finds them in the images themselves, in the image frame of MODEL.md section 1:
   the ROI ``(x0, y0, x1, y1)``, x1 and y1 exclusive. Each edge is classified: ``wall``
   (a sharp step: the band just inside is well above the threshold, the band just
   outside below it), ``frame`` (the ROI reaches the image's edge), or ``faded`` (the
-  light fades out before a wall: typically the far wall of a dense medium; the crop
-  then ends where the light does, which is where a fit's crop ends anyway).
+  light fades out before a wall: typically the far wall of a dense medium).
+- **A faded far edge is not a wall.** Where the light fades before the wall opposite
+  the entry, the tank goes on: light that scatters past the fade and back is part of
+  the signal there, and the model's walls are black. The ROI is therefore extended
+  across the light's direction beyond the fade, through the frame as long as it stays
+  dark (below the lit threshold), to the frame's edge or to where something lit begins
+  again (``Geometry.faded``: where the light faded and how far the ROI now reaches). The
+  fit then crops its model where each channel's light falls into its noise
+  (:func:`~lightfield_jax._fit.size_model`): the black wall a finite model needs
+  somewhere stands where the light is at the noise floor, not at the detection's
+  threshold (2·10⁻³ of the peak). Faded side edges (light that does not reach the
+  side walls) are reported, not extended: the projector does not light beyond them,
+  which the model's illumination could not represent.
 - **Orientation and stripe phase.** Along the wall (the transverse axis) each shifted
   image is a square wave of period T = ``period`` camera pixels. Its Fourier
   coefficient at frequency 1/T, per line along the light (a Hann-windowed sum across
@@ -96,6 +107,9 @@ class Geometry:
         parts: confidence of each measured part, in [0, 1].
         edges: how each ROI edge was found: ``wall``, ``frame``, ``faded`` or ``given``.
         given: the parts that were given rather than measured.
+        faded: for a faded far edge, ``{"side", "at", "extended_to", "until"}``: the
+            side, the coordinate (x or y, px) where the light faded, the ROI's edge after
+            extending it, and why it stops there (``frame`` or ``lit``); else ``None``.
         floor: the signal's noise floor (image units) and ``noise`` its scatter;
             ``threshold`` the level above which a pixel counted as lit.
     """
@@ -114,6 +128,7 @@ class Geometry:
     floor: float
     noise: float
     threshold: float
+    faded: dict[str, Any] | None = None
 
     def summary(self) -> str:
         """One line per finding, for a report or the command line."""
@@ -123,6 +138,7 @@ class Geometry:
         return "\n".join(
             [
                 f"medium_roi [{x0}, {y0}, {x1}, {y1}] ({x1 - x0}x{y1 - y0} px; edges: {edges})",
+                *([self.fade_note()] if self.faded else []),
                 f"entry {self.entry}, direction_deg {self.direction_deg:.3f}"
                 f" ± {self.direction_stderr_deg:.3f}",
                 f"phases {list(self.phases)} (stripes {self.phase_offset:.2f} px off the "
@@ -130,6 +146,17 @@ class Geometry:
                 f"confidence {self.confidence:.2f} ({parts})"
                 + (f"; given: {', '.join(self.given)}" if self.given else ""),
             ]
+        )
+
+    def fade_note(self) -> str:
+        """What was done about a faded far edge, in words."""
+        f = self.faded
+        axis = "x" if f["side"] in ("left", "right") else "y"
+        until = "the frame's edge" if f["until"] == "frame" else "where the frame is lit again"
+        return (
+            f"the light fades before the {f['side']} wall at {axis} = {f['at']}: not a wall "
+            f"(the tank goes on), so the ROI extends to {axis} = {f['extended_to']} "
+            f"({until}); the fit crops its model where each channel's light meets its noise"
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -429,6 +456,9 @@ def detect_geometry(
     parts["phases"] = _clip01(1.0 - 2.0 * offset)
     period_px = _measured_period(stack, u0, period)
     parts["period"] = _clip01(1.0 - abs(period_px / period - 1.0) / 0.1)
+    faded = None
+    if "roi" not in given and edges[_OPPOSITE[entry]] == "faded":
+        roi, faded = _extend_faded(s, roi, _OPPOSITE[entry], threshold)
     return Geometry(
         roi=roi,
         entry=entry,
@@ -444,7 +474,35 @@ def detect_geometry(
         floor=float(level),
         noise=float(noise),
         threshold=float(threshold),
+        faded=faded,
     )
+
+
+def _extend_faded(s: np.ndarray, roi, side: str, threshold: float):
+    """The ROI extended beyond a faded ``side`` through the frame while the signal S,
+    averaged across the light over the ROI, stays below the lit threshold."""
+    x0, y0, x1, y1 = roi
+    h, w = s.shape
+    if side in ("left", "right"):
+        profile = s[y0:y1].mean(axis=0)
+        start, stop, step = (x1, w, 1) if side == "right" else (x0 - 1, -1, -1)
+    else:
+        profile = s[:, x0:x1].mean(axis=1)
+        start, stop, step = (y1, h, 1) if side == "bottom" else (y0 - 1, -1, -1)
+    end, until = stop, "frame"
+    for i in range(start, stop, step):
+        if profile[i] > threshold:
+            end, until = i, "lit"
+            break
+    edge = end if step > 0 else end + 1  # exclusive on the far side, inclusive on the near
+    at = {"left": x0, "right": x1, "top": y0, "bottom": y1}[side]
+    extended = {
+        "left": (edge, y0, x1, y1),
+        "right": (x0, y0, edge, y1),
+        "top": (x0, edge, x1, y1),
+        "bottom": (x0, y0, x1, edge),
+    }[side]
+    return extended, {"side": side, "at": at, "extended_to": edge, "until": until}
 
 
 def _points_in(entry: str, direction_deg: float) -> bool:

@@ -74,6 +74,7 @@ class Inspection:
             "reach_px": dict(zip(c.channel_names, self.reach, strict=True)),
             "notes": list(c.notes),
             "warnings": list(c.warnings),
+            "brackets": None if c.brackets is None else c.brackets.to_dict(),
         }
 
     def summary(self) -> str:

@@ -9,6 +9,7 @@ and written as 16-bit TIFF (through the template of ``lightfield-jax pattern``) 
 16-bit PNG; the pipeline must recover what was put in.
 """
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -529,7 +530,10 @@ def test_fit_plot_draws_the_channels(rgb, fitted, tmp_path, capsys, monkeypatch)
     assert "note: detected: medium_roi" in out
     for name in ("fit.png", "fit_R.png", "fit_G.png", "fit_B.png"):
         assert (tmp_path / name).stat().st_size > 10_000, name
-    assert json.loads((tmp_path / "r.json").read_text())["channels"] == ["R", "G", "B"]
+    results = json.loads((tmp_path / "r.json").read_text())
+    assert results["channels"] == ["R", "G", "B"]
+    assert results["medium_roi"]["roi"] == list(ROI) and results["medium_roi"]["faded"] is None
+    assert set(results["medium_roi"]["edges"].values()) == {"wall"}
     truth = [dict(zip(("sigma_t", "sigma_s", "g"), m, strict=True)) for m in MEDIA.values()]
     figure = viz.plot_channels(fitted, truth=truth, pixel_size_mm=0.05)
     assert len(figure.axes) == 3
@@ -539,7 +543,7 @@ def test_new_modules_do_not_load_image_libraries():
     code = (
         "import sys, lightfield_jax, lightfield_jax._capture, lightfield_jax._geometry, "
         "lightfield_jax._calibration, lightfield_jax._pattern, lightfield_jax._inspect, "
-        "lightfield_jax._cli; "
+        "lightfield_jax._cli, lightfield_jax._hdr, lightfield_jax._views; "
         "bad = {'OpenImageIO', 'matplotlib', 'cv2', 'skimage'} & set(sys.modules); "
         "assert not bad, bad"
     )
@@ -576,3 +580,72 @@ def test_write_capture_yaml_takes_auto_and_calibration_frames(rgb):
         c = load_capture(png / "capture.yaml")
     assert c.roi == ROI and c.black_frame == png / "black.png"
     assert abs(c.black_level - BLACK) < 0.01 and c.pattern.phases == PHASES
+
+
+# ------------------------------------------------------------- where the medium ends
+
+
+def _faded_frames(lit_from=None):
+    """A dense medium (σt 0.3: its light fades about 20 px into the 36 px tank) in the
+    dark camera frame; with ``lit_from``, something lit from that column on."""
+    stripes, _ = _render([(0.3, 0.06, 0.3)], direction=0.0)
+    rng = np.random.default_rng(5)
+    frame = np.full((len(PHASES), FRAME_H, FRAME_W), DARK)
+    frame[:, Y0 : Y0 + H, X0 : X0 + W] += stripes[..., 0] / stripes.max()
+    if lit_from is not None:
+        frame[:, Y0 : Y0 + H, lit_from:] += 0.3
+    return frame + rng.normal(0.0, 0.002, frame.shape)
+
+
+@pytest.mark.parametrize("lit_from", [None, 60])
+@pytest.mark.parametrize("mirror", [False, True])
+def test_a_faded_far_edge_is_not_a_wall(lit_from, mirror):
+    frames = _faded_frames(lit_from)
+    g = detect_geometry(frames[..., ::-1] if mirror else frames, period=PERIOD, lit=LIT)
+    if mirror:  # back to the unmirrored frame: x → FRAME_W − x
+        x0, y0, x1, y1 = g.roi
+        g = dataclasses.replace(
+            g,
+            roi=(FRAME_W - x1, y0, FRAME_W - x0, y1),
+            entry={"right": "left"}.get(g.entry, g.entry),
+            edges={**g.edges, "left": g.edges["right"], "right": g.edges["left"]},
+            faded={
+                **g.faded,
+                "side": {"left": "right"}.get(g.faded["side"], g.faded["side"]),
+                "at": FRAME_W - g.faded["at"],
+                "extended_to": FRAME_W - g.faded["extended_to"],
+            },
+        )
+    assert g.entry == "left" and g.edges["right"] == "faded", g.summary()
+    assert {g.edges[k] for k in ("left", "top", "bottom")} == {"wall"}
+    # The light faded inside the tank; the ROI goes on through the dark frame.
+    assert X0 + 12 < g.faded["at"] < X0 + W - 4
+    assert g.faded == {
+        "side": "right",
+        "at": g.faded["at"],
+        "extended_to": FRAME_W if lit_from is None else lit_from,
+        "until": "frame" if lit_from is None else "lit",
+    }
+    assert g.roi == (X0, Y0, g.faded["extended_to"], Y0 + H)
+    assert "not a wall" in g.summary()
+
+
+def test_a_faded_edge_is_reported_on_screen_and_in_results(fitted, tmp_path, capsys, monkeypatch):
+    # The record does not depend on the fit: any fit stands in for this capture's.
+    monkeypatch.setattr(fit_module, "fit_capture", lambda *a, **k: fitted)
+    names = []
+    for i, f in enumerate(_faded_frames()):
+        names.append(f"f{i}.exr")
+        write_exr(tmp_path / names[-1], {"Y": f})
+    (tmp_path / "capture.yaml").write_text(
+        f"images: {names}\nmedium_roi: auto\npattern: {{period: 6, lit: 3, phases: auto}}\n"
+    )
+    out = tmp_path / "results.json"
+    assert main(["fit", str(tmp_path / "capture.yaml"), "--method", "grid", "--out", str(out)]) == 0
+    assert "not a wall (the tank goes on)" in capsys.readouterr().out
+    record = json.loads(out.read_text())["medium_roi"]
+    assert record["source"] == "auto" and record["edges"]["right"] == "faded"
+    assert record["roi"][2] == FRAME_W and record["faded"]["until"] == "frame"
+    assert "not a wall" in record["note"]
+    assert main(["inspect", str(tmp_path / "capture.yaml")]) == 0
+    assert "not a wall (the tank goes on)" in capsys.readouterr().out

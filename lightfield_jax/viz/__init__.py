@@ -9,7 +9,9 @@
   :func:`plot_direct_decay` (Fig. 11, σt from the direct component's decay),
   :func:`plot_bounce_profiles` (Fig. 12, each bounce along the light),
   :func:`plot_lightfield` (Fig. 13, light fields with direction glyphs),
-  :func:`plot_bounce_images` (Fig. 14, per-bounce images, e.g. of an oblique beam).
+  :func:`plot_bounce_images` (Fig. 14, per-bounce images, e.g. of an oblique beam);
+  these three also take a :class:`~lightfield_jax.RenderResult`, and
+  :func:`plot_transport` writes all three of one render into a folder.
 """
 
 from ._capture_plot import plot_channels as plot_channels
@@ -20,3 +22,4 @@ from ._paper import plot_bounce_images as plot_bounce_images
 from ._paper import plot_bounce_profiles as plot_bounce_profiles
 from ._paper import plot_direct_decay as plot_direct_decay
 from ._paper import plot_lightfield as plot_lightfield
+from ._transport import plot_transport as plot_transport

@@ -50,13 +50,16 @@ def _wall_segment(entry: str, roi):
 def plot_inspect(inspection: Inspection, path=None):
     """What the pipeline sees: the frame with the medium's ROI, entry wall and the
     light's direction; the separated direct and multiple images; the masked pixels;
-    and the SNR and mean of D and M along the light, per channel."""
+    and the SNR and mean of D and M along the light, per channel. For exposure
+    brackets, a third row: a merged image, the camera's response curve and how many
+    exposures clipped at each pixel (:func:`_plot_brackets`)."""
     from matplotlib.patches import Rectangle
 
     c = inspection.capture
     p, h, w, n = c.images.shape
-    fig = _figure(16, 9)
-    axes = fig.subplots(2, 3)
+    rows = 2 if c.brackets is None else 3
+    fig = _figure(16, 4.5 * rows)
+    axes = fig.subplots(rows, 3)
 
     ax = axes[0, 0]
     overview = c.overview.sum(axis=-1) if c.overview is not None else c.images.mean(0).sum(-1)
@@ -131,8 +134,52 @@ def plot_inspect(inspection: Inspection, path=None):
     ax.set_ylabel("mean intensity (image units)")
     ax.set_title("direct and multiple light along the beam")
     ax.legend(fontsize=7, ncol=2)
+    if c.brackets is not None:
+        _plot_brackets(fig, axes[2], c)
     fig.suptitle(f"lightfield-jax inspect: {c.source.name}")
     return _finish(fig, path)
+
+
+def _plot_brackets(fig, axes, c) -> None:
+    """The merge of exposure brackets: the first shift's merged image, the inverse
+    response x = f⁻¹(z) with the clip and near-black limits, and per pixel the number
+    of exposures whose samples were clipped (mean over shifts and channels)."""
+    b = c.brackets
+    _log_image(axes[0], c.images[0].sum(axis=-1), "merged radiance, shift 0 (ROI)", fig)
+
+    ax = axes[1]
+    z = np.linspace(0.0, 1.0, 513)
+    n = b.response.curve.shape[1]
+    x = b.response.linearize(np.repeat(z[:, None], n, axis=1))
+    for i in range(n):
+        name = c.channel_names[i] if n == len(c.channel_names) else "all"
+        ax.plot(z, x[:, i], color=_colour(name, i), label=f"{b.response.kind} response {name}")
+    ax.axvline(b.clip, color="0.3", ls="--", lw=0.8, label=f"clipped above {b.clip:g}")
+    for i, v in enumerate(b.near_black):
+        ax.axvline(
+            v,
+            color="0.6",
+            ls=":",
+            lw=0.8,
+            label="near black below (no dark frame)" if i == 0 else None,
+        )
+    ax.set_xlabel("sample value z (integer codes / their maximum)")
+    ax.set_ylabel("linear exposure x = f⁻¹(z) (relative)")
+    ax.set_title("camera response used by the merge", fontsize=9)
+    ax.legend(fontsize=7)
+
+    ax = axes[2]
+    clipped = b.clipped_fraction.sum(axis=0)
+    j = len(b.times)
+    im = ax.imshow(clipped, cmap="viridis", vmin=0, vmax=j, interpolation="nearest")
+    fig.colorbar(im, ax=ax, shrink=0.8, label="exposures clipped (mean over shifts)")
+    per = ", ".join(
+        f"{t * 1e3:g} ms {100 * float(f.mean()):.0f}%"
+        for t, f in zip(b.times, b.clipped_fraction, strict=True)
+    )
+    ax.set_title(f"clipped samples (whole frame): {per}", fontsize=9)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
 
 
 def plot_channels(

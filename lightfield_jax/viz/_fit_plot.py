@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .._decay import entry_coordinates
 from .._fit import FitResult, fitted_images
 from .._illumination import Stripes
-from .._io import atomic_path
 from .._separate import separate
 from .._slab import describe_geometry
+from ._common import finish, new_figure
 
 
 def _profile(image, s, mask, bins):
@@ -32,86 +34,175 @@ def _data_limits(ax, image, mask):
         ax.set_ylim(top * 1e-4, top * 2)
 
 
-def plot_fit(images, pattern: Stripes, result: FitResult, path, *, title: str | None = None):
-    """Write a PNG: measured (separated) direct and multiple profiles against the fitted
-    model's single scatter and its bounces k ≥ 2 along the propagation direction, and the
+def _truth_result(result: FitResult, truth: dict) -> FitResult:
+    """The fit's model at the true values (the fitted gain and black level where the
+    truth has none: a merged or rescaled capture's units are not the simulation's)."""
+    return dataclasses.replace(
+        result,
+        sigma_t=float(truth["sigma_t"]),
+        sigma_s=float(truth["sigma_s"]),
+        g=float(truth["g"]),
+        gain=float(truth.get("gain", result.gain)),
+        black_level=truth.get("black_level", result.black_level),
+        phase=truth.get("phase", result.phase),
+    )
+
+
+def _per_mm(value: float, result: FitResult) -> str:
+    mm = result.pixel_size_mm
+    return f" ({value / mm:.4g} mm$^{{-1}}$)" if mm else ""
+
+
+def plot_fit(
+    images,
+    pattern: Stripes,
+    result: FitResult,
+    path=None,
+    *,
+    title: str | None = None,
+    mask=None,
+    truth: dict | None = None,
+):
+    """Measured (separated) direct and multiple profiles against the fitted model's
+    single scatter and its bounces k ≥ 2 along the propagation direction, and the
     raw-image residual map of the fit.
+
+    Pixels outside ``mask`` are left out of the profiles and drawn grey (masked) in the
+    residual map; the fit's model region (``result.model["crop"]``: the fit crops where
+    the light fades) is outlined, and what lies outside it is hatched and named in the
+    title. With ``truth`` (a capture's ``truth``: sigma_t, sigma_s, g and optionally
+    gain, black_level, phase) the model at the true values is drawn dotted.
 
     Args:
         images: the fitted channel's shifted images ``(P, H, W)`` (dark subtracted).
         pattern: their stripes.
         result: the fit.
-        path: the PNG to write (atomically).
+        path: the PNG to write (atomically), or ``None`` to return the figure.
+        title: the figure's title (default: the fit's values and model).
+        mask: ``(H, W)`` True where a pixel was used (the capture's mask).
+        truth: the true parameters, to overlay.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     images = np.asarray(images, dtype=np.float64)
     p, h, w = images.shape
+    valid = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     # A fitted black level can come out slightly negative (noise); the separation takes
     # only physical values.
     b = min(max(result.black_level or 0.0, 0.0), 0.99)
     sep = separate(images, lit_fraction=pattern.lit_fraction, black_level=b)
     d, m = np.asarray(sep.direct), np.asarray(sep.multiple)
     model_stripes, model_full = fitted_images(result, pattern, (h, w))
+    true_full = None
+    if truth and all(k in truth for k in ("sigma_t", "sigma_s", "g")):
+        true_full = fitted_images(_truth_result(result, truth), pattern, (h, w))[1]
     s, _ = entry_coordinates(h, w, pattern.entry, pattern.direction_deg)
     x0, y0, x1, y1 = result.model["crop"]
     inside = np.zeros((h, w), bool)
     inside[y0:y1, x0:x1] = True
+    used = inside & valid
     bins = np.arange(0.0, float(np.max(s[inside])) + 2.0, 2.0)
     centres = 0.5 * (bins[1:] + bins[:-1])
+    along = "distance from the entry wall along the light (px)"
+    unit = "mean intensity (image units: the capture's values)"
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    fig = new_figure(15, 4.9)
+    axes = fig.subplots(1, 3)
     ax = axes[0]
-    ax.semilogy(centres, _profile(d, s, inside, bins), "k.", label="measured D (separated)")
-    ax.semilogy(centres, _profile(model_full[0], s, inside, bins), "C0-", label="fitted $I_1$")
-    _data_limits(ax, d, inside)
-    ax.set_xlabel("distance from the entry wall along the light (px)")
-    ax.set_ylabel("mean intensity (image units)")
-    ax.set_title(f"direct: $\\sigma_t$ = {result.sigma_t:.4g} px$^{{-1}}$")
-    ax.legend()
+    ax.semilogy(centres, _profile(d, s, used, bins), "k.", label="measured D (separated)")
+    ax.semilogy(centres, _profile(model_full[0], s, used, bins), "C0-", label="fitted $I_1$")
+    if true_full is not None:
+        ax.semilogy(centres, _profile(true_full[0], s, used, bins), "C2:", label="truth $I_1$")
+    _data_limits(ax, d, used)
+    ax.set_xlabel(along)
+    ax.set_ylabel(unit)
+    ax.set_title(
+        f"direct: $\\sigma_t$ = {result.sigma_t:.4g} px$^{{-1}}${_per_mm(result.sigma_t, result)}"
+        + (f"\ntruth {float(truth['sigma_t']):.4g} px$^{{-1}}$" if true_full is not None else ""),
+        fontsize=10,
+    )
+    ax.legend(fontsize=8)
 
     ax = axes[1]
-    ax.semilogy(centres, _profile(m, s, inside, bins), "k.", label="measured M (separated)")
+    ax.semilogy(centres, _profile(m, s, used, bins), "k.", label="measured M (separated)")
     ax.semilogy(
         centres,
-        _profile(model_full[1:].sum(0), s, inside, bins),
+        _profile(model_full[1:].sum(0), s, used, bins),
         "C1-",
         label=r"fitted $\sum_{k\geq2} I_k$",
     )
     for k in range(1, min(model_full.shape[0], 6)):
         ax.semilogy(
-            centres, _profile(model_full[k], s, inside, bins), "--", lw=0.8, label=f"$I_{k + 1}$"
+            centres, _profile(model_full[k], s, used, bins), "--", lw=0.8, label=f"$I_{k + 1}$"
         )
-    _data_limits(ax, m, inside)
-    ax.set_xlabel("distance from the entry wall along the light (px)")
-    ax.set_ylabel("mean intensity (image units)")
-    ax.set_title(f"multiple: $\\sigma_s$ = {result.sigma_s:.4g}, g = {result.g:.3f}")
+    if true_full is not None:
+        ax.semilogy(
+            centres,
+            _profile(true_full[1:].sum(0), s, used, bins),
+            "C2:",
+            label=r"truth $\sum_{k\geq2} I_k$",
+        )
+    _data_limits(ax, m, used)
+    ax.set_xlabel(along)
+    ax.set_ylabel(unit)
+    ax.set_title(
+        f"multiple: $\\sigma_s$ = {result.sigma_s:.4g} px$^{{-1}}$"
+        f"{_per_mm(result.sigma_s, result)}, g = {result.g:.3f}"
+        + (
+            f"\ntruth {float(truth['sigma_s']):.4g} px$^{{-1}}$, g {float(truth['g']):.3f}"
+            if true_full is not None
+            else ""
+        ),
+        fontsize=10,
+    )
     ax.legend(fontsize=7)
 
     ax = axes[2]
     model_total = model_stripes.sum(axis=1)
-    scale = np.nanmax(np.abs(images)) or 1.0
-    resid = np.where(inside, (model_total - images).mean(axis=0) / scale, np.nan)
-    lim = np.nanmax(np.abs(resid)) or 1.0
-    im = ax.imshow(resid, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    scale = np.nanmax(np.abs(np.where(valid[None], images, 0.0))) or 1.0
+    resid = np.where(used, (model_total - images).mean(axis=0) / scale, np.nan)
+    lim = np.nanmax(np.abs(resid)) if np.isfinite(resid).any() else 1.0
+    from matplotlib import colormaps
+
+    cmap = colormaps["RdBu_r"].with_extremes(bad="0.75")
+    im = ax.imshow(
+        resid, cmap=cmap, vmin=-lim, vmax=lim, extent=(0, w, h, 0), interpolation="nearest"
+    )
     fig.colorbar(im, ax=ax, label="(model − measured) / max, mean over shifts")
+    ax.add_patch(
+        Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="k", lw=1.2, label="model region")
+    )
+    outside = [(0, 0, w, y0), (0, y1, w, h), (0, y0, x0, y1), (x1, y0, w, y1)]
+    for ox0, oy0, ox1, oy1 in outside:
+        if ox1 > ox0 and oy1 > oy0:
+            ax.add_patch(
+                Rectangle((ox0, oy0), ox1 - ox0, oy1 - oy0, fill=False, hatch="//", ec="0.4", lw=0)
+            )
+    ax.set_xlim(0, w)
+    ax.set_ylim(h, 0)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
-    ax.set_title("residual of the raw images")
+    n_masked = int((~valid & inside).sum())
+    cropped = (x0, y0, x1, y1) != (0, 0, w, h)
+    ax.set_title(
+        "residual of the raw images; grey: masked "
+        f"({n_masked} px)"
+        + (
+            f"\nhatched: cropped, model region x {x0}-{x1}, y {y0}-{y1} of {w}x{h}"
+            if cropped
+            else ""
+        ),
+        fontsize=9,
+    )
     fig.suptitle(
         title
         or (
-            f"{result.method} fit: σt {result.sigma_t:.4g}, σs {result.sigma_s:.4g}, "
+            f"{result.method} fit: σt {result.sigma_t:.4g}, σs {result.sigma_s:.4g} px⁻¹, "
             f"g {result.g:.3f} ({'converged' if result.converged else 'NOT converged'}; "
             f"model {describe_geometry(result.model)}, {result.model['width']}x"
             f"{result.model['height']}, n_theta {result.model['n_theta']}, "
             f"K {result.model['bounces']})"
-        )
+        ),
+        fontsize=11,
     )
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    return finish(fig, path)

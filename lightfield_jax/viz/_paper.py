@@ -14,6 +14,11 @@ without pyplot, so it changes no backend and needs no closing).
   fluence image with polar glyphs of the direction distribution at sample points.
 - :func:`plot_bounce_images` (Fig. 14): the per-bounce images side by side (e.g. of an
   oblique beam).
+
+:func:`plot_bounce_profiles`, :func:`plot_lightfield` and :func:`plot_bounce_images`
+also take a :class:`~lightfield_jax.RenderResult` itself (its ``images``, or its
+``lightfields`` L_0..L_K); of a stripe render, the sum over the shifted patterns (each
+row lit ``lit`` times: ``lit`` × full illumination).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import numpy as np
 
 from .._decay import DecayFit, entry_coordinates
 from .._illumination import _INWARD_DEG, Beam, Full, Illumination, Stripes
+from .._render import RenderResult
 from ._common import finish as _finish
 from ._common import new_figure as _figure
 
@@ -41,6 +47,29 @@ def _array(a, ndim: tuple[int, ...], name: str) -> np.ndarray:
             f"{name}: expected {' or '.join(map(str, ndim))} dimensions, got shape {a.shape}"
         )
     return a
+
+
+def _bounce_images(images) -> np.ndarray:
+    """(K, H, W) per-bounce images from an array or a RenderResult (stripes summed)."""
+    if not isinstance(images, RenderResult):
+        return images
+    a = np.asarray(images.images, np.float64)
+    return a.sum(axis=0) if a.ndim == 4 else a
+
+
+def _render_fields(result: RenderResult, show: int) -> tuple[np.ndarray, list[str]]:
+    """L_0..L_show and their sum over every bounce, with labels (stripes summed)."""
+    if result.lightfields is None:
+        raise ValueError(
+            "plot_lightfield: the RenderResult holds no light fields; render with lightfield=True"
+        )
+    fields = np.asarray(result.lightfields, np.float64)
+    if fields.ndim == 5:
+        fields = fields.sum(axis=0)
+    n = min(show, fields.shape[0] - 1)
+    labels = [f"$L_{{{k}}}$" for k in range(n + 1)]
+    labels.append(rf"$\Sigma_{{k=0}}^{{{fields.shape[0] - 1}}} L_k$")
+    return np.concatenate([fields[: n + 1], fields.sum(axis=0)[None]]), labels
 
 
 def light_path_coordinates(
@@ -226,9 +255,8 @@ def plot_bounce_profiles(
     often peaks deeper inside the medium.
 
     Args:
-        images: per-bounce images, (K, height, width), index k−1 holding I_k (a
-            :class:`~lightfield_jax.RenderResult`'s ``images`` for a beam or full
-            illumination).
+        images: per-bounce images, (K, height, width), index k−1 holding I_k, or a
+            :class:`~lightfield_jax.RenderResult`.
         path: PNG to write, or ``None`` to return the figure.
         illumination: the light the images were rendered with; sets the path
             coordinate and the pixels averaged (see :func:`light_path_coordinates`).
@@ -239,7 +267,7 @@ def plot_bounce_profiles(
         dynamic_range: each profile is drawn down to its peak / dynamic_range.
         title: figure title.
     """
-    images = _array(images, (3,), "plot_bounce_profiles.images")
+    images = _array(_bounce_images(images), (3,), "plot_bounce_profiles.images")
     s, on_path = light_path_coordinates(images.shape[1:], illumination)
     sel = _mask(mask, on_path)
     fig = _figure(12.0, 4.6)
@@ -306,6 +334,7 @@ def plot_lightfield(
     dynamic_range: float = 1e4,
     columns: int = 3,
     title: str | None = None,
+    show: int = 4,
 ):
     """Fig. 13: light field(s) as fluence images with polar glyphs of L(θ).
 
@@ -317,7 +346,9 @@ def plot_lightfield(
     Args:
         lightfield: one light field (height, width, n_theta), e.g.
             ``render(..., lightfield=True).lightfields[k]`` for L_k (radiance per
-            radian), or several stacked (panels, height, width, n_theta).
+            radian), or several stacked (panels, height, width, n_theta), or a
+            :class:`~lightfield_jax.RenderResult` rendered with ``lightfield=True``
+            (panels L_0..L_``show`` and Σ_k L_k).
         path: PNG to write, or ``None`` to return the figure.
         labels: one panel title per light field (default ``L_1``, ``L_2``, ... for a
             stack, ``L`` for one).
@@ -332,9 +363,13 @@ def plot_lightfield(
             the panel's maximum / dynamic_range.
         columns: panels per row.
         title: figure title.
+        show: of a RenderResult, the last bounce drawn on its own.
     """
     from matplotlib.colors import LogNorm, Normalize
 
+    if isinstance(lightfield, RenderResult):
+        lightfield, rendered = _render_fields(lightfield, show)
+        labels = rendered if labels is None else labels
     fields = _array(lightfield, (3, 4), "plot_lightfield.lightfield")
     single = fields.ndim == 3
     if single:
@@ -426,7 +461,8 @@ def plot_bounce_images(
     over ``dynamic_range`` below its maximum by default.
 
     Args:
-        images: (K, height, width), index k−1 holding I_k.
+        images: (K, height, width), index k−1 holding I_k, or a
+            :class:`~lightfield_jax.RenderResult`.
         path: PNG to write, or ``None`` to return the figure.
         total: add a panel with Σ_k I_k (over all K bounces given).
         show: show the panels of I_1..I_show only (default: all K).
@@ -439,7 +475,7 @@ def plot_bounce_images(
     """
     from matplotlib.colors import LogNorm, Normalize
 
-    images = _array(images, (3,), "plot_bounce_images.images")
+    images = _array(_bounce_images(images), (3,), "plot_bounce_images.images")
     shown = images if show is None else images[:show]
     panels = [(f"$I_{{{k}}}$", im) for k, im in enumerate(shown, start=1)]
     if total:

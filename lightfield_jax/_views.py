@@ -1,0 +1,195 @@
+"""Look at the transport without code: the per-bounce images and light fields of a
+simulated scene (``lightfield-jax simulate --plot``) or of a fitted medium in its
+capture's geometry (``lightfield-jax render results.json``), as files and the paper's
+figures (:func:`lightfield_jax.viz.plot_transport`).
+
+Both render the scene under full illumination through the capture's (or config's)
+entry wall and heading: the light every shift adds up to, which the figures show
+(stripes would draw the stripes, not the transport). A fitted medium is rendered on
+its fit's model: the model region (``model.crop`` of the results, inside the capture's
+medium ROI: the fit crops where the light fades), its θ bins, refinement, bounces,
+geometry and phase convention, with the fitted gain.
+
+Light fields take (K+1)·H·W·n_theta floats; above :data:`MAX_LIGHTFIELD_FLOATS` they are
+not rendered (said in the returned notes), the images still are.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._grid import Grid
+from ._illumination import Beam, Full, Stripes
+from ._medium import Medium
+from ._render import RenderResult, render, resolve_bounces, resolve_model
+from ._slab import Slab, parse_geometry
+
+MAX_LIGHTFIELD_FLOATS = 50_000_000  # 200 MB of float32
+
+
+def full_light(illumination) -> Beam | Full:
+    """The full illumination of stripes (same wall and heading); a beam or full as is."""
+    if isinstance(illumination, Stripes):
+        return Full(direction_deg=illumination.direction_deg, entry=illumination.entry)
+    return illumination
+
+
+def render_transport(
+    medium: Medium, grid: Grid, light, bounces, *, gain=1.0, geometry=None
+) -> tuple[RenderResult, list[str]]:
+    """Per-bounce images and (memory allowing) light fields of a scene; notes say what
+    was left out."""
+    resolved, _, rho = resolve_model(medium, grid, geometry)
+    k = resolve_bounces(float(rho), bounces)
+    size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
+    fields = size <= MAX_LIGHTFIELD_FLOATS
+    result = render(medium, grid, light, k, gain=gain, lightfield=fields, geometry=geometry)
+    if fields:
+        return result, []
+    return result, [
+        f"light fields not rendered: {size:.3g} floats (K+1 = {k + 1}, {resolved.width}x"
+        f"{resolved.height}, n_theta {resolved.n_theta}) exceed {MAX_LIGHTFIELD_FLOATS:.0e}"
+    ]
+
+
+def write_transport(result: RenderResult, folder: Path) -> dict[str, str]:
+    """``bounces.npy``/``bounces.exr`` (I_1..I_K) and ``lightfield.npy`` (L_0..L_K)."""
+    from ._io import atomic_write_npy, write_exr
+
+    images = np.asarray(result.images, np.float32)
+    atomic_write_npy(folder / "bounces.npy", images)
+    write_exr(folder / "bounces.exr", {f"I{k + 1}": im for k, im in enumerate(images)})
+    files = {
+        "bounces.npy": "float32 [K, H, W] per-bounce images, index k-1 holds I_k",
+        "bounces.exr": f"channels I1..I{len(images)}: per-bounce images",
+    }
+    if result.lightfields is not None:
+        atomic_write_npy(folder / "lightfield.npy", np.asarray(result.lightfields, np.float32))
+        files["lightfield.npy"] = "float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian"
+    return files
+
+
+_FIT_KEYS = ("sigma_t", "sigma_s", "g", "gain")
+_MODEL_KEYS = ("width", "height", "n_theta", "refine", "bounces", "crop")
+
+
+def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, Any]]:
+    """Each channel's fit, checked: its values are numbers and its model is complete."""
+    if not isinstance(data, dict) or ("model" not in data and "per_channel" not in data):
+        raise ValueError(f"{source}: not a results file of lightfield-jax fit (no model)")
+    channels = (
+        dict(data["per_channel"]) if "per_channel" in data else {data.get("channel", "Y"): data}
+    )
+    for name, fit in channels.items():
+        model = fit.get("model")
+        missing = [k for k in _FIT_KEYS if not isinstance(fit.get(k), (int, float))]
+        missing += [
+            f"model.{k}" for k in _MODEL_KEYS if not isinstance(model, dict) or k not in model
+        ]
+        if missing:
+            raise ValueError(
+                f"{source}: channel {name}: no usable {', '.join(missing)} (a failed fit?)"
+            )
+    return {str(k): v for k, v in channels.items()}
+
+
+def render_results(
+    results: str | os.PathLike, folder: Path, *, plot: bool, stage=lambda _s: None
+) -> tuple[dict[str, str], list[str]]:
+    """Render the fitted medium of every channel of a results file into ``folder`` (one
+    subfolder per channel when there are several): the files written and notes."""
+    from ._capture import load_capture
+    from ._io import atomic_write_json
+
+    source = Path(results)
+    try:
+        data = json.loads(source.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{source}: not JSON ({e})") from None
+    channels = _channel_results(data, source)
+    if "capture" not in data:
+        raise ValueError(f"{source}: names no capture (key 'capture'), whose geometry is needed")
+    # The fit wrote the capture's path as given; from elsewhere, try beside the results.
+    named = Path(data["capture"])
+    candidates = [named, source.parent / named, source.parent / named.name]
+    capture_path = next((c for c in candidates if c.exists()), named)
+    stage("load the capture")
+    capture = load_capture(capture_path)
+    light = full_light(capture.pattern)
+    files, notes = {}, []
+    for name, fit in channels.items():
+        target = folder / name if len(channels) > 1 else folder
+        target.mkdir(exist_ok=True)
+        m = fit["model"]
+        geometry = parse_geometry(m.get("geometry"), f"{source}: model.geometry")
+        medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
+        grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+        stage(f"render {name}")
+        result, left_out = render_transport(
+            medium,
+            grid,
+            light,
+            m["bounces"],
+            gain=fit["gain"],
+            geometry=geometry if isinstance(geometry, Slab) else None,
+        )
+        notes += [f"[{name}] {n}" for n in left_out]
+        written = write_transport(result, target)
+        about = {
+            "results": str(source),
+            "capture": str(capture_path),
+            "channel": name,
+            "medium": {k: fit[k] for k in ("sigma_t", "sigma_s", "g", "gain", "phase") if k in fit},
+            "illumination": f"full, {light.entry} wall, {light.direction_deg:g} deg",
+            "model_crop": m["crop"],
+            "medium_roi": None if capture.roi is None else list(capture.roi),
+            "bounces": result.bounces,
+            "n_theta": result.n_theta,
+            "notes": left_out,
+        }
+        atomic_write_json(target / "render.json", about)
+        written["render.json"] = "what was rendered (medium, model region, illumination)"
+        if plot:
+            from .viz import plot_transport
+
+            stage(f"plot {name}")
+            title = (
+                f"[{name}] fitted σt {fit['sigma_t']:.4g}, σs {fit['sigma_s']:.4g} px⁻¹, "
+                f"g {fit['g']:.3f}; model region {m['crop']} of the ROI"
+            )
+            for p in plot_transport(result, target, illumination=light, title=title):
+                written[p.name] = "figure"
+        prefix = f"{name}/" if len(channels) > 1 else ""
+        files.update({prefix + k: v for k, v in written.items()})
+    return files, notes
+
+
+def plot_simulation(
+    sim, folder: Path, *, stage=lambda _s: None
+) -> tuple[dict[str, str], list[str]]:
+    """The paper's figures of a simulated scene (:class:`~lightfield_jax.SimulatedCapture`)
+    into ``folder``: its medium, grid, geometry and gain under the config's light (full
+    illumination for stripes), K = the simulation's bounces."""
+    from .viz import plot_transport
+
+    config = sim.config
+    light = full_light(config.illumination)
+    stage("render the light fields for the figures")
+    result, notes = render_transport(
+        config.medium.medium(),
+        config.grid,
+        light,
+        sim.n_bounces,
+        gain=config.gain,
+        geometry=config.geometry if isinstance(config.geometry, Slab) else None,
+    )
+    stage("plot")
+    m = config.medium
+    title = f"simulated σt {m.sigma_t:g}, σs {m.sigma_s:g} px⁻¹, g {m.g:g}"
+    figures = plot_transport(result, folder, illumination=light, title=title)
+    return {p.name: "figure" for p in figures}, notes

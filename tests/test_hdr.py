@@ -1,0 +1,253 @@
+"""Exposure brackets (lightfield_jax._hdr): brackets written from a simulated stripe
+capture, as a camera would take them (shot noise, a dark pedestal, clipping, 8-bit
+codes, linear or γ 2.2), are merged back to the capture's radiance; the fit recovers
+the medium from them (slow)."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+import lightfield_jax as lfj
+from lightfield_jax._capture import load_capture
+from lightfield_jax._cli import main
+from lightfield_jax._config import parse_simulation_config
+from lightfield_jax._fit import fit_capture
+from lightfield_jax._hdr import (
+    calibrate_response,
+    linear_response,
+    load_response,
+    merge_bracket,
+    write_response,
+)
+from lightfield_jax._io import CaptureError, write_png
+
+MEDIUM = {"sigma_t": 0.1, "sigma_s": 0.05, "g": 0.3}
+TIMES = [0.001, 0.008, 0.064]
+PHOTONS = 20000.0  # photo-electrons at full scale
+PEDESTAL = 0.02  # the camera's black pedestal (linear, full scale 1)
+
+
+@pytest.fixture(scope="module")
+def radiance():
+    """The capture's radiance [P, H, W] (64x48, six shifted stripes), noise free."""
+    config = parse_simulation_config(
+        {
+            "grid": {"width": 64, "height": 48},
+            "medium": {**MEDIUM, "phase": "paper"},
+            "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+            "bounces": "auto",
+        }
+    )
+    return np.asarray(lfj.simulate_capture(config).images, np.float64)
+
+
+def _write_brackets(
+    folder, radiance, gamma: float, response: str, dark: bool, calibration=False, bits=8
+):
+    """PNG brackets (the shortest exposure puts the peak at half of full scale, the
+    longest clips 45 % of the samples) and their capture file: 8-bit, or ``bits`` of
+    sensor data in 16-bit files."""
+    rng = np.random.default_rng(0)
+    scale = 0.5 / (radiance.max() * TIMES[0])
+
+    def expose(signal, name):
+        x = rng.poisson((signal + (PEDESTAL if dark else 0.0)) * PHOTONS) / PHOTONS
+        z = np.clip(x, 0.0, 1.0) ** (1.0 / gamma)
+        if bits == 8:
+            write_png(folder / name, z, bits=8)
+        else:  # the sensor's codes, as a raw converter writes them into 16 bits
+            write_png(folder / name, np.rint(z * ((1 << bits) - 1)) / 65535, bits=16)
+        return name
+
+    images = [
+        [expose(e * scale * t, f"shift{p}_{j}.png") for j, t in enumerate(TIMES)]
+        for p, e in enumerate(radiance)
+    ]
+    capture = {
+        "images": images,
+        "exposure_times": TIMES,
+        "response": response,
+        "pattern": {"period": 6, "lit": 3, "phases": list(range(6))},
+        "truth": MEDIUM,
+    }
+    if dark:
+        zero = np.zeros(radiance.shape[1:])
+        capture["dark_frame"] = [expose(zero, f"dark_{j}.png") for j in range(len(TIMES))]
+    if calibration:  # the projector's all-white and all-black frames, bracketed alike
+        white = radiance.sum(axis=0) / 3  # six shifts of lit 3 of period 6: 3 × white
+        capture["white_frame"] = [
+            expose(white * scale * t, f"white_{j}.png") for j, t in enumerate(TIMES)
+        ]
+        capture["black_frame"] = [  # a projector whose black is 5 % of its white
+            expose(0.05 * white * scale * t, f"black_{j}.png") for j, t in enumerate(TIMES)
+        ]
+        capture["black_level"] = "auto"
+    path = folder / "capture.yaml"
+    path.write_text(yaml.safe_dump(capture))
+    return path
+
+
+def _relative_errors(merged, truth):
+    """|merged/truth − 1| (merged scaled by the median ratio) where the truth is above
+    10⁻³ of its peak: the 50th and 90th percentiles."""
+    lit = truth > 1e-3 * truth.max()
+    ratio = merged[lit] / truth[lit]
+    return np.percentile(np.abs(ratio / np.median(ratio) - 1.0), [50, 90])
+
+
+def test_linear_brackets_merge_to_the_radiance(radiance, tmp_path):
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True, calibration=True)
+    capture = load_capture(path)
+    median, p90 = _relative_errors(capture.images[..., 0], radiance)
+    # The bracketed black and white frames merge alike: the projector's black is 5 %.
+    assert capture.black_level == pytest.approx(0.05, abs=0.003), capture.black_level_estimate
+    assert median < 0.02 and p90 < 0.05, (median, p90)
+    b = capture.brackets
+    assert b.response.kind == "linear" and b.times == tuple(TIMES)
+    # The longest exposure clips near the entry wall, the shortest holds everything.
+    assert b.clipped_fraction[0].max() == 0 and b.clipped_fraction[-1].mean() > 0.2
+    assert not b.clipped.any() and capture.mask.all()
+    # Where the longest exposure clips, T comes from the shorter ones only.
+    assert capture.exposure.min() < TIMES[1] + TIMES[0] + 1e-9
+    assert capture.exposure.max() == pytest.approx(sum(TIMES) - TIMES[0], rel=1e-6)
+    assert any(n.startswith("HDR: 6 brackets of 3 exposures") for n in capture.notes)
+    assert any("dark_frame: subtracted from every exposure" in n for n in capture.notes)
+
+
+def test_12_bit_data_in_16_bit_files_clips_at_the_sensor_top_code(radiance, tmp_path):
+    capture = load_capture(_write_brackets(tmp_path, radiance, 1.0, "linear", False, bits=12))
+    assert "12-bit data in 16-bit files: samples divided by its top code" in capture.notes
+    # Clipped samples are found at the sensor's top code (not at 16 bits' one).
+    assert capture.brackets.clipped_fraction[-1].mean() > 0.2
+    median, p90 = _relative_errors(capture.images[..., 0], radiance)
+    assert median < 0.02 and p90 < 0.05, (median, p90)
+
+
+def test_gamma_brackets_recover_the_response_and_the_radiance(radiance, tmp_path):
+    capture = load_capture(_write_brackets(tmp_path, radiance, 2.2, "auto", dark=False))
+    response = capture.brackets.response
+    z = np.linspace(0.2, 0.85, 30)
+    x = response.linearize(z[:, None])[:, 0]
+    truth = z**2.2 / 0.5**2.2
+    assert np.max(np.abs(x / truth - 1.0)) < 0.04
+    assert capture.brackets.near_black[0] == pytest.approx(0.17, abs=0.03)
+    median, p90 = _relative_errors(capture.images[..., 0], radiance)
+    assert median < 0.02 and p90 < 0.05, (median, p90)
+
+    # The recovered curve, written and read back as a response file, merges alike (a
+    # file's curve is trusted up to the usual clip level: give auto's as saturation).
+    write_response(tmp_path / "response.csv", response, capture.channel_names)
+    data = yaml.safe_load((tmp_path / "capture.yaml").read_text())
+    data.update(response="response.csv", saturation=capture.brackets.clip)
+    (tmp_path / "from_file.yaml").write_text(yaml.safe_dump(data))
+    again = load_capture(tmp_path / "from_file.yaml")
+    assert again.brackets.response.kind == "file"
+    np.testing.assert_allclose(again.images, capture.images, rtol=1e-5)
+
+
+def test_inspect_shows_the_merge(radiance, tmp_path, capsys):
+    path = _write_brackets(tmp_path, radiance, 2.2, "auto", dark=False)
+    files = [tmp_path / n for n in ("inspect.png", "inspect.json", "response.csv")]
+    args = ["inspect", str(path), "--plot", str(files[0]), "--json", str(files[1])]
+    assert main([*args, "--response", str(files[2])]) == 0
+    out = capsys.readouterr().out
+    assert "note: HDR: 6 brackets of 3 exposures merged, auto response" in out
+    record = json.loads(files[1].read_text())["brackets"]
+    assert record["exposure_times"] == TIMES and record["response"]["kind"] == "auto"
+    # The longest exposure clips near the entry wall; the shortest drops the dark tail.
+    assert record["clipped_fraction"][0] == 0 and record["clipped_fraction"][2] > 0.2
+    assert record["near_black_fraction"][0] > 0.3
+    assert files[0].stat().st_size > 50_000
+    curve = load_response(files[2], 1)
+    np.testing.assert_allclose(curve.curve[:, 0], record["response"]["curve"][0], rtol=1e-6)
+
+
+def test_merge_weights_samples_by_exposure_and_drops_clipped_and_black_ones():
+    times = [1.0, 4.0]
+    z = np.array([[0.2, 0.001, 0.5, 1.0, 1.0]])[None].repeat(2, 0)[..., None]  # (J, 1, 5, 1)
+    z[1, 0, :, 0] = [0.8, 0.003, 1.0, 1.0, 0.004]
+    m = merge_bracket(z, times, linear_response(), levels=None)
+    # Both valid: (0.2 + 0.8) / 5; both near black: the longest one's; the longest
+    # clipped: the shortest alone; both clipped: flagged, the shortest's value.
+    np.testing.assert_allclose(m.radiance[0, :4, 0], [0.2, 0.003 / 4, 0.5, 1.0])
+    np.testing.assert_allclose(m.exposure[0, :, 0], [5.0, 4.0, 1.0, 1.0, 4.0])
+    assert m.clipped[0, :, 0].tolist() == [False, False, False, True, False]
+    assert m.dark[0, :, 0].tolist() == [False, True, False, False, True]
+    assert m.clipped_samples.sum(axis=(1, 2, 3)).tolist() == [2, 2]
+    assert m.near_black_samples.sum(axis=(1, 2, 3)).tolist() == [1, 2]
+
+
+def test_auto_response_needs_lit_unclipped_pixels():
+    dark = np.zeros((3, 100, 1))
+    with pytest.raises(CaptureError, match="fewer than 16 pixels"):
+        calibrate_response(dark, TIMES)
+
+
+def _capture_file(tmp_path, **changes):
+    for j in range(2):
+        write_png(tmp_path / f"a{j}.png", np.full((8, 8), 0.5), bits=8)
+    data = {
+        "images": [["a0.png", "a1.png"]] * 6,
+        "exposure_times": [0.01, 0.02],
+        "pattern": {"period": 6, "lit": 3},
+    }
+    data.update(changes)
+    data = {k: v for k, v in data.items() if v is not None}
+    path = tmp_path / "capture.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"exposure_times": None}, "exposure_times: bracketed images need a list"),
+        ({"exposure_times": [0.02, 0.01]}, "exposure_times: must increase"),
+        ({"exposure_times": [0.01, -1]}, r"exposure_times\[1\]: must be a positive number"),
+        ({"exposure_times": [0.01, 0.02, 0.04]}, r"images\[0\]: lists 2 exposure\(s\) for 3"),
+        ({"images": [["a0.png", "a1.png"], "a0.png"]}, "images: mixes files and brackets"),
+        ({"dark_frame": "a0.png"}, "dark_frame: with bracketed images give one file per"),
+        ({"response": "gamma"}, "response: .*gamma: file not found"),
+        ({"response": 2.2}, "response: must be linear or auto or a file"),
+    ],
+)
+def test_bracket_errors_name_the_key(tmp_path, changes, message):
+    with pytest.raises(CaptureError, match=message):
+        load_capture(_capture_file(tmp_path, **changes))
+
+
+def test_exposure_keys_need_brackets(tmp_path):
+    write_png(tmp_path / "a.png", np.full((8, 8), 0.5), bits=8)
+    path = tmp_path / "capture.yaml"
+    path.write_text(yaml.safe_dump({"images": ["a.png"] * 6, "response": "auto"}))
+    with pytest.raises(CaptureError, match="response: applies to bracketed images only"):
+        load_capture(path)
+
+
+def test_response_file_is_validated(tmp_path):
+    bad = tmp_path / "r.csv"
+    bad.write_text("0, 0\n0.5, 0.6\n0.9, 0.5\n1, 1\n")
+    with pytest.raises(CaptureError, match="x must not decrease"):
+        load_response(bad, 1)
+    bad.write_text("0.1, 0\n1, 1\n")
+    with pytest.raises(CaptureError, match="must run from 0 to 1"):
+        load_response(bad, 1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "gamma, response, tolerance",
+    [(1.0, "linear", (0.02, 0.05, 0.03)), (2.2, "auto", (0.03, 0.10, 0.05))],
+)
+def test_fit_recovers_the_medium_from_brackets(radiance, tmp_path, gamma, response, tolerance):
+    # A pedestal under a gamma curve breaks z = f(E·t) (see lightfield_jax._hdr): the
+    # γ 2.2 brackets have none, the linear ones do (their dark frame removes it).
+    path = _write_brackets(tmp_path, radiance, gamma, response, dark=gamma == 1.0)
+    capture = load_capture(path)
+    fit = fit_capture(capture, "joint").results[0]
+    assert fit.converged
+    assert abs(fit.sigma_t / MEDIUM["sigma_t"] - 1) < tolerance[0]
+    assert abs(fit.sigma_s / MEDIUM["sigma_s"] - 1) < tolerance[1]
+    assert abs(fit.g - MEDIUM["g"]) < tolerance[2]
