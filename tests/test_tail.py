@@ -1,12 +1,16 @@
 """The tail of the bounce series from one Krylov solve: equal to the long series, exact
 explicit bounces, derivatives, no recompiles, reported non-convergence."""
 
+import json
+from pathlib import Path
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import lightfield_jax as lfj
+from lightfield_jax._experiment import run_experiment
 from lightfield_jax._render import EXPLICIT_WITH_TAIL, Renderer, renderer_for, trace_count
 from lightfield_jax._tail import TailNotConvergedWarning
 
@@ -158,3 +162,29 @@ def test_non_convergence_is_reported():
 def test_bad_tail_settings_raise_clear_errors(call, match):
     with pytest.raises(ValueError, match=match):
         call(lfj.Grid(12, 8, 16, refine=1), lfj.Beam(0.0, 4.0))
+
+
+@pytest.mark.slow
+def test_tail_acceleration_experiment_reduced(tmp_path):
+    config = Path(__file__).resolve().parent.parent / "configs" / "tail_acceleration.yaml"
+    record = run_experiment(config, tmp_path, reduced=True)
+    assert (tmp_path / "tail_acceleration.png").stat().st_size > 0
+    data = json.loads((tmp_path / "tail_acceleration.json").read_text())
+    assert {"versions", "machine", "date_utc"} <= set(data)
+    rows = data["rows"]
+    assert {(r["phase"], r["method"]) for r in rows} == {
+        (p, m)
+        for p in ("normalized", "paper")
+        for m in ("series_auto", "series_needed", "gmres", "bicgstab")
+    }
+    for r in rows:
+        assert r["seconds"] > 0
+        if r["method"] in ("gmres", "bicgstab"):
+            assert r["converged"] and r["error_explicit"] < 1e-6
+            assert r["error_total"] < 10 * data["tail_tol"], r
+    for phase in ("normalized", "paper"):
+        by = {r["method"]: r for r in rows if r["phase"] == phase}
+        # the tail bound is conservative: more bounces than needed, and within target
+        assert by["series_auto"]["bounces"] >= by["series_needed"]["bounces"]
+        assert by["series_auto"]["error_total"] <= data["target"]
+    assert len(record["summary"]["table"]) == len(rows)
