@@ -125,6 +125,21 @@ def test_new_values_never_recompile_with_a_tail():
     assert trace_count() == before
 
 
+def test_float32_tail_converges_without_x64():
+    # The package runs float32 with x64 off; there lineax's own BiCGStab tests breakdown
+    # as alpha < 1e-16 (signed) and stops after two steps on this scene. The solve
+    # written here converges, to the float64 answer.
+    grid = lfj.Grid(48, 32, 32, refine=1)
+    renderer = renderer_for(grid, lfj.Full(), 4, "normalized", None, "bicgstab", 1e-5)
+    values = (0.5, 0.99 * 0.5, 0.7)
+    with jax.enable_x64(False):
+        i32, _, t32 = renderer(*(np.float32(v) for v in values))
+        assert t32.image.dtype == jnp.float32 and bool(t32.converged)
+        total32 = np.asarray(i32.sum(axis=1) + t32.image, np.float64)
+    i64, _, t64 = renderer(*(jnp.float64(v) for v in values))
+    assert _relative_l1(total32, i64.sum(axis=1) + t64.image) < 1e-4
+
+
 def test_non_convergence_is_reported():
     grid = lfj.Grid(18, 12, 16, refine=1)
     medium = lfj.Medium(0.6, 0.59, 0.5, "normalized")
