@@ -36,10 +36,13 @@ from ._first_scatter import (
 from ._grid import Grid
 from ._illumination import Illumination, Stripes, scaled, source_moments
 from ._medium import Medium, bounces_for_tolerance, phase_function, phase_integral
+from ._tail import TailNotConvergedWarning, TailSolution, check_tail, solve_tail
 from ._transport import direction_groups, transport, transport_tables
 
 # Sub-samples per bin of the triangle-weighted bin average of p (phase matrix).
 _PHASE_SUBSAMPLES = 16
+# Explicit bounces ``bounces="auto"`` keeps when a tail solve sums the rest.
+EXPLICIT_WITH_TAIL = 4
 
 
 _TRACES = {"renderer": 0}
@@ -89,16 +92,30 @@ def as_physical(sigma_t, sigma_s, g, gain):
 
 def render_refined(model, values, lightfield: bool, image_scale, field_scale):
     """``model._render`` on its refined working grid (σ/f per refined pixel), then f×f
-    blocks averaged back, images × ``image_scale``, light fields × ``field_scale``."""
+    blocks averaged back, images × ``image_scale``, light fields × ``field_scale``.
+    A model with a tail returns ``(images, fields, tail)``, the tail refined alike."""
     sigma_t, sigma_s, g, gain = as_physical(*values)
     f = model.refine
-    images, fields = model._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
+    out = model._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
     if f == 1:
+        return out
+    images = image_scale * _block_mean(out[0], f, (-2, -1))
+    fields = None if out[1] is None else field_scale * _block_mean(out[1], f, (-3, -2))
+    if len(out) == 2:
         return images, fields
-    images = image_scale * _block_mean(images, f, (-2, -1))
-    if fields is not None:
-        fields = field_scale * _block_mean(fields, f, (-3, -2))
-    return images, fields
+    tail = out[2]
+    return (
+        images,
+        fields,
+        TailSolution(
+            image=image_scale * _block_mean(tail.image, f, (-2, -1)),
+            lightfield=None
+            if tail.lightfield is None
+            else field_scale * _block_mean(tail.lightfield, f, (-3, -2)),
+            steps=tail.steps,
+            converged=tail.converged,
+        ),
+    )
 
 
 def _log_sinhc(x):
@@ -124,6 +141,35 @@ def unscattered_fluence(model, sigma_t):
     return model.coverage.astype(dtype) * jnp.exp(-sigma_t * mean + _log_sinhc(x))
 
 
+class BounceStep(eqx.Module):
+    """One bounce on the plane's grid, Q_k ↦ (Q_{k+1}, I_{k+1}), built once per (σt, σs, g).
+
+    ``step(q)`` is ``scatter(transport(q))``: L_k = T[Q_k] (black walls), then
+    Q_{k+1} = σs·∫ p(θ − θ') L_k dθ' and I_{k+1} = σs·p(π/2)·Σ_θ L_k·Δθ from one matmul
+    with the mixing matrix. Linear in q; σt, σs and the mixing matrix are leaves (a
+    linear solve over the step differentiates through them). Sources and fields are
+    direction-major, Float[Array, "patterns n_theta H W"]; images "patterns H W".
+    """
+
+    sigma_t: Float[Array, ""]
+    sigma_s: Float[Array, ""]
+    mixing: Float[Array, "n_theta+1 n_theta"]
+    tables: dict
+    n_theta: int = eqx.field(static=True)
+
+    def transport(self, q):
+        """L = T[Q] on the grid (:func:`lightfield_jax._transport.transport`)."""
+        return transport(q, self.sigma_t, _groups(self.n_theta), self.tables)
+
+    def scatter(self, field):
+        """(Q_next, image) of a light field: rows 0..n−1 and row n of the mixing matmul."""
+        out = jnp.einsum("ij,pjhw->pihw", self.mixing, field)
+        return self.sigma_s * out[:, : self.n_theta], self.sigma_s * out[:, self.n_theta]
+
+    def __call__(self, q):
+        return self.scatter(self.transport(q))
+
+
 class Renderer(eqx.Module):
     """A compiled forward model for one grid, illumination and bounce count.
 
@@ -135,6 +181,15 @@ class Renderer(eqx.Module):
     returns ``(images, lightfields)``: images Float[Array, "patterns bounces H W"]
     (index k−1 holds I_k) and, when requested, lightfields
     Float[Array, "bounces+1 patterns H W n_theta"] (L_0..L_K), else ``None``.
+
+    With ``tail`` (``"gmres"`` or ``"bicgstab"``) the first ``bounces`` = K0 orders stay
+    explicit and exact as above, and the rest of the series Σ_{k>K0} comes from one
+    Krylov solve (:mod:`lightfield_jax._tail`, relative tolerance ``tail_tol``, at most
+    ``tail_max_steps`` iterations): the call returns ``(images, lightfields, tail)``
+    with ``tail`` a :class:`~lightfield_jax._tail.TailSolution` (tail image
+    "patterns H W", its light field "patterns H W n_theta" or ``None``, the solver's
+    steps and whether it converged). The image of all orders is
+    ``images.sum(axis=1) + tail.image``.
     """
 
     height: int = eqx.field(static=True)  # of the (refined) working grid
@@ -144,6 +199,9 @@ class Renderer(eqx.Module):
     bounces: int = eqx.field(static=True)
     phase: str = eqx.field(static=True)
     theta0_bin: int = eqx.field(static=True)
+    tail: str | None = eqx.field(static=True)
+    tail_tol: float = eqx.field(static=True)
+    tail_max_steps: int = eqx.field(static=True)
     coverage: Float[Array, "patterns H W"]
     mean_depth: Float[Array, "patterns H W"]
     var_depth: Float[Array, "patterns H W"]
@@ -152,12 +210,24 @@ class Renderer(eqx.Module):
     tables: dict
     circulant: Array
 
-    def __init__(self, grid: Grid, illumination: Illumination, bounces: int, phase: str = "paper"):
+    def __init__(
+        self,
+        grid: Grid,
+        illumination: Illumination,
+        bounces: int,
+        phase: str = "paper",
+        *,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
+    ):
         if grid.n_theta is None:
             raise ValueError("Renderer needs grid.n_theta: call Grid.resolve(g) first")
         if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
             raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
         Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
+        check_tail(tail, tail_tol, tail_max_steps)
+        self.tail, self.tail_tol, self.tail_max_steps = tail, float(tail_tol), int(tail_max_steps)
         f = self.refine = 1 if grid.refine is None else grid.refine
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.bounces = int(bounces)
@@ -185,58 +255,76 @@ class Renderer(eqx.Module):
         # f times ours: images scale by f, light fields by 1.
         return render_refined(self, (sigma_t, sigma_s, g, gain), lightfield, self.refine, 1)
 
+    def bounce_step(self, sigma_t, sigma_s, g) -> BounceStep:
+        """The one-bounce operator Q_k ↦ (Q_{k+1}, I_{k+1}) at these values, on the
+        working grid (σ per working pixel: divide by ``refine`` first)."""
+        return self._step(sigma_t, sigma_s, self._phase_parts(g)[2])
+
+    def _step(self, sigma_t, sigma_s, mixing) -> BounceStep:
+        return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta)
+
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
         dtype = sigma_t.dtype
         n = self.n_theta
         dtheta = 2 * math.pi / n
-        groups = _groups(n)
 
         _count_trace()
         source = unscattered_fluence(self, sigma_t)
         p_camera, node_p, mixing = self._phase_parts(g)
-
-        def scatter(field):  # field: (patterns, n_theta, H, W), direction-major
-            out = jnp.einsum("ij,pjhw->pihw", mixing, field)
-            return sigma_s * out[:, :n], sigma_s * out[:, n]
+        step = self._step(sigma_t, sigma_s, mixing)
+        # With a tail one more bounce is marched: its source Q_{K0+1} and image I_{K0+1}
+        # seed the tail's solve.
+        march = self.bounces + (self.tail is not None)
 
         images = [sigma_s * p_camera * source]
         fields = []
         if lightfield:
             l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
             fields.append(l0.at[:, self.theta0_bin].set(source / dtheta))
-        if self.bounces > 1 or lightfield:
+        if march > 1 or lightfield:
             kernel = first_scatter_kernel(self.nodes, node_p, sigma_t, n, self.height, self.width)
             l1 = sigma_s * convolve_first_scatter(source, kernel)
             if lightfield:
                 fields.append(l1)
-        q_last = None
-        if self.bounces > 1:
-            q, image = scatter(l1)
-            images.append(image)
-            q_last = q
+        images = [jnp.stack(images)]
+        fields = [jnp.stack(fields)] if lightfield else []
+        if march > 1:
+            q, image = step.scatter(l1)
+            images.append(image[None])
 
             def bounce(q, _):
-                field = transport(q, sigma_t, groups, self.tables)
-                q_next, image = scatter(field)
+                field = step.transport(q)
+                q_next, image = step.scatter(field)
                 return q_next, (image, field if lightfield else None)
 
-            if self.bounces > 2:
-                q_last, (more, more_fields) = jax.lax.scan(bounce, q, None, length=self.bounces - 2)
-                images = [jnp.stack(images), more]
+            if march > 2:
+                q, (more, more_fields) = jax.lax.scan(bounce, q, None, length=march - 2)
+                images.append(more)
                 if lightfield:
-                    fields = [jnp.stack(fields), more_fields]
-            else:
-                images = [jnp.stack(images)]
-                fields = [jnp.stack(fields)] if lightfield else []
-        else:
-            images = [jnp.stack(images)]
-            fields = [jnp.stack(fields)] if lightfield else []
-        if lightfield and self.bounces > 1:
-            fields.append(transport(q_last, sigma_t, groups, self.tables)[None])
-        stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
+                    fields.append(more_fields)
+            if lightfield and self.tail is None:
+                fields.append(step.transport(q)[None])  # L_K0
+        images = jnp.concatenate(images, axis=0)
+        stacked = gain * jnp.moveaxis(images[: self.bounces], 0, 1)
         lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
-        return stacked, lf
+        if self.tail is None:
+            return stacked, lf
+        tail = solve_tail(
+            step, q, images[-1], self.tail, self.tail_tol, self.tail_max_steps, lightfield
+        )
+        return (
+            stacked,
+            lf,
+            TailSolution(
+                image=gain * tail.image,
+                lightfield=None
+                if tail.lightfield is None
+                else gain * jnp.moveaxis(tail.lightfield, 1, -1),
+                steps=tail.steps,
+                converged=tail.converged,
+            ),
+        )
 
     def _phase_parts(self, g):
         """What g changes in a render: p(π/2) (the camera), p at the first-scatter
@@ -269,6 +357,11 @@ class Renderer(eqx.Module):
         do not depend on it. So the tangent travels beside the primal as extra
         patterns through the same convolution and transport, and only the small
         phase-function pieces are differentiated (by ``jax.jvp``)."""
+        if self.tail is not None:
+            raise ValueError(
+                f"images_and_g_slope: per-bounce images only; this renderer has tail "
+                f"{self.tail!r} (use jax.jvp through the call)"
+            )
         sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
         f = self.refine
         images, slopes = self._render_g_slope(sigma_t / f, sigma_s / f, g, gain)
@@ -345,6 +438,13 @@ class RenderResult(eqx.Module):
         refine: spatial refinement of the working grid used.
         rho: ω·A(g) (paper) or ω (normalized), the per-bounce energy ratio bound.
         converges: whether the bounce series converges (ρ < 1).
+        tail: with a tail solve, Σ_{k>K} I_k in the layout of one image ("H W" or
+            "patterns H W"), else ``None``.
+        tail_lightfield: Σ_{k>K} L_k ("H W n_theta" or "patterns H W n_theta") when a
+            tail and light fields were requested, else ``None``.
+        tail_method: the tail's solver (``"gmres"``, ``"bicgstab"``) or ``None``.
+        tail_steps: the tail solver's iterations, or ``None``.
+        tail_converged: whether the tail solve met its tolerance (``None``: no tail).
     """
 
     images: Array
@@ -354,34 +454,77 @@ class RenderResult(eqx.Module):
     refine: int = eqx.field(static=True)
     rho: Float[Array, ""]
     converges: bool = eqx.field(static=True)
+    tail: Array | None = None
+    tail_lightfield: Array | None = None
+    tail_method: str | None = eqx.field(static=True, default=None)
+    tail_steps: int | None = eqx.field(static=True, default=None)
+    tail_converged: bool | None = eqx.field(static=True, default=None)
 
     @property
     def total(self) -> Array:
-        """Σ_k I_k (the image a camera sees)."""
-        return jnp.sum(self.images, axis=-3)
+        """Σ_k I_k (the image a camera sees): the K explicit bounces plus the tail."""
+        total = jnp.sum(self.images, axis=-3)
+        return total if self.tail is None else total + self.tail
 
 
-def make_renderer(grid: Grid, illumination: Illumination, bounces: int, phase: str, geometry=None):
+def make_renderer(
+    grid: Grid,
+    illumination: Illumination,
+    bounces: int,
+    phase: str,
+    geometry=None,
+    *,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
+):
     """The compiled forward model of a scene: a :class:`Renderer` for the plane (the
     paper's 2-D model, ``geometry`` ``None`` or :class:`~lightfield_jax.Plane`) or a
     :class:`~lightfield_jax.SlabRenderer` for a :class:`~lightfield_jax.Slab`. Both
     have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``) must
-    be resolved."""
+    be resolved. ``tail`` (plane only): the orders after ``bounces`` from one Krylov
+    solve (see :class:`Renderer`)."""
     from ._slab import Plane, Slab, SlabRenderer
 
     if isinstance(geometry, Slab):
+        if tail is not None:
+            raise ValueError(f"tail: {tail!r} is not available for the slab geometry yet")
         return SlabRenderer(grid, illumination, bounces, geometry, phase)
     if geometry is not None and not isinstance(geometry, Plane):
         raise ValueError(f"geometry: must be None, a Plane or a Slab, got {geometry!r}")
-    return Renderer(grid, illumination, bounces, phase)
+    return Renderer(
+        grid,
+        illumination,
+        bounces,
+        phase,
+        tail=tail,
+        tail_tol=tail_tol,
+        tail_max_steps=tail_max_steps,
+    )
 
 
 @functools.lru_cache(maxsize=16)
 def renderer_for(
-    grid: Grid, illumination: Illumination, bounces: int, phase: str, geometry=None
+    grid: Grid,
+    illumination: Illumination,
+    bounces: int,
+    phase: str,
+    geometry=None,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
 ) -> Renderer:
     """A cached renderer (its tables are built once per static configuration)."""
-    return make_renderer(grid, illumination, bounces, phase, geometry)
+    return make_renderer(
+        grid,
+        illumination,
+        bounces,
+        phase,
+        geometry,
+        tail=tail,
+        tail_tol=tail_tol,
+        tail_max_steps=tail_max_steps,
+    )
 
 
 def resolve_model(medium: Medium, grid: Grid, geometry=None):
@@ -400,12 +543,19 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     return grid.resolve(g), None, rho_bound(medium)
 
 
-def resolve_bounces(rho: float, bounces: int | str, tolerance: float = 1e-4) -> int:
+def resolve_bounces(
+    rho: float, bounces: int | str, tolerance: float = 1e-4, tail: str | None = None
+) -> int:
     """An explicit bounce count, or ``"auto"``: the tail bound ρ^K/(1 − ρ) ≤ tolerance,
-    with ρ the model's per-bounce energy ratio bound (see :func:`resolve_model`)."""
+    with ρ the model's per-bounce energy ratio bound (see :func:`resolve_model`); with a
+    ``tail`` solve, at most :data:`EXPLICIT_WITH_TAIL` of them (the solve does the rest)."""
     if isinstance(bounces, str):
         if bounces != "auto":
             raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
+        if tail is not None:
+            if rho >= 1.0:
+                return EXPLICIT_WITH_TAIL  # refused by the caller with the reason
+            return min(bounces_for_tolerance(float(rho), tolerance, math.inf), EXPLICIT_WITH_TAIL)
         return bounces_for_tolerance(float(rho), tolerance)
     if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
         raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
@@ -422,6 +572,9 @@ def render(
     gain=1.0,
     lightfield: bool = False,
     geometry=None,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
 ) -> RenderResult:
     """Render per-bounce images (and optionally light fields) of a scene.
 
@@ -437,13 +590,30 @@ def render(
             a :class:`~lightfield_jax.Slab` (the tank's depth in 3-D, MODEL.md §7: the
             3-D Henyey–Greenstein phase function whatever ``medium.phase`` says; light
             fields are integrated over depth and elevation).
+        tail: ``None`` (the series stops after K bounces), or ``"gmres"`` /
+            ``"bicgstab"``: the K bounces stay explicit and the rest of the series,
+            Σ_{k>K}, comes from one Krylov solve (plane only; ``bounces="auto"`` then
+            keeps at most :data:`EXPLICIT_WITH_TAIL` explicit bounces). The result's
+            ``tail`` holds its image and ``total`` includes it.
+        tail_tol: the tail solve's relative residual tolerance (GMRES: the tail's error
+            stayed below it in the measurements; BiCGStab's ran up to 26× above it when
+            the scene's per-bounce ratio approaches 1: see docs/tail_acceleration.md).
+        tail_max_steps: the most iterations the tail solve may take.
 
     Under ``phase="paper"`` with ρ ≥ 1 an explicit K still renders, the result has
-    ``converges=False`` and a :class:`DivergentSeriesWarning` is issued.
+    ``converges=False`` and a :class:`DivergentSeriesWarning` is issued; a tail is
+    refused there (``ValueError``: the series it would sum diverges). A tail solve that
+    stops before its tolerance gives ``tail_converged=False`` and a
+    :class:`~lightfield_jax._tail.TailNotConvergedWarning`.
     """
     grid, geometry, rho = resolve_model(medium, grid, geometry)
-    k = resolve_bounces(float(rho), bounces, tolerance)
+    k = resolve_bounces(float(rho), bounces, tolerance, tail)
     converges = bool(rho < 1.0)
+    if tail is not None and not converges:
+        raise ValueError(
+            f"tail: rho = albedo*A(g) = {float(rho):.4f} >= 1: the bounce series diverges "
+            "and has no tail to sum; use phase: normalized or tail: None"
+        )
     if not converges:
         warnings.warn(
             f"rho = albedo*A(g) = {float(rho):.4f} >= 1: the bounce series of the 'paper' "
@@ -452,8 +622,13 @@ def render(
             DivergentSeriesWarning,
             stacklevel=2,
         )
-    renderer = renderer_for(grid, illumination, k, medium.phase, geometry)
-    images, fields = renderer(medium.sigma_t, medium.sigma_s, medium.g, gain, lightfield)
+    renderer = renderer_for(
+        grid, illumination, k, medium.phase, geometry, tail, tail_tol, tail_max_steps
+    )
+    images, fields, *solved = renderer(medium.sigma_t, medium.sigma_s, medium.g, gain, lightfield)
+    extra = {}
+    if solved:
+        extra = _tail_entries(solved[0], tail, tail_tol, not isinstance(illumination, Stripes))
     if not isinstance(illumination, Stripes):
         images = images[0]
         fields = fields[:, 0] if fields is not None else None
@@ -467,6 +642,31 @@ def render(
         refine=grid.refine,
         rho=rho,
         converges=converges,
+        **extra,
+    )
+
+
+def _tail_entries(solved: TailSolution, method: str, tol: float, single: bool) -> dict:
+    """A tail solution's :class:`RenderResult` fields; warns when it did not converge."""
+    converged = bool(solved.converged)
+    steps = int(solved.steps)
+    if not converged:
+        warnings.warn(
+            f"tail: the {method} solve stopped after {steps} iterations before its "
+            f"tolerance {tol:g}: the tail image is its last iterate, not a solution",
+            TailNotConvergedWarning,
+            stacklevel=3,
+        )
+    image, field = solved.image, solved.lightfield
+    if single:
+        image = image[0]
+        field = None if field is None else field[0]
+    return dict(
+        tail=image,
+        tail_lightfield=field,
+        tail_method=method,
+        tail_steps=steps,
+        tail_converged=converged,
     )
 
 
@@ -481,7 +681,10 @@ def single_scatter_closed_form(
 
 
 __all__ = [
+    "BounceStep",
     "DivergentSeriesWarning",
+    "EXPLICIT_WITH_TAIL",
+    "TailNotConvergedWarning",
     "Renderer",
     "RenderResult",
     "make_renderer",

@@ -1,0 +1,311 @@
+"""What does the rest of the bounce series cost, marched or solved?
+
+A render keeps ``explicit_bounces`` = K0 bounces explicit; the rest of the series,
+Σ_{k>K0} I_k, is either marched bounce by bounce (the plain series) or solved for in one
+Krylov solve over the one-bounce operator (``tail: gmres`` / ``tail: bicgstab`` of
+:func:`lightfield_jax.render`). For each per-bounce ratio bound ρ (``rho``) and phase
+convention (``normalized``: σs = ρ·σt; ``paper``: σs = ρ·σt/A(g), so ω·A(g) = ρ < 1),
+on one scene (full illumination from the left wall), it measures per method:
+
+- ``series_auto``: the plain series with the bounce count ``bounces: auto`` gives,
+  K = ⌈log(target·(1 − ρ))/log ρ⌉ (the tail bound; ``bounces_for_tolerance``, uncapped;
+  not run above ``max_auto_bounces``);
+- ``series_needed``: the plain series with the fewest bounces whose error is at most
+  ``target`` (known only from the reference: an oracle count, the best a march can do);
+- ``gmres``, ``bicgstab``: K0 explicit bounces and the tail solve at ``tail_tol``.
+
+Error: relative L1 of the image of all orders against the reference, the plain series
+marched until its last bounce's share, extrapolated geometrically, is below
+``reference_tol`` (the bounce count doubles until it is). Time: the median of
+``repeats`` steady calls (the first call, with its compile, reported apart); a first
+call running longer than 10 s is not repeated (its run time counts, compile apart). The
+figure shows the fastest steady call (the least disturbed by other jobs on a shared
+machine), the JSON every call. Everything runs in float32 (the package's default), the
+reference too. Each ``sigma_t`` (per pixel) is one scene: walls leak less light per
+bounce from an optically larger scene, so its measured per-bounce ratio comes closer
+to ρ.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax._experiment import check_config, machine, versions
+from lightfield_jax._medium import bounces_for_tolerance
+from lightfield_jax._render import renderer_for
+from lightfield_jax._timing import stopwatch
+
+_KEYS = {
+    "experiment",
+    "width",
+    "height",
+    "n_theta",
+    "refine",
+    "sigma_t",
+    "g",
+    "rho",
+    "phases",
+    "methods",
+    "explicit_bounces",
+    "tail_tol",
+    "target",
+    "reference_tol",
+    "max_auto_bounces",
+    "repeats",
+}
+_METHODS = ("series_auto", "series_needed", "gmres", "bicgstab")
+_LONG_CALL_S = 10.0
+
+
+def _check(config: dict) -> dict:
+    check_config(
+        "tail_acceleration",
+        config,
+        _KEYS,
+        {"methods": _METHODS, "phases": ("normalized", "paper")},
+    )
+    missing = sorted(_KEYS - set(config))
+    if missing:
+        raise ValueError(f"tail_acceleration: missing config keys {missing}")
+    for sigma_t in config["sigma_t"]:
+        if not float(sigma_t) > 0.0:
+            raise ValueError(f"tail_acceleration: sigma_t: each must be > 0, got {sigma_t!r}")
+    for rho in config["rho"]:
+        if not 0.0 < float(rho) < 1.0:
+            raise ValueError(f"tail_acceleration: rho: each must be in (0, 1), got {rho!r}")
+    return dict(config)
+
+
+def _medium(cfg: dict, sigma_t: float, rho: float, phase: str) -> lfj.Medium:
+    st, g = float(sigma_t), float(cfg["g"])
+    a = 1.0 if phase == "normalized" else float(lfj.phase_integral(g))
+    if rho / a >= 1.0:
+        raise ValueError(f"tail_acceleration: rho {rho} needs albedo {rho / a:.3f} >= 1 ({phase})")
+    return lfj.Medium(st, rho / a * st, g, phase)
+
+
+def _timed(call, repeats: int) -> dict:
+    """First call (compile + run) and the median of ``repeats`` steady calls (a first
+    call that runs longer than ``_LONG_CALL_S`` is not repeated: its run time counts)."""
+    with stopwatch() as first:
+        out = call()
+    times = [first.run] if first.run > _LONG_CALL_S else []
+    for _ in range(repeats if not times else 0):
+        t0 = time.perf_counter()
+        out = call()
+        times.append(time.perf_counter() - t0)
+    return {
+        "first_call_s": first.total,
+        "compile_s": first.compile,
+        "seconds": float(np.median(times)),
+        "times_s": times,
+        "out": out,
+    }
+
+
+def _plain(medium, grid, k: int):
+    """Per-bounce images (K, H, W) of the plain series, float64 on the host."""
+    renderer = renderer_for(grid, lfj.Full(), k, medium.phase)
+
+    def call():
+        images = renderer(medium.sigma_t, medium.sigma_s, medium.g)[0]
+        return np.asarray(jax.block_until_ready(images)[0], np.float64)
+
+    return call
+
+
+def _reference(ctx, medium, grid, cfg: dict) -> tuple[np.ndarray, int]:
+    """Per-bounce image sums s_k of a series marched until its geometric tail estimate
+    s_K·r/(1 − r)/Σs (r = s_K/s_{K−1}) is below ``reference_tol``; returns the total image
+    and the bounce sums."""
+    k = 256
+    while True:
+        ctx.progress(f"reference: {k} bounces")
+        images = _plain(medium, grid, k)()
+        sums = images.sum(axis=(1, 2))
+        r = sums[-1] / sums[-2] if sums[-2] > 0 else 0.0  # float32 underflows to 0
+        if r < 1 and sums[-1] * r / (1 - r) <= cfg["reference_tol"] * sums.sum():
+            return images, sums
+        if k >= 65536:
+            raise RuntimeError(f"tail_acceleration: reference not converged at {k} bounces")
+        k *= 2
+
+
+def _rel_l1(a, b) -> float:
+    return float(np.abs(np.asarray(a, np.float64) - b).sum() / np.abs(b).sum())
+
+
+def _case(ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str) -> list[dict]:
+    medium = _medium(cfg, sigma_t, rho, phase)
+    images_ref, sums = _reference(ctx, medium, grid, cfg)
+    total_ref = images_ref.sum(axis=0)
+    k0 = cfg["explicit_bounces"]
+    tail_ref = images_ref[k0:].sum(axis=0)
+    # Error of the first K bounces alone (images are non-negative: the L1 of a partial
+    # sum's error is the sum of the rest).
+    partial_error = 1.0 - np.cumsum(sums) / sums.sum()
+    k_needed = int(np.argmax(partial_error <= cfg["target"])) + 1
+    base = {
+        "sigma_t": sigma_t,
+        "phase": phase,
+        "rho": rho,
+        "albedo": float(medium.albedo),
+        "sigma_s": float(medium.sigma_s),
+        "reference_bounces": int(len(sums)),
+        "measured_ratio": float(sums[-1] / sums[-2]) if sums[-2] > 0 else 0.0,
+    }
+    rows = []
+    for method in cfg["methods"]:
+        ctx.progress(f"{phase} rho {rho}: {method}")
+        row = dict(base, method=method)
+        if method.startswith("series"):
+            if method == "series_auto":
+                k = bounces_for_tolerance(rho, cfg["target"], math.inf)
+            else:
+                k = k_needed
+            row.update(bounces=k, explicit_bounces=k)
+            if k > cfg["max_auto_bounces"]:
+                row.update(skipped=f"{k} bounces > max_auto_bounces {cfg['max_auto_bounces']}")
+                rows.append(row)
+                continue
+            timed = _timed(_plain(medium, grid, k), cfg["repeats"])
+            total = timed.pop("out").sum(axis=0)
+            row.update(error_total=_rel_l1(total, total_ref))
+        else:
+            renderer = renderer_for(
+                grid, lfj.Full(), k0, medium.phase, None, method, cfg["tail_tol"]
+            )
+
+            def call(renderer=renderer):
+                images, _, tail = renderer(medium.sigma_t, medium.sigma_s, medium.g)
+                return jax.block_until_ready((images, tail))
+
+            timed = _timed(call, cfg["repeats"])
+            images, tail = timed.pop("out")
+            images = np.asarray(images[0], np.float64)
+            tail_image = np.asarray(tail.image[0], np.float64)
+            row.update(
+                bounces=None,
+                explicit_bounces=k0,
+                steps=int(tail.steps),
+                converged=bool(tail.converged),
+                error_total=_rel_l1(images.sum(axis=0) + tail_image, total_ref),
+                error_tail=_rel_l1(tail_image, tail_ref),
+                error_explicit=_rel_l1(images, images_ref[:k0]),
+            )
+        row.update(timed)
+        rows.append(row)
+    return rows
+
+
+def run(config: dict, out: Path, ctx) -> dict:
+    cfg = _check(config)
+    grid = lfj.Grid(cfg["width"], cfg["height"], cfg["n_theta"], cfg["refine"])
+    rows = []
+    shared = {k: v for k, v in cfg.items() if k not in ("sigma_t", "rho", "phases")}
+    for sigma_t in cfg["sigma_t"]:
+        for phase in cfg["phases"]:
+            for rho in cfg["rho"]:
+                key = f"{sigma_t}|{phase}|{rho}|{sorted(shared.items())}"
+                rows += ctx.cached(
+                    key,
+                    lambda s=sigma_t, p=phase, r=rho: _case(ctx, cfg, grid, s, r, p),
+                )
+    data = {
+        "grid": {
+            "width": grid.width,
+            "height": grid.height,
+            "n_theta": grid.n_theta,
+            "refine": grid.refine,
+        },
+        "sigma_t": cfg["sigma_t"],
+        "g": cfg["g"],
+        "explicit_bounces": cfg["explicit_bounces"],
+        "tail_tol": cfg["tail_tol"],
+        "target": cfg["target"],
+        "dtype": "float32",
+        "load_average_1min": os.getloadavg()[0],
+        "versions": versions(),
+        "machine": machine(),
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "rows": rows,
+    }
+    ctx.write_json("tail_acceleration.json", data)
+    figure = _plot(data, ctx.figure_path("tail_acceleration.png"))
+    return {
+        "figure": str(figure),
+        "table": [
+            {
+                k: r.get(k)
+                for k in (
+                    "sigma_t",
+                    "phase",
+                    "rho",
+                    "method",
+                    "bounces",
+                    "steps",
+                    "seconds",
+                    "error_total",
+                    "skipped",
+                )
+            }
+            for r in rows
+        ],
+    }
+
+
+def _plot(data: dict, path: Path) -> Path:
+    from lightfield_jax.viz._common import finish, new_figure
+
+    scenes = data["sigma_t"]
+    fig = new_figure(11, 4.2 * len(scenes))
+    axes = fig.subplots(len(scenes), 2, squeeze=False)
+    styles = {"normalized": "-", "paper": "--"}
+    x_all = [1.0 - r["rho"] for r in data["rows"]]
+    grid = data["grid"]
+    for (ax_t, ax_e), sigma_t in zip(axes, scenes, strict=True):
+        for ax in (ax_t, ax_e):
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlim(2.0 * max(x_all), 0.5 * min(x_all))  # ρ grows to the right
+            ax.autoscale(enable=False, axis="x")
+            ax.set_xlabel("1 − ρ  (ρ: per-bounce ratio bound ω·A(g) or ω)")
+            ax.grid(True, which="both", alpha=0.3)
+        for i, method in enumerate(_METHODS):
+            for phase, ls in styles.items():
+                rows = [
+                    r
+                    for r in data["rows"]
+                    if r["method"] == method
+                    and r["phase"] == phase
+                    and r["sigma_t"] == sigma_t
+                    and "seconds" in r
+                ]
+                if not rows:
+                    continue
+                x = [1.0 - r["rho"] for r in rows]
+                kw = dict(color=f"C{i}", ls=ls, marker="o", label=f"{method} ({phase})")
+                ax_t.plot(x, [min(r["times_s"]) for r in rows], **kw)
+                ax_e.plot(x, [max(r["error_total"], 1e-9) for r in rows], **kw)
+        size = f"{grid['width'] * sigma_t:g} × {grid['height'] * sigma_t:g} mean free paths"
+        ax_t.set_title(f"σt {sigma_t} per px ({size}): time", fontsize=9)
+        ax_e.set_title(f"σt {sigma_t} per px: error (floored at 1e-9)", fontsize=9)
+        ax_t.set_ylabel("seconds per render, fastest steady call")
+        ax_e.set_ylabel("relative L1 error of Σ_k I_k vs reference")
+        ax_e.axhline(data["target"], color="0.5", ls=":", lw=1, label="target = tail_tol")
+        ax_e.legend(fontsize=7)
+    fig.suptitle(
+        f"Bounce series after K0 = {data['explicit_bounces']} explicit bounces: marched vs "
+        f"solved. {grid['width']}×{grid['height']} px, n_theta {grid['n_theta']}, "
+        f"g {data['g']}, full illumination, float32; {os.cpu_count()} cores, load "
+        f"{data['load_average_1min']:.1f}",
+        fontsize=9,
+    )
+    return finish(fig, path)
