@@ -325,7 +325,12 @@ def load_capture(path: str | os.PathLike) -> Capture:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     if not mask.any():
         top.fail("images", "no usable pixel: every pixel is non-finite or saturated in some image")
-    _check_stripes(top, full_pattern, calibrated, full_roi, names, spec["phases"] != AUTO, dark)
+    phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
+    contradiction = _check_stripes(
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark
+    )
+    if contradiction:
+        notes.append(contradiction)
     del calibrated
     images = _calibrate(raw, dark_pixels, flat_pixels)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)
@@ -486,6 +491,7 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
             "period is a few rows",
         )
     phases = s.get("phases", None)
+    spec["phases_from"] = "default" if phases is None else "given"
     if phases is None:
         phases = list(range(n_images))
     elif phases == AUTO:
@@ -633,28 +639,32 @@ def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry
 
 
 def _check_light(top: _Section, images: np.ndarray, dark: ImageData | None) -> None:
-    """Refuse images without light: every value zero, or not above zero (negative
-    images, or a dark frame brighter than the images)."""
+    """Refuse images without light: no value above zero (every value zero, or negative
+    images), or, with a dark frame, images darker than it (99 % of the values after
+    subtracting it below zero by more than 10⁻³ of the dark level: past quantisation)."""
     finite = images[np.isfinite(images)]
     if finite.size == 0:
         return  # every value non-finite: the mask's check says so
-    top_level = float(np.percentile(finite, 99))
-    if top_level > 0:
-        return
+    brightest = float(finite.max())
     if dark is not None:
-        top.fail(
-            "dark_frame",
-            f"{dark.path.name} is as bright as or brighter than the images (after "
-            f"subtracting it, 99% of the image values are <= {top_level:.3g}): a dark "
-            "frame is taken with the projector off, and is darker than every image",
-        )
-    if not finite.any():
+        level = float(np.percentile(finite, 99))
+        dark_level = float(np.nanmedian(np.abs(dark.pixels)))
+        if level < -1e-3 * dark_level:
+            top.fail(
+                "dark_frame",
+                f"{dark.path.name} is brighter than the images (after subtracting it, 99% "
+                f"of the image values are <= {level:.3g}): a dark frame is taken with the "
+                "projector off, darker than every image",
+            )
+        return
+    if brightest == 0:
         top.fail("images", "every pixel of every image is 0: no light was captured")
-    top.fail(
-        "images",
-        f"99% of the image values are <= {top_level:.3g}: images of light are not "
-        "negative (values must be linear, black at 0)",
-    )
+    if brightest < 0:
+        top.fail(
+            "images",
+            f"every image value is negative (the largest is {brightest:.3g}): images of "
+            "light are not negative (values must be linear, black at 0)",
+        )
 
 
 # Stripe contrast of an image: its Fourier amplitude across the stripes at the period
@@ -670,11 +680,13 @@ _STRIPED, _UNSTRIPED = 2.5, 0.1
 _SURE_PHASES = 0.8
 
 
-def _check_stripes(top, pattern, images, roi, names, declared: bool, dark):
+def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
-    of the period in a capture that has them, or declared phases that differ from
-    those the stripe detector (:func:`~lightfield_jax._geometry.detect_geometry`)
-    measures with confidence. ``images`` and ``roi``: the full frame's."""
+    of the period in a capture that has them, or given phases that differ from those
+    the stripe detector (:func:`~lightfield_jax._geometry.detect_geometry`) measures
+    with confidence. Default phases (``pattern.phases`` absent) that differ are
+    returned as a note's text instead. ``images`` and ``roi``: the full frame's;
+    ``phases_from``: ``given``, ``default`` or ``auto``."""
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
     stack = _across_first(crop, pattern.entry)
@@ -688,7 +700,7 @@ def _check_stripes(top, pattern, images, roi, names, declared: bool, dark):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
         relative = stripes / np.median(stripes)
     if not contrast >= _STRIPED:
-        return  # no stripes to compare with
+        return None  # no stripes to compare with
     for name, r in zip(names, relative, strict=True):
         if not r >= _UNSTRIPED:
             top.fail(
@@ -697,8 +709,8 @@ def _check_stripes(top, pattern, images, roi, names, declared: bool, dark):
                 f"{r:.2g} times the other images'): a white or black frame listed as a "
                 "stripe image? (give it as white_frame or black_frame)",
             )
-    if not declared or len(names) < 2:
-        return
+    if phases_from == "auto" or len(names) < 2:
+        return None
     try:
         found = detect_geometry(
             images,
@@ -710,15 +722,18 @@ def _check_stripes(top, pattern, images, roi, names, declared: bool, dark):
             direction_deg=pattern.direction_deg,
         )
     except ValueError:
-        return  # stripes too faint to measure: nothing to compare
+        return None  # stripes too faint to measure: nothing to compare
     sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
-    if sure >= _SURE_PHASES and list(found.phases) != list(pattern.phases):
-        top.fail(
-            "pattern.phases",
-            f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
-            f"{list(found.phases)} (measured by the stripe detector, phase confidence "
-            f"{found.parts['phases']:.2f}); correct them, or set pattern.phases: auto",
-        )
+    if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
+        return None
+    message = (
+        f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
+        f"{list(found.phases)} (measured by the stripe detector, phase confidence "
+        f"{found.parts['phases']:.2f}); correct them, or set pattern.phases: auto"
+    )
+    if phases_from == "default":
+        return f"pattern.phases (absent: the default) {message}"
+    top.fail("pattern.phases", message)
 
 
 def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:

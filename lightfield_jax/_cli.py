@@ -800,12 +800,14 @@ def _pattern(args: argparse.Namespace) -> None:
     arg("--plot", metavar="FIG.png", help="also write the figure"),
     arg("--json", metavar="FILE", help="also write the findings as JSON"),
 )
-def _inspect_command(args: argparse.Namespace) -> None:
+def _inspect_command(args: argparse.Namespace) -> int | None:
     """Load a capture (measuring what it leaves auto), separate it, and print: the
     medium's ROI, the entry wall, the light's direction, the stripe phases, the black
     level, the masked pixels and, per channel, the direct light's SNR along the beam.
     --plot draws the frame with the ROI, entry wall and direction, the separated direct
-    and multiple images, the saturation mask and the SNR along the beam."""
+    and multiple images, the saturation mask and the SNR along the beam. Exit status 1,
+    with a warning, when a channel is unusable for a fit (no direct light at the entry
+    wall, or its SNR never usable)."""
     from ._capture import capture_files, load_capture
     from ._inspect import inspect_capture
     from ._io import atomic_write_json
@@ -832,6 +834,10 @@ def _inspect_command(args: argparse.Namespace) -> None:
     _say(args, inspection.summary())
     if plot is not None or out is not None:
         _say(args, f"wrote {', '.join(str(f) for f in (plot, out) if f is not None)}")
+    problems = inspection.problems()
+    for problem in problems:
+        _warn(args, f"{capture.source}: {problem}")
+    return 1 if problems else None
 
 
 # --------------------------------------------------------------------------- experiment

@@ -411,6 +411,18 @@ def test_phases_that_contradict_the_images_are_refused(capture, capsys):
     _edit(capture, pattern={**pattern, "phases": "auto"})
     status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
     assert status == 0, err
+    # Phases left to their default (0..P-1) that the images contradict: a note.
+    from lightfield_jax._capture import load_capture
+
+    _edit(
+        capture,
+        pattern={k: v for k, v in pattern.items() if k != "phases"},
+        images=[f"shift_{i:02d}.exr" for i in (1, 2, 3, 4, 5, 0)],
+    )
+    notes = load_capture(capture / "capture.yaml").notes
+    assert any(
+        "pattern.phases (absent: the default) [0, 1, 2, 3, 4, 5] contradict" in n for n in notes
+    )
 
 
 def test_a_white_frame_listed_as_a_stripe_image_is_refused(capture, capsys):
@@ -435,10 +447,29 @@ def test_images_without_light_are_refused(capture, capsys):
     for f, image in zip(shifts, images, strict=True):
         write_exr(f, {"Y": -image})
     for command in ("fit", "inspect"):
-        _refused(capsys, command, capture / "capture.yaml", match="are not negative")
+        _refused(capsys, command, capture / "capture.yaml", match="every image value is negative")
     for f in shifts:
         write_exr(f, {"Y": np.zeros((H, W))})
     _refused(capsys, "inspect", capture / "capture.yaml", match="every pixel of every image is 0")
+
+
+def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, capsys):
+    from lightfield_jax._capture import write_capture_yaml
+    from lightfield_jax._illumination import Stripes
+
+    names = [f"s{i}.exr" for i in range(P)]
+    for name in names:
+        write_exr(tmp_path / name, {"Y": np.full((H, W), 0.5)})
+    write_capture_yaml(tmp_path / "capture.yaml", images=names, pattern=Stripes())
+    status, out, err = _run(
+        capsys, "inspect", tmp_path / "capture.yaml", "--json", tmp_path / "i.json"
+    )
+    assert status == 1
+    assert "warning: [Y] no direct light at the entry wall" in out
+    assert err.startswith("lightfield-jax: warning: ") and "no direct light" in err
+    assert any(
+        "no direct light" in w for w in json.loads((tmp_path / "i.json").read_text())["warnings"]
+    )
 
 
 # ---------------------------------------------------------- 9. non-regular inputs
