@@ -89,7 +89,15 @@ below 0.5 is also a :class:`CaptureWarning`. ``lightfield-jax inspect`` shows it
 
 :func:`load_capture` validates all of it: every error is a
 :class:`~lightfield_jax._io.CaptureError` whose message starts with the capture file and
-names the key and value (or the image file). Pixels that cannot be used (NaN or Inf in
+names the key and value (or the image file). Beyond each key's type and range (phases
+in [0, period), a period no longer than the images), the images must agree with the
+file: a capture too large for the memory available is refused from the image headers
+before any pixel is read (:mod:`lightfield_jax._memory`); images without light (every
+value zero or negative, or darker than the dark frame) are refused; in a capture whose
+images show stripes of the period, an image without them (a white or black frame
+listed among the stripes) is refused, and given phases that the stripe detector
+contradicts with confidence (the period within 2 %, every phase within 0.1 row) are
+refused with both lists (absent phases, whose default is contradicted, get a note). Pixels that cannot be used (NaN or Inf in
 an image, the dark frame or the flat field, saturated or clipped) are masked, with a
 :class:`CaptureWarning` that counts them.
 """

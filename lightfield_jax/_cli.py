@@ -306,6 +306,19 @@ def _about(capture) -> Iterator[None]:
 # --------------------------------------------------------------------------- simulate
 
 
+# The names simulate writes into its folder (see its help).
+SIMULATE_FILES = (
+    "bounces*.npy",
+    "bounces*.exr",
+    "total.exr",
+    "shift_*.exr",
+    "capture.yaml",
+    "dark.exr",
+    "lightfield.npy",
+    "metadata.json",
+)
+
+
 @command(
     "simulate",
     "render a config into per-bounce and captured images",
@@ -339,9 +352,10 @@ def _simulate(args: argparse.Namespace) -> None:
     """
     from ._config import load_simulation_config
     from ._io import atomic_directory
+    from ._outputs import check_outputs
     from ._simulate import simulate_capture, write_simulation
 
-    _outputs(folders=[args.out], inputs=[args.config])
+    check_outputs(folders=[args.out], inputs=[Path(args.config)], folder_names=SIMULATE_FILES)
     config = load_simulation_config(args.config)
     out = Path(args.out)
     with _progress(args, "simulate") as stage:
@@ -458,6 +472,11 @@ def _bench(args: argparse.Namespace) -> None:
         _say(args, f"wrote {out}")
         return
     sizes = args.sizes
+    from ._memory import check_memory, render_bytes
+
+    for w, h, n in sizes:
+        # value_and_grad keeps the forward pass's fields of its 10 bounces.
+        check_memory(render_bytes(10, h, w, n), f"bench --sizes {w}x{h}x{n}")
     with _progress(args, "bench", len(sizes)) as stage:
         names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])
         stage(f"{sizes[0][0]}x{sizes[0][1]}x{sizes[0][2]}")

@@ -33,7 +33,11 @@ Optional keys (all absent by default):
   dark frame with that constant (plus noise) is written as ``dark.exr``.
 
 Every error is a :class:`ConfigError` whose message starts with the file name, then
-the key's path (``medium.sigma_t``) and the offending value. Unknown keys, duplicate
+the key's path (``medium.sigma_t``) and the offending value (its text bounded in
+size). Stripe phases lie in [0, period), ``shifts`` in [1, period], and the period is
+no longer than the grid. A YAML file must be a regular file of at most 16 MiB whose
+aliases expand to at most :data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
+before it is built), nested less deeply than Python's recursion limit. Unknown keys, duplicate
 keys, wrong types and out-of-range values are all errors. Float keys accept numeric
 strings (YAML 1.1 reads ``1e-4`` as one); integer keys accept only integers.
 """

@@ -60,7 +60,10 @@ def current_limit() -> tuple[int, str]:
     if _override:
         return _override[-1], "--max-memory"
     if os.environ.get(MAX_MEMORY_ENV):
-        return parse_size(os.environ[MAX_MEMORY_ENV]), f"${MAX_MEMORY_ENV}"
+        try:
+            return parse_size(os.environ[MAX_MEMORY_ENV]), f"${MAX_MEMORY_ENV}"
+        except ValueError as e:
+            raise ValueError(f"${MAX_MEMORY_ENV}: {e}") from None
     return available_bytes(), "available memory"
 
 

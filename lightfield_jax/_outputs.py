@@ -22,6 +22,7 @@ has succeeded, so a failure leaves every existing file as it was.
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import os
 import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -57,9 +58,12 @@ def check_outputs(
     files: Sequence[str | os.PathLike] = (),
     folders: Sequence[str | os.PathLike] = (),
     inputs: Iterable[str | os.PathLike] = (),
+    folder_names: Sequence[str] = (),
 ) -> None:
     """Check, before any work, that a command may write ``files`` (single files) and
     ``folders`` (output folders) without touching ``inputs`` (see the module docstring).
+    ``folder_names``: the names (glob patterns) the command writes into its folders;
+    an input there with such a name would be replaced.
 
     Raises:
         OutputError: the first output that cannot be written; the message names it.
@@ -70,9 +74,14 @@ def check_outputs(
         path = Path(given)
         _check_kind(path, folder)
         for source in inputs:
-            if _same(path, source):
+            inside = folder and _same(path, source.parent)
+            if _same(path, source) or (
+                inside and any(fnmatch.fnmatch(source.name, n) for n in folder_names)
+            ):
+                what = "holds" if inside else "is"
                 raise OutputError(
-                    f"{given}: is an input of this command ({source}); choose another output"
+                    f"{given}: {what} an input of this command ({source}), which it would "
+                    "replace; choose another output"
                 )
         key = os.path.realpath(path)
         if key in seen:

@@ -103,6 +103,11 @@ def test_an_output_that_is_an_input_is_refused(capture, capsys):
     cfg.write_text(SIMULATE)
     _refused(capsys, "simulate", cfg, "--out", cfg, match="not a directory")
     assert _snapshot(capture) == before
+    # A config named like a file simulate writes, in its output folder.
+    (capture / "capture.yaml").write_text(SIMULATE)
+    before = _snapshot(capture)
+    _refused(capsys, "simulate", capture / "capture.yaml", "--out", capture, match="holds an input")
+    assert _snapshot(capture) == before
 
 
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
@@ -340,6 +345,15 @@ def test_renders_too_large_for_memory_are_refused_with_the_estimate(tmp_path, ca
     )
     assert "of the --max-memory" in line
     assert not (tmp_path / "o").exists()
+
+
+def test_bench_sizes_too_large_for_memory_are_refused(tmp_path, capsys):
+    _refused(
+        capsys,
+        *("bench", "--sizes", "3000x3000x512", "--out", tmp_path / "b.json"),
+        match="bench --sizes 3000x3000x512 needs about",
+    )
+    assert not (tmp_path / "b.json").exists()
 
 
 def _png_header(path: Path, width: int, height: int) -> None:
