@@ -97,9 +97,9 @@ value zero or negative, or darker than the dark frame) are refused; in a capture
 images show stripes of the period, an image without them (a white or black frame
 listed among the stripes) is refused, and given phases that the stripe detector
 contradicts with confidence (the period within 2 %, every phase within 0.1 row) are
-refused with both lists (absent phases, whose default is contradicted, get a note). Pixels that cannot be used (NaN or Inf in
-an image, the dark frame or the flat field, saturated or clipped) are masked, with a
-:class:`CaptureWarning` that counts them.
+refused with both lists (absent phases, whose default is contradicted, get a note).
+Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field,
+saturated or clipped) are masked, with a :class:`CaptureWarning` that counts them.
 """
 
 from __future__ import annotations
