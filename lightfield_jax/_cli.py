@@ -537,6 +537,11 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
         plot_fit(capture.images[..., i], capture.pattern, result, write(target))
 
 
+# Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
+# (g <= 0.5); more are capped by FitOptions.max_cells.
+FIT_N_THETA = 32
+
+
 # The two-step methods separate the direct light first; on stripe captures the
 # separation is biased (the multiple light is not the same under every shift), and
 # their ± (the noise's spread) says nothing of it.
@@ -614,9 +619,10 @@ def _fit(args: argparse.Namespace) -> int | None:
     channels = args.channel or capture.channel_names
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
     _outputs(files=[out, *figures], inputs=inputs)
+    h, w = capture.shape
+    cells = min(h * w * FIT_N_THETA, FitOptions().max_cells)
     check_memory(
-        fit_bytes(capture.images.size, capture.n_images, FitOptions().max_cells),
-        f"{capture.source}: the fit",
+        fit_bytes(capture.images.size, capture.n_images, cells), f"{capture.source}: the fit"
     )
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}

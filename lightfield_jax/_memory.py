@@ -95,12 +95,18 @@ def check_memory(nbytes: float, what: str) -> None:
 # Working copies of an image read (the library's buffer, the float array, a selection).
 IMAGE_COPIES = 3
 # Working copies of a capture's stack of images while loading (raw, calibrated, the
-# detector's float64 copy, masks) in float64.
+# detector's float64 copy, masks) in float64. Measured: loading six 1000x800 RGB float
+# EXR stripe images peaks at 32 bytes per sample above the imports (4 such copies).
 CAPTURE_COPIES = 6
 # Light-field sized arrays alive at once in a render per pattern (L_k, the scattered
-# and transported fields, the accumulators and XLA's temporaries).
-RENDER_FIELDS = 6
+# and transported fields, the accumulators and XLA's temporaries). Measured: peak
+# resident memory above the imports of `simulate` (6 stripes, n_theta 64, 8 bounces)
+# is 15-16 such fields at 256x192 and 512x384.
+RENDER_FIELDS = 20
 # Derivative columns and their light fields in a fit (σt, σs, g, gain, black level).
+# Measured: a joint fit of the 128x96 six-shift demo capture (cropped to 46x96, n_theta
+# 32) peaks at 0.63 GB above the imports, compilation included; this estimate says
+# 1.1 GB for it (computed on the uncropped frame).
 FIT_FIELDS = 6 * RENDER_FIELDS
 
 
