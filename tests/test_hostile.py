@@ -333,7 +333,7 @@ def test_renders_too_large_for_memory_are_refused_with_the_estimate(tmp_path, ca
     path = tmp_path / "big.yaml"
     path.write_text(yaml.safe_dump(config))
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="needs about")
-    assert "GiB of memory, more than the" in line and "available memory" in line
+    assert "iB of memory, more than the" in line and "available memory" in line
     config["grid"] = {"width": 128, "height": 96, "n_theta": 16}
     config["bounces"] = 100000
     path.write_text(yaml.safe_dump(config))
