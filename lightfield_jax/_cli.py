@@ -267,15 +267,16 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
 
 
-def _outputs(files=(), folders=(), inputs=(), plots=()) -> None:
+def _outputs(files=(), folders=(), inputs=(), plots=(), folder_names=()) -> None:
     """Check every output of a command before its work (see
     :func:`~lightfield_jax._outputs.check_outputs`); ``plots`` are figures among
-    ``files``, whose format is checked too."""
+    ``files``, whose format is checked too; ``folder_names``: the names written into
+    ``folders``."""
     from ._outputs import check_outputs, check_plot_format
 
     for plot in plots:
         check_plot_format(plot)
-    check_outputs([f for f in files if f], [d for d in folders if d], inputs)
+    check_outputs([f for f in files if f], [d for d in folders if d], inputs, folder_names)
 
 
 @contextlib.contextmanager
@@ -352,10 +353,9 @@ def _simulate(args: argparse.Namespace) -> None:
     """
     from ._config import load_simulation_config
     from ._io import atomic_directory
-    from ._outputs import check_outputs
     from ._simulate import simulate_capture, write_simulation
 
-    check_outputs(folders=[args.out], inputs=[Path(args.config)], folder_names=SIMULATE_FILES)
+    _outputs(folders=[args.out], inputs=[args.config], folder_names=SIMULATE_FILES)
     config = load_simulation_config(args.config)
     out = Path(args.out)
     with _progress(args, "simulate") as stage:
@@ -881,6 +881,7 @@ def _experiment(args: argparse.Namespace) -> None:
     the same DIR resumes from the work already stored in DIR/cache."""
     from ._experiment import run_experiment
 
+    _outputs(folders=[args.out])
     with _progress(args, "experiment") as stage:
         record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
     _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
