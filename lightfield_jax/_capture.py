@@ -100,9 +100,17 @@ below 0.5 is also a :class:`CaptureWarning`. ``lightfield-jax inspect`` shows it
 
 :func:`load_capture` validates all of it: every error is a
 :class:`~lightfield_jax._io.CaptureError` whose message starts with the capture file and
-names the key and value (or the image file). Pixels that cannot be used (NaN or Inf in
-an image, the dark frame or the flat field, saturated or clipped) are masked, with a
-:class:`CaptureWarning` that counts them.
+names the key and value (or the image file). Beyond each key's type and range (phases
+in [0, period), a period no longer than the images), the images must agree with the
+file: a capture too large for the memory available is refused from the image headers
+before any pixel is read (:mod:`lightfield_jax._memory`); images without light (every
+value zero or negative, or darker than the dark frame) are refused; in a capture whose
+images show stripes of the period, an image without them (a white or black frame
+listed among the stripes) is refused, and given phases that the stripe detector
+contradicts with confidence (the period within 2 %, every phase within 0.1 row) are
+refused with both lists (absent phases, whose default is contradicted, get a note).
+Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field,
+saturated or clipped) are masked, with a :class:`CaptureWarning` that counts them.
 """
 
 from __future__ import annotations
@@ -126,8 +134,8 @@ from ._calibration import (
     estimate_black_level,
     sensor_top_code,
 )
-from ._config import _as_int, _Section, load_yaml
-from ._geometry import LOW_CONFIDENCE, Geometry, detect_geometry
+from ._config import _as_int, _Section, brief, load_yaml
+from ._geometry import LOW_CONFIDENCE, Geometry, _across_first, _coefficients, detect_geometry
 from ._hdr import CLIP, RESPONSES, Brackets, linear_response, merge_bracket, merge_capture
 from ._illumination import WALLS, Stripes
 from ._io import (
@@ -136,10 +144,12 @@ from ._io import (
     ImageData,
     _channel_index,
     atomic_write_text,
+    image_values,
     read_image,
     read_npy_stack,
 )
 from ._medium import PHASE_CONVENTIONS
+from ._memory import capture_bytes, check_memory
 from ._slab import parse_geometry
 
 CAPTURE_KEYS: tuple[str, ...] = (
@@ -269,7 +279,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     height, width, n_channels = frames[0].pixels.shape
-    spec = _pattern_spec(top, len(frames))
+    spec = _pattern_spec(top, len(frames), height, width)
     if merged is None:
         aux = {key: _aux_frame(top, key, base, channel, frames[0]) for key in _AUX_FRAMES}
     else:
@@ -301,6 +311,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
     flat_pixels = _flat(top, aux["flat_field"], dark_pixels)
 
     overview = _calibrate(np.mean(raw, axis=0), dark_pixels, flat_pixels)
+    calibrated = _calibrate(raw, dark_pixels, flat_pixels)
+    _check_light(top, calibrated, dark)
     detected = None
     if AUTO in (roi, spec["phases"], spec["entry"], spec["direction_deg"]):
         white = aux["white_frame"]
@@ -308,7 +320,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             top,
             spec,
             roi,
-            _calibrate(raw, dark_pixels, flat_pixels),
+            calibrated,
             None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels),
             dark_subtracted=dark is not None or bool(merged and "dark_frame" in top.data),
         )
@@ -321,8 +333,12 @@ def load_capture(path: str | os.PathLike) -> Capture:
             )
         roi = detected.roi if roi == AUTO else roi
     pattern = _stripes(top, spec, detected)
+    names = [f.path.name for f in frames]
+    if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
+        names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
 
     calibration_frames = {k: v.pixels for k, v in aux.items() if v is not None}
+    full_roi, full_pattern = roi, pattern
     if roi is not None:
         x0, y0, x1, y1 = roi
         raw = raw[:, y0:y1, x0:x1]
@@ -331,9 +347,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
         if flat_pixels is not None:
             flat_pixels = flat_pixels[y0:y1, x0:x1]
         pattern = _crop_pattern(pattern, x0, y0)
-    names = [f.path.name for f in frames]
-    if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
-        names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     checked = [(dark, dark_pixels)] if dark is not None else []
     if flat_pixels is not None:
         checked.append((aux["flat_field"], flat_pixels))
@@ -350,6 +363,13 @@ def load_capture(path: str | os.PathLike) -> Capture:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     if not mask.any():
         top.fail("images", "no usable pixel: every pixel is non-finite or saturated in some image")
+    phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
+    contradiction = _check_stripes(
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark
+    )
+    if contradiction:
+        notes.append(contradiction)
+    del calibrated
     images = _calibrate(raw, dark_pixels, flat_pixels)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)
 
@@ -401,13 +421,45 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
 
 
+def capture_files(path: str | os.PathLike) -> list[Path]:
+    """The capture file and every file it lists (images, calibration frames), from the
+    YAML alone: the inputs an output must not replace. Values that are not file names
+    are skipped (:func:`load_capture` reports them)."""
+    path = Path(path)
+    data = load_yaml(path, CaptureError)
+    if not isinstance(data, dict):
+        return [path]
+
+    def names(value) -> list:  # a file, a list of files, or brackets (lists of lists)
+        if isinstance(value, list):
+            return [name for v in value for name in names(v)]
+        return [value]
+
+    listed = names(data.get("images")) + names([data.get(key) for key in _AUX_FRAMES])
+    if data.get("response") not in RESPONSES:
+        listed.append(data.get("response"))
+    return [path] + [path.parent / v for v in listed if isinstance(v, str) and v]
+
+
+def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
+    """Refuse, from the first file's header, a capture too large to load (a file that
+    cannot be read is left to the read, which names its key)."""
+    try:
+        samples = image_values(files[0]) * len(files)
+    except CaptureError:
+        return
+    check_memory(
+        capture_bytes(samples), f"{top.source}: images ({len(files)} file(s), {samples} samples)"
+    )
+
+
 def _channel(top: _Section) -> str | int | None:
     """The channel selection for read_image: a name, an index, or None for all."""
     value = top.get("channel", "all")
     if isinstance(value, bool) or not isinstance(value, (str, int)) or value == "":
-        top.fail("channel", f"must be a channel name, an index or 'all', got {value!r}")
+        top.fail("channel", f"must be a channel name, an index or 'all', got {brief(value)}")
     if isinstance(value, int) and value < 0:
-        top.fail("channel", f"must be a non-negative index, got {value!r}")
+        top.fail("channel", f"must be a non-negative index, got {brief(value)}")
     return None if value == "all" else value
 
 
@@ -422,7 +474,7 @@ def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
 
 def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
     if not isinstance(value, str) or not value:
-        top.fail(key, f"must be a file path, got {value!r}")
+        top.fail(key, f"must be a file path, got {brief(value)}")
     return base / value
 
 
@@ -433,9 +485,10 @@ def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
         if file.suffix.lower() != ".npy":
             top.fail(
                 "images",
-                f"a single file must be a .npy stack [P, H, W(, C)], got {value!r}; "
+                f"a single file must be a .npy stack [P, H, W(, C)], got {brief(value)}; "
                 "list the image files otherwise",
             )
+        _check_capture_memory(top, [file])
         try:
             frames = read_npy_stack(file)
             if channel is not None:
@@ -452,13 +505,12 @@ def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
             raise CaptureError(f"{top.source}: images: {e}") from None
         return frames
     if not isinstance(value, list):
-        top.fail("images", f"must be a list of image files or one .npy stack, got {value!r}")
+        top.fail("images", f"must be a list of image files or one .npy stack, got {brief(value)}")
     if not value:
         top.fail("images", "the list is empty: give one image per phase")
-    frames = [
-        _read(top, f"images[{i}]", _file(top, f"images[{i}]", v, base), channel)
-        for i, v in enumerate(value)
-    ]
+    files = [_file(top, f"images[{i}]", v, base) for i, v in enumerate(value)]
+    _check_capture_memory(top, files)
+    frames = [_read(top, f"images[{i}]", file, channel) for i, file in enumerate(files)]
     first = frames[0]
     for i, f in enumerate(frames[1:], start=1):
         if f.pixels.shape != first.pixels.shape:
@@ -619,20 +671,36 @@ def _response(top: _Section, base: Path, images: np.ndarray, times, n_channels: 
         raise CaptureError(f"{top.source}: response: {e}") from None
 
 
-def _pattern_spec(top: _Section, n_images: int) -> dict[str, Any]:
+def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict[str, Any]:
     """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
     ``"auto"`` (measured from the images)."""
     s = top.section("pattern", _PATTERN_KEYS)
     spec: dict[str, Any] = {"period": s.int("period", 6), "lit": s.int("lit", 3)}
+    if spec["period"] > max(height, width):
+        s.fail(
+            s.key("period"),
+            f"{spec['period']} rows is longer than the {width}x{height} images: a stripe "
+            "period is a few rows",
+        )
     phases = s.get("phases", None)
+    spec["phases_from"] = "default" if phases is None else "given"
     if phases is None:
         phases = list(range(n_images))
     elif phases == AUTO:
         pass
     elif not isinstance(phases, list) or not phases:
-        s.fail(s.key("phases"), f"must be a non-empty list of integers or 'auto', got {phases!r}")
+        s.fail(
+            s.key("phases"), f"must be a non-empty list of integers or 'auto', got {brief(phases)}"
+        )
     else:
         phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+        outside = [p for p in phases if not 0 <= p < spec["period"]]
+        if outside:
+            s.fail(
+                s.key("phases"),
+                f"{brief(outside)} outside [0, period) = [0, {spec['period']}); a phase "
+                "counts rows modulo the period",
+            )
     if phases != AUTO and len(phases) != n_images:
         s.fail(
             s.key("phases"),
@@ -732,7 +800,7 @@ def _black_level(top: _Section) -> float | str | None:
         return AUTO
     value = top.float("black_level", None)
     if value is not None and not 0.0 <= value < 1.0:
-        top.fail("black_level", f"must lie in [0, 1), got {value!r} (or 'auto': measured)")
+        top.fail("black_level", f"must lie in [0, 1), got {brief(value)} (or 'auto': measured)")
     return value
 
 
@@ -760,6 +828,104 @@ def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry
         )
     except ValueError as e:
         raise CaptureError(f"{top.source}: {', '.join(asked)}: auto: {e}") from None
+
+
+def _check_light(top: _Section, images: np.ndarray, dark: ImageData | None) -> None:
+    """Refuse images without light: no value above zero (every value zero, or negative
+    images), or, with a dark frame, images darker than it (99 % of the values after
+    subtracting it below zero by more than 10⁻³ of the dark level: past quantisation)."""
+    finite = images[np.isfinite(images)]
+    if finite.size == 0:
+        return  # every value non-finite: the mask's check says so
+    brightest = float(finite.max())
+    if dark is not None:
+        level = float(np.percentile(finite, 99))
+        dark_level = float(np.nanmedian(np.abs(dark.pixels)))
+        if level < -1e-3 * dark_level:
+            top.fail(
+                "dark_frame",
+                f"{dark.path.name} is brighter than the images (after subtracting it, 99% "
+                f"of the image values are <= {level:.3g}): a dark frame is taken with the "
+                "projector off, darker than every image",
+            )
+        return
+    if brightest == 0:
+        top.fail("images", "every pixel of every image is 0: no light was captured")
+    if brightest < 0:
+        top.fail(
+            "images",
+            f"every image value is negative (the largest is {brightest:.3g}): images of "
+            "light are not negative (values must be linear, black at 0)",
+        )
+
+
+# Stripe contrast of an image: its Fourier amplitude across the stripes at the period
+# against that at 2/3 of it (not a harmonic of the stripes: noise alone gives about 1,
+# a 24-row crop of rendered stripes about 4, the window's leakage included). A capture
+# whose median contrast reaches _STRIPED has stripes; an image of it whose amplitude is
+# below _UNSTRIPED times the median image's is not a stripe image (a white or black
+# frame listed among them: measured 0.003).
+_STRIPED, _UNSTRIPED = 2.5, 0.1
+# Declared phases are compared with measured ones only when the detector is sure of
+# them: the stripes' period found within 2 % and every phase within 0.1 row of an
+# integer (noise images reach neither).
+_SURE_PHASES = 0.8
+
+
+def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> str | None:
+    """Refuse a capture whose images contradict its pattern: an image without stripes
+    of the period in a capture that has them, or given phases that differ from those
+    the stripe detector (:func:`~lightfield_jax._geometry.detect_geometry`) measures
+    with confidence. Default phases (``pattern.phases`` absent) that differ are
+    returned as a note's text instead. ``images`` and ``roi``: the full frame's;
+    ``phases_from``: ``given``, ``default`` or ``auto``."""
+    x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
+    crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
+    stack = _across_first(crop, pattern.entry)
+    u0 = y0 if pattern.entry in ("left", "right") else x0
+
+    def amplitude(period):
+        return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
+
+    stripes = amplitude(pattern.period)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = np.median(stripes / amplitude(1.5 * pattern.period))
+        relative = stripes / np.median(stripes)
+    if not contrast >= _STRIPED:
+        return None  # no stripes to compare with
+    for name, r in zip(names, relative, strict=True):
+        if not r >= _UNSTRIPED:
+            top.fail(
+                "images",
+                f"{name} shows no stripes of period {pattern.period} (stripe amplitude "
+                f"{r:.2g} times the other images'): a white or black frame listed as a "
+                "stripe image? (give it as white_frame or black_frame)",
+            )
+    if phases_from == "auto" or len(names) < 2:
+        return None
+    try:
+        found = detect_geometry(
+            images,
+            period=pattern.period,
+            lit=pattern.lit,
+            floor=None if dark is None else 0.0,
+            roi=(x0, y0, x1, y1),
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+        )
+    except ValueError:
+        return None  # stripes too faint to measure: nothing to compare
+    sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
+    if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
+        return None
+    message = (
+        f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
+        f"{list(found.phases)} (measured by the stripe detector, phase confidence "
+        f"{found.parts['phases']:.2f}); correct them, or set pattern.phases: auto"
+    )
+    if phases_from == "default":
+        return f"pattern.phases (absent: the default) {message}"
+    top.fail("pattern.phases", message)
 
 
 def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:
@@ -795,7 +961,7 @@ def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | 
     ):
         top.fail(
             "medium_roi",
-            f"must be a list of 4 integers [x0, y0, x1, y1] or 'auto', got {value!r}",
+            f"must be a list of 4 integers [x0, y0, x1, y1] or 'auto', got {brief(value)}",
         )
     x0, y0, x1, y1 = value
     if not (0 <= x0 and x0 + 2 <= x1 <= width and 0 <= y0 and y0 + 2 <= y1 <= height):
@@ -810,7 +976,7 @@ def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | 
 def _positive(top: _Section, key: str) -> float | None:
     value = top.float(key, None)
     if value is not None and value <= 0:
-        top.fail(key, f"must be > 0, got {value!r}")
+        top.fail(key, f"must be > 0, got {brief(value)}")
     return value
 
 
@@ -966,4 +1132,11 @@ def write_capture_yaml(
     return atomic_write_text(path, header + text)
 
 
-__all__ = ["CAPTURE_KEYS", "Capture", "CaptureWarning", "load_capture", "write_capture_yaml"]
+__all__ = [
+    "CAPTURE_KEYS",
+    "Capture",
+    "CaptureWarning",
+    "capture_files",
+    "load_capture",
+    "write_capture_yaml",
+]

@@ -17,9 +17,14 @@ Conventions every command keeps:
   value: the :data:`USER_ERRORS`) print one line, ``lightfield-jax: error: ...``, on
   stderr and exit with status 2, without a traceback (``--debug`` shows it). Command
   line syntax errors exit 2 the same way.
-- Validate every input before the long work starts; write output folders through
-  :func:`~lightfield_jax._io.atomic_directory` (single files through the ``atomic_*``
-  writers), so a failure leaves no partial output.
+- Validate every input before the long work starts: check every output path against
+  the inputs and each other with :func:`~lightfield_jax._outputs.check_outputs`, and
+  the memory the work needs with :func:`~lightfield_jax._memory.check_memory`. Write
+  output folders through :func:`~lightfield_jax._io.atomic_directory` and single files
+  through :func:`~lightfield_jax._outputs.staged_files`, so a failure leaves no
+  partial output and replaces no existing file.
+- SIGINT (Ctrl-C) and SIGTERM end a command within a moment, with status 130 or 143
+  and nothing written (:mod:`lightfield_jax._signals`).
 - Warnings print as ``lightfield-jax: warning: ...`` and are collected in
   ``args.warnings`` (e.g. for a metadata file).
 - Long work reports its stages through :func:`_progress`: a display on stderr that
@@ -89,6 +94,13 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument(
         "--debug", action="store_true", help="show a traceback for errors in the input"
     )
+    common.add_argument(
+        "--max-memory",
+        type=_memory_size,
+        metavar="SIZE",
+        help="memory the command may use (e.g. 16G; default: the machine's available "
+        "memory); work estimated to need more is refused before it starts",
+    )
     parser = _Parser(
         prog=PROG,
         description="Light transport in thin scattering media (Mukaigawa, Raskar & Yagi, "
@@ -116,14 +128,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+    from ._memory import memory_limit
+    from ._signals import stop_on_signals
+
     args.warnings = []
     try:
-        with _warnings_to_stderr(args.warnings):
+        with (
+            _warnings_to_stderr(args.warnings),
+            stop_on_signals(PROG),
+            memory_limit(args.max_memory),
+        ):
             status = args.handler(args)
     except USER_ERRORS as e:
         if args.debug:
             raise
         print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
+        return 2
+    except (RecursionError, OverflowError, MemoryError) as e:
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {_describe_limit(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
@@ -133,6 +157,24 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
+
+
+def _memory_size(text: str) -> int:
+    from ._memory import parse_size
+
+    try:
+        return parse_size(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _describe_limit(error: BaseException) -> str:
+    """A resource limit met despite the checks, as one line (no traceback)."""
+    if isinstance(error, RecursionError):
+        return "an input is nested too deeply to process (RecursionError)"
+    if isinstance(error, OverflowError):
+        return f"a value in the input is too large ({_one_line(error)[:200]})"
+    return "out of memory (MemoryError): reduce the input's size, or free memory"
 
 
 def _describe(error: BaseException) -> str:
@@ -225,22 +267,57 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
 
 
-def _writable_folder(path: str) -> Path:
-    """``path`` as an output folder: refused early when a file is in the way."""
-    folder = Path(path)
-    if folder.exists() and not folder.is_dir():
-        raise NotADirectoryError(f"{folder}: exists and is not a directory")
-    return folder
+def _outputs(files=(), folders=(), inputs=(), plots=(), folder_names=()) -> None:
+    """Check every output of a command before its work (see
+    :func:`~lightfield_jax._outputs.check_outputs`); ``plots`` are figures among
+    ``files``, whose format is checked too; ``folder_names``: the names written into
+    ``folders``."""
+    from ._outputs import check_outputs, check_plot_format
+
+    for plot in plots:
+        check_plot_format(plot)
+    check_outputs([f for f in files if f], [d for d in folders if d], inputs, folder_names)
 
 
-def _writable_file(path: str) -> Path:
-    file = Path(path)
-    if file.is_dir():
-        raise IsADirectoryError(f"{file}: is a directory, expected a file name")
-    return file
+@contextlib.contextmanager
+def _about(capture) -> Iterator[None]:
+    """Errors of the work on ``capture`` name its file, and a numerical library's
+    failure (a singular or non-finite solve) is said in the user's terms."""
+    import equinox as eqx
+    import numpy as np
+
+    from ._io import CaptureError
+
+    source = str(capture.source)
+    try:
+        with np.errstate(all="ignore"):
+            yield
+    except (eqx.EquinoxRuntimeError, np.linalg.LinAlgError, FloatingPointError) as e:
+        raise CaptureError(
+            f"{source}: the solve met a singular or non-finite system: the images do not "
+            "determine sigma_t, sigma_s and g (check the capture with lightfield-jax "
+            "inspect; --debug shows the library's message)"
+        ) from e
+    except ValueError as e:
+        if source in str(e):
+            raise
+        raise CaptureError(f"{source}: {_one_line(e)}") from e
 
 
 # --------------------------------------------------------------------------- simulate
+
+
+# The names simulate writes into its folder (see its help).
+SIMULATE_FILES = (
+    "bounces*.npy",
+    "bounces*.exr",
+    "total.exr",
+    "shift_*.exr",
+    "capture.yaml",
+    "dark.exr",
+    "lightfield.npy",
+    "metadata.json",
+)
 
 
 @command(
@@ -284,9 +361,14 @@ def _simulate(args: argparse.Namespace) -> None:
     from ._io import atomic_directory
     from ._simulate import simulate_capture, write_simulation
 
+    _outputs(
+        folders=[args.out, args.plot],
+        inputs=[args.config],
+        folder_names=(*SIMULATE_FILES, "*.png"),
+    )
     config = load_simulation_config(args.config)
-    out = _writable_folder(args.out)
-    plot = _writable_folder(args.plot) if args.plot else None
+    out = Path(args.out)
+    plot = Path(args.plot) if args.plot else None
     with _progress(args, "simulate") as stage:
         sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
         stage("write files")
@@ -386,7 +468,8 @@ def _bench(args: argparse.Namespace) -> None:
     from ._bench import bench_fits, bench_slab, run_benchmark
     from ._io import atomic_write_json
 
-    out = _writable_file(args.out)
+    _outputs(files=[args.out])
+    out = Path(args.out)
     if args.fits and args.slab:
         raise ValueError("bench: --fits and --slab are separate benchmarks: give one")
     if args.fits:
@@ -408,6 +491,11 @@ def _bench(args: argparse.Namespace) -> None:
         _say(args, f"wrote {out}")
         return
     sizes = args.sizes
+    from ._memory import check_memory, render_bytes
+
+    for w, h, n in sizes:
+        # value_and_grad keeps the forward pass's fields of its 10 bounces.
+        check_memory(render_bytes(10, h, w, n), f"bench --sizes {w}x{h}x{n}")
     with _progress(args, "bench", len(sizes)) as stage:
         names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])
         stage(f"{sizes[0][0]}x{sizes[0][1]}x{sizes[0][2]}")
@@ -445,25 +533,66 @@ def _fit_summary(fit) -> str:
     return "\n".join(lines)
 
 
-def _fit_figures(capture, fit, plot: Path, stage) -> list[Path]:
+def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
+    """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
+    if len(channels) == 1:
+        return [plot]
+    return [plot] + [plot.with_name(f"{plot.stem}_{name}{plot.suffix}") for name in channels]
+
+
+def _fit_figures(capture, fit, figures: list[Path], write) -> None:
     """FIG.png: the profiles and residuals of the fit; with several channels, FIG.png
-    holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles."""
+    holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles. Each
+    figure is written to ``write(target)`` (a staged temporary)."""
     from .viz import plot_channels, plot_fit
 
-    stage("plot")
     if len(fit.channels) == 1:
         i = capture.channel_names.index(fit.channels[0])
         plot_fit(
-            capture.images[..., i], capture.pattern, fit.results[0], plot, **_shown(capture, i)
+            capture.images[..., i],
+            capture.pattern,
+            fit.results[0],
+            write(figures[0]),
+            **_shown(capture, i),
         )
-        return [plot]
-    figures = [plot_channels(fit, plot, pixel_size_mm=capture.pixel_size_mm)]
-    for name, result in zip(fit.channels, fit.results, strict=True):
+        return
+    plot_channels(fit, write(figures[0]), pixel_size_mm=capture.pixel_size_mm)
+    for name, result, target in zip(fit.channels, fit.results, figures[1:], strict=True):
         i = capture.channel_names.index(name)
-        target = plot.with_name(f"{plot.stem}_{name}{plot.suffix}")
-        plot_fit(capture.images[..., i], capture.pattern, result, target, **_shown(capture, i))
-        figures.append(target)
-    return figures
+        plot_fit(
+            capture.images[..., i], capture.pattern, result, write(target), **_shown(capture, i)
+        )
+
+
+def _shown(capture, i: int) -> dict:
+    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
+    return {"mask": capture.mask[..., i], "truth": capture.truth}
+
+
+# Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
+# (g <= 0.5); more are capped by FitOptions.max_cells.
+FIT_N_THETA = 32
+
+
+# The two-step methods separate the direct light first; on stripe captures the
+# separation is biased (the multiple light is not the same under every shift), and
+# their ± (the noise's spread) says nothing of it.
+TWO_STEP_METHODS = ("grid", "gradient")
+TWO_STEP_CAVEAT = (
+    "the two-step methods (grid, gradient) carry the separation bias on stripe "
+    "captures: their ± are statistical only (noise), not the error, which can be far "
+    "larger; use --method joint (the raw images) for unbiased estimates"
+)
+
+
+def _label_two_step(method: str, result: dict) -> dict:
+    """``result`` with, for a two-step method, the caveat and what its ± mean."""
+    if method in TWO_STEP_METHODS:
+        result["uncertainty_kind"] = "statistical only (separation bias not included)"
+        result["caveat"] = TWO_STEP_CAVEAT
+    else:
+        result["uncertainty_kind"] = "statistical"
+    return result
 
 
 def _roi_record(capture) -> dict:
@@ -528,15 +657,26 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from ._capture import load_capture
-    from ._fit import fit_capture
+    from ._capture import capture_files, load_capture
+    from ._fit import FitOptions, fit_capture
     from ._io import atomic_write_json
+    from ._memory import check_memory, fit_bytes
+    from ._outputs import staged_files
 
-    out = _writable_file(args.out)
-    plot = _writable_file(args.plot) if args.plot else None
+    inputs = capture_files(args.capture)
+    _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])
+    out = Path(args.out)
     _use_xla_cache(args)
     capture = load_capture(args.capture)
-    with _progress(args, f"fit ({args.method})") as stage:
+    channels = args.channel or capture.channel_names
+    figures = _figure_names(Path(args.plot), channels) if args.plot else []
+    _outputs(files=[out, *figures], inputs=inputs)
+    h, w = capture.shape
+    cells = min(h * w * FIT_N_THETA, FitOptions().max_cells)
+    check_memory(
+        fit_bytes(capture.images.size, capture.n_images, cells), f"{capture.source}: the fit"
+    )
+    with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         fit = fit_capture(
             capture,
@@ -546,16 +686,22 @@ def _fit(args: argparse.Namespace) -> int | None:
             phase=args.phase,
             **limits,
         )
-        result = fit.to_dict()
+        figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
+        result = _label_two_step(args.method, fit.to_dict())
         result["capture"] = str(capture.source)
         if capture.truth:
             result["truth"] = capture.truth
         result["medium_roi"] = _roi_record(capture)
-        atomic_write_json(out, result)
-        figures = _fit_figures(capture, fit, plot, stage) if plot is not None else []
+        with staged_files() as write:
+            if figures:
+                stage("plot")
+                _fit_figures(capture, fit, figures, write)
+            atomic_write_json(write(out), result)
     for note in capture.notes:
         _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
+    if args.method in TWO_STEP_METHODS:
+        _say(args, f"note: {TWO_STEP_CAVEAT}")
     _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")
     if not fit.converged:
         _warn(args, "the fit did not converge: results were written with converged: false")
@@ -600,7 +746,8 @@ def _demo(args: argparse.Namespace) -> int | None:
     for m in methods:
         if m not in ("grid", "gradient", "joint"):
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
-    out = _writable_folder(args.out)
+    _outputs(folders=[args.out])
+    out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")
     _use_xla_cache(args)
     with _progress(args, "demo") as stage:
@@ -614,7 +761,7 @@ def _demo(args: argparse.Namespace) -> int | None:
         for method in methods:
             stage(f"fit: {method}")
             fit = fit_capture(capture, method, progress=stage).results[0]
-            results[method] = fit.to_dict()
+            results[method] = _label_two_step(method, fit.to_dict())
             rows.append((method, fit))
             # The same fit once more: the programs compiled above are reused, as for
             # another channel or the next capture of this size in one process.
@@ -645,6 +792,8 @@ def _demo(args: argparse.Namespace) -> int | None:
             f"{again[method]:>7.2f} {'yes' if r.converged else 'NO':>5}"
         )
     folder = None if args.no_xla_cache else xla_cache_folder()
+    if any(m in TWO_STEP_METHODS for m in methods):
+        lines.append(f"note: {TWO_STEP_CAVEAT}")
     lines.append("again: the same fit once more in this process (its compiled programs reused)")
     lines.append(
         "time: wall clock, XLA compilation included"
@@ -696,10 +845,17 @@ def _pattern(args: argparse.Namespace) -> None:
 
     Nothing is written unless the whole command succeeds."""
     from ._io import atomic_directory
-    from ._pattern import pattern_phases, write_patterns
+    from ._memory import check_memory
+    from ._pattern import check_size, pattern_memory, pattern_phases, write_patterns
 
-    out = _writable_folder(args.out)
+    _outputs(folders=[args.out])
+    out = Path(args.out)
+    check_size(args.width, args.height, args.period)
     phases = pattern_phases(args.period, args.lit, args.shifts)
+    check_memory(
+        pattern_memory(args.width, args.height, len(phases)),
+        f"pattern: {len(phases) + 2} images of {args.width}x{args.height}",
+    )
     with atomic_directory(out) as staging:
         files = write_patterns(
             staging, args.width, args.height, args.period, args.lit, args.shifts, args.orientation
@@ -728,41 +884,53 @@ def _pattern(args: argparse.Namespace) -> None:
         "by response: auto), a table that response: FILE.csv reads",
     ),
 )
-def _inspect_command(args: argparse.Namespace) -> None:
+def _inspect_command(args: argparse.Namespace) -> int | None:
     """Load a capture (measuring what it leaves auto), separate it, and print: the
     medium's ROI, the entry wall, the light's direction, the stripe phases, the black
     level, the masked pixels and, per channel, the direct light's SNR along the beam.
     --plot draws the frame with the ROI, entry wall and direction, the separated direct
     and multiple images, the saturation mask and the SNR along the beam; for exposure
-    brackets also a merged image, the response curve and the clipped samples."""
-    from ._capture import load_capture
+    brackets also a merged image, the response curve and the clipped samples. Exit
+    status 1, with a warning, when a channel is unusable for a fit (no direct light at
+    the entry wall, or its SNR never usable)."""
+    from ._capture import capture_files, load_capture
     from ._inspect import inspect_capture
     from ._io import atomic_write_json
+    from ._outputs import staged_files
 
-    plot = _writable_file(args.plot) if args.plot else None
-    out = _writable_file(args.json) if args.json else None
-    response = _writable_file(args.response) if args.response else None
+    _outputs(
+        files=[args.plot, args.json, args.response],
+        inputs=capture_files(args.capture),
+        plots=[args.plot] if args.plot else [],
+    )
+    plot = Path(args.plot) if args.plot else None
+    out = Path(args.json) if args.json else None
+    response = Path(args.response) if args.response else None
     capture = load_capture(args.capture)
     if response is not None and capture.brackets is None:
         raise ValueError(f"--response: {args.capture} has no exposure brackets")
-    with _progress(args, "inspect") as stage:
+    with _progress(args, "inspect") as stage, _about(capture), staged_files() as write:
         stage("separate")
         inspection = inspect_capture(capture)
         if plot is not None:
             stage("plot")
             from .viz import plot_inspect
 
-            plot_inspect(inspection, plot)
+            plot_inspect(inspection, write(plot))
         if out is not None:
-            atomic_write_json(out, inspection.to_dict())
+            atomic_write_json(write(out), inspection.to_dict())
         if response is not None:
             from ._hdr import write_response
 
-            write_response(response, capture.brackets.response, capture.channel_names)
+            write_response(write(response), capture.brackets.response, capture.channel_names)
     _say(args, inspection.summary())
-    if plot is not None or out is not None or response is not None:
-        written = (f for f in (plot, out, response) if f is not None)
+    written = [f for f in (plot, out, response) if f is not None]
+    if written:
         _say(args, f"wrote {', '.join(str(f) for f in written)}")
+    problems = inspection.problems()
+    for problem in problems:
+        _warn(args, f"{capture.source}: {problem}")
+    return 1 if problems else None
 
 
 # --------------------------------------------------------------------------- render
@@ -799,7 +967,12 @@ def _render_command(args: argparse.Namespace) -> None:
     from ._io import atomic_directory
     from ._views import render_results
 
-    out = _writable_folder(args.out)
+    _outputs(
+        folders=[args.out],
+        inputs=[args.results],
+        folder_names=("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png"),
+    )
+    out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
         files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
     for note in notes:
@@ -823,6 +996,7 @@ def _experiment(args: argparse.Namespace) -> None:
     the same DIR resumes from the work already stored in DIR/cache."""
     from ._experiment import run_experiment
 
+    _outputs(folders=[args.out])
     with _progress(args, "experiment") as stage:
         record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
     _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])

@@ -33,7 +33,11 @@ Optional keys (all absent by default):
   dark frame with that constant (plus noise) is written as ``dark.exr``.
 
 Every error is a :class:`ConfigError` whose message starts with the file name, then
-the key's path (``medium.sigma_t``) and the offending value. Unknown keys, duplicate
+the key's path (``medium.sigma_t``) and the offending value (its text bounded in
+size). Stripe phases lie in [0, period), ``shifts`` in [1, period], and the period is
+no longer than the grid. A YAML file must be a regular file of at most 16 MiB whose
+aliases expand to at most :data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
+before it is built), nested less deeply than Python's recursion limit. Unknown keys, duplicate
 keys, wrong types and out-of-range values are all errors. Float keys accept numeric
 strings (YAML 1.1 reads ``1e-4`` as one); integer keys accept only integers.
 """
@@ -46,6 +50,7 @@ import difflib
 import math
 import os
 import re
+import reprlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -55,6 +60,7 @@ import yaml
 
 from ._grid import Grid
 from ._illumination import WALLS, Beam, Full, Illumination, Stripes
+from ._io import require_regular_file
 from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
 from ._slab import Plane, Slab, parse_geometry, rho_bound
 
@@ -89,8 +95,28 @@ class ConfigError(ValueError):
 # --------------------------------------------------------------------------- YAML
 
 
+# A config or capture file is a few hundred values; these bound what a hostile file
+# (an alias bomb: a few lines whose aliases expand to billions of values) can cost.
+MAX_YAML_BYTES = 1 << 24
+MAX_YAML_VALUES = 100_000
+
+
 class _Loader(yaml.SafeLoader):
-    """Safe YAML with duplicate keys refused and YAML 1.2 floats (``1e-4`` is a float)."""
+    """Safe YAML with duplicate keys refused, YAML 1.2 floats (``1e-4`` is a float) and
+    documents whose aliases expand past :data:`MAX_YAML_VALUES` values refused before
+    they are built."""
+
+    def get_single_data(self):
+        node = self.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node)
+        if size > MAX_YAML_VALUES:
+            raise yaml.YAMLError(
+                f"its aliases expand to more than {MAX_YAML_VALUES} values (an alias "
+                "bomb?); a config holds a few hundred"
+            )
+        return self.construct_document(node)
 
     def construct_mapping(self, node, deep=False):
         seen = set()
@@ -105,6 +131,36 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
+def _expanded_size(root: yaml.Node) -> int:
+    """The number of values ``root`` holds with every alias expanded, counted once per
+    distinct node (memoised, without recursion) and capped just past the limit."""
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, finished = stack.pop()
+        key = id(node)
+        children = _children(node)
+        if finished:
+            on_path.discard(key)
+            sizes[key] = min(1 + sum(sizes[id(c)] for c in children), MAX_YAML_VALUES + 1)
+        elif key in on_path:
+            raise yaml.YAMLError("an alias refers to a value that contains it (a cycle)")
+        elif key not in sizes:
+            on_path.add(key)
+            stack.append((node, True))
+            stack.extend((c, False) for c in children if id(c) not in sizes)
+    return sizes[id(root)]
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    return []
+
+
 _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
@@ -116,16 +172,22 @@ def load_yaml(path: str | os.PathLike, error: type[ValueError] = ConfigError) ->
     """Parse a YAML file whose top level is a mapping; errors are ``error`` (a
     :class:`ConfigError` unless the caller reads another kind of file)."""
     path = Path(path)
+    require_regular_file(path, "a YAML file", error)
+    if os.path.getsize(path) > MAX_YAML_BYTES:
+        raise error(
+            f"{path}: {os.path.getsize(path)} bytes is too large for a YAML config "
+            f"(at most {MAX_YAML_BYTES})"
+        )
     try:
         text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: file not found") from None
     except (OSError, UnicodeDecodeError) as e:
         raise error(f"{path}: cannot read ({e})") from None
     try:
         data = yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as e:
-        raise error(f"{path}: invalid YAML: {e}") from None
+        raise error(f"{path}: invalid YAML: {' '.join(str(e).split())[:300]}") from None
+    except RecursionError:
+        raise error(f"{path}: invalid YAML: nested too deeply") from None
     if not isinstance(data, dict):
         raise error(f"{path}: the top level must be a mapping of keys, got {type(data).__name__}")
     return data
@@ -157,7 +219,7 @@ class _Section:
         self.data = dict(value)
         for key in self.data:
             if not isinstance(key, str):
-                self.fail(self.key(str(key)), f"keys must be strings, got {key!r}")
+                self.fail(self.key(str(key)), f"keys must be strings, got {brief(key)}")
             if allowed is not None and key not in allowed:
                 near = difflib.get_close_matches(key, allowed, n=1)
                 hint = f" (did you mean {near[0]!r}?)" if near else ""
@@ -204,8 +266,19 @@ class _Section:
         return value
 
 
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
+
+
+def brief(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` bounded in size (and in the work to build it) for an error
+    message: a rejected value may be huge."""
+    text = _REPR.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _show(value: Any) -> str:
-    return f"{value!r} ({type(value).__name__})"
+    return f"{brief(value)} ({type(value).__name__})"
 
 
 def _as_float(section: _Section, where: str, value: Any) -> float:
@@ -216,7 +289,7 @@ def _as_float(section: _Section, where: str, value: Any) -> float:
     except ValueError:
         section.fail(where, f"must be a number, got {_show(value)}")
     if not math.isfinite(v):
-        section.fail(where, f"must be finite, got {value!r}")
+        section.fail(where, f"must be finite, got {brief(value)}")
     return v
 
 
@@ -393,6 +466,12 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     if kind == "full":
         return _build(s, Full, direction_deg=direction, entry=entry)
     period, lit = s.int("period", 6), s.int("lit", 3)
+    if period > max(grid.width, grid.height):
+        s.fail(
+            s.key("period"),
+            f"{period} rows is longer than the {grid.width}x{grid.height} grid: a stripe "
+            "period is a few rows",
+        )
     if "shifts" in s.data and "phases" in s.data:
         s.fail("illumination", "give either shifts or phases, not both")
     if "phases" in s.data:
@@ -400,10 +479,13 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
         if not isinstance(phases, list) or not phases:
             s.fail(s.key("phases"), f"must be a non-empty list of integers, got {_show(phases)}")
         phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+        outside = [p for p in phases if not 0 <= p < period]
+        if outside:
+            s.fail(s.key("phases"), f"{brief(outside)} outside [0, period) = [0, {period})")
         return _build(s, Stripes, period, lit, tuple(phases), direction_deg=direction, entry=entry)
     shifts = s.int("shifts", period)
-    if shifts < 1:
-        s.fail(s.key("shifts"), f"must be a positive integer, got {shifts!r}")
+    if not 1 <= shifts <= period:
+        s.fail(s.key("shifts"), f"must be an integer in [1, period] = [1, {period}], got {shifts}")
     return _build(
         s, Stripes, period, lit, tuple(range(shifts)), direction_deg=direction, entry=entry
     )
@@ -445,10 +527,10 @@ def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | 
     bounces = top.get("bounces", "auto")
     if bounces != "auto":
         if isinstance(bounces, str):
-            top.fail("bounces", f"must be a positive integer or 'auto', got {bounces!r}")
+            top.fail("bounces", f"must be a positive integer or 'auto', got {brief(bounces)}")
         bounces = _as_int(top, "bounces", bounces)
         if bounces < 1:
-            top.fail("bounces", f"must be a positive integer or 'auto', got {bounces!r}")
+            top.fail("bounces", f"must be a positive integer or 'auto', got {brief(bounces)}")
         if "tolerance" in top.data:
             top.fail("tolerance", f"is used only with bounces: auto (bounces is {bounces})")
     tolerance = top.float("tolerance", 1e-4)

@@ -73,7 +73,7 @@ class Inspection:
             "snr_multiple": dict(zip(c.channel_names, map(clean, self.snr_multiple), strict=True)),
             "reach_px": dict(zip(c.channel_names, self.reach, strict=True)),
             "notes": list(c.notes),
-            "warnings": list(c.warnings),
+            "warnings": [*c.warnings, *self.problems()],
             "brackets": None if c.brackets is None else c.brackets.to_dict(),
         }
 
@@ -109,21 +109,46 @@ class Inspection:
             f"of {h * w * n} pixel values"
         )
         for i, name in enumerate(c.channel_names):
-            d, m, valid = self.direct[..., i], self.multiple[..., i], c.mask[..., i]
-            near = valid & (self.distance < 3.0) & (d > 0)
-            ratio = float(np.median(m[near] / d[near])) if near.any() else math.nan
-            snr0 = self.snr_direct[i][np.isfinite(self.snr_direct[i])]
+            peak, ratio, snr0 = self._wall(i)
             lines.append(
-                f"[{name}] D peak {float(np.max(np.where(valid, d, -np.inf))):.4g}, M/D at the "
-                f"entry wall {ratio:.3f}; SNR of D {snr0[0] if snr0.size else math.nan:.0f} at the "
-                f"wall, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px of "
-                f"{float(self.distance.max()):.0f}"
+                f"[{name}] D peak {peak:.4g}, M/D at the entry wall {ratio:.3f}; SNR of D "
+                f"{snr0:.0f} at the wall, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "
+                f"of {float(self.distance.max()):.0f}"
             )
         for note in c.notes:
             lines.append(f"note: {note}")
-        for warning in c.warnings:
+        for warning in [*c.warnings, *self.problems()]:
             lines.append(f"warning: {warning}")
         return "\n".join(lines)
+
+    def _wall(self, i: int) -> tuple[float, float, float]:
+        """Channel i's direct peak, M/D and SNR of D at the entry wall (NaN: undefined)."""
+        c = self.capture
+        d, m, valid = self.direct[..., i], self.multiple[..., i], c.mask[..., i]
+        near = valid & (self.distance < 3.0) & (d > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = float(np.median(m[near] / d[near])) if near.any() else math.nan
+        peak = float(np.max(d[valid])) if valid.any() else math.nan
+        snr = self.snr_direct[i][np.isfinite(self.snr_direct[i])]
+        return peak, ratio, float(snr[0]) if snr.size else math.nan
+
+    def problems(self) -> list[str]:
+        """What makes a channel unusable for a fit (its statistics undefined), one line
+        each; empty for a usable capture."""
+        found = []
+        for i, name in enumerate(self.capture.channel_names):
+            peak, ratio, snr0 = self._wall(i)
+            if not peak > 0 or math.isnan(ratio):
+                found.append(
+                    f"[{name}] no direct light at the entry wall (the separated direct "
+                    "image is not positive there): check the pattern and medium_roi"
+                )
+            elif self.reach[i] <= 0:
+                found.append(
+                    f"[{name}] the direct light's SNR never reaches {SNR_USABLE:g} "
+                    f"(at the wall: {snr0:.3g}): too dark or too noisy to fit"
+                )
+        return found
 
 
 def _snr(

@@ -22,14 +22,18 @@ import contextlib
 import dataclasses
 import errno
 import json
+import math
 import os
 import secrets
 import shutil
+import stat
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ._memory import IMAGE_COPIES, check_memory, image_bytes
 
 IMAGE_EXTENSIONS: tuple[str, ...] = (".exr", ".tif", ".tiff", ".png", ".npy")
 # The attribute in which write_exr records the channel order: OpenEXR stores channels
@@ -115,10 +119,7 @@ def read_image(
     """
     path = Path(path)
     ext = path.suffix.lower()
-    if not path.exists():
-        raise CaptureFileNotFoundError(f"{path}: file not found")
-    if path.is_dir():
-        raise CaptureError(f"{path}: is a directory, not an image file")
+    require_regular_file(path, "an image file")
     if ext not in IMAGE_EXTENSIONS:
         raise CaptureError(
             f"{path}: unsupported image extension {path.suffix!r}; "
@@ -141,6 +142,42 @@ def read_image(
     return image
 
 
+def require_regular_file(path: Path, what: str, error: type[ValueError] = CaptureError) -> None:
+    """Refuse, before opening it, a ``path`` that is missing or not a regular file (a
+    folder, a FIFO that would block the read forever, a device)."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        if error is CaptureError:
+            raise CaptureFileNotFoundError(f"{path}: file not found") from None
+        raise error(f"{path}: file not found") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read ({e.strerror})") from None
+    if stat.S_ISDIR(mode):
+        raise error(f"{path}: is a directory, not {what}")
+    if not stat.S_ISREG(mode):
+        raise error(f"{path}: is not a regular file (a FIFO, device or socket), not {what}")
+
+
+def image_values(path: str | os.PathLike) -> int:
+    """The number of samples (height × width × channels, × images for a ``.npy``
+    stack) a file decodes to, from its header alone (no pixels read)."""
+    path = Path(path)
+    require_regular_file(path, "an image file")
+    if path.suffix.lower() == ".npy":
+        return math.prod(npy_header(path)[0])
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
+    try:
+        spec = inp.spec()
+        return spec.height * spec.width * spec.nchannels
+    finally:
+        inp.close()
+
+
 def _channel_index(names: Sequence[str], channel: str | int, path: Path) -> int:
     if isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
         if not 0 <= channel < len(names):
@@ -159,11 +196,49 @@ def _default_names(n: int) -> tuple[str, ...]:
     return tuple(_DEFAULT_NAMES[i] if i < 4 else f"channel{i}" for i in range(n))
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype a ``.npy`` file declares, checked against the file's size
+    (a header claiming more data than the file holds is refused before any read)."""
     try:
-        return np.load(path, allow_pickle=False)
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+            else:
+                shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+            offset = f.tell()
     except (OSError, ValueError, EOFError) as e:
-        raise CaptureError(f"{path}: not a readable .npy array ({e})") from None
+        raise CaptureError(f"{path}: not a readable .npy array ({_one_line(e)})") from None
+    if dtype.hasobject:
+        raise CaptureError(f"{path}: holds Python objects, not numbers")
+    count = math.prod(shape)
+    declared = count * dtype.itemsize
+    held = os.path.getsize(path) - offset
+    if declared > held:
+        raise CaptureError(
+            f"{path}: the header declares shape {shape} of {dtype} ({declared} bytes), but "
+            f"the file holds {held} bytes of data (truncated or corrupt)"
+        )
+    return shape, dtype
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    shape, dtype = npy_header(path)
+    check_memory(
+        IMAGE_COPIES * math.prod(shape) * max(dtype.itemsize, 4),
+        f"{path} (shape {shape}, {dtype})",
+    )
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise CaptureError(f"{path}: not a readable .npy array ({_one_line(e)})") from None
+    if not a.dtype.isnative:  # big-endian data from another machine: native order
+        a = a.astype(a.dtype.newbyteorder("="))
+    return a
+
+
+def _one_line(error: BaseException) -> str:
+    return " ".join(str(error).split())[:200]
 
 
 def _npy_image(a: np.ndarray, path: Path) -> ImageData:
@@ -208,8 +283,7 @@ def read_npy_stack(path: str | os.PathLike) -> list[ImageData]:
     width, channels), as one :class:`ImageData` per image (scaled like
     :func:`read_image`)."""
     path = Path(path)
-    if not path.exists():
-        raise CaptureFileNotFoundError(f"{path}: file not found")
+    require_regular_file(path, "a .npy stack")
     if path.suffix.lower() != ".npy":
         raise CaptureError(f"{path}: an image stack must be a .npy file")
     a = _load_npy(path)
@@ -232,6 +306,10 @@ def _read_oiio(path: Path) -> ImageData:
         raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
     try:
         spec = inp.spec()
+        check_memory(
+            image_bytes(spec.height, spec.width, spec.nchannels, spec.format.size()),
+            f"{path} ({spec.width}x{spec.height}, {spec.nchannels} channel(s))",
+        )
         if spec.deep or spec.depth > 1:
             raise CaptureError(f"{path}: deep and volume images are not supported")
         if (spec.x, spec.y, spec.width, spec.height) != (
@@ -405,8 +483,14 @@ def _write_oiio(
 # --------------------------------------------------------------------------- atomic files
 
 
+# Temporaries not yet published or removed: removed by remove_temporaries() when the
+# command is stopped by a signal (see _signals).
+_TEMPORARIES: set[Path] = set()
+
+
 def _reserve(path: Path, make) -> Path:
-    """Create a uniquely named sibling of ``path`` (hidden, same extension) with ``make``."""
+    """Create a uniquely named sibling of ``path`` (hidden, same extension) with ``make``;
+    it is registered as a temporary until :func:`forget_temporary`."""
     stem = path.name[:200]
     for _ in range(100):
         candidate = path.with_name(f".{stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
@@ -414,8 +498,25 @@ def _reserve(path: Path, make) -> Path:
             make(candidate)
         except FileExistsError:
             continue
+        _TEMPORARIES.add(candidate)
         return candidate
     raise FileExistsError(f"{path}: could not create a temporary name beside it")
+
+
+def forget_temporary(path: Path) -> None:
+    """``path`` was published or removed: no longer a temporary to clean up."""
+    _TEMPORARIES.discard(path)
+
+
+def remove_temporaries() -> None:
+    """Remove every temporary file and staging folder not yet published (on a signal)."""
+    for path in list(_TEMPORARIES):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                path.unlink()
+        _TEMPORARIES.discard(path)
 
 
 def _make_file(p: Path) -> None:
@@ -452,6 +553,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+    finally:
+        forget_temporary(tmp)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -513,6 +616,7 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         _publish(stage, path)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        forget_temporary(stage)
 
 
 def _publish(stage: Path, path: Path) -> None:
@@ -551,6 +655,7 @@ __all__ = [
     "atomic_write_text",
     "read_image",
     "read_npy_stack",
+    "require_regular_file",
     "write_exr",
     "write_png",
     "write_tiff",

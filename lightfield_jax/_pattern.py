@@ -55,6 +55,15 @@ def pattern_phases(period: int = 6, lit: int = 3, shifts: int | None = None) -> 
     return phases
 
 
+def check_size(width: int, height: int, period: int) -> None:
+    """The projector's frame holds at least one period of stripes."""
+    for name, value in (("width", width), ("height", height)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < period:
+            raise ValueError(
+                f"pattern.{name}: must be an integer >= the period {period}, got {value!r}"
+            )
+
+
 def stripe_patterns(
     width: int,
     height: int,
@@ -64,11 +73,7 @@ def stripe_patterns(
     orientation: str = "rows",
 ) -> tuple[tuple[int, ...], list[np.ndarray]]:
     """The projector frames: (phases, one uint8 (height, width) image per phase)."""
-    for name, value in (("width", width), ("height", height)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < period:
-            raise ValueError(
-                f"pattern.{name}: must be an integer >= the period {period}, got {value!r}"
-            )
+    check_size(width, height, period)
     if orientation not in ORIENTATIONS:
         raise ValueError(
             f"pattern.orientation: must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}"
@@ -141,6 +146,12 @@ channel: all         # R, G, B, an index, or all (each channel is fitted on its 
 """
 
 
+def pattern_memory(width: int, height: int, shifts: int) -> int:
+    """Bytes :func:`write_patterns` needs: the stripe, white and black frames (8-bit),
+    each with the writer's copy."""
+    return 2 * (shifts + 2) * width * height
+
+
 def write_patterns(
     out: str | os.PathLike,
     width: int,
@@ -169,6 +180,8 @@ def write_patterns(
 __all__ = [
     "ORIENTATIONS",
     "capture_template",
+    "check_size",
+    "pattern_memory",
     "pattern_phases",
     "stripe_patterns",
     "write_patterns",

@@ -27,6 +27,7 @@ import numpy as np
 
 from ._config import SimulationConfig, load_simulation_config
 from ._illumination import Full, Stripes
+from ._memory import check_memory, render_bytes
 from ._progress import Stage, quiet
 from ._render import RenderResult, render
 from ._slab import Slab
@@ -166,6 +167,26 @@ def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: S
     return bounces, fields, how
 
 
+def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
+    """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
+    :func:`~lightfield_jax._memory.render_bytes`), from the sizes alone."""
+    grid = config.grid.resolve(config.medium.g)
+    n_mu = 1
+    if isinstance(config.geometry, Slab):
+        n_mu = config.geometry.resolve(config.medium.g).n_mu
+    patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
+    return render_bytes(
+        patterns,
+        grid.height,
+        grid.width,
+        grid.n_theta,
+        refine=grid.refine,
+        n_mu=n_mu,
+        bounces=k,
+        lightfield=lightfield,
+    )
+
+
 def simulate_capture(
     config: SimulationConfig | str | os.PathLike,
     *,
@@ -192,6 +213,7 @@ def simulate_capture(
         config = load_simulation_config(config)
     illum = config.illumination
     k = config.n_bounces()
+    check_memory(memory_estimate(config, k, lightfield), f"{config.source}: the render")
     stripes = isinstance(illum, Stripes)
     with stopwatch() as timing:
         stage(f"render {type(illum).__name__.lower()} ({k} bounces)")

@@ -157,6 +157,7 @@ def test_roi_crops_and_counts_pattern_rows_from_its_edge(tmp_path):
 def test_npy_stack_channel_selection_and_integer_scaling(tmp_path):
     stack = np.zeros((P, H, W, 3), np.uint16)
     stack[..., 1] = 30000
+    stack[..., 2] = 100  # a channel without light is refused
     np.save(tmp_path / "stack.npy", stack)
     capture = _capture(tmp_path, images="stack.npy", channel="G")
     assert capture.images.shape == (P, H, W, 1) and capture.channel_names == ("G",)

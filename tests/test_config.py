@@ -182,7 +182,7 @@ def test_wrong_types(data, expected):
         ),
         (
             _with(illumination={"kind": "stripes", "shifts": 0}),
-            "illumination.shifts: must be a positive integer, got 0",
+            "illumination.shifts: must be an integer in [1, period] = [1, 6], got 0",
         ),
         (
             _with(illumination={"kind": "beam", "x": 0.0, "y": 3.0, "width": 0.0}),

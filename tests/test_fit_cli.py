@@ -392,6 +392,10 @@ def test_demo_with_the_gradient_method(tmp_path, capsys):
     assert fit["sigma_t"] == pytest.approx(truth["sigma_t"], rel=0.05)
     assert fit["sigma_s"] < 0.6 * truth["sigma_s"]
     assert fit["g"] > truth["g"] + 0.15
+    # ... which its ± cannot show: the demo says so, on screen and in results.json.
+    assert "separation bias" in fit["caveat"] and "joint" in fit["caveat"]
+    assert fit["uncertainty_kind"].startswith("statistical only")
+    assert "note: the two-step methods (grid, gradient) carry the separation bias" in stdout
 
 
 # --------------------------------------------------------------- compilation cache

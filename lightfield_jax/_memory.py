@@ -1,0 +1,165 @@
+"""Memory a command will need, estimated before it allocates, against what the machine has.
+
+The estimates are upper bounds of the working set from the sizes alone (a config, the
+headers of image files), with the copies the pipeline makes counted, so that a request
+that cannot fit is refused in a second instead of growing until the machine swaps or
+the process ends in a ``MemoryError``. They are not measurements: normal sizes
+(a 128×96 capture of 6 shifts, 64 directions) stay far below any machine's memory.
+
+The limit is the memory available now (``MemAvailable`` in ``/proc/meminfo``, else the
+free physical pages), or what :func:`memory_limit` / ``$LIGHTFIELD_JAX_MAX_MEMORY``
+(and the command line's ``--max-memory``) set, for users who know better.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import re
+from collections.abc import Iterator
+
+MAX_MEMORY_ENV = "LIGHTFIELD_JAX_MAX_MEMORY"
+_UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+_override: list[int] = []
+
+
+class MemoryLimitError(ValueError):
+    """A request whose estimated memory exceeds the limit; says both numbers."""
+
+
+def parse_size(text: str) -> int:
+    """``"8G"``, ``"512M"``, ``"2.5GiB"``, ``"1000000"`` (bytes) → bytes."""
+    m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:I?B)?\s*", str(text).upper())
+    if m is None or float(m.group(1)) <= 0:
+        raise ValueError(f"memory size: expected a size such as 8G or 512M, got {text!r}")
+    return int(float(m.group(1)) * _UNITS[m.group(2)])
+
+
+def format_size(nbytes: float) -> str:
+    """Bytes as a short human-readable size (binary units)."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(nbytes) < 1024:
+            return f"{nbytes:.0f} {unit}" if unit == "B" else f"{nbytes:.1f} {unit}"
+        nbytes /= 1024
+    return f"{nbytes:.1f} TiB"
+
+
+def available_bytes() -> int:
+    """The memory the machine can give now, in bytes (``MemAvailable``)."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def current_limit() -> tuple[int, str]:
+    """(bytes, where the number comes from)."""
+    if _override:
+        return _override[-1], "--max-memory"
+    if os.environ.get(MAX_MEMORY_ENV):
+        try:
+            return parse_size(os.environ[MAX_MEMORY_ENV]), f"${MAX_MEMORY_ENV}"
+        except ValueError as e:
+            raise ValueError(f"${MAX_MEMORY_ENV}: {e}") from None
+    return available_bytes(), "available memory"
+
+
+@contextlib.contextmanager
+def memory_limit(nbytes: int | None) -> Iterator[None]:
+    """Within the block, requests up to ``nbytes`` pass (``None``: no change)."""
+    if nbytes is None:
+        yield
+        return
+    _override.append(int(nbytes))
+    try:
+        yield
+    finally:
+        _override.pop()
+
+
+def check_memory(nbytes: float, what: str) -> None:
+    """Refuse ``what`` (e.g. ``"images[0] (a.png, 30000x30000x3)"``) when its estimate
+    ``nbytes`` exceeds the limit."""
+    limit, origin = current_limit()
+    if not math.isfinite(nbytes) or nbytes > limit:
+        raise MemoryLimitError(
+            f"{what} needs about {format_size(nbytes)} of memory, more than the "
+            f"{format_size(limit)} of the {origin}; reduce the size, or raise the limit "
+            f"with --max-memory SIZE (or ${MAX_MEMORY_ENV})"
+        )
+
+
+# Working copies of an image read (the library's buffer, the float array, a selection).
+IMAGE_COPIES = 3
+# Working copies of a capture's stack of images while loading (raw, calibrated, the
+# detector's float64 copy, masks) in float64. Measured: loading six 1000x800 RGB float
+# EXR stripe images peaks at 32 bytes per sample above the imports (4 such copies).
+CAPTURE_COPIES = 6
+# Light-field sized arrays alive at once in a render per pattern (L_k, the scattered
+# and transported fields, the accumulators and XLA's temporaries). Measured: peak
+# resident memory above the imports of `simulate` (6 stripes, n_theta 64, 8 bounces)
+# is 15-16 such fields at 256x192 and 512x384.
+RENDER_FIELDS = 20
+# Derivative columns and their light fields in a fit (σt, σs, g, gain, black level).
+# Measured: a joint fit of the 128x96 six-shift demo capture (cropped to 46x96, n_theta
+# 32) peaks at 0.63 GB above the imports, compilation included; this estimate says
+# 1.1 GB for it (computed on the uncropped frame).
+FIT_FIELDS = 6 * RENDER_FIELDS
+
+
+def image_bytes(height: int, width: int, channels: int, itemsize: int = 4) -> int:
+    """An image read as floats, with its working copies."""
+    return IMAGE_COPIES * height * width * channels * max(itemsize, 4)
+
+
+def capture_bytes(samples: int) -> int:
+    """A capture of ``samples`` values (images × H × W × C) loaded (see
+    :data:`CAPTURE_COPIES`)."""
+    return CAPTURE_COPIES * samples * 8
+
+
+def render_bytes(
+    n_patterns: int,
+    height: int,
+    width: int,
+    n_theta: int,
+    *,
+    refine: int = 1,
+    n_mu: int = 1,
+    bounces: int = 1,
+    lightfield: bool = False,
+) -> int:
+    """A render of ``n_patterns`` illuminations: the light fields (float32, at the
+    refined grid, × n_mu elevations for a slab), the per-bounce images (float64,
+    bounces × patterns × H × W, three copies) and, with ``lightfield``, the stored
+    fields ((K+1) × P × H × W × n_theta float32, two copies)."""
+    cells = height * width * n_theta * n_mu
+    fields = RENDER_FIELDS * n_patterns * cells * refine**2 * 4
+    images = 3 * bounces * n_patterns * height * width * 8
+    stored = 2 * (bounces + 1) * n_patterns * cells * 4 if lightfield else 0
+    return fields + images + stored
+
+
+def fit_bytes(samples: int, n_images: int, cells: int) -> int:
+    """A fit: the capture's ``samples`` loaded, and per image the model's ``cells``
+    (W·H·n_theta·refine², capped by the fit's ``max_cells``) for the fields and the
+    derivative columns."""
+    return capture_bytes(samples) + FIT_FIELDS * n_images * cells * 4
+
+
+__all__ = [
+    "MAX_MEMORY_ENV",
+    "MemoryLimitError",
+    "available_bytes",
+    "capture_bytes",
+    "check_memory",
+    "fit_bytes",
+    "format_size",
+    "image_bytes",
+    "memory_limit",
+    "parse_size",
+    "render_bytes",
+]

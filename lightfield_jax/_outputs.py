@@ -1,0 +1,165 @@
+"""The files a command writes: checked before any work, published together at the end.
+
+A command names its outputs (``--out``, ``--plot``, ``--json``, results folders) and
+its inputs (the config or capture file and every file a capture lists) to
+:func:`check_outputs` before it starts. An output is refused, with an
+:class:`OutputError` naming the path as the user gave it, when it
+
+- is one of the run's inputs (the same file, whatever the path that names it),
+- names the same file as another output,
+- exists and is not what the command writes (a device, a FIFO or a folder where a
+  file is expected; a file where a folder is expected),
+- is in a folder that cannot be written (read-only, ``/proc``; a probe file is created
+  and removed there, as permission bits do not bind the superuser), or under a path
+  one of whose existing parents is not a folder,
+- is a figure in a format the plotting library cannot write.
+
+:func:`staged_files` then writes the files of one command: each output is written to a
+temporary beside it, and all of them replace their targets only when the whole command
+has succeeded, so a failure leaves every existing file as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fnmatch
+import os
+import stat
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+
+from ._io import _fsync, _make_file, _reserve, forget_temporary
+
+
+class OutputError(ValueError):
+    """An output path that the command must not or cannot write; names the path."""
+
+
+def plot_formats() -> tuple[str, ...]:
+    """The figure file extensions matplotlib writes (``png``, ``pdf``, ``svg``, ...)."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    return tuple(sorted(FigureCanvasBase.get_supported_filetypes()))
+
+
+def check_plot_format(given: str) -> None:
+    """Refuse a figure name whose extension matplotlib cannot write."""
+    suffix = Path(given).suffix.lower().lstrip(".")
+    formats = plot_formats()
+    if suffix not in formats:
+        shown = f"extension {'.' + suffix!r}" if suffix else "no extension"
+        raise OutputError(
+            f"{given}: a figure needs a file extension matplotlib writes ({shown}); "
+            f"supported: {', '.join(formats)}"
+        )
+
+
+def check_outputs(
+    files: Sequence[str | os.PathLike] = (),
+    folders: Sequence[str | os.PathLike] = (),
+    inputs: Iterable[str | os.PathLike] = (),
+    folder_names: Sequence[str] = (),
+) -> None:
+    """Check, before any work, that a command may write ``files`` (single files) and
+    ``folders`` (output folders) without touching ``inputs`` (see the module docstring).
+    ``folder_names``: the names (glob patterns) the command writes into its folders;
+    an input there with such a name would be replaced.
+
+    Raises:
+        OutputError: the first output that cannot be written; the message names it.
+    """
+    inputs = [Path(p) for p in inputs]
+    seen: dict[str, str] = {}
+    for given, folder in [(f, False) for f in files] + [(d, True) for d in folders]:
+        path = Path(given)
+        _check_kind(path, folder)
+        for source in inputs:
+            inside = folder and _same(path, source.parent)
+            if _same(path, source) or (
+                inside and any(fnmatch.fnmatch(source.name, n) for n in folder_names)
+            ):
+                what = "holds" if inside else "is"
+                raise OutputError(
+                    f"{given}: {what} an input of this command ({source}), which it would "
+                    "replace; choose another output"
+                )
+        key = os.path.realpath(path)
+        if key in seen:
+            raise OutputError(f"{given}: names the same file as the output {seen[key]}")
+        seen[key] = os.fspath(given)
+        _check_writable(path, os.fspath(given))
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _check_kind(path: Path, folder: bool) -> None:
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise OutputError(f"{path}: cannot be written ({e.strerror})") from None
+    if folder and not stat.S_ISDIR(mode):
+        raise OutputError(f"{path}: exists and is not a directory")
+    if not folder and stat.S_ISDIR(mode):
+        raise OutputError(f"{path}: is a directory, expected a file name")
+    if not folder and not stat.S_ISREG(mode):
+        raise OutputError(
+            f"{path}: exists and is not a regular file (a device, FIFO or socket); "
+            "choose a new file name or a regular file to replace"
+        )
+
+
+def _check_writable(path: Path, given: str) -> None:
+    """The nearest existing parent of ``path`` is a folder where a file can be created."""
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{given}: {parent} is not a directory")
+    try:
+        probe = _reserve(parent / ".lightfield-jax-probe", _make_file)
+    except OSError as e:
+        raise OutputError(f"{given}: cannot write in {parent} ({e.strerror or e})") from None
+    forget_temporary(probe)
+    probe.unlink()
+
+
+@contextlib.contextmanager
+def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
+    """Stage the files of one command; publish them only when the block succeeds.
+
+    Yields ``stage(target)``, which returns a temporary path beside ``target`` (same
+    extension) for a writer to fill. When the block ends normally, every temporary
+    replaces its target (``os.replace``); when it raises, the temporaries are removed
+    and every target is left as it was.
+    """
+    pending: list[tuple[Path, Path]] = []
+
+    def stage(target: str | os.PathLike) -> Path:
+        target = Path(target)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = _reserve(target, _make_file)
+        pending.append((tmp, target))
+        return tmp
+
+    try:
+        yield stage
+        for tmp, _ in pending:
+            _fsync(tmp)
+        for tmp, target in pending:
+            os.replace(tmp, target)
+            forget_temporary(tmp)
+    finally:
+        for tmp, _ in pending:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            forget_temporary(tmp)
+
+
+__all__ = ["OutputError", "check_outputs", "check_plot_format", "plot_formats", "staged_files"]

@@ -1,0 +1,73 @@
+"""Stop a command on Ctrl-C (SIGINT) or SIGTERM within a moment, whatever it computes.
+
+Python runs a signal handler only when the main thread returns to the interpreter,
+and a running XLA computation does not: after a ``KeyboardInterrupt`` the main thread
+waits in the XLA client for the computation to finish, minutes for a fit. Here the
+signal is seen by a watcher thread instead: Python's C-level handler writes the
+signal's number to a pipe (:func:`signal.set_wakeup_fd`) at once, the thread removes
+the command's unpublished temporary files and folders
+(:func:`~lightfield_jax._io.remove_temporaries`) and ends the process with
+:func:`os._exit` (status 130 for SIGINT, 143 for SIGTERM, as shells report them),
+which does not wait for the computation. Nothing was published: outputs replace their
+targets only when a command succeeds, so no output is left.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+import threading
+from collections.abc import Iterator
+
+from ._io import remove_temporaries
+
+EXIT_STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
+
+
+def _ignore(signum, frame) -> None:
+    """Python-level handler: the watcher thread acts on the signal."""
+
+
+def _watch(read_fd: int, prog: str) -> None:
+    while True:
+        data = os.read(read_fd, 1)
+        if not data:  # the command ended: the pipe was closed
+            return
+        if data[0] in {int(s) for s in EXIT_STATUS}:
+            break  # else another signal with a Python handler: not ours
+    signum = signal.Signals(data[0])
+    remove_temporaries()
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        print(f"{prog}: interrupted ({signum.name}): nothing written", file=sys.stderr)
+        sys.stderr.flush()
+    os._exit(EXIT_STATUS[signum])
+
+
+@contextlib.contextmanager
+def stop_on_signals(prog: str) -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM end the process at once (see the module
+    docstring). Outside the main thread (where handlers cannot be set) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    previous = {s: signal.signal(s, _ignore) for s in EXIT_STATUS}
+    old_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    watcher = threading.Thread(target=_watch, args=(read_fd, prog), daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        os.close(write_fd)
+        watcher.join()
+        os.close(read_fd)
+
+
+__all__ = ["EXIT_STATUS", "stop_on_signals"]

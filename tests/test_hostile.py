@@ -1,0 +1,564 @@
+"""Hostile inputs and faults (issue: never destroy a file, never hang, never run out of
+memory, stop on Ctrl-C): each case exits 2 with one line naming what is wrong, before
+the work, and leaves every file as it was."""
+
+import json
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lightfield_jax._cli import XLA_CACHE_ENV, main
+from lightfield_jax._io import read_image, write_exr
+from lightfield_jax._memory import MAX_MEMORY_ENV
+
+H, W, P = 24, 32, 6
+SIMULATE = f"""\
+grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
+medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}}
+illumination: {{kind: stripes, period: 6, lit: 3}}
+gain: 400.0
+black_level: 0.02
+dark_level: 0.01
+noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
+"""
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _environment(monkeypatch):
+    monkeypatch.setenv(XLA_CACHE_ENV, "off")
+    monkeypatch.delenv(MAX_MEMORY_ENV, raising=False)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """The milk as a 32x24 six-shift stripe capture with a dark frame."""
+    folder = tmp_path_factory.mktemp("hostile")
+    (folder / "sim.yaml").write_text(SIMULATE)
+    assert main(["simulate", str(folder / "sim.yaml"), "--out", str(folder / "cap"), "-q"]) == 0
+    return folder / "cap"
+
+
+@pytest.fixture
+def capture(simulated, tmp_path):
+    """A fresh copy of the simulated capture folder."""
+    folder = tmp_path / "cap"
+    shutil.copytree(simulated, folder)
+    return folder
+
+
+def _run(capsys, *argv):
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def _refused(capsys, *argv, match: str) -> str:
+    """The command exits 2 with one error line containing ``match``."""
+    status, out, err = _run(capsys, *argv)
+    lines = err.splitlines()
+    assert status == 2, (status, out, err)
+    assert len(lines) == 1 and lines[0].startswith("lightfield-jax: error: "), err
+    assert match in lines[0], lines[0]
+    assert "Traceback" not in err and "Warning" not in err
+    return lines[0]
+
+
+def _edit(folder: Path, **changes) -> Path:
+    path = folder / "capture.yaml"
+    data = yaml.safe_load(path.read_text())
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+# ------------------------------------------------------------- 1. outputs and inputs
+
+
+def test_an_output_that_is_an_input_is_refused(capture, capsys):
+    before = _snapshot(capture)
+    yaml_file = capture / "capture.yaml"
+    _refused(capsys, "fit", yaml_file, "--out", capture / "shift_00.exr", match="is an input")
+    _refused(capsys, "fit", yaml_file, "--out", capture / "dark.exr", match="is an input")
+    # The same file through another path (a symlink) is still the input.
+    (capture.parent / "link.exr").symlink_to(capture / "shift_03.exr")
+    _refused(capsys, "fit", yaml_file, "--out", capture.parent / "link.exr", match="is an input")
+    _refused(capsys, "inspect", "--json", yaml_file, yaml_file, match="is an input")
+    _refused(capsys, "inspect", yaml_file, "--plot", capture / "shift_01.exr", match="extension")
+    cfg = capture.parent / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    _refused(capsys, "simulate", cfg, "--out", cfg, match="not a directory")
+    assert _snapshot(capture) == before
+    # A config named like a file simulate writes, in its output folder.
+    (capture / "capture.yaml").write_text(SIMULATE)
+    before = _snapshot(capture)
+    _refused(capsys, "simulate", capture / "capture.yaml", "--out", capture, match="holds an input")
+    assert _snapshot(capture) == before
+
+
+def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
+    out = tmp_path / "r.png"
+    _refused(
+        capsys,
+        "fit",
+        capture / "capture.yaml",
+        "--out",
+        out,
+        "--plot",
+        tmp_path / "." / "r.png",
+        match="names the same file as the output",
+    )
+    assert not out.exists()
+
+
+def test_outputs_that_are_not_regular_files_are_refused(capture, capsys, tmp_path):
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", fifo, match="not a regular file")
+    assert fifo.is_fifo()
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", tmp_path, match="is a directory")
+    _refused(capsys, "bench", "--out", fifo, match="not a regular file")
+
+
+def test_unwritable_output_locations_are_refused_before_the_work(capture, capsys, tmp_path):
+    # /proc refuses new files even to the superuser (a read-only folder does not).
+    line = _refused(
+        capsys,
+        "fit",
+        capture / "capture.yaml",
+        "--out",
+        "/proc/results.json",
+        match="/proc/results.json: cannot write in /proc",
+    )
+    assert ".tmp-" not in line
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    _refused(
+        capsys,
+        "simulate",
+        capture.parent / "missing.yaml",
+        "--out",
+        blocker / "sub",
+        match="sub: cannot be written (Not a directory)",
+    )
+    _refused(capsys, "pattern", "--width", 12, "--height", 12, "--out", "/proc/pat", match="/proc")
+
+
+def test_unsupported_plot_format_is_refused_before_the_fit(capture, capsys, tmp_path):
+    results = tmp_path / "results.json"
+    results.write_text('{"kept": true}')
+    t0 = time.perf_counter()
+    _refused(
+        capsys,
+        "fit",
+        capture / "capture.yaml",
+        "--out",
+        results,
+        "--plot",
+        tmp_path / "fig.exr",
+        match="fig.exr: a figure needs a file extension matplotlib writes",
+    )
+    assert time.perf_counter() - t0 < 10  # refused before the fit (which takes longer)
+    assert json.loads(results.read_text()) == {"kept": True}
+    _refused(
+        capsys, "inspect", capture / "capture.yaml", "--plot", tmp_path / "fig", match="no ext"
+    )
+
+
+# --------------------------------------------------- two-step caveat, staged writes
+
+
+@pytest.mark.slow
+def test_a_two_step_fit_says_its_bias_on_screen_and_in_results(capture, capsys, tmp_path):
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    status, stdout, err = _run(
+        capsys, "fit", capture / "capture.yaml", "--method", "grid", "--out", out, "--plot", fig
+    )
+    assert status == 0, err
+    result = json.loads(out.read_text())
+    assert "separation bias" in result["caveat"] and "joint" in result["caveat"]
+    assert result["uncertainty_kind"].startswith("statistical only")
+    assert "note: the two-step methods (grid, gradient) carry the separation bias" in stdout
+    assert fig.stat().st_size > 0
+
+
+def test_a_failure_while_plotting_replaces_no_output(capture, capsys, tmp_path, monkeypatch):
+    """Figures and results are staged and published together: a command that fails
+    in its last step leaves the outputs of an earlier run as they were."""
+    out, fig = tmp_path / "i.json", tmp_path / "i.png"
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "--json", out, "--plot", fig)
+    assert status == 0, err
+    before = {p: p.read_bytes() for p in (out, fig)}
+
+    import lightfield_jax.viz as viz
+
+    def broken(*args, **kwargs):
+        raise ValueError("plotting failed")
+
+    monkeypatch.setattr(viz, "plot_inspect", broken)
+    fig.unlink()
+    line = _refused(
+        capsys, "inspect", capture / "capture.yaml", "--json", out, "--plot", fig, match="plotting"
+    )
+    assert line.endswith("plotting failed")
+    assert out.read_bytes() == before[out] and not fig.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "i.json"]  # no temporaries
+
+
+def test_library_failures_are_translated_and_name_the_capture(capture, capsys, monkeypatch):
+    import equinox as eqx
+
+    import lightfield_jax._fit as fit_module
+
+    def singular(*args, **kwargs):
+        raise eqx.EquinoxRuntimeError(
+            "A linear solver received non-finite input. This "
+            "means that you have a bug upstream of Lineax"
+        )
+
+    monkeypatch.setattr(fit_module, "fit_capture", singular)
+    line = _refused(
+        capsys, "fit", capture / "capture.yaml", match="the solve met a singular or non-finite"
+    )
+    assert str(capture / "capture.yaml") in line and "Lineax" not in line
+
+    def decay(*args, **kwargs):
+        raise ValueError("decay fit: no usable points along the beam")
+
+    monkeypatch.setattr(fit_module, "fit_capture", decay)
+    line = _refused(capsys, "fit", capture / "capture.yaml", match="decay fit: no usable")
+    assert line.startswith(f"lightfield-jax: error: {capture / 'capture.yaml'}: ")
+
+
+# ------------------------------------------------------------------ 3, 8. YAML bombs
+
+BOMB = """\
+a: &a [x, x, x, x, x, x, x, x, x]
+b: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]
+c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b]
+d: &d [*c, *c, *c, *c, *c, *c, *c, *c, *c]
+e: &e [*d, *d, *d, *d, *d, *d, *d, *d, *d]
+f: &f [*e, *e, *e, *e, *e, *e, *e, *e, *e]
+g: &g [*f, *f, *f, *f, *f, *f, *f, *f, *f]
+h: &h [*g, *g, *g, *g, *g, *g, *g, *g, *g]
+"""
+
+
+@pytest.mark.parametrize("key", ["channel", "medium_roi", "pattern", "truth"])
+def test_alias_bombs_in_a_capture_are_refused_with_a_short_message(capture, capsys, key):
+    path = capture / "bomb.yaml"
+    base = yaml.safe_load((capture / "capture.yaml").read_text())
+    base.pop(key, None)
+    path.write_text(BOMB + yaml.safe_dump(base) + f"{key}: *h\n")
+    t0 = time.perf_counter()
+    line = _refused(capsys, "fit", path, match="aliases expand to more than")
+    assert time.perf_counter() - t0 < 5 and len(line) < 400
+
+
+@pytest.mark.parametrize("key", ["grid", "bounces"])
+def test_alias_bombs_in_a_config_are_refused(tmp_path, capsys, key):
+    config = yaml.safe_load(SIMULATE)
+    config.pop(key, None)
+    path = tmp_path / "sim.yaml"
+    path.write_text(BOMB + yaml.safe_dump(config) + f"{key}: *h\n")
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="aliases expand")
+    assert len(line) < 400 and not (tmp_path / "o").exists()
+
+
+def test_a_large_rejected_value_is_printed_bounded(tmp_path, capsys):
+    config = yaml.safe_load(SIMULATE)
+    config["bounces"] = "x" * 100_000
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="bounces")
+    assert len(line) < 400
+
+
+def test_recursive_aliases_and_deep_nesting_are_one_line(tmp_path, capsys):
+    path = tmp_path / "sim.yaml"
+    path.write_text("grid: &a [*a]\n")
+    _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="cycle")
+    path.write_text("grid: " + "[" * 20000 + "]" * 20000 + "\n")
+    _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="nested too deeply")
+
+
+def test_huge_periods_are_refused(capture, capsys, tmp_path):
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    _edit(capture, pattern={**pattern, "period": 10**21})
+    _refused(capsys, "inspect", capture / "capture.yaml", match="pattern.period: 10000000")
+    config = yaml.safe_load(SIMULATE)
+    config["illumination"]["period"] = 10**21
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="illumination.period")
+    _refused(
+        capsys,
+        *("pattern", "--width", 64, "--height", 64, "--period", 10**21, "--out", tmp_path / "p"),
+        match="pattern.width: must be an integer >= the period",
+    )
+
+
+def test_npy_header_claiming_terabytes_is_refused(capture, capsys):
+    header = {"descr": "<f4", "fortran_order": False, "shape": (P, 10**6, 10**6)}
+    with open(capture / "stack.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(b"\0" * 64)
+    _edit(capture, images="stack.npy", dark_frame=None)
+    (capture / "capture.yaml").write_text(
+        (capture / "capture.yaml").read_text().replace("dark_frame: null\n", "")
+    )
+    _refused(capsys, "inspect", capture / "capture.yaml", match="truncated or corrupt")
+
+
+# --------------------------------------------------------------------- 5. memory
+
+
+def test_renders_too_large_for_memory_are_refused_with_the_estimate(tmp_path, capsys):
+    config = yaml.safe_load(SIMULATE)
+    config["grid"] = {"width": 3000, "height": 3000, "n_theta": 512}
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="needs about")
+    assert "iB of memory, more than the" in line and "available memory" in line
+    config["grid"] = {"width": 128, "height": 96, "n_theta": 16}
+    config["bounces"] = 100000
+    path.write_text(yaml.safe_dump(config))
+    _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="needs about")
+    # A normal render passes; --max-memory lowers (or raises) the limit.
+    path.write_text(SIMULATE)
+    line = _refused(
+        capsys, "simulate", path, "--out", tmp_path / "o", "--max-memory", "1M", match="needs"
+    )
+    assert "of the --max-memory" in line
+    assert not (tmp_path / "o").exists()
+
+
+def test_bench_sizes_too_large_for_memory_are_refused(tmp_path, capsys):
+    _refused(
+        capsys,
+        *("bench", "--sizes", "3000x3000x512", "--out", tmp_path / "b.json"),
+        match="bench --sizes 3000x3000x512 needs about",
+    )
+    assert not (tmp_path / "b.json").exists()
+
+
+def _png_header(path: Path, width: int, height: int) -> None:
+    """A PNG whose header declares width x height RGB 8-bit, followed by a 64 MiB data
+    chunk that is a hole in a sparse file (no disk used)."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = struct.pack(">I", zlib.crc32(kind + data))
+        return struct.pack(">I", len(data)) + kind + data + crc
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    size = 64 << 20
+    with open(path, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + struct.pack(">I", size) + b"IDAT")
+        f.truncate(f.tell() + size + 4)
+
+
+def test_image_headers_declaring_huge_images_are_refused(capture, capsys):
+    """Sizes come from the headers, before any pixel is read (under a fixed limit)."""
+    _png_header(capture / "huge.png", 30000, 30000)
+    _edit(capture, images=["huge.png"] * P, dark_frame=None)
+    text = (capture / "capture.yaml").read_text().replace("dark_frame: null\n", "")
+    (capture / "capture.yaml").write_text(text)
+    line = _refused(
+        capsys, "inspect", capture / "capture.yaml", "--max-memory", "8G", match="needs about"
+    )
+    assert "images (6 file(s), 16200000000 samples)" in line
+    header = {"descr": "<f4", "fortran_order": False, "shape": (P, 30000, 30000)}
+    with open(capture / "stack.npy", "wb") as f:
+        np.lib.format.write_array_header_1_0(f, header)
+        f.truncate(f.tell() + 4 * P * 30000 * 30000)
+    _edit(capture, images="stack.npy")
+    _refused(capsys, "inspect", capture / "capture.yaml", "--max-memory", "8G", match="needs about")
+    # The capture's real images under a tiny limit: refused from their headers too.
+    _edit(capture, images=[f"shift_{i:02d}.exr" for i in range(P)])
+    line = _refused(
+        capsys, "inspect", capture / "capture.yaml", "--max-memory", "10K", match="needs about"
+    )
+    assert f"images (6 file(s), {P * H * W} samples)" in line
+
+
+def test_patterns_too_large_for_memory_are_refused(tmp_path, capsys):
+    _refused(
+        capsys,
+        *("pattern", "--width", 100000, "--height", 100000, "--out", tmp_path / "p"),
+        match="pattern: 8 images of 100000x100000 needs about",
+    )
+    assert not (tmp_path / "p").exists()
+
+
+# ----------------------------------------------------------- 6, 7. impossible captures
+
+
+def test_phases_outside_the_period_are_refused(capture, capsys):
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    _edit(capture, pattern={**pattern, "phases": [0, -1, 2, 3, 4, 5]})
+    _refused(capsys, "fit", capture / "capture.yaml", match="[-1] outside [0, period) = [0, 6)")
+    _edit(capture, pattern={**pattern, "phases": [0, 1, 2, 3, 4, 6]})
+    _refused(capsys, "fit", capture / "capture.yaml", match="[6] outside [0, period)")
+
+
+def test_phases_that_contradict_the_images_are_refused(capture, capsys):
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    _edit(capture, pattern={**pattern, "phases": [2, 3, 4, 5, 0, 1]})
+    line = _refused(capsys, "fit", capture / "capture.yaml", match="pattern.phases: [2, 3, 4")
+    assert "stripes are at phases [0, 1, 2, 3, 4, 5]" in line
+    _edit(capture, pattern={**pattern, "phases": [0, 1, 2, 3, 5, 4]})
+    _refused(capsys, "inspect", capture / "capture.yaml", match="contradict the images")
+    _edit(capture, pattern={**pattern, "phases": "auto"})
+    status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status == 0, err
+    # Phases left to their default (0..P-1) that the images contradict: a note.
+    from lightfield_jax._capture import load_capture
+
+    _edit(
+        capture,
+        pattern={k: v for k, v in pattern.items() if k != "phases"},
+        images=[f"shift_{i:02d}.exr" for i in (1, 2, 3, 4, 5, 0)],
+    )
+    notes = load_capture(capture / "capture.yaml").notes
+    assert any(
+        "pattern.phases (absent: the default) [0, 1, 2, 3, 4, 5] contradict" in n for n in notes
+    )
+
+
+def test_a_white_frame_listed_as_a_stripe_image_is_refused(capture, capsys):
+    stripes = [read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)]
+    write_exr(capture / "shift_04.exr", {"Y": np.mean(stripes, axis=0)})
+    _refused(
+        capsys, "fit", capture / "capture.yaml", match="shift_04.exr shows no stripes of period 6"
+    )
+
+
+def test_images_without_light_are_refused(capture, capsys):
+    shifts = [capture / f"shift_{i:02d}.exr" for i in range(P)]
+    images = [read_image(f).pixels[..., 0] for f in shifts]
+    dark = read_image(capture / "dark.exr").pixels[..., 0]
+    write_exr(capture / "dark.exr", {"Y": dark + 2 * np.max(images)})
+    for command in ("fit", "inspect"):
+        _refused(capsys, command, capture / "capture.yaml", match="brighter than the images")
+    _edit(capture, dark_frame=None)
+    (capture / "capture.yaml").write_text(
+        (capture / "capture.yaml").read_text().replace("dark_frame: null\n", "")
+    )
+    for f, image in zip(shifts, images, strict=True):
+        write_exr(f, {"Y": -image})
+    for command in ("fit", "inspect"):
+        _refused(capsys, command, capture / "capture.yaml", match="every image value is negative")
+    for f in shifts:
+        write_exr(f, {"Y": np.zeros((H, W))})
+    _refused(capsys, "inspect", capture / "capture.yaml", match="every pixel of every image is 0")
+
+
+def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, capsys):
+    from lightfield_jax._capture import write_capture_yaml
+    from lightfield_jax._illumination import Stripes
+
+    names = [f"s{i}.exr" for i in range(P)]
+    for name in names:
+        write_exr(tmp_path / name, {"Y": np.full((H, W), 0.5)})
+    write_capture_yaml(tmp_path / "capture.yaml", images=names, pattern=Stripes())
+    status, out, err = _run(
+        capsys, "inspect", tmp_path / "capture.yaml", "--json", tmp_path / "i.json"
+    )
+    assert status == 1
+    assert "warning: [Y] no direct light at the entry wall" in out
+    assert err.startswith("lightfield-jax: warning: ") and "no direct light" in err
+    assert any(
+        "no direct light" in w for w in json.loads((tmp_path / "i.json").read_text())["warnings"]
+    )
+
+
+# ---------------------------------------------------------- 9. non-regular inputs
+
+
+def test_fifos_in_place_of_inputs_are_refused_without_hanging(capture, tmp_path):
+    (capture / "shift_02.exr").unlink()
+    os.mkfifo(capture / "shift_02.exr")
+    fifo_yaml = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo_yaml)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), XLA_CACHE_ENV: "off"}
+    for argv, match in (
+        (["inspect", str(capture / "capture.yaml")], "shift_02.exr: is not a regular file"),
+        (["inspect", str(fifo_yaml)], "fifo.yaml: is not a regular file"),
+        (["simulate", str(fifo_yaml), "--out", str(tmp_path / "o")], "not a regular file"),
+    ):
+        done = subprocess.run(
+            [sys.executable, "-m", "lightfield_jax", *argv],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=env,
+        )
+        assert done.returncode == 2 and match in done.stderr, done.stderr
+        assert len(done.stderr.splitlines()) == 1
+
+
+# ------------------------------------------------------------------ 10. smaller
+
+
+def test_big_endian_npy_images_are_read(tmp_path):
+    a = np.arange(12, dtype=">f4").reshape(3, 4)
+    np.save(tmp_path / "be.npy", a)
+    image = read_image(tmp_path / "be.npy")
+    assert image.pixels.dtype == np.float32
+    np.testing.assert_array_equal(image.pixels[..., 0], a.astype(np.float32))
+    np.save(tmp_path / "be16.npy", np.arange(12, dtype=">u2").reshape(3, 4))
+    assert read_image(tmp_path / "be16.npy").pixels[1, 1, 0] == pytest.approx(5 / 65535)
+
+
+# ------------------------------------------------------------------ 4. signals
+
+
+def _cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_stops_a_fit_at_once_and_leaves_no_output(simulated, tmp_path, signum, status):
+    """The fit is signalled after 6 s of CPU (imported, compiling or solving: XLA at
+    work, which Python's own handling waits for) and must end within 3 s."""
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), XLA_CACHE_ENV: "off"}
+    argv = ["fit", str(simulated / "capture.yaml"), "--out", str(out), "--plot", str(fig)]
+    child = subprocess.Popen(
+        [sys.executable, "-m", "lightfield_jax", *argv],
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        while _cpu_seconds(child.pid) < 6.0:
+            assert child.poll() is None, "the fit ended before it was signalled"
+            time.sleep(0.05)
+        sent = time.perf_counter()
+        child.send_signal(signum)
+        code = child.wait(timeout=30)
+        elapsed = time.perf_counter() - sent
+        message = child.stderr.read()
+    finally:
+        child.kill()
+        child.wait()
+        child.stderr.close()
+    assert code == status and elapsed < 3.0, (code, elapsed)
+    assert "interrupted" in message
+    assert list(tmp_path.iterdir()) == []  # no output, no temporary
