@@ -53,5 +53,7 @@ from ._slab import AutoGeometry as AutoGeometry
 from ._slab import Plane as Plane
 from ._slab import Slab as Slab
 from ._slab import SlabRenderer as SlabRenderer
+from ._tail import TailNotConvergedWarning as TailNotConvergedWarning
+from ._tail import TailSolution as TailSolution
 
 __version__ = "0.1.0"
