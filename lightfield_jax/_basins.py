@@ -187,7 +187,7 @@ def scan(
         jnp.asarray(albedos, dtype),
         jnp.asarray(0.0 if black_level is None else black_level, dtype),
     )
-    cost, black = np.asarray(cost, np.float64), np.asarray(black, np.float64)
+    cost, black = np.array(cost, np.float64), np.array(black, np.float64)  # writable
     k = renderer.bounces
     for i, g in enumerate(gs):
         rho = np.asarray(rho_limit(float(g), albedos), np.float64)

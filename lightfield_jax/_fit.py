@@ -53,7 +53,7 @@ from ._slab import (
     slab_bounce_ratio,
 )
 from ._timing import stopwatch
-from ._trust import Uncertainty, error_budget, noise_scale, untrustworthy
+from ._trust import Uncertainty, at_bound, error_budget, noise_scale, untrustworthy
 
 METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
 # A(g) of a Python float, compiled once (op by op, its dozen operations would each
@@ -815,8 +815,9 @@ def _bucket(n: int, step: int) -> int:
 
 def _bucket_bounces(k: int) -> int:
     """Bounce counts rounded up to a few buckets (every 4 to 32, every 8 beyond), so
-    channels and stages of nearby needs share a compiled program."""
-    return k if k <= 8 else _bucket(k, 4) if k <= 32 else _bucket(k, 8)
+    channels and stages of nearby needs share a compiled program (compiling costs
+    seconds, a few more bounces a fraction of the run)."""
+    return _bucket(k, 4) if k <= 32 else _bucket(k, 8)
 
 
 def _at_least(model: _Model, floor: _Model | None) -> _Model:
@@ -910,10 +911,16 @@ def _same_answer(a: dict, b: dict) -> bool:
 def _continuation(data, pattern, first: _Stage, options, black, images, floor, say):
     """The joint fit after its first stage ``first`` (on the cheap model): the model its
     answer needs (the larger of that and ``floor``), polished there; the model-weighted
-    refit runs once, on the last stage. Returns the last stage."""
+    refit runs once, on the last stage. Returns the last stage (``first`` itself when it
+    ends at a bound of the model)."""
     coarse = first.model
     weights = first.weights
     v = first.values
+    if at_bound(v, BLACK_RANGE if black is None else None):
+        # At a bound on the cheap model: a basin of the model's edge (not trustworthy
+        # whatever the model), not worth the large model it would ask for.
+        say("  at a bound of the model on the cheap model: not refined")
+        return first
     need = size_model(
         images,
         pattern,

@@ -123,15 +123,10 @@ def error_budget(
     return Uncertainty(stat, model, total, corr, cond, chi2, noise, limited, chi2_model)
 
 
-def untrustworthy(
-    values: dict,
-    budget: Uncertainty,
-    max_chi2: float,
-    black_range: tuple[float, float] | None = None,
-) -> list[str]:
-    """The reasons a solution is not to be trusted (empty: none). ``values`` holds
-    sigma_t, sigma_s, g (and black_level when ``black_range`` is given: it was fitted);
-    the misfit is judged by ``budget.chi2_model`` (noise ⊕ the model's own error)."""
+def at_bound(values: dict, black_range: tuple[float, float] | None = None) -> list[str]:
+    """The parameters of a solution that sit at a bound of the model (empty: none).
+    ``values`` holds sigma_t, sigma_s, g (and black_level when ``black_range`` is given:
+    it was fitted)."""
     reasons = []
     g = values["g"]
     albedo = values["sigma_s"] / values["sigma_t"]
@@ -144,6 +139,19 @@ def untrustworthy(
         b = values["black_level"]
         if not black_range[0] + 0.01 < b < black_range[1] - 0.01:
             reasons.append(f"black level = {b:.3f} is at its bound {list(black_range)}")
+    return reasons
+
+
+def untrustworthy(
+    values: dict,
+    budget: Uncertainty,
+    max_chi2: float,
+    black_range: tuple[float, float] | None = None,
+) -> list[str]:
+    """The reasons a solution is not to be trusted (empty: none): :func:`at_bound`, and
+    a misfit far above ``max_chi2`` judged by ``budget.chi2_model`` (noise ⊕ the model's
+    own error)."""
+    reasons = at_bound(values, black_range)
     if math.isfinite(budget.chi2_model) and budget.chi2_model > max_chi2:
         reasons.append(
             f"misfit far above the capture's noise and the model's own error: chi2/dof = "
@@ -153,4 +161,4 @@ def untrustworthy(
     return reasons
 
 
-__all__ = ["Uncertainty", "error_budget", "noise_scale", "untrustworthy"]
+__all__ = ["Uncertainty", "at_bound", "error_budget", "noise_scale", "untrustworthy"]
