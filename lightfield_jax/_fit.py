@@ -325,7 +325,7 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     """Crop along the propagation direction to where the signal stands out: Imax,
     averaged across the light, must exceed its noise floor (the median of the farthest
     tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
-    wall stays; at least 16 pixels are kept, in multiples of 16."""
+    wall stays; at least 16 pixels are kept, in multiples of 8."""
     p, h, w = images.shape
     along_x = pattern.entry in ("left", "right")
     imax = np.nanmax(images, axis=0)
@@ -344,9 +344,9 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
         return (0, 0, w, h)
     above = prof - floor > max(fraction * (peak - floor), 3.0 * scatter)
     last = int(np.flatnonzero(above).max()) + 1 if above.any() else n
-    # Rounded up to a multiple of 16 (within the image): captures and channels of nearby
+    # Rounded up to a multiple of 8 (within the image): captures and channels of nearby
     # extents share one shape, and so their compiled programs.
-    keep = min(n, _bucket(max(last + 2, 16), 16))
+    keep = min(n, _bucket(max(last + 2, 16), 8))
     if pattern.entry in ("left", "top"):
         lo, hi = 0, keep
     else:
@@ -814,10 +814,10 @@ def _bucket(n: int, step: int) -> int:
 
 
 def _bucket_bounces(k: int) -> int:
-    """Bounce counts rounded up to a few buckets (every 4 to 32, every 8 beyond), so
-    channels and stages of nearby needs share a compiled program (compiling costs
+    """Bounce counts above 8 rounded up to a few buckets (every 4 to 32, every 8 beyond),
+    so captures and stages of nearby needs share a compiled program (compiling costs
     seconds, a few more bounces a fraction of the run)."""
-    return _bucket(k, 4) if k <= 32 else _bucket(k, 8)
+    return k if k <= 8 else _bucket(k, 4) if k <= 32 else _bucket(k, 8)
 
 
 def _at_least(model: _Model, floor: _Model | None) -> _Model:
@@ -838,12 +838,12 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
 
 
 def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
-    """The cheap model of the basin scan and of the joint fit's first stage: 16 θ bins
+    """The cheap model of the basin scan and of the joint fit's first stage: 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes), the bounces the
     capture's brightness ratio calls for (tail below 1e-3 at ρ = max(ρ0, 0.3), ρ0 the
     separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
-    n_theta, geometry = min(options.n_theta or 16, 16), None
+    n_theta, geometry = min(options.n_theta or 32, 32), None
     if isinstance(options.geometry, Slab):
         slab = options.geometry
         n_theta = min(options.n_theta or 8, 8)
@@ -951,17 +951,17 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, s
 
 
 def _finer(model: _Model, options: FitOptions) -> _Model:
-    """A finer model than ``model`` for its error term: twice the θ bins (and elevation
-    nodes), the plane's grid refined once more (up to 2), 1.5× + 4 the bounces."""
+    """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
+    elevation nodes), 1.5× + 4 the bounces (the spatial refinement stays: 4× the cost
+    for a term the θ bins and bounces dominate below |g| 0.65, where the size rule
+    keeps refine 1)."""
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
         geometry = dataclasses.replace(geometry, n_mu=min(2 * geometry.n_mu, 32))
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
     else:
-        grid = dataclasses.replace(
-            grid, n_theta=min(2 * grid.n_theta, 256), refine=max(grid.refine, 2)
-        )
+        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 256))
     bounces = model.bounces if isinstance(options.bounces, int) else model.bounces * 3 // 2 + 4
     return dataclasses.replace(model, grid=grid, bounces=bounces, geometry=geometry)
 
@@ -1550,7 +1550,7 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
         crop=crop,
         converges=True,
         rho=0.0,
-        geometry=None if slab is None else dataclasses.replace(slab, n_mu=slab.n_mu or 1),
+        geometry=None if slab is None else dataclasses.replace(slab, n_mu=slab.n_mu or 4),
     )
 
 
