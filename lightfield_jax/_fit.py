@@ -12,11 +12,18 @@ Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
   over (σs, g), differentiated through the renderer.
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
   capture does not give it) fitted straight to the raw shifted images by rendering each
-  stripe pattern, so no separation bias remains. Starts from the ``gradient`` result.
+  stripe pattern, so no separation bias remains. It starts from a global scan of the
+  misfit over (g, albedo) on a cheap model (:mod:`lightfield_jax._basins`), solves
+  every basin near the best (cheap model, then the model its answer needs) and keeps
+  the best.
 
-Every result carries 1σ uncertainties from the Jacobian (noise estimated from the
-residual), correlations, the solver's convergence status (never swallowed), iterations,
-residual, wall time split into compile and run, and the model used.
+Every result carries 1σ uncertainties from the Jacobian (the joint fit: statistical
+from the capture's measured noise, a model term from a finer model's residual, and
+their total; :mod:`lightfield_jax._trust`), χ²/dof, correlations, the solver's
+convergence status (never swallowed; false with the reasons for a solution that is not
+trustworthy), iterations, residual, wall time split into compile and run, and the model
+used. Programs are compiled once per static settings and shape bucket
+(:mod:`lightfield_jax._programs`).
 """
 
 from __future__ import annotations
@@ -908,18 +915,21 @@ def _same_answer(a: dict, b: dict) -> bool:
     )
 
 
-def _continuation(data, pattern, first: _Stage, options, black, images, floor, say):
+def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
     """The joint fit after its first stage ``first`` (on the cheap model): the model its
     answer needs (the larger of that and ``floor``), polished there; the model-weighted
     refit runs once, on the last stage. Returns the last stage (``first`` itself when it
-    ends at a bound of the model)."""
+    ends at a bound of the model or in a basin worse than the scan's best)."""
     coarse = first.model
     weights = first.weights
     v = first.values
-    if at_bound(v, BLACK_RANGE if black is None else None):
-        # At a bound on the cheap model: a basin of the model's edge (not trustworthy
-        # whatever the model), not worth the large model it would ask for.
-        say("  at a bound of the model on the cheap model: not refined")
+    albedo = v["sigma_s"] / v["sigma_t"]
+    if at_bound(v, BLACK_RANGE if black is None else None) or worse_basin(
+        the_scan, v["g"], albedo, options.basin_tolerance
+    ):
+        # At a bound or in a worse basin on the cheap model: not trustworthy whatever
+        # the model, and not worth the large model it would ask for.
+        say("  at a bound or in a worse basin on the cheap model: not refined")
         return first
     need = size_model(
         images,
@@ -1020,22 +1030,25 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             (f"basin {i}", (st0, b.albedo * st0, b.g, b.black_level if black is None else black))
             for i, b in enumerate(found)
         ]
-    tried, stages = [], []
+    tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
     for label, start in starts:
         say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
         y0 = pack(start, black is None, dtype)
         first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
         count(first)
-        record = {"start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]}}
+        record = {
+            "label": label,
+            "start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]},
+        }
         same = next(
             (i for i, (f, _) in enumerate(stages) if _same_answer(f.values, first.values)), None
         )
         if same is not None:  # the cheap model's answer of an earlier start: not again
-            tried.append({**record, "same_as": same})
-            say(f"  {label}: the same answer as start {same}")
+            tried.append({**record, "same_as": labels[same]})
+            say(f"  {label}: the same answer as {labels[same]}")
             continue
-        last = _continuation(data, pattern, first, options, black, images, floor, say)
+        last = _continuation(data, pattern, first, options, black, images, floor, the_scan, say)
         count(last)
         tried.append(
             {
@@ -1051,10 +1064,11 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g}"
         )
         stages.append((first, last))
+        labels.append(label)
     # The best final misfit (models may differ between starts: the weighted RMS is
     # comparable across them).
     best = min(range(len(stages)), key=lambda i: stages[i][1].rms)
-    first, last = stages[best]
+    last = stages[best][1]
     solved = [r for r in tried if "final" in r]
     for i, record in enumerate(solved):
         record["chosen"] = i == best
