@@ -33,6 +33,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -621,11 +622,23 @@ class _TwoStepSettings:
     max_steps: int
 
 
-def _two_step_run(settings: _TwoStepSettings, solver, renderer, sigma_t, d, m, mask, gs, scale):
+def _two_step_run(
+    settings: _TwoStepSettings,
+    solver_static,
+    solver_arrays,
+    renderer,
+    sigma_t,
+    d,
+    m,
+    mask,
+    gs,
+    scale,
+):
     """The two-step program: the search over ``gs`` and (``gradient``) the solve over
     (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the residual and
     its Jacobian evaluated explicitly at the answer."""
     phase = settings.phase
+    solver = eqx.combine(solver_arrays, solver_static)
 
     def per_g(g):
         ref, u_max = reference_sigma_s(sigma_t, g, phase)
@@ -704,9 +717,10 @@ def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t,
         jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
         jnp.asarray(scale, dtype),
     )
-    run = jitted(_two_step_run, ("settings", "solver"))
+    run = jitted(_two_step_run, ("settings", "solver_static"))
+    arrays, static = eqx.partition(_solver(options, dtype), eqx.is_array)
     with stopwatch() as timing:
-        out = jax.block_until_ready(run(settings, _solver(options, dtype), *args))
+        out = jax.block_until_ready(run(settings, static, arrays, *args))
     s, g, a, r, jac, result, steps = out
     s, g = float(s), float(g)
     r = np.asarray(r, np.float64)

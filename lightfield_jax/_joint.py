@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
@@ -109,7 +110,19 @@ def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y)
     return unit_model(bounces, settings.lit, 1.0, b), jax.jacfwd(model)(theta)
 
 
-def _solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, weights, y0):
+def _solve(
+    settings: JointSettings,
+    solver_static,
+    solver_arrays,
+    renderer,
+    full,
+    obs,
+    black_fixed,
+    weights,
+    y0,
+):
+    solver = eqx.combine(solver_arrays, solver_static)
+
     def residual(y, _args):
         st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
         ref = jax.lax.stop_gradient(ss)
@@ -127,8 +140,10 @@ def _solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, we
 def solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, weights, y0):
     """Run ``solver`` on the weighted joint residual from ``y0``: ``(y, result, steps,
     R, ∂R/∂θ)`` with R the model at unit gain at the solution (see the module)."""
-    run = jitted(_solve, ("settings", "solver"))
-    return run(settings, solver, renderer, full, obs, black_fixed, weights, y0)
+    # The solver's arrays (e.g. a learning rate) are traced, the rest is static.
+    arrays, static = eqx.partition(solver, eqx.is_array)
+    run = jitted(_solve, ("settings", "solver_static"))
+    return run(settings, static, arrays, renderer, full, obs, black_fixed, weights, y0)
 
 
 def _model_only(lit: int, renderer, full, sigma_t, sigma_s, g, black):

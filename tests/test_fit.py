@@ -483,3 +483,21 @@ def test_a_second_channel_with_other_values_compiles_nothing_new():
     assert fits[0]["G"].sigma_s == pytest.approx(0.03, rel=0.01)
     keys = ("width", "height", "n_theta", "refine", "bounces", "crop")
     assert [fits[0]["G"].model[k] for k in keys] == [fits[0]["R"].model[k] for k in keys]
+
+
+def test_any_optimistix_least_squares_solver_can_be_passed():
+    import optimistix as optx
+
+    solver = optx.GaussNewton(rtol=1e-8, atol=1e-10)
+    result = lfj.fit_images(
+        _stripe_images("milk", SMALL),
+        lfj.Stripes(),
+        black_level=0.0,
+        n_theta=16,
+        refine=1,
+        solver=solver,
+        model_error=False,
+    )
+    err = _errors(result, "milk")
+    assert result.converged, result.message
+    assert abs(err["sigma_s"]) < 0.005 and abs(err["g"]) < 0.005, err
