@@ -16,9 +16,9 @@ on small simulated stripe captures (``width`` × ``height``), over:
 - ``shifts``: the number of shifted images (phases of a period-6, lit-3 pattern).
 - ``black_level``: the projector's dark-stripe level b, given to the fit (``known``)
   or not (two-step methods then assume 0; ``joint`` estimates it).
-- ``start`` (``joint`` only): the joint solve started away from the truth, σs × a
-  factor, g + an offset, σt × a factor, on the model the truth needs (the package's
-  ``_joint_solve``: fit_images has no start argument).
+- ``start`` (``joint`` only): the joint fit started away from the truth, σs × a
+  factor, g + an offset (``FitOptions.start``; σt comes from the decay fit, so its
+  factor is recorded but not applied), the basin search off.
 
 Each fit's outcome is classified (:func:`_inverse.failure`): ``ok`` (error at most
 ``bias_threshold``), ``biased`` (converged, finite, error above it), ``ill-conditioned``
@@ -279,45 +279,26 @@ def _sweep(name: str, config: dict, ctx) -> tuple[list[dict], list[dict]]:
 
 
 def _start_solve(medium: dict, start: tuple, images, config: dict) -> dict:
-    """One joint solve (coarse stage skipped) from ``start`` on the truth's model."""
-    from lightfield_jax import _fit
-
-    pattern = lfj.Stripes()
-    options = _fit.FitOptions()
+    """One joint fit from ``start``'s (σs, g) (σt from the decay fit, as always), the
+    basin search off: where the solve from there ends, and whether it is trusted."""
     t0 = time.perf_counter()
-    mask = np.ones(images.shape[1:], bool)
-    direct, multiple, decay = _fit._separate_and_decay(images, mask, pattern, 0.0, None)
-    model = _fit.size_model(
-        images, pattern, medium["sigma_s"] / medium["sigma_t"], medium["g"], options
-    )
-    x0, y0, x1, y1 = model.crop
-    data = _fit._Data(
-        images=images[:, y0:y1, x0:x1],
-        mask=mask[y0:y1, x0:x1],
-        direct=direct[y0:y1, x0:x1],
-        multiple=multiple[y0:y1, x0:x1],
-        sigma_t0=float(decay.sigma_t),
-        sigma_t0_err=float(decay.sigma_t_stderr),
-        decay_converged=bool(decay.converged),
-    )
-    out = _fit._joint_solve(data, pattern, model, options, start, 0.0, reweight=True)
-    ok, msg = _fit._result_message(out["result"])
-    values = {k: out[k] for k in inv.PARAMS}
+    fit = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, start=tuple(start[1:3]))
+    values = {k: getattr(fit, k) for k in inv.PARAMS}
     finite = all(math.isfinite(v) for v in values.values())
     rec = {
         **values,
         "start": list(start[:3]),
         "errors": inv.errors(values, inv.truth_of(medium)),
         "finite": finite,
-        "converged": ok,
-        "message": msg,
-        "iterations": int(out["steps"]),
-        "condition_number": out["cond"],
+        "converged": fit.converged,
+        "message": fit.message,
+        "iterations": fit.iterations,
+        "condition_number": fit.condition_number,
         "seconds": {
-            "compile": out["compile"],
+            "compile": fit.seconds["compile"],
             "total": time.perf_counter() - t0,
         },
-        "model": model.as_dict(),
+        "model": fit.model,
     }
     rec["failure"] = inv.failure(
         rec, bias=config["bias_threshold"], ill_conditioned=config["ill_conditioned"]

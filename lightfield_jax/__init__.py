@@ -39,6 +39,8 @@ from ._medium import phase_function as phase_function
 from ._medium import phase_integral as phase_integral
 from ._pattern import stripe_patterns as stripe_patterns
 from ._pattern import write_patterns as write_patterns
+from ._programs import clear_compiled as clear_compiled
+from ._programs import enable_compilation_cache as enable_compilation_cache
 from ._render import DivergentSeriesWarning as DivergentSeriesWarning
 from ._render import Renderer as Renderer
 from ._render import RenderResult as RenderResult

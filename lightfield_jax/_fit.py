@@ -12,32 +12,45 @@ Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
   over (σs, g), differentiated through the renderer.
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
   capture does not give it) fitted straight to the raw shifted images by rendering each
-  stripe pattern, so no separation bias remains. Starts from the ``gradient`` result.
+  stripe pattern, so no separation bias remains. It starts from a global scan of the
+  misfit over (g, albedo) on a cheap model (:mod:`lightfield_jax._basins`), solves
+  every basin near the best (cheap model, then the model its answer needs) and keeps
+  the best.
 
-Every result carries 1σ uncertainties from the Jacobian (noise estimated from the
-residual), correlations, the solver's convergence status (never swallowed), iterations,
-residual, wall time split into compile and run, and the model used.
+Every result carries 1σ uncertainties from the Jacobian (the joint fit: statistical
+from the capture's measured noise, a model term from a finer model's residual, and
+their total; :mod:`lightfield_jax._trust`), χ²/dof, correlations, the solver's
+convergence status (never swallowed; false with the reasons for a solution that is not
+trustworthy), iterations, residual, wall time split into compile and run, and the model
+used. Programs are compiled once per static settings and shape bucket
+(:mod:`lightfield_jax._programs`).
 """
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ._basins import Scan, basins, reference_sigma_s, scan, worse_basin
 from ._decay import fit_decay
 from ._grid import Grid, default_n_theta, default_refine
 from ._illumination import _INWARD_DEG, Full, Stripes
+from ._jacobian import with_forward_jacobian, with_jacobian
+from ._joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
+from ._joint import solve as solve_joint
 from ._medium import bounces_for_tolerance, phase_function, phase_integral
 from ._model_choice import choose, misfit, relative_noise
-from ._render import make_renderer
+from ._programs import clear_compiled as clear_compiled
+from ._programs import jitted
+from ._render import make_renderer, renderer_for
 from ._separate import separate
 from ._slab import (
     AutoGeometry,
@@ -47,6 +60,8 @@ from ._slab import (
     parse_geometry,
     slab_bounce_ratio,
 )
+from ._timing import stopwatch
+from ._trust import Uncertainty, at_bound, error_budget, noise_scale, untrustworthy
 
 METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
 # A(g) of a Python float, compiled once (op by op, its dozen operations would each
@@ -86,6 +101,19 @@ class FitOptions:
             changes of the residual much below 1e-4 of its scale: with tighter
             tolerances LM converges within a few steps and then spends ten more
             shrinking its step in rounding noise (same answer to 1e-6).
+        basin_search: (``joint``) solve every basin the global scan keeps, not only
+            its best (:mod:`lightfield_jax._basins`).
+        max_basins: at most this many basins are solved.
+        basin_tolerance: a local minimum of the scan is kept when its misfit is at most
+            (1 + tolerance) × the best.
+        start: (σs, g) to start the joint fit from instead of the scan's basins (σt
+            from the decay fit); the scan still runs, to report a worse basin.
+        model_error: (``joint``) estimate the model's error at the solution from one
+            render with a finer model (in ``uncertainty_model``).
+        max_chi2: χ²/dof against the capture's noise above which a joint fit is not
+            trustworthy (its misfit is far above the noise).
+        solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
+            ``rtol``, ``atol``).
     """
 
     method: str = "joint"
@@ -104,12 +132,27 @@ class FitOptions:
     rtol: float | None = None
     atol: float | None = None
     geometry: Plane | Slab | AutoGeometry | None = None
+    basin_search: bool = True
+    max_basins: int = 3
+    basin_tolerance: float = 1.0
+    start: tuple[float, float] | None = None
+    model_error: bool = True
+    max_chi2: float = 100.0
+    solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.g_grid < 3:
             raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
+        if self.max_basins < 1:
+            raise ValueError(f"max_basins: must be at least 1, got {self.max_basins!r}")
+        if not self.basin_tolerance >= 0:
+            raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
+        if self.start is not None:
+            ok = len(self.start) == 2 and self.start[0] > 0 and abs(self.start[1]) < 1
+            if not ok:
+                raise ValueError(f"start: must be (sigma_s > 0, |g| < 1), got {self.start!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,8 +160,18 @@ class FitResult:
     """What a fit recovered, and how much to trust it.
 
     Values are per pixel (σ's), the gain in image units per unit source irradiance.
-    ``uncertainty`` holds 1σ errors (NaN where not estimated), ``correlation`` the
-    correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
+    ``uncertainty`` holds the total 1σ errors (NaN where not estimated): the statistical
+    part (``uncertainty_statistical``: the capture's noise, scaled up by √(χ²/dof)
+    where that exceeds 1) ⊕ the model part (``uncertainty_model``: the shift a finer
+    model's residual implies at the solution; the joint fit only). ``correlation`` holds
+    the correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
+    ``chi2_dof`` is the misfit against the capture's noise (``noise``: the variance of
+    one weighted residual that noise alone gives), ``chi2_model`` against the noise ⊕
+    the model's own error (what the verdict uses); ``model_limited`` is true where the
+    model term is the larger for σt, σs or g. ``converged`` is false, with
+    ``reasons``, for a solution that is not trustworthy: at a parameter bound, with a
+    misfit far above the noise, or in a basin worse than another the scan found.
+    ``basins`` (joint) holds the scan and every start tried, with its answer.
     """
 
     method: str
@@ -138,6 +191,14 @@ class FitResult:
     phase: str = "paper"
     pixel_size_mm: float | None = None
     condition_number: float = math.nan
+    uncertainty_statistical: dict = dataclasses.field(default_factory=dict)
+    uncertainty_model: dict = dataclasses.field(default_factory=dict)
+    chi2_dof: float = math.nan
+    chi2_model: float = math.nan
+    noise: float = math.nan
+    model_limited: bool = False
+    reasons: tuple[str, ...] = ()
+    basins: dict | None = None
 
     @property
     def sigma_a(self) -> float:
@@ -174,14 +235,25 @@ class FitResult:
             "phase": self.phase,
             "uncertainty": {k: _json_float(v) for k, v in unc.items()},
             "correlation": {k: _json_float(v) for k, v in self.correlation.items()},
+            "uncertainty_statistical": {
+                k: _json_float(v) for k, v in self.uncertainty_statistical.items()
+            },
+            "uncertainty_model": {k: _json_float(v) for k, v in self.uncertainty_model.items()},
+            "chi2_dof": _json_float(self.chi2_dof),
+            "chi2_model": _json_float(self.chi2_model),
+            "noise": _json_float(self.noise),
+            "model_limited": self.model_limited,
             "condition_number": _json_float(self.condition_number),
             "converged": self.converged,
+            "reasons": list(self.reasons),
             "message": self.message,
             "iterations": self.iterations,
             "residual": _json_float(self.residual),
             "seconds": self.seconds,
             "model": self.model,
         }
+        if self.basins is not None:
+            out["basins"] = _json_clean(self.basins)
         if self.pixel_size_mm:
             mm = self.pixel_size_mm
             out["per_mm"] = {
@@ -199,6 +271,17 @@ class FitResult:
 def _json_float(v):
     v = float(v)
     return v if math.isfinite(v) else None
+
+
+def _json_clean(obj):
+    """Nested dicts/lists with non-finite floats as ``None`` (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, float):
+        return _json_float(obj)
+    return obj
 
 
 def _combine(unc, corr, a, b, sign):
@@ -250,7 +333,7 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     """Crop along the propagation direction to where the signal stands out: Imax,
     averaged across the light, must exceed its noise floor (the median of the farthest
     tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
-    wall stays; at least 16 pixels are kept."""
+    wall stays; at least 16 pixels are kept, in multiples of 8."""
     p, h, w = images.shape
     along_x = pattern.entry in ("left", "right")
     imax = np.nanmax(images, axis=0)
@@ -269,7 +352,9 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
         return (0, 0, w, h)
     above = prof - floor > max(fraction * (peak - floor), 3.0 * scatter)
     last = int(np.flatnonzero(above).max()) + 1 if above.any() else n
-    keep = min(n, max(last + 2, 16))
+    # Rounded up to a multiple of 8 (within the image): captures and channels of nearby
+    # extents share one shape, and so their compiled programs.
+    keep = min(n, _bucket(max(last + 2, 16), 8))
     if pattern.entry in ("left", "top"):
         lo, hi = 0, keep
     else:
@@ -285,12 +370,17 @@ def size_model(
     options: FitOptions,
     margin: float = 1.15,
     sigma_t: float | None = None,
+    crop: tuple[int, int, int, int] | None = None,
 ) -> _Model:
     """The smallest model the capture needs: bounces from the tail bound at the estimate
-    (ρ × ``margin``, capped below 1), θ bins and refinement from g, crop from the
-    signal. ``series_converges`` is judged at the estimate itself."""
+    (ρ × ``margin``, capped below 1; rounded up to a bucket), θ bins and refinement from
+    g, crop from the signal (or ``crop``). ``series_converges`` is judged at the
+    estimate itself."""
     p, h, w = images.shape
-    crop = _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
+    if crop is None:
+        crop = (
+            _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
+        )
     gw = min(0.99, abs(g) + 0.1)
     slab = options.geometry if isinstance(options.geometry, Slab) else None
     if slab is not None:  # less sensitive to g than the plane: a smaller margin
@@ -331,7 +421,7 @@ def size_model(
         bound = min(rho * margin + 0.01, 0.995)
         # Capped at max_bounces (the model's tail bound is reported with the result).
         k = min(
-            bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9),
+            _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)),
             options.max_bounces,
         )
     else:
@@ -348,138 +438,15 @@ def _masked_dot(a, b, mask):
     return jnp.sum(jnp.where(mask, a * b, 0.0))
 
 
-def _covariance(jac: np.ndarray, residual: np.ndarray, names: list[str]):
-    """1σ errors and correlations: cov = s²(JᵀJ)⁻¹, s² = ‖r‖²/(n − p).
-
-    The condition number is that of JᵀJ scaled to unit diagonal (free of the
-    parameters' units): large means some combination of parameters is barely
-    constrained (e.g. the σt-g valley at high albedo and forward scattering)."""
-    n, p = jac.shape
-    jtj = jac.T @ jac
-    try:
-        d = np.sqrt(np.clip(np.diag(jtj), 1e-300, None))
-        cond = float(np.linalg.cond(jtj / np.outer(d, d)))
-        inv = np.linalg.inv(jtj)
-    except np.linalg.LinAlgError:
-        return {k: math.inf for k in names}, {}, math.inf
-    s2 = float(residual @ residual) / max(n - p, 1)
-    cov = s2 * inv
-    err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    unc = {k: float(e) for k, e in zip(names, err, strict=True)}
-    corr = {}
-    for i in range(p):
-        for j in range(i + 1, p):
-            d = err[i] * err[j]
-            corr[f"{names[i]},{names[j]}"] = float(cov[i, j] / d) if d > 0 else math.nan
-    return unc, corr, cond
-
-
-def _with_forward_jacobian(heavy):
-    """``heavy(x, *fixed)`` returning ``(value, jacobian)``, whose JVP in ``x`` is
-    ``jacobian @ tx``; the Jacobian (``[..., len(x)]``) comes from one forward-mode pass
-    (``jax.jvp`` vmapped over the unit vectors: the primal once, all tangents at once).
-
-    optimistix linearises the residual with ``jax.linearize``, which keeps every
-    intermediate of the forward pass (every bounce of every pattern): tens of GB for a
-    long bounce series. With few parameters, a forward-mode pass is cheaper than that
-    and keeps nothing but the Jacobian. Returning the Jacobian as a value lets the
-    caller build derivatives in other parameters from it (and report them as ``aux``)
-    without another pass. ``fixed`` are held constant (their tangents are ignored:
-    pass ``lax.stop_gradient`` values), and the Jacobian's own tangent is zero (no
-    second derivatives).
-    """
-
-    def value_and_jacobian(x, *fixed):
-        def value(x):
-            return heavy(x, *fixed)
-
-        basis = jnp.eye(x.shape[0], dtype=x.dtype)
-        return jax.vmap(lambda e: jax.jvp(value, (x,), (e,)), out_axes=(None, -1))(basis)
-
-    return _with_jacobian(value_and_jacobian)
-
-
-def _with_jacobian(value_and_jacobian):
-    """``value_and_jacobian(x, *fixed)`` → ``(value, jacobian)`` as a function whose JVP
-    in ``x`` is ``jacobian @ tx`` (see :func:`_with_forward_jacobian`)."""
-
-    @jax.custom_jvp
-    def wrapped(x, *fixed):
-        return value_and_jacobian(x, *fixed)
-
-    @wrapped.defjvp
-    def _jvp(primals, tangents):
-        x, *fixed = primals
-        out, jac = value_and_jacobian(x, *fixed)
-        tangent = jax.tree.map(lambda j: j @ tangents[0], jac)
-        return (out, jac), (tangent, jax.tree.map(jnp.zeros_like, jac))
-
-    return wrapped
-
-
-# Compiled fit programs of this process, by what they depend on (see _timed_compile).
-# A second fit of a capture of the same shape (another channel of an RGB capture, the
-# next capture of a series, a sweep over seeds) then runs without tracing or compiling.
-_COMPILED: collections.OrderedDict = collections.OrderedDict()
-_COMPILED_MAX = 32
-
-
-def clear_compiled() -> None:
-    """Forget the fit programs compiled in this process (the next fit compiles again,
-    or loads from the persistent XLA cache where that is on): for cold timings."""
-    _COMPILED.clear()
-
-
-def _program_key(static, args):
-    leaves, treedef = jax.tree.flatten(args)
-    avals = tuple(
-        (tuple(np.shape(v)), str(jnp.result_type(v)), bool(getattr(v, "weak_type", False)))
-        for v in leaves
-    )
-    return (static, treedef, avals, jax.config.jax_enable_x64, str(jax.devices()[0]))
-
-
-def _compiler_options() -> dict | None:
-    """XLA options of the fit programs: on the CPU, LLVM's optimisation level 1 instead
-    of the default 2. A fit program runs for well under a second and compiles for
-    several: level 1 compiles it about 15-25 % faster and it runs as fast (measured on
-    the demo capture: the same answers to float32 rounding)."""
-    if jax.default_backend() != "cpu":
-        return None
-    return {"xla_backend_optimization_level": 1}
-
-
-def _timed_compile(fn, *args, static=None):
-    """AOT-compile ``fn`` for ``args``: (compiled, seconds).
-
-    With ``static`` (a hashable description of everything ``fn`` depends on besides
-    ``args``: it is a fresh closure each call), the program is kept for this process and
-    a later call with the same ``static``, argument structure, shapes and dtypes reuses
-    it (0 s). The argument structure includes the renderer's static fields (grid,
-    illumination, bounces, phase, geometry)."""
-    key = None if static is None else _program_key(static, args)
-    if key is not None and key in _COMPILED:
-        _COMPILED.move_to_end(key)
-        return _COMPILED[key], 0.0
-    t = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile(compiler_options=_compiler_options())
-    seconds = time.perf_counter() - t
-    if key is not None:
-        _COMPILED[key] = compiled
-        while len(_COMPILED) > _COMPILED_MAX:
-            _COMPILED.popitem(last=False)
-    return compiled, seconds
-
-
-def _solver(options: FitOptions, dtype) -> optx.LevenbergMarquardt:
+def _solver(options: FitOptions, dtype):
+    """The optimistix least-squares solver: ``options.solver``, else Levenberg-Marquardt
+    with tolerances from ``options`` or the dtype."""
+    if options.solver is not None:
+        return options.solver
     wide = jnp.finfo(dtype).bits > 32
     rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
     atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
     return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-
-
-def _solver_key(options: FitOptions):
-    return (options.rtol, options.atol)
 
 
 def _result_message(result) -> tuple[bool, str]:
@@ -583,21 +550,6 @@ def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     return u, a, _masked_dot(r, r, mask)
 
 
-# ρ of the reference render of the two-step methods: I_k grows like ρ^k, so rendering
-# at σs = 1 (the paper's choice) overflows float32 within a few dozen bounces at high
-# albedo; at ρ_ref ≤ 0.9 every I_k stays below I_1.
-_RHO_REF = 0.9
-
-
-def _reference_sigma_s(sigma_t, g, phase: str):
-    """σs_ref for the two-step renders at g, and u_max = σs_max/σs_ref: the largest σs
-    that is both ≤ σt and inside the convergent region ρ ≤ 1."""
-    in_plane = phase_integral(g) if phase == "paper" else 1.0
-    ref = sigma_t * jnp.minimum(1.0, _RHO_REF / in_plane)
-    rho_ref = ref / sigma_t * in_plane
-    return ref, jnp.minimum(sigma_t / ref, 1.0 / rho_ref)
-
-
 def _parabolic_minimum(xs, costs, best):
     """The vertex of the parabola through the grid's best point and its two
     neighbours (uniform spacing), kept within one spacing of the best point: (x, t)
@@ -619,10 +571,10 @@ def _rendered_and_g_slope(renderer, sigma_t, phase: str):
     change of σs_ref with g. Other renderers go through ``jax.jvp``."""
 
     def reference(g):
-        return _reference_sigma_s(sigma_t, g, phase)[0]
+        return reference_sigma_s(sigma_t, g, phase)[0]
 
     if not hasattr(renderer, "images_and_g_slope"):
-        return _with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
+        return with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
 
     def value_and_jacobian(x):
         g = x[0]
@@ -632,7 +584,7 @@ def _rendered_and_g_slope(renderer, sigma_t, phase: str):
         k = jnp.arange(1, images.shape[0] + 1, dtype=images.dtype)[:, None, None]
         return images, (slope + images * k * (dref / ref))[..., None]
 
-    return _with_jacobian(value_and_jacobian)
+    return with_jacobian(value_and_jacobian)
 
 
 def _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str, p):
@@ -643,7 +595,7 @@ def _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: st
     (:func:`_rendered_and_g_slope`); σs and the gain enter in closed form, so the
     Jacobian costs no autodiff of this code (a small program)."""
     sigma_s, g = p[0], p[1]
-    ref, dref = jax.jvp(lambda g: _reference_sigma_s(sigma_t, g, phase)[0], (g,), (1.0 + 0 * g,))
+    ref, dref = jax.jvp(lambda g: reference_sigma_s(sigma_t, g, phase)[0], (g,), (1.0 + 0 * g,))
     images, slope = rendered_and_slope(p[1:])
     slope = slope[..., 0]
     i1, s1 = images[0], slope[0]
@@ -662,168 +614,145 @@ def _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: st
     return r, jac, a_ref * ref
 
 
+@dataclasses.dataclass(frozen=True)
+class _TwoStepSettings:
+    """Static settings of the two-step program."""
+
+    method: str  # grid or gradient
+    phase: str
+    max_steps: int
+
+
+def _two_step_run(
+    settings: _TwoStepSettings,
+    solver_static,
+    solver_arrays,
+    renderer,
+    sigma_t,
+    d,
+    m,
+    mask,
+    gs,
+    scale,
+):
+    """The two-step program: the search over ``gs`` and (``gradient``) the solve over
+    (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the residual and
+    its Jacobian evaluated explicitly at the answer."""
+    phase = settings.phase
+    solver = eqx.combine(solver_arrays, solver_static)
+
+    def per_g(g):
+        ref, u_max = reference_sigma_s(sigma_t, g, phase)
+        images = renderer(sigma_t, ref, g)[0][0]
+        u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
+        return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
+
+    rendered_and_slope = _rendered_and_g_slope(renderer, sigma_t, phase)
+
+    def residual(p):
+        return _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase, p)
+
+    s_all, a_all, cost = jax.lax.map(per_g, gs)
+    best = jnp.argmin(cost)
+    s, g = s_all[best], gs[best]
+    if settings.method == "grid":
+        r, jac, a = residual(jnp.stack([s, g]))
+        return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(gs.shape[0])
+    # Levenberg-Marquardt starts at the vertex of the parabola through the best g and
+    # its neighbours.
+    g_vertex, t = _parabolic_minimum(gs, cost, best)
+    near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, gs.shape[0] - 1)
+    s_vertex = s + jnp.abs(t) * (s_all[near] - s)
+
+    def s_max(g):
+        ref, u_max = reference_sigma_s(sigma_t, g, phase)
+        return ref * u_max
+
+    frac = jnp.clip(s_vertex / s_max(g_vertex), 1e-3, 1 - 1e-3)
+    y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
+
+    def unpack(y):  # 0 < σs < min(σt, the σs where ρ = 1), |g| < 1
+        g = jnp.tanh(y[1])
+        return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
+
+    def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
+        r, jac, _a = residual(unpack(y))
+        return r, jac @ jax.jacfwd(unpack)(y)
+
+    # Levenberg-Marquardt linearises a matrix product J·δy (the custom JVP), not
+    # the residual's code: one copy of the renderer in the loop, a small program.
+    residual_y = with_jacobian(residual_y)
+    sol = optx.least_squares(
+        lambda y, _: residual_y(y)[0], solver, y0, max_steps=settings.max_steps, throw=False
+    )
+    s, g = unpack(sol.value)
+    r, jac, _a = residual(jnp.stack([s, g]))
+    # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
+    a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
+    return s, g, a, r, jac, sol.result, sol.stats["num_steps"]
+
+
 def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
     """The paper's two-step problem after σt: ``grid`` searches g on a grid; ``gradient``
-    searches a coarse grid, then solves (σs, g) with Levenberg-Marquardt; ``start``
-    searches the coarse grid and refines its best g by a parabola (the joint fit's
-    start). One compiled function (search, solve and the Jacobian for the
-    uncertainties).
+    searches a coarse grid, then solves (σs, g) with the solver. One compiled program
+    (search, solve and the Jacobian for the uncertainties).
 
     σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
     derivative in σs is exact without the renderer, and one forward-mode pass through
     the renderer along g gives the Jacobian of each step."""
-    renderer = make_renderer(
-        model.grid, _full_for(pattern), model.bounces, options.phase, model.geometry
-    )
+    renderer = _renderer(model, _full_for(pattern), options.phase)
     dtype = jnp.result_type(float)
-    d = jnp.asarray(data.direct, dtype)
-    m = jnp.asarray(data.multiple, dtype)
-    mask = jnp.asarray(data.mask)
     # Residuals in units of the data's RMS, so solver tolerances mean the same for any
     # exposure.
     scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
     n_g = options.g_grid if method == "grid" else options.start_grid
-    gs = jnp.linspace(-0.95, 0.95, n_g, dtype=dtype)
-
-    def run(renderer, sigma_t, d, m, mask, gs, scale):
-        def rendered(g):  # I_k at (σt, σs_ref(g), g): (K, h, w)
-            ref, _ = _reference_sigma_s(sigma_t, g, options.phase)
-            return renderer(sigma_t, ref, g)[0][0]
-
-        def per_g(g):
-            ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
-            images = rendered(g)
-            u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
-            return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
-
-        rendered_and_slope = _rendered_and_g_slope(renderer, sigma_t, options.phase)
-
-        def residual(p):
-            return _two_step_residual(
-                rendered_and_slope, sigma_t, d, m, mask, scale, options.phase, p
-            )
-
-        s_all, a_all, cost = jax.lax.map(per_g, gs)
-        best = jnp.argmin(cost)
-        s, g = s_all[best], gs[best]
-        # The vertex of the parabola through the best g and its neighbours: the joint
-        # fit's start, and where Levenberg-Marquardt starts.
-        g_vertex, t = _parabolic_minimum(gs, cost, best)
-        near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, n_g - 1)
-        s_vertex = s + jnp.abs(t) * (s_all[near] - s)
-        if method == "start":
-            nan = jnp.full((1,), jnp.nan, dtype)
-            return s_vertex, g_vertex, a_all[best], nan, nan, optx.RESULTS.successful, 0
-        if method == "grid":
-            r, jac, a = residual(jnp.stack([s, g]))
-            return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(n_g)
-
-        def s_max(g):
-            ref, u_max = _reference_sigma_s(sigma_t, g, options.phase)
-            return ref * u_max
-
-        frac = jnp.clip(s_vertex / s_max(g_vertex), 1e-3, 1 - 1e-3)
-        y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
-
-        def unpack(y):  # 0 < σs < min(σt, the σs where ρ = 1), |g| < 1
-            g = jnp.tanh(y[1])
-            return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
-
-        def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
-            r, jac, _a = residual(unpack(y))
-            return r, jac @ jax.jacfwd(unpack)(y)
-
-        # Levenberg-Marquardt linearises a matrix product J·δy (the custom JVP), not
-        # the residual's code: one copy of the renderer in the loop, a small program.
-        residual_y = _with_jacobian(residual_y)
-        solver = _solver(options, y0.dtype)
-        sol = optx.least_squares(
-            lambda y, _: residual_y(y)[0],
-            solver,
-            y0,
-            max_steps=options.max_steps,
-            throw=False,
-        )
-        s, g = unpack(sol.value)
-        # The Jacobian at the accepted point, from the solver's state (no second copy
-        # of the renderer), with ∂(σs, g)/∂y to map it to (σs, g) outside.
-        info = sol.state.f_info
-        jac = (info.jac.as_matrix(), jax.jacfwd(unpack)(sol.value))
-        # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
-        a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
-        return s, g, a, info.residual, jac, sol.result, sol.stats["num_steps"]
-
+    settings = _TwoStepSettings(method, options.phase, options.max_steps)
     # Every value that depends on the data is an argument, not a constant of the
     # program: a persistent compilation cache then serves any capture of this shape.
-    args = (renderer, jnp.asarray(sigma_t, dtype), d, m, mask, gs, jnp.asarray(scale, dtype))
-    static = ("two_step", method, options.phase, _solver_key(options), options.max_steps)
-    compiled, t_compile = _timed_compile(run, *args, static=static)
-    s, g, a, r, jac, result, steps = compiled(*args)
+    args = (
+        renderer,
+        jnp.asarray(sigma_t, dtype),
+        jnp.asarray(data.direct, dtype),
+        jnp.asarray(data.multiple, dtype),
+        jnp.asarray(data.mask),
+        jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
+        jnp.asarray(scale, dtype),
+    )
+    run = jitted(_two_step_run, ("settings", "solver_static"))
+    arrays, static = eqx.partition(_solver(options, dtype), eqx.is_array)
+    with stopwatch() as timing:
+        out = jax.block_until_ready(run(settings, static, arrays, *args))
+    s, g, a, r, jac, result, steps = out
     s, g = float(s), float(g)
-    if method == "start":
-        return s, g, t_compile
-    r = np.asarray(r)
-    if isinstance(jac, tuple):  # ∂r/∂y and ∂(σs, g)/∂y: ∂r/∂(σs, g) = J_y (∂p/∂y)⁻¹
-        jac_y, dp_dy = (np.asarray(a, np.float64) for a in jac)
-        jac = jac_y @ np.linalg.inv(dp_dy)
-    unc, corr, cond = _covariance(np.asarray(jac), r, ["sigma_s", "g"])
+    r = np.asarray(r, np.float64)
+    budget = error_budget(np.asarray(jac), r, ["sigma_s", "g"], math.nan)
     rms = scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1)))
     gain = float(a) / s if s > 0 else math.inf
     ok, msg = _result_message(result)
     if method == "grid":
         msg = f"grid search over {n_g} values of g"
-    return s, g, gain, rms, unc, corr, cond, ok, msg, int(steps), t_compile
+    return s, g, gain, rms, budget, ok, msg, int(steps), timing.compile
 
 
 # ---------------------------------------------------------------------------- joint
 
 
-def _joint_parts(pattern: Stripes, model: _Model, options: FitOptions):
-    renderer = make_renderer(model.grid, pattern, model.bounces, options.phase, model.geometry)
-    all_phases = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
-    full = (
-        None
-        if all_phases
-        else make_renderer(
-            model.grid, _full_for(pattern), model.bounces, options.phase, model.geometry
-        )
-    )
-    return renderer, full
+def _renderer(model: _Model, illumination, phase: str):
+    return renderer_for(model.grid, illumination, model.bounces, phase, model.geometry)
 
 
-def _joint_bounces(x, sigma_s, renderer, full):
-    """Per-bounce images at unit gain at (σt, g) = ``x`` and ``sigma_s``: every
-    pattern's ``(P, K, h, w)`` and, when the phases do not tile the period, full
-    illumination's ``(K, h, w)`` (else ``None``)."""
-    images = renderer(x[0], sigma_s, x[1])[0]
-    return images, None if full is None else full(x[0], sigma_s, x[1])[0][0]
+def _joint_parts(pattern: Stripes, model: _Model, phase: str):
+    """The stripes' renderer and, when the phases do not tile the period, full
+    illumination's (else ``None``)."""
+    renderer = _renderer(model, pattern, phase)
+    tiles = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
+    return renderer, None if tiles else _renderer(model, _full_for(pattern), phase)
 
 
-def _joint_model(bounces, lit: int, u, black):
-    """Σ_k u^k I_k of every pattern at unit gain (I_k ∝ σs^k: ``u`` rescales σs from the
-    rendered one), with the projector's black level b: (1 − b)·R_p + b·R_full
-    (R_full = Σ_p R_p / lit when the phases tile the period)."""
-    images, full_images = bounces
-    powers = u ** jnp.arange(1, images.shape[1] + 1, dtype=images.dtype)
-    r = jnp.einsum("k,pkhw->phw", powers, images)
-    r_full = (
-        jnp.sum(r, axis=0) / lit
-        if full_images is None
-        else jnp.einsum("k,khw->hw", powers, full_images)
-    )
-    return (1.0 - black) * r + black * r_full[None]
-
-
-def _unpack(y, fit_black: bool, black_fixed):
-    sigma_t = jnp.exp(y[0])
-    sigma_s = sigma_t * jax.nn.sigmoid(y[1])
-    g = jnp.tanh(y[2])
-    black = -0.2 + 1.2 * jax.nn.sigmoid(y[3]) if fit_black else black_fixed
-    return sigma_t, sigma_s, g, black
-
-
-def _joint_weights(images, mask, exposure=None):
-    """Shot noise: 1/√(I + floor), times √T for merged brackets (Var I ∝ I/T)."""
+def joint_weights(images, mask, exposure=None):
+    """Shot-noise weights of the raw images, 1/√(I + floor) (floor 1e-3 of the peak), 0
+    outside ``mask``; times √(T/max T) for merged exposure brackets of effective exposure
+    T (their variance is ∝ I/T, :mod:`lightfield_jax._hdr`)."""
     floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
     w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
     if exposure is not None:
@@ -831,130 +760,386 @@ def _joint_weights(images, mask, exposure=None):
     return np.where(mask[None], w, 0.0)
 
 
-def _joint_program(data: _Data, pattern: Stripes, model: _Model, options: FitOptions, black):
-    """The compiled joint solve: ``solve(weights, y0)`` runs Levenberg-Marquardt on the
-    raw images, weighted (1/√(I + floor): shot noise), with the gain eliminated (its
-    least-squares value at each point), and returns ``(y, result, steps, residual,
-    (R, J))``: R the model at unit gain and J its Jacobian in the physical parameters
-    (σt, σs, g and b if fitted) at the accepted point. One forward-mode pass along σt
-    and g per step; σs (I_k ∝ σs^k), b and the gain enter in closed form."""
-    renderer, full = _joint_parts(pattern, model, options)
-    obs = jnp.asarray(data.images)
+@dataclasses.dataclass
+class _Stage:
+    """One joint solve: the model, the answer and what the error budget needs."""
+
+    model: _Model
+    values: dict  # sigma_t, sigma_s, g, black_level, gain
+    y: jax.Array
+    ok: bool
+    message: str
+    steps: int
+    unit: np.ndarray  # the model at unit gain, (P, h, w)
+    jac: np.ndarray  # ∂r/∂(σt, σs, g, gain[, b]), (N, p)
+    weights: np.ndarray
+    residual: np.ndarray
+    rms: float
+    compile: float
+    run: float
+
+
+def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
+    """One compiled joint solve (:func:`lightfield_jax._joint.solve`) from ``y0``."""
+    renderer, full = _joint_parts(pattern, model, options.phase)
     fit_black = black is None
-    black_fixed = jnp.asarray(0.0 if black is None else float(black), obs.dtype)
-    lit = pattern.lit
-    bounces_and_slopes = _with_forward_jacobian(_joint_bounces)
-
-    def solve(renderer, full, obs, black_fixed, weights, y0):
-        def residual(y, _args):
-            st, ss, g, b = _unpack(y, fit_black, black_fixed)
-            x = jnp.stack([st, g])
-            ref = jax.lax.stop_gradient(ss)
-            bounces, slopes = bounces_and_slopes(x, ref, renderer, full)
-            r = _joint_model(bounces, lit, ss / ref, b)
-            wr = weights * r
-            gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
-
-            # R and its Jacobian in the physical parameters, for the uncertainties: the
-            # rendered images extended linearly along the forward-mode slopes (exact
-            # first derivatives; no further pass through the renderer).
-            fixed = jax.lax.stop_gradient((x, bounces, slopes))
-
-            def unit_model(theta):
-                dx = jnp.stack([theta[0], theta[2]]) - fixed[0]
-                lin = jax.tree.map(lambda v, j: v + j @ dx, fixed[1], fixed[2])
-                return _joint_model(lin, lit, theta[1] / ref, theta[3] if fit_black else b)
-
-            theta = jax.lax.stop_gradient(jnp.stack([st, ss, g] + ([b] if fit_black else [])))
-            aux = (jax.lax.stop_gradient(r), jax.jacfwd(unit_model)(theta))
-            return (weights * (gain * r - obs)).reshape(-1), aux
-
-        solver = _solver(options, y0.dtype)
-        sol = optx.least_squares(
-            residual, solver, y0, max_steps=options.max_steps, has_aux=True, throw=False
+    settings = JointSettings(fit_black, pattern.lit, options.max_steps)
+    dtype = y0.dtype
+    obs = jnp.asarray(data.images, dtype)
+    black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
+    with stopwatch() as timing:
+        y, result, steps, unit, jac_r = jax.block_until_ready(
+            solve_joint(
+                settings,
+                _solver(options, dtype),
+                renderer,
+                full,
+                obs,
+                black_fixed,
+                jnp.asarray(weights, dtype),
+                y0,
+            )
         )
-        return sol.value, sol.result, sol.stats["num_steps"], sol.state.f_info.residual, sol.aux
-
-    weights0 = jnp.asarray(_joint_weights(data.images, data.mask, data.exposure), obs.dtype)
-    y_shape = jnp.zeros(4 if fit_black else 3, obs.dtype)
-    args = (renderer, full, obs, black_fixed)
-    static = ("joint", fit_black, lit, _solver_key(options), options.max_steps)
-    compiled, t_compile = _timed_compile(solve, *args, weights0, y_shape, static=static)
-
-    def run(weights, y0):
-        return jax.block_until_ready(compiled(*args, weights, y0))
-
-    return run, weights0, t_compile
-
-
-def _joint_start(start, fit_black: bool, dtype):
-    st0, ss0, g0, b0 = start
-    frac = min(max(ss0 / st0, 1e-3), 1 - 1e-3)
-    y0 = [math.log(st0), _logit(frac), math.atanh(max(min(g0, 0.95), -0.95))]
-    if fit_black:
-        y0.append(_logit((min(max(b0, -0.15), 0.95) + 0.2) / 1.2))
-    return jnp.asarray(y0, dtype)
-
-
-def _joint_reweighted(data: _Data, weights, res):
-    """Weights from the fitted model (data + residual/weight) instead of the noisy data
-    (weights from the data itself bias a weighted fit toward low values)."""
-    w = np.asarray(weights)
-    fitted = data.images + np.where(
-        w > 0, np.asarray(res).reshape(w.shape) / np.where(w > 0, w, 1), 0
-    )
-    return jnp.asarray(_joint_weights(fitted, data.mask, data.exposure), weights.dtype)
-
-
-def _joint_result(data: _Data, black, weights, solved, steps, t_compile, t_run) -> dict:
-    """The values, uncertainties (full Jacobian in σt, σs, g, gain (, b)) and stats."""
-    y, result, _steps, res, (r_unit, jac_r) = solved
-    fit_black = black is None
-    black_fixed = 0.0 if black is None else float(black)
-    st, ss, g, b = (float(v) for v in _unpack(y, fit_black, black_fixed))
-    obs = np.asarray(data.images, np.float64)
+    st, ss, g, b = (float(v) for v in unpack(y, fit_black, black_fixed))
     w = np.asarray(weights, np.float64)
-    wr = w * np.asarray(r_unit, np.float64)
+    unit = np.asarray(unit, np.float64)
+    obs = np.asarray(data.images, np.float64)
+    wr = w * unit
     gain = float(np.sum(wr * w * obs) / np.sum(wr * wr))
+    residual = (w * (gain * unit - obs)).reshape(-1)
     cols = (w[..., None] * gain * np.asarray(jac_r, np.float64)).reshape(-1, jac_r.shape[-1])
     jac = np.concatenate([cols[:, :3], wr.reshape(-1, 1), cols[:, 3:]], axis=1)
-    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if fit_black else [])
-    res = np.asarray(res, np.float64)
-    unc, corr, cond = _covariance(jac, res, names)
     n = int(np.sum(data.mask)) * obs.shape[0]
-    rms = float(np.sqrt(np.sum(res**2) / max(n, 1)))
-    return {
-        "sigma_t": st,
-        "sigma_s": ss,
-        "g": g,
-        "gain": gain,
-        "black_level": b if fit_black else black_fixed,
-        "result": result,
-        "steps": int(steps),
-        "compile": t_compile,
-        "run": t_run,
-        "unc": unc,
-        "corr": corr,
-        "cond": cond,
-        "rms": rms,
-    }
+    ok, msg = _result_message(result)
+    return _Stage(
+        model=model,
+        values={"sigma_t": st, "sigma_s": ss, "g": g, "black_level": b, "gain": gain},
+        y=y,
+        ok=ok,
+        message=msg,
+        steps=int(steps),
+        unit=unit,
+        jac=jac,
+        weights=w,
+        residual=residual,
+        rms=float(np.sqrt(np.sum(residual**2) / max(n, 1))),
+        compile=timing.compile,
+        run=timing.run,
+    )
 
 
-def _joint_solve(
-    data: _Data, pattern: Stripes, model: _Model, options: FitOptions, start, black, reweight
-):
-    """Levenberg-Marquardt on the raw images (:func:`_joint_program`) from ``start``
-    = (σt, σs, g, b). With ``reweight``, a second solve from the first one's answer
-    uses weights from the fitted model (:func:`_joint_reweighted`)."""
-    run, weights, t_compile = _joint_program(data, pattern, model, options, black)
-    t = time.perf_counter()
-    solved = run(weights, _joint_start(start, black is None, weights.dtype))
-    steps = int(solved[2])
-    if reweight:
-        weights = _joint_reweighted(data, weights, solved[3])
-        solved = run(weights, solved[0])
-        steps += int(solved[2])
-    return _joint_result(data, black, weights, solved, steps, t_compile, time.perf_counter() - t)
+def _joint_reweighted(data: _Data, stage: _Stage):
+    """Weights from the fitted model (gain × model) instead of the noisy data (weights
+    from the data itself bias a weighted fit toward low values)."""
+    return joint_weights(stage.values["gain"] * stage.unit, data.mask, data.exposure)
+
+
+def _bucket(n: int, step: int) -> int:
+    return -(-n // step) * step
+
+
+def _bucket_bounces(k: int) -> int:
+    """Bounce counts above 8 rounded up to a few buckets (every 4 to 32, every 8 beyond),
+    so captures and stages of nearby needs share a compiled program (compiling costs
+    seconds, a few more bounces a fraction of the run)."""
+    return k if k <= 8 else _bucket(k, 4) if k <= 32 else _bucket(k, 8)
+
+
+def _at_least(model: _Model, floor: _Model | None) -> _Model:
+    """``model`` grown to ``floor`` (bounces, θ bins, refinement, elevation nodes)."""
+    if floor is None:
+        return model
+    grid = dataclasses.replace(
+        model.grid,
+        n_theta=max(model.grid.n_theta, floor.grid.n_theta),
+        refine=max(model.grid.refine, floor.grid.refine),
+    )
+    geometry = model.geometry
+    if geometry is not None and floor.geometry is not None:
+        geometry = dataclasses.replace(geometry, n_mu=max(geometry.n_mu, floor.geometry.n_mu))
+    return dataclasses.replace(
+        model, grid=grid, bounces=max(model.bounces, floor.bounces), geometry=geometry
+    )
+
+
+def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
+    """The cheap model of the basin scan and of the joint fit's first stage: 32 θ bins
+    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes), the bounces the
+    capture's brightness ratio calls for (tail below 1e-3 at ρ = max(ρ0, 0.3), ρ0 the
+    separation's estimate with its margin)."""
+    width, height = crop[2] - crop[0], crop[3] - crop[1]
+    n_theta, geometry = min(options.n_theta or 32, 32), None
+    if isinstance(options.geometry, Slab):
+        slab = options.geometry
+        n_theta = min(options.n_theta or 8, 8)
+        geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4))
+    rho = min(max(rho0, 0.3), 0.95)
+    k = bounces_for_tolerance(rho, 1e-3, max_bounces=10**9)
+    k = min(_bucket_bounces(k), options.max_bounces)
+    if isinstance(options.bounces, int):
+        k = options.bounces
+    return _Model(
+        grid=Grid(width, height, n_theta, 1),
+        bounces=max(k, 2),
+        crop=crop,
+        converges=True,
+        rho=rho,
+        geometry=geometry,
+    )
+
+
+def _rho_of(options: FitOptions):
+    """ρ(g, albedos) of the model's phase convention (ω for the slab and ``normalized``)."""
+
+    def rho(g: float, albedos):
+        a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
+        return np.asarray(albedos) * a
+
+    return rho
+
+
+def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigma_t0) -> Scan:
+    renderer, full = _joint_parts(pattern, model, options.phase)
+    dtype = jnp.result_type(float)
+    with stopwatch() as timing:
+        cost, black_map, gs, albedos = scan(
+            renderer,
+            full,
+            jnp.asarray(data.images, dtype),
+            jnp.asarray(weights, dtype),
+            sigma_t0,
+            phase=options.phase,
+            lit=pattern.lit,
+            black_level=black,
+            rho_limit=_rho_of(options),
+        )
+    found = basins(cost, black_map, gs, albedos, options.basin_tolerance, options.max_basins)
+    return Scan(
+        gs=gs,
+        albedos=albedos,
+        misfit=cost,
+        black=black_map,
+        basins=found,
+        sigma_t=sigma_t0,
+        seconds={"compile": timing.compile, "run": timing.run},
+    )
+
+
+def _same_answer(a: dict, b: dict) -> bool:
+    return (
+        abs(a["sigma_t"] / b["sigma_t"] - 1) < 1e-3
+        and abs(a["sigma_s"] / b["sigma_s"] - 1) < 1e-2
+        and abs(a["g"] - b["g"]) < 1e-2
+    )
+
+
+def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
+    """The joint fit after its first stage ``first`` (on the cheap model): the model its
+    answer needs (the larger of that and ``floor``), polished there; the model-weighted
+    refit runs once, on the last stage. Returns the last stage (``first`` itself when it
+    ends at a bound of the model or in a basin worse than the scan's best)."""
+    coarse = first.model
+    weights = first.weights
+    v = first.values
+    albedo = v["sigma_s"] / v["sigma_t"]
+    if at_bound(v, BLACK_RANGE if black is None else None) or worse_basin(
+        the_scan, v["g"], albedo, options.basin_tolerance
+    ):
+        # At a bound or in a worse basin on the cheap model: not trustworthy whatever
+        # the model, and not worth the large model it would ask for.
+        say("  at a bound or in a worse basin on the cheap model: not refined")
+        return first
+    need = size_model(
+        images,
+        pattern,
+        albedo=min(v["sigma_s"] / v["sigma_t"], 0.98),
+        g=v["g"],
+        options=options,
+        margin=1.03,
+        sigma_t=v["sigma_t"],
+        crop=coarse.crop,
+    )
+    need = _at_least(need, floor)
+    if _covers(coarse, need):
+        # The cheap model is already as large as the answer needs: refit it with the
+        # model's weights, and that is the answer.
+        return _joint_stage(
+            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
+        )
+    say(
+        f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, "
+        f"{need.bounces} bounces"
+    )
+    mid = _joint_stage(data, pattern, need, options, black, weights, first.y)
+    last = _joint_stage(data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y)
+    last.steps += mid.steps
+    last.compile += mid.compile
+    last.run += mid.run
+    return last
+
+
+def _finer(model: _Model, options: FitOptions) -> _Model:
+    """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
+    elevation nodes), 1.5× + 4 the bounces (the spatial refinement stays: 4× the cost
+    for a term the θ bins and bounces dominate below |g| 0.65, where the size rule
+    keeps refine 1)."""
+    grid = model.grid
+    geometry = model.geometry
+    if geometry is not None:
+        geometry = dataclasses.replace(geometry, n_mu=min(2 * geometry.n_mu, 32))
+        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
+    else:
+        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 256))
+    bounces = model.bounces if isinstance(options.bounces, int) else model.bounces * 3 // 2 + 4
+    return dataclasses.replace(model, grid=grid, bounces=bounces, geometry=geometry)
+
+
+def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
+    """r_fine − r at the solution (one render of :func:`_finer`'s model) and its seconds."""
+    fine = _finer(stage.model, options)
+    renderer, full = _joint_parts(pattern, fine, options.phase)
+    v = stage.values
+    with stopwatch() as timing:
+        unit = model_at(
+            renderer,
+            full,
+            pattern.lit,
+            v["sigma_t"],
+            v["sigma_s"],
+            v["g"],
+            v["black_level"],
+            jnp.result_type(float),
+        )
+        unit = np.asarray(jax.block_until_ready(unit), np.float64)
+    shift = (stage.weights * v["gain"] * (unit - stage.unit)).reshape(-1)
+    return shift, fine, timing
+
+
+def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say):
+    """The joint fit with its global start (:mod:`lightfield_jax._basins`): scan, solve
+    every basin kept (or the given start), keep the best; then the error budget and the
+    verdict. Returns the :func:`_finish` keywords and the seconds."""
+    seconds = {"compile": 0.0, "run": 0.0}
+
+    def count(t):
+        seconds["compile"] += t["compile"] if isinstance(t, dict) else t.compile
+        seconds["run"] += t["run"] if isinstance(t, dict) else t.run
+
+    coarse = _scan_model(crop, options, rho0)
+    weights = joint_weights(data.images, data.mask, data.exposure)
+    say(
+        f"basin scan: g x albedo on a {coarse.grid.width}x{coarse.grid.height} model, "
+        f"n_theta {coarse.grid.n_theta}, {coarse.bounces} bounces"
+    )
+    the_scan = _run_scan(data, pattern, coarse, options, black, weights, data.sigma_t0)
+    count(the_scan.seconds)
+    st0 = data.sigma_t0
+    if options.start is not None:
+        ss, g = options.start
+        starts = [("given", (st0, ss, g, 0.0 if black is None else black))]
+    else:
+        found = the_scan.basins if options.basin_search else the_scan.basins[:1]
+        if not found:
+            raise ValueError(
+                "the basin scan found no valid model for this capture (every albedo's "
+                "bounce series diverges or is truncated): give bounces or a start"
+            )
+        starts = [
+            (f"basin {i}", (st0, b.albedo * st0, b.g, b.black_level if black is None else black))
+            for i, b in enumerate(found)
+        ]
+    tried, stages, labels = [], [], []
+    dtype = jnp.result_type(float)
+    for label, start in starts:
+        say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
+        y0 = pack(start, black is None, dtype)
+        first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
+        count(first)
+        record = {
+            "label": label,
+            "start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]},
+        }
+        same = next(
+            (i for i, (f, _) in enumerate(stages) if _same_answer(f.values, first.values)), None
+        )
+        if same is not None:  # the cheap model's answer of an earlier start: not again
+            tried.append({**record, "same_as": labels[same]})
+            say(f"  {label}: the same answer as {labels[same]}")
+            continue
+        last = _continuation(data, pattern, first, options, black, images, floor, the_scan, say)
+        count(last)
+        tried.append(
+            {
+                **record,
+                "final": {k: last.values[k] for k in ("sigma_t", "sigma_s", "g")},
+                "residual": last.rms,
+                "converged": last.ok,
+                "iterations": first.steps + last.steps,
+            }
+        )
+        say(
+            f"  {label}: sigma_t {last.values['sigma_t']:.5g}, sigma_s "
+            f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g}"
+        )
+        stages.append((first, last))
+        labels.append(label)
+    # The best final misfit (models may differ between starts: the weighted RMS is
+    # comparable across them).
+    best = min(range(len(stages)), key=lambda i: stages[i][1].rms)
+    last = stages[best][1]
+    solved = [r for r in tried if "final" in r]
+    for i, record in enumerate(solved):
+        record["chosen"] = i == best
+
+    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if black is None else [])
+    fit_black = black is None
+    noise = noise_scale(data.images, last.weights, pattern)
+    shift, fine = None, None
+    if options.model_error:
+        shift, fine, t = _model_shift(data, pattern, last, options)
+        count(t)
+    budget = error_budget(last.jac, last.residual, names, noise, shift)
+    v = last.values
+    reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
+    other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
+    if other is not None:
+        reasons.append(
+            f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
+            f"{other.albedo:.2f}, scan misfit {other.misfit:.3g})"
+        )
+    ok, msg = last.ok, last.message
+    if reasons:
+        ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" (solver: {msg})"
+    model_dict = last.model.as_dict()
+    if fine is not None:
+        model_dict["finer_model"] = {
+            "n_theta": fine.grid.n_theta,
+            "refine": fine.grid.refine,
+            "bounces": fine.bounces,
+            **({"n_mu": fine.geometry.n_mu} if fine.geometry is not None else {}),
+        }
+    scan_dict = the_scan.as_dict()
+    scan_dict["tried"] = tried
+    return (
+        last.model,
+        seconds,
+        dict(
+            method="joint",
+            sigma_t=v["sigma_t"],
+            sigma_s=v["sigma_s"],
+            g=v["g"],
+            gain=v["gain"],
+            black_level=v["black_level"],
+            budget=budget,
+            converged=ok,
+            message=msg,
+            iterations=sum(r["iterations"] for r in solved),
+            residual=last.rms,
+            basins=scan_dict,
+            reasons=tuple(reasons),
+            model_dict=model_dict,
+        ),
+    )
 
 
 # ------------------------------------------------------------------------- driver
@@ -994,6 +1179,36 @@ def fit_images(
             ``images`` (:mod:`lightfield_jax._hdr`): the joint fit weights by √T.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
+    return _fit_one(
+        images,
+        pattern,
+        options,
+        progress,
+        mask=mask,
+        black_level=black_level,
+        saturation=saturation,
+        pixel_size_mm=pixel_size_mm,
+        split=split,
+        exposure=exposure,
+    )
+
+
+def _fit_one(
+    images,
+    pattern: Stripes,
+    options: FitOptions,
+    progress,
+    *,
+    mask=None,
+    black_level=None,
+    saturation=None,
+    pixel_size_mm=None,
+    split=None,
+    exposure=None,
+    floor: _Model | None = None,
+) -> FitResult:
+    """:func:`fit_images` with a ``floor``: the smallest model to use (its crop, θ bins,
+    refinement, bounces), so that the channels of a capture share compiled programs."""
     if isinstance(options.geometry, AutoGeometry):
         return _fit_auto_geometry(
             images,
@@ -1042,7 +1257,10 @@ def fit_images(
         np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30)
     )
     rho0 = min(max(ratio, 0.0) / (1.0 + max(ratio, 0.0)) * 1.5 + 0.05, 0.95)
-    model = size_model(images, pattern, albedo=rho0, g=0.0, options=options, sigma_t=sigma_t0)
+    crop = floor.crop if floor is not None else None
+    model = size_model(
+        images, pattern, albedo=rho0, g=0.0, options=options, sigma_t=sigma_t0, crop=crop
+    )
     x0, y0, x1, y1 = model.crop
     data = _Data(
         images=images[:, y0:y1, x0:x1],
@@ -1054,174 +1272,72 @@ def fit_images(
         decay_converged=bool(decay.converged),
         exposure=None if exposure is None else np.asarray(exposure)[:, y0:y1, x0:x1],
     )
+
+    if options.method == "joint":
+        model, seconds, values = _joint_fit(
+            data, pattern, options, black_level, images, model.crop, rho0, floor, say
+        )
+        return _finish(options, t_start, seconds, model, pixel_size_mm=pixel_size_mm, **values)
+
     seconds = {"compile": 0.0, "run": 0.0}
-    two_step_unc = {"sigma_t": data.sigma_t0_err}
-
-    if options.method in ("grid", "gradient"):
-        name = options.method
-        say(
-            f"{name}: search over g"
-            + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else "")
-        )
-        s, g, gain, rms, unc, corr, cond, ok, msg, steps, tc = _two_step(
-            data, pattern, model, options, sigma_t0, name
-        )
-        seconds["compile"] += tc
-        # The first model was sized before g was known (g = 0). Where the estimate needs
-        # a much larger one (4× the θ bins, a finer grid, more bounces: a forward-peaked
-        # medium), solve once more with it; a 2× θ difference costs less than a refit.
-        if math.isfinite(s) and math.isfinite(g) and s > 0:
-            need = size_model(
-                images,
-                pattern,
-                albedo=min(s / sigma_t0, 0.98),
-                g=g,
-                options=options,
-                sigma_t=sigma_t0,
-            )
-            if need.crop == model.crop and (
-                need.grid.n_theta >= 4 * model.grid.n_theta
-                or need.grid.refine > model.grid.refine
-                or need.bounces > model.bounces
-            ):
-                say(
-                    f"{name}: again with the model the estimate needs (n_theta "
-                    f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
-                )
-                model = _Model(
-                    grid=Grid(
-                        need.grid.width,
-                        need.grid.height,
-                        max(need.grid.n_theta, model.grid.n_theta),
-                        max(need.grid.refine, model.grid.refine),
-                    ),
-                    bounces=max(need.bounces, model.bounces),
-                    crop=model.crop,
-                    converges=need.converges,
-                    rho=need.rho,
-                    geometry=need.geometry,
-                )
-                s, g, gain, rms, unc, corr, cond, ok, msg, steps, tc = _two_step(
-                    data, pattern, model, options, sigma_t0, name
-                )
-                seconds["compile"] += tc
-        if not data.decay_converged:
-            ok, msg = False, "the decay fit of sigma_t did not converge"
-        iterations = options.g_grid if name == "grid" else steps
-        return _finish(
-            options,
-            t_start,
-            seconds,
-            model,
-            method=name,
-            sigma_t=sigma_t0,
-            sigma_s=s,
-            g=g,
-            gain=gain,
-            black_level=black_level,
-            uncertainty={**two_step_unc, **unc},
-            correlation=corr,
-            converged=ok,
-            message=msg,
-            iterations=iterations,
-            residual=rms,
-            pixel_size_mm=pixel_size_mm,
-            condition_number=cond,
-        )
-
-    say(f"joint start: search over {options.start_grid} values of g (two-step residual)")
-    s, g, tc = _two_step(data, pattern, model, options, sigma_t0, "start")
+    name = options.method
+    model = _at_least(model, floor)
+    say(
+        f"{name}: search over g"
+        + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else "")
+    )
+    s, g, gain, rms, budget, ok, msg, steps, tc = _two_step(
+        data, pattern, model, options, sigma_t0, name
+    )
     seconds["compile"] += tc
-
-    # Joint, in two stages: a coarse model (32 θ bins, native grid) from the two-step
-    # estimate, then the model the coarse estimate needs, polished from there. The
-    # model-weighted refit runs once, on the last stage.
-    fit_black = black_level is None
-    start = (sigma_t0, s, g, 0.0 if fit_black else black_level)
-    coarse = dataclasses.replace(options, n_theta=options.n_theta or 32, refine=options.refine or 1)
-    if isinstance(options.geometry, Slab):  # 8 azimuth bins, 4 elevation nodes
-        slab = options.geometry
-        coarse = dataclasses.replace(
-            coarse,
-            n_theta=options.n_theta or 8,
-            geometry=dataclasses.replace(slab, n_mu=slab.n_mu or 4),
-        )
-    total_steps = 0
-    prev_model = run = weights = solved = None
-    for name, opts in (("coarse", coarse), ("final", options)):
-        # The coarse stage starts from the separation's estimate (σs biased low, MODEL.md
-        # §6): double it; the final stage starts from the coarse fit (small margin).
-        coarse_stage = name == "coarse"
-        model = size_model(
+    # The first model was sized before g was known (g = 0). Where the estimate needs a
+    # much larger one (4× the θ bins, a finer grid, more bounces: a forward-peaked
+    # medium), solve once more with it; a 2× θ difference costs less than a refit.
+    if math.isfinite(s) and math.isfinite(g) and s > 0:
+        need = size_model(
             images,
             pattern,
-            albedo=min(start[1] / start[0] * (2.0 if coarse_stage else 1.0), 0.98),
-            g=start[2],
-            options=opts,
-            margin=1.15 if coarse_stage else 1.03,
-            sigma_t=start[0],
+            albedo=min(s / sigma_t0, 0.98),
+            g=g,
+            options=options,
+            sigma_t=sigma_t0,
+            crop=model.crop,
         )
-        t = time.perf_counter()
-        if prev_model is not None and _covers(prev_model, model):
-            # The coarse model is already as large as the estimate needs: refit it with
-            # the model's weights, and that is the answer.
-            weights = _joint_reweighted(data, weights, solved[3])
-            solved = run(weights, solved[0])
-            out = _joint_result(
-                data, black_level, weights, solved, int(solved[2]), 0.0, time.perf_counter() - t
+        if (
+            need.grid.n_theta >= 4 * model.grid.n_theta
+            or need.grid.refine > model.grid.refine
+            or need.bounces > model.bounces
+        ):
+            say(
+                f"{name}: again with the model the estimate needs (n_theta "
+                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
             )
-            seconds["run"] += out["run"]
-            total_steps += out["steps"]
-            break
-        x0, y0, x1, y1 = model.crop
-        data.images = images[:, y0:y1, x0:x1]
-        data.mask = mask[y0:y1, x0:x1]
-        if exposure is not None:
-            data.exposure = np.asarray(exposure)[:, y0:y1, x0:x1]
-        say(
-            f"joint fit ({name} model {model.grid.width}x{model.grid.height}, "
-            f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces)"
-        )
-        run, weights, t_compile = _joint_program(data, pattern, model, opts, black_level)
-        t = time.perf_counter()
-        solved = run(weights, _joint_start(start, fit_black, weights.dtype))
-        steps = int(solved[2])
-        if not coarse_stage:
-            weights = _joint_reweighted(data, weights, solved[3])
-            solved = run(weights, solved[0])
-            steps += int(solved[2])
-        out = _joint_result(
-            data, black_level, weights, solved, steps, t_compile, time.perf_counter() - t
-        )
-        seconds["compile"] += out["compile"]
-        seconds["run"] += out["run"]
-        total_steps += out["steps"]
-        say(
-            f"  {name}: {out['steps']} steps, "
-            f"{out['compile']:.1f} s compile, {out['run']:.1f} s run"
-        )
-        start = (out["sigma_t"], out["sigma_s"], out["g"], out["black_level"])
-        prev_model = model
-    ok, msg = _result_message(out["result"])
+            model = _at_least(need, model)
+            s, g, gain, rms, budget, ok, msg, steps, tc = _two_step(
+                data, pattern, model, options, sigma_t0, name
+            )
+            seconds["compile"] += tc
+    if not data.decay_converged:
+        ok, msg = False, "the decay fit of sigma_t did not converge"
+    stat = {"sigma_t": data.sigma_t0_err, **budget.statistical}
+    budget = dataclasses.replace(budget, statistical=stat, total=stat)
     return _finish(
         options,
         t_start,
         seconds,
-        prev_model,
-        method="joint",
-        sigma_t=out["sigma_t"],
-        sigma_s=out["sigma_s"],
-        g=out["g"],
-        gain=out["gain"],
-        black_level=out["black_level"],
-        uncertainty=out["unc"],
-        correlation=out["corr"],
+        model,
+        method=name,
+        sigma_t=sigma_t0,
+        sigma_s=s,
+        g=g,
+        gain=gain,
+        black_level=black_level,
+        budget=budget,
         converged=ok,
         message=msg,
-        iterations=total_steps,
-        residual=out["rms"],
+        iterations=options.g_grid if name == "grid" else steps,
+        residual=rms,
         pixel_size_mm=pixel_size_mm,
-        condition_number=out["cond"],
     )
 
 
@@ -1235,27 +1351,39 @@ def _covers(have: _Model, need: _Model) -> bool:
 
 
 def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, **values):
-    """The :class:`FitResult`, with total time and the model used."""
+    """The :class:`FitResult`, with total time, the model used and the error budget."""
     seconds = dict(seconds)
     seconds["total"] = time.perf_counter() - t_start
-    # Everything that is not XLA compilation counts as run time.
+    # Everything that is not XLA compilation (tracing included) counts as run time.
     seconds["run"] = seconds["total"] - seconds["compile"]
-    unc = values.pop("uncertainty")
-    unc = {k: unc.get(k, math.nan) for k in _PARAMS if k in unc or k != "black_level"}
+    budget: Uncertainty = values.pop("budget")
+
+    def per_param(d):
+        return {k: d.get(k, math.nan) for k in _PARAMS if k in d or k != "black_level"}
+
     black = values.pop("black_level")
-    numbers = ("sigma_t", "sigma_s", "g", "gain", "residual", "condition_number")
+    numbers = ("sigma_t", "sigma_s", "g", "gain", "residual")
     bad = [k for k in numbers[:4] if not math.isfinite(float(values[k]))]
     if bad:  # never a silent NaN: the fit failed
         values["converged"] = False
         values["message"] = f"non-finite result ({', '.join(bad)}); {values['message']}"
+    model_dict = values.pop("model_dict", None) or model.as_dict()
     return FitResult(
         **{k: float(values.pop(k)) for k in numbers},
         black_level=None if black is None else float(black),
-        uncertainty=unc,
+        uncertainty=per_param(budget.total),
+        correlation=budget.correlation,
+        condition_number=budget.condition_number,
+        uncertainty_statistical=per_param(budget.statistical),
+        uncertainty_model=per_param(budget.model),
+        chi2_dof=budget.chi2_dof,
+        chi2_model=budget.chi2_model,
+        noise=budget.noise,
+        model_limited=budget.model_limited,
         converged=bool(values.pop("converged")),
         iterations=int(values.pop("iterations")),
         seconds=seconds,
-        model=model.as_dict(),
+        model=model_dict,
         phase=options.phase,
         **values,
     )
@@ -1382,27 +1510,32 @@ def fit_capture(
             raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
     results = []
     say = progress or (lambda _m: None)
-    opts = options or FitOptions()
+    opts = dataclasses.replace(options or FitOptions(), method=method, **overrides)
     if opts.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
-        options = dataclasses.replace(opts, geometry=geometry)
+        opts = dataclasses.replace(opts, geometry=geometry)
+    floor = _capture_floor(capture, [names.index(c) for c in chosen], opts)
     for c in chosen:
         i = names.index(c)
-        results.append(
-            fit_images(
-                capture.images[..., i],
-                capture.pattern,
-                mask=np.all(capture.mask[..., i : i + 1], axis=-1),
-                black_level=capture.black_level,
-                saturation=capture.saturation,
-                pixel_size_mm=capture.pixel_size_mm,
-                exposure=_channel_exposure(capture, i),
-                options=options,
-                progress=(lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
-                method=method,
-                **overrides,
-            )
+        result = _fit_one(
+            capture.images[..., i],
+            capture.pattern,
+            opts,
+            (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
+            mask=np.all(capture.mask[..., i : i + 1], axis=-1),
+            black_level=capture.black_level,
+            saturation=capture.saturation,
+            pixel_size_mm=capture.pixel_size_mm,
+            exposure=_channel_exposure(capture, i),
+            floor=floor,
         )
+        results.append(result)
+        if len(chosen) > 1:
+            say(f"[{c}] {_one_line(result)}")
+        if floor is not None:
+            # The next channel's model is at least this one's: one compiled program
+            # serves every channel whose need it covers.
+            floor = _at_least(floor, _model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
 
 
@@ -1410,6 +1543,61 @@ def _channel_exposure(capture, i: int):
     """Channel i of a capture's merged-bracket exposure T, or ``None``."""
     exposure = getattr(capture, "exposure", None)
     return None if exposure is None else exposure[..., i]
+
+
+def _one_line(result: FitResult) -> str:
+    flag = "converged" if result.converged else "NOT converged"
+    return (
+        f"sigma_t {result.sigma_t:.5g}, sigma_s {result.sigma_s:.5g}, g {result.g:.4f} "
+        f"({flag}; {result.seconds['total']:.1f} s, {result.seconds['compile']:.1f} s compile)"
+    )
+
+
+def _model_from(d: dict) -> _Model:
+    """The :class:`_Model` of a result's ``model`` dict."""
+    geometry = parse_geometry(d.get("geometry"), "model.geometry")
+    return _Model(
+        grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),
+        bounces=d["bounces"],
+        crop=tuple(d["crop"]),
+        converges=d["series_converges"],
+        rho=d["rho_estimate"],
+        geometry=geometry if isinstance(geometry, Slab) else None,
+    )
+
+
+def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model | None:
+    """The smallest model every channel of ``capture`` is fitted with: the union of the
+    channels' signal crops (one shape for all), the cheapest discretisation (grown to
+    each channel's model as the channels are fitted). ``None`` under geometry auto."""
+    if isinstance(options.geometry, AutoGeometry):
+        return None
+    images = np.asarray(capture.images)
+    p, h, w = images.shape[:3]
+    crop = (0, 0, w, h)
+    if options.crop:
+        crops = []
+        for i in channels:
+            keep = np.all(capture.mask[..., i : i + 1], axis=-1) & np.all(
+                np.isfinite(images[..., i]), axis=0
+            )
+            crops.append(
+                _signal_crop(
+                    np.where(keep[None], images[..., i], 0.0),
+                    capture.pattern,
+                    options.crop_fraction,
+                )
+            )
+        crop = tuple(f(c[k] for c in crops) for k, f in enumerate((min, min, max, max)))
+    slab = options.geometry if isinstance(options.geometry, Slab) else None
+    return _Model(
+        grid=Grid(crop[2] - crop[0], crop[3] - crop[1], 8, 1),
+        bounces=2,
+        crop=crop,
+        converges=True,
+        rho=0.0,
+        geometry=None if slab is None else dataclasses.replace(slab, n_mu=slab.n_mu or 4),
+    )
 
 
 def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):

@@ -1,0 +1,291 @@
+"""The joint fit's global start: a scan of the misfit over (g, albedo) on a cheap model.
+
+A joint fit started locally can settle in a wrong basin and say it converged (the
+paper's milk behind refractive faces: g −0.97, σs +162 %). Before the full solve, the
+scan evaluates the joint residual everywhere on a grid of g and albedo ω = σs/σt, with
+σt from the decay of the direct image, on a cheap model (coarse grid and θ bins, the
+bounces the capture's brightness ratio calls for):
+
+- per g, one render of the per-bounce images I_k at a reference σs (``lax.map`` over
+  g); every albedo on the grid is then the polynomial Σ_k u^k I_k (I_k ∝ σs^k), so the
+  albedo axis costs no render;
+- the gain (and the projector's black level, where it is fitted) is eliminated by
+  variable projection: at each grid point the model is linear in c·(1 − b) and c·b,
+  whose least-squares values come from 2×2 normal equations built from the K×K Gram
+  matrices of the weighted I_k, so the whole map costs n_g renders and small algebra;
+- every local minimum of the map whose misfit is within ``tolerance`` (relative) of the
+  best is a basin; the fit solves each with the full model and keeps the best.
+
+The map also tells which basin a solution lies in (:func:`basin_of`, steepest descent
+on the grid), which is how a solution that ended in a basin worse than another found
+is reported (never as converged).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._joint import BLACK_RANGE
+from ._medium import phase_integral
+from ._programs import jitted
+
+# ρ of the reference renders: I_k grows like ρ^k, so rendering at σs = σt (or the
+# paper's σs = 1) overflows float32 within a few dozen bounces at high albedo; at
+# ρ_ref ≤ 0.9 every I_k stays below I_1.
+RHO_REF = 0.9
+
+
+def reference_sigma_s(sigma_t, g, phase: str):
+    """σs_ref for renders at g, and u_max = σs_max/σs_ref: the largest σs that is both
+    ≤ σt and inside the convergent region ρ ≤ 1."""
+    in_plane = phase_integral(g) if phase == "paper" else 1.0
+    ref = sigma_t * jnp.minimum(1.0, RHO_REF / in_plane)
+    rho_ref = ref / sigma_t * in_plane
+    return ref, jnp.minimum(sigma_t / ref, 1.0 / rho_ref)
+
+
+@dataclasses.dataclass(frozen=True)
+class ScanSettings:
+    """Static settings of the scan program."""
+
+    phase: str
+    fit_black: bool
+    lit: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Basin:
+    """A local minimum of the scan: its grid point and what it gives as a start.
+
+    ``misfit`` is the weighted mean square residual (gain, black level projected out)."""
+
+    g: float
+    albedo: float
+    black_level: float
+    misfit: float
+    index: tuple[int, int]
+
+    def as_dict(self) -> dict:
+        return {
+            "g": self.g,
+            "albedo": self.albedo,
+            "black_level": self.black_level,
+            "misfit": self.misfit,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class Scan:
+    """The misfit map over ``gs`` × ``albedos`` (inf where the model is not valid:
+    ρ ≥ 1 under the paper's phase, or a bounce series the model truncates by more than
+    1 %), and its basins, best first."""
+
+    gs: np.ndarray
+    albedos: np.ndarray
+    misfit: np.ndarray  # (n_g, n_albedo)
+    black: np.ndarray  # (n_g, n_albedo), the projected black level
+    basins: tuple[Basin, ...]
+    sigma_t: float
+    seconds: dict
+
+    def as_dict(self) -> dict:
+        return {
+            "sigma_t": self.sigma_t,
+            "g": [float(self.gs[0]), float(self.gs[-1]), len(self.gs)],
+            "albedo": [float(self.albedos[0]), float(self.albedos[-1]), len(self.albedos)],
+            "basins": [b.as_dict() for b in self.basins],
+            "seconds": self.seconds,
+        }
+
+
+def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_t, g):
+    """The Gram matrix (2K × 2K) of the weighted basis [I_k^p, I_k^full] at g (rendered
+    at σs_ref(g)), its products with the weighted data (2K) and σs_ref."""
+    ref, _ = reference_sigma_s(sigma_t, g, settings.phase)
+    images = renderer(sigma_t, ref, g)[0]  # (P, K, h, w)
+    if full is None:
+        full_images = jnp.sum(images, axis=0) / settings.lit
+    else:
+        full_images = full(sigma_t, ref, g)[0][0]
+    k = images.shape[1]
+    stripes = jnp.moveaxis(images, 1, 0)  # (K, P, h, w)
+    lit_all = jnp.broadcast_to(full_images[:, None], stripes.shape)
+    basis = jnp.concatenate([stripes, lit_all], axis=0) * weights[None]
+    basis = basis.reshape(2 * k, -1)
+    return basis @ basis.T, basis @ (weights * obs).reshape(-1), ref
+
+
+def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, albedos, black):
+    """Misfit (weighted mean square) and projected black level on gs × albedos."""
+    total = jnp.sum((weights * obs) ** 2)
+    n = jnp.sum(weights > 0)
+
+    def per_g(g):
+        gram, proj, ref = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
+        k = gram.shape[0] // 2
+        orders = jnp.arange(1, k + 1, dtype=gram.dtype)
+
+        def per_albedo(albedo):
+            v = (albedo * sigma_t / ref) ** orders
+            z = jnp.zeros_like(v)
+            va, vb = jnp.concatenate([v, z]), jnp.concatenate([z, v])
+            m = jnp.array([[va @ gram @ va, va @ gram @ vb], [vb @ gram @ va, vb @ gram @ vb]])
+            rhs = jnp.array([va @ proj, vb @ proj])
+            # Two columns: c·(1 − b) and c·b; their least-squares values give b.
+            c = jnp.linalg.solve(m + 1e-30 * jnp.eye(2, dtype=m.dtype), rhs)
+            b_free = c[1] / (c[0] + c[1])
+            lo, hi = BLACK_RANGE
+            b = jnp.clip(b_free, lo, hi) if settings.fit_black else black
+            # One column at that b: the gain's least-squares value and the misfit.
+            col = jnp.array([1.0 - b, b])
+            norm = col @ m @ col
+            cost = (total - (col @ rhs) ** 2 / norm) / n
+            return cost, b
+
+        return jax.vmap(per_albedo)(albedos)
+
+    return jax.lax.map(per_g, gs)
+
+
+def scan(
+    renderer,
+    full,
+    obs,
+    weights,
+    sigma_t: float,
+    *,
+    phase: str,
+    lit: int,
+    black_level: float | None,
+    rho_limit,
+    n_g: int = 13,
+    n_albedo: int = 33,
+):
+    """The misfit map of the joint problem on the cheap model ``renderer`` (and ``full``
+    for full illumination, or ``None`` when the phases tile the period), σt fixed.
+
+    ``rho_limit(g, albedos)`` gives the per-bounce ratio ρ of each albedo at g; points
+    whose ρ^K/(1 − ρ) exceeds 1 % (K the renderer's bounces) are left out (inf), as
+    are ρ ≥ 1. Returns ``(misfit, black, gs, albedos)`` as NumPy arrays."""
+    dtype = obs.dtype
+    gs = np.linspace(-0.9, 0.9, n_g)
+    albedos = np.linspace(0.02, 0.98, n_albedo)
+    settings = ScanSettings(phase, black_level is None, lit)
+    cost, black = jitted(_scan, ("settings",))(
+        settings,
+        renderer,
+        full,
+        obs,
+        weights,
+        jnp.asarray(sigma_t, dtype),
+        jnp.asarray(gs, dtype),
+        jnp.asarray(albedos, dtype),
+        jnp.asarray(0.0 if black_level is None else black_level, dtype),
+    )
+    cost, black = np.array(cost, np.float64), np.array(black, np.float64)  # writable
+    k = renderer.bounces
+    for i, g in enumerate(gs):
+        rho = np.asarray(rho_limit(float(g), albedos), np.float64)
+        with np.errstate(divide="ignore"):
+            tail = np.where(rho < 1, rho**k / np.maximum(1 - rho, 1e-12), np.inf)
+        cost[i, tail > 0.01] = np.inf
+    cost[~np.isfinite(cost)] = np.inf
+    return cost, black, gs, albedos
+
+
+def _neighbours(i: int, j: int, shape) -> list[tuple[int, int]]:
+    return [
+        (i + di, j + dj)
+        for di in (-1, 0, 1)
+        for dj in (-1, 0, 1)
+        if (di or dj) and 0 <= i + di < shape[0] and 0 <= j + dj < shape[1]
+    ]
+
+
+def local_minima(cost: np.ndarray) -> list[tuple[int, int]]:
+    """Grid points whose (finite) value is at most every neighbour's (8-neighbourhood,
+    edges included), one per plateau, lowest first."""
+    out = []
+    for i, j in zip(*np.nonzero(np.isfinite(cost)), strict=True):
+        c = cost[i, j]
+        nb = _neighbours(int(i), int(j), cost.shape)
+        if all(c <= cost[p] for p in nb) and not any(cost[p] == c and p < (i, j) for p in nb):
+            out.append((int(i), int(j)))
+    return sorted(out, key=lambda p: cost[p])
+
+
+def basin_of(cost: np.ndarray, i: int, j: int) -> tuple[int, int]:
+    """The local minimum reached from grid point (i, j) by steepest descent."""
+    p = (i, j)
+    while True:
+        nb = [q for q in _neighbours(*p, cost.shape) if cost[q] < cost[p]]
+        if not nb:
+            return p
+        p = min(nb, key=lambda q: cost[q])
+
+
+def nearest_point(gs: np.ndarray, albedos: np.ndarray, g: float, albedo: float):
+    """The grid point nearest to (g, albedo) (in grid spacings)."""
+    i = int(np.clip(round((g - gs[0]) / (gs[1] - gs[0])), 0, len(gs) - 1))
+    j = int(np.clip(round((albedo - albedos[0]) / (albedos[1] - albedos[0])), 0, len(albedos) - 1))
+    return i, j
+
+
+def basins(
+    cost: np.ndarray,
+    black: np.ndarray,
+    gs: np.ndarray,
+    albedos: np.ndarray,
+    tolerance: float,
+    max_basins: int,
+) -> tuple[Basin, ...]:
+    """The local minima within ``tolerance`` (relative) of the best, best first, at most
+    ``max_basins``."""
+    minima = local_minima(cost)
+    if not minima:
+        return ()
+    best = cost[minima[0]]
+    kept = [p for p in minima if cost[p] <= best * (1.0 + tolerance)][:max_basins]
+    return tuple(
+        Basin(
+            g=float(gs[i]),
+            albedo=float(albedos[j]),
+            black_level=float(black[i, j]),
+            misfit=float(cost[i, j]),
+            index=(i, j),
+        )
+        for i, j in kept
+    )
+
+
+def worse_basin(scan: Scan, g: float, albedo: float, tolerance: float) -> Basin | None:
+    """The best basin of ``scan`` when the solution (g, albedo) lies in another basin
+    of the map whose misfit is more than ``tolerance`` (relative) above it; else
+    ``None``."""
+    if not scan.basins or not math.isfinite(g) or not math.isfinite(albedo):
+        return None
+    p = nearest_point(scan.gs, scan.albedos, g, albedo)
+    if not np.isfinite(scan.misfit[p]):
+        return None
+    home = basin_of(scan.misfit, *p)
+    best = scan.basins[0]
+    if home == best.index or scan.misfit[home] <= best.misfit * (1.0 + tolerance):
+        return None
+    return best
+
+
+__all__ = [
+    "Basin",
+    "Scan",
+    "basin_of",
+    "basins",
+    "local_minima",
+    "reference_sigma_s",
+    "scan",
+    "worse_basin",
+]

@@ -1,0 +1,161 @@
+"""The joint fit's compiled program: σt, σs, g (and the projector's black level b)
+fitted straight to the raw shifted stripe images, the gain eliminated in closed form.
+
+The model of pattern p at unit gain is (1 − b)·R_p + b·R_full with R = Σ_k u^k I_k
+(I_k ∝ σs^k: ``u`` rescales σs from the rendered one) and the residual is
+w·(c·model − observed), c the gain's least-squares value at each point and w the
+weights (1/√(I + floor): shot noise). One forward-mode pass along σt and g per step;
+σs, b and the gain enter in closed form.
+
+The solve is one module-level jitted function (:func:`solve`): the renderer, the
+settings (:class:`JointSettings`) and the optimistix solver are its static parts,
+so every call with the same static parts and array shapes reuses one program. At the
+solution the program returns the model at unit gain and its Jacobian in the physical
+parameters, computed explicitly there (not read from the solver's state), so any
+optimistix least-squares solver can be passed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from ._jacobian import with_forward_jacobian
+from ._programs import jitted
+
+# The black level's range: b = −0.2 + 1.2·sigmoid(y).
+BLACK_RANGE = (-0.2, 1.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class JointSettings:
+    """Static settings of the joint program: whether b is fitted, the lit count of the
+    stripe period (R_full = Σ_p R_p / lit when the phases tile it) and the step limit."""
+
+    fit_black: bool
+    lit: int
+    max_steps: int
+
+
+def bounces_at(x, sigma_s, renderer, full):
+    """Per-bounce images at unit gain at (σt, g) = ``x`` and ``sigma_s``: every
+    pattern's ``(P, K, h, w)`` and, when the phases do not tile the period, full
+    illumination's ``(K, h, w)`` (else ``None``)."""
+    images = renderer(x[0], sigma_s, x[1])[0]
+    return images, None if full is None else full(x[0], sigma_s, x[1])[0][0]
+
+
+def unit_model(bounces, lit: int, u, black):
+    """Σ_k u^k I_k of every pattern at unit gain, with the projector's black level b:
+    (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
+    images, full_images = bounces
+    powers = u ** jnp.arange(1, images.shape[1] + 1, dtype=images.dtype)
+    r = jnp.einsum("k,pkhw->phw", powers, images)
+    r_full = (
+        jnp.sum(r, axis=0) / lit
+        if full_images is None
+        else jnp.einsum("k,khw->hw", powers, full_images)
+    )
+    return (1.0 - black) * r + black * r_full[None]
+
+
+def unpack(y, fit_black: bool, black_fixed):
+    """Unconstrained y → (σt, σs, g, b): σt > 0, 0 < σs < σt, |g| < 1, b in range."""
+    sigma_t = jnp.exp(y[0])
+    sigma_s = sigma_t * jax.nn.sigmoid(y[1])
+    g = jnp.tanh(y[2])
+    lo, hi = BLACK_RANGE
+    black = lo + (hi - lo) * jax.nn.sigmoid(y[3]) if fit_black else black_fixed
+    return sigma_t, sigma_s, g, black
+
+
+def pack(start, fit_black: bool, dtype):
+    """(σt, σs, g, b) → the unconstrained start y (kept off the constraints' edges)."""
+    st0, ss0, g0, b0 = start
+    frac = min(max(ss0 / st0, 1e-3), 1 - 1e-3)
+    y0 = [math.log(st0), _logit(frac), math.atanh(max(min(g0, 0.95), -0.95))]
+    if fit_black:
+        lo, hi = BLACK_RANGE
+        b = min(max(b0, lo + 0.05), hi - 0.05)
+        y0.append(_logit((b - lo) / (hi - lo)))
+    return jnp.asarray(y0, dtype)
+
+
+def _logit(x):
+    return math.log(x / (1.0 - x))
+
+
+_bounces_and_slopes = with_forward_jacobian(bounces_at)
+
+
+def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y):
+    """At y: the model at unit gain R (P, h, w) and ∂R/∂θ (P, h, w, n) in the physical
+    parameters θ = (σt, σs, g[, b]), from one forward-mode pass along σt and g (σs and b
+    in closed form)."""
+    st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
+    x = jnp.stack([st, g])
+    bounces, slopes = _bounces_and_slopes(x, ss, renderer, full)
+
+    def model(theta):
+        dx = jnp.stack([theta[0], theta[2]]) - x
+        lin = jax.tree.map(lambda v, j: v + j @ dx, bounces, slopes)
+        return unit_model(lin, settings.lit, theta[1] / ss, theta[3] if settings.fit_black else b)
+
+    theta = jnp.stack([st, ss, g] + ([b] if settings.fit_black else []))
+    return unit_model(bounces, settings.lit, 1.0, b), jax.jacfwd(model)(theta)
+
+
+def _solve(
+    settings: JointSettings,
+    solver_static,
+    solver_arrays,
+    renderer,
+    full,
+    obs,
+    black_fixed,
+    weights,
+    y0,
+):
+    solver = eqx.combine(solver_arrays, solver_static)
+
+    def residual(y, _args):
+        st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
+        ref = jax.lax.stop_gradient(ss)
+        bounces, _ = _bounces_and_slopes(jnp.stack([st, g]), ref, renderer, full)
+        r = unit_model(bounces, settings.lit, ss / ref, b)
+        wr = weights * r
+        gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
+        return (weights * (gain * r - obs)).reshape(-1)
+
+    sol = optx.least_squares(residual, solver, y0, max_steps=settings.max_steps, throw=False)
+    model, jac = _model_and_jacobian(settings, renderer, full, black_fixed, sol.value)
+    return sol.value, sol.result, sol.stats["num_steps"], model, jac
+
+
+def solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, weights, y0):
+    """Run ``solver`` on the weighted joint residual from ``y0``: ``(y, result, steps,
+    R, ∂R/∂θ)`` with R the model at unit gain at the solution (see the module)."""
+    # The solver's arrays (e.g. a learning rate) are traced, the rest is static.
+    arrays, static = eqx.partition(solver, eqx.is_array)
+    run = jitted(_solve, ("settings", "solver_static"))
+    return run(settings, static, arrays, renderer, full, obs, black_fixed, weights, y0)
+
+
+def _model_only(lit: int, renderer, full, sigma_t, sigma_s, g, black):
+    bounces = bounces_at(jnp.stack([sigma_t, g]), sigma_s, renderer, full)
+    return unit_model(bounces, lit, 1.0, black)
+
+
+def model_at(renderer, full, lit: int, sigma_t, sigma_s, g, black, dtype):
+    """The model at unit gain R (P, h, w) of ``renderer`` at given values (one forward
+    render; used for a finer model's residual at a solution)."""
+    vals = (jnp.asarray(v, dtype) for v in (sigma_t, sigma_s, g, black))
+    return jitted(_model_only, ("lit",))(lit, renderer, full, *vals)
+
+
+__all__ = ["JointSettings", "bounces_at", "model_at", "pack", "solve", "unit_model", "unpack"]

@@ -1,0 +1,68 @@
+"""Compiled fit programs: module-level jitted functions, keyed by their static settings.
+
+Every fit program is a plain function of arrays and of static settings (frozen,
+hashable records: the renderer's static fields, a settings dataclass, the optimistix
+solver). It is jitted once per process (:func:`jitted`); jit's own cache then keys each
+compiled program by those settings and by the shapes and dtypes of its arrays, so a
+second capture of the same shape, another channel of an RGB capture or another stage
+of a fit that lands in the same shape bucket runs without tracing or compiling.
+
+:func:`enable_compilation_cache` turns on JAX's persistent compilation cache from the
+Python API (the command line does it by default), so a new process loads the programs
+instead of compiling them.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import jax
+
+
+def _compiler_options() -> dict | None:
+    """XLA options of the fit programs: on the CPU, LLVM's optimisation level 1 instead
+    of the default 2. A fit program runs for well under a second and compiles for
+    several: level 1 compiles it about 15-25 % faster and it runs as fast (measured on
+    the demo capture: the same answers to float32 rounding)."""
+    if jax.default_backend() != "cpu":
+        return None
+    return {"xla_backend_optimization_level": 1}
+
+
+@functools.cache
+def jitted(fn, static_argnames: tuple[str, ...]):
+    """``fn`` jitted with ``static_argnames`` static, built on first use (the XLA options
+    depend on the backend, which importing the package must not start)."""
+    return jax.jit(fn, static_argnames=static_argnames, compiler_options=_compiler_options())
+
+
+def clear_compiled() -> None:
+    """Forget the programs compiled in this process (the next fit compiles again, or
+    loads from the persistent compilation cache where that is on): for cold timings."""
+    jax.clear_caches()
+
+
+def enable_compilation_cache(path: str | os.PathLike) -> Path:
+    """Keep compiled XLA programs in ``path`` (created if missing) across processes.
+
+    Every program is cached however quick it was to compile (a fit's programs compile
+    in seconds each on a CPU and run in a fraction of that). Call it before the first
+    fit of the process; returns the folder. Raises ``OSError`` naming the folder when
+    it cannot be created."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    folder = Path(path).expanduser()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OSError(f"compilation cache: cannot create {folder} ({e.strerror})") from e
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    compilation_cache.reset_cache()  # set up once per process, at the first compilation
+    return folder
+
+
+__all__ = ["clear_compiled", "enable_compilation_cache", "jitted"]

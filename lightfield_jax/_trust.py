@@ -1,0 +1,164 @@
+"""How much a fit can be trusted: noise, χ²/dof, the model's own error, and a verdict.
+
+- The capture's noise is measured from the images without a model: the fourth
+  difference along the light's direction removes the smooth decay and leaves white
+  noise of variance 70 σ² (as in :mod:`lightfield_jax._model_choice`). Divided by the
+  fit's shot-noise scale √(I + floor), its mean square is the variance α of one
+  weighted residual that noise alone would give.
+- χ²/dof = ‖r‖²/(n − p)/α: about 1 when the model explains the capture to its noise.
+  A misfit is "far above the noise" when it is far above the noise and the model's
+  own discretisation error together: χ²/dof against α + ‖r_fine − r‖²/(n − p) (a
+  noiseless synthetic capture is fitted to its model's precision, not to zero).
+- Statistical 1σ: α·max(1, χ²/dof)·(JᵀJ)⁻¹ (the noise, scaled up where the residual
+  says it is larger: Birge's rule).
+- Model error: at the solution, the shift a finer model's residual implies,
+  δp = −J⁺·(r_fine − r) (one render with a finer grid, more direction bins and more
+  bounces; no refit). Total = statistical ⊕ model; ``model_limited`` when the model
+  term is the larger for σt, σs or g.
+- Not trustworthy (``converged: false`` with the reason, never converged): a solution
+  at a parameter bound, a misfit far above the noise, or one in a basin worse than
+  another the scan found.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ._illumination import Stripes
+
+# A solution this close to a constraint's edge is at a bound: |g| ≥ G_BOUND, albedo
+# below ALBEDO_BOUNDS[0] or above [1], the black level within 0.01 of its range.
+G_BOUND = 0.95
+ALBEDO_BOUNDS = (0.005, 0.995)
+
+
+def noise_scale(images: np.ndarray, weights: np.ndarray, pattern: Stripes) -> float:
+    """α: the variance of one weighted residual w·(model − I) that the capture's noise
+    gives (NaN where it cannot be measured: fewer than 16 pixels along the light)."""
+    a = np.asarray(images, np.float64)
+    w = np.asarray(weights, np.float64)
+    axis = 2 if pattern.entry in ("left", "right") else 1
+    if a.shape[axis] < 8:
+        return math.nan
+    d4 = np.diff(a, n=4, axis=axis) / math.sqrt(70.0)
+    sl = [slice(None)] * 3
+    sl[axis] = slice(2, a.shape[axis] - 2)
+    centre_w = w[tuple(sl)]
+    valid = centre_w > 0
+    for s in range(5):  # every one of the five pixels must be valid
+        sl[axis] = slice(s, a.shape[axis] - 4 + s)
+        valid &= w[tuple(sl)] > 0
+    z2 = (d4 * centre_w)[valid] ** 2
+    if z2.size < 16:
+        return math.nan
+    # The median of a χ²₁ variable is 0.4549 of its mean: robust to the entry wall's
+    # kink and to stray pixels.
+    return float(np.median(z2) / 0.45494)
+
+
+@dataclasses.dataclass(frozen=True)
+class Uncertainty:
+    """The error budget of a fit (per parameter name): ``statistical``, ``model`` (the
+    finer model's shift, NaN where not computed), ``total``; χ²/dof and the noise α."""
+
+    statistical: dict
+    model: dict
+    total: dict
+    correlation: dict
+    condition_number: float
+    chi2_dof: float
+    noise: float
+    model_limited: bool
+    chi2_model: float = math.nan  # χ²/dof against the noise ⊕ the model's own error
+
+
+def error_budget(
+    jac: np.ndarray,
+    residual: np.ndarray,
+    names: list[str],
+    noise: float,
+    residual_shift: np.ndarray | None = None,
+) -> Uncertainty:
+    """Statistical errors from ``jac`` (∂r/∂p, n × p) and the noise α, χ²/dof of
+    ``residual``, and the model term −J⁺·``residual_shift`` (r_fine − r) if given."""
+    jac = np.asarray(jac, np.float64)
+    residual = np.asarray(residual, np.float64)
+    n, p = jac.shape
+    jtj = jac.T @ jac
+    nan = {k: math.nan for k in names}
+    try:
+        d = np.sqrt(np.clip(np.diag(jtj), 1e-300, None))
+        cond = float(np.linalg.cond(jtj / np.outer(d, d)))
+        inv = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        inf = {k: math.inf for k in names}
+        return Uncertainty(inf, nan, inf, {}, math.inf, math.nan, noise, False)
+    s2 = float(residual @ residual) / max(n - p, 1)
+    chi2 = s2 / noise if noise > 0 and math.isfinite(noise) else math.nan
+    chi2_model = chi2
+    scale = s2 if not math.isfinite(chi2) else noise * max(1.0, chi2)
+    cov = scale * inv
+    err = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    stat = {k: float(e) for k, e in zip(names, err, strict=True)}
+    corr = {}
+    for i in range(p):
+        for j in range(i + 1, p):
+            dd = err[i] * err[j]
+            corr[f"{names[i]},{names[j]}"] = float(cov[i, j] / dd) if dd > 0 else math.nan
+    model = dict(nan)
+    if residual_shift is not None:
+        dr = np.asarray(residual_shift, np.float64).reshape(-1)
+        shift = -inv @ (jac.T @ dr)
+        model = {k: float(abs(v)) for k, v in zip(names, shift, strict=True)}
+        floor = (noise if math.isfinite(noise) else 0.0) + float(dr @ dr) / max(n - p, 1)
+        chi2_model = s2 / floor if floor > 0 else math.nan
+    total = {
+        k: math.hypot(stat[k], model[k]) if math.isfinite(model[k]) else stat[k] for k in names
+    }
+    physical = [k for k in ("sigma_t", "sigma_s", "g") if k in names]
+    limited = any(math.isfinite(model[k]) and model[k] > stat[k] for k in physical)
+    return Uncertainty(stat, model, total, corr, cond, chi2, noise, limited, chi2_model)
+
+
+def at_bound(values: dict, black_range: tuple[float, float] | None = None) -> list[str]:
+    """The parameters of a solution that sit at a bound of the model (empty: none).
+    ``values`` holds sigma_t, sigma_s, g (and black_level when ``black_range`` is given:
+    it was fitted)."""
+    reasons = []
+    g = values["g"]
+    albedo = values["sigma_s"] / values["sigma_t"]
+    if abs(g) >= G_BOUND:
+        reasons.append(f"g = {g:.3f} is at its bound (|g| >= {G_BOUND})")
+    lo, hi = ALBEDO_BOUNDS
+    if not lo < albedo < hi:
+        reasons.append(f"albedo = {albedo:.4f} is at its bound (outside ({lo}, {hi}))")
+    if black_range is not None:
+        b = values["black_level"]
+        if not black_range[0] + 0.01 < b < black_range[1] - 0.01:
+            reasons.append(f"black level = {b:.3f} is at its bound {list(black_range)}")
+    return reasons
+
+
+def untrustworthy(
+    values: dict,
+    budget: Uncertainty,
+    max_chi2: float,
+    black_range: tuple[float, float] | None = None,
+) -> list[str]:
+    """The reasons a solution is not to be trusted (empty: none): :func:`at_bound`, and
+    a misfit far above ``max_chi2`` judged by ``budget.chi2_model`` (noise ⊕ the model's
+    own error)."""
+    reasons = at_bound(values, black_range)
+    if math.isfinite(budget.chi2_model) and budget.chi2_model > max_chi2:
+        reasons.append(
+            f"misfit far above the capture's noise and the model's own error: chi2/dof = "
+            f"{budget.chi2_model:.3g} > {max_chi2:g} (against the noise alone: "
+            f"{budget.chi2_dof:.3g})"
+        )
+    return reasons
+
+
+__all__ = ["Uncertainty", "at_bound", "error_budget", "noise_scale", "untrustworthy"]

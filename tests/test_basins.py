@@ -1,0 +1,102 @@
+"""The joint fit's global start and its honesty checks, piece by piece (cheap cases):
+the basins of a misfit map, the noise measured from a capture, the error budget's
+model term, and the verdicts that make a fit not trustworthy."""
+
+import math
+
+import numpy as np
+import pytest
+
+import lightfield_jax as lfj
+from lightfield_jax._basins import Scan, basin_of, basins, local_minima, worse_basin
+from lightfield_jax._trust import error_budget, noise_scale, untrustworthy
+
+
+def _two_wells(deep=(10, 28), shallow=(2, 4), depth_ratio=3.0):
+    """A smooth map on 13 g × 33 albedos with two wells; the shallow one's floor is
+    ``depth_ratio`` × the deep one's."""
+    i, j = np.meshgrid(np.arange(13), np.arange(33), indexing="ij")
+    a = 1.0 + 0.05 * ((i - deep[0]) ** 2 + 0.1 * (j - deep[1]) ** 2)
+    b = depth_ratio + 0.05 * ((i - shallow[0]) ** 2 + 0.1 * (j - shallow[1]) ** 2)
+    return np.minimum(a, b)
+
+
+def _scan_of(cost):
+    gs, albedos = np.linspace(-0.9, 0.9, 13), np.linspace(0.02, 0.98, 33)
+    found = basins(cost, np.zeros_like(cost), gs, albedos, tolerance=1.0, max_basins=3)
+    return Scan(gs, albedos, cost, np.zeros_like(cost), found, 0.2, {})
+
+
+def test_every_local_minimum_is_found_and_only_near_ones_are_kept():
+    cost = _two_wells(depth_ratio=1.5)
+    assert local_minima(cost) == [(10, 28), (2, 4)]
+    gs, albedos = np.linspace(-0.9, 0.9, 13), np.linspace(0.02, 0.98, 33)
+    black = np.zeros_like(cost)
+    kept = basins(cost, black, gs, albedos, tolerance=1.0, max_basins=3)
+    assert [b.index for b in kept] == [(10, 28), (2, 4)]  # 1.5 ≤ 2 × best: both
+    assert kept[0].g == pytest.approx(gs[10]) and kept[0].albedo == pytest.approx(albedos[28])
+    assert [b.index for b in basins(cost, black, gs, albedos, 0.2, 3)] == [(10, 28)]
+    assert len(basins(cost, black, gs, albedos, 1.0, 1)) == 1
+    # A plateau counts once; points outside the model (inf) are never minima.
+    flat = np.full((4, 4), 2.0)
+    flat[0, :] = np.inf
+    assert len(local_minima(flat)) == 1
+
+
+def test_a_solution_in_a_worse_basin_is_told_apart():
+    cost = _two_wells(depth_ratio=3.0)  # the shallow well is not kept (3 > 2 × best)
+    the_scan = _scan_of(cost)
+    assert basin_of(cost, 3, 6) == (2, 4) and basin_of(cost, 9, 26) == (10, 28)
+    gs, albedos = the_scan.gs, the_scan.albedos
+    assert worse_basin(the_scan, gs[2], albedos[5], tolerance=1.0) is not None
+    assert worse_basin(the_scan, gs[10], albedos[27], tolerance=1.0) is None
+    # With a shallow well within tolerance, ending there is not "worse".
+    assert worse_basin(_scan_of(_two_wells(depth_ratio=1.5)), gs[2], albedos[5], 1.0) is None
+
+
+def test_noise_scale_measures_shot_noise_in_weighted_units():
+    rng = np.random.default_rng(1)
+    x = np.arange(64)
+    clean = np.broadcast_to(2.0 * np.exp(-0.1 * x), (6, 48, 64))
+    floor = 1e-3 * clean.max()
+    alpha = 1e-4  # variance α·(I + floor): 1/α photons per unit of image
+    noisy = clean + rng.normal(size=clean.shape) * np.sqrt(alpha * (clean + floor))
+    weights = 1.0 / np.sqrt(clean + floor)
+    got = noise_scale(noisy, weights, lfj.Stripes())
+    assert got == pytest.approx(alpha, rel=0.1)
+    assert noise_scale(clean, weights, lfj.Stripes()) < 1e-3 * alpha
+
+
+def test_model_term_is_the_least_squares_shift_of_the_finer_residual():
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(200, 3))
+    residual = 1e-2 * rng.normal(size=200)
+    shift = jac @ np.array([0.3, -0.1, 0.05])  # a finer model moves the residual by J·δ
+    budget = error_budget(jac, residual, ["sigma_t", "sigma_s", "g"], 1e-4, shift)
+    assert [budget.model[k] for k in ("sigma_t", "sigma_s", "g")] == pytest.approx(
+        [0.3, 0.1, 0.05], rel=1e-9
+    )
+    assert budget.model_limited  # 0.3 ≫ the statistical error
+    assert budget.total["g"] == pytest.approx(math.hypot(budget.statistical["g"], 0.05))
+    assert budget.chi2_dof == pytest.approx(residual @ residual / 197 / 1e-4)
+    # Statistical errors: the noise, scaled up by √(χ²/dof) when that exceeds 1.
+    inv = np.linalg.inv(jac.T @ jac)
+    expect = np.sqrt(1e-4 * max(1.0, budget.chi2_dof) * np.diag(inv))
+    assert [budget.statistical[k] for k in ("sigma_t", "sigma_s", "g")] == pytest.approx(expect)
+    small = error_budget(jac, residual, ["sigma_t", "sigma_s", "g"], 1e-4, 1e-6 * shift)
+    assert not small.model_limited
+
+
+def test_each_reason_not_to_trust_a_solution():
+    budget = error_budget(np.eye(3), np.zeros(3), ["sigma_t", "sigma_s", "g"], 1.0)
+    ok = {"sigma_t": 0.2, "sigma_s": 0.05, "g": 0.4, "black_level": 0.0}
+    assert untrustworthy(ok, budget, 100.0, (-0.2, 1.0)) == []
+    assert "g = -0.968" in untrustworthy({**ok, "g": -0.968}, budget, 100.0)[0]
+    assert "albedo" in untrustworthy({**ok, "sigma_s": 0.2 * 0.999}, budget, 100.0)[0]
+    assert "albedo" in untrustworthy({**ok, "sigma_s": 1e-5}, budget, 100.0)[0]
+    assert "black level" in untrustworthy({**ok, "black_level": 0.995}, budget, 100.0, (-0.2, 1))[0]
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(100, 3))
+    far = error_budget(jac, rng.normal(size=100), ["sigma_t", "sigma_s", "g"], 1e-4)
+    (reason,) = untrustworthy(ok, far, 100.0)
+    assert reason.startswith("misfit far above the capture's noise")
