@@ -1,5 +1,6 @@
-"""The accuracy table of docs/slab_design.md section 6: the slab model against the 3-D
-Monte Carlo (layer-averaged, its exact target, and the true slab), per bounce.
+"""The accuracy table of docs/slab_design.md section 6: the slab model's depth average
+(n_z = 1) against the 3-D Monte Carlo (layer-averaged, its exact target, and the true
+slab), per bounce. The layered model's table: experiments/slab_depth_accuracy.py.
 
 Run: .venv/bin/python docs/slab_accuracy.py [OUT.json]  (about 2 minutes on 2 cores)
 """
@@ -31,7 +32,7 @@ for name, st, ss, g, h, bd in [
     ("forward", 0.1, 0.08, 0.8, 6.4, "absorbing"),
     ("backward thick", 0.3, 0.24, -0.3, 20.0, "refractive"),
 ]:
-    grid, slab = resolve_slab_grid(lfj.Grid(W, H), Slab(h, bd), g)
+    grid, slab = resolve_slab_grid(lfj.Grid(W, H), Slab(h, bd, n_z=1), g, st, ss / st)
     im = np.asarray(SlabRenderer(grid, beam, K, slab)(st, ss, g)[0], np.float64)[0]
     lay = monte_carlo_slab(
         W, H, h, st, ss, g, beam, K, boundary=bd, photons=4_000_000, depth_layers=1, seed=21

@@ -1,33 +1,35 @@
 """The slab geometry (MODEL.md section 7): a tank of depth h, modelled in 3-D, cheaply.
 
-Design (docs/slab_design.md, option B, "depth-averaged kernels"): the light field is
-kept as its average over the depth, L̄(x, y, θ, μ), with θ the azimuth (the plane
-model's bins) and μ = ω·ẑ on Gauss–Legendre nodes in [0, 1]. Both faces are symmetric
-and the sheet is horizontal, so a depth-averaged field is even in μ (fact 4): only
-μ ≥ 0 is stored. With the black side walls every order is an exact free-space
-transport of the previous order's source (fact 1), and for a source uniform in depth
-the depth integrals are analytic (fact 3):
+Design (docs/slab_design.md option B, with depth layers: docs/slab_depth.md): the light
+field is kept as its averages over n_z depth layers, L_l(x, y, θ, μ), with θ the
+azimuth (the plane model's bins) and μ = ω·ẑ on Gauss–Legendre nodes in [0, 1]. Both
+faces are symmetric and the sheet is horizontal, so L(z, −μ) = L(h − z, μ) (fact 4):
+only μ ≥ 0 is stored, and a face reflection becomes a periodic wrap of the depth with
+weight R(μ) (:mod:`lightfield_jax._slab_layers`). With the black side walls every order
+is an exact free-space transport of the previous order's source (fact 1), and for
+layer-uniform sources the depth integrals are analytic:
 
-- transport: L̄(x, ω) = ∫ e^{−σt t} S(t|μ|/h) Q(x − t ω_h, ω) dt with the survival
-  S(v) = R^⌊v⌋ (1 − f (1 − R)), f = v − ⌊v⌋, R = R(|μ|) the face's reflectance
-  (R = 0 for absorbing faces: S = (1 − v)_+; R = 1 under total internal reflection);
-- camera: I(x) = T σs ∫ dω p(ω_arrival·ẑ) ∫ e^{−σt t} C(t, μ) Q(x − t ω_h, ω) dt, the
-  depth integral of the camera's attenuation e^{−σt (h − z)} over the unfolded ray's
-  at most two cells, weighted by R^m, with the arrival direction (−1)^m μ.
+- transport: L_l(x, ω) = Σ_l' ∫ e^{−σt t} W_{l−l'}(tμ) Q_l'(x − t ω_h, ω) dt, W the
+  overlap of layer l with layer l' shifted by tμ, summed over the wraps with R^m (for
+  n_z = 1 the depth average's survival S(v) = R^⌊v⌋ (1 − f (1 − R)), v = tμ/h);
+- camera: I(x) = T σs Σ_l' ∫ dω ∫ e^{−σt t} [p(μ) A_l'(tμ) + p(−μ) B_l'(tμ)]
+  Q_l'(x − t ω_h, ω) dt, A and B the exact integrals of the camera's attenuation
+  e^{−σt (h − z)} over the heights the rays of source layer l' reach.
 
-Each is a 2-D convolution per direction (θ bin, μ node) with a kernel built like the
-plane model's first-scatter kernel (:mod:`lightfield_jax._first_scatter`: polar rings,
-pixel-pair averaging by bilinear splats), evaluated with a 3-point Gauss rule across
-each ring, and applied as an FFT over a (2H, 2W) zero-padded domain (exact: no
-wrap-around). Per bounce: one forward FFT of the source Q_k, one inverse FFT for L̄_k,
-one for the image, and one matmul with the discrete 3-D phase matrix (bin-averaged in
-θ, balanced so a bounce conserves ω·energy exactly).
+Each is a 2-D convolution per direction (θ bin, μ node) and layer pair with a kernel
+built like the plane model's first-scatter kernel (:mod:`lightfield_jax._first_scatter`:
+polar rings, pixel-pair averaging by bilinear splats), evaluated with a 3-point Gauss
+rule across each ring, and applied as an FFT over a (2H, 2W) zero-padded domain (exact:
+no wrap-around). Per bounce (:class:`~lightfield_jax._slab_layers.SlabBounce`): one
+forward FFT of the layered source Q_k, n_z² kernel products, one inverse FFT for L_k,
+one for the image, and n_z matmuls with the discrete 3-D phase matrices (bin-averaged
+in θ, balanced so a bounce conserves ω·energy exactly).
 
 What is exact and what is not: I_1 is exact; I_2 is exact up to the discretisation
 (the first source is uniform in depth, fact 2); from I_3 on the model keeps each
-order's source as its depth average, which ``monte_carlo_slab(..., depth_layers=1)``
-reproduces exactly (its difference from the true slab is measured in
-docs/slab_design.md section 4 and in tests/test_slab.py).
+order's source as its n_z layer averages, which ``monte_carlo_slab(...,
+depth_layers=n_z)`` reproduces exactly; the error against the true slab falls about as
+1/n_z (measured in docs/slab_depth.md; :func:`default_n_z` chooses n_z).
 
 Units as the Monte Carlo oracle (:mod:`lightfield_jax._montecarlo_slab`): the sheet
 has unit irradiance (power per unit area normal to θ0), lengths are pixels, σ per
@@ -51,6 +53,7 @@ from ._first_scatter import kernel_nodes
 from ._grid import Grid
 from ._illumination import Illumination, scaled, source_moments
 from ._render import _count_trace, render_refined, unscattered_fluence
+from ._slab_layers import SlabBounce, camera_integrals, transport_weights
 
 Boundary = Literal["absorbing", "refractive"]
 BOUNDARIES = ("absorbing", "refractive")
@@ -62,6 +65,10 @@ _RING_GAUSS = 3
 # Sub-samples per azimuth bin of the triangle-weighted bin average of the phase matrix.
 _PHASE_SUBSAMPLES = 8
 _BALANCE_ITERATIONS = 4
+# The most depth layers a slab model may use (Slab.n_z).
+MAX_LAYERS = 16
+# Below this albedo the orders a depth average gets wrong (k ≥ 3) carry little light.
+DIM_ALBEDO = 0.3
 
 
 def _positive_finite(value, what: str) -> float:
@@ -97,12 +104,15 @@ class Slab:
         n: relative refractive index of the medium (used with ``refractive``; ≥ 1).
         n_mu: elevation nodes in μ ∈ [0, 1] (the discretisation, like ``n_theta``), or
             ``None`` to choose from g (:func:`default_n_mu`).
+        n_z: depth layers of the light field (1: the depth average), or ``None`` to
+            choose from σt·h, the albedo and g (:func:`default_n_z`).
     """
 
     thickness: float
     boundary: Boundary = "absorbing"
     n: float = 1.33
     n_mu: int | None = None
+    n_z: int | None = None
     kind: Literal["slab"] = "slab"
 
     def __post_init__(self):
@@ -130,6 +140,14 @@ class Slab:
                 f"geometry.n_mu: refractive faces need at least 4 elevation nodes (2 on each "
                 f"side of the critical angle), got {self.n_mu!r}"
             )
+        if self.n_z is not None and (
+            not isinstance(self.n_z, (int, np.integer))
+            or isinstance(self.n_z, bool)
+            or not 1 <= self.n_z <= MAX_LAYERS
+        ):
+            raise ValueError(
+                f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
+            )
 
     def as_dict(self) -> dict:
         d = {"kind": "slab", "thickness": self.thickness, "boundary": self.boundary}
@@ -137,13 +155,22 @@ class Slab:
             d["n"] = self.n
         if self.n_mu is not None:
             d["n_mu"] = int(self.n_mu)
+        if self.n_z is not None:
+            d["n_z"] = int(self.n_z)
         return d
 
-    def resolve(self, g: float) -> Slab:
-        """This slab with ``n_mu`` chosen from g (and the thickness) when not given."""
-        if self.n_mu is not None:
-            return self
-        return dataclasses.replace(self, n_mu=default_n_mu(g, self.thickness, self.boundary))
+    def resolve(self, g: float, sigma_t: float | None = None, albedo: float | None = None) -> Slab:
+        """This slab with ``n_mu`` chosen from g (and the thickness) and ``n_z`` from
+        σt·h, the albedo and g (:func:`default_n_z`; σt or the albedo unknown: the
+        count their worst case needs) when not given."""
+        n_mu = self.n_mu
+        if n_mu is None:
+            n_mu = default_n_mu(g, self.thickness, self.boundary, albedo)
+        n_z = self.n_z
+        if n_z is None:
+            tau = None if sigma_t is None else float(sigma_t) * self.thickness
+            n_z = default_n_z(tau, albedo, self.boundary)
+        return dataclasses.replace(self, n_mu=n_mu, n_z=n_z)
 
     @property
     def critical_cosine(self) -> float | None:
@@ -187,29 +214,55 @@ def rho_bound(medium, geometry=None):
     return medium.albedo if isinstance(geometry, Slab) else medium.rho
 
 
-def default_slab_n_theta(g: float) -> int:
+def _guides_light(boundary: str, albedo: float | None) -> bool:
+    """Refractive faces guide light far (total internal reflection) and, unless the
+    medium is dim (ω < 0.3, or unknown), the high orders that carry it matter."""
+    return boundary == "refractive" and (albedo is None or albedo >= DIM_ALBEDO)
+
+
+def default_slab_n_theta(g: float, boundary: str = "absorbing", albedo: float | None = None) -> int:
     """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
     the phase function at every quadrature node, so only the phase matrix of the later
     bounces is binned: against 128 bins, 8 bins change I_3..I_5 by ≤ 0.11 % for g 0.4
-    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (measured on a 48×32 beam)."""
+    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (measured on a 48×32 beam).
+    Light guided by refractive faces travels far between scatterings and needs at least
+    16 (measured, σt·h 0.3, g −0.3, ω 0.9, n_z 2: I_5 −2.2 % with 8 bins and 8 μ nodes
+    against the 3-D Monte Carlo, −1.0 % with 16)."""
     a = abs(float(g))
     if a <= 0.6:
-        return 8
-    if a <= 0.85:
-        return 16
-    return 32
+        n = 8
+    elif a <= 0.85:
+        n = 16
+    else:
+        n = 32
+    return max(n, 16) if _guides_light(boundary, albedo) else n
 
 
-def resolve_slab_grid(grid: Grid, slab: Slab, g: float) -> tuple[Grid, Slab]:
-    """Grid and slab with the discretisation the slab model needs for g filled in:
-    ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
-    does not smear thin beams), ``n_mu`` from :func:`default_n_mu`."""
-    n = default_slab_n_theta(g) if grid.n_theta is None else grid.n_theta
+def resolve_slab_grid(
+    grid: Grid,
+    slab: Slab,
+    g: float,
+    sigma_t: float | None = None,
+    albedo: float | None = None,
+) -> tuple[Grid, Slab]:
+    """Grid and slab with the discretisation the slab model needs for the medium filled
+    in: ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
+    does not smear thin beams), ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the
+    albedo ``None``: what their worst case needs)."""
+    if grid.n_theta is None:
+        n = default_slab_n_theta(g, slab.boundary, albedo)
+    else:
+        n = grid.n_theta
     r = 1 if grid.refine is None else grid.refine
-    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g)
+    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g, sigma_t, albedo)
 
 
-def default_n_mu(g: float, thickness: float | None = None, boundary: str = "absorbing") -> int:
+def default_n_mu(
+    g: float,
+    thickness: float | None = None,
+    boundary: str = "absorbing",
+    albedo: float | None = None,
+) -> int:
     """Elevation nodes for a phase function of asymmetry g: 4 for |g| ≤ 0.5, 8 to 0.7,
     16 to 0.85, 24 beyond (measured: I_2, I_3 within 1 % of 16 nodes for g ≤ 0.4; g 0.8
     needs 16). Absorbing slabs thinner than 2 px need more: the survival (1 − tμ/h)₊ then
@@ -230,7 +283,29 @@ def default_n_mu(g: float, thickness: float | None = None, boundary: str = "abso
             if thickness < limit:
                 n = max(n, need)
                 break
-    return n
+    return max(n, 16) if _guides_light(boundary, albedo) else n
+
+
+def default_n_z(
+    optical_thickness: float | None, albedo: float | None, boundary: str = "absorbing"
+) -> int:
+    """Depth layers for a slab of optical thickness σt·h and albedo ω (``None``:
+    unknown, the worst case): 1 for dim media (ω < 0.3: the orders a depth average
+    gets wrong, k ≥ 3, carry little light), else 8 behind absorbing faces, 4 behind
+    refractive ones thinner than one mean free path, 2 thicker ones.
+
+    Measured against the 3-D slab Monte Carlo (h 6.4 px, 48×32, full illumination,
+    σt·h 0.3 / 1.3 / 3, g −0.3 / 0.4 / 0.8 / 0.9; docs/slab_depth.md): the error of a
+    layer average falls about as 1/n_z. Absorbing faces empty the layers near them, so
+    the depth average misses I_6 by up to 20–50 %, 4 layers by up to 4.5 % (σt·h 1.3,
+    g −0.3), 8 layers by ≤ 2.2 %; refractive faces keep the light spread over the depth
+    (n_z = 1: 5–6 % at I_5, I_6 for g ≥ 0.8), 2 layers are within 1.3 % from σt·h 1.3
+    and 4 within 1.6 % at 0.3."""
+    if albedo is not None and albedo < DIM_ALBEDO:
+        return 1
+    if boundary == "absorbing":
+        return 8
+    return 4 if optical_thickness is None or optical_thickness < 1.0 else 2
 
 
 def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
@@ -247,7 +322,7 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
         raise ValueError(f"{where}.kind: must be a string (plane, slab), got {kind!r}")
     if "kind" not in spec and "thickness" in spec:
         raise ValueError(f"{where}.kind: missing (a slab needs kind: slab with its thickness)")
-    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu"}
+    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z"}
     allowed = {"plane": {"kind"}, "slab": slab_keys}
     if allow_auto:
         allowed["auto"] = slab_keys | {"threshold"}
@@ -275,6 +350,7 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
             boundary=boundary,
             n=spec.get("n", 1.33),
             n_mu=spec.get("n_mu"),
+            n_z=spec.get("n_z"),
         )
     except ValueError as err:
         raise ValueError(str(err).replace("geometry", where, 1)) from None
@@ -350,56 +426,6 @@ def _slab_nodes(width: int, height: int, n_theta: int):
     }
 
 
-def _cell_integrals(u, h, refl, sigma_t):
-    """Depth integrals of the camera's attenuation over a unit-density source layer.
-
-    A ray leaving depth z0 (uniform on [0, h]) travels a vertical distance u ≥ 0 "up"
-    in its unfolded frame; it ends in cell m0 = ⌊u/h⌋ or m0 + 1, weighted R^m.
-    Returns (a_up, a_down, b_up, b_down): for a source heading up (a) or down (b), the
-    ∫ dz0 R^m e^{−σt (h − z)} over the rays that arrive heading up or down.
-    ``u`` and ``refl`` (broadcastable) carry no derivative; ``sigma_t`` does.
-    """
-    dtype = sigma_t.dtype
-    u = jax.lax.stop_gradient(u.astype(dtype))
-    refl = jax.lax.stop_gradient(refl.astype(dtype))
-    v = u / h
-    m0 = jnp.floor(v)
-    f = v - m0
-    w0 = jnp.where(m0 == 0, 1.0, refl**m0)
-    w1 = refl ** (m0 + 1.0)
-    even0 = jnp.mod(m0, 2.0) == 0
-    # Physical-depth intervals ζ ∈ [lo, hi] covered in cell m0 and in cell m0 + 1
-    # (which has the other parity).
-    lo0 = jnp.where(even0, f * h, 0.0)
-    hi0 = jnp.where(even0, h, (1.0 - f) * h)
-    lo1 = jnp.where(even0, (1.0 - f) * h, 0.0)
-    hi1 = jnp.where(even0, h, f * h)
-
-    def ja(lo, hi):  # ∫ e^{−σt (h − ζ)} dζ  (source heading up, frame z)
-        return (jnp.exp(-sigma_t * (h - hi)) - jnp.exp(-sigma_t * (h - lo))) / sigma_t
-
-    def jb(lo, hi):  # ∫ e^{−σt ζ} dζ  (source heading down, mirrored frame w = h − z)
-        return (jnp.exp(-sigma_t * lo) - jnp.exp(-sigma_t * hi)) / sigma_t
-
-    a0, a1 = w0 * ja(lo0, hi0), w1 * ja(lo1, hi1)
-    b0, b1 = w0 * jb(lo0, hi0), w1 * jb(lo1, hi1)
-    # An up-going source arrives heading up in even cells; a down-going one (mirrored
-    # frame) arrives heading up in z in odd cells.
-    a_up = jnp.where(even0, a0, a1)
-    a_down = jnp.where(even0, a1, a0)
-    b_up = jnp.where(even0, b1, b0)
-    b_down = jnp.where(even0, b0, b1)
-    return a_up, a_down, b_up, b_down
-
-
-def _survival(v, refl):
-    """S(v) = R^⌊v⌋ (1 − f (1 − R)) (static numpy)."""
-    m0 = np.floor(v)
-    f = v - m0
-    rm = np.where(refl > 0, refl**m0, (m0 == 0).astype(float))
-    return rm * (1.0 - f * (1.0 - refl))
-
-
 class SlabRenderer(eqx.Module):
     """A compiled slab forward model for one grid, illumination, slab and bounce count.
 
@@ -408,13 +434,15 @@ class SlabRenderer(eqx.Module):
     lightfields)`` with images Float[Array, "patterns bounces H W"] and light fields
     (depth- and elevation-integrated: ∫_0^h ∫_{−1}^{1} L dμ dz per radian of azimuth)
     Float[Array, "bounces+1 patterns H W n_theta"] or ``None``. The phase function is
-    the 3-D Henyey–Greenstein (normalised on the sphere) whatever ``phase`` says.
+    the 3-D Henyey–Greenstein (normalised on the sphere) whatever ``phase`` says. The
+    light field is resolved in ``slab.n_z`` depth layers (:mod:`._slab_layers`).
     """
 
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
     n_theta: int = eqx.field(static=True)
     n_mu: int = eqx.field(static=True)
+    n_z: int = eqx.field(static=True)
     refine: int = eqx.field(static=True)
     bounces: int = eqx.field(static=True)
     phase: str = eqx.field(static=True)
@@ -424,10 +452,9 @@ class SlabRenderer(eqx.Module):
     coverage: Float[Array, "patterns H W"]
     mean_depth: Float[Array, "patterns H W"]
     var_depth: Float[Array, "patterns H W"]
-    survival: Float[Array, "n_mu nodes q"]  # S(tμ/h)/s · ring weight (static)
     t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
-    cam_u: Float[Array, "n_mu nodes q"]  # vertical travel tμ
-    w_over_s: Float[Array, "n_mu nodes q"]
+    cam_u: Float[Array, "n_mu nodes q"]  # vertical travel u = tμ
+    w_over_s: Float[Array, "n_mu nodes q"]  # ring weight / s
     node_cos: Float[Array, "n_mu nodes"]  # ω_node·ω0 = s_j cos(φ − θ0)
     index: Array
     splat: Array
@@ -445,8 +472,8 @@ class SlabRenderer(eqx.Module):
     ):
         if grid.n_theta is None:
             raise ValueError("SlabRenderer needs grid.n_theta: call Grid.resolve(g) first")
-        if slab.n_mu is None:
-            raise ValueError("SlabRenderer needs slab.n_mu: call Slab.resolve(g) first")
+        if slab.n_mu is None or slab.n_z is None:
+            raise ValueError("SlabRenderer needs slab.n_mu and slab.n_z: call Slab.resolve first")
         if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
             raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
         if phase not in ("paper", "normalized"):
@@ -454,6 +481,7 @@ class SlabRenderer(eqx.Module):
         f = self.refine = 1 if grid.refine is None else grid.refine
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.n_mu = int(slab.n_mu)
+        self.n_z = int(slab.n_z)
         self.bounces = int(bounces)
         self.phase = phase
         self.thickness = float(slab.thickness) * f
@@ -472,16 +500,10 @@ class SlabRenderer(eqx.Module):
             np.zeros_like(mu) if slab.boundary == "absorbing" else fresnel_reflectance(mu, slab.n)
         )
         nodes = _slab_nodes(self.width, self.height, self.n_theta)
-        r = nodes["r_sub"][None]  # (1, N, q)
-        t = r / s[:, None, None]
-        h = self.thickness
-        w_over_s = nodes["w_sub"][None] / s[:, None, None]
+        t = nodes["r_sub"][None] / s[:, None, None]  # (n_mu, N, q)
         self.t_sub = jnp.asarray(t)
         self.cam_u = jnp.asarray(t * mu[:, None, None])
-        self.w_over_s = jnp.asarray(w_over_s)
-        self.survival = jnp.asarray(
-            _survival(t * mu[:, None, None] / h, refl[:, None, None]) * w_over_s
-        )
+        self.w_over_s = jnp.asarray(nodes["w_sub"][None] / s[:, None, None])
         self.node_cos = jnp.asarray(s[:, None] * np.cos(nodes["phi"] - theta0)[None, :])
         self.index = jnp.asarray(nodes["index"])
         self.splat = jnp.asarray(nodes["splat"])
@@ -502,24 +524,31 @@ class SlabRenderer(eqx.Module):
     # -- pieces -------------------------------------------------------------------
 
     def _splat(self, values):
-        """values (n_mu, N) → kernels (n_mu, n_theta, 2H, 2W)."""
-        n_mu = values.shape[0]
-        size = self.n_theta * 2 * self.height * 2 * self.width
-        contrib = values[:, :, None] * self.splat.astype(values.dtype)[None]
-        offsets = (jnp.arange(n_mu, dtype=jnp.int32) * size)[:, None, None]
+        """values (A, N) → kernels (A, n_theta, 2H, 2W): every node's four bilinear
+        corners receive a row of A values (one scatter of rows for all kernels)."""
+        count = values.shape[0]
+        cells = self.n_theta * 2 * self.height * 2 * self.width
+        contrib = self.splat.astype(values.dtype)[:, :, None] * values.T[:, None, :]
         kernel = (
-            jnp.zeros(n_mu * size, values.dtype)
-            .at[(self.index[None] + offsets).reshape(-1)]
-            .add(contrib.reshape(-1))
+            jnp.zeros((cells, count), values.dtype)
+            .at[self.index.reshape(-1)]
+            .add(contrib.reshape(-1, count))
         )
-        return kernel.reshape(n_mu, self.n_theta, 2 * self.height, 2 * self.width)
+        return kernel.T.reshape(count, self.n_theta, 2 * self.height, 2 * self.width)
 
-    def _phase_matrix(self, g, dtype):
-        """M[(j,i),(j',i')] (n_mu·n_theta square): Q = σs M L̄ for even fields.
+    def _kernels_f(self, values):
+        """values (…, n_mu, N) → rfft2 of their kernels (…, n_mu, n_theta, 2H, W + 1)."""
+        lead = values.shape[:-1]
+        kernels = self._splat(values.reshape((-1, values.shape[-1])))
+        return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
 
-        Entries are dΩ_{j'} [p̄(ω_ji·ω_j'i'^+) + p̄(ω_ji·ω_j'i'^−)], p̄ the triangle-weighted
-        average over the two azimuth bins, balanced (symmetric scaling) so that the
-        discrete sphere integral of every row and every column is exactly 1.
+    def _phase_matrices(self, g, dtype):
+        """(M⁺, M⁻), each (n_mu·n_theta) square: from stored up-going directions into
+        up-going (M⁺) and down-going (M⁻) ones, so Q(+μ) = σs (M⁺ L(+μ) + M⁻ L(−μ)).
+
+        Entries are dΩ_{j'} p̄(ω_ji·ω_j'i'^±), p̄ the triangle-weighted average over the
+        two azimuth bins, balanced (the same symmetric scaling of both) so that the
+        discrete sphere integral of every row and every column of M⁺ + M⁻ is exactly 1.
         """
         n, J = self.n_theta, self.n_mu
         dtheta = 2 * math.pi / n
@@ -532,118 +561,140 @@ class SlabRenderer(eqx.Module):
         ss = (s[:, None] * s[None, :])[:, :, None, None]
         mm = (mu[:, None] * mu[None, :])[:, :, None, None]
         cosd = jnp.asarray(np.cos(delta), dtype)[None, None]
-        taps = jnp.sum((hg(ss * cosd + mm, g) + hg(ss * cosd - mm, g)) * tri, axis=-1)
         j = np.arange(n)
         circ = (j[:, None] - j[None, :]) % n
-        a = taps[:, :, circ]  # (J, J', n, n'): p̄(+) + p̄(−) for (j,i),(j',i')
-        a = jnp.transpose(a, (0, 2, 1, 3)).reshape(J * n, J * n)
+
+        def matrix(sign):  # (J, J', n, n') → (J·n, J'·n')
+            taps = jnp.sum(hg(ss * cosd + sign * mm, g) * tri, axis=-1)
+            return jnp.transpose(taps[:, :, circ], (0, 2, 1, 3)).reshape(J * n, J * n)
+
+        plus, minus = matrix(1.0), matrix(-1.0)
+        a = plus + minus
         domega = jnp.repeat(self.w_mu.astype(dtype) * dtheta, n)  # dΩ per stored node
         # Symmetric balancing of the kernel a (symmetric) so Σ_c a[r, c] dΩ_c = 1.
         d = jnp.ones(J * n, dtype)
         for _ in range(_BALANCE_ITERATIONS):
             row = (a * (d[None, :] * domega[None, :])).sum(axis=1) * d
             d = d / jnp.sqrt(row)
-        a = a * d[:, None] * d[None, :]
-        col = (a * domega[:, None]).sum(axis=0)  # exact conservation per column
-        a = a / col[None, :]
-        return a * domega[None, :]
+        scale = d[:, None] * d[None, :]
+        col = (a * scale * domega[:, None]).sum(axis=0)  # exact conservation per column
+        scale = scale / col[None, :] * domega[None, :]
+        return plus * scale, minus * scale
 
-    @staticmethod
-    def _convolve(field, kernel_f, shape):
-        """(…, H, W) fields ⊛ kernels given by their rfft2 (…, 2H, W+1) → (…, H, W)."""
-        height, width = field.shape[-2:]
-        out = jnp.fft.irfft2(jnp.fft.rfft2(field, s=shape) * kernel_f, s=shape)
-        return jnp.maximum(out[..., :height, :width], 0.0)
+    def _transport_and_camera(self, sigma_t, g, dtype):
+        """Node values of the layer-to-layer transport kernels W_δ, δ = −(n_z−1)..n_z−1
+        (2 n_z − 1, n_mu, N), and of the camera kernels per source layer (n_z, n_mu, N):
+        T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart)."""
+        h, n_z = self.thickness, self.n_z
+        u = jax.lax.stop_gradient(self.cam_u.astype(dtype))
+        refl = jax.lax.stop_gradient(self.refl.astype(dtype))[:, None, None]
+        att = jnp.exp(-sigma_t * self.t_sub.astype(dtype)) * self.w_over_s.astype(dtype)
+        v = u / (h / n_z)
+        transport = jnp.stack(
+            [
+                jnp.sum(att * transport_weights(v, refl, n_z, delta), axis=-1)
+                for delta in range(-(n_z - 1), n_z)
+            ]
+        )
+        mu = self.mu.astype(dtype)
+        weight = (self.w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
+        camera = []
+        for layer in range(n_z):
+            up, down = camera_integrals(u, h, n_z, layer, refl, sigma_t)
+            up, down = jnp.sum(att * up, axis=-1), jnp.sum(att * down, axis=-1)
+            camera.append(weight * (hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down))
+        return transport, jnp.stack(camera)
+
+    def _first_phase(self, g, dtype):
+        """p(ω_node·ω0) at the kernels' nodes (n_mu, N), normalised on the discrete
+        sphere (so the first bounce conserves ω·energy)."""
+        n = self.n_theta
+        dtheta = 2 * math.pi / n
+        mu = self.mu.astype(dtype)
+        p1 = hg(self.node_cos.astype(dtype), g)
+        fine = (np.arange(n * 16) + 0.5) * (dtheta / 16)
+        ring = jnp.sum(
+            hg(jnp.sqrt(1 - mu * mu)[:, None] * jnp.asarray(np.cos(fine), dtype)[None], g),
+            axis=1,
+        ) * (dtheta / 16)
+        return p1 / (2.0 * jnp.sum(self.w_mu.astype(dtype) * ring))
+
+    def bounce_step(self, sigma_t, sigma_s, g) -> SlabBounce:
+        """The bounce ``q -> (q_next, image)`` at these values (working-grid units:
+        σ per refined pixel), and the first two orders it starts from: returns
+        ``(bounce, i2, l1, q2)`` with I_2 (patterns, H, W), the layered light field
+        L_1 and source Q_2 (patterns, n_z, n_mu, n_theta, H, W)."""
+        dtype = sigma_t.dtype
+        n_z = self.n_z
+        shape = (2 * self.height, 2 * self.width)
+        source = unscattered_fluence(self, sigma_t)
+        transport, camera = self._transport_and_camera(sigma_t, g, dtype)
+        p1 = self._first_phase(g, dtype)
+        # The first source is uniform in depth: layer l receives Σ_l' W_{l−l'}.
+        first = jnp.stack([jnp.sum(transport[layer : layer + n_z], axis=0) for layer in range(n_z)])
+        k1_f = self._kernels_f(p1 * first)  # (n_z, n_mu, n_theta, 2H, W+1)
+        k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera, axis=0)), axis=(0, 1))
+        src_f = jnp.fft.rfft2(source, s=shape)
+        l1 = jnp.fft.irfft2(src_f[:, None, None, None] * k1_f, s=shape)
+        l1 = sigma_s * jnp.maximum(l1[..., : self.height, : self.width], 0.0)
+        i2 = jnp.fft.irfft2(src_f * k1_cam_f, s=shape)[..., : self.height, : self.width]
+        i2 = sigma_s**2 * jnp.maximum(i2, 0.0)
+        plus, minus = self._phase_matrices(g, dtype)
+        bounce = SlabBounce(
+            transport_f=self._kernels_f(transport),
+            camera_f=sigma_s * self._kernels_f(camera),
+            mix_even=0.5 * sigma_s * (plus + minus),
+            mix_odd=0.5 * sigma_s * (plus - minus),
+            height=self.height,
+            width=self.width,
+        )
+        return bounce, i2, l1, bounce.scatter(l1)
 
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
         _count_trace()
         dtype = sigma_t.dtype
-        n, J = self.n_theta, self.n_mu
-        H, W = self.height, self.width
-        shape = (2 * H, 2 * W)
+        n = self.n_theta
         h = self.thickness
+        dz = h / self.n_z
         dtheta = 2 * math.pi / n
         t_cam = jnp.asarray(self.camera_t, dtype)
-        mu = self.mu.astype(dtype)
-        w_mu = self.w_mu.astype(dtype)
 
         source = unscattered_fluence(self, sigma_t)  # (P, H, W), uniform in depth
         depth_factor = -jnp.expm1(-sigma_t * h) / sigma_t
-        i1 = t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source
-        images = [i1]
+        images = [t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source]
         fields = []
         if lightfield:
             l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
             fields.append(l0.at[:, self.theta0_bin].set(h * source / dtheta))
 
-        def integrate(field):  # (P, J, n, H, W) → depth- and μ-integrated (P, n, H, W)
-            return h * 2.0 * jnp.einsum("j,pjnhw->pnhw", w_mu, field)
+        def integrate(field):  # (P, n_z, n_mu, n, H, W) → ∫dz ∫dμ: (P, n, H, W)
+            return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", self.w_mu.astype(dtype), field)
 
         if self.bounces > 1 or lightfield:
-            att = jnp.exp(-sigma_t * self.t_sub.astype(dtype))  # (J, N, q)
-            transport = jnp.sum(att * self.survival.astype(dtype), axis=-1)  # (J, N)
-            a_up, a_dn, b_up, b_dn = _cell_integrals(
-                self.cam_u, h, self.refl[:, None, None], sigma_t
-            )
-            cam_w = att * self.w_over_s.astype(dtype)
-            up = jnp.sum(cam_w * (a_up + b_up), axis=-1)
-            down = jnp.sum(cam_w * (a_dn + b_dn), axis=-1)
-            # Camera weights per stored node: T dΩ_j [p(μ_j)·up + p(−μ_j)·down] (σs apart).
-            camera = (w_mu * dtheta)[:, None] * (
-                hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down
-            )
-            camera = t_cam * camera
-            # First scatter: node-level phase p(ω_node·ω0), normalised on the discrete
-            # sphere (so the first bounce conserves ω·energy).
-            p1 = hg(self.node_cos.astype(dtype), g)  # (J, N)
-            fine = (np.arange(n * 16) + 0.5) * (dtheta / 16)
-            ring = jnp.sum(
-                hg(jnp.sqrt(1 - mu * mu)[:, None] * jnp.asarray(np.cos(fine), dtype)[None], g),
-                axis=1,
-            ) * (dtheta / 16)
-            p1 = p1 / (2.0 * jnp.sum(w_mu * ring))
-            k1 = self._splat(p1 * transport)  # L̄_1/σs kernels (J, n, 2H, 2W)
-            k1_cam = jnp.sum(self._splat(p1 * camera), axis=(0, 1))  # I_2/σs² kernel
-            l1 = sigma_s * self._convolve(source[:, None, None], jnp.fft.rfft2(k1), shape)
+            bounce, i2, l1, q = self.bounce_step(sigma_t, sigma_s, g)
             if self.bounces > 1:
-                images.append(sigma_s**2 * self._convolve(source, jnp.fft.rfft2(k1_cam), shape))
+                images.append(i2)
             if lightfield:
                 fields.append(integrate(l1))
-        q_last = None
-        if self.bounces > 2 or (lightfield and self.bounces > 1):
-            mix = self._phase_matrix(g, dtype)
-            ktr_f = jnp.fft.rfft2(self._splat(transport))  # (J, n, 2H, W+1)
-            kcam_f = jnp.fft.rfft2(self._splat(camera))
-
-            def scatter(field):  # (P, J, n, H, W) → Q
-                p_ = field.shape[0]
-                flat = field.reshape(p_, J * n, H, W)
-                return sigma_s * jnp.einsum("ab,pbhw->pahw", mix, flat).reshape(field.shape)
-
-            def bounce(q, _):
-                q_f = jnp.fft.rfft2(q, s=shape)
-                image = jnp.fft.irfft2(jnp.sum(q_f * kcam_f, axis=(1, 2)), s=shape)
-                image = sigma_s * jnp.maximum(image[..., :H, :W], 0.0)
-                field = jnp.maximum(jnp.fft.irfft2(q_f * ktr_f, s=shape)[..., :H, :W], 0.0)
-                return scatter(field), (image, integrate(field) if lightfield else None)
-
-            q = scatter(l1)
+            images = [jnp.stack(images)]
+            fields = [jnp.stack(fields)] if lightfield else []
             if self.bounces > 2:
-                q_last, (more, more_fields) = jax.lax.scan(bounce, q, None, length=self.bounces - 2)
-                images = [jnp.stack(images), more]
+
+                def body(q, _):
+                    q_next, image, field = bounce.step(q)
+                    return q_next, (image, integrate(field) if lightfield else None)
+
+                q, (more, more_fields) = jax.lax.scan(body, q, None, length=self.bounces - 2)
+                images.append(more)
                 if lightfield:
-                    fields = [jnp.stack(fields), more_fields]
-            else:
-                q_last = q
-                images = [jnp.stack(images)]
-                fields = [jnp.stack(fields)] if lightfield else []
+                    fields.append(more_fields)
+            if lightfield and self.bounces > 1:
+                shape = (2 * self.height, 2 * self.width)
+                fields.append(integrate(bounce.transport(jnp.fft.rfft2(q, s=shape)))[None])
         else:
             images = [jnp.stack(images)]
             fields = [jnp.stack(fields)] if lightfield else []
-        if lightfield and self.bounces > 1:
-            last = self._convolve(q_last, ktr_f, shape)
-            fields.append(integrate(last)[None])
         stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
         lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
         return stacked, lf
@@ -656,7 +707,7 @@ def describe_geometry(model: dict) -> str:
         text = f"slab h {geo['thickness']:g} px {geo['boundary']}"
         if geo["boundary"] == "refractive":
             text += f" n {geo['n']:g}"
-        text += f", n_mu {geo.get('n_mu')}"
+        text += f", n_mu {geo.get('n_mu')}, n_z {geo.get('n_z', 1)}"
     else:
         text = "plane"
     choice = model.get("geometry_choice")
@@ -674,7 +725,9 @@ def _bounce_ratio_cached(slab: Slab, key: tuple, width: int, height: int) -> flo
 
     f = max(1.0, max(width, height) / 24.0)  # the same tank, in pixels of f px
     w, h = max(4, round(width / f)), max(4, round(height / f))
-    coarse = dataclasses.replace(slab, thickness=slab.thickness / f, n_mu=min(slab.n_mu or 4, 8))
+    coarse = dataclasses.replace(
+        slab, thickness=slab.thickness / f, n_mu=min(slab.n_mu or 4, 8), n_z=min(slab.n_z or 1, 2)
+    )
     grid = Grid(w, h, 8, 1)
     k = 14
     r = SlabRenderer(grid, Full(0.0, "left"), k, coarse)
@@ -692,7 +745,7 @@ def slab_bounce_ratio(
     the fifth bounce on). Light leaving through the faces and walls makes it smaller
     than the albedo bound ω, often by far: it sizes the bounce count of slab fits."""
     key = (round(float(sigma_t), 4), round(float(albedo), 3), round(float(g), 2))
-    return _bounce_ratio_cached(slab.resolve(g), key, int(width), int(height))
+    return _bounce_ratio_cached(slab.resolve(g, sigma_t, albedo), key, int(width), int(height))
 
 
 __all__ = [
@@ -702,6 +755,7 @@ __all__ = [
     "SlabRenderer",
     "SceneGeometry",
     "default_n_mu",
+    "default_n_z",
     "describe_geometry",
     "default_slab_n_theta",
     "resolve_slab_grid",

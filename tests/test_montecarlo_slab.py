@@ -272,6 +272,30 @@ def test_depth_layers_are_exact_for_two_bounces(boundary, layers):
         assert totals[0] - totals[1] > 4 * math.hypot(*errors)
 
 
+@pytest.mark.parametrize("g", [0.8, -0.3])
+def test_camera_sampling_is_unbiased_and_its_sum_errors_are_right(g):
+    """Directions drawn toward the camera axis (weights p/q) leave I_k unchanged: the
+    image sums of ε = 0.3 and the analog ε = 0 agree within their own standard errors,
+    and those errors match the scatter between seeds."""
+    args = (24, 16, 6.4, 0.2, 0.18, g, Full(0.0, "left"), 5)
+    kw = dict(boundary="refractive", photons=200_000)
+    runs = [
+        monte_carlo_slab(*args, seed=s, camera_sampling=e, **kw)
+        for s, e in ((1, 0.0), (2, 0.3), (3, 0.3))
+    ]
+    sums = [r.images[0].sum((1, 2)) for r in runs]
+    se = [r.total_stderr[0] for r in runs]
+    z = (sums[1] - sums[0]) / np.hypot(se[0], se[1])
+    assert np.max(np.abs(z)) < 4, z
+    z_seeds = (sums[2] - sums[1]) / np.hypot(se[1], se[2])
+    assert np.max(np.abs(z_seeds)) < 4, z_seeds
+    # A photon scores in one pixel per bounce, so pixel scores anti-correlate: the
+    # sum's error is at most the pixel errors in quadrature (far below for I_1, whose
+    # photons all score).
+    quad = np.sqrt(np.sum(runs[0].stderr[0] ** 2, axis=(1, 2)))
+    assert np.all(se[0] <= quad * (1 + 1e-9)) and se[0][0] < 0.5 * quad[0]
+
+
 def _block_mean(a, b=2):
     h, w = a.shape[-2:]
     return a.reshape(*a.shape[:-2], h // b, b, w // b, b).mean(axis=(-1, -3))
@@ -337,6 +361,7 @@ def test_stripes_split_full_illumination_exactly():
         (dict(n=0.0), "n"),
         (dict(bounces=0), "bounces"),
         (dict(depth_layers=0), "depth_layers"),
+        (dict(camera_sampling=1.0), "camera_sampling"),
         (dict(illumination=Beam(3.0, 4.0)), "not on a wall"),
         (dict(illumination="full"), "illumination"),
     ],

@@ -27,7 +27,7 @@ def slab_capture(st, ss, g, slab, width=40, height=30):
 
 def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
     st, ss, g = 0.2051, 0.0366, 0.4
-    slab = Slab(6.4)
+    slab = Slab(6.4, n_z=1)  # what default_n_z gives a medium this dim (ω 0.18)
     fit = fit_images(slab_capture(st, ss, g, slab), PATTERN, options=FitOptions(geometry=slab))
     assert fit.converged, fit.message
     assert fit.sigma_t == pytest.approx(st, rel=0.01)
@@ -40,7 +40,7 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
 @pytest.mark.parametrize("method", ["grid", "gradient"])
 def test_two_step_methods_with_the_slab_and_a_perfect_split(method):
     st, ss, g = 0.2051, 0.11, 0.4
-    slab = Slab(6.4)
+    slab = Slab(6.4, n_z=1)  # the depth average: layers are tested in test_slab_depth.py
     medium = lfj.Medium(st, ss, g)
     stripes = np.asarray(lfj.render(medium, lfj.Grid(32, 24), PATTERN, 8, geometry=slab).total)
     full = lfj.render(medium, lfj.Grid(32, 24), lfj.Full(0.0, "left"), 8, geometry=slab)
@@ -63,7 +63,7 @@ def test_the_plane_model_is_biased_on_a_slab_capture():
 
 
 def test_bounce_ratio_is_below_the_albedo_and_matches_the_render():
-    slab = Slab(6.4, "refractive")
+    slab = Slab(6.4, "refractive", n_z=2)
     r = slab_bounce_ratio(slab, 0.3, 0.7, -0.3, 48, 36)
     res = lfj.render(
         lfj.Medium(0.3, 0.21, -0.3), lfj.Grid(48, 36), lfj.Full(0.0, "left"), 16, geometry=slab
@@ -74,7 +74,7 @@ def test_bounce_ratio_is_below_the_albedo_and_matches_the_render():
 
 
 def test_relative_noise_measures_the_noise_not_the_signal():
-    img = slab_capture(0.2051, 0.0366, 0.4, Slab(6.4), 64, 48)
+    img = slab_capture(0.2051, 0.0366, 0.4, Slab(6.4, n_z=1), 64, 48)
     assert relative_noise(img, PATTERN) < 2e-3  # the signal's own fourth difference
     rng = np.random.default_rng(1)
     for eps in (0.003, 0.03):
@@ -96,7 +96,7 @@ def test_choice_rule():
 
 def test_auto_keeps_the_plane_under_heavy_noise_and_picks_the_slab_without():
     st, ss, g = 0.2, 0.1, 0.4
-    slab = Slab(6.4)
+    slab = Slab(6.4, n_z=1)
     clean = slab_capture(st, ss, g, slab, 32, 24)
     rng = np.random.default_rng(0)
     noisy = clean * (1 + 0.2 * rng.standard_normal(clean.shape))
@@ -117,7 +117,13 @@ def test_cli_fit_uses_the_capture_geometry(tmp_path):
         "grid": {"width": 32, "height": 24},
         "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
-        "geometry": {"kind": "slab", "thickness": 6.4, "boundary": "refractive", "n": 1.33},
+        "geometry": {
+            "kind": "slab",
+            "thickness": 6.4,
+            "boundary": "refractive",
+            "n": 1.33,
+            "n_z": 1,
+        },
     }
     (tmp_path / "sim.yaml").write_text(yaml.safe_dump(cfg))
     run = [sys.executable, "-m", "lightfield_jax"]

@@ -1,0 +1,143 @@
+"""Depth layers of the slab model: the weights between layers and one bounce.
+
+The slab [0, h] is cut into n_z layers of thickness Δ = h/n_z, and each order's source
+is kept as its layer averages Q_l(x, y, θ, μ) (n_z = 1: the depth average). The faces
+are symmetric and the sheet is horizontal, so the light field has the mirror symmetry
+L(z, −μ) = L(h − z, μ) (docs/slab_design.md, fact 4): only up-going directions μ > 0
+are stored, the down-going field of layer l being the up-going one of layer
+n_z − 1 − l.
+
+With that symmetry a face reflection is a periodic wrap: light heading up from height
+a, after a vertical travel u and m reflections (weight R(μ)^m), is up-going light at
+y = a + u − m h of the stored field, whichever face it met first (the down-going
+branch is the mirror image of the up-going one). So the layer average of the
+transported field is, exactly for layer-uniform sources,
+
+    L_l(x) = Σ_{l'} ∫ dt e^{−σt t} W_{l−l'}(t μ) Q_{l'}(x − t ω_h),
+    W_δ(u) = Σ_{m ≥ 0} R^m Λ(u/Δ − δ − m n_z),   Λ(x) = (1 − |x|)₊,
+
+the overlap of layer l with layer l' shifted by u (R = 0 for absorbing faces: m = 0
+only). For n_z = 1, W_0(u) = R^⌊v⌋(1 − f(1 − R)), v = u/h, f = v − ⌊v⌋: the depth
+average's survival S. The camera sees (MODEL.md §7) T σs ∫ dz e^{−σt(h−z)} Σ_ω p(ω·ẑ) L,
+which for the stored up-going field at height y is the weight
+p(μ) e^{−σt(h−y)} + p(−μ) e^{−σt y}; integrated exactly over the rays leaving source
+layer l' (:func:`camera_integrals`), I_{k+1} is exact given the layered Q_k.
+
+Only the radial quadrature points' vertical travel u = tμ enters: it is static, and
+the σt-dependent factors (e^{−σt t}, the camera's exponentials) are evaluated in the
+compiled program, so new σt, σs, g never recompile.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Complex, Float
+
+
+def _wraps(m, refl):
+    """R^m for wrap counts m ≥ 0 (R^0 = 1, also for R = 0)."""
+    log_r = jnp.log(jnp.maximum(refl, 1e-300))
+    return jnp.where(m == 0, 1.0, jnp.where(refl > 0, jnp.exp(m * log_r), 0.0))
+
+
+def transport_weights(v, refl, n_z: int, delta: int):
+    """W_δ at u = v·Δ (v in layer thicknesses) for faces of reflectance ``refl``
+    (broadcastable to v; 0 for absorbing faces). At most two wraps m overlap."""
+    x = v - delta
+    m_a = jnp.floor(x / n_z)
+    total = jnp.zeros_like(v)
+    for m in (m_a, m_a + 1.0):
+        tri = jnp.maximum(1.0 - jnp.abs(x - m * n_z), 0.0)
+        total = total + jnp.where(m >= 0, _wraps(m, refl) * tri, 0.0)
+    return total
+
+
+def camera_integrals(u, h: float, n_z: int, layer: int, refl, sigma_t):
+    """(A, B): Σ_m R^m ∫ e^{−σt (h − y)} dy and Σ_m R^m ∫ e^{−σt y} dy over the heights
+    y ∈ [0, h] reached (as stored up-going light, after m wraps) by rays leaving source
+    layer ``layer`` (uniform, unit density) with vertical travel ``u``. The camera's
+    weight of these rays is p(μ)·A + p(−μ)·B. Only ``sigma_t`` carries a derivative."""
+    dz = h / n_z
+    a0 = layer * dz + u
+    m0 = jnp.floor(a0 / h)
+    a_sum = jnp.zeros_like(a0 * sigma_t)
+    b_sum = jnp.zeros_like(a_sum)
+    for m in (m0, m0 + 1.0):
+        a = a0 - m * h
+        lo = jnp.clip(a, 0.0, h)
+        hi = jnp.clip(a + dz, 0.0, h)
+        rm = _wraps(m, refl)
+        span = -jnp.expm1(-sigma_t * (hi - lo)) / sigma_t  # 0 where the interval is empty
+        a_sum = a_sum + rm * jnp.exp(-sigma_t * (h - hi)) * span
+        b_sum = b_sum + rm * jnp.exp(-sigma_t * lo) * span
+    return a_sum, b_sum
+
+
+class SlabBounce(eqx.Module):
+    """One bounce of the layered slab model, built once per (σt, σs, g).
+
+    ``bounce(q) -> (q_next, image)`` maps the layered source Q_k (σs included),
+    Float[Array, "patterns n_z n_mu n_theta H W"], to Q_{k+1} and the image I_{k+1}
+    Float[Array, "patterns H W"]; :meth:`step` also returns the transported light field
+    L_k. Pure and linear in q (a Krylov solve may use it as its operator).
+
+    Attributes:
+        transport_f: rfft2 of the kernels of W_δ, δ = −(n_z−1)..n_z−1 (index δ + n_z − 1),
+            (2 n_z − 1, n_mu, n_theta, 2H, W + 1).
+        camera_f: rfft2 of the camera kernels per source layer (n_z, n_mu, n_theta,
+            2H, W + 1), σs and T included.
+        mix_even, mix_odd: ½(M⁺ ± M⁻) (σs included), M^± the discrete phase matrices
+            from up-going directions into up-going (⁺) and down-going (⁻) ones.
+    """
+
+    transport_f: Complex[Array, "kernels n_mu n_theta fy fx"]
+    camera_f: Complex[Array, "n_z n_mu n_theta fy fx"]
+    mix_even: Float[Array, "a a"]
+    mix_odd: Float[Array, "a a"]
+    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True)
+
+    @property
+    def n_z(self) -> int:
+        return self.camera_f.shape[0]
+
+    def __call__(self, q):
+        q_next, image, _ = self.step(q)
+        return q_next, image
+
+    def step(self, q):
+        """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
+        shape = (2 * self.height, 2 * self.width)
+        q_f = jnp.fft.rfft2(q, s=shape)
+        image_f = jnp.einsum("plmnyx,lmnyx->pyx", q_f, self.camera_f)
+        image = jnp.fft.irfft2(image_f, s=shape)[..., : self.height, : self.width]
+        field = self.transport(q_f)
+        return self.scatter(field), jnp.maximum(image, 0.0), field
+
+    def transport(self, q_f):
+        """L_l = Σ_l' K_{l−l'} ⊛ Q_l' from the sources' rfft2 (patterns, n_z, …)."""
+        n_z = self.n_z
+        out = jnp.zeros_like(q_f)
+        for delta in range(-(n_z - 1), n_z):
+            k = self.transport_f[delta + n_z - 1]
+            if delta >= 0:
+                out = out.at[:, delta:].add(k * q_f[:, : n_z - delta])
+            else:
+                out = out.at[:, : n_z + delta].add(k * q_f[:, -delta:])
+        field = jnp.fft.irfft2(out, s=(2 * self.height, 2 * self.width))
+        return jnp.maximum(field[..., : self.height, : self.width], 0.0)
+
+    def scatter(self, field):
+        """Q_l = M⁺ L_l + M⁻ L_{n_z−1−l}, through the layer-mirror sums and differences
+        (each costs one matmul on half the layers)."""
+        p, n_z = field.shape[:2]
+        flat = field.reshape((p, n_z, -1) + field.shape[-2:])
+        if n_z == 1:
+            return jnp.einsum("ab,plbyx->playx", 2.0 * self.mix_even, flat).reshape(field.shape)
+        half = (n_z + 1) // 2
+        rev = flat[:, ::-1]
+        even = jnp.einsum("ab,plbyx->playx", self.mix_even, (flat + rev)[:, :half])
+        odd = jnp.einsum("ab,plbyx->playx", self.mix_odd, (flat - rev)[:, :half])
+        lower = (even - odd)[:, ::-1][:, n_z % 2 :]
+        return jnp.concatenate([even + odd, lower], axis=1).reshape(field.shape)
