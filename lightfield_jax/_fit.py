@@ -384,9 +384,12 @@ def size_model(
     gw = min(0.99, abs(g) + 0.1)
     slab = options.geometry if isinstance(options.geometry, Slab) else None
     if slab is not None:  # less sensitive to g than the plane: a smaller margin
-        n_theta = options.n_theta or default_slab_n_theta(min(0.99, abs(g) + 0.05))
+        # Depth layers, elevation nodes and azimuth bins from the estimate (the albedo
+        # and σt·h decide how much the depth must be resolved).
+        g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
+        n_theta = options.n_theta or default_slab_n_theta(g_slab, slab.boundary, albedo_slab)
         refine = options.refine or 1
-        slab = slab.resolve(min(0.99, abs(g) + 0.05))
+        slab = slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
     else:
         n_theta = options.n_theta or default_n_theta(gw)
         refine = options.refine or default_refine(abs(g))
@@ -401,7 +404,9 @@ def size_model(
     if slab is not None:
         # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
         user_mu = options.geometry.n_mu is not None
-        while width * height * 4 * n_theta * slab.n_mu * refine**2 > 4 * options.max_cells:
+        while (
+            width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2 > 4 * options.max_cells
+        ):
             if n_theta > 8 and options.n_theta is None:
                 n_theta //= 2
             elif slab.n_mu > 4 and not user_mu:
@@ -856,7 +861,11 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
     )
     geometry = model.geometry
     if geometry is not None and floor.geometry is not None:
-        geometry = dataclasses.replace(geometry, n_mu=max(geometry.n_mu, floor.geometry.n_mu))
+        geometry = dataclasses.replace(
+            geometry,
+            n_mu=max(geometry.n_mu, floor.geometry.n_mu),
+            n_z=max(geometry.n_z, floor.geometry.n_z),
+        )
     return dataclasses.replace(
         model, grid=grid, bounces=max(model.bounces, floor.bounces), geometry=geometry
     )
@@ -864,15 +873,15 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
 
 def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     """The cheap model of the basin scan and of the joint fit's first stage: 32 θ bins
-    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes), the bounces the
-    capture's brightness ratio calls for (tail below 1e-3 at ρ = max(ρ0, 0.3), ρ0 the
+    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one depth layer),
+    the bounces the capture's brightness ratio calls for (tail below 1e-3 at ρ = max(ρ0, 0.3), ρ0 the
     separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
     n_theta, geometry = min(options.n_theta or 32, 32), None
     if isinstance(options.geometry, Slab):
         slab = options.geometry
         n_theta = min(options.n_theta or 8, 8)
-        geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4))
+        geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4), n_z=1)
     rho = min(max(rho0, 0.3), 0.95)
     k = bounces_for_tolerance(rho, 1e-3, max_bounces=10**9)
     k = min(_bucket_bounces(k), options.max_bounces)
@@ -986,7 +995,9 @@ def _finer(model: _Model, options: FitOptions) -> _Model:
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
-        geometry = dataclasses.replace(geometry, n_mu=min(2 * geometry.n_mu, 32))
+        geometry = dataclasses.replace(
+            geometry, n_mu=min(2 * geometry.n_mu, 32), n_z=min(2 * geometry.n_z, 8)
+        )
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
     else:
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 256))
@@ -1116,7 +1127,11 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             "n_theta": fine.grid.n_theta,
             "refine": fine.grid.refine,
             "bounces": fine.bounces,
-            **({"n_mu": fine.geometry.n_mu} if fine.geometry is not None else {}),
+            **(
+                {"n_mu": fine.geometry.n_mu, "n_z": fine.geometry.n_z}
+                if fine.geometry is not None
+                else {}
+            ),
         }
     scan_dict = the_scan.as_dict()
     scan_dict["tried"] = tried
@@ -1596,7 +1611,9 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
         crop=crop,
         converges=True,
         rho=0.0,
-        geometry=None if slab is None else dataclasses.replace(slab, n_mu=slab.n_mu or 4),
+        geometry=None
+        if slab is None
+        else dataclasses.replace(slab, n_mu=slab.n_mu or 4, n_z=slab.n_z or 1),
     )
 
 

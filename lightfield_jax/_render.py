@@ -536,7 +536,9 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
 
     g = float(medium.g)
     if isinstance(geometry, Slab):
-        grid, geometry = resolve_slab_grid(grid, geometry, g)
+        grid, geometry = resolve_slab_grid(
+            grid, geometry, g, float(medium.sigma_t), float(medium.albedo)
+        )
         return grid, geometry, rho_bound(medium, geometry)
     if geometry is not None and not isinstance(geometry, Plane):
         raise ValueError(f"geometry: must be a Plane or a Slab, got {geometry!r}")

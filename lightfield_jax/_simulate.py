@@ -173,7 +173,9 @@ def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     grid = config.grid.resolve(config.medium.g)
     n_mu = 1
     if isinstance(config.geometry, Slab):
-        n_mu = config.geometry.resolve(config.medium.g).n_mu
+        m = config.medium
+        slab = config.geometry.resolve(float(m.g), float(m.sigma_t), float(m.albedo))
+        n_mu = slab.n_mu * slab.n_z  # fields per azimuth bin and pixel
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
     return render_bytes(
         patterns,
