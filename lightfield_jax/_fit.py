@@ -874,8 +874,8 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
 def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     """The cheap model of the basin scan and of the joint fit's first stage: 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one depth layer),
-    the bounces the capture's brightness ratio calls for (tail below 1e-3 at ρ = max(ρ0, 0.3), ρ0 the
-    separation's estimate with its margin)."""
+    the bounces the capture's brightness ratio calls for (tail below 1e-3 at
+    ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
     n_theta, geometry = min(options.n_theta or 32, 32), None
     if isinstance(options.geometry, Slab):
