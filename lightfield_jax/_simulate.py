@@ -174,7 +174,7 @@ def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     n_mu = 1
     if isinstance(config.geometry, Slab):
         m = config.medium
-        slab = config.geometry.resolve(float(m.g), float(m.sigma_t), float(m.albedo))
+        slab = config.geometry.resolve(m.g, m.sigma_t, m.sigma_s / m.sigma_t)
         n_mu = slab.n_mu * slab.n_z  # fields per azimuth bin and pixel
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
     return render_bytes(
