@@ -33,6 +33,7 @@ def _files(out: Path, summary: dict) -> None:
         assert path.is_file() and path.stat().st_size > 0, name
 
 
+@pytest.mark.slow  # minutes on 2 cores; run with -m slow
 def test_inverse_speed_accuracy_reduced(tmp_path):
     summary = run_experiment(CONFIGS / "inverse_speed_accuracy.yaml", tmp_path, reduced=True)[
         "summary"
@@ -66,6 +67,7 @@ def test_inverse_speed_accuracy_dense_grids_repeat_less():
     assert "grid-321" not in script._labels({**config, "methods": ["grid"]}, "noisy")
 
 
+@pytest.mark.slow  # minutes on 2 cores; run with -m slow
 def test_stability_maps_reduced(tmp_path):
     config = CONFIGS / "stability_maps.yaml"
     summary = run_experiment(config, tmp_path, reduced=True)["summary"]
@@ -86,6 +88,7 @@ def test_stability_maps_reduced(tmp_path):
     assert json.dumps(again) == json.dumps(summary)
 
 
+@pytest.mark.slow  # minutes on 2 cores; run with -m slow
 def test_model_size_reduced(tmp_path):
     summary = run_experiment(CONFIGS / "model_size.yaml", tmp_path, reduced=True)["summary"]
     _files(tmp_path, summary)

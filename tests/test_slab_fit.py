@@ -94,6 +94,7 @@ def test_choice_rule():
     assert misfit(np.ones(4) * 1.1, np.ones(4)) == pytest.approx(0.1)
 
 
+@pytest.mark.slow  # minutes on 2 cores; run with -m slow
 def test_auto_keeps_the_plane_under_heavy_noise_and_picks_the_slab_without():
     st, ss, g = 0.2, 0.1, 0.4
     slab = Slab(6.4, n_z=1)
@@ -142,6 +143,7 @@ def test_cli_fit_uses_the_capture_geometry(tmp_path):
     assert entry["sigma_s"] == pytest.approx(0.0366, rel=0.02)
 
 
+@pytest.mark.slow  # minutes on 2 cores; run with -m slow
 def test_plane_vs_slab_experiment_reduced(tmp_path):
     from pathlib import Path
 
