@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax._experiment import load_helper, run_experiment
@@ -136,6 +137,7 @@ _SHARDED = """
 import importlib.util, sys
 import jax
 import numpy as np
+import pytest
 import lightfield_jax as lfj
 
 jax.config.update("jax_enable_x64", True)
