@@ -209,7 +209,7 @@ def _energy_noise(splits: np.ndarray) -> float:
 
 
 def _second_bounce_energy(scene: Scene, width: int, height: int) -> float:
-    """Σ_pixels I_2 by quadrature, with no grid and no Monte Carlo noise (MODEL.md §4).
+    """Σ_pixels I_2 by quadrature, with no grid and no Monte Carlo noise (docs/model.md §4).
 
     Light scattered once at x' heading θ travels until it collides or leaves, so the
     area integral of its fluence is Q_1(x', θ)(1 − e^{−σt d(x', θ)})/σt, d the distance

@@ -2,7 +2,7 @@
 
 A tank has a depth h; the paper's model keeps all light in one plane. Per scene (σt·h,
 the thickness in mean free paths; albedo; g; the faces) this experiment renders a
-noiseless 6-phase stripe capture with the slab model (MODEL.md section 7), fits the
+noiseless 6-phase stripe capture with the slab model (docs/model.md section 7), fits the
 plane model to it with the default ``joint`` method, and records
 
 - the plane fit's relative misfit m = ‖fit − capture‖₂ / ‖capture‖₂ over the model's

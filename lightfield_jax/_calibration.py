@@ -22,7 +22,7 @@ files go wrong into clear errors or notes:
   diagonal pairs differ) or a difference within a diagonal pair, which stripes along
   rows or columns, and smooth gradients, never produce.
 
-Black level (:func:`estimate_black_level`), b in MODEL.md section 5, from:
+Black level (:func:`estimate_black_level`), b in docs/model.md section 5, from:
 
 - the all-black frame K (the projector showing black) with the all-white frame W: the
   slope of K against W over the medium's pixels (K = δ + b·R_full, W = δ + R_full; a

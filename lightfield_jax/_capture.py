@@ -40,7 +40,7 @@ Keys:
   subtracted from every exposure before the merge. ``saturation`` is then the sample
   value at which a sample counts as clipped (default 0.98). The merged noise goes to the
   joint fit (``Capture.exposure``); ``Capture.brackets`` says what the merge did.
-- ``pattern``: the projected stripes (MODEL.md section 3): ``period`` (default 6),
+- ``pattern``: the projected stripes (docs/model.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
   default left). Image row r (column, for the top and bottom walls) is lit in an image
@@ -57,7 +57,7 @@ Keys:
   are masked.
   Calibration frames (dark, black, white, flat) have the images' size and one channel
   or as many as the images, and an integer one the images' bit depth.
-- ``black_level``: b in [0, 1): a dark stripe emits b times a lit one (MODEL.md
+- ``black_level``: b in [0, 1): a dark stripe emits b times a lit one (docs/model.md
   section 5). Absent: unknown (a joint fit may estimate it).
 - ``medium_roi``: [x0, y0, x1, y1] in pixels, x1 and y1 exclusive: the medium's
   rectangle. Images are cropped to it and its edges are the medium's walls.
@@ -69,7 +69,7 @@ Keys:
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
   (default: every channel, fitted separately).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
-  depth modelled in 3-D (MODEL.md section 7): ``{kind: slab, thickness: 6.4,
+  depth modelled in 3-D (docs/model.md section 7): ``{kind: slab, thickness: 6.4,
   boundary: absorbing}`` (thickness in pixels; ``boundary: refractive`` with ``n:
   1.33``; optional ``n_mu``, the elevation nodes). Every fit method uses it.
   ``{kind: auto, thickness: 6.4, ...}`` (the slab's keys): the fit uses the plane
@@ -981,7 +981,7 @@ def _positive(top: _Section, key: str) -> float | None:
 
 
 def _geometry(top: _Section) -> dict[str, Any]:
-    """The model geometry: ``{kind: plane}`` (default) or a slab (MODEL.md §7)."""
+    """The model geometry: ``{kind: plane}`` (default) or a slab (docs/model.md §7)."""
     if "geometry" not in top.data:
         return {"kind": "plane"}
     try:

@@ -24,9 +24,9 @@ Optional keys (all absent by default):
   Gaussian read noise in image units; ``seed`` ≥ 0 seeds the generator (default 0).
   At least one of ``photons`` and ``read`` must be given.
 - ``black_level: 0.05`` (stripes only), in [0, 1): a dark stripe still emits b times
-  a lit one, so a shift's image is (1 − b)·R_pattern + b·R_full (MODEL.md section 5).
+  a lit one, so a shift's image is (1 − b)·R_pattern + b·R_full (docs/model.md section 5).
 - ``geometry: {kind: slab, thickness: 6.4, boundary: absorbing}``: the tank's depth
-  modelled in 3-D (MODEL.md section 7; thickness in pixels, ``boundary: refractive``
+  modelled in 3-D (docs/model.md section 7; thickness in pixels, ``boundary: refractive``
   with ``n: 1.33``, optional ``n_mu`` elevation nodes). Absent or ``{kind: plane}``:
   the paper's 2-D model.
 - ``dark_level: 0.01`` ≥ 0: a constant (image units) added to every captured image; a

@@ -1,8 +1,8 @@
-"""σt from the decay of the direct (single-scatter) image (MODEL.md section 6).
+"""σt from the decay of the direct (single-scatter) image (docs/model.md section 6).
 
 Light entering a wall heading θ0 reaches a point x after a path s(x) through the
 medium, the distance from x back to the entry wall along −ω(θ0), ω(θ) = (cos θ, sin θ).
-The single scatter there is c·exp(−σt·s) (MODEL.md section 4), so the direct image
+The single scatter there is c·exp(−σt·s) (docs/model.md section 4), so the direct image
 follows
 
     D(x) ≈ c_ℓ · exp(−σt · s(x)),

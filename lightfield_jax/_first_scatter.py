@@ -1,7 +1,7 @@
 """The first-collided light field L_1, semi-analytically (no grid transport of the beam).
 
 Transporting the thin unscattered beam (or the first-scatter source Q_1) on the grid
-smears it into neighbouring rows (NUMERICS.md). Instead, L_1 is a 2-D convolution of
+smears it into neighbouring rows (docs/model.md §4). Instead, L_1 is a 2-D convolution of
 the pixel-averaged unscattered fluence S with one kernel per direction bin:
 
     L_1[x, j] = σs Σ_s S[s] K_j[x − s],

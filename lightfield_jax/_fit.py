@@ -1,4 +1,4 @@
-"""The inverse problem (MODEL.md sections 5-6): recover σt, σs, g (and the gain) from a
+"""The inverse problem (docs/model.md sections 5-6): recover σt, σs, g (and the gain) from a
 stripe capture.
 
 Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
@@ -7,7 +7,7 @@ Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
   per g on a grid, render I_k^{(g)} with σs = 1 under full illumination (``lax.map``
   over g), take the gain from the single scatter (D ≈ a·I_1^{(g)}, a = c·σs), solve the
   σs polynomial of the paper's eq. 10, M ≈ a·Σ_{k≥2} σs^{k−1} I_k^{(g)}, and keep the
-  best g. It inherits the separation's bias (MODEL.md §6): that is its honest result.
+  best g. It inherits the separation's bias (docs/model.md §6): that is its honest result.
 - ``gradient``: the same residual and model, solved with optimistix Levenberg-Marquardt
   over (σs, g), differentiated through the renderer.
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
@@ -91,7 +91,7 @@ class FitOptions:
         crop_fraction: see ``crop``.
         max_steps: iteration limit of the optimistix solves.
         geometry: the model's geometry: ``None`` or :class:`Plane` (the paper's 2-D
-            model), a :class:`Slab` (the tank's depth, MODEL.md §7; its 3-D phase
+            model), a :class:`Slab` (the tank's depth, docs/model.md §7; its 3-D phase
             function is normalised on the sphere, so ``phase`` is ``normalized``), or
             :class:`AutoGeometry` (the plane where its misfit is below the capture's
             noise, else the slab: :mod:`lightfield_jax._model_choice`).
@@ -216,7 +216,7 @@ class FitResult:
         return self.albedo * a
 
     def to_dict(self) -> dict:
-        """The ``results.json`` form (MODEL.md units: per pixel; also mm⁻¹ if known)."""
+        """The ``results.json`` form (docs/model.md units: per pixel; also mm⁻¹ if known)."""
         unc = dict(self.uncertainty)
         if "sigma_a" not in unc:
             unc["sigma_a"] = _combine(unc, self.correlation, "sigma_t", "sigma_s", -1.0)

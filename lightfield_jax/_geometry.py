@@ -3,7 +3,7 @@ wall the light enters, where it heads, and where the stripes fall on the camera'
 
 A real capture comes without these numbers, and measuring them by hand (a ruler on the
 tank, a protractor on the projector) is the error-prone step. :func:`detect_geometry`
-finds them in the images themselves, in the image frame of MODEL.md section 1:
+finds them in the images themselves, in the image frame of docs/model.md section 1:
 
 - **Medium (ROI).** The signal S is the mean over the shifts (every row is lit in some
   shift, so S has no stripes) or the all-white frame. Its noise floor is read from the
@@ -47,7 +47,7 @@ finds them in the images themselves, in the image frame of MODEL.md section 1:
   the phase of each image: rows r with (r + φ) mod T < lit are lit, whose centre is
   −φ + lit/2, so φ = lit/2 − u_c (mod T), rounded to an integer. The fractional part
   left over (``phase_offset``, in pixels) says how far the projector's stripes are from
-  the camera's rows, which the capture format cannot express (MODEL.md section 3).
+  the camera's rows, which the capture format cannot express (docs/model.md section 3).
 - **Period.** The transverse frequency whose Fourier power is largest near 1/T (a dense
   search between 1/(1.5T) and 1.5/T) gives the stripes' period in camera pixels: it
   must be T for the capture format to describe them.
@@ -61,7 +61,7 @@ the ROI ends 26 px short of a 48 px tank, where the light has fallen to about 1 
 peak, an edge reported as ``faded``.
 
 Stripes not aligned with the pixel grid are thus described by an oblique
-``direction_deg``, which the renderer models (MODEL.md section 3). Confidence is a
+``direction_deg``, which the renderer models (docs/model.md section 3). Confidence is a
 number in [0, 1], the smallest of the parts' confidences (``Geometry.parts``): ``roi``
 (1 when the entry wall and both side walls are sharp steps or the frame's edge, minus
 0.25 for each that is not), ``entry`` (1 − the far side's signal / the entry side's),
@@ -91,7 +91,7 @@ LOW_CONFIDENCE = 0.5
 
 @dataclasses.dataclass(frozen=True)
 class Geometry:
-    """What :func:`detect_geometry` found (image frame of MODEL.md section 1).
+    """What :func:`detect_geometry` found (image frame of docs/model.md section 1).
 
     Attributes:
         roi: the medium's rectangle ``(x0, y0, x1, y1)`` in pixels, x1, y1 exclusive.
@@ -354,7 +354,7 @@ def detect_geometry(
             ``(P, H, W, C)`` (channels are summed), dark frame subtracted if there is
             one. Non-finite pixels count as 0; saturated pixels are used as they are
             (clipping keeps a stripe's centre where it is).
-        period, lit: the projected stripes (MODEL.md section 3), in camera pixels.
+        period, lit: the projected stripes (docs/model.md section 3), in camera pixels.
         reference: an all-white frame ``(H, W[, C])`` to find the ROI in (default: the
             mean of the shifts).
         floor: the signal level of an unlit pixel (0 after a dark frame); default: the

@@ -1,4 +1,4 @@
-"""The discretisation: pixels × direction bins (MODEL.md section 1).
+"""The discretisation: pixels × direction bins (docs/model.md section 1).
 
 Pixel (r, c) covers [c, c+1) × [r, r+1); x grows right, y grows down. Direction bin j
 is centred on θ_j = j·Δθ, Δθ = 2π/n_theta, θ measured from +x toward +y.

@@ -1,4 +1,4 @@
-"""Collimated illumination entering through a wall (MODEL.md section 3).
+"""Collimated illumination entering through a wall (docs/model.md section 3).
 
 Every source here is a collimated sheet of unit irradiance (power per unit transverse
 width) heading θ0, restricted to a lit set of the entry wall:
@@ -8,7 +8,7 @@ width) heading θ0, restricted to a lit set of the entry wall:
 - :class:`Stripes`: the projector's shifted stripes, one image per phase. Wall cell r
   (the segment [r, r+1) of the entry wall, a pixel row for the left/right walls, a
   pixel column for the top/bottom walls) is lit iff (r + phase) mod period < lit.
-  At normal incidence a lit cell is the MODEL.md beam of width 1 centred on r + ½;
+  At normal incidence a lit cell is the docs/model.md beam of width 1 centred on r + ½;
   at oblique incidence the lit cell is the wall segment (transverse width |cos|).
 - :class:`Full`: the whole entry wall lit (the "all white" pattern).
 

@@ -1,6 +1,6 @@
 """What the pipeline sees in a capture, before any fit (``lightfield-jax inspect``).
 
-:func:`inspect_capture` separates the loaded capture (MODEL.md section 5, with the
+:func:`inspect_capture` separates the loaded capture (docs/model.md section 5, with the
 capture's black level, or 0 when unknown) and measures, per channel, the signal-to-noise
 ratio of the direct image D and the multiple image M along the light: in bins of the
 distance s from the entry wall (2 px), SNR = mean of the image / its noise. Across the

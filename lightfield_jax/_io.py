@@ -2,7 +2,7 @@
 
 Reading: :func:`read_image` loads OpenEXR, TIFF (8/16-bit, float), PNG (8/16-bit) and
 ``.npy`` files into an ``(height, width, channels)`` float array in the image frame of
-MODEL.md section 1 (row 0 at the top). Integer samples are scaled to [0, 1] by their
+docs/model.md section 1 (row 0 at the top). Integer samples are scaled to [0, 1] by their
 type's maximum (255 or 65535); float samples are kept as they are. The source sample
 type is reported, so a caller can tell a saturated 8-bit pixel from a bright HDR one.
 

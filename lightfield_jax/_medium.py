@@ -1,4 +1,4 @@
-"""The homogeneous medium and its in-plane phase function (MODEL.md section 2).
+"""The homogeneous medium and its in-plane phase function (docs/model.md section 2).
 
 Units: coefficients are per pixel (lengths are in pixels). Angles are radians.
 """

@@ -1,11 +1,11 @@
-"""An independent Monte Carlo reference for the 2-D plane model (MODEL.md sections 1-4).
+"""An independent Monte Carlo reference for the 2-D plane model (docs/model.md sections 1-4).
 
 This module is an oracle for the propagator, so it shares no code with it: it is plain
 numpy, uses no jax and no other part of ``lightfield_jax`` (the illumination
 dataclasses are read for their fields only; importing them runs the package's
 ``__init__``, which is the only reason jax gets loaded), and re-derives the geometry
 (entry wall, lit set, launch power, distance to the walls, pixel traversal) and the
-phase function from MODEL.md by itself.
+phase function from docs/model.md by itself.
 
 The model. The medium fills [0, W] × [0, H] (pixels; x right, y down, θ from +x toward
 +y) and its walls are black. Photons are launched uniformly over the entry wall's
@@ -107,7 +107,7 @@ def _phase_table(g: float) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def phase_integral(g: float) -> float:
-    """A(g) = ∫_{−π}^{π} p(θ) dθ (MODEL.md section 2; A(0) = 0.5)."""
+    """A(g) = ∫_{−π}^{π} p(θ) dθ (docs/model.md section 2; A(0) = 0.5)."""
     return _phase_table(g)[2]
 
 
@@ -318,7 +318,7 @@ def monte_carlo_render(
         batch: photons traced at a time (memory bound).
         estimator: "track" (track-length, default) or "collision".
 
-    Under ``phase="paper"`` with ω·A(g) ≥ 1 the bounce series diverges (MODEL.md
+    Under ``phase="paper"`` with ω·A(g) ≥ 1 the bounce series diverges (docs/model.md
     section 2), but every single I_k is still finite and is what this returns.
     """
     _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator)

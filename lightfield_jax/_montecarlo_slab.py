@@ -1,4 +1,4 @@
-"""An independent 3-D Monte Carlo reference for the slab geometry (MODEL.md section 7).
+"""An independent 3-D Monte Carlo reference for the slab geometry (docs/model.md section 7).
 
 Like :mod:`lightfield_jax._montecarlo` (the 2-D oracle) this is plain numpy and shares
 no code with any propagator. It reuses the 2-D oracle's launch geometry along the entry
@@ -30,7 +30,7 @@ unscattered radiance is L_0 = e^{−σt d0} δ(ω − ω0), independent of z. Ph
 launched uniformly over the lit wall segment and uniformly in z ∈ [0, h], each
 carrying P/N. The sheet is horizontal, so its unscattered light never meets a face.
 
-The camera. It looks along −z through the top face (MODEL.md section 7):
+The camera. It looks along −z through the top face (docs/model.md section 7):
 I_k(x, y) = T ∫_0^h e^{−σt (h − z)} ∫_{S²} σs p(ω·ẑ) L_{k−1}(x, y, z, ω) dω dz,
 pixel-averaged in x and y, with T = 1 (absorbing) or T = 1 − R(1) (refractive, the
 top face's transmission at normal incidence). This is the contract's formula: the ray
@@ -144,7 +144,7 @@ def slab_single_scatter_sheet(
     boundary: Boundary = "absorbing",
     n: float = 1.33,
 ) -> np.ndarray:
-    """I_1 on a lit row of a sheet entering the left wall along +x (MODEL.md section 7).
+    """I_1 on a lit row of a sheet entering the left wall along +x (docs/model.md section 7).
 
     I_1(c) = T σs p(0) (1 − e^{−σt h})/σt × e^{−σt c}(1 − e^{−σt})/σt for columns
     c = 0..width−1: the exact average over pixel c of σs p(cos 90°) e^{−σt x}

@@ -1,12 +1,12 @@
 """The projector's side of a real capture: stripe images to project, and the capture
 file that will describe the camera's images of them.
 
-:func:`stripe_patterns` makes the paper's shifted stripes (MODEL.md section 3) as
+:func:`stripe_patterns` makes the paper's shifted stripes (docs/model.md section 3) as
 8-bit projector frames: in the image of phase φ, projector row r (column, for
 ``orientation="columns"``) is white iff (r + φ) mod period < lit. Phases are spread
 evenly over the period (0..period−1 for as many shifts as the period has rows), and
 every row must be lit in at least one shift and dark in at least one, or the direct
-and multiple light cannot be separated (MODEL.md section 5).
+and multiple light cannot be separated (docs/model.md section 5).
 
 :func:`write_patterns` writes them with the all-white and all-black frames and a
 ``capture.yaml`` template: one camera file name per projected image (to be replaced by
@@ -112,7 +112,7 @@ def capture_template(
 # TIFF or PNG from the camera's raw files (demosaiced, no gamma, no auto exposure),
 # or float EXR from an HDR merge. Replace the camera_*.tif names below by your
 # camera's files (paths relative to this file). The projector's stripes must fall
-# on the camera's rows at one camera pixel per projector pixel (MODEL.md section 3).
+# on the camera's rows at one camera pixel per projector pixel (docs/model.md section 3).
 # Then check what the pipeline sees with `lightfield-jax inspect capture.yaml`
 # and fit with `lightfield-jax fit capture.yaml`.
 

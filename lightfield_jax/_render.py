@@ -1,6 +1,6 @@
-"""The bounce-by-bounce renderer: per-bounce images I_k and light fields L_k (MODEL.md §4).
+"""The bounce-by-bounce renderer: per-bounce images I_k and light fields L_k (docs/model.md §4).
 
-Scheme (see NUMERICS.md for why):
+Scheme (docs/model.md §4 says why):
 
 - I_1 is exact: σs·p(π/2)·S with S the pixel-averaged unscattered fluence.
 - L_1 is semi-analytic: S convolved with a per-direction-bin kernel
@@ -339,7 +339,7 @@ class Renderer(eqx.Module):
         if self.phase == "normalized":
             in_plane = jnp.sum(taps) * dtheta
             taps = taps / in_plane
-            node_p = node_p / in_plane  # the camera keeps p(π/2) (MODEL.md §2)
+            node_p = node_p / in_plane  # the camera keeps p(π/2) (docs/model.md §2)
         mixing = jnp.concatenate(
             [taps[self.circulant] * dtheta, jnp.full((1, n), p_camera * dtheta, dtype)], axis=0
         )
@@ -589,7 +589,7 @@ def render(
         gain: source gain c multiplying every image.
         lightfield: also return L_0..L_K.
         geometry: ``None`` or :class:`~lightfield_jax.Plane` (the paper's 2-D model) or
-            a :class:`~lightfield_jax.Slab` (the tank's depth in 3-D, MODEL.md §7: the
+            a :class:`~lightfield_jax.Slab` (the tank's depth in 3-D, docs/model.md §7: the
             3-D Henyey–Greenstein phase function whatever ``medium.phase`` says; light
             fields are integrated over depth and elevation).
         tail: ``None`` (the series stops after K bounces), or ``"gmres"`` /
@@ -676,7 +676,7 @@ def single_scatter_closed_form(
     sigma_t: float, sigma_s: float, g: float, width: int
 ) -> Float[np.ndarray, " W"]:
     """I_1 along a unit beam heading +x from the left wall, pixel-averaged per column
-    (MODEL.md §4): σs p(π/2) e^{−σt c} (1 − e^{−σt})/σt."""
+    (docs/model.md §4): σs p(π/2) e^{−σt c} (1 − e^{−σt})/σt."""
     c = np.arange(width)
     p90 = float(phase_function(math.pi / 2, g))
     return sigma_s * p90 * np.exp(-sigma_t * c) * (-np.expm1(-sigma_t)) / sigma_t

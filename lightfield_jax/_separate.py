@@ -1,4 +1,4 @@
-"""Direct/global separation of a shifted-stripe capture (Nayar et al. 2006; MODEL.md
+"""Direct/global separation of a shifted-stripe capture (Nayar et al. 2006; docs/model.md
 section 5).
 
 Each pixel is seen under N shifted stripe patterns. Over the shifts it takes its
@@ -15,7 +15,7 @@ Here D ("direct") is the light scattered toward the camera by the beam of the pi
 own stripe, i.e. the single scatter I_1, and M ("multiple", Nayar's global component)
 is the multiple scatter Σ_{k≥2} I_k under full illumination. The split is exact only
 when the stripe period is small against the mean free path 1/σt; otherwise D keeps part
-of the multiple scatter (MODEL.md section 6 measures this bias).
+of the multiple scatter (docs/model.md section 6 measures this bias).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ class Separation(eqx.Module):
 
     Every field has the shape of one input image, ``(height, width)`` or
     ``(height, width, channels)``, in the images' units (after dark-frame subtraction),
-    in the image frame of MODEL.md section 1.
+    in the image frame of docs/model.md section 1.
 
     Attributes:
         direct: D, the direct (single-scatter) image.

@@ -8,7 +8,7 @@ level and noise (see :mod:`lightfield_jax._config` for the keys).
 Per-bounce images are noise-free and exclude the dark level; they include the gain
 and, for stripes, the black level, so for every pattern Σ_k I_k is the captured image
 before dark level and noise. With black level b a shift's image is
-(1 − b)·R_pattern + b·R_full (MODEL.md section 5), where R_full, the render under full
+(1 − b)·R_pattern + b·R_full (docs/model.md section 5), where R_full, the render under full
 illumination, is Σ_shifts R_pattern / lit when the phases are 0..period−1 (each row is
 then lit in exactly ``lit`` shifts), and is rendered separately otherwise.
 """

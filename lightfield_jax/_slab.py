@@ -1,4 +1,4 @@
-"""The slab geometry (MODEL.md section 7): a tank of depth h, modelled in 3-D, cheaply.
+"""The slab geometry (docs/model.md section 7): a tank of depth h, modelled in 3-D, cheaply.
 
 Design (docs/slab_design.md option B, with depth layers: docs/slab_depth.md): the light
 field is kept as its averages over n_z depth layers, L_l(x, y, θ, μ), with θ the
@@ -83,7 +83,7 @@ def _positive_finite(value, what: str) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class Plane:
-    """The paper's 2-D model: all light stays in the image plane (MODEL.md §1-4)."""
+    """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4)."""
 
     kind: Literal["plane"] = "plane"
 
@@ -93,7 +93,7 @@ class Plane:
 
 @dataclasses.dataclass(frozen=True)
 class Slab:
-    """A tank of depth ``thickness`` (pixels) with 3-D directions (MODEL.md §7).
+    """A tank of depth ``thickness`` (pixels) with 3-D directions (docs/model.md §7).
 
     Attributes:
         thickness: depth h of the medium in pixels (> 0).

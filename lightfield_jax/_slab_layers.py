@@ -18,7 +18,7 @@ transported field is, exactly for layer-uniform sources,
 
 the overlap of layer l with layer l' shifted by u (R = 0 for absorbing faces: m = 0
 only). For n_z = 1, W_0(u) = R^⌊v⌋(1 − f(1 − R)), v = u/h, f = v − ⌊v⌋: the depth
-average's survival S. The camera sees (MODEL.md §7) T σs ∫ dz e^{−σt(h−z)} Σ_ω p(ω·ẑ) L,
+average's survival S. The camera sees (docs/model.md §7) T σs ∫ dz e^{−σt(h−z)} Σ_ω p(ω·ẑ) L,
 which for the stored up-going field at height y is the weight
 p(μ) e^{−σt(h−y)} + p(−μ) e^{−σt y}; integrated exactly over the rays leaving source
 layer l' (:func:`camera_integrals`), I_{k+1} is exact given the layered Q_k.

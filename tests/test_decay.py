@@ -1,4 +1,4 @@
-"""σt from the direct image's decay (MODEL.md section 6) on closed-form beam images."""
+"""σt from the direct image's decay (docs/model.md section 6) on closed-form beam images."""
 
 import math
 
@@ -88,7 +88,7 @@ def test_noiseless_stripes_with_saturation_and_nan(entry, direction_deg, sigma_t
 
 
 def test_pixel_averaged_beam_is_exact():
-    # MODEL.md section 4: a beam along +x averages to σs p(π/2) e^{−σt c}(1 − e^{−σt})/σt
+    # docs/model.md section 4: a beam along +x averages to σs p(π/2) e^{−σt c}(1 − e^{−σt})/σt
     # on column c, the pixel-centre exponential times a constant.
     sigma_t, c = 0.3, np.arange(W)
     row = 0.0366 * 0.08 * np.exp(-sigma_t * c) * (1 - np.exp(-sigma_t)) / sigma_t

@@ -1,4 +1,4 @@
-"""The inverse pipeline (MODEL.md sections 5-6): captures rendered by the package's own
+"""The inverse pipeline (docs/model.md sections 5-6): captures rendered by the package's own
 renderer, fitted back.
 
 - ``joint`` recovers σt, σs, g and the gain of noiseless stripe captures, for the
@@ -122,7 +122,7 @@ def test_joint_recovers_the_truth(name, size):
 
 @pytest.mark.parametrize("size", SIZES)
 def test_forward_medium_reports_its_sigma_t_g_valley(size):
-    """At albedo 0.8 and g 0.7, σt and g trade off (MODEL.md §6): the fit's correlation
+    """At albedo 0.8 and g 0.7, σt and g trade off (docs/model.md §6): the fit's correlation
     between them is strong, where for the milk and the backward medium it is not."""
     corr = {
         name: abs(_fit(name, _grid_for(size, name), "joint").correlation["sigma_t,g"])
@@ -162,7 +162,7 @@ def test_two_step_methods_recover_a_perfect_split_backward(method):
 def test_two_step_methods_inherit_the_separation_bias(size):
     """Period-6 stripes against a mean free path of ~5 px: D keeps part of the multiple
     scatter and 2·Imin falls short of M, so the paper's method returns σs far below the
-    truth and g far above it (MODEL.md §6); σt, from the decay of D, stays close. The
+    truth and g far above it (docs/model.md §6); σt, from the decay of D, stays close. The
     gradient solve lands within one grid spacing of the grid search."""
     name = "milk"
     grid_fit = _fit(name, _grid_for(size, name), "grid")

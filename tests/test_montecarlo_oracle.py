@@ -43,7 +43,7 @@ def z_scores(a, b, view_a=same, view_b=same):
 
 
 def test_phase_integral_matches_model_table():
-    # MODEL.md section 2: A(0) = 0.5, A(0.4) ≈ 0.619, A(0.7) ≈ 1.105, ...; even in g.
+    # docs/model.md section 2: A(0) = 0.5, A(0.4) ≈ 0.619, A(0.7) ≈ 1.105, ...; even in g.
     for g, a in ((0.0, 0.5), (0.4, 0.619), (0.7, 1.105), (0.8, 1.622), (0.9, 3.20)):
         assert phase_integral(g) == pytest.approx(a, abs=1e-3)
         assert phase_integral(-g) == pytest.approx(phase_integral(g), rel=1e-12)
@@ -81,7 +81,7 @@ def test_deflection_sampler_follows_the_phase_function(g):
 
 @pytest.mark.parametrize("estimator", ESTIMATORS)
 def test_single_scatter_of_beam_matches_closed_form(estimator):
-    # MODEL.md section 4: I_1 = σs p(π/2) e^{−σt c}(1 − e^{−σt})/σt on the beam's row.
+    # docs/model.md section 4: I_1 = σs p(π/2) e^{−σt c}(1 − e^{−σt})/σt on the beam's row.
     w, h, row = 32, 12, 5
     st, ss, g, n = 0.15, 0.1, 0.4, 200_000
     res = monte_carlo_render(
@@ -161,7 +161,7 @@ def test_all_power_leaves_without_absorption():
 
 
 def test_bounce_images_scale_as_sigma_s_to_the_k():
-    # MODEL.md section 4: at fixed σt, I_k(σs) = σs^k I_k(1). Same seed, same paths.
+    # docs/model.md section 4: at fixed σt, I_k(σs) = σs^k I_k(1). Same seed, same paths.
     kw = dict(phase="paper", photons=50_000, seed=3)
     a = monte_carlo_render(20, 14, 0.3, 0.3, 0.4, Beam(0.0, 7.0), 4, **kw)
     b = monte_carlo_render(20, 14, 0.3, 0.12, 0.4, Beam(0.0, 7.0), 4, **kw)

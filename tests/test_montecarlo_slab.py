@@ -92,7 +92,7 @@ def test_scattering_sampler_follows_henyey_greenstein(g):
 
 @pytest.mark.parametrize("boundary", BOUNDARIES)
 def test_single_scatter_of_sheet_matches_closed_form(boundary):
-    # MODEL.md section 7: I_1 = σs p(cos 90°) e^{−σt x}(1 − e^{−σt h})/σt, pixel-averaged.
+    # docs/model.md section 7: I_1 = σs p(cos 90°) e^{−σt x}(1 − e^{−σt h})/σt, pixel-averaged.
     w, h, row, depth = 32, 12, 5, 6.4
     st, ss, g, n = 0.15, 0.1, 0.4, 200_000
     res = monte_carlo_slab(

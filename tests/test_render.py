@@ -18,7 +18,7 @@ def _images(medium, grid, illum, k, **kw):
 
 
 def test_phase_integral_reference_values():
-    # MODEL.md section 2.
+    # docs/model.md section 2.
     for g, a in ((0.0, 0.5), (0.4, 0.619), (0.7, 1.105), (0.8, 1.622), (0.9, 3.20)):
         assert float(lfj.phase_integral(g)) == pytest.approx(a, abs=1.5e-3)
         assert float(lfj.phase_integral(-g)) == pytest.approx(float(lfj.phase_integral(g)))

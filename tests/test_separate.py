@@ -1,4 +1,4 @@
-"""Direct/global separation (MODEL.md section 5) against captures built from known D, M."""
+"""Direct/global separation (docs/model.md section 5) against captures built from known D, M."""
 
 import jax
 import jax.numpy as jnp

@@ -1,4 +1,4 @@
-"""The slab forward model (MODEL.md section 7) against closed forms, the 3-D Monte
+"""The slab forward model (docs/model.md section 7) against closed forms, the 3-D Monte
 Carlo oracle, symmetries, its own convergence, and bad input.
 
 The oracle ``monte_carlo_slab(..., depth_layers=1)`` is the exact target of the model

@@ -56,7 +56,7 @@ def test_two_step_methods_with_the_slab_and_a_perfect_split(method):
 
 @pytest.mark.slow
 def test_the_plane_model_is_biased_on_a_slab_capture():
-    # The reason the slab exists (MODEL.md §7): with the plane model, σs or g are off.
+    # The reason the slab exists (docs/model.md §7): with the plane model, σs or g are off.
     st, ss, g = 0.2051, 0.0366, 0.4
     fit = fit_images(slab_capture(st, ss, g, Slab(6.4)), PATTERN, options=FitOptions(max_steps=40))
     assert abs(fit.sigma_s / ss - 1) > 0.05 or abs(fit.g - g) > 0.05

@@ -1,6 +1,6 @@
 """The paper's figures (Mukaigawa, Raskar & Yagi 2010, Figs. 11-14) for any result.
 
-Every function takes arrays (numpy or JAX) in the image frame of MODEL.md section 1
+Every function takes arrays (numpy or JAX) in the image frame of docs/model.md section 1
 (x = column to the right, y = row downward, θ from +x toward +y, lengths in pixels,
 images in source units: unit irradiance times the gain). With ``path`` it writes a PNG
 atomically and returns the path; without, it returns the matplotlib ``Figure`` (built
