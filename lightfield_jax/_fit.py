@@ -1090,7 +1090,8 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         )
         say(
             f"  {label}: sigma_t {last.values['sigma_t']:.5g}, sigma_s "
-            f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g}"
+            f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g} "
+            f"after {first.steps + last.steps} solver iterations"
         )
         stages.append((first, last))
         labels.append(label)
