@@ -11,8 +11,8 @@ import sys
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._montecarlo_slab import monte_carlo_slab
-from lightfield_jax._slab import Slab, SlabRenderer, resolve_slab_grid
+from lightfield_jax.forward.slab import Slab, SlabRenderer, resolve_slab_grid
+from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
 
 W, H, K = 48, 32, 5
 beam = lfj.Beam(0, 16, 0.0, 1.0)

@@ -34,7 +34,7 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._config import NoiseConfig, parse_simulation_config
+from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 

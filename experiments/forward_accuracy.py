@@ -1,7 +1,7 @@
 """How accurate is the forward model, and what does accuracy cost?
 
 Per-bounce images I_k (k = 1..``bounces``) of :func:`lightfield_jax.render` against the
-independent Monte Carlo oracle (:func:`lightfield_jax._montecarlo.monte_carlo_render`),
+independent Monte Carlo oracle (:func:`lightfield_jax.reference.montecarlo.monte_carlo_render`),
 over the number of direction bins ``n_theta`` and the spatial refinement ``refine``,
 for several beam scenes; and the steady-state wall time of the render that produces
 them (compile reported apart).
@@ -56,11 +56,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config
-from lightfield_jax._io import atomic_path
-from lightfield_jax._montecarlo import monte_carlo_render
-from lightfield_jax._render import renderer_for
-from lightfield_jax._timing import stopwatch
+from lightfield_jax.app.experiment import check_config
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.capture.io import atomic_path
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.reference.montecarlo import monte_carlo_render
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}

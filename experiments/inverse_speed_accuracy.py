@@ -29,7 +29,7 @@ load average at its start). One untimed fit runs first, so that what all fits of
 capture this size share (the separation and the decay fit of σt, compiled on first use)
 is warm for every timed one. Each fit is timed twice: ``total`` (split into ``compile``
 and ``run``) is a cold fit, its compiled programs forgotten first
-(:func:`lightfield_jax._fit.clear_compiled`; no persistent XLA cache): the fit's own
+(:func:`lightfield_jax.inverse.fit.clear_compiled`; no persistent XLA cache): the fit's own
 programs compile (a fit in a new process pays the shared pieces too, about 2-3 s more
 on this CPU: ``lightfield-jax bench --fits`` times that); ``warm`` is the same fit once more in
 the same process, which reuses the compiled programs (what a second channel, the next
@@ -63,7 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, load_helper
+from lightfield_jax.app.experiment import check_config, load_helper
 
 inv = load_helper("_inverse")
 
@@ -153,7 +153,7 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: di
     of g. Tolerances: LM stops on a relative step below 1e-5 (optimistix's rtol for
     float32), Gauss-Newton on a gradient norm below 1e-4; both at ``max_steps``.
     """
-    from lightfield_jax import _fit
+    from lightfield_jax.inverse import fit as _fit
 
     jaxopt = _import_jaxopt()
     load = os.getloadavg()[0]
@@ -274,7 +274,7 @@ def _one(config, captures, capture, label, repeat, records) -> dict:
     """One fit, cold (compiled programs forgotten first), then warm (the same fit again
     in this process): the cold record with ``seconds["warm"]``, the warm fit's wall
     time, and ``warm_same``, whether it gave the same values."""
-    from lightfield_jax._fit import clear_compiled
+    from lightfield_jax.inverse.fit import clear_compiled
 
     clear_compiled()
     _JAXOPT_COMPILED.clear()
@@ -560,7 +560,7 @@ def _speedup_text(s: dict) -> str:
 
 
 def _write_csv(path: Path, records, labels_by_capture, config) -> None:
-    from lightfield_jax._io import atomic_path
+    from lightfield_jax.capture.io import atomic_path
 
     cols = [
         "capture",

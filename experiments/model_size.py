@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, load_helper
+from lightfield_jax.app.experiment import check_config, load_helper
 
 inv = load_helper("_inverse")
 

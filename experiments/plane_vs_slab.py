@@ -8,7 +8,7 @@ plane model to it with the default ``joint`` method, and records
 - the plane fit's relative misfit m = ‖fit − capture‖₂ / ‖capture‖₂ over the model's
   region: the plane model is indistinguishable from the slab where m is below the
   capture's relative noise ε (per-pixel noise std / signal), so ``geometry: auto``
-  picks the plane there and the slab elsewhere (:func:`lightfield_jax._model_choice.choose`);
+  picks the plane there and the slab elsewhere (:func:`lightfield_jax.inverse.model_choice.choose`);
 - the plane fit's parameter errors against the slab's true σt, σs, g: what a user
   who fits the plane model to a tank is told.
 
@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, load_helper
-from lightfield_jax._slab import BOUNDARIES
+from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.forward.slab import BOUNDARIES
 
 inv = load_helper("_inverse")
 
@@ -50,8 +50,8 @@ def _check(config: dict) -> None:
 def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> dict:
     import time
 
-    from lightfield_jax._fit import FitOptions, fit_images, fitted_images
-    from lightfield_jax._slab import Slab
+    from lightfield_jax.forward.slab import Slab
+    from lightfield_jax.inverse.fit import FitOptions, fit_images, fitted_images
 
     st = float(config["sigma_t"])
     h = tau / st

@@ -2,7 +2,7 @@
 
 Per scene (σt·h, g, the faces) the slab model with its resolved depth layers, and the
 depth average (n_z = 1) with the same angular discretisation, against the independent
-3-D Monte Carlo of the true slab (:func:`~lightfield_jax._montecarlo_slab.monte_carlo_slab`,
+3-D Monte Carlo of the true slab (`reference.montecarlo_slab.monte_carlo_slab`,
 no depth layers), full illumination from the left wall:
 
 - per-order errors of the image sums Σ_xy I_k, k = 1..``orders`` (they do not depend on
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, load_helper
-from lightfield_jax._slab import BOUNDARIES
+from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.forward.slab import BOUNDARIES
 
 inv = load_helper("_inverse")
 
@@ -65,7 +65,7 @@ def _check(config: dict) -> None:
 
 def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float]:
     """Image sums per order, compile+first-call seconds and warm seconds."""
-    from lightfield_jax._slab import SlabRenderer
+    from lightfield_jax.forward.slab import SlabRenderer
 
     r = SlabRenderer(grid, lfj.Full(0.0, "left"), bounces, slab)
     t0 = time.perf_counter()
@@ -79,8 +79,8 @@ def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float
 
 
 def _cell(config: dict, tau: float, g: float, boundary: str) -> dict:
-    from lightfield_jax._montecarlo_slab import monte_carlo_slab
-    from lightfield_jax._slab import Slab, resolve_slab_grid
+    from lightfield_jax.forward.slab import Slab, resolve_slab_grid
+    from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
 
     h, k = float(config["thickness"]), int(config["bounces"])
     st = tau / h

@@ -44,8 +44,8 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, load_helper
-from lightfield_jax._fit import METHODS
+from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.inverse.fit import METHODS
 
 inv = load_helper("_inverse")
 batch = load_helper("_batch")
@@ -441,7 +441,7 @@ def _setting_label(name: str, s: dict) -> str:
 
 
 def _write_csv(path: Path, rows, starts) -> None:
-    from lightfield_jax._io import atomic_path
+    from lightfield_jax.capture.io import atomic_path
 
     cols = [
         "sweep",

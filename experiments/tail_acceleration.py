@@ -37,10 +37,10 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import check_config, machine, versions
-from lightfield_jax._medium import bounces_for_tolerance
-from lightfield_jax._render import renderer_for
-from lightfield_jax._timing import stopwatch
+from lightfield_jax.app.experiment import check_config, machine, versions
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.scene.medium import bounces_for_tolerance
 
 _KEYS = {
     "experiment",

@@ -2,6 +2,6 @@
 
 import sys
 
-from ._cli import main
+from lightfield_jax.app.cli import main
 
 sys.exit(main())

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._basins import Scan, basin_of, basins, local_minima, worse_basin
-from lightfield_jax._trust import error_budget, noise_scale, untrustworthy
+from lightfield_jax.inverse.basins import Scan, basin_of, basins, local_minima, worse_basin
+from lightfield_jax.inverse.trust import error_budget, noise_scale, untrustworthy
 
 
 def _two_wells(deep=(10, 28), shallow=(2, 4), depth_ratio=3.0):

@@ -7,21 +7,21 @@ import pytest
 import yaml
 
 from lightfield_jax import Stripes
-from lightfield_jax._capture import (
+from lightfield_jax.app.config import parse_simulation_config
+from lightfield_jax.capture.capture import (
     Capture,
     CaptureWarning,
     load_capture,
     write_capture_yaml,
 )
-from lightfield_jax._config import parse_simulation_config
-from lightfield_jax._io import (
+from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
     atomic_directory,
     write_exr,
     write_png,
 )
-from lightfield_jax._simulate import simulate_capture, write_simulation
+from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 
 H, W, P = 8, 12, 3
 PATTERN = Stripes(period=6, lit=3, phases=(0, 2, 4))

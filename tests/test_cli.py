@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import lightfield_jax._simulate as simulate_module
+import lightfield_jax.forward.simulate as simulate_module
 from lightfield_jax import phase_function
-from lightfield_jax._cli import main
-from lightfield_jax._io import read_image
-from lightfield_jax._progress import progress
+from lightfield_jax.app.cli import main
+from lightfield_jax.app.progress import progress
+from lightfield_jax.capture.io import read_image
 
 GRID = "grid: {width: 24, height: 16, n_theta: 16, refine: 1}\n"
 MEDIUM = "medium: {sigma_t: 0.2, sigma_s: 0.1, g: 0.3}\n"
@@ -203,7 +203,7 @@ def test_bench_tiny(tmp_path, capsys):
 
 
 def test_bench_fits_runs_each_fit_in_a_fresh_process():
-    from lightfield_jax._bench import bench_fits
+    from lightfield_jax.app.bench import bench_fits
 
     config = {
         "grid": {"width": 32, "height": 24, "n_theta": 16},
@@ -276,8 +276,8 @@ def test_console_script_is_installed(tmp_path):
 
 def test_cli_modules_do_not_load_image_libraries():
     code = (
-        "import sys, lightfield_jax, lightfield_jax._cli, lightfield_jax._simulate, "
-        "lightfield_jax._capture; "
+        "import sys, lightfield_jax, lightfield_jax.app.cli, lightfield_jax.forward.simulate, "
+        "lightfield_jax.capture.capture; "
         "bad = {'OpenImageIO', 'matplotlib', 'cv2', 'tqdm'} & set(sys.modules); "
         "assert not bad, bad"
     )

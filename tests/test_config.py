@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lightfield_jax import Beam, Full, Grid, Medium, Stripes
-from lightfield_jax._config import (
+from lightfield_jax.app.config import (
     ConfigError,
     MediumConfig,
     SimulationConfig,

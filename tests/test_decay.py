@@ -9,7 +9,7 @@ import optimistix as optx
 import pytest
 from jax import monitoring
 
-from lightfield_jax._decay import DecayFit, fit_decay
+from lightfield_jax.inverse.decay import DecayFit, fit_decay
 
 H, W = 48, 64
 

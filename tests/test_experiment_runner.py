@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from lightfield_jax import _experiment
+from lightfield_jax.app import experiment as _experiment
 
 ROOT = Path(__file__).resolve().parent.parent
 

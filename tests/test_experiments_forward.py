@@ -13,7 +13,7 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax import viz
-from lightfield_jax._experiment import run_experiment
+from lightfield_jax.app.experiment import run_experiment
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

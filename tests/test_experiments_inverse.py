@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import load_helper, run_experiment
+from lightfield_jax.app.experiment import load_helper, run_experiment
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

@@ -286,7 +286,7 @@ def _backend_compiles(fn) -> int:
 
 @pytest.mark.parametrize("method", ["gradient", "joint"])
 def test_a_second_fit_of_the_same_shape_reuses_the_compiled_program(method):
-    from lightfield_jax._fit import clear_compiled
+    from lightfield_jax.inverse.fit import clear_compiled
 
     images = _stripe_images("milk", SMALL)
     kwargs = dict(black_level=0.0, method=method, n_theta=16, refine=1)
@@ -327,9 +327,9 @@ def test_two_step_residual_jacobian_matches_autodiff_and_differences(phase, g):
     residual and against central differences through the plain renderer."""
     import jax.numpy as jnp
 
-    from lightfield_jax._basins import reference_sigma_s
-    from lightfield_jax._fit import _rendered_and_g_slope, _two_step_residual
-    from lightfield_jax._render import renderer_for
+    from lightfield_jax.forward.render import renderer_for
+    from lightfield_jax.inverse.basins import reference_sigma_s
+    from lightfield_jax.inverse.fit import _rendered_and_g_slope, _two_step_residual
 
     grid = lfj.Grid(24, 16, 16, 1)
     sigma_t = jnp.asarray(0.2051)

@@ -12,10 +12,10 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax._capture import write_capture_yaml
-from lightfield_jax._cli import XLA_CACHE_ENV, main, xla_cache_folder
-from lightfield_jax._fit import clear_compiled
-from lightfield_jax._io import read_image, write_exr, write_png
+from lightfield_jax.app.cli import XLA_CACHE_ENV, main, xla_cache_folder
+from lightfield_jax.capture.capture import write_capture_yaml
+from lightfield_jax.capture.io import read_image, write_exr, write_png
+from lightfield_jax.inverse.fit import clear_compiled
 
 H, W, P = 24, 32, 6
 MILK = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}

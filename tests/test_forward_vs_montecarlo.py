@@ -1,4 +1,4 @@
-"""The forward model against the independent Monte Carlo oracle (lightfield_jax._montecarlo).
+"""The forward model against the independent Monte Carlo oracle (reference.montecarlo).
 
 Contract (issue 3): with the default grid and θ resolution, per-bounce images binned
 4×4 agree with the Monte Carlo within 2 % (k = 1) and 5 % (k = 2, 3) in relative L1,
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._montecarlo import monte_carlo_render
+from lightfield_jax.reference.montecarlo import monte_carlo_render
 
 
 def _binned(a, b=4):

@@ -1,4 +1,4 @@
-"""Exposure brackets (lightfield_jax._hdr): brackets written from a simulated stripe
+"""Exposure brackets (lightfield_jax.capture.hdr): brackets written from a simulated stripe
 capture, as a camera would take them (shot noise, a dark pedestal, clipping, 8-bit
 codes, linear or γ 2.2), are merged back to the capture's radiance; the fit recovers
 the medium from them (slow)."""
@@ -10,18 +10,18 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax._capture import load_capture
-from lightfield_jax._cli import main
-from lightfield_jax._config import parse_simulation_config
-from lightfield_jax._fit import fit_capture
-from lightfield_jax._hdr import (
+from lightfield_jax.app.cli import main
+from lightfield_jax.app.config import parse_simulation_config
+from lightfield_jax.capture.capture import load_capture
+from lightfield_jax.capture.hdr import (
     calibrate_response,
     linear_response,
     load_response,
     merge_bracket,
     write_response,
 )
-from lightfield_jax._io import CaptureError, write_png
+from lightfield_jax.capture.io import CaptureError, write_png
+from lightfield_jax.inverse.fit import fit_capture
 
 MEDIUM = {"sigma_t": 0.1, "sigma_s": 0.05, "g": 0.3}
 TIMES = [0.001, 0.008, 0.064]
@@ -242,7 +242,7 @@ def test_response_file_is_validated(tmp_path):
     [(1.0, "linear", (0.02, 0.05, 0.03)), (2.2, "auto", (0.03, 0.10, 0.05))],
 )
 def test_fit_recovers_the_medium_from_brackets(radiance, tmp_path, gamma, response, tolerance):
-    # A pedestal under a gamma curve breaks z = f(E·t) (see lightfield_jax._hdr): the
+    # A pedestal under a gamma curve breaks z = f(E·t) (see lightfield_jax.capture.hdr): the
     # γ 2.2 brackets have none, the linear ones do (their dark frame removes it).
     path = _write_brackets(tmp_path, radiance, gamma, response, dark=gamma == 1.0)
     capture = load_capture(path)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import yaml
 
-from lightfield_jax._cli import XLA_CACHE_ENV, main
-from lightfield_jax._io import read_image, write_exr
-from lightfield_jax._memory import MAX_MEMORY_ENV
+from lightfield_jax.app.cli import XLA_CACHE_ENV, main
+from lightfield_jax.app.memory import MAX_MEMORY_ENV
+from lightfield_jax.capture.io import read_image, write_exr
 
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
@@ -222,7 +222,7 @@ def test_a_failure_while_plotting_replaces_no_output(capture, capsys, tmp_path, 
 def test_library_failures_are_translated_and_name_the_capture(capture, capsys, monkeypatch):
     import equinox as eqx
 
-    import lightfield_jax._fit as fit_module
+    import lightfield_jax.inverse.fit as fit_module
 
     def singular(*args, **kwargs):
         raise eqx.EquinoxRuntimeError(
@@ -426,7 +426,7 @@ def test_phases_that_contradict_the_images_are_refused(capture, capsys):
     status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
     assert status == 0, err
     # Phases left to their default (0..P-1) that the images contradict: a note.
-    from lightfield_jax._capture import load_capture
+    from lightfield_jax.capture.capture import load_capture
 
     _edit(
         capture,
@@ -468,8 +468,8 @@ def test_images_without_light_are_refused(capture, capsys):
 
 
 def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, capsys):
-    from lightfield_jax._capture import write_capture_yaml
-    from lightfield_jax._illumination import Stripes
+    from lightfield_jax.capture.capture import write_capture_yaml
+    from lightfield_jax.scene.illumination import Stripes
 
     names = [f"s{i}.exr" for i in range(P)]
     for name in names:

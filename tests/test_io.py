@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from lightfield_jax._io import (
+from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
     ImageData,
@@ -36,7 +36,7 @@ def _no_temporaries(folder):
 
 def test_import_does_not_load_image_libraries():
     code = (
-        "import sys, lightfield_jax, lightfield_jax._io, lightfield_jax._config; "
+        "import sys, lightfield_jax, lightfield_jax.capture.io, lightfield_jax.app.config; "
         "bad = {'OpenImageIO', 'matplotlib', 'cv2'} & set(sys.modules); "
         "assert not bad, bad"
     )

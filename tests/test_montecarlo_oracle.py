@@ -12,14 +12,14 @@ import math
 import numpy as np
 import pytest
 
-from lightfield_jax._illumination import Beam, Full, Stripes
-from lightfield_jax._montecarlo import (
+from lightfield_jax.reference.montecarlo import (
     _phase_table,
     _sample_deflection,
     monte_carlo_render,
     phase_function,
     phase_integral,
 )
+from lightfield_jax.scene.illumination import Beam, Full, Stripes
 
 ESTIMATORS = ("track", "collision")
 

@@ -13,9 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from lightfield_jax._illumination import Beam, Full, Stripes, scaled
-from lightfield_jax._montecarlo import _launch, _source
-from lightfield_jax._montecarlo_slab import (
+from lightfield_jax.reference.montecarlo import _launch, _source
+from lightfield_jax.reference.montecarlo_slab import (
     _fly,
     _Slab,
     fresnel_reflectance,
@@ -24,6 +23,7 @@ from lightfield_jax._montecarlo_slab import (
     sample_scattering,
     slab_single_scatter_sheet,
 )
+from lightfield_jax.scene.illumination import Beam, Full, Stripes, scaled
 
 BOUNDARIES = ("absorbing", "refractive")
 

@@ -21,15 +21,15 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-import lightfield_jax._fit as fit_module
+import lightfield_jax.inverse.fit as fit_module
 import lightfield_jax.viz as viz
-from lightfield_jax._calibration import mosaic_score
-from lightfield_jax._capture import CaptureWarning, load_capture
-from lightfield_jax._cli import main
-from lightfield_jax._geometry import detect_geometry
-from lightfield_jax._inspect import inspect_capture
-from lightfield_jax._io import CaptureError, read_image, write_exr, write_png, write_tiff
-from lightfield_jax._pattern import pattern_phases, stripe_patterns
+from lightfield_jax.app.cli import main
+from lightfield_jax.capture.calibration import mosaic_score
+from lightfield_jax.capture.capture import CaptureWarning, load_capture
+from lightfield_jax.capture.detect import detect_geometry
+from lightfield_jax.capture.inspect import inspect_capture
+from lightfield_jax.capture.io import CaptureError, read_image, write_exr, write_png, write_tiff
+from lightfield_jax.capture.pattern import pattern_phases, stripe_patterns
 
 # The medium: a W x H rectangle at (X0, Y0) of a FRAME_H x FRAME_W camera frame.
 W, H, X0, Y0 = 36, 28, 11, 9
@@ -541,9 +541,10 @@ def test_fit_plot_draws_the_channels(rgb, fitted, tmp_path, capsys, monkeypatch)
 
 def test_new_modules_do_not_load_image_libraries():
     code = (
-        "import sys, lightfield_jax, lightfield_jax._capture, lightfield_jax._geometry, "
-        "lightfield_jax._calibration, lightfield_jax._pattern, lightfield_jax._inspect, "
-        "lightfield_jax._cli, lightfield_jax._hdr, lightfield_jax._views; "
+        "import sys, lightfield_jax, lightfield_jax.capture.capture, "
+        "lightfield_jax.capture.detect, lightfield_jax.capture.calibration, "
+        "lightfield_jax.capture.pattern, lightfield_jax.capture.inspect, "
+        "lightfield_jax.app.cli, lightfield_jax.capture.hdr, lightfield_jax.capture.views; "
         "bad = {'OpenImageIO', 'matplotlib', 'cv2', 'skimage'} & set(sys.modules); "
         "assert not bad, bad"
     )

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._render import renderer_for, trace_count
+from lightfield_jax.forward.render import renderer_for, trace_count
 
 MILK = dict(sigma_t=0.2051, sigma_s=0.0366, g=0.4)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from jax import monitoring
 
-from lightfield_jax._separate import Separation, separate
+from lightfield_jax.inverse.separate import Separation, separate
 
 
 def _stripe_capture(direct, multiple, period, lit, black_level, dark=0.0):

@@ -15,9 +15,8 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._montecarlo_slab import monte_carlo_slab
-from lightfield_jax._render import trace_count
-from lightfield_jax._slab import (
+from lightfield_jax.forward.render import trace_count
+from lightfield_jax.forward.slab import (
     Slab,
     SlabRenderer,
     default_n_z,
@@ -25,7 +24,8 @@ from lightfield_jax._slab import (
     parse_geometry,
     resolve_slab_grid,
 )
-from lightfield_jax._slab_layers import camera_integrals, transport_weights
+from lightfield_jax.forward.slab_layers import camera_integrals, transport_weights
+from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
 
 FULL = lfj.Full(0.0, "left")
 
@@ -275,7 +275,7 @@ def test_fit_recovers_a_milk_like_medium_rendered_by_the_3d_monte_carlo():
     """Stripe capture of a milk-like medium (ω 0.95, g 0.85) behind refractive faces,
     rendered by the 3-D slab Monte Carlo (not by the model), fitted with the slab
     geometry: σt within 1 %, σs within 3 %, g within 0.02."""
-    from lightfield_jax._fit import FitOptions, fit_images
+    from lightfield_jax.inverse.fit import FitOptions, fit_images
 
     st, albedo, g, h = 0.2, 0.95, 0.85, 6.4
     pattern = lfj.Stripes(6, 3, tuple(range(6)))

@@ -13,9 +13,9 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax._fit import FitOptions, fit_images
-from lightfield_jax._model_choice import choose, misfit, relative_noise
-from lightfield_jax._slab import AutoGeometry, Slab, slab_bounce_ratio
+from lightfield_jax.forward.slab import AutoGeometry, Slab, slab_bounce_ratio
+from lightfield_jax.inverse.fit import FitOptions, fit_images
+from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 
 PATTERN = lfj.Stripes(6, 3, tuple(range(6)))
 
@@ -147,7 +147,7 @@ def test_cli_fit_uses_the_capture_geometry(tmp_path):
 def test_plane_vs_slab_experiment_reduced(tmp_path):
     from pathlib import Path
 
-    from lightfield_jax._experiment import run_experiment
+    from lightfield_jax.app.experiment import run_experiment
 
     config = Path(__file__).resolve().parent.parent / "configs" / "plane_vs_slab.yaml"
     summary = run_experiment(config, tmp_path, reduced=True)["summary"]

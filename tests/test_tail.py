@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax._experiment import run_experiment
-from lightfield_jax._render import EXPLICIT_WITH_TAIL, Renderer, renderer_for, trace_count
-from lightfield_jax._tail import TailNotConvergedWarning
+from lightfield_jax.app.experiment import run_experiment
+from lightfield_jax.forward.render import EXPLICIT_WITH_TAIL, Renderer, renderer_for, trace_count
+from lightfield_jax.forward.tail import TailNotConvergedWarning
 
 # A small scene that leaks little per bounce: 24x16 px at sigma_t 0.6 (14 x 10 mean
 # free paths), so the series at rho 0.99 still needs ~150 bounces to reach 1e-10.

@@ -12,8 +12,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .._fit import CaptureFit
-from .._inspect import SNR_USABLE, Inspection
+from lightfield_jax.capture.inspect import SNR_USABLE, Inspection
+from lightfield_jax.inverse.fit import CaptureFit
+
 from ._common import finish as _finish
 from ._common import new_figure as _figure
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._io import atomic_path
+from lightfield_jax.capture.io import atomic_path
 
 
 def new_figure(width: float, height: float):

@@ -6,11 +6,12 @@ import dataclasses
 
 import numpy as np
 
-from .._decay import entry_coordinates
-from .._fit import FitResult, fitted_images
-from .._illumination import Stripes
-from .._separate import separate
-from .._slab import describe_geometry
+from lightfield_jax.forward.slab import describe_geometry
+from lightfield_jax.inverse.decay import entry_coordinates
+from lightfield_jax.inverse.fit import FitResult, fitted_images
+from lightfield_jax.inverse.separate import separate
+from lightfield_jax.scene.illumination import Stripes
+
 from ._common import finish, new_figure
 
 

@@ -28,9 +28,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .._decay import DecayFit, entry_coordinates
-from .._illumination import _INWARD_DEG, Beam, Full, Illumination, Stripes
-from .._render import RenderResult
+from lightfield_jax.forward.render import RenderResult
+from lightfield_jax.inverse.decay import DecayFit, entry_coordinates
+from lightfield_jax.scene.illumination import _INWARD_DEG, Beam, Full, Illumination, Stripes
+
 from ._common import finish as _finish
 from ._common import new_figure as _figure
 

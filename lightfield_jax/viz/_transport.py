@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._illumination import Illumination
-from .._render import RenderResult
+from lightfield_jax.forward.render import RenderResult
+from lightfield_jax.scene.illumination import Illumination
+
 from ._paper import plot_bounce_images, plot_bounce_profiles, plot_lightfield
 
 

@@ -2,7 +2,7 @@
 
 - The capture's noise is measured from the images without a model: the fourth
   difference along the light's direction removes the smooth decay and leaves white
-  noise of variance 70 σ² (as in :mod:`lightfield_jax._model_choice`). Divided by the
+  noise of variance 70 σ² (as in :mod:`lightfield_jax.inverse.model_choice`). Divided by the
   fit's shot-noise scale √(I + floor), its mean square is the variance α of one
   weighted residual that noise alone would give.
 - χ²/dof = ‖r‖²/(n − p)/α: about 1 when the model explains the capture to its noise.
@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from ._illumination import Stripes
+from lightfield_jax.scene.illumination import Stripes
 
 # A solution this close to a constraint's edge is at a bound: |g| ≥ G_BOUND, albedo
 # below ALBEDO_BOUNDS[0] or above [1], the black level within 0.01 of its range.

@@ -28,7 +28,7 @@ import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from ._io import _fsync, _make_file, _reserve, forget_temporary
+from lightfield_jax.capture.io import _fsync, _make_file, _reserve, forget_temporary
 
 
 class OutputError(ValueError):

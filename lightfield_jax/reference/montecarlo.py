@@ -49,7 +49,7 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax._illumination import Beam, Full, Stripes
+from lightfield_jax.scene.illumination import Beam, Full, Stripes
 
 Estimator = Literal["track", "collision"]
 # Intervals of the tabulated CDF of the relative scattering angle (inverse-CDF sampling).

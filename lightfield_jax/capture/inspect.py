@@ -20,9 +20,9 @@ import math
 
 import numpy as np
 
-from ._capture import Capture
-from ._decay import entry_coordinates
-from ._separate import separate
+from lightfield_jax.capture.capture import Capture
+from lightfield_jax.inverse.decay import entry_coordinates
+from lightfield_jax.inverse.separate import separate
 
 SNR_USABLE = 10.0
 _BIN_PX = 2.0

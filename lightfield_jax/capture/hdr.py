@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import CaptureError, atomic_write_text
+from lightfield_jax.capture.io import CaptureError, atomic_write_text
 
 RESPONSES = ("linear", "auto")
 CLIP = 0.98

@@ -5,7 +5,7 @@ field is kept as its averages over n_z depth layers, L_l(x, y, θ, μ), with θ 
 azimuth (the plane model's bins) and μ = ω·ẑ on Gauss–Legendre nodes in [0, 1]. Both
 faces are symmetric and the sheet is horizontal, so L(z, −μ) = L(h − z, μ) (fact 4):
 only μ ≥ 0 is stored, and a face reflection becomes a periodic wrap of the depth with
-weight R(μ) (:mod:`lightfield_jax._slab_layers`). With the black side walls every order
+weight R(μ) (:mod:`lightfield_jax.forward.slab_layers`). With the black side walls every order
 is an exact free-space transport of the previous order's source (fact 1), and for
 layer-uniform sources the depth integrals are analytic:
 
@@ -17,10 +17,10 @@ layer-uniform sources the depth integrals are analytic:
   e^{−σt (h − z)} over the heights the rays of source layer l' reach.
 
 Each is a 2-D convolution per direction (θ bin, μ node) and layer pair with a kernel
-built like the plane model's first-scatter kernel (:mod:`lightfield_jax._first_scatter`:
+built like the plane model's first-scatter kernel (:mod:`lightfield_jax.forward.first_scatter`:
 polar rings, pixel-pair averaging by bilinear splats), evaluated with a 3-point Gauss
 rule across each ring, and applied as an FFT over a (2H, 2W) zero-padded domain (exact:
-no wrap-around). Per bounce (:class:`~lightfield_jax._slab_layers.SlabBounce`): one
+no wrap-around). Per bounce (:class:`~lightfield_jax.forward.slab_layers.SlabBounce`): one
 forward FFT of the layered source Q_k, n_z² kernel products, one inverse FFT for L_k,
 one for the image, and n_z matmuls with the discrete 3-D phase matrices (bin-averaged
 in θ, balanced so a bounce conserves ω·energy exactly).
@@ -31,7 +31,7 @@ order's source as its n_z layer averages, which ``monte_carlo_slab(...,
 depth_layers=n_z)`` reproduces exactly; the error against the true slab falls about as
 1/n_z (measured in docs/slab_depth.md; :func:`default_n_z` chooses n_z).
 
-Units as the Monte Carlo oracle (:mod:`lightfield_jax._montecarlo_slab`): the sheet
+Units as the Monte Carlo oracle (:mod:`lightfield_jax.reference.montecarlo_slab`): the sheet
 has unit irradiance (power per unit area normal to θ0), lengths are pixels, σ per
 pixel, images are power per unit area of the top face (times the gain).
 """
@@ -49,11 +49,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._first_scatter import kernel_nodes
-from ._grid import Grid
-from ._illumination import Illumination, scaled, source_moments
-from ._render import _count_trace, render_refined, unscattered_fluence
-from ._slab_layers import SlabBounce, camera_integrals, transport_weights
+from lightfield_jax.forward.first_scatter import kernel_nodes
+from lightfield_jax.forward.render import _count_trace, render_refined, unscattered_fluence
+from lightfield_jax.forward.slab_layers import SlabBounce, camera_integrals, transport_weights
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
 
 Boundary = Literal["absorbing", "refractive"]
 BOUNDARIES = ("absorbing", "refractive")
@@ -191,7 +191,7 @@ class Slab:
 class AutoGeometry:
     """Plane or slab, chosen per capture by the fit (``geometry: {kind: auto, ...}``):
     the plane model where its misfit is at most ``threshold`` × the capture's relative
-    noise, else ``slab`` (:mod:`lightfield_jax._model_choice`)."""
+    noise, else ``slab`` (:mod:`lightfield_jax.inverse.model_choice`)."""
 
     slab: Slab
     threshold: float = 1.0
@@ -721,7 +721,7 @@ def describe_geometry(model: dict) -> str:
 @functools.lru_cache(maxsize=64)
 def _bounce_ratio_cached(slab: Slab, key: tuple, width: int, height: int) -> float:
     sigma_t, albedo, g = key
-    from ._illumination import Full
+    from lightfield_jax.scene.illumination import Full
 
     f = max(1.0, max(width, height) / 24.0)  # the same tank, in pixels of f px
     w, h = max(4, round(width / f)), max(4, round(height / f))

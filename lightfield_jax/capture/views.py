@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from ._grid import Grid
-from ._illumination import Beam, Full, Stripes
-from ._medium import Medium
-from ._render import RenderResult, render, resolve_bounces, resolve_model
-from ._slab import Slab, parse_geometry
+from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
+from lightfield_jax.forward.slab import Slab, parse_geometry
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Beam, Full, Stripes
+from lightfield_jax.scene.medium import Medium
 
 MAX_LIGHTFIELD_FLOATS = 50_000_000  # 200 MB of float32
 
@@ -59,7 +59,7 @@ def render_transport(
 
 def write_transport(result: RenderResult, folder: Path) -> dict[str, str]:
     """``bounces.npy``/``bounces.exr`` (I_1..I_K) and ``lightfield.npy`` (L_0..L_K)."""
-    from ._io import atomic_write_npy, write_exr
+    from lightfield_jax.capture.io import atomic_write_npy, write_exr
 
     images = np.asarray(result.images, np.float32)
     atomic_write_npy(folder / "bounces.npy", images)
@@ -103,8 +103,8 @@ def render_results(
 ) -> tuple[dict[str, str], list[str]]:
     """Render the fitted medium of every channel of a results file into ``folder`` (one
     subfolder per channel when there are several): the files written and notes."""
-    from ._capture import load_capture
-    from ._io import atomic_write_json
+    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.io import atomic_write_json
 
     source = Path(results)
     try:
@@ -155,7 +155,7 @@ def render_results(
         atomic_write_json(target / "render.json", about)
         written["render.json"] = "what was rendered (medium, model region, illumination)"
         if plot:
-            from .viz import plot_transport
+            from lightfield_jax.viz import plot_transport
 
             stage(f"plot {name}")
             title = (
@@ -175,7 +175,7 @@ def plot_simulation(
     """The paper's figures of a simulated scene (:class:`~lightfield_jax.SimulatedCapture`)
     into ``folder``: its medium, grid, geometry and gain under the config's light (full
     illumination for stripes), K = the simulation's bounces."""
-    from .viz import plot_transport
+    from lightfield_jax.viz import plot_transport
 
     config = sim.config
     light = full_light(config.illumination)

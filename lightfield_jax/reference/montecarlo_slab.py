@@ -1,6 +1,6 @@
 """An independent 3-D Monte Carlo reference for the slab geometry (docs/model.md section 7).
 
-Like :mod:`lightfield_jax._montecarlo` (the 2-D oracle) this is plain numpy and shares
+Like :mod:`lightfield_jax.reference.montecarlo` (the 2-D oracle) this is plain numpy and shares
 no code with any propagator. It reuses the 2-D oracle's launch geometry along the entry
 wall (``_source``, ``_launch``), side-wall distance and tally helpers, which are
 themselves independent of the propagators.
@@ -78,8 +78,8 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax._illumination import Beam, Full, Stripes
-from lightfield_jax._montecarlo import (
+from lightfield_jax.forward.slab import fresnel_reflectance
+from lightfield_jax.reference.montecarlo import (
     _add,
     _check_scene,
     _distance_to_wall,
@@ -89,7 +89,7 @@ from lightfield_jax._montecarlo import (
     _source,
     phase_function,
 )
-from lightfield_jax._slab import fresnel_reflectance
+from lightfield_jax.scene.illumination import Beam, Full, Stripes
 
 Boundary = Literal["absorbing", "refractive"]
 

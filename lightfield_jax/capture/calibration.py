@@ -46,8 +46,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ._decay import entry_coordinates
-from ._io import CaptureError, ImageData
+from lightfield_jax.capture.io import CaptureError, ImageData
+from lightfield_jax.inverse.decay import entry_coordinates
 
 # Sensor depths that 16-bit files commonly carry.
 _SENSOR_BITS = (10, 12, 14)

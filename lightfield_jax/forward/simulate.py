@@ -2,7 +2,7 @@
 
 :func:`simulate_capture` renders the per-bounce images of a config and turns them into
 captured images: gain c, the projector's black level b (stripes), the camera's dark
-level and noise (see :mod:`lightfield_jax._config` for the keys).
+level and noise (see :mod:`lightfield_jax.app.config` for the keys).
 :func:`write_simulation` writes the result into a folder (the ``simulate`` command).
 
 Per-bounce images are noise-free and exclude the dark level; they include the gain
@@ -25,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from ._config import SimulationConfig, load_simulation_config
-from ._illumination import Full, Stripes
-from ._memory import check_memory, render_bytes
-from ._progress import Stage, quiet
-from ._render import RenderResult, render
-from ._slab import Slab
-from ._timing import stopwatch
+from lightfield_jax.app.config import SimulationConfig, load_simulation_config
+from lightfield_jax.app.memory import check_memory, render_bytes
+from lightfield_jax.app.progress import Stage, quiet
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.render import RenderResult, render
+from lightfield_jax.forward.slab import Slab
+from lightfield_jax.scene.illumination import Full, Stripes
 
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "numpy", "lightfield_jax")
 
@@ -169,7 +169,7 @@ def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: S
 
 def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
-    :func:`~lightfield_jax._memory.render_bytes`), from the sizes alone."""
+    :func:`~lightfield_jax.app.memory.render_bytes`), from the sizes alone."""
     grid = config.grid.resolve(config.medium.g)
     n_mu = 1
     if isinstance(config.geometry, Slab):
@@ -277,7 +277,7 @@ def write_simulation(
     """Write a simulated capture's files into ``folder`` (which must exist).
 
     Not atomic by itself: callers stage the folder with
-    :func:`~lightfield_jax._io.atomic_directory`. Returns file name → description (also
+    :func:`~lightfield_jax.capture.io.atomic_directory`. Returns file name → description (also
     recorded in ``metadata.json``). The files:
 
     - ``bounces.npy``: float32 per-bounce images, [K, H, W] (index k−1 holds I_k), or
@@ -286,15 +286,15 @@ def write_simulation(
       captured image Σ_k I_k + dark level, with noise).
     - stripes: per shift p, ``bounces_XX.exr`` (channels I1..IK) and ``shift_XX.exr``
       (channel ``Y``, the captured image), and ``capture.yaml`` (the capture format of
-      :mod:`lightfield_jax._capture`, the inverse pipeline's input).
+      :mod:`lightfield_jax.capture.capture`, the inverse pipeline's input).
     - ``dark.exr`` (channel ``Y``) when the config has a ``dark_level``.
     - ``lightfield.npy`` when light fields were rendered: float32 [K+1, H, W, n_theta]
       (L_0..L_K, radiance per radian), or [P, K+1, H, W, n_theta] for stripes.
     - ``metadata.json``: :meth:`SimulatedCapture.metadata`, the file list and
       ``extra_metadata``.
     """
-    from ._capture import write_capture_yaml
-    from ._io import atomic_write_json, atomic_write_npy, write_exr
+    from lightfield_jax.capture.capture import write_capture_yaml
+    from lightfield_jax.capture.io import atomic_write_json, atomic_write_npy, write_exr
 
     folder = Path(folder)
     k = sim.n_bounces

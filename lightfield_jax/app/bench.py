@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._grid import Grid
-from ._illumination import Beam
-from ._render import renderer_for
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Beam
 
 DEFAULT_SIZES = ((64, 64, 32), (128, 128, 64), (256, 256, 128))
 _MILK = (0.2051, 0.0366, 0.4)
@@ -122,11 +122,11 @@ def bench_slab(
     a forward render (compile, run), one forward-mode derivative column (what each
     Levenberg–Marquardt step needs per parameter) and, with ``fits``, a noiseless joint
     fit of each model to its own render (wall time, compile included)."""
-    from ._fit import FitOptions, fit_images
-    from ._illumination import Stripes
-    from ._medium import Medium
-    from ._render import make_renderer, resolve_model
-    from ._slab import Slab
+    from lightfield_jax.forward.render import make_renderer, resolve_model
+    from lightfield_jax.forward.slab import Slab
+    from lightfield_jax.inverse.fit import FitOptions, fit_images
+    from lightfield_jax.scene.illumination import Stripes
+    from lightfield_jax.scene.medium import Medium
 
     stripes = Stripes(6, 3, tuple(range(6)))
     medium = Medium(*_MILK)
@@ -204,8 +204,8 @@ _FIT_CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import lightfield_jax
-from lightfield_jax._capture import load_capture
-from lightfield_jax._fit import fit_capture
+from lightfield_jax.capture.capture import load_capture
+from lightfield_jax.inverse.fit import fit_capture
 import_s = time.perf_counter() - t0
 capture = load_capture(sys.argv[1])
 out = {"import_s": import_s}
@@ -236,8 +236,8 @@ def bench_fits(
     import tempfile
     from pathlib import Path
 
-    from ._config import parse_simulation_config
-    from ._simulate import simulate_capture, write_simulation
+    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 
     sim = simulate_capture(parse_simulation_config(config, source="bench config"))
     truth = sim.truth()

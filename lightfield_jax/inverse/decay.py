@@ -44,8 +44,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._illumination import _INWARD_DEG, WALLS, Wall, _check_direction, _finite
-from ._medium import _is_concrete
+from lightfield_jax.scene.illumination import _INWARD_DEG, WALLS, Wall, _check_direction, _finite
+from lightfield_jax.scene.medium import _is_concrete
 
 # A log-linear start below this (data that do not decay) is raised to it: far smaller
 # than any σt whose decay a frame can resolve, and still positive for the log.

@@ -58,11 +58,11 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 
-from ._grid import Grid
-from ._illumination import WALLS, Beam, Full, Illumination, Stripes
-from ._io import require_regular_file
-from ._medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
-from ._slab import Plane, Slab, parse_geometry, rho_bound
+from lightfield_jax.capture.io import require_regular_file
+from lightfield_jax.forward.slab import Plane, Slab, parse_geometry, rho_bound
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import WALLS, Beam, Full, Illumination, Stripes
+from lightfield_jax.scene.medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
 _TOP_KEYS = (

@@ -18,13 +18,13 @@ Conventions every command keeps:
   stderr and exit with status 2, without a traceback (``--debug`` shows it). Command
   line syntax errors exit 2 the same way.
 - Validate every input before the long work starts: check every output path against
-  the inputs and each other with :func:`~lightfield_jax._outputs.check_outputs`, and
-  the memory the work needs with :func:`~lightfield_jax._memory.check_memory`. Write
-  output folders through :func:`~lightfield_jax._io.atomic_directory` and single files
-  through :func:`~lightfield_jax._outputs.staged_files`, so a failure leaves no
+  the inputs and each other with :func:`~lightfield_jax.app.outputs.check_outputs`, and
+  the memory the work needs with :func:`~lightfield_jax.app.memory.check_memory`. Write
+  output folders through :func:`~lightfield_jax.capture.io.atomic_directory` and single files
+  through :func:`~lightfield_jax.app.outputs.staged_files`, so a failure leaves no
   partial output and replaces no existing file.
 - SIGINT (Ctrl-C) and SIGTERM end a command within a moment, with status 130 or 143
-  and nothing written (:mod:`lightfield_jax._signals`).
+  and nothing written (:mod:`lightfield_jax.app.signals`).
 - Warnings print as ``lightfield-jax: warning: ...`` and are collected in
   ``args.warnings`` (e.g. for a metadata file).
 - Long work reports its stages through :func:`_progress`: a display on stderr that
@@ -43,7 +43,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from ._progress import progress
+from lightfield_jax.app.progress import progress
 
 PROG = "lightfield-jax"
 USER_ERRORS: tuple[type[BaseException], ...] = (
@@ -85,7 +85,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every registered subcommand."""
-    from . import __version__
+    from lightfield_jax import __version__
 
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
@@ -128,8 +128,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    from ._memory import memory_limit
-    from ._signals import stop_on_signals
+    from lightfield_jax.app.memory import memory_limit
+    from lightfield_jax.app.signals import stop_on_signals
 
     args.warnings = []
     try:
@@ -160,7 +160,7 @@ def _one_line(text: str) -> str:
 
 
 def _memory_size(text: str) -> int:
-    from ._memory import parse_size
+    from lightfield_jax.app.memory import parse_size
 
     try:
         return parse_size(text)
@@ -187,8 +187,8 @@ def _describe(error: BaseException) -> str:
 def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
     """Show the package's warnings as one line each on stderr, every time, and collect
     them; other warnings keep the filters in force."""
-    from ._capture import CaptureWarning
-    from ._render import DivergentSeriesWarning
+    from lightfield_jax.capture.capture import CaptureWarning
+    from lightfield_jax.forward.render import DivergentSeriesWarning
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = _one_line(str(message))
@@ -269,10 +269,10 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
 
 def _outputs(files=(), folders=(), inputs=(), plots=(), folder_names=()) -> None:
     """Check every output of a command before its work (see
-    :func:`~lightfield_jax._outputs.check_outputs`); ``plots`` are figures among
+    :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
     ``files``, whose format is checked too; ``folder_names``: the names written into
     ``folders``."""
-    from ._outputs import check_outputs, check_plot_format
+    from lightfield_jax.app.outputs import check_outputs, check_plot_format
 
     for plot in plots:
         check_plot_format(plot)
@@ -286,7 +286,7 @@ def _about(capture) -> Iterator[None]:
     import equinox as eqx
     import numpy as np
 
-    from ._io import CaptureError
+    from lightfield_jax.capture.io import CaptureError
 
     source = str(capture.source)
     try:
@@ -323,7 +323,7 @@ SIMULATE_FILES = (
 @command(
     "simulate",
     "render a config into per-bounce and captured images",
-    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax._config)"),
+    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax.app.config)"),
     arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
     arg(
         "--lightfield",
@@ -357,9 +357,9 @@ def _simulate(args: argparse.Namespace) -> None:
     captured images add the dark level and noise. Nothing is written unless the whole
     command succeeds.
     """
-    from ._config import load_simulation_config
-    from ._io import atomic_directory
-    from ._simulate import simulate_capture, write_simulation
+    from lightfield_jax.app.config import load_simulation_config
+    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 
     _outputs(
         folders=[args.out, args.plot],
@@ -375,7 +375,7 @@ def _simulate(args: argparse.Namespace) -> None:
         with atomic_directory(out) as staging:
             files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
         if plot is not None:
-            from ._views import plot_simulation
+            from lightfield_jax.capture.views import plot_simulation
 
             with atomic_directory(plot) as staging:
                 figures, notes = plot_simulation(sim, staging, stage=stage)
@@ -396,7 +396,7 @@ def _simulate(args: argparse.Namespace) -> None:
 
 def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
     """``64x64x32,128x128x64`` → ((64, 64, 32), (128, 128, 64)), validated as grids."""
-    from ._grid import Grid
+    from lightfield_jax.scene.grid import Grid
 
     sizes = []
     for item in text.split(","):
@@ -465,8 +465,8 @@ def _bench(args: argparse.Namespace) -> None:
     and write all numbers to a JSON file. Asserts nothing. With ``--slab``: the slab
     model against the plane (forward, derivative, joint fit). With ``--fits``: the fit
     methods' wall time, cold (a fresh process) and warm."""
-    from ._bench import bench_fits, bench_slab, run_benchmark
-    from ._io import atomic_write_json
+    from lightfield_jax.app.bench import bench_fits, bench_slab, run_benchmark
+    from lightfield_jax.capture.io import atomic_write_json
 
     _outputs(files=[args.out])
     out = Path(args.out)
@@ -491,7 +491,7 @@ def _bench(args: argparse.Namespace) -> None:
         _say(args, f"wrote {out}")
         return
     sizes = args.sizes
-    from ._memory import check_memory, render_bytes
+    from lightfield_jax.app.memory import check_memory, render_bytes
 
     for w, h, n in sizes:
         # value_and_grad keeps the forward pass's fields of its 10 bounces.
@@ -515,7 +515,7 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _fit_summary(fit) -> str:
-    from ._slab import describe_geometry
+    from lightfield_jax.forward.slab import describe_geometry
 
     lines = []
     for name, r in zip(fit.channels, fit.results, strict=True):
@@ -544,7 +544,7 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
     """FIG.png: the profiles and residuals of the fit; with several channels, FIG.png
     holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles. Each
     figure is written to ``write(target)`` (a staged temporary)."""
-    from .viz import plot_channels, plot_fit
+    from lightfield_jax.viz import plot_channels, plot_fit
 
     if len(fit.channels) == 1:
         i = capture.channel_names.index(fit.channels[0])
@@ -618,7 +618,7 @@ def _shown(capture, i: int) -> dict:
 @command(
     "fit",
     "recover sigma_t, sigma_s and g from a stripe capture",
-    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see lightfield_jax._capture)"),
+    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see README)"),
     arg(
         "--method",
         choices=("joint", "gradient", "grid"),
@@ -657,11 +657,11 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from ._capture import capture_files, load_capture
-    from ._fit import FitOptions, fit_capture
-    from ._io import atomic_write_json
-    from ._memory import check_memory, fit_bytes
-    from ._outputs import staged_files
+    from lightfield_jax.app.memory import check_memory, fit_bytes
+    from lightfield_jax.app.outputs import staged_files
+    from lightfield_jax.capture.capture import capture_files, load_capture
+    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.inverse.fit import FitOptions, fit_capture
 
     inputs = capture_files(args.capture)
     _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])
@@ -736,11 +736,11 @@ def _demo(args: argparse.Namespace) -> int | None:
     capture, fit it with each method, print a table (truth, each method, error,
     time) and write DIR/results.json and
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
-    from ._capture import load_capture
-    from ._config import parse_simulation_config
-    from ._fit import fit_capture
-    from ._io import atomic_directory, atomic_write_json
-    from ._simulate import simulate_capture, write_simulation
+    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.io import atomic_directory, atomic_write_json
+    from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.inverse.fit import fit_capture
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
@@ -770,7 +770,7 @@ def _demo(args: argparse.Namespace) -> int | None:
         atomic_write_json(out / "results.json", {"truth": truth, "fits": results})
         if "joint" in results:
             stage("plot")
-            from .viz import plot_fit
+            from lightfield_jax.viz import plot_fit
 
             joint = dict(rows)["joint"]
             plot_fit(capture.images[..., 0], capture.pattern, joint, out / "demo_fit.png")
@@ -844,9 +844,14 @@ def _pattern(args: argparse.Namespace) -> None:
                      images (auto); every key is explained in a comment
 
     Nothing is written unless the whole command succeeds."""
-    from ._io import atomic_directory
-    from ._memory import check_memory
-    from ._pattern import check_size, pattern_memory, pattern_phases, write_patterns
+    from lightfield_jax.app.memory import check_memory
+    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.capture.pattern import (
+        check_size,
+        pattern_memory,
+        pattern_phases,
+        write_patterns,
+    )
 
     _outputs(folders=[args.out])
     out = Path(args.out)
@@ -874,7 +879,7 @@ def _pattern(args: argparse.Namespace) -> None:
 @command(
     "inspect",
     "show what the pipeline sees in a capture before fitting it",
-    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see lightfield_jax._capture)"),
+    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see README)"),
     arg("--plot", metavar="FIG.png", help="also write the figure"),
     arg("--json", metavar="FILE", help="also write the findings as JSON"),
     arg(
@@ -893,10 +898,10 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     brackets also a merged image, the response curve and the clipped samples. Exit
     status 1, with a warning, when a channel is unusable for a fit (no direct light at
     the entry wall, or its SNR never usable)."""
-    from ._capture import capture_files, load_capture
-    from ._inspect import inspect_capture
-    from ._io import atomic_write_json
-    from ._outputs import staged_files
+    from lightfield_jax.app.outputs import staged_files
+    from lightfield_jax.capture.capture import capture_files, load_capture
+    from lightfield_jax.capture.inspect import inspect_capture
+    from lightfield_jax.capture.io import atomic_write_json
 
     _outputs(
         files=[args.plot, args.json, args.response],
@@ -914,13 +919,13 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
         inspection = inspect_capture(capture)
         if plot is not None:
             stage("plot")
-            from .viz import plot_inspect
+            from lightfield_jax.viz import plot_inspect
 
             plot_inspect(inspection, write(plot))
         if out is not None:
             atomic_write_json(write(out), inspection.to_dict())
         if response is not None:
-            from ._hdr import write_response
+            from lightfield_jax.capture.hdr import write_response
 
             write_response(write(response), capture.brackets.response, capture.channel_names)
     _say(args, inspection.summary())
@@ -964,8 +969,8 @@ def _render_command(args: argparse.Namespace) -> None:
                       the light, the light fields with direction glyphs
 
     Nothing is written unless the whole command succeeds."""
-    from ._io import atomic_directory
-    from ._views import render_results
+    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.capture.views import render_results
 
     _outputs(
         folders=[args.out],
@@ -994,7 +999,7 @@ def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
     summary.json with the config, software versions, machine and date. A rerun into
     the same DIR resumes from the work already stored in DIR/cache."""
-    from ._experiment import run_experiment
+    from lightfield_jax.app.experiment import run_experiment
 
     _outputs(folders=[args.out])
     with _progress(args, "experiment") as stage:

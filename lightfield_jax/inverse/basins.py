@@ -30,9 +30,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._joint import BLACK_RANGE
-from ._medium import phase_integral
-from ._programs import jitted
+from lightfield_jax.inverse.joint import BLACK_RANGE
+from lightfield_jax.inverse.programs import jitted
+from lightfield_jax.scene.medium import phase_integral
 
 # ρ of the reference renders: I_k grows like ρ^k, so rendering at σs = σt (or the
 # paper's σs = 1) overflows float32 within a few dozen bounces at high albedo; at

@@ -6,7 +6,7 @@ waits in the XLA client for the computation to finish, minutes for a fit. Here t
 signal is seen by a watcher thread instead: Python's C-level handler writes the
 signal's number to a pipe (:func:`signal.set_wakeup_fd`) at once, the thread removes
 the command's unpublished temporary files and folders
-(:func:`~lightfield_jax._io.remove_temporaries`) and ends the process with
+(:func:`~lightfield_jax.capture.io.remove_temporaries`) and ends the process with
 :func:`os._exit` (status 130 for SIGINT, 143 for SIGTERM, as shells report them),
 which does not wait for the computation. Nothing was published: outputs replace their
 targets only when a command succeeds, so no output is left.
@@ -21,7 +21,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-from ._io import remove_temporaries
+from lightfield_jax.capture.io import remove_temporaries
 
 EXIT_STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
 

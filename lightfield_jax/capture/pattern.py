@@ -12,7 +12,7 @@ and multiple light cannot be separated (docs/model.md section 5).
 ``capture.yaml`` template: one camera file name per projected image (to be replaced by
 the camera's files), ``auto`` for what is measured from the images (the medium's ROI,
 the entry wall, the light's direction, where the stripes fall on the camera's rows,
-the projector's black level; see :mod:`lightfield_jax._capture`), and a comment on
+the projector's black level; see :mod:`lightfield_jax.capture.capture`), and a comment on
 every key.
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_write_text, write_png
+from lightfield_jax.capture.io import atomic_write_text, write_png
 
 ORIENTATIONS: tuple[str, ...] = ("rows", "columns")
 
@@ -105,7 +105,7 @@ def capture_template(
     )
     return f"""\
 # lightfield_jax capture file: a template written by `lightfield-jax pattern`
-# (format: lightfield_jax._capture).
+# (format: lightfield_jax.capture.capture).
 #
 # Project each image in turn and take one camera image of the medium for each,
 # all with the same exposure, gain and white balance, in a linear format: 16-bit

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from ._illumination import Stripes
+from lightfield_jax.scene.illumination import Stripes
 
 
 @dataclasses.dataclass(frozen=True)

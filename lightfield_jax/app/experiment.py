@@ -36,9 +36,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from ._io import atomic_write_json
+from lightfield_jax.capture.io import atomic_write_json
 
-_HERE = Path(__file__).resolve().parent
+_HERE = Path(__file__).resolve().parent.parent  # the package folder
 
 
 def _tree_or_packaged(tree: str, packaged: str) -> Path:
@@ -58,7 +58,7 @@ def versions() -> dict[str, str]:
     import numpy
     import optimistix
 
-    from . import __version__
+    from lightfield_jax import __version__
 
     return {
         "lightfield_jax": __version__,

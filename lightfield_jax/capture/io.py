@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from ._memory import IMAGE_COPIES, check_memory, image_bytes
+from lightfield_jax.app.memory import IMAGE_COPIES, check_memory, image_bytes
 
 IMAGE_EXTENSIONS: tuple[str, ...] = (".exr", ".tif", ".tiff", ".png", ".npy")
 # The attribute in which write_exr records the channel order: OpenEXR stores channels

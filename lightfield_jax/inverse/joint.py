@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
-from ._jacobian import with_forward_jacobian
-from ._programs import jitted
+from lightfield_jax.inverse.jacobian import with_forward_jacobian
+from lightfield_jax.inverse.programs import jitted
 
 # The black level's range: b = −0.2 + 1.2·sigmoid(y).
 BLACK_RANGE = (-0.2, 1.0)

@@ -23,19 +23,19 @@ Keys:
 - ``images``: a list of image files (paths relative to the capture file; OpenEXR,
   TIFF, PNG or ``.npy``, all the same size, channel count and sample format), one per
   phase; or one ``.npy`` stack of shape [P, H, W] or [P, H, W, C]. Integer samples are
-  scaled to [0, 1] by their type's maximum (see :func:`~lightfield_jax._io.read_image`).
+  scaled to [0, 1] by their type's maximum (see :func:`~lightfield_jax.capture.io.read_image`).
   Camera files: 16-bit TIFF or PNG from a raw converter (linear, demosaiced), or float
   EXR from an HDR merge. Refused with a clear error: images of different sample
   formats (8- and 16-bit, integer and float), 1-channel images that are an
   undemosaiced Bayer mosaic, 4-channel images that are not RGB with a constant alpha
   (a constant alpha channel is dropped). 16-bit files that hold 10-, 12- or 14-bit data
   clipped at its top code (4095 for 12 bits) have those pixels masked as saturated.
-  See :mod:`lightfield_jax._calibration`.
+  See :mod:`lightfield_jax.capture.calibration`.
 - ``images`` as exposure brackets, one list per shift (``[[s0_1ms.png, s0_8ms.png],
   [s1_1ms.png, s1_8ms.png], ...]``), with ``exposure_times`` (seconds, increasing, the
   order of every list) and ``response`` (``linear``, default; ``auto``: recovered from
   the brackets; or a table file): each bracket is merged to linear radiance
-  (:mod:`lightfield_jax._hdr`), clipped and near-black samples dropped; a calibration
+  (:mod:`lightfield_jax.capture.hdr`), clipped and near-black samples dropped; a calibration
   frame is then a list of one file per exposure time too, and the dark frame is
   subtracted from every exposure before the merge. ``saturation`` is then the sample
   value at which a sample counts as clipped (default 0.98). The merged noise goes to the
@@ -84,7 +84,7 @@ as it is, and constrains the measurement of the others; a key that is absent kee
 default above, so existing captures load unchanged):
 
 - ``medium_roi``, ``pattern.entry``, ``pattern.direction_deg``, ``pattern.phases``:
-  :func:`~lightfield_jax._geometry.detect_geometry` on the dark-subtracted,
+  :func:`~lightfield_jax.capture.detect.detect_geometry` on the dark-subtracted,
   flat-fielded images over the whole frame (the ROI in the white frame when there is
   one): the lit medium's rectangle, the wall the light enters, its heading from the
   stripes' ridges (oblique stripes are modelled by ``direction_deg``), and where the
@@ -93,17 +93,17 @@ default above, so existing captures load unchanged):
   through the dark frame and the fit crops where each channel's light meets its noise.
 - ``black_level``: from the black frame (against the white frame or the mean of the
   shifts), or, without one, Imin/Imax at the entry wall, which is an upper bound
-  (:mod:`lightfield_jax._calibration`). Its result is ``Capture.black_level_estimate``.
+  (:mod:`lightfield_jax.capture.calibration`). Its result is ``Capture.black_level_estimate``.
 
 What was measured is written to ``Capture.notes``; a detection whose confidence is
 below 0.5 is also a :class:`CaptureWarning`. ``lightfield-jax inspect`` shows it all.
 
 :func:`load_capture` validates all of it: every error is a
-:class:`~lightfield_jax._io.CaptureError` whose message starts with the capture file and
+:class:`~lightfield_jax.capture.io.CaptureError` whose message starts with the capture file and
 names the key and value (or the image file). Beyond each key's type and range (phases
 in [0, period), a period no longer than the images), the images must agree with the
 file: a capture too large for the memory available is refused from the image headers
-before any pixel is read (:mod:`lightfield_jax._memory`); images without light (every
+before any pixel is read (:mod:`lightfield_jax.app.memory`); images without light (every
 value zero or negative, or darker than the dark frame) are refused; in a capture whose
 images show stripes of the period, an image without them (a white or black frame
 listed among the stripes) is refused, and given phases that the stripe detector
@@ -126,7 +126,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ._calibration import (
+from lightfield_jax.app.config import _as_int, _Section, brief, load_yaml
+from lightfield_jax.app.memory import capture_bytes, check_memory
+from lightfield_jax.capture.calibration import (
     BlackLevel,
     check_not_mosaic,
     check_sample_formats,
@@ -134,11 +136,22 @@ from ._calibration import (
     estimate_black_level,
     sensor_top_code,
 )
-from ._config import _as_int, _Section, brief, load_yaml
-from ._geometry import LOW_CONFIDENCE, Geometry, _across_first, _coefficients, detect_geometry
-from ._hdr import CLIP, RESPONSES, Brackets, linear_response, merge_bracket, merge_capture
-from ._illumination import WALLS, Stripes
-from ._io import (
+from lightfield_jax.capture.detect import (
+    LOW_CONFIDENCE,
+    Geometry,
+    _across_first,
+    _coefficients,
+    detect_geometry,
+)
+from lightfield_jax.capture.hdr import (
+    CLIP,
+    RESPONSES,
+    Brackets,
+    linear_response,
+    merge_bracket,
+    merge_capture,
+)
+from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
     ImageData,
@@ -148,9 +161,9 @@ from ._io import (
     read_image,
     read_npy_stack,
 )
-from ._medium import PHASE_CONVENTIONS
-from ._memory import capture_bytes, check_memory
-from ._slab import parse_geometry
+from lightfield_jax.forward.slab import parse_geometry
+from lightfield_jax.scene.illumination import WALLS, Stripes
+from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 
 CAPTURE_KEYS: tuple[str, ...] = (
     "images",
@@ -206,13 +219,13 @@ class Capture:
         warnings: the messages of the :class:`CaptureWarning` s issued while loading.
         notes: what loading measured or decided on its own (``auto`` values, a dropped
             alpha channel, the sensor's bit depth), one line each.
-        detected: what :func:`~lightfield_jax._geometry.detect_geometry` found, when a
+        detected: what :func:`~lightfield_jax.capture.detect.detect_geometry` found, when a
             key asked for ``auto``; else ``None``.
         black_level_estimate: the estimate behind ``black_level: auto``, else ``None``.
         overview: the mean of the shifts over the whole camera frame (dark frame
             subtracted, flat-fielded), [H, W, C], before the ROI crop.
         black_frame, white_frame, flat_field: the files given for these keys, or ``None``.
-        brackets: what merging exposure brackets did (:mod:`lightfield_jax._hdr`), or
+        brackets: what merging exposure brackets did (:mod:`lightfield_jax.capture.hdr`), or
             ``None`` for single exposures.
         exposure: the merged images' effective exposure T (seconds) [P, H, W, C] after
             the ROI crop (their noise: Var ∝ image / T), or ``None``.
@@ -531,7 +544,7 @@ def _size(image: ImageData) -> str:
 
 
 def _brackets(top: _Section, base: Path, channel, notes: list[str]):
-    """Exposure brackets merged to linear radiance (:mod:`lightfield_jax._hdr`):
+    """Exposure brackets merged to linear radiance (:mod:`lightfield_jax.capture.hdr`):
     ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
     frame subtracted per exposure before merging (so the calibration frames hold no
     dark frame any more); ``None`` when the images are not brackets (lists)."""
@@ -653,8 +666,8 @@ def _exposure_times(top: _Section) -> list[float]:
 
 def _response(top: _Section, base: Path, images: np.ndarray, times, n_channels: int):
     """The inverse response: ``linear`` (default), ``auto`` (from the brackets) or a
-    table file (:func:`~lightfield_jax._hdr.load_response`)."""
-    from ._hdr import calibrate_response, load_response
+    table file (:func:`~lightfield_jax.capture.hdr.load_response`)."""
+    from lightfield_jax.capture.hdr import calibrate_response, load_response
 
     value = top.get("response", "linear")
     if not isinstance(value, str) or not value:
@@ -812,7 +825,7 @@ def _calibrate(a: np.ndarray, dark: np.ndarray | None, flat: np.ndarray | None) 
 
 
 def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
-    """Measure what the capture leaves ``auto`` (see :mod:`lightfield_jax._geometry`)."""
+    """Measure what the capture leaves ``auto`` (see :mod:`lightfield_jax.capture.detect`)."""
     asked = [k for k in ("phases", "entry", "direction_deg") if spec[k] == AUTO]
     asked = (["medium_roi"] if roi == AUTO else []) + [f"pattern.{k}" for k in asked]
     try:
@@ -875,7 +888,7 @@ _SURE_PHASES = 0.8
 def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
     of the period in a capture that has them, or given phases that differ from those
-    the stripe detector (:func:`~lightfield_jax._geometry.detect_geometry`) measures
+    the stripe detector (:func:`~lightfield_jax.capture.detect.detect_geometry`) measures
     with confidence. Default phases (``pattern.phases`` absent) that differ are
     returned as a note's text instead. ``images`` and ``roi``: the full frame's;
     ``phases_from``: ``given``, ``default`` or ``auto``."""
@@ -1128,7 +1141,7 @@ def write_capture_yaml(
     }
     data = plain({k: v for k, v in data.items() if v is not None})
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
-    header = "# lightfield_jax capture file (format: lightfield_jax._capture)\n"
+    header = "# lightfield_jax capture file (format: lightfield_jax.capture.capture)\n"
     return atomic_write_text(path, header + text)
 
 

@@ -13,17 +13,17 @@ Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
   capture does not give it) fitted straight to the raw shifted images by rendering each
   stripe pattern, so no separation bias remains. It starts from a global scan of the
-  misfit over (g, albedo) on a cheap model (:mod:`lightfield_jax._basins`), solves
+  misfit over (g, albedo) on a cheap model (:mod:`lightfield_jax.inverse.basins`), solves
   every basin near the best (cheap model, then the model its answer needs) and keeps
   the best.
 
 Every result carries 1σ uncertainties from the Jacobian (the joint fit: statistical
 from the capture's measured noise, a model term from a finer model's residual, and
-their total; :mod:`lightfield_jax._trust`), χ²/dof, correlations, the solver's
+their total; :mod:`lightfield_jax.inverse.trust`), χ²/dof, correlations, the solver's
 convergence status (never swallowed; false with the reasons for a solution that is not
 trustworthy), iterations, residual, wall time split into compile and run, and the model
 used. Programs are compiled once per static settings and shape bucket
-(:mod:`lightfield_jax._programs`).
+(:mod:`lightfield_jax.inverse.programs`).
 """
 
 from __future__ import annotations
@@ -39,20 +39,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._basins import Scan, basins, reference_sigma_s, scan, worse_basin
-from ._decay import fit_decay
-from ._grid import Grid, default_n_theta, default_refine
-from ._illumination import _INWARD_DEG, Full, Stripes
-from ._jacobian import with_forward_jacobian, with_jacobian
-from ._joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
-from ._joint import solve as solve_joint
-from ._medium import bounces_for_tolerance, phase_function, phase_integral
-from ._model_choice import choose, misfit, relative_noise
-from ._programs import clear_compiled as clear_compiled
-from ._programs import jitted
-from ._render import make_renderer, renderer_for
-from ._separate import separate
-from ._slab import (
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.render import make_renderer, renderer_for
+from lightfield_jax.forward.slab import (
     AutoGeometry,
     Plane,
     Slab,
@@ -60,8 +49,25 @@ from ._slab import (
     parse_geometry,
     slab_bounce_ratio,
 )
-from ._timing import stopwatch
-from ._trust import Uncertainty, at_bound, error_budget, noise_scale, untrustworthy
+from lightfield_jax.inverse.basins import Scan, basins, reference_sigma_s, scan, worse_basin
+from lightfield_jax.inverse.decay import fit_decay
+from lightfield_jax.inverse.jacobian import with_forward_jacobian, with_jacobian
+from lightfield_jax.inverse.joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
+from lightfield_jax.inverse.joint import solve as solve_joint
+from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
+from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
+from lightfield_jax.inverse.programs import jitted
+from lightfield_jax.inverse.separate import separate
+from lightfield_jax.inverse.trust import (
+    Uncertainty,
+    at_bound,
+    error_budget,
+    noise_scale,
+    untrustworthy,
+)
+from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
+from lightfield_jax.scene.illumination import _INWARD_DEG, Full, Stripes
+from lightfield_jax.scene.medium import bounces_for_tolerance, phase_function, phase_integral
 
 METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
 # A(g) of a Python float, compiled once (op by op, its dozen operations would each
@@ -94,7 +100,7 @@ class FitOptions:
             model), a :class:`Slab` (the tank's depth, docs/model.md §7; its 3-D phase
             function is normalised on the sphere, so ``phase`` is ``normalized``), or
             :class:`AutoGeometry` (the plane where its misfit is below the capture's
-            noise, else the slab: :mod:`lightfield_jax._model_choice`).
+            noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
         rtol, atol: solver tolerances (relative, absolute on the unconstrained values
             and on the residual's components); ``None`` picks them from the data's
             dtype (float32: 1e-4, 1e-4; float64: 1e-8, 1e-10). float32 cannot resolve
@@ -102,7 +108,7 @@ class FitOptions:
             tolerances LM converges within a few steps and then spends ten more
             shrinking its step in rounding noise (same answer to 1e-6).
         basin_search: (``joint``) solve every basin the global scan keeps, not only
-            its best (:mod:`lightfield_jax._basins`).
+            its best (:mod:`lightfield_jax.inverse.basins`).
         max_basins: at most this many basins are solved.
         basin_tolerance: a local minimum of the scan is kept when its misfit is at most
             (1 + tolerance) × the best.
@@ -757,7 +763,7 @@ def _joint_parts(pattern: Stripes, model: _Model, phase: str):
 def joint_weights(images, mask, exposure=None):
     """Shot-noise weights of the raw images, 1/√(I + floor) (floor 1e-3 of the peak), 0
     outside ``mask``; times √(T/max T) for merged exposure brackets of effective exposure
-    T (their variance is ∝ I/T, :mod:`lightfield_jax._hdr`)."""
+    T (their variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
     floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
     w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
     if exposure is not None:
@@ -785,7 +791,7 @@ class _Stage:
 
 
 def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
-    """One compiled joint solve (:func:`lightfield_jax._joint.solve`) from ``y0``."""
+    """One compiled joint solve (:func:`lightfield_jax.inverse.joint.solve`) from ``y0``."""
     renderer, full = _joint_parts(pattern, model, options.phase)
     fit_black = black is None
     settings = JointSettings(fit_black, pattern.lit, options.max_steps)
@@ -1027,7 +1033,7 @@ def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tu
 
 
 def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say):
-    """The joint fit with its global start (:mod:`lightfield_jax._basins`): scan, solve
+    """The joint fit with its global start (:mod:`lightfield_jax.inverse.basins`): scan, solve
     every basin kept (or the given start), keep the best; then the error budget and the
     verdict. Returns the :func:`_finish` keywords and the seconds."""
     seconds = {"compile": 0.0, "run": 0.0}
@@ -1192,7 +1198,7 @@ def fit_images(
             (e.g. a perfect split from a renderer: I_1 and Σ_{k≥2} I_k under full
             illumination). Used by the two-step methods and the joint fit's start.
         exposure: the effective exposure T of merged exposure brackets, like
-            ``images`` (:mod:`lightfield_jax._hdr`): the joint fit weights by √T.
+            ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
     return _fit_one(

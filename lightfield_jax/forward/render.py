@@ -4,9 +4,9 @@ Scheme (docs/model.md §4 says why):
 
 - I_1 is exact: σs·p(π/2)·S with S the pixel-averaged unscattered fluence.
 - L_1 is semi-analytic: S convolved with a per-direction-bin kernel
-  (:mod:`lightfield_jax._first_scatter`), so the thin beam never smears on the grid.
+  (:mod:`lightfield_jax.forward.first_scatter`), so the thin beam never smears on the grid.
 - From the second bounce on, L_k = T[Q_k] on the (x, y, θ) grid
-  (:mod:`lightfield_jax._transport`), with Q_k = σs·∫ p(θ − θ') L_{k−1}(θ') dθ' as one
+  (:mod:`lightfield_jax.forward.transport`), with Q_k = σs·∫ p(θ − θ') L_{k−1}(θ') dθ' as one
   matmul with the bin-averaged circulant phase matrix; the camera sum
   I_k = σs·p(π/2)·Σ_θ L_{k−1}·Δθ is one more output row of the same matmul.
 - Bounces are a ``lax.scan``; light fields are stacked only on request.
@@ -27,17 +27,27 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._first_scatter import (
+from lightfield_jax.forward.first_scatter import (
     convolve_first_scatter,
     convolve_kernels,
     first_scatter_kernel,
     kernel_nodes,
 )
-from ._grid import Grid
-from ._illumination import Illumination, Stripes, scaled, source_moments
-from ._medium import Medium, bounces_for_tolerance, phase_function, phase_integral
-from ._tail import TailNotConvergedWarning, TailSolution, check_tail, solve_tail
-from ._transport import direction_groups, transport, transport_tables
+from lightfield_jax.forward.tail import (
+    TailNotConvergedWarning,
+    TailSolution,
+    check_tail,
+    solve_tail,
+)
+from lightfield_jax.forward.transport import direction_groups, transport, transport_tables
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Illumination, Stripes, scaled, source_moments
+from lightfield_jax.scene.medium import (
+    Medium,
+    bounces_for_tolerance,
+    phase_function,
+    phase_integral,
+)
 
 # Sub-samples per bin of the triangle-weighted bin average of p (phase matrix).
 _PHASE_SUBSAMPLES = 16
@@ -158,7 +168,7 @@ class BounceStep(eqx.Module):
     n_theta: int = eqx.field(static=True)
 
     def transport(self, q):
-        """L = T[Q] on the grid (:func:`lightfield_jax._transport.transport`)."""
+        """L = T[Q] on the grid (:func:`lightfield_jax.forward.transport.transport`)."""
         return transport(q, self.sigma_t, _groups(self.n_theta), self.tables)
 
     def scatter(self, field):
@@ -184,9 +194,9 @@ class Renderer(eqx.Module):
 
     With ``tail`` (``"gmres"`` or ``"bicgstab"``) the first ``bounces`` = K0 orders stay
     explicit and exact as above, and the rest of the series Σ_{k>K0} comes from one
-    Krylov solve (:mod:`lightfield_jax._tail`, relative tolerance ``tail_tol``, at most
+    Krylov solve (:mod:`lightfield_jax.forward.tail`, relative tolerance ``tail_tol``, at most
     ``tail_max_steps`` iterations): the call returns ``(images, lightfields, tail)``
-    with ``tail`` a :class:`~lightfield_jax._tail.TailSolution` (tail image
+    with ``tail`` a :class:`~lightfield_jax.forward.tail.TailSolution` (tail image
     "patterns H W", its light field "patterns H W n_theta" or ``None``, the solver's
     steps and whether it converged). The image of all orders is
     ``images.sum(axis=1) + tail.image``.
@@ -484,7 +494,7 @@ def make_renderer(
     have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``) must
     be resolved. ``tail`` (plane only): the orders after ``bounces`` from one Krylov
     solve (see :class:`Renderer`)."""
-    from ._slab import Plane, Slab, SlabRenderer
+    from lightfield_jax.forward.slab import Plane, Slab, SlabRenderer
 
     if isinstance(geometry, Slab):
         if tail is not None:
@@ -532,7 +542,7 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     defaults (:meth:`Grid.resolve`) or the slab's (:func:`resolve_slab_grid`), and ρ
     the per-bounce energy ratio bound (the slab's 3-D phase function is normalised on
     the sphere: ρ = ω)."""
-    from ._slab import Plane, Slab, resolve_slab_grid, rho_bound
+    from lightfield_jax.forward.slab import Plane, Slab, resolve_slab_grid, rho_bound
 
     g = float(medium.g)
     if isinstance(geometry, Slab):
@@ -606,7 +616,7 @@ def render(
     ``converges=False`` and a :class:`DivergentSeriesWarning` is issued; a tail is
     refused there (``ValueError``: the series it would sum diverges). A tail solve that
     stops before its tolerance gives ``tail_converged=False`` and a
-    :class:`~lightfield_jax._tail.TailNotConvergedWarning`.
+    :class:`~lightfield_jax.forward.tail.TailNotConvergedWarning`.
     """
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)

@@ -1,0 +1,1 @@
+"""The command line, configs, outputs and the experiment runner."""

@@ -1,0 +1,1 @@
+"""Real captures: image I/O, exposure brackets, calibration, detection, patterns, inspection."""

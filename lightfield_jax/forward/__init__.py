@@ -1,0 +1,1 @@
+"""The forward model: first scattering, bounce transport, the plane and slab renderers, the tail."""

@@ -1,0 +1,1 @@
+"""The inverse pipeline: separation, decay fit, basin scan, joint fit, trust, model size."""

@@ -1,0 +1,1 @@
+"""The scene: the medium, the grid and the illumination."""
