@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.app.experiment import check_config, load_helper, pyplot, save_figure
 
 inv = load_helper("_inverse")
 
@@ -238,11 +238,9 @@ def _no_result(rec: dict) -> str:
 
 
 def _plot(config, records, comparison, out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
+
+    plt = pyplot()
 
     methods = config["methods"]
     scenes = [s["name"] for s in config["scenes"]]
@@ -351,6 +349,5 @@ def _plot(config, records, comparison, out: Path) -> str:
     )
     fig.tight_layout()
     name = "model_size.png"
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=100)
     return name

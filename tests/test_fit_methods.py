@@ -51,9 +51,7 @@ def test_joint_with_dogleg_gives_the_levenberg_marquardt_answer():
 def test_two_step_with_another_solver_gives_the_gradient_answer():
     kwargs = dict(split=_split(), **MODEL)
     named = lfj.fit_images(_images(), lfj.Stripes(), method="gradient", **kwargs)
-    dogleg = lfj.fit_images(
-        _images(), lfj.Stripes(), method=lfj.TwoStep(solver=DOGLEG), **kwargs
-    )
+    dogleg = lfj.fit_images(_images(), lfj.Stripes(), method=lfj.TwoStep(solver=DOGLEG), **kwargs)
     assert named.converged and dogleg.converged, (named.message, dogleg.message)
     assert dogleg.method == "gradient"
     np.testing.assert_allclose(_values(dogleg), _values(named), rtol=1e-6)
