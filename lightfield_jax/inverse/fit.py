@@ -1,15 +1,21 @@
 """The inverse problem (docs/model.md sections 5-6): recover σt, σs, g (and the gain) from a
 stripe capture.
 
-Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
+This module is the driver: :func:`fit_images` prepares the data
+(:mod:`lightfield_jax.inverse.data`), sizes the first model and hands the problem to a
+fit method (:mod:`lightfield_jax.inverse.methods`: ``GridSearch``, ``TwoStep``,
+``Joint``, each taking any optimistix least-squares solver); it holds the joint fit's
+stages, the model sizing, the result and the capture fit. The methods, all on the same
+forward model (:class:`~lightfield_jax.Renderer`):
 
 - ``grid`` (the paper's baseline): σt from the decay of the separated direct image D;
   per g on a grid, render I_k^{(g)} with σs = 1 under full illumination (``lax.map``
   over g), take the gain from the single scatter (D ≈ a·I_1^{(g)}, a = c·σs), solve the
   σs polynomial of the paper's eq. 10, M ≈ a·Σ_{k≥2} σs^{k−1} I_k^{(g)}, and keep the
   best g. It inherits the separation's bias (docs/model.md §6): that is its honest result.
-- ``gradient``: the same residual and model, solved with optimistix Levenberg-Marquardt
-  over (σs, g), differentiated through the renderer.
+- ``gradient``: the same residual and model (:mod:`lightfield_jax.inverse.two_step`),
+  solved over (σs, g) by an optimistix least-squares solver (Levenberg-Marquardt by
+  default), differentiated through the renderer.
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
   capture does not give it) fitted straight to the raw shifted images by rendering each
   stripe pattern, so no separation bias remains. It starts from a global scan of the
