@@ -57,8 +57,7 @@ import numpy as np
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import check_config, pyplot, save_figure, write_csv
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.forward.render import renderer_for
-from lightfield_jax.reference.montecarlo import monte_carlo_render
+from lightfield_jax.internal import monte_carlo_render, renderer_for
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}
