@@ -197,9 +197,7 @@ def typed_config(cls, config: dict):
             continue
         value = config[key]
         if not _type_ok(value, hints[key]):
-            raise ValueError(
-                f"{name}: {key}: expected {_type_name(hints[key])}, got {value!r}"
-            )
+            raise ValueError(f"{name}: {key}: expected {_type_name(hints[key])}, got {value!r}")
         values[key] = tuple(value) if isinstance(value, list) else value
     return cls(**values)
 
@@ -246,9 +244,7 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
         path = shipped  # a shipped config, by name
     if not path.is_file():
         known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
-        raise FileNotFoundError(
-            f"{path}: no such experiment config (shipped: {', '.join(known)})"
-        )
+        raise FileNotFoundError(f"{path}: no such experiment config (shipped: {', '.join(known)})")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
