@@ -58,6 +58,42 @@ def test_two_step_with_another_solver_gives_the_gradient_answer():
     assert abs(dogleg.g - 0.4) < 0.01 and abs(dogleg.sigma_s / 0.0366 - 1) < 0.01
 
 
+def _backend_compiles(fn) -> int:
+    from jax import monitoring
+
+    count = []
+
+    def listener(name, secs, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            count.append(secs)
+
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        fn()
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
+    return len(count)
+
+
+def test_a_solver_passed_as_a_value_is_compiled_once():
+    """The solver is a static part of the two-step program: a second capture of the
+    same shape with the same (equal, newly built) solver compiles nothing."""
+    split = _split()
+    kwargs = dict(method=lfj.TwoStep(solver=optx.Dogleg(rtol=1e-8, atol=1e-10)), **MODEL)
+    lfj.fit_images(_images(), lfj.Stripes(), split=split, **kwargs)
+    other = dict(kwargs, method=lfj.TwoStep(solver=optx.Dogleg(rtol=1e-8, atol=1e-10)))
+    fits = []
+    count = _backend_compiles(
+        lambda: fits.append(
+            lfj.fit_images(
+                0.8 * _images(), lfj.Stripes(), split=(0.8 * split[0], 0.8 * split[1]), **other
+            )
+        )
+    )
+    assert count == 0 and fits[0].seconds["compile"] == 0.0
+    assert fits[0].sigma_s == pytest.approx(0.0366, rel=0.01)
+
+
 def test_grid_search_is_the_grid_method():
     kwargs = dict(split=_split(), **MODEL)
     named = lfj.fit_images(_images(), lfj.Stripes(), method="grid", g_grid=9, **kwargs)
