@@ -41,7 +41,6 @@ run and every timing is cached (resume).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
@@ -56,11 +55,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config
+from lightfield_jax.app.experiment import check_config, pyplot, save_figure, write_csv
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.capture.io import atomic_path
-from lightfield_jax.forward.render import renderer_for
-from lightfield_jax.reference.montecarlo import monte_carlo_render
+from lightfield_jax.internal import monte_carlo_render, renderer_for
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}
@@ -582,10 +579,8 @@ def run(config: dict, out: Path, ctx) -> dict:
 def _write_csv(path: Path, rows: list[dict]) -> None:
     if not rows:
         return
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    header = list(rows[0])
+    write_csv(path, header, ([row[k] for k in header] for row in rows))
 
 
 def _summary(data: dict, figures: list[Path]) -> dict:
@@ -643,22 +638,6 @@ def _summary(data: dict, figures: list[Path]) -> dict:
 # ---------------------------------------------------------------------------- figures
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, path: Path) -> Path:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
-    _plt().close(fig)
-    return path
-
-
 def _scene_title(data: dict, name: str) -> str:
     info = data["scenes"][name]
     p = info["params"]
@@ -673,7 +652,7 @@ def _scene_title(data: dict, name: str) -> str:
 
 
 def _plot_error_vs_time(out: Path, scene: Scene, data: dict) -> Path:
-    plt = _plt()
+    plt = pyplot()
     info = data["scenes"][scene.name]
     rows = [r for r in data["errors"] if r["scene"] == scene.name]
     ks = sorted({r["k"] for r in rows})
@@ -771,11 +750,11 @@ def _plot_error_vs_time(out: Path, scene: Scene, data: dict) -> Path:
         fontsize=9,
     )
     fig.tight_layout()
-    return _save(fig, out / f"error_vs_time_{scene.name}.png")
+    return save_figure(fig, out / f"error_vs_time_{scene.name}.png")
 
 
 def _plot_convergence(out: Path, scenes: list[Scene], data: dict) -> Path:
-    plt = _plt()
+    plt = pyplot()
     ncols = len(scenes)
     fig, axes = plt.subplots(3, ncols, figsize=(max(4.6 * ncols, 7), 12), squeeze=False)
     for j, scene in enumerate(scenes):
@@ -843,7 +822,7 @@ def _plot_convergence(out: Path, scenes: list[Scene], data: dict) -> Path:
         fontsize=10,
     )
     fig.tight_layout()
-    return _save(fig, out / "convergence.png")
+    return save_figure(fig, out / "convergence.png")
 
 
 def _fmt(order: float | None) -> str:
@@ -876,7 +855,7 @@ def _log_ticks(ax, x: bool = True, y: bool = True) -> None:
 
 
 def _plot_total_vs_bounces(out: Path, scenes: list[Scene], data: dict) -> Path:
-    plt = _plt()
+    plt = pyplot()
     shown = [s for s in scenes if data["scenes"][s.name]["converges"]]
     fig, axes = plt.subplots(1, len(shown), figsize=(4.5 * len(shown), 4.2), squeeze=False)
     for ax, scene in zip(axes[0], shown, strict=False):
@@ -910,4 +889,4 @@ def _plot_total_vs_bounces(out: Path, scenes: list[Scene], data: dict) -> Path:
         ax.legend(fontsize=6)
     fig.suptitle("Total image against the bounce count (4×4-binned relative L1)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, out / "error_vs_bounces.png")
+    return save_figure(fig, out / "error_vs_bounces.png")

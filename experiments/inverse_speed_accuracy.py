@@ -29,7 +29,7 @@ load average at its start). One untimed fit runs first, so that what all fits of
 capture this size share (the separation and the decay fit of σt, compiled on first use)
 is warm for every timed one. Each fit is timed twice: ``total`` (split into ``compile``
 and ``run``) is a cold fit, its compiled programs forgotten first
-(:func:`lightfield_jax.inverse.fit.clear_compiled`; no persistent XLA cache): the fit's own
+(:func:`lightfield_jax.clear_compiled`; no persistent XLA cache): the fit's own
 programs compile (a fit in a new process pays the shared pieces too, about 2-3 s more
 on this CPU: ``lightfield-jax bench --fits`` times that); ``warm`` is the same fit once more in
 the same process, which reuses the compiled programs (what a second channel, the next
@@ -51,7 +51,6 @@ nowhere else: it is drawn apart and left out of the comparison.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 import time
@@ -63,7 +62,15 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax import internal as lfi
+from lightfield_jax.app.experiment import (
+    check_config,
+    load_helper,
+    pyplot,
+    save_figure,
+    write_csv,
+)
+from lightfield_jax.app.timing import stopwatch
 
 inv = load_helper("_inverse")
 
@@ -140,91 +147,75 @@ def _import_jaxopt():
     return jaxopt
 
 
-_JAXOPT_COMPILED: dict = {}
+def _jaxopt_run(solver: str, max_steps: int, renderer, sigma_t, d, m, mask, gs, scale):
+    """The two-step problem in jaxopt: the package's search over ``gs`` and its start,
+    then jaxopt's solver on the package's two-step residual in the package's
+    parametrisation (:mod:`lightfield_jax.internal`)."""
+    jaxopt = _import_jaxopt()
+    s_all, _a, cost = lfi.search_g(renderer, sigma_t, d, m, mask, gs, "paper")
+    start = lfi.search_start(gs, s_all, cost, sigma_t, "paper")
+    slope = lfi.rendered_and_g_slope(renderer, sigma_t, "paper")
+
+    def residual(y):
+        p = lfi.to_params(y, sigma_t, "paper")
+        return lfi.two_step_residual(slope, sigma_t, d, m, mask, scale, "paper", p)[0]
+
+    if solver == "lm":
+        opt = jaxopt.LevenbergMarquardt(
+            residual_fun=residual,
+            maxiter=max_steps,
+            stop_criterion="madsen-nielsen",
+            xtol=1e-5,
+            gtol=1e-12,
+            solver="cholesky",
+            materialize_jac=True,
+        )
+    else:
+        opt = jaxopt.GaussNewton(residual_fun=residual, maxiter=max_steps, tol=1e-4)
+    sol = opt.run(start)
+    s, g = lfi.to_params(sol.params, sigma_t, "paper")
+    return s, g, sol.state.iter_num, sol.state.error
+
+
+# Compiled once per (solver, step limit) and shapes: jit's own cache, no hand-made one.
+_jaxopt_jitted = jax.jit(_jaxopt_run, static_argnames=("solver", "max_steps"))
 
 
 def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: dict) -> dict:
     """The ``gradient`` method's two-step problem solved by jaxopt (``lm`` or ``gn``).
 
-    Same pieces as the package's two-step solve: σt from the decay of D, the model size
-    the package chose (``model``: crop, θ bins, refinement, bounces), the gain from the
-    single scatter, residual (M − a Σ_{k≥2} σs^{k−1} I_k)/rms(M), parameters
-    σs = σt·sigmoid(y₀), g = tanh(y₁), started from the best of ``start_grid`` values
-    of g. Tolerances: LM stops on a relative step below 1e-5 (optimistix's rtol for
+    Same pieces as the package's two-step solve (:mod:`lightfield_jax.internal`): σt
+    from the decay of D, the model size the package chose (``model``: crop, θ bins,
+    refinement, bounces), the residual (M − a Σ_{k≥2} σs^{k−1} I_k)/rms(M) with the gain
+    from the single scatter, the parametrisation (σs = σs_max(g)·sigmoid(y₀),
+    g = tanh(y₁)) and the start (the vertex through the best of ``start_grid`` values of
+    g). Tolerances: LM stops on a relative step below 1e-5 (optimistix's rtol for
     float32), Gauss-Newton on a gradient norm below 1e-4; both at ``max_steps``.
     """
-    from lightfield_jax.inverse import fit as _fit
-
-    jaxopt = _import_jaxopt()
     load = os.getloadavg()[0]
     t_start = time.perf_counter()
     dtype = jnp.result_type(float)
-    images = np.asarray(images, dtype=dtype)
-    mask = np.ones(images.shape[1:], bool)
-    direct, multiple, decay = _fit._separate_and_decay(images, mask, pattern, 0.0, None, split)
-    x0, y0, x1, y1 = model["crop"]
-    d = jnp.asarray(direct[y0:y1, x0:x1], dtype)
-    m = jnp.asarray(multiple[y0:y1, x0:x1], dtype)
-    mk = jnp.asarray(mask[y0:y1, x0:x1])
-    grid = lfj.Grid(x1 - x0, y1 - y0, model["n_theta"], model["refine"])
-    renderer = lfj.Renderer(grid, _fit._full_for(pattern), model["bounces"], "paper")
-    scale = float(jnp.sqrt(jnp.mean(jnp.square(m)))) or 1.0
-    gs = jnp.linspace(-0.95, 0.95, config["start_grid"], dtype=dtype)
-    sigma_t = jnp.asarray(float(decay.sigma_t), dtype)
-
-    def run(renderer, sigma_t, d, m, mask, gs):
-        def per_g(g):
-            ik = renderer(sigma_t, 1.0, g)[0][0]
-            return _fit._poly_fit_sigma_s(d, m, ik[0], ik[1:], mask, sigma_t)
-
-        s_all, _a, cost = jax.lax.map(per_g, gs)
-        best = jnp.argmin(cost)
-        frac = jnp.clip(s_all[best] / sigma_t, 1e-3, 1 - 1e-3)
-        start = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(gs[best])])
-
-        def unpack(y):
-            return sigma_t * jax.nn.sigmoid(y[0]), jnp.tanh(y[1])
-
-        def residual(y):
-            s, g = unpack(y)
-            ik = renderer(sigma_t, 1.0, g)[0][0]
-            a = _fit._masked_dot(d, ik[0], mask) / _fit._masked_dot(ik[0], ik[0], mask)
-            powers = s ** jnp.arange(1, ik.shape[0])
-            model = a * jnp.einsum("k,khw->hw", powers, ik[1:])
-            return jnp.where(mask, (m - model) / scale, 0.0).reshape(-1)
-
-        if solver == "lm":
-            opt = jaxopt.LevenbergMarquardt(
-                residual_fun=residual,
-                maxiter=config["max_steps"],
-                stop_criterion="madsen-nielsen",
-                xtol=1e-5,
-                gtol=1e-12,
-                solver="cholesky",
-                materialize_jac=True,
-            )
-        else:
-            opt = jaxopt.GaussNewton(residual_fun=residual, maxiter=config["max_steps"], tol=1e-4)
-        sol = opt.run(start)
-        s, g = unpack(sol.params)
-        return s, g, sol.state.iter_num, sol.state.error
-
-    args = (renderer, sigma_t, d, m, mk, gs)
-    key = (solver, config["max_steps"], jax.tree.structure(args), d.shape, dtype)
-    with warnings.catch_warnings():
+    data = lfi.prepare_data(images, pattern, black_level=0.0, split=split)
+    data = data.cropped(tuple(model["crop"]))
+    grid = lfj.Grid(*data.mask.shape[::-1], model["n_theta"], model["refine"])
+    renderer = lfj.Renderer(grid, lfi.full_for(pattern), model["bounces"], "paper")
+    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
+    args = (
+        renderer,
+        jnp.asarray(data.sigma_t0, dtype),
+        jnp.asarray(data.direct, dtype),
+        jnp.asarray(data.multiple, dtype),
+        jnp.asarray(data.mask),
+        jnp.linspace(-0.95, 0.95, config["start_grid"], dtype=dtype),
+        jnp.asarray(scale, dtype),
+    )
+    with warnings.catch_warnings(), stopwatch() as timing:
         warnings.filterwarnings("ignore", category=DeprecationWarning, module="jaxopt")
-        t = time.perf_counter()
-        if key in _JAXOPT_COMPILED:  # a warm call, as the package's fits reuse theirs
-            compiled, t_compile = _JAXOPT_COMPILED[key], 0.0
-        else:
-            _JAXOPT_COMPILED.clear()
-            compiled = jax.jit(run).lower(*args).compile()
-            t_compile = time.perf_counter() - t
-            _JAXOPT_COMPILED[key] = compiled
-        s, g, iters, err = jax.block_until_ready(compiled(*args))
+        out = _jaxopt_jitted(solver, config["max_steps"], *args)
+        s, g, iters, err = jax.block_until_ready(out)
     total = time.perf_counter() - t_start
     iters = int(iters)
-    values = {"sigma_t": float(sigma_t), "sigma_s": float(s), "g": float(g)}
+    values = {"sigma_t": data.sigma_t0, "sigma_s": float(s), "g": float(g)}
     finite = all(math.isfinite(v) for v in values.values())
     return {
         **values,
@@ -232,7 +223,7 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: di
         "converged": finite and iters < config["max_steps"],
         "message": f"jaxopt {solver}: {iters} iterations, stop error {float(err):.3g}",
         "iterations": iters,
-        "seconds": {"compile": t_compile, "run": total - t_compile, "total": total},
+        "seconds": {"compile": timing.compile, "run": total - timing.compile, "total": total},
         "model": model,
         "load_avg": load,
     }
@@ -274,10 +265,7 @@ def _one(config, captures, capture, label, repeat, records) -> dict:
     """One fit, cold (compiled programs forgotten first), then warm (the same fit again
     in this process): the cold record with ``seconds["warm"]``, the warm fit's wall
     time, and ``warm_same``, whether it gave the same values."""
-    from lightfield_jax.inverse.fit import clear_compiled
-
-    clear_compiled()
-    _JAXOPT_COMPILED.clear()
+    lfj.clear_compiled()
     cold = _fit_once(config, captures, capture, label, repeat, records)
     warm = _fit_once(config, captures, capture, label, repeat, records)
     cold["seconds"]["warm"] = warm["seconds"]["total"]
@@ -560,8 +548,6 @@ def _speedup_text(s: dict) -> str:
 
 
 def _write_csv(path: Path, records, labels_by_capture, config) -> None:
-    from lightfield_jax.capture.io import atomic_path
-
     cols = [
         "capture",
         "method",
@@ -581,15 +567,14 @@ def _write_csv(path: Path, records, labels_by_capture, config) -> None:
         "iterations",
         "load_avg",
     ]
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
+
+    def rows():
         for capture, labels in labels_by_capture.items():
             for label in labels:
                 for r in range(_repeats(config, capture, label)):
                     x = records[(capture, label, r)]
                     e = x["errors"]
-                    w.writerow(
+                    yield (
                         [
                             capture,
                             label,
@@ -610,6 +595,8 @@ def _write_csv(path: Path, records, labels_by_capture, config) -> None:
                             x.get("load_avg"),
                         ]
                     )
+
+    write_csv(path, cols, rows())
 
 
 # ------------------------------------------------------------------------ figures
@@ -633,10 +620,8 @@ _TITLES = {
 
 
 def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     floor = 1e-7  # errors below this are drawn at it (log axes)
     caps = list(agg)
@@ -695,8 +680,7 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
     )
     fig.tight_layout()
     name = "speed_accuracy.png"
-    fig.savefig(out / name, dpi=120)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=120)
     names.append(name)
 
     fig, axes = plt.subplots(3, len(caps), figsize=(4.6 * len(caps), 9.5), squeeze=False)
@@ -737,8 +721,7 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
                 ax.legend(fontsize=7)
     fig.tight_layout()
     name = "errors_by_parameter.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=110)
     names.append(name)
 
     fig, axes = plt.subplots(1, len(caps), figsize=(4.6 * len(caps), 3.8), squeeze=False)
@@ -758,7 +741,6 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
             ax.legend(fontsize=7)
     fig.tight_layout()
     name = "time_split.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=110)
     names.append(name)
     return names

@@ -24,6 +24,7 @@ large model does.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from pathlib import Path
@@ -31,50 +32,62 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.app.experiment import (
+    check_choices,
+    load_helper,
+    pyplot,
+    save_figure,
+    typed_config,
+)
 
 inv = load_helper("_inverse")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "noise",
-    "seed",
-    "large",
-    "truth",
-    "methods",
-    "scenes",
-    "safe",
-    "joint_timeout",
-}
 METHODS = ("gradient_split", "joint")
 MODELS = ("auto", "large")
 
 
-def _check(config: dict) -> None:
-    check_config("model_size", config, _KEYS, {"methods": METHODS})
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/model_size.yaml: the captures (pixels; the joint fit's ``noise`` =
+    (photons at the peak, read noise / peak) and ``seed``), the large model's
+    :class:`~lightfield_jax.FitOptions` overrides, the truth's finer model, the
+    methods and scenes compared, the accuracy ``auto`` may lose (``safe``) and the
+    joint fit's time limit (s)."""
+
+    dtype: str
+    width: int
+    height: int
+    noise: tuple[float, ...]
+    seed: int
+    large: dict
+    truth: dict
+    methods: tuple[str, ...]
+    scenes: tuple[dict, ...]
+    safe: dict
+    joint_timeout: float
+
+    def __post_init__(self):
+        check_choices("model_size", "methods", self.methods, METHODS)
 
 
-def _truth(scene: dict, config: dict) -> lfj.SimulatedCapture:
+def _truth(scene: dict, config: Config) -> lfj.SimulatedCapture:
     medium = lfj.Medium(scene["sigma_t"], scene["sigma_s"], scene["g"], scene.get("phase", "paper"))
-    spec = config["truth"]
+    spec = config.truth
     k = lfj.bounces_for_tolerance(float(medium.rho), spec["tolerance"], max_bounces=100_000)
     cfg = inv.capture_config(
         scene,
-        config["width"],
-        config["height"],
+        config.width,
+        config.height,
         bounces=min(k, spec["max_bounces"]),
         n_theta=max(spec["n_theta_min"], lfj.default_n_theta(scene["g"])),
     )
     return inv.simulate(cfg)
 
 
-def _fit(scene: dict, method: str, model: str, sim, config: dict) -> dict:
+def _fit(scene: dict, method: str, model: str, sim, config: Config) -> dict:
     truth = inv.truth_of(scene)
     peak = float(np.max(sim.images))
-    options = dict(config["large"]) if model == "large" else {}
+    options = dict(config.large) if model == "large" else {}
     options["phase"] = scene.get("phase", "paper")
     pattern = sim.config.illumination
     if method == "gradient_split":
@@ -84,13 +97,13 @@ def _fit(scene: dict, method: str, model: str, sim, config: dict) -> dict:
             images, pattern, truth, method="gradient", black_level=0.0, split=split, **options
         )
     else:
-        images = inv.camera(sim.images, tuple(config["noise"]), config["seed"])
+        images = inv.camera(sim.images, tuple(config.noise), config.seed)
         rec = inv.fit_record_limited(
             images,
             pattern,
             truth,
-            timeout=config["joint_timeout"],
-            dtype=config["dtype"],
+            timeout=config.joint_timeout,
+            dtype=config.dtype,
             xla_cache_dir=None,
             method="joint",
             black_level=0.0,
@@ -131,11 +144,11 @@ def _compare(recs: dict, safe: dict) -> dict:
     }
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
     records: dict = {}
-    with inv.precision(config["dtype"]):
-        for scene in config["scenes"]:
+    with inv.precision(config.dtype):
+        for scene in config.scenes:
             sims: dict = {}
 
             def sim(scene=scene, sims=sims):
@@ -143,14 +156,14 @@ def run(config: dict, out: Path, ctx) -> dict:
                     sims["sim"] = _truth(scene, config)
                 return sims["sim"]
 
-            for method in config["methods"]:
+            for method in config.methods:
                 for model in MODELS:
                     ctx.progress(f"{scene['name']}: {method}, {model} model")
                     key = (
-                        f"lib{inv.library_fingerprint()}|{config['dtype']}|"
-                        f"{config['width']}x{config['height']}|{scene}|"
-                        f"{method}|{model}|{config['large'] if model == 'large' else ''}|"
-                        f"{config['truth']}|{config['noise']}|{config['seed']}"
+                        f"lib{inv.library_fingerprint()}|{config.dtype}|"
+                        f"{config.width}x{config.height}|{scene}|"
+                        f"{method}|{model}|{config.large if model == 'large' else ''}|"
+                        f"{config.truth}|{list(config.noise)}|{config.seed}"
                     )
                     records[(scene["name"], method, model)] = ctx.cached(
                         key,
@@ -159,11 +172,11 @@ def run(config: dict, out: Path, ctx) -> dict:
     comparison = {
         method: {
             s["name"]: _compare(
-                {mo: records[(s["name"], method, mo)] for mo in MODELS}, config["safe"]
+                {mo: records[(s["name"], method, mo)] for mo in MODELS}, config.safe
             )
-            for s in config["scenes"]
+            for s in config.scenes
         }
-        for method in config["methods"]
+        for method in config.methods
     }
     ctx.write_json(
         "model_size.json",
@@ -238,14 +251,12 @@ def _no_result(rec: dict) -> str:
 
 
 def _plot(config, records, comparison, out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    methods = config["methods"]
-    scenes = [s["name"] for s in config["scenes"]]
+    plt = pyplot()
+
+    methods = config.methods
+    scenes = [s["name"] for s in config.scenes]
     fig, axes = plt.subplots(len(methods), 2, figsize=(13, 1.4 + 4.4 * len(methods)), squeeze=False)
     x = np.arange(len(scenes))
     colors = {"auto": "tab:blue", "large": "tab:gray"}
@@ -327,30 +338,29 @@ def _plot(config, records, comparison, out: Path) -> str:
         )
         ax.legend(fontsize=7, loc="upper left")
         ax.grid(True, axis="y", which="major", alpha=0.3)
-    lg, tr, sf = config["large"], config["truth"], config["safe"]
+    lg, tr, sf = config.large, config.truth, config.safe
     parts = [
         f"{s['name']} σt {s['sigma_t']:g}, σs {s['sigma_s']:g}, g {s['g']:g}"
         + (f" ({s['phase']} phase)" if s.get("phase") else "")
-        for s in config["scenes"]
+        for s in config.scenes
     ]
     scene_text = ";\n".join("; ".join(parts[i : i + 3]) for i in range(0, len(parts), 3))
-    photons, read = config["noise"]
+    photons, read = config.noise
     loads = [r.get("load_avg") for r in records.values() if r.get("load_avg") is not None]
     load_text = f"; load average {min(loads):.0f}–{max(loads):.0f} on this machine" if loads else ""
     fig.suptitle(
         f"The auto model (FitOptions defaults) against a large fixed one ({lg.get('n_theta')} θ "
         f"bins, {lg.get('bounces')} bounces, crop {lg.get('crop')}), "
-        f"{config['width']}×{config['height']} px six-shift captures (period 6), "
-        f"{config['dtype']}\n"
+        f"{config.width}×{config.height} px six-shift captures (period 6), "
+        f"{config.dtype}\n"
         f"truth rendered with ≥ {tr['n_theta_min']} θ bins, bounces to tail {tr['tolerance']:g}; "
         f"joint's noise: {photons:g} photons at the peak, read {read:g} of the peak; "
-        f"joint stopped after {config['joint_timeout']:g} s{load_text}\n"
+        f"joint stopped after {config.joint_timeout:g} s{load_text}\n"
         f"safe: auto loses at most σt {sf['sigma_t']:g}, σs {sf['sigma_s']:g} (relative), "
         f"g {sf['g']:g} (absolute) against large\nscenes (σ in px⁻¹): " + scene_text,
         fontsize=9,
     )
     fig.tight_layout()
     name = "model_size.png"
-    fig.savefig(out / name, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=100)
     return name

@@ -21,6 +21,7 @@ bounce profile, the energy of each bounce).
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -28,38 +29,42 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import viz
-
-_KEYS = {
-    "experiment",
-    "width",
-    "height",
-    "sigma_t",
-    "sigma_s",
-    "g",
-    "stripes",
-    "beam_y",
-    "oblique",
-    "lightfield_bounces",
-    "tolerance",
-}
+from lightfield_jax.app.experiment import typed_config
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    unknown = sorted(set(config) - _KEYS)
-    missing = sorted(_KEYS - set(config))
-    if unknown or missing:
-        raise ValueError(f"paper_figures: unknown keys {unknown}, missing keys {missing}")
-    w, h = config["width"], config["height"]
-    medium = lfj.Medium(config["sigma_t"], config["sigma_s"], config["g"])
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/paper_figures.yaml: the image size (pixels), the milk's σt, σs (per
+    pixel) and g, the tail tolerance that sets the bounces, the stripes of Fig. 11
+    (``period``, ``lit``), the beam's row of Figs. 12-13, the light-field bounces of
+    Fig. 13 and the oblique beam of Fig. 14 (``y``, ``direction_deg``,
+    ``show_bounces``)."""
+
+    width: int
+    height: int
+    sigma_t: float
+    sigma_s: float
+    g: float
+    tolerance: float
+    stripes: dict
+    beam_y: float
+    lightfield_bounces: int
+    oblique: dict
+
+
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
+    w, h = config.width, config.height
+    medium = lfj.Medium(config.sigma_t, config.sigma_s, config.g)
     grid = lfj.Grid(w, h)  # n_theta and refine: the defaults for this g
     resolved = grid.resolve(float(medium.g))
-    bounces = lfj.bounces_for_tolerance(float(medium.rho), config["tolerance"])
+    bounces = lfj.bounces_for_tolerance(float(medium.rho), config.tolerance)
     params = (
-        f"σt {config['sigma_t']:g}, σs {config['sigma_s']:g} px⁻¹, g {config['g']:g}; "
+        f"σt {config.sigma_t:g}, σs {config.sigma_s:g} px⁻¹, g {config.g:g}; "
         f"{w}×{h} px, n_theta {resolved.n_theta}, refine {resolved.refine}, K = {bounces}"
     )
     summary: dict = {
-        "medium": {k: config[k] for k in ("sigma_t", "sigma_s", "g")},
+        "medium": {k: getattr(config, k) for k in ("sigma_t", "sigma_s", "g")},
         "rho": float(medium.rho),
         "grid": {"width": w, "height": h, "n_theta": resolved.n_theta, "refine": resolved.refine},
         "bounces": bounces,
@@ -68,7 +73,7 @@ def run(config: dict, out: Path, ctx) -> dict:
 
     # Fig. 11: separation of a simulated stripe capture, σt from the direct decay.
     ctx.progress("Fig. 11: stripe capture, separation, decay fit")
-    st = config["stripes"]
+    st = config.stripes
     stripes = lfj.Stripes.shifted(period=st["period"], lit=st["lit"])
     capture = np.asarray(lfj.render(medium, grid, stripes, bounces).images).sum(axis=1)
     sep = lfj.separate(capture, lit_fraction=stripes.lit_fraction)
@@ -82,16 +87,16 @@ def run(config: dict, out: Path, ctx) -> dict:
             unseparated=sep.imax,
             unseparated_fit=fit_max,
             unseparated_label="without separation: Imax (the pixel's own stripe lit)",
-            true_sigma_t=config["sigma_t"],
+            true_sigma_t=config.sigma_t,
             title=(
-                f"Fig. 11: decay of the direct component (true σt {config['sigma_t']:g} px⁻¹), "
+                f"Fig. 11: decay of the direct component (true σt {config.sigma_t:g} px⁻¹), "
                 f"period-{st['period']} stripes ({st['lit']} lit), {len(stripes.phases)} "
                 f"shifts\n{params}"
             ),
         )
     )
     summary["fig11"] = {
-        "sigma_t_true": config["sigma_t"],
+        "sigma_t_true": config.sigma_t,
         "sigma_t_separated": float(fit_d.sigma_t),
         "sigma_t_separated_stderr": float(fit_d.sigma_t_stderr),
         "sigma_t_unseparated_imax": float(fit_max.sigma_t),
@@ -102,7 +107,7 @@ def run(config: dict, out: Path, ctx) -> dict:
     # Fig. 12: each bounce along the light, full illumination and one beam.
     ctx.progress("Fig. 12: bounce profiles")
     full = lfj.Full()
-    beam = lfj.Beam(0.0, config["beam_y"])
+    beam = lfj.Beam(0.0, config.beam_y)
     summary["fig12"] = {}
     for name, light in (("full", full), ("beam", beam)):
         images = np.asarray(lfj.render(medium, grid, light, bounces).images)
@@ -122,7 +127,7 @@ def run(config: dict, out: Path, ctx) -> dict:
 
     # Fig. 13: light fields L_1..L_K of a beam.
     ctx.progress("Fig. 13: light fields")
-    k_lf = config["lightfield_bounces"]
+    k_lf = config.lightfield_bounces
     result = lfj.render(medium, grid, beam, k_lf, lightfield=True)
     fields = np.asarray(result.lightfields[1:])
     figures.append(
@@ -130,7 +135,7 @@ def run(config: dict, out: Path, ctx) -> dict:
             fields,
             out / "fig13_lightfield.png",
             title=(
-                f"Fig. 13: light field of each bounce, beam at y = {config['beam_y']:g}, 0°; "
+                f"Fig. 13: light field of each bounce, beam at y = {config.beam_y:g}, 0°; "
                 "colour: fluence, cyan glyphs: L(θ) scaled to its maximum, θ from +x "
                 f"toward +y\n{params.replace(f', K = {bounces}', '')}"
             ),
@@ -139,7 +144,7 @@ def run(config: dict, out: Path, ctx) -> dict:
 
     # Fig. 14: oblique incidence.
     ctx.progress("Fig. 14: oblique beam")
-    ob = config["oblique"]
+    ob = config.oblique
     oblique = lfj.Beam(0.0, ob["y"], ob["direction_deg"])
     with warnings.catch_warnings():
         warnings.simplefilter("error", lfj.DivergentSeriesWarning)

@@ -18,58 +18,61 @@ horizontal lines (the crossover), and the parameter errors.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.app.experiment import (
+    check_choices,
+    load_helper,
+    pyplot,
+    save_figure,
+    typed_config,
+)
 from lightfield_jax.forward.slab import BOUNDARIES
 
 inv = load_helper("_inverse")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "sigma_t",
-    "optical_thickness",
-    "albedo",
-    "g",
-    "boundary",
-    "noise_levels",
-    "max_steps",
-}
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/plane_vs_slab.yaml: the slab scenes (σt per pixel; σt·h, albedo, g and the
+    faces swept), the noise levels drawn, the joint fit's step limit."""
+
+    dtype: str
+    width: int
+    height: int
+    sigma_t: float
+    optical_thickness: tuple[float, ...]
+    albedo: tuple[float, ...]
+    g: tuple[float, ...]
+    boundary: tuple[str, ...]
+    noise_levels: tuple[float, ...]
+    max_steps: int
+
+    def __post_init__(self):
+        check_choices("plane_vs_slab", "boundary", self.boundary, BOUNDARIES)
 
 
-def _check(config: dict) -> None:
-    check_config("plane_vs_slab", config, _KEYS, {"boundary": BOUNDARIES})
-
-
-def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> dict:
-    import time
-
-    from lightfield_jax.forward.slab import Slab
-    from lightfield_jax.inverse.fit import FitOptions, fit_images, fitted_images
-
-    st = float(config["sigma_t"])
+def _cell(config: Config, tau: float, albedo: float, g: float, boundary: str) -> dict:
+    st = float(config.sigma_t)
     h = tau / st
     pattern = lfj.Stripes(6, 3, tuple(range(6)))
     medium = lfj.Medium(st, albedo * st, g)
-    geometry = Slab(h, boundary)
-    res = lfj.render(
-        medium, lfj.Grid(config["width"], config["height"]), pattern, geometry=geometry
-    )
+    geometry = lfj.Slab(h, boundary)
+    res = lfj.render(medium, lfj.Grid(config.width, config.height), pattern, geometry=geometry)
     captured = np.asarray(res.total, np.float64)
     t0 = time.perf_counter()
-    fit = fit_images(
+    fit = lfj.fit_images(
         captured.astype(np.float32),
         pattern,
-        options=FitOptions(method="joint", max_steps=config["max_steps"]),
+        options=lfj.FitOptions(method="joint", max_steps=config.max_steps),
     )
     seconds = time.perf_counter() - t0
-    model, _ = fitted_images(fit, pattern, captured.shape[-2:])
+    model, _ = lfj.fitted_images(fit, pattern, captured.shape[-2:])
     model = model.sum(axis=1)
     x0, y0, x1, y1 = fit.model["crop"]
     obs = captured[..., y0:y1, x0:x1]
@@ -100,29 +103,28 @@ def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> d
     }
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
-    rows = []
-    with inv.precision(config["dtype"]):
-        for boundary in config["boundary"]:
-            for g in config["g"]:
-                for albedo in config["albedo"]:
-                    for tau in config["optical_thickness"]:
-                        ctx.progress(f"{boundary}, g {g}, albedo {albedo}, σt·h {tau}")
-                        key = (
-                            f"lib{inv.library_fingerprint()}|{config['dtype']}|"
-                            f"{config['width']}x{config['height']}|st{config['sigma_t']}|"
-                            f"tau{tau}|w{albedo}|g{g}|{boundary}|steps{config['max_steps']}"
-                        )
-                        rows.append(
-                            ctx.cached(
-                                key,
-                                lambda t=tau, a=albedo, gg=g, b=boundary: _cell(
-                                    config, t, a, gg, b
-                                ),
-                            )
-                        )
-    ctx.write_json("plane_vs_slab.json", {"config": config, "rows": rows})
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
+
+    def key(boundary, g, albedo, tau):
+        return (
+            f"lib{inv.library_fingerprint()}|{config.dtype}|"
+            f"{config.width}x{config.height}|st{config.sigma_t}|"
+            f"tau{tau}|w{albedo}|g{g}|{boundary}|steps{config.max_steps}"
+        )
+
+    with inv.precision(config.dtype):
+        rows = ctx.sweep(
+            [
+                ("boundary", config.boundary),
+                ("g", config.g),
+                ("albedo", config.albedo),
+                ("tau", config.optical_thickness),
+            ],
+            key,
+            lambda boundary, g, albedo, tau: _cell(config, tau, albedo, g, boundary),
+        )
+    ctx.write_json("plane_vs_slab.json", {"config": raw, "rows": rows})
     figures = [_plot_misfit(config, rows, out), _plot_errors(config, rows, out)]
     crossover = _crossover(config, rows)
     return {
@@ -141,15 +143,15 @@ def _series(rows: list[dict], boundary: str, g: float, albedo: float) -> list[di
     return sorted(sel, key=lambda r: r["tau"])
 
 
-def _crossover(config: dict, rows: list[dict]) -> dict:
+def _crossover(config: Config, rows: list[dict]) -> dict:
     """Per boundary, albedo, g and noise level: the largest σt·h at which the plane's
     misfit is still below the noise (None: nowhere on the sweep)."""
     out: dict = {}
-    for boundary in config["boundary"]:
-        for g in config["g"]:
-            for albedo in config["albedo"]:
+    for boundary in config.boundary:
+        for g in config.g:
+            for albedo in config.albedo:
                 sel = _series(rows, boundary, g, albedo)
-                for eps in config["noise_levels"]:
+                for eps in config.noise_levels:
                     ok = [r["tau"] for r in sel if r["misfit"] < eps]
                     out[f"{boundary}|g{g}|albedo{albedo}|noise{eps}"] = {
                         "plane_ok_at_tau": ok,
@@ -157,23 +159,17 @@ def _crossover(config: dict, rows: list[dict]) -> dict:
     return out
 
 
-def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from lightfield_jax.viz._common import finish
-
-    bounds, gs = config["boundary"], config["g"]
+def _plot_misfit(config: Config, rows: list[dict], out: Path) -> str:
+    plt = pyplot()
+    bounds, gs = config.boundary, config.g
     fig, axes = plt.subplots(
         len(gs), len(bounds), figsize=(5.2 * len(bounds), 3.9 * len(gs)), squeeze=False
     )
-    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config["albedo"])))
+    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config.albedo)))
     for i, g in enumerate(gs):
         for j, boundary in enumerate(bounds):
             ax = axes[i, j]
-            for albedo, color in zip(config["albedo"], colors, strict=True):
+            for albedo, color in zip(config.albedo, colors, strict=True):
                 sel = _series(rows, boundary, g, albedo)
                 ax.plot(
                     [r["tau"] for r in sel],
@@ -183,7 +179,7 @@ def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
                     label=f"albedo {albedo:g}",
                 )
             inv.log_axes(ax)
-            for eps in config["noise_levels"]:
+            for eps in config.noise_levels:
                 ax.axhline(eps, color="0.5", ls=":", lw=1)
                 ax.text(
                     0.99,
@@ -201,39 +197,31 @@ def _plot_misfit(config: dict, rows: list[dict], out: Path) -> str:
             ax.set_title(f"{boundary} faces, g {g:g}", fontsize=10)
             ax.legend(fontsize=8)
     fig.suptitle(
-        f"Plane model fitted (joint) to noiseless slab captures: σt {config['sigma_t']} px⁻¹, "
-        f"{config['width']}×{config['height']}, 6-phase stripes (period 6).\n"
+        f"Plane model fitted (joint) to noiseless slab captures: σt {config.sigma_t} px⁻¹, "
+        f"{config.width}×{config.height}, 6-phase stripes (period 6).\n"
         "geometry: auto keeps the plane model only below the capture's noise (dotted)",
         fontsize=10,
     )
     fig.tight_layout()
     path = out / "plane_misfit.png"
-    finish(fig, path)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name
 
 
-def _plot_errors(config: dict, rows: list[dict], out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from lightfield_jax.viz._common import finish
-
+def _plot_errors(config: Config, rows: list[dict], out: Path) -> str:
+    plt = pyplot()
     params = (
         ("sigma_t", "σt error (relative)"),
         ("sigma_s", "σs error (relative)"),
         ("g", "g error (absolute)"),
     )
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.9))
-    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config["albedo"])))
-    styles = dict(zip(config["boundary"], ("-", "--"), strict=False))
-    markers = dict(zip(config["g"], ("o", "s", "^", "v"), strict=False))
+    colors = plt.cm.viridis(np.linspace(0.0, 0.85, len(config.albedo)))
+    styles = dict(zip(config.boundary, ("-", "--"), strict=False))
+    markers = dict(zip(config.g, ("o", "s", "^", "v"), strict=False))
     for ax, (key, label) in zip(axes, params, strict=True):
-        for boundary in config["boundary"]:
-            for g in config["g"]:
-                for albedo, color in zip(config["albedo"], colors, strict=True):
+        for boundary in config.boundary:
+            for g in config.g:
+                for albedo, color in zip(config.albedo, colors, strict=True):
                     sel = _series(rows, boundary, g, albedo)
                     ax.plot(
                         [r["tau"] for r in sel],
@@ -252,11 +240,9 @@ def _plot_errors(config: dict, rows: list[dict], out: Path) -> str:
     axes[0].legend(fontsize=6, ncol=2)
     fig.suptitle(
         "What the plane model reports for a tank: its joint fit to noiseless slab captures "
-        f"(σt {config['sigma_t']} px⁻¹) against the slab's true coefficients",
+        f"(σt {config.sigma_t} px⁻¹) against the slab's true coefficients",
         fontsize=10,
     )
     fig.tight_layout()
     path = out / "plane_errors.png"
-    finish(fig, path)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name

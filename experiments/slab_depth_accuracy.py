@@ -26,47 +26,53 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
-from lightfield_jax.forward.slab import BOUNDARIES
+from lightfield_jax import internal as lfi
+from lightfield_jax.app.experiment import (
+    check_choices,
+    load_helper,
+    pyplot,
+    save_figure,
+    typed_config,
+)
+from lightfield_jax.forward.slab import BOUNDARIES, SlabRenderer, resolve_slab_grid
 
 inv = load_helper("_inverse")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "thickness",
-    "optical_thickness",
-    "g",
-    "albedo",
-    "boundary",
-    "n",
-    "orders",
-    "bounces",
-    "photons",
-    "camera_sampling",
-    "seed",
-}
 
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/slab_depth_accuracy.yaml: the scenes (h in pixels; σt·h, g and the faces
+    swept; the albedos rescaled), the orders compared one by one, the bounces summed,
+    and the Monte Carlo oracle's photons, camera sampling and seed."""
 
-def _check(config: dict) -> None:
-    check_config("slab_depth_accuracy", config, _KEYS, {"boundary": BOUNDARIES})
-    if not all(0 < a < 1 for a in config["albedo"]):
-        raise ValueError(
-            f"slab_depth_accuracy: albedo: each must be in (0, 1), got {config['albedo']}"
-        )
-    if not 1 <= config["orders"] <= config["bounces"]:
-        raise ValueError(
-            f"slab_depth_accuracy: orders: must be in [1, bounces={config['bounces']}], "
-            f"got {config['orders']}"
-        )
+    dtype: str
+    width: int
+    height: int
+    thickness: float
+    optical_thickness: tuple[float, ...]
+    g: tuple[float, ...]
+    albedo: tuple[float, ...]
+    boundary: tuple[str, ...]
+    n: float
+    orders: int
+    bounces: int
+    photons: int
+    camera_sampling: float
+    seed: int
+
+    def __post_init__(self):
+        name = "slab_depth_accuracy"
+        check_choices(name, "boundary", self.boundary, BOUNDARIES)
+        if not all(0 < a < 1 for a in self.albedo):
+            raise ValueError(f"{name}: albedo: each must be in (0, 1), got {list(self.albedo)}")
+        if not 1 <= self.orders <= self.bounces:
+            raise ValueError(
+                f"{name}: orders: must be in [1, bounces={self.bounces}], got {self.orders}"
+            )
 
 
 def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float]:
     """Image sums per order, compile+first-call seconds and warm seconds."""
-    from lightfield_jax.forward.slab import SlabRenderer
-
     r = SlabRenderer(grid, lfj.Full(0.0, "left"), bounces, slab)
     t0 = time.perf_counter()
     images = r(*values)[0]
@@ -78,16 +84,13 @@ def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float
     return np.asarray(images, np.float64)[0].sum((1, 2)), cold - warm, warm
 
 
-def _cell(config: dict, tau: float, g: float, boundary: str) -> dict:
-    from lightfield_jax.forward.slab import Slab, resolve_slab_grid
-    from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
-
-    h, k = float(config["thickness"]), int(config["bounces"])
+def _cell(config: Config, tau: float, g: float, boundary: str) -> dict:
+    h, k = float(config.thickness), int(config.bounces)
     st = tau / h
-    top = max(config["albedo"])
-    width, height = config["width"], config["height"]
+    top = max(config.albedo)
+    width, height = config.width, config.height
     t0 = time.perf_counter()
-    mc = monte_carlo_slab(
+    mc = lfi.monte_carlo_slab(
         width,
         height,
         h,
@@ -97,15 +100,15 @@ def _cell(config: dict, tau: float, g: float, boundary: str) -> dict:
         lfj.Full(0.0, "left"),
         k,
         boundary=boundary,
-        n=config["n"],
-        photons=config["photons"],
-        seed=config["seed"],
-        camera_sampling=config["camera_sampling"],
+        n=config.n,
+        photons=config.photons,
+        seed=config.seed,
+        camera_sampling=config.camera_sampling,
     )
     mc_seconds = time.perf_counter() - t0
     ref = mc.images[0].sum((1, 2))
     grid, slab = resolve_slab_grid(
-        lfj.Grid(width, height), Slab(h, boundary, n=config["n"]), g, st, top
+        lfj.Grid(width, height), lfj.Slab(h, boundary, n=config.n), g, st, top
     )
     values = (st, top * st, g)
     layered, compile_s, warm_s = _timed_render(grid, slab, k, values)
@@ -142,34 +145,34 @@ def _errors(row: dict, model: str, albedo: float, top: float, orders: int) -> di
     }
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
-    rows = []
-    with inv.precision(config["dtype"]):
-        for boundary in config["boundary"]:
-            for tau in config["optical_thickness"]:
-                for g in config["g"]:
-                    ctx.progress(f"{boundary}, σt·h {tau}, g {g}")
-                    key = (
-                        f"lib{inv.library_fingerprint()}|{config['dtype']}|"
-                        f"{config['width']}x{config['height']}|h{config['thickness']}|"
-                        f"n{config['n']}|tau{tau}|g{g}|{boundary}|w{max(config['albedo'])}|"
-                        f"K{config['bounces']}|N{config['photons']}|"
-                        f"eps{config['camera_sampling']}|seed{config['seed']}"
-                    )
-                    rows.append(
-                        ctx.cached(key, lambda t=tau, gg=g, b=boundary: _cell(config, t, gg, b))
-                    )
-    top, orders = max(config["albedo"]), config["orders"]
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
+
+    def key(boundary, tau, g):
+        return (
+            f"lib{inv.library_fingerprint()}|{config.dtype}|"
+            f"{config.width}x{config.height}|h{config.thickness}|"
+            f"n{config.n}|tau{tau}|g{g}|{boundary}|w{max(config.albedo)}|"
+            f"K{config.bounces}|N{config.photons}|"
+            f"eps{config.camera_sampling}|seed{config.seed}"
+        )
+
+    with inv.precision(config.dtype):
+        rows = ctx.sweep(
+            [("boundary", config.boundary), ("tau", config.optical_thickness), ("g", config.g)],
+            key,
+            lambda boundary, tau, g: _cell(config, tau, g, boundary),
+        )
+    top, orders = max(config.albedo), config.orders
     table = []
     for row in rows:
-        for albedo in config["albedo"]:
+        for albedo in config.albedo:
             entry = {k: row[k] for k in ("tau", "g", "boundary", "n_theta", "n_mu", "n_z")}
             entry["albedo"] = albedo
             for model in ("layered", "average"):
                 entry[model] = _errors(row, model, albedo, top, orders)
             table.append(entry)
-    ctx.write_json("slab_depth_accuracy.json", {"config": config, "rows": rows, "table": table})
+    ctx.write_json("slab_depth_accuracy.json", {"config": raw, "rows": rows, "table": table})
     figure = _plot(config, table, out)
 
     def worst(model, part):
@@ -188,15 +191,9 @@ def run(config: dict, out: Path, ctx) -> dict:
     }
 
 
-def _plot(config: dict, table: list[dict], out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from lightfield_jax.viz._common import finish
-
-    top = max(config["albedo"])
+def _plot(config: Config, table: list[dict], out: Path) -> str:
+    plt = pyplot()
+    top = max(config.albedo)
     scenes = [t for t in table if t["albedo"] == top]
     labels = [f"{t['boundary'][:4]}. τ{t['tau']:g} g{t['g']:g} (n_z {t['n_z']})" for t in scenes]
     x = np.arange(len(scenes))
@@ -204,7 +201,7 @@ def _plot(config: dict, table: list[dict], out: Path) -> str:
     ax = axes[0]
     for model, color, dx in (("average", "tab:red", -0.15), ("layered", "tab:blue", 0.15)):
         worst = [max(abs(e) for e in t[model]["per_order"]) * 100 for t in scenes]
-        ax.plot(x + dx, worst, "o", color=color, label=f"{model} (max over k ≤ {config['orders']})")
+        ax.plot(x + dx, worst, "o", color=color, label=f"{model} (max over k ≤ {config.orders})")
     noise = [2 * max(t["layered"]["per_order_noise"]) * 100 for t in scenes]
     ax.bar(x, noise, width=0.6, color="0.85", label="oracle's 2σ (largest k)")
     ax.axhline(2.0, color="k", ls=":", lw=1)
@@ -213,7 +210,7 @@ def _plot(config: dict, table: list[dict], out: Path) -> str:
     ax.legend(fontsize=7)
     ax.set_title("per bounce", fontsize=10)
     ax = axes[1]
-    for i, albedo in enumerate(config["albedo"]):
+    for i, albedo in enumerate(config.albedo):
         rows = [t for t in table if t["albedo"] == albedo]
         ax.plot(
             x + 0.1 * (i - 1),
@@ -229,18 +226,16 @@ def _plot(config: dict, table: list[dict], out: Path) -> str:
             label="average" if i == 0 else None,
         )
     ax.axhline(1.0, color="k", ls=":", lw=1)
-    ax.set_ylabel(f"|error| of Σ_k≤{config['bounces']} I_k (%)")
+    ax.set_ylabel(f"|error| of Σ_k≤{config.bounces} I_k (%)")
     ax.set_xticks(x, labels, rotation=75, fontsize=7)
     ax.legend(fontsize=7)
     ax.set_title("all orders", fontsize=10)
     fig.suptitle(
         f"Slab model (resolved depth layers) vs the 3-D slab Monte Carlo: h "
-        f"{config['thickness']} px, {config['width']}×{config['height']}, full illumination, "
-        f"{config['photons']:.0e} photons",
+        f"{config.thickness} px, {config.width}×{config.height}, full illumination, "
+        f"{config.photons:.0e} photons",
         fontsize=10,
     )
     fig.tight_layout()
     path = out / "slab_depth_accuracy.png"
-    finish(fig, path)
-    plt.close(fig)
-    return path.name
+    return save_figure(fig, path).name

@@ -35,7 +35,6 @@ not cold ones (``inverse_speed_accuracy`` measures those).
 
 from __future__ import annotations
 
-import csv
 import functools
 import math
 import time
@@ -44,8 +43,14 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
-from lightfield_jax.inverse.fit import METHODS
+from lightfield_jax.app.experiment import (
+    check_config,
+    load_helper,
+    pyplot,
+    save_figure,
+    write_csv,
+)
+from lightfield_jax.inverse.methods import METHODS
 
 inv = load_helper("_inverse")
 batch = load_helper("_batch")
@@ -441,8 +446,6 @@ def _setting_label(name: str, s: dict) -> str:
 
 
 def _write_csv(path: Path, rows, starts) -> None:
-    from lightfield_jax.capture.io import atomic_path
-
     cols = [
         "sweep",
         "cell",
@@ -470,13 +473,12 @@ def _write_csv(path: Path, rows, starts) -> None:
         "condition_number",
         "total_s",
     ]
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
+
+    def lines():
         for r in rows:
             s, m, e = r["setting"], r["setting"]["medium"], r["errors"]
             noise = s["noise"] or (None, None)
-            w.writerow(
+            yield (
                 [
                     r["sweep"],
                     r["cell"],
@@ -507,7 +509,7 @@ def _write_csv(path: Path, rows, starts) -> None:
             )
         for s in starts:
             e = s["errors"]
-            w.writerow(
+            yield (
                 [
                     f"start:{s['medium']}",
                     f"{s['sigma_t_factor']}/{s['sigma_s_factor']}/{s['g_offset']}",
@@ -536,6 +538,8 @@ def _write_csv(path: Path, rows, starts) -> None:
                     s["seconds"]["total"],
                 ]
             )
+
+    write_csv(path, cols, lines())
 
 
 # ------------------------------------------------------------------------ figures
@@ -587,11 +591,9 @@ def _index_coords(values, n: int = 200):
 
 
 def _plot_albedo_g(config, rows, out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
+
+    plt = pyplot()
 
     spec = config["albedo_g"]
     albedos, gs = list(spec["albedo"]), list(spec["g"])
@@ -669,17 +671,14 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
     )
     fig.tight_layout()
     name = "albedo_g.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=110)
     return name
 
 
 def _plot_sweeps(config, results, out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
+
+    plt = pyplot()
 
     names = [n for n in SWEEPS if n in results]
     fig, axes = plt.subplots(
@@ -748,8 +747,7 @@ def _plot_sweeps(config, results, out: Path) -> str:
     )
     fig.tight_layout(rect=(0, 0, 0.9, 1))
     name = "sweeps.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=110)
     return name
 
 
@@ -775,11 +773,9 @@ def _line(ax, xs, rows, method, ls) -> None:
 
 
 def _plot_starts(config, starts, out: Path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
+
+    plt = pyplot()
 
     spec = config["start"]
     media = list(dict.fromkeys(s["medium"] for s in starts))
@@ -862,6 +858,5 @@ def _plot_starts(config, starts, out: Path) -> str:
     )
     fig.tight_layout()
     name = "start_basin.png"
-    fig.savefig(out / name, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / name, dpi=110)
     return name

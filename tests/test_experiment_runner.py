@@ -32,3 +32,68 @@ def test_packaged_copies_used_outside_a_checkout(monkeypatch, tmp_path):
     assert _experiment._tree_or_packaged("experiments", "_experiments") == package / "_experiments"
     monkeypatch.setattr(_experiment, "_HERE", ROOT / "lightfield_jax")
     assert _experiment._tree_or_packaged("experiments", "_experiments") == ROOT / "experiments"
+
+
+def _plane_vs_slab_config():
+    """plane_vs_slab's typed config class (the script loaded as the runner loads it)."""
+    return _experiment._load_script("plane_vs_slab").Config
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"widht": 32}, r"plane_vs_slab: unknown config keys \['widht'\]"),
+        ({"width": "32"}, "plane_vs_slab: width: expected int, got '32'"),
+        ({"albedo": [0.5, "high"]}, "plane_vs_slab: albedo: expected"),
+        ({"max_steps": True}, "plane_vs_slab: max_steps: expected int"),
+        ({"boundary": ["mirror"]}, "plane_vs_slab: boundary: unknown 'mirror'"),
+    ],
+)
+def test_a_typed_config_names_the_bad_key(change, message):
+    raw = _experiment.load_experiment_config(ROOT / "configs" / "plane_vs_slab.yaml")
+    with pytest.raises(ValueError, match=message):
+        _experiment.typed_config(_plane_vs_slab_config(), {**raw, **change})
+    missing = {k: v for k, v in raw.items() if k != "sigma_t"}
+    with pytest.raises(ValueError, match="plane_vs_slab: missing config key 'sigma_t'"):
+        _experiment.typed_config(_plane_vs_slab_config(), missing)
+
+
+def test_a_typed_config_is_frozen_with_tuples():
+    import dataclasses
+
+    raw = _experiment.load_experiment_config(ROOT / "configs" / "plane_vs_slab.yaml")
+    config = _experiment.typed_config(_plane_vs_slab_config(), raw)
+    assert config.albedo == tuple(raw["albedo"]) and config.width == raw["width"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.width = 1
+
+
+def test_a_sweep_resumes_from_its_cache(tmp_path):
+    said, calls = [], []
+    ctx = _experiment.Context(out=tmp_path, progress=said.append, reduced=True)
+
+    def compute(a, b):
+        calls.append((a, b))
+        return {"a": a, "b": b, "product": a * b}
+
+    axes = [("a", [1, 2]), ("b", [10, 20, 30])]
+    rows = ctx.sweep(axes, lambda a, b: f"a{a}|b{b}", compute)
+    assert [(r["a"], r["b"]) for r in rows] == [
+        (1, 10),
+        (1, 20),
+        (1, 30),
+        (2, 10),
+        (2, 20),
+        (2, 30),
+    ]
+    assert said[0] == "a 1, b 10" and len(calls) == 6
+    again = ctx.sweep(axes, lambda a, b: f"a{a}|b{b}", compute)
+    assert again == rows and len(calls) == 6  # every point from the cache
+
+
+def test_write_csv_is_one_table(tmp_path):
+    import csv
+
+    path = _experiment.write_csv(tmp_path / "t.csv", ["x", "y"], ([i, i * i] for i in range(3)))
+    with open(path, newline="") as f:
+        assert list(csv.reader(f)) == [["x", "y"], ["0", "0"], ["1", "1"], ["2", "4"]]

@@ -329,7 +329,8 @@ def test_two_step_residual_jacobian_matches_autodiff_and_differences(phase, g):
 
     from lightfield_jax.forward.render import renderer_for
     from lightfield_jax.inverse.basins import reference_sigma_s
-    from lightfield_jax.inverse.fit import _rendered_and_g_slope, _two_step_residual
+    from lightfield_jax.inverse.two_step import rendered_and_g_slope as _rendered_and_g_slope
+    from lightfield_jax.inverse.two_step import two_step_residual as _two_step_residual
 
     grid = lfj.Grid(24, 16, 16, 1)
     sigma_t = jnp.asarray(0.2051)

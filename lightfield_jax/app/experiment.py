@@ -20,23 +20,30 @@ path, or the name of a shipped one (``lightfield-jax experiment forward_accuracy
 In a source checkout the tree's ``experiments/`` and ``configs/`` are used.
 
 Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
-as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing.
+as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing;
+``ctx.sweep(axes, key, compute)`` runs a Cartesian sweep that way. The other pieces
+the scripts share are written here once: typed, frozen configs (:func:`typed_config`),
+CSV tables (:func:`write_csv`) and figures (:func:`pyplot`, :func:`save_figure`).
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import datetime
 import hashlib
 import importlib.util
+import itertools
 import json
 import platform
 import sys
-from collections.abc import Callable
+import types
+import typing
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from lightfield_jax.capture.io import atomic_write_json
+from lightfield_jax.capture.io import atomic_path, atomic_write_json
 
 _HERE = Path(__file__).resolve().parent.parent  # the package folder
 
@@ -103,6 +110,23 @@ class Context:
         atomic_write_json(path, {"key": key, "value": value})
         return value
 
+    def sweep(
+        self,
+        axes: Sequence[tuple[str, Iterable]],
+        key: Callable[..., str],
+        compute: Callable[..., Any],
+    ) -> list:
+        """``compute(**point)`` for every point of the Cartesian product of ``axes``
+        (``(name, values)`` pairs, the first outermost), each reported through
+        ``progress`` and :meth:`cached` under ``key(**point)``: a rerun resumes."""
+        names = [name for name, _ in axes]
+        rows = []
+        for values in itertools.product(*(list(v) for _, v in axes)):
+            point = dict(zip(names, values, strict=True))
+            self.progress(", ".join(f"{n} {v}" for n, v in point.items()))
+            rows.append(self.cached(key(**point), lambda p=point: compute(**p)))
+        return rows
+
     def write_json(self, name: str, data: Any) -> Path:
         path = self.out / name
         atomic_write_json(path, data)
@@ -119,11 +143,95 @@ def check_config(name: str, config: dict, allowed, choices: dict | None = None) 
     if unknown:
         raise ValueError(f"{name}: unknown config keys {unknown}")
     for key, known in (choices or {}).items():
-        for value in config[key]:
-            if value not in known:
-                raise ValueError(
-                    f"{name}: {key}: unknown {value!r} (known: {', '.join(map(str, known))})"
-                )
+        check_choices(name, key, config[key], known)
+
+
+def check_choices(name: str, key: str, values, known) -> None:
+    """Refuse a value of the list ``values`` (config key ``key``) outside ``known``."""
+    for value in values:
+        if value not in known:
+            raise ValueError(
+                f"{name}: {key}: unknown {value!r} (known: {', '.join(map(str, known))})"
+            )
+
+
+def _type_ok(value, annotation) -> bool:
+    """Whether a YAML value fits a config field's annotation (int for float allowed;
+    lists for tuples; bool is not an int)."""
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        return any(_type_ok(value, a) for a in typing.get_args(annotation))
+    if annotation is type(None):
+        return value is None
+    if annotation is Any:
+        return True
+    if origin in (tuple, list):
+        args = typing.get_args(annotation)
+        inner = args[0] if args else Any
+        return isinstance(value, (list, tuple)) and all(_type_ok(v, inner) for v in value)
+    if origin is dict or annotation is dict:
+        return isinstance(value, dict)
+    if annotation is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if annotation is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, annotation)
+
+
+def typed_config(cls, config: dict):
+    """The frozen dataclass ``cls`` built from an experiment config (its ``experiment``
+    key aside): an unknown key, a missing one or a value of the wrong type is a
+    one-line ``ValueError`` naming the experiment and the key. Lists become tuples."""
+    name = config.get("experiment", cls.__name__)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(config) - set(fields) - {"experiment"})
+    if unknown:
+        raise ValueError(f"{name}: unknown config keys {unknown}")
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for key, field in fields.items():
+        if key not in config:
+            no_default = field.default is dataclasses.MISSING
+            if no_default and field.default_factory is dataclasses.MISSING:
+                raise ValueError(f"{name}: missing config key {key!r}")
+            continue
+        value = config[key]
+        if not _type_ok(value, hints[key]):
+            raise ValueError(f"{name}: {key}: expected {_type_name(hints[key])}, got {value!r}")
+        values[key] = tuple(value) if isinstance(value, list) else value
+    return cls(**values)
+
+
+def _type_name(annotation) -> str:
+    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence]) -> Path:
+    """A CSV table (``header``, then one line per row), written atomically."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+    return Path(path)
+
+
+def pyplot():
+    """matplotlib's pyplot on the non-interactive Agg backend (imported on first use:
+    the package does not import matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> Path:
+    """Write ``fig`` to ``path`` atomically at ``dpi`` and close it; returns the path."""
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
+    pyplot().close(fig)
+    return Path(path)
 
 
 def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
@@ -136,9 +244,7 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
         path = shipped  # a shipped config, by name
     if not path.is_file():
         known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
-        raise FileNotFoundError(
-            f"{path}: no such experiment config (shipped: {', '.join(known)})"
-        )
+        raise FileNotFoundError(f"{path}: no such experiment config (shipped: {', '.join(known)})")
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:

@@ -1,15 +1,21 @@
 """The inverse problem (docs/model.md sections 5-6): recover σt, σs, g (and the gain) from a
 stripe capture.
 
-Methods, all on the same forward model (:class:`~lightfield_jax.Renderer`):
+This module is the driver: :func:`fit_images` prepares the data
+(:mod:`lightfield_jax.inverse.data`), sizes the first model and hands the problem to a
+fit method (:mod:`lightfield_jax.inverse.methods`: ``GridSearch``, ``TwoStep``,
+``Joint``, each taking any optimistix least-squares solver); it holds the joint fit's
+stages, the model sizing, the result and the capture fit. The methods, all on the same
+forward model (:class:`~lightfield_jax.Renderer`):
 
 - ``grid`` (the paper's baseline): σt from the decay of the separated direct image D;
   per g on a grid, render I_k^{(g)} with σs = 1 under full illumination (``lax.map``
   over g), take the gain from the single scatter (D ≈ a·I_1^{(g)}, a = c·σs), solve the
   σs polynomial of the paper's eq. 10, M ≈ a·Σ_{k≥2} σs^{k−1} I_k^{(g)}, and keep the
   best g. It inherits the separation's bias (docs/model.md §6): that is its honest result.
-- ``gradient``: the same residual and model, solved with optimistix Levenberg-Marquardt
-  over (σs, g), differentiated through the renderer.
+- ``gradient``: the same residual and model (:mod:`lightfield_jax.inverse.two_step`),
+  solved over (σs, g) by an optimistix least-squares solver (Levenberg-Marquardt by
+  default), differentiated through the renderer.
 - ``joint`` (default): σt, σs, g, gain (and the projector's black level when the
   capture does not give it) fitted straight to the raw shifted images by rendering each
   stripe pattern, so no separation bias remains. It starts from a global scan of the
@@ -33,7 +39,6 @@ import math
 import time
 from collections.abc import Callable, Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,15 +54,14 @@ from lightfield_jax.forward.slab import (
     parse_geometry,
     slab_bounce_ratio,
 )
-from lightfield_jax.inverse.basins import Scan, basins, reference_sigma_s, scan, worse_basin
-from lightfield_jax.inverse.decay import fit_decay
-from lightfield_jax.inverse.jacobian import with_forward_jacobian, with_jacobian
+from lightfield_jax.inverse.basins import Scan, basins, scan, worse_basin
+from lightfield_jax.inverse.data import FitData as _Data
+from lightfield_jax.inverse.data import FitProblem, prepare_data
 from lightfield_jax.inverse.joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
 from lightfield_jax.inverse.joint import solve as solve_joint
+from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
-from lightfield_jax.inverse.programs import jitted
-from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import (
     Uncertainty,
     at_bound,
@@ -65,11 +69,11 @@ from lightfield_jax.inverse.trust import (
     noise_scale,
     untrustworthy,
 )
+from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
-from lightfield_jax.scene.illumination import _INWARD_DEG, Full, Stripes
-from lightfield_jax.scene.medium import bounces_for_tolerance, phase_function, phase_integral
+from lightfield_jax.scene.illumination import _INWARD_DEG, Stripes
+from lightfield_jax.scene.medium import bounces_for_tolerance, phase_integral
 
-METHODS: tuple[str, ...] = ("joint", "gradient", "grid")
 # A(g) of a Python float, compiled once (op by op, its dozen operations would each
 # compile on first use).
 _phase_integral = jax.jit(phase_integral)
@@ -81,7 +85,10 @@ class FitOptions:
     """Settings of a fit (all optional).
 
     Attributes:
-        method: ``joint`` (default), ``gradient`` or ``grid``.
+        method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
+            (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
+            :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
+            whose own settings (its solver, start, grid size) replace these.
         phase: phase convention of the model (``paper`` or ``normalized``).
         bounces: K, or ``"auto"`` from the tail bound at the starting estimate.
         tolerance: relative tail tolerance for ``bounces: auto``.
@@ -122,7 +129,7 @@ class FitOptions:
             ``rtol``, ``atol``).
     """
 
-    method: str = "joint"
+    method: str | FitMethod = "joint"
     phase: str = "paper"
     bounces: int | str = "auto"
     tolerance: float = 1e-4
@@ -147,18 +154,15 @@ class FitOptions:
     solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise ValueError(f"method: must be one of {', '.join(METHODS)}, got {self.method!r}")
+        method_for(self.method)  # a known name or a FitMethod
         if self.g_grid < 3:
             raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
         if self.max_basins < 1:
             raise ValueError(f"max_basins: must be at least 1, got {self.max_basins!r}")
         if not self.basin_tolerance >= 0:
             raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
-        if self.start is not None:
-            ok = len(self.start) == 2 and self.start[0] > 0 and abs(self.start[1]) < 1
-            if not ok:
-                raise ValueError(f"start: must be (sigma_s > 0, |g| < 1), got {self.start!r}")
+        check_start(self.start)
+        check_solver(self.solver)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -445,10 +449,6 @@ def size_model(
 # ---------------------------------------------------------------------- shared pieces
 
 
-def _masked_dot(a, b, mask):
-    return jnp.sum(jnp.where(mask, a * b, 0.0))
-
-
 def _solver(options: FitOptions, dtype):
     """The optimistix least-squares solver: ``options.solver``, else Levenberg-Marquardt
     with tolerances from ``options`` or the dtype."""
@@ -465,284 +465,6 @@ def _result_message(result) -> tuple[bool, str]:
     if ok:
         return True, "converged"
     return False, str(optx.RESULTS[result]) if hasattr(optx.RESULTS, "__getitem__") else "failed"
-
-
-def _logit(x):
-    return math.log(x / (1.0 - x))
-
-
-# ------------------------------------------------------------------- data preparation
-
-
-@dataclasses.dataclass
-class _Data:
-    images: np.ndarray  # (P, h, w), cropped, dark-subtracted
-    mask: np.ndarray  # (h, w) valid in every shift
-    direct: np.ndarray
-    multiple: np.ndarray
-    sigma_t0: float
-    sigma_t0_err: float
-    decay_converged: bool
-    exposure: np.ndarray | None = None  # (P, h, w) merged brackets' T (s), or None
-
-
-def _separate_and_decay(images, mask, pattern: Stripes, black_level, saturation, split=None):
-    if split is None:
-        sep = separate(
-            jnp.asarray(images),
-            lit_fraction=pattern.lit_fraction,
-            black_level=0.0 if black_level is None else float(black_level),
-        )
-        direct, multiple = np.asarray(sep.direct), np.asarray(sep.multiple)
-    else:
-        direct, multiple = (np.asarray(a, dtype=images.dtype) for a in split)
-        if direct.shape != images.shape[1:] or multiple.shape != images.shape[1:]:
-            raise ValueError(
-                f"split: direct and multiple must have the images' shape {images.shape[1:]}, "
-                f"got {direct.shape} and {multiple.shape}"
-            )
-    decay = fit_decay(
-        direct,
-        direction_deg=pattern.direction_deg,
-        entry=pattern.entry,
-        mask=jnp.asarray(mask),
-        saturation=saturation,
-    )
-    return direct, multiple, decay
-
-
-# ------------------------------------------------------------------ grid and gradient
-
-
-def _full_for(pattern: Stripes) -> Full:
-    return Full(direction_deg=pattern.direction_deg, entry=pattern.entry)
-
-
-def _poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
-    """The paper's eq. 10 for one g, on images rendered at a reference σs_ref:
-    I_k(σs) = u^k I_k(σs_ref), u = σs/σs_ref. The gain from the single scatter,
-    a = ⟨D, I_1⟩/⟨I_1, I_1⟩, then u* = argmin_{0≤u≤u_max} ‖M − a Σ_{k≥2} u^{k−1} I_k‖²
-    (exact polynomial minimisation: dense evaluation, then Newton on the derivative).
-    Returns (u*, a, residual²), the residual² summed from the residual itself: the
-    expanded polynomial is a difference of large terms, which in float32 cannot tell
-    apart values of g near the minimum (it left the grid's g error at ~1e-3 however
-    dense the grid)."""
-    a = _masked_dot(d, i1, mask) / _masked_dot(i1, i1, mask)
-    kk = ik.shape[0]
-    gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
-    mk = jnp.einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
-    mm = _masked_dot(m, m, mask)
-    # cost(u) = mm − 2a·Σ_k u^k mk_k + a²·Σ_kl u^k u^l G_kl = Σ_n c_n u^n, n = 0..2K: its
-    # coefficients once, then values and derivatives of a polynomial (no autodiff of
-    # a Newton loop, which would be most of the compiled program).
-    n = 2 * kk + 1
-    degree = jnp.arange(1, kk + 1)
-    pairs = degree[:, None] + degree[None, :]
-    coef = jnp.zeros(n, gram.dtype).at[0].set(mm).at[degree].add(-2 * a * mk)
-    coef = coef.at[pairs.reshape(-1)].add((a**2 * gram).reshape(-1))
-    orders = jnp.arange(n, dtype=gram.dtype)
-
-    def powers(u, shift):  # u^(n − shift), 0 where n < shift
-        e = orders - shift
-        return jnp.where(e >= 0, u ** jnp.maximum(e, 0.0), 0.0)
-
-    def cost(u):
-        return powers(u, 0) @ coef
-
-    d1_coef = coef * orders
-    d2_coef = coef * orders * (orders - 1)
-    grid = jnp.linspace(0.0, 1.0, n_grid) * u_max
-    costs = jax.vmap(cost)(grid)
-    u = grid[jnp.argmin(costs)]
-    for _ in range(6):
-        d1, d2 = powers(u, 1) @ d1_coef, powers(u, 2) @ d2_coef
-        u = jnp.clip(u - d1 / jnp.where(d2 > 0, d2, jnp.inf), 0.0, u_max)
-    r = m - a * jnp.einsum("k,khw->hw", u ** degree.astype(ik.dtype), ik)
-    return u, a, _masked_dot(r, r, mask)
-
-
-def _parabolic_minimum(xs, costs, best):
-    """The vertex of the parabola through the grid's best point and its two
-    neighbours (uniform spacing), kept within one spacing of the best point: (x, t)
-    with t the offset in spacings. At an end of the grid, the best point itself."""
-    n = xs.shape[0]
-    i = jnp.clip(best, 1, n - 2)
-    lo, mid, hi = costs[i - 1], costs[i], costs[i + 1]
-    curvature = lo - 2 * mid + hi
-    t = jnp.where(curvature > 0, 0.5 * (lo - hi) / jnp.where(curvature > 0, curvature, 1.0), 0.0)
-    t = jnp.where((best > 0) & (best < n - 1), jnp.clip(t, -1.0, 1.0), 0.0)
-    return xs[best] + t * (xs[1] - xs[0]), t
-
-
-def _rendered_and_g_slope(renderer, sigma_t, phase: str):
-    """``x = [g]`` → (I_k at (σt, σs_ref(g), g) under full illumination, (K, h, w), and
-    dI_k/dg, (K, h, w, 1)), differentiable in ``x`` through that slope. The plane's
-    renderer gives the slope in one pass of its own code
-    (:meth:`~lightfield_jax.Renderer.images_and_g_slope`); I_k ∝ σs^k carries the
-    change of σs_ref with g. Other renderers go through ``jax.jvp``."""
-
-    def reference(g):
-        return reference_sigma_s(sigma_t, g, phase)[0]
-
-    if not hasattr(renderer, "images_and_g_slope"):
-        return with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
-
-    def value_and_jacobian(x):
-        g = x[0]
-        ref, dref = jax.jvp(reference, (g,), (jnp.ones_like(g),))
-        images, slope = renderer.images_and_g_slope(sigma_t, ref, g)
-        images, slope = images[0], slope[0]
-        k = jnp.arange(1, images.shape[0] + 1, dtype=images.dtype)[:, None, None]
-        return images, (slope + images * k * (dref / ref))[..., None]
-
-    return with_jacobian(value_and_jacobian)
-
-
-def _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str, p):
-    """The residual of eq. 10 at p = (σs, g) and its Jacobian written out: ``(r,
-    ∂r/∂(σs, g) (N, 2), a = c·σs)``, r = mask·(M − a_ref Σ_{k≥2} u^{k−1} I_k)/scale with
-    the images rendered at σs_ref(g), u = σs/σs_ref and a_ref = ⟨D, I_1⟩/⟨I_1, I_1⟩.
-    The images' slope along g comes from ``rendered_and_slope``
-    (:func:`_rendered_and_g_slope`); σs and the gain enter in closed form, so the
-    Jacobian costs no autodiff of this code (a small program)."""
-    sigma_s, g = p[0], p[1]
-    ref, dref = jax.jvp(lambda g: reference_sigma_s(sigma_t, g, phase)[0], (g,), (1.0 + 0 * g,))
-    images, slope = rendered_and_slope(p[1:])
-    slope = slope[..., 0]
-    i1, s1 = images[0], slope[0]
-    n1, n2 = _masked_dot(d, i1, mask), _masked_dot(i1, i1, mask)
-    a_ref = n1 / n2  # the gain from the single scatter, and its slope along g
-    da_ref = (_masked_dot(d, s1, mask) * n2 - 2 * n1 * _masked_dot(i1, s1, mask)) / n2**2
-    k = jnp.arange(1, images.shape[0], dtype=images.dtype)
-    u = sigma_s / ref  # I_k(σs) = u^k I_k(σs_ref)
-    series = jnp.einsum("k,khw->hw", u**k, images[1:])
-    d_series_du = jnp.einsum("k,khw->hw", k * u ** (k - 1), images[1:])
-    # along g at fixed σs: the images change, and u with σs_ref
-    d_series_dg = jnp.einsum("k,khw->hw", u**k, slope[1:]) - d_series_du * u * dref / ref
-    jac = jnp.stack([a_ref * d_series_du / ref, da_ref * series + a_ref * d_series_dg], axis=-1)
-    r = jnp.where(mask, (m - a_ref * series) / scale, 0.0).reshape(-1)
-    jac = -jnp.where(mask[..., None], jac / scale, 0.0).reshape(-1, 2)
-    return r, jac, a_ref * ref
-
-
-@dataclasses.dataclass(frozen=True)
-class _TwoStepSettings:
-    """Static settings of the two-step program."""
-
-    method: str  # grid or gradient
-    phase: str
-    max_steps: int
-
-
-def _two_step_run(
-    settings: _TwoStepSettings,
-    solver_static,
-    solver_arrays,
-    renderer,
-    sigma_t,
-    d,
-    m,
-    mask,
-    gs,
-    scale,
-):
-    """The two-step program: the search over ``gs`` and (``gradient``) the solve over
-    (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the residual and
-    its Jacobian evaluated explicitly at the answer."""
-    phase = settings.phase
-    solver = eqx.combine(solver_arrays, solver_static)
-
-    def per_g(g):
-        ref, u_max = reference_sigma_s(sigma_t, g, phase)
-        images = renderer(sigma_t, ref, g)[0][0]
-        u, a_ref, cost = _poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
-        return u * ref, a_ref * ref, cost  # σs, a = c·σs, residual²
-
-    rendered_and_slope = _rendered_and_g_slope(renderer, sigma_t, phase)
-
-    def residual(p):
-        return _two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase, p)
-
-    s_all, a_all, cost = jax.lax.map(per_g, gs)
-    best = jnp.argmin(cost)
-    s, g = s_all[best], gs[best]
-    if settings.method == "grid":
-        r, jac, a = residual(jnp.stack([s, g]))
-        return s, g, a, r, jac, optx.RESULTS.successful, jnp.asarray(gs.shape[0])
-    # Levenberg-Marquardt starts at the vertex of the parabola through the best g and
-    # its neighbours.
-    g_vertex, t = _parabolic_minimum(gs, cost, best)
-    near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, gs.shape[0] - 1)
-    s_vertex = s + jnp.abs(t) * (s_all[near] - s)
-
-    def s_max(g):
-        ref, u_max = reference_sigma_s(sigma_t, g, phase)
-        return ref * u_max
-
-    frac = jnp.clip(s_vertex / s_max(g_vertex), 1e-3, 1 - 1e-3)
-    y0 = jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
-
-    def unpack(y):  # 0 < σs < min(σt, the σs where ρ = 1), |g| < 1
-        g = jnp.tanh(y[1])
-        return jnp.stack([s_max(g) * jax.nn.sigmoid(y[0]), g])
-
-    def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
-        r, jac, _a = residual(unpack(y))
-        return r, jac @ jax.jacfwd(unpack)(y)
-
-    # Levenberg-Marquardt linearises a matrix product J·δy (the custom JVP), not
-    # the residual's code: one copy of the renderer in the loop, a small program.
-    residual_y = with_jacobian(residual_y)
-    sol = optx.least_squares(
-        lambda y, _: residual_y(y)[0], solver, y0, max_steps=settings.max_steps, throw=False
-    )
-    s, g = unpack(sol.value)
-    r, jac, _a = residual(jnp.stack([s, g]))
-    # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
-    a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
-    return s, g, a, r, jac, sol.result, sol.stats["num_steps"]
-
-
-def _two_step(data: _Data, pattern, model: _Model, options: FitOptions, sigma_t, method: str):
-    """The paper's two-step problem after σt: ``grid`` searches g on a grid; ``gradient``
-    searches a coarse grid, then solves (σs, g) with the solver. One compiled program
-    (search, solve and the Jacobian for the uncertainties).
-
-    σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
-    derivative in σs is exact without the renderer, and one forward-mode pass through
-    the renderer along g gives the Jacobian of each step."""
-    renderer = _renderer(model, _full_for(pattern), options.phase)
-    dtype = jnp.result_type(float)
-    # Residuals in units of the data's RMS, so solver tolerances mean the same for any
-    # exposure.
-    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
-    n_g = options.g_grid if method == "grid" else options.start_grid
-    settings = _TwoStepSettings(method, options.phase, options.max_steps)
-    # Every value that depends on the data is an argument, not a constant of the
-    # program: a persistent compilation cache then serves any capture of this shape.
-    args = (
-        renderer,
-        jnp.asarray(sigma_t, dtype),
-        jnp.asarray(data.direct, dtype),
-        jnp.asarray(data.multiple, dtype),
-        jnp.asarray(data.mask),
-        jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
-        jnp.asarray(scale, dtype),
-    )
-    run = jitted(_two_step_run, ("settings", "solver_static"))
-    arrays, static = eqx.partition(_solver(options, dtype), eqx.is_array)
-    with stopwatch() as timing:
-        out = jax.block_until_ready(run(settings, static, arrays, *args))
-    s, g, a, r, jac, result, steps = out
-    s, g = float(s), float(g)
-    r = np.asarray(r, np.float64)
-    budget = error_budget(np.asarray(jac), r, ["sigma_s", "g"], math.nan)
-    rms = scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1)))
-    gain = float(a) / s if s > 0 else math.inf
-    ok, msg = _result_message(result)
-    if method == "grid":
-        msg = f"grid search over {n_g} values of g"
-    return s, g, gain, rms, budget, ok, msg, int(steps), timing.compile
 
 
 # ---------------------------------------------------------------------------- joint
@@ -1254,112 +976,49 @@ def _fit_one(
             f"geometry: must be a Plane, Slab or AutoGeometry, got {options.geometry!r}"
         )
     say = progress or (lambda _msg: None)
+    method = method_for(options.method)
     t_start = time.perf_counter()
-    images = np.asarray(images, dtype=jnp.result_type(float))
-    if images.ndim != 3 or images.shape[0] != pattern.n_patterns:
-        raise ValueError(
-            f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
-            f"phases, got shape {images.shape}"
-        )
-    finite = np.all(np.isfinite(images), axis=0)
-    mask = finite if mask is None else (np.asarray(mask, bool) & finite)
-    images = np.where(mask[None], images, 0.0)
-
     say("separating direct and multiple scattering")
-    direct, multiple, decay = _separate_and_decay(
-        images, mask, pattern, black_level, saturation, split
+    whole = prepare_data(
+        images,
+        pattern,
+        mask=mask,
+        black_level=black_level,
+        saturation=saturation,
+        split=split,
+        exposure=exposure,
     )
-    sigma_t0 = float(decay.sigma_t)
-    if not math.isfinite(sigma_t0) or sigma_t0 <= 0:
-        raise ValueError(f"the direct image's decay gives no usable sigma_t ({sigma_t0!r})")
-
-    # A first model for the two-step estimate. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ)
-    # sizes the bounces (with margin: the separation biases M low).
-    ratio = float(
-        np.sum(np.where(mask, multiple, 0.0)) / max(np.sum(np.where(mask, direct, 0.0)), 1e-30)
-    )
-    rho0 = min(max(ratio, 0.0) / (1.0 + max(ratio, 0.0)) * 1.5 + 0.05, 0.95)
+    # A first model. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ) sizes the bounces (with
+    # margin: the separation biases M low).
+    ratio = max(whole.multiple_ratio, 0.0)
+    rho0 = min(ratio / (1.0 + ratio) * 1.5 + 0.05, 0.95)
     crop = floor.crop if floor is not None else None
     model = size_model(
-        images, pattern, albedo=rho0, g=0.0, options=options, sigma_t=sigma_t0, crop=crop
+        whole.images,
+        pattern,
+        albedo=rho0,
+        g=0.0,
+        options=options,
+        sigma_t=whole.sigma_t0,
+        crop=crop,
     )
-    x0, y0, x1, y1 = model.crop
-    data = _Data(
-        images=images[:, y0:y1, x0:x1],
-        mask=mask[y0:y1, x0:x1],
-        direct=direct[y0:y1, x0:x1],
-        multiple=multiple[y0:y1, x0:x1],
-        sigma_t0=sigma_t0,
-        sigma_t0_err=float(decay.sigma_t_stderr),
-        decay_converged=bool(decay.converged),
-        exposure=None if exposure is None else np.asarray(exposure)[:, y0:y1, x0:x1],
+    problem = FitProblem(
+        data=whole.cropped(model.crop),
+        images=whole.images,
+        pattern=pattern,
+        black_level=black_level,
+        model=model,
+        rho0=rho0,
+        floor=floor,
     )
-
-    if options.method == "joint":
-        model, seconds, values = _joint_fit(
-            data, pattern, options, black_level, images, model.crop, rho0, floor, say
-        )
-        return _finish(options, t_start, seconds, model, pixel_size_mm=pixel_size_mm, **values)
-
-    seconds = {"compile": 0.0, "run": 0.0}
-    name = options.method
-    model = _at_least(model, floor)
-    say(
-        f"{name}: search over g"
-        + (" and Levenberg-Marquardt over (sigma_s, g)" if name == "gradient" else "")
-    )
-    s, g, gain, rms, budget, ok, msg, steps, tc = _two_step(
-        data, pattern, model, options, sigma_t0, name
-    )
-    seconds["compile"] += tc
-    # The first model was sized before g was known (g = 0). Where the estimate needs a
-    # much larger one (4× the θ bins, a finer grid, more bounces: a forward-peaked
-    # medium), solve once more with it; a 2× θ difference costs less than a refit.
-    if math.isfinite(s) and math.isfinite(g) and s > 0:
-        need = size_model(
-            images,
-            pattern,
-            albedo=min(s / sigma_t0, 0.98),
-            g=g,
-            options=options,
-            sigma_t=sigma_t0,
-            crop=model.crop,
-        )
-        if (
-            need.grid.n_theta >= 4 * model.grid.n_theta
-            or need.grid.refine > model.grid.refine
-            or need.bounces > model.bounces
-        ):
-            say(
-                f"{name}: again with the model the estimate needs (n_theta "
-                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
-            )
-            model = _at_least(need, model)
-            s, g, gain, rms, budget, ok, msg, steps, tc = _two_step(
-                data, pattern, model, options, sigma_t0, name
-            )
-            seconds["compile"] += tc
-    if not data.decay_converged:
-        ok, msg = False, "the decay fit of sigma_t did not converge"
-    stat = {"sigma_t": data.sigma_t0_err, **budget.statistical}
-    budget = dataclasses.replace(budget, statistical=stat, total=stat)
+    solution = method.solve(problem, options, say)
     return _finish(
         options,
         t_start,
-        seconds,
-        model,
-        method=name,
-        sigma_t=sigma_t0,
-        sigma_s=s,
-        g=g,
-        gain=gain,
-        black_level=black_level,
-        budget=budget,
-        converged=ok,
-        message=msg,
-        iterations=options.g_grid if name == "grid" else steps,
-        residual=rms,
+        solution.seconds,
+        solution.model,
         pixel_size_mm=pixel_size_mm,
+        **solution.values,
     )
 
 
@@ -1509,7 +1168,7 @@ class CaptureFit:
 
 def fit_capture(
     capture,
-    method: str = "joint",
+    method: str | FitMethod = "joint",
     *,
     channels: Sequence[str] | None = None,
     options: FitOptions | None = None,
@@ -1520,7 +1179,10 @@ def fit_capture(
 
     Args:
         capture: the capture (images dark-subtracted and cropped to the medium).
-        method: ``joint`` (default), ``gradient`` or ``grid``.
+        method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
+            (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
+            :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
+            whose own settings (its solver, start, grid size) replace these.
         channels: channel names to fit (default: every channel the capture holds).
         options, overrides: see :func:`fit_images`.
         progress: called with a description of each stage.

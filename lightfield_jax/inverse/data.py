@@ -1,0 +1,163 @@
+"""What a fit works on, as frozen records: the prepared capture (:class:`FitData`), the
+problem a fit method is handed (:class:`FitProblem`) and what it hands back
+(:class:`FitSolution`).
+
+:func:`prepare_data` validates one channel's images, masks them, separates direct and
+multiple scattering (docs/model.md §5) and fits σt to the decay of the direct image;
+:meth:`FitData.cropped` gives the same data inside the model's crop, every image cut
+alike (never in place).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import jax.numpy as jnp
+import numpy as np
+
+from lightfield_jax.inverse.decay import fit_decay
+from lightfield_jax.inverse.separate import separate
+from lightfield_jax.scene.illumination import Stripes
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.fit import _Model
+
+
+@dataclasses.dataclass(frozen=True)
+class FitData:
+    """One channel of a stripe capture, ready to fit.
+
+    Attributes:
+        images: the shifted images I_p, ``(P, h, w)``, dark-subtracted, 0 where masked.
+        mask: ``(h, w)``, true where a pixel is valid in every shift.
+        direct: the separated direct image D, ``(h, w)`` (or the given split's).
+        multiple: the separated multiple-scattering image M, ``(h, w)``.
+        sigma_t0: σt (per pixel) from the decay of D, and ``sigma_t0_err`` its 1σ.
+        decay_converged: whether that decay fit converged.
+        exposure: merged exposure brackets' effective exposure T (s), ``(P, h, w)``,
+            or ``None``.
+    """
+
+    images: np.ndarray
+    mask: np.ndarray
+    direct: np.ndarray
+    multiple: np.ndarray
+    sigma_t0: float
+    sigma_t0_err: float
+    decay_converged: bool
+    exposure: np.ndarray | None = None
+
+    def cropped(self, crop: tuple[int, int, int, int]) -> FitData:
+        """The data inside ``crop`` = (x0, y0, x1, y1), every image cut alike."""
+        x0, y0, x1, y1 = crop
+        return dataclasses.replace(
+            self,
+            images=self.images[:, y0:y1, x0:x1],
+            mask=self.mask[y0:y1, x0:x1],
+            direct=self.direct[y0:y1, x0:x1],
+            multiple=self.multiple[y0:y1, x0:x1],
+            exposure=None if self.exposure is None else self.exposure[:, y0:y1, x0:x1],
+        )
+
+    @property
+    def multiple_ratio(self) -> float:
+        """Σ M / Σ D over the mask: ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ)."""
+        m = np.sum(np.where(self.mask, self.multiple, 0.0))
+        return float(m / max(np.sum(np.where(self.mask, self.direct, 0.0)), 1e-30))
+
+
+def prepare_data(
+    images,
+    pattern: Stripes,
+    *,
+    mask=None,
+    black_level: float | None = None,
+    saturation: float | None = None,
+    split=None,
+    exposure=None,
+) -> FitData:
+    """One channel's :class:`FitData` over the whole image (see :func:`fit_images` for
+    the arguments). Raises ``ValueError`` for images of the wrong shape, a ``split`` of
+    another shape, or a decay that gives no usable σt."""
+    images = np.asarray(images, dtype=jnp.result_type(float))
+    if images.ndim != 3 or images.shape[0] != pattern.n_patterns:
+        raise ValueError(
+            f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
+            f"phases, got shape {images.shape}"
+        )
+    finite = np.all(np.isfinite(images), axis=0)
+    mask = finite if mask is None else (np.asarray(mask, bool) & finite)
+    images = np.where(mask[None], images, 0.0)
+    if split is None:
+        sep = separate(
+            jnp.asarray(images),
+            lit_fraction=pattern.lit_fraction,
+            black_level=0.0 if black_level is None else float(black_level),
+        )
+        direct, multiple = np.asarray(sep.direct), np.asarray(sep.multiple)
+    else:
+        direct, multiple = (np.asarray(a, dtype=images.dtype) for a in split)
+        if direct.shape != images.shape[1:] or multiple.shape != images.shape[1:]:
+            raise ValueError(
+                f"split: direct and multiple must have the images' shape {images.shape[1:]}, "
+                f"got {direct.shape} and {multiple.shape}"
+            )
+    decay = fit_decay(
+        direct,
+        direction_deg=pattern.direction_deg,
+        entry=pattern.entry,
+        mask=jnp.asarray(mask),
+        saturation=saturation,
+    )
+    sigma_t0 = float(decay.sigma_t)
+    if not np.isfinite(sigma_t0) or sigma_t0 <= 0:
+        raise ValueError(f"the direct image's decay gives no usable sigma_t ({sigma_t0!r})")
+    return FitData(
+        images=images,
+        mask=mask,
+        direct=direct,
+        multiple=multiple,
+        sigma_t0=sigma_t0,
+        sigma_t0_err=float(decay.sigma_t_stderr),
+        decay_converged=bool(decay.converged),
+        exposure=None if exposure is None else np.asarray(exposure),
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class FitProblem:
+    """What a fit method solves (:meth:`~lightfield_jax.inverse.methods.FitMethod.solve`).
+
+    Attributes:
+        data: the capture inside ``model``'s crop.
+        images: the whole masked images (a method that resizes its model crops anew).
+        pattern: the stripes that lit them.
+        black_level: the projector's dark-stripe level, or ``None`` (unknown).
+        model: the first model, sized at the separation's ρ estimate ``rho0`` and g = 0.
+        rho0: that estimate, with its margin.
+        floor: the smallest model to use (the channels of a capture share programs),
+            or ``None``.
+    """
+
+    data: FitData
+    images: np.ndarray
+    pattern: Stripes
+    black_level: float | None
+    model: _Model
+    rho0: float
+    floor: _Model | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FitSolution:
+    """What a fit method found: the model it ended on, the seconds spent compiling and
+    running its programs, and the values the result is built from (σt, σs, g, gain,
+    black level, error budget, convergence and its message, iterations, residual)."""
+
+    model: _Model
+    seconds: dict
+    values: dict
+
+
+__all__ = ["FitData", "FitProblem", "FitSolution", "prepare_data"]

@@ -1,0 +1,237 @@
+"""Fit methods as values: :class:`GridSearch`, :class:`TwoStep` and :class:`Joint`, each a
+small module with one :meth:`FitMethod.solve` signature, passed to a fit as
+``fit_images(..., method=Joint(solver=optx.Dogleg(1e-8, 1e-10)))`` or
+``FitOptions(method=TwoStep())``. The names ``"grid"``, ``"gradient"`` and ``"joint"``
+map onto them with every setting taken from :class:`~lightfield_jax.FitOptions`.
+
+- :class:`GridSearch` (the paper's baseline): σt from the decay of the separated direct
+  image, then g searched on a grid with σs from eq. 10 at each g
+  (:mod:`lightfield_jax.inverse.two_step`).
+- :class:`TwoStep` (``gradient``): the same residual solved over (σs, g) by an
+  optimistix least-squares solver from a coarse search's best point.
+- :class:`Joint` (``joint``): σt, σs, g, gain (and the black level) fitted to the raw
+  shifted images from the basin scan's starts (:mod:`lightfield_jax.inverse.basins`,
+  :mod:`lightfield_jax.inverse.joint`).
+
+``solver`` is any optimistix least-squares solver (Levenberg-Marquardt, ``Dogleg``,
+``GaussNewton``, ...); ``None`` takes ``FitOptions.solver``, else Levenberg-Marquardt
+with the options' tolerances. A minimiser (``BFGS``) is refused: the residuals are
+least-squares problems.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+import optimistix as optx
+
+from lightfield_jax.inverse.data import FitProblem, FitSolution
+from lightfield_jax.inverse.two_step import TwoStepSettings, full_for, solve_two_step
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.fit import FitOptions
+
+
+def check_solver(solver, key: str = "solver") -> None:
+    """Refuse anything but ``None`` or an optimistix least-squares solver."""
+    if solver is not None and not isinstance(solver, optx.AbstractLeastSquaresSolver):
+        raise ValueError(
+            f"{key}: must be an optimistix least-squares solver (e.g. "
+            f"optx.LevenbergMarquardt, optx.Dogleg, optx.GaussNewton), got "
+            f"{type(solver).__name__}"
+        )
+
+
+def check_start(start, key: str = "start") -> None:
+    """Refuse a joint start that is not (σs > 0, |g| < 1)."""
+    if start is not None and not (len(start) == 2 and start[0] > 0 and abs(start[1]) < 1):
+        raise ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {start!r}")
+
+
+class FitMethod(eqx.Module):
+    """A fit method: :meth:`solve` turns a prepared capture into fitted values."""
+
+    name: eqx.AbstractClassVar[str]
+
+    @abc.abstractmethod
+    def solve(
+        self, problem: FitProblem, options: FitOptions, say: Callable[[str], None]
+    ) -> FitSolution:
+        """Fit ``problem`` with the model settings of ``options``; ``say`` reports each
+        stage. Returns the model used, the seconds (``compile``, ``run``) and the values
+        the :class:`~lightfield_jax.FitResult` is built from."""
+
+
+class GridSearch(FitMethod):
+    """The paper's method: g searched on ``g_values`` points of (−0.95, 0.95) (``None``:
+    ``FitOptions.g_grid``), σs from eq. 10 at each."""
+
+    g_values: int | None = None
+    name: ClassVar[str] = "grid"
+
+    def __check_init__(self):
+        if self.g_values is not None and self.g_values < 3:
+            raise ValueError(f"g_values: must be at least 3, got {self.g_values!r}")
+
+    def solve(self, problem, options, say):
+        n_g = self.g_values or options.g_grid
+        say(f"{self.name}: search over g")
+        return _two_step_fit(self.name, problem, options, say, None, n_g)
+
+
+class TwoStep(FitMethod):
+    """The two-step residual solved over (σs, g) by ``solver`` (see the module), started
+    from a search over ``start_grid`` values of g (``None``: ``FitOptions.start_grid``)."""
+
+    solver: optx.AbstractLeastSquaresSolver | None = None
+    start_grid: int | None = None
+    name: ClassVar[str] = "gradient"
+
+    def __check_init__(self):
+        check_solver(self.solver)
+        if self.start_grid is not None and self.start_grid < 3:
+            raise ValueError(f"start_grid: must be at least 3, got {self.start_grid!r}")
+
+    def solve(self, problem, options, say):
+        from lightfield_jax.inverse.fit import _solver
+
+        options = _with_solver(options, self.solver)
+        solver = _solver(options, jnp.result_type(float))
+        say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
+        n_g = self.start_grid or options.start_grid
+        return _two_step_fit(self.name, problem, options, say, solver, n_g)
+
+
+class Joint(FitMethod):
+    """The joint fit to the raw images by ``solver`` (see the module), from ``start`` =
+    (σs, g) (σt from the decay fit) instead of the basin scan's starts when given
+    (``None``: ``FitOptions.start``)."""
+
+    solver: optx.AbstractLeastSquaresSolver | None = None
+    start: tuple[float, float] | None = None
+    name: ClassVar[str] = "joint"
+
+    def __check_init__(self):
+        check_solver(self.solver)
+        check_start(self.start)
+
+    def solve(self, problem, options, say):
+        from lightfield_jax.inverse.fit import _joint_fit
+
+        options = _with_solver(options, self.solver)
+        if self.start is not None:
+            options = dataclasses.replace(options, start=self.start)
+        model, seconds, values = _joint_fit(
+            problem.data,
+            problem.pattern,
+            options,
+            problem.black_level,
+            problem.images,
+            problem.model.crop,
+            problem.rho0,
+            problem.floor,
+            say,
+        )
+        return FitSolution(model=model, seconds=seconds, values=values)
+
+
+METHODS: dict[str, FitMethod] = {"joint": Joint(), "gradient": TwoStep(), "grid": GridSearch()}
+
+
+def method_for(method: str | FitMethod) -> FitMethod:
+    """The :class:`FitMethod` of ``FitOptions.method`` (a name or a method)."""
+    if isinstance(method, FitMethod):
+        return method
+    if method not in METHODS:
+        raise ValueError(
+            f"method: must be one of {', '.join(METHODS)} or a FitMethod, got {method!r}"
+        )
+    return METHODS[method]
+
+
+def _with_solver(options: FitOptions, solver) -> FitOptions:
+    return options if solver is None else dataclasses.replace(options, solver=solver)
+
+
+def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
+    """The two-step methods after σt: solve on the first model; where the estimate needs
+    a much larger model (4× the θ bins, a finer grid, more bounces: a forward-peaked
+    medium), once more on that one (a 2× θ difference costs less than a refit)."""
+    from lightfield_jax.inverse.fit import _at_least, _renderer, _result_message, size_model
+
+    data = problem.data
+    settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
+
+    def on(model):
+        renderer = _renderer(model, full_for(problem.pattern), options.phase)
+        return solve_two_step(data, renderer, solver, settings, n_g)
+
+    model = _at_least(problem.model, problem.floor)
+    sol = on(model)
+    compile_s = sol.compile
+    s, g = sol.sigma_s, sol.g
+    # The first model was sized before g was known (g = 0).
+    if math.isfinite(s) and math.isfinite(g) and s > 0:
+        need = size_model(
+            problem.images,
+            problem.pattern,
+            albedo=min(s / data.sigma_t0, 0.98),
+            g=g,
+            options=options,
+            sigma_t=data.sigma_t0,
+            crop=model.crop,
+        )
+        if (
+            need.grid.n_theta >= 4 * model.grid.n_theta
+            or need.grid.refine > model.grid.refine
+            or need.bounces > model.bounces
+        ):
+            say(
+                f"{name}: again with the model the estimate needs (n_theta "
+                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
+            )
+            model = _at_least(need, model)
+            sol = on(model)
+            compile_s += sol.compile
+    ok, msg = _result_message(sol.result)
+    if solver is None:
+        msg = f"grid search over {n_g} values of g"
+    if not data.decay_converged:
+        ok, msg = False, "the decay fit of sigma_t did not converge"
+    stat = {"sigma_t": data.sigma_t0_err, **sol.budget.statistical}
+    budget = dataclasses.replace(sol.budget, statistical=stat, total=stat)
+    return FitSolution(
+        model=model,
+        seconds={"compile": compile_s, "run": 0.0},
+        values=dict(
+            method=name,
+            sigma_t=data.sigma_t0,
+            sigma_s=sol.sigma_s,
+            g=sol.g,
+            gain=sol.gain,
+            black_level=problem.black_level,
+            budget=budget,
+            converged=ok,
+            message=msg,
+            iterations=n_g if solver is None else sol.steps,
+            residual=sol.rms,
+        ),
+    )
+
+
+__all__ = [
+    "METHODS",
+    "FitMethod",
+    "GridSearch",
+    "Joint",
+    "TwoStep",
+    "check_solver",
+    "check_start",
+    "method_for",
+]

@@ -1,0 +1,321 @@
+"""The paper's two-step problem after σt (docs/model.md §5-6): the multiple-scattering
+image M against the series Σ_{k≥2} I_k, the gain from the single scatter, over (σs, g).
+
+- :func:`poly_fit_sigma_s`: for one g, the exact σs of the paper's eq. 10 (a polynomial
+  in σs, minimised densely then by Newton).
+- :func:`two_step_residual`: the residual at (σs, g) with its Jacobian written out,
+  the images' slope along g from :func:`rendered_and_g_slope`; what a least-squares
+  solver (the package's, or an outside one) is handed.
+- :func:`solve_two_step`: one compiled program: the search over g and, for the
+  gradient method, an optimistix least-squares solve over (σs, g) from the search's
+  best point; the residual and its Jacobian at the answer for the error budget.
+  The fit methods (:mod:`lightfield_jax.inverse.methods`) call it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.inverse.basins import reference_sigma_s
+from lightfield_jax.inverse.data import FitData
+from lightfield_jax.inverse.jacobian import with_forward_jacobian, with_jacobian
+from lightfield_jax.inverse.programs import jitted
+from lightfield_jax.inverse.trust import Uncertainty, error_budget
+from lightfield_jax.scene.illumination import Full, Stripes
+from lightfield_jax.scene.medium import phase_function
+
+
+def masked_dot(a, b, mask):
+    """Σ a·b over ``mask``."""
+    return jnp.sum(jnp.where(mask, a * b, 0.0))
+
+
+def full_for(pattern: Stripes) -> Full:
+    """Full illumination from the stripes' direction and entry wall."""
+    return Full(direction_deg=pattern.direction_deg, entry=pattern.entry)
+
+
+def poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
+    """The paper's eq. 10 for one g, on images rendered at a reference σs_ref:
+    I_k(σs) = u^k I_k(σs_ref), u = σs/σs_ref. The gain from the single scatter,
+    a = ⟨D, I_1⟩/⟨I_1, I_1⟩, then u* = argmin_{0≤u≤u_max} ‖M − a Σ_{k≥2} u^{k−1} I_k‖²
+    (exact polynomial minimisation: dense evaluation, then Newton on the derivative).
+    Returns (u*, a, residual²), the residual² summed from the residual itself: the
+    expanded polynomial is a difference of large terms, which in float32 cannot tell
+    apart values of g near the minimum (it left the grid's g error at ~1e-3 however
+    dense the grid)."""
+    a = masked_dot(d, i1, mask) / masked_dot(i1, i1, mask)
+    kk = ik.shape[0]
+    gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
+    mk = jnp.einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
+    mm = masked_dot(m, m, mask)
+    # cost(u) = mm − 2a·Σ_k u^k mk_k + a²·Σ_kl u^k u^l G_kl = Σ_n c_n u^n, n = 0..2K: its
+    # coefficients once, then values and derivatives of a polynomial (no autodiff of
+    # a Newton loop, which would be most of the compiled program).
+    n = 2 * kk + 1
+    degree = jnp.arange(1, kk + 1)
+    pairs = degree[:, None] + degree[None, :]
+    coef = jnp.zeros(n, gram.dtype).at[0].set(mm).at[degree].add(-2 * a * mk)
+    coef = coef.at[pairs.reshape(-1)].add((a**2 * gram).reshape(-1))
+    orders = jnp.arange(n, dtype=gram.dtype)
+
+    def powers(u, shift):  # u^(n − shift), 0 where n < shift
+        e = orders - shift
+        return jnp.where(e >= 0, u ** jnp.maximum(e, 0.0), 0.0)
+
+    def cost(u):
+        return powers(u, 0) @ coef
+
+    d1_coef = coef * orders
+    d2_coef = coef * orders * (orders - 1)
+    grid = jnp.linspace(0.0, 1.0, n_grid) * u_max
+    costs = jax.vmap(cost)(grid)
+    u = grid[jnp.argmin(costs)]
+    for _ in range(6):
+        d1, d2 = powers(u, 1) @ d1_coef, powers(u, 2) @ d2_coef
+        u = jnp.clip(u - d1 / jnp.where(d2 > 0, d2, jnp.inf), 0.0, u_max)
+    r = m - a * jnp.einsum("k,khw->hw", u ** degree.astype(ik.dtype), ik)
+    return u, a, masked_dot(r, r, mask)
+
+
+def parabolic_minimum(xs, costs, best):
+    """The vertex of the parabola through the grid's best point and its two
+    neighbours (uniform spacing), kept within one spacing of the best point: (x, t)
+    with t the offset in spacings. At an end of the grid, the best point itself."""
+    n = xs.shape[0]
+    i = jnp.clip(best, 1, n - 2)
+    lo, mid, hi = costs[i - 1], costs[i], costs[i + 1]
+    curvature = lo - 2 * mid + hi
+    t = jnp.where(curvature > 0, 0.5 * (lo - hi) / jnp.where(curvature > 0, curvature, 1.0), 0.0)
+    t = jnp.where((best > 0) & (best < n - 1), jnp.clip(t, -1.0, 1.0), 0.0)
+    return xs[best] + t * (xs[1] - xs[0]), t
+
+
+def rendered_and_g_slope(renderer, sigma_t, phase: str):
+    """``x = [g]`` → (I_k at (σt, σs_ref(g), g) under full illumination, (K, h, w), and
+    dI_k/dg, (K, h, w, 1)), differentiable in ``x`` through that slope. The plane's
+    renderer gives the slope in one pass of its own code
+    (:meth:`~lightfield_jax.Renderer.images_and_g_slope`); I_k ∝ σs^k carries the
+    change of σs_ref with g. Other renderers go through ``jax.jvp``."""
+
+    def reference(g):
+        return reference_sigma_s(sigma_t, g, phase)[0]
+
+    if not hasattr(renderer, "images_and_g_slope"):
+        return with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
+
+    def value_and_jacobian(x):
+        g = x[0]
+        ref, dref = jax.jvp(reference, (g,), (jnp.ones_like(g),))
+        images, slope = renderer.images_and_g_slope(sigma_t, ref, g)
+        images, slope = images[0], slope[0]
+        k = jnp.arange(1, images.shape[0] + 1, dtype=images.dtype)[:, None, None]
+        return images, (slope + images * k * (dref / ref))[..., None]
+
+    return with_jacobian(value_and_jacobian)
+
+
+def two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str, p):
+    """The residual of eq. 10 at p = (σs, g) and its Jacobian written out: ``(r,
+    ∂r/∂(σs, g) (N, 2), a = c·σs)``, r = mask·(M − a_ref Σ_{k≥2} u^{k−1} I_k)/scale with
+    the images rendered at σs_ref(g), u = σs/σs_ref and a_ref = ⟨D, I_1⟩/⟨I_1, I_1⟩.
+    The images' slope along g comes from ``rendered_and_slope``
+    (:func:`rendered_and_g_slope`); σs and the gain enter in closed form, so the
+    Jacobian costs no autodiff of this code (a small program)."""
+    sigma_s, g = p[0], p[1]
+    ref, dref = jax.jvp(lambda g: reference_sigma_s(sigma_t, g, phase)[0], (g,), (1.0 + 0 * g,))
+    images, slope = rendered_and_slope(p[1:])
+    slope = slope[..., 0]
+    i1, s1 = images[0], slope[0]
+    n1, n2 = masked_dot(d, i1, mask), masked_dot(i1, i1, mask)
+    a_ref = n1 / n2  # the gain from the single scatter, and its slope along g
+    da_ref = (masked_dot(d, s1, mask) * n2 - 2 * n1 * masked_dot(i1, s1, mask)) / n2**2
+    k = jnp.arange(1, images.shape[0], dtype=images.dtype)
+    u = sigma_s / ref  # I_k(σs) = u^k I_k(σs_ref)
+    series = jnp.einsum("k,khw->hw", u**k, images[1:])
+    d_series_du = jnp.einsum("k,khw->hw", k * u ** (k - 1), images[1:])
+    # along g at fixed σs: the images change, and u with σs_ref
+    d_series_dg = jnp.einsum("k,khw->hw", u**k, slope[1:]) - d_series_du * u * dref / ref
+    jac = jnp.stack([a_ref * d_series_du / ref, da_ref * series + a_ref * d_series_dg], axis=-1)
+    r = jnp.where(mask, (m - a_ref * series) / scale, 0.0).reshape(-1)
+    jac = -jnp.where(mask[..., None], jac / scale, 0.0).reshape(-1, 2)
+    return r, jac, a_ref * ref
+
+
+def search_g(renderer, sigma_t, d, m, mask, gs, phase: str):
+    """The search over ``gs``: for each g, render I_k at (σt, σs_ref(g), g) under full
+    illumination (``lax.map``) and solve eq. 10 for σs (:func:`poly_fit_sigma_s`).
+    Returns (σs, a = c·σs, residual²), one value per g."""
+
+    def per_g(g):
+        ref, u_max = reference_sigma_s(sigma_t, g, phase)
+        images = renderer(sigma_t, ref, g)[0][0]
+        u, a_ref, cost = poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
+        return u * ref, a_ref * ref, cost
+
+    return jax.lax.map(per_g, gs)
+
+
+def sigma_s_max(sigma_t, g, phase: str):
+    """The largest σs the two-step solve allows at g: min(σt, the σs where ρ = 1)."""
+    ref, u_max = reference_sigma_s(sigma_t, g, phase)
+    return ref * u_max
+
+
+def to_params(y, sigma_t, phase: str):
+    """Unconstrained y → p = (σs, g): 0 < σs < :func:`sigma_s_max`, |g| < 1."""
+    g = jnp.tanh(y[1])
+    return jnp.stack([sigma_s_max(sigma_t, g, phase) * jax.nn.sigmoid(y[0]), g])
+
+
+def search_start(gs, s_all, cost, sigma_t, phase: str):
+    """The solve's start y (see :func:`to_params`): the vertex of the parabola through the
+    search's best g and its neighbours, σs interpolated toward the neighbour."""
+    best = jnp.argmin(cost)
+    g_vertex, t = parabolic_minimum(gs, cost, best)
+    near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, gs.shape[0] - 1)
+    s_vertex = s_all[best] + jnp.abs(t) * (s_all[near] - s_all[best])
+    frac = jnp.clip(s_vertex / sigma_s_max(sigma_t, g_vertex, phase), 1e-3, 1 - 1e-3)
+    return jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
+
+
+@dataclasses.dataclass(frozen=True)
+class TwoStepSettings:
+    """Static settings of the two-step program: ``search`` only (the grid method) or
+    search then solve (the gradient method), the phase convention, the step limit."""
+
+    solve: bool
+    phase: str
+    max_steps: int
+
+
+def _two_step_run(
+    settings: TwoStepSettings,
+    solver_static,
+    solver_arrays,
+    renderer,
+    sigma_t,
+    d,
+    m,
+    mask,
+    gs,
+    scale,
+):
+    """The two-step program: the search over ``gs`` and (``settings.solve``) the solve
+    over (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the residual
+    and its Jacobian evaluated explicitly at the answer."""
+    phase = settings.phase
+    rendered_and_slope = rendered_and_g_slope(renderer, sigma_t, phase)
+
+    def residual(p):
+        return two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase, p)
+
+    s_all, a_all, cost = search_g(renderer, sigma_t, d, m, mask, gs, phase)
+    best = jnp.argmin(cost)
+    if not settings.solve:
+        r, jac, a = residual(jnp.stack([s_all[best], gs[best]]))
+        return s_all[best], gs[best], a, r, jac, optx.RESULTS.successful, jnp.asarray(gs.shape[0])
+    solver = eqx.combine(solver_arrays, solver_static)
+
+    def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
+        r, jac, _a = residual(to_params(y, sigma_t, phase))
+        return r, jac @ jax.jacfwd(lambda y: to_params(y, sigma_t, phase))(y)
+
+    # The solver linearises a matrix product J·δy (the custom JVP), not the residual's
+    # code: one copy of the renderer in the loop, a small program.
+    residual_y = with_jacobian(residual_y)
+    y0 = search_start(gs, s_all, cost, sigma_t, phase)
+    sol = optx.least_squares(
+        lambda y, _: residual_y(y)[0], solver, y0, max_steps=settings.max_steps, throw=False
+    )
+    s, g = to_params(sol.value, sigma_t, phase)
+    r, jac, _a = residual(jnp.stack([s, g]))
+    # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
+    a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
+    return s, g, a, r, jac, sol.result, sol.stats["num_steps"]
+
+
+@dataclasses.dataclass(frozen=True)
+class TwoStepSolution:
+    """The two-step answer: σs (per pixel), g, the gain, the residual's RMS in image
+    units, the error budget of (σs, g), the solver's result, its steps (the search's
+    size for the grid method) and the seconds spent compiling."""
+
+    sigma_s: float
+    g: float
+    gain: float
+    rms: float
+    budget: Uncertainty
+    result: optx.RESULTS
+    steps: int
+    compile: float
+
+
+def solve_two_step(
+    data: FitData, renderer, solver, settings: TwoStepSettings, n_g: int
+) -> TwoStepSolution:
+    """Run the two-step program (:func:`_two_step_run`) on ``data`` at its σt estimate:
+    ``renderer`` renders full illumination on the model, ``solver`` is the optimistix
+    least-squares solver of the gradient method, ``n_g`` values of g on (−0.95, 0.95)
+    are searched. One compiled program (search, solve and the Jacobian for the
+    uncertainties).
+
+    σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
+    derivative in σs is exact without the renderer, and one forward-mode pass through
+    the renderer along g gives the Jacobian of each step."""
+    dtype = jnp.result_type(float)
+    # Residuals in units of the data's RMS, so solver tolerances mean the same for any
+    # exposure.
+    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
+    # Every value that depends on the data is an argument, not a constant of the
+    # program: a persistent compilation cache then serves any capture of this shape.
+    args = (
+        renderer,
+        jnp.asarray(data.sigma_t0, dtype),
+        jnp.asarray(data.direct, dtype),
+        jnp.asarray(data.multiple, dtype),
+        jnp.asarray(data.mask),
+        jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
+        jnp.asarray(scale, dtype),
+    )
+    run = jitted(_two_step_run, ("settings", "solver_static"))
+    arrays, static = eqx.partition(solver, eqx.is_array)
+    with stopwatch() as timing:
+        out = jax.block_until_ready(run(settings, static, arrays, *args))
+    s, g, a, r, jac, result, steps = out
+    s, g = float(s), float(g)
+    r = np.asarray(r, np.float64)
+    return TwoStepSolution(
+        sigma_s=s,
+        g=g,
+        gain=float(a) / s if s > 0 else math.inf,
+        rms=scale * float(np.sqrt(np.sum(r**2) / max(int(np.sum(data.mask)), 1))),
+        budget=error_budget(np.asarray(jac), r, ["sigma_s", "g"], math.nan),
+        result=result,
+        steps=int(steps),
+        compile=timing.compile,
+    )
+
+
+__all__ = [
+    "TwoStepSettings",
+    "TwoStepSolution",
+    "full_for",
+    "masked_dot",
+    "poly_fit_sigma_s",
+    "rendered_and_g_slope",
+    "search_g",
+    "search_start",
+    "sigma_s_max",
+    "solve_two_step",
+    "to_params",
+    "two_step_residual",
+]

@@ -1,0 +1,140 @@
+"""Fit methods as values (:mod:`lightfield_jax.inverse.methods`): any optimistix
+least-squares solver gives the answer Levenberg-Marquardt gives, the names map onto
+the methods, a minimiser is refused, and the prepared data are frozen records."""
+
+import dataclasses
+import functools
+
+import numpy as np
+import optimistix as optx
+import pytest
+
+import lightfield_jax as lfj
+from lightfield_jax.internal import prepare_data
+
+MILK = lfj.Medium(0.2051, 0.0366, 0.4)
+GRID = lfj.Grid(32, 24, 16, 1)
+GAIN = 3.0
+MODEL = dict(black_level=0.0, n_theta=GRID.n_theta, refine=1, model_error=False)
+DOGLEG = optx.Dogleg(rtol=1e-8, atol=1e-10)
+
+
+@functools.cache
+def _images() -> np.ndarray:
+    return GAIN * np.asarray(lfj.render(MILK, GRID, lfj.Stripes(), "auto").total)
+
+
+@functools.cache
+def _split() -> tuple[np.ndarray, np.ndarray]:
+    images = GAIN * np.asarray(lfj.render(MILK, GRID, lfj.Full(), "auto").images)
+    return images[0], images[1:].sum(axis=0)
+
+
+def _values(result: lfj.FitResult) -> np.ndarray:
+    return np.array([result.sigma_t, result.sigma_s, result.g, result.gain])
+
+
+def test_joint_with_dogleg_gives_the_levenberg_marquardt_answer():
+    start = (0.03, 0.3)
+    lm = lfj.fit_images(_images(), lfj.Stripes(), method=lfj.Joint(start=start), **MODEL)
+    dogleg = lfj.fit_images(
+        _images(), lfj.Stripes(), method=lfj.Joint(solver=DOGLEG, start=start), **MODEL
+    )
+    assert lm.converged and dogleg.converged, (lm.message, dogleg.message)
+    assert lm.method == dogleg.method == "joint"
+    np.testing.assert_allclose(_values(dogleg), _values(lm), rtol=1e-5)
+    # The method's start is the option's start.
+    by_option = lfj.fit_images(_images(), lfj.Stripes(), start=start, **MODEL)
+    np.testing.assert_array_equal(_values(by_option), _values(lm))
+
+
+def test_two_step_with_another_solver_gives_the_gradient_answer():
+    kwargs = dict(split=_split(), **MODEL)
+    named = lfj.fit_images(_images(), lfj.Stripes(), method="gradient", **kwargs)
+    dogleg = lfj.fit_images(_images(), lfj.Stripes(), method=lfj.TwoStep(solver=DOGLEG), **kwargs)
+    assert named.converged and dogleg.converged, (named.message, dogleg.message)
+    assert dogleg.method == "gradient"
+    np.testing.assert_allclose(_values(dogleg), _values(named), rtol=1e-6)
+    assert abs(dogleg.g - 0.4) < 0.01 and abs(dogleg.sigma_s / 0.0366 - 1) < 0.01
+
+
+def _backend_compiles(fn) -> int:
+    from jax import monitoring
+
+    count = []
+
+    def listener(name, secs, **kwargs):
+        if name == "/jax/core/compile/backend_compile_duration":
+            count.append(secs)
+
+    monitoring.register_event_duration_secs_listener(listener)
+    try:
+        fn()
+    finally:
+        monitoring.unregister_event_duration_listener(listener)
+    return len(count)
+
+
+def test_a_solver_passed_as_a_value_is_compiled_once():
+    """The solver is a static part of the two-step program: a second capture of the
+    same shape with the same (equal, newly built) solver compiles nothing."""
+    split = _split()
+    kwargs = dict(method=lfj.TwoStep(solver=optx.Dogleg(rtol=1e-8, atol=1e-10)), **MODEL)
+    lfj.fit_images(_images(), lfj.Stripes(), split=split, **kwargs)
+    other = dict(kwargs, method=lfj.TwoStep(solver=optx.Dogleg(rtol=1e-8, atol=1e-10)))
+    fits = []
+    count = _backend_compiles(
+        lambda: fits.append(
+            lfj.fit_images(
+                0.8 * _images(), lfj.Stripes(), split=(0.8 * split[0], 0.8 * split[1]), **other
+            )
+        )
+    )
+    assert count == 0 and fits[0].seconds["compile"] == 0.0
+    assert fits[0].sigma_s == pytest.approx(0.0366, rel=0.01)
+
+
+def test_grid_search_is_the_grid_method():
+    kwargs = dict(split=_split(), **MODEL)
+    named = lfj.fit_images(_images(), lfj.Stripes(), method="grid", g_grid=9, **kwargs)
+    search = lfj.fit_images(
+        _images(), lfj.Stripes(), options=lfj.FitOptions(method=lfj.GridSearch(9)), **kwargs
+    )
+    np.testing.assert_array_equal(_values(search), _values(named))
+    assert search.method == "grid" and search.iterations == 9
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda s: lfj.Joint(solver=s),
+        lambda s: lfj.TwoStep(solver=s),
+        lambda s: lfj.FitOptions(solver=s),
+    ],
+)
+def test_a_minimiser_is_refused_with_a_clear_error(make):
+    with pytest.raises(ValueError, match="solver: must be an optimistix least-squares solver"):
+        make(optx.BFGS(rtol=1e-6, atol=1e-6))
+
+
+def test_bad_method_settings_are_refused():
+    with pytest.raises(ValueError, match="method: must be one of joint, gradient, grid"):
+        lfj.FitOptions(method="newton")
+    with pytest.raises(ValueError, match="g_values: must be at least 3"):
+        lfj.GridSearch(2)
+    with pytest.raises(ValueError, match="start: must be"):
+        lfj.Joint(start=(0.03, 1.2))
+
+
+def test_prepared_data_are_frozen_and_cropped_alike():
+    exposure = np.ones_like(_images())
+    data = prepare_data(_images(), lfj.Stripes(), black_level=0.0, exposure=exposure)
+    crop = (2, 3, 20, 15)
+    cut = data.cropped(crop)
+    for name in ("mask", "direct", "multiple"):
+        assert getattr(cut, name).shape == (12, 18)
+        np.testing.assert_array_equal(getattr(cut, name), getattr(data, name)[3:15, 2:20])
+    assert cut.images.shape == cut.exposure.shape == (6, 12, 18)
+    assert cut.sigma_t0 == data.sigma_t0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cut.images = data.images
