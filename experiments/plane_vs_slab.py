@@ -24,7 +24,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import check_config, load_helper
-from lightfield_jax.forward.slab import BOUNDARIES
+from lightfield_jax.scene.geometry import BOUNDARIES
 
 inv = load_helper("_inverse")
 
@@ -50,8 +50,8 @@ def _check(config: dict) -> None:
 def _cell(config: dict, tau: float, albedo: float, g: float, boundary: str) -> dict:
     import time
 
-    from lightfield_jax.forward.slab import Slab
     from lightfield_jax.inverse.fit import FitOptions, fit_images, fitted_images
+    from lightfield_jax.scene.geometry import Slab
 
     st = float(config["sigma_t"])
     h = tau / st

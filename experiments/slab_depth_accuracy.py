@@ -27,7 +27,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import check_config, load_helper
-from lightfield_jax.forward.slab import BOUNDARIES
+from lightfield_jax.scene.geometry import BOUNDARIES
 
 inv = load_helper("_inverse")
 
@@ -79,8 +79,8 @@ def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float
 
 
 def _cell(config: dict, tau: float, g: float, boundary: str) -> dict:
-    from lightfield_jax.forward.slab import Slab, resolve_slab_grid
     from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
+    from lightfield_jax.scene.geometry import Slab, resolve_slab_grid
 
     h, k = float(config["thickness"]), int(config["bounces"])
     st = tau / h
