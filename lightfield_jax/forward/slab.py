@@ -70,6 +70,8 @@ if TYPE_CHECKING:
 # rings that matter).
 _RING_GAUSS = 3
 # Sub-samples per azimuth bin of the triangle-weighted bin average of the phase matrix.
+# The plane uses 16; 16 here would move the slab's I_3..I_6 by 5e-5 to 1.6e-3 relative
+# (measured, g 0.4 and 0.8, n_mu 4), so each keeps its own count.
 _PHASE_SUBSAMPLES = 8
 _BALANCE_ITERATIONS = 4
 
