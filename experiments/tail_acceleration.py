@@ -104,6 +104,9 @@ def _check(config: dict) -> dict:
     missing = sorted(_SLAB_KEYS - set(slab))
     if missing:
         raise ValueError(f"tail_acceleration: slab: missing keys {missing}")
+    for sigma_t in slab["sigma_t"]:
+        if not float(sigma_t) > 0.0:
+            raise ValueError(f"tail_acceleration: slab.sigma_t: each must be > 0, got {sigma_t!r}")
     for rho in [*config["rho"], *slab["rho"]]:
         if not 0.0 < float(rho) < 1.0:
             raise ValueError(f"tail_acceleration: rho: each must be in (0, 1), got {rho!r}")
@@ -256,14 +259,21 @@ def run(config: dict, out: Path, ctx) -> dict:
                 )
     sc = cfg["slab"]
     slab_grid = lfj.Grid(sc["width"], sc["height"], sc["n_theta"], 1)
-    for boundary in sc["boundaries"]:
-        slab = lfj.Slab(sc["thickness"], boundary, n_mu=sc["n_mu"], n_z=sc["n_z"])
-        for rho in sc["rho"]:
-            key = f"slab|{slab}|{rho}|{sorted(sc.items())}|{sorted(shared.items())}"
-            rows += ctx.cached(
-                key,
-                lambda b=slab, r=rho: _case(ctx, cfg, slab_grid, sc["sigma_t"], r, "normalized", b),
-            )
+    slab_shared = {k: v for k, v in sc.items() if k not in ("sigma_t", "boundaries", "rho")}
+    for sigma_t in sc["sigma_t"]:
+        for boundary in sc["boundaries"]:
+            slab = lfj.Slab(sc["thickness"], boundary, n_mu=sc["n_mu"], n_z=sc["n_z"])
+            for rho in sc["rho"]:
+                key = (
+                    f"slab|{slab}|{sigma_t}|{rho}|{sorted(slab_shared.items())}|"
+                    f"{sorted(shared.items())}"
+                )
+                rows += ctx.cached(
+                    key,
+                    lambda s=sigma_t, b=slab, r=rho: _case(
+                        ctx, cfg, slab_grid, s, r, "normalized", b
+                    ),
+                )
     data = {
         "grid": {
             "width": grid.width,
@@ -323,15 +333,15 @@ def _plot(data: dict, path: Path) -> Path:
         )
         for st in data["sigma_t"]
     ]
-    if any(r.get("geometry", "plane") != "plane" for r in data["rows"]):
-        panels.append(
-            (
-                "slab",
-                lambda r: r.get("geometry", "plane") != "plane",
-                "geometry",
-                {"slab absorbing": "-", "slab refractive": "--"},
-            )
+    panels += [
+        (
+            f"slab σt {st}",
+            lambda r, st=st: r.get("geometry", "plane") != "plane" and r["sigma_t"] == st,
+            "geometry",
+            {"slab absorbing": "-", "slab refractive": "--"},
         )
+        for st in data["slab"]["sigma_t"]
+    ]
     fig = new_figure(11, 4.2 * len(panels))
     axes = fig.subplots(len(panels), 2, squeeze=False)
     x_all = [1.0 - r["rho"] for r in data["rows"]]
@@ -360,14 +370,14 @@ def _plot(data: dict, path: Path) -> Path:
                 kw = dict(color=f"C{i}", ls=ls, marker="o", label=f"{method} ({style})")
                 ax_t.plot(x, [min(r["times_s"]) for r in rows], **kw)
                 ax_e.plot(x, [max(r["error_total"], 1e-9) for r in rows], **kw)
-        if name == "slab":
+        st = float(name.split()[-1])
+        if name.startswith("slab"):
             size = (
                 f"{slab['width']}×{slab['height']} px, h {slab['thickness']:g} px, "
-                f"σt {slab['sigma_t']}, g {slab['g']}, n_theta {slab['n_theta']}, "
-                f"n_mu {slab['n_mu']}, n_z {slab['n_z']}"
+                f"g {slab['g']}, n_theta {slab['n_theta']}, n_mu {slab['n_mu']}, "
+                f"n_z {slab['n_z']}"
             )
         else:
-            st = float(name.split()[-1])
             size = f"{grid['width'] * st:g} × {grid['height'] * st:g} mean free paths"
         ax_t.set_title(f"{name} ({size}): time", fontsize=9)
         ax_e.set_title(f"{name}: error (floored at 1e-9)", fontsize=9)
