@@ -385,10 +385,14 @@ def _plot(data: dict, path: Path) -> Path:
         ax_e.set_ylabel("relative L1 error of Σ_k I_k vs reference")
         ax_e.axhline(data["target"], color="0.5", ls=":", lw=1, label="target = tail_tol")
         ax_e.legend(fontsize=7)
+    plane = (
+        f"Plane {grid['width']}×{grid['height']} px, n_theta {grid['n_theta']}, g {data['g']}; "
+        if data["sigma_t"]
+        else ""
+    )
     fig.suptitle(
         f"Bounce series after K0 = {data['explicit_bounces']} explicit bounces: marched vs "
-        f"solved. Plane {grid['width']}×{grid['height']} px, n_theta {grid['n_theta']}, "
-        f"g {data['g']}, full illumination, float32; {os.cpu_count()} cores, load "
+        f"solved. {plane}full illumination, float32; {os.cpu_count()} cores, load "
         f"{data['load_average_1min']:.1f}",
         fontsize=9,
     )
