@@ -274,11 +274,9 @@ class AbstractRenderer(eqx.Module):
         orders = self.first_orders(sigma_t, sigma_s, g, source, march > 1 or lightfield)
         step, q = orders.step, orders.source
         images = [orders.image[None]]
-        fields = (
-            [jnp.stack([self._direct_field(source), self.integrate(orders.field)])]
-            if (lightfield)
-            else []
-        )
+        fields = []
+        if lightfield:  # L_0, L_1
+            fields.append(jnp.stack([self._direct_field(source), self.integrate(orders.field)]))
         if march > 1:
             images.append(orders.second_image[None])
 
