@@ -11,8 +11,9 @@ import sys
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.forward.slab import Slab, SlabRenderer, resolve_slab_grid
+from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
+from lightfield_jax.scene.geometry import Slab, resolve_slab_grid
 
 W, H, K = 48, 32, 5
 beam = lfj.Beam(0, 16, 0.0, 1.0)

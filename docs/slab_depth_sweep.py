@@ -14,8 +14,9 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.forward.slab import Slab, SlabRenderer, resolve_slab_grid
+from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
+from lightfield_jax.scene.geometry import Slab, resolve_slab_grid
 
 jax.config.update("jax_enable_x64", True)
 W, H, h, K = 48, 32, 6.4, 7

@@ -32,7 +32,7 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.forward.slab import BOUNDARIES
+from lightfield_jax.scene.geometry import BOUNDARIES
 
 inv = load_helper("_inverse")
 

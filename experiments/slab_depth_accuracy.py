@@ -34,7 +34,8 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.forward.slab import BOUNDARIES, SlabRenderer, resolve_slab_grid
+from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.scene.geometry import BOUNDARIES, resolve_slab_grid
 
 inv = load_helper("_inverse")
 

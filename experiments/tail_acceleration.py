@@ -24,6 +24,11 @@ machine), the JSON every call. Everything runs in float32 (the package's default
 reference too. Each ``sigma_t`` (per pixel) is one scene: walls leak less light per
 bounce from an optically larger scene, so its measured per-bounce ratio comes closer
 to ρ.
+
+Slab rows (``slab:``, docs/model.md §7): the same methods on a tank of depth
+``thickness`` with absorbing and refractive faces (``boundaries``), ρ = ω (the slab's
+3-D phase function is normalised on the sphere), on their own smaller grid: the tail
+solve iterates the slab's bounce step through the same base-class loop as the plane.
 """
 
 from __future__ import annotations
@@ -59,6 +64,19 @@ _KEYS = {
     "reference_tol",
     "max_auto_bounces",
     "repeats",
+    "slab",
+}
+_SLAB_KEYS = {
+    "width",
+    "height",
+    "n_theta",
+    "thickness",
+    "n_mu",
+    "n_z",
+    "sigma_t",
+    "g",
+    "boundaries",
+    "rho",
 }
 _METHODS = ("series_auto", "series_needed", "gmres", "bicgstab")
 _LONG_CALL_S = 10.0
@@ -77,7 +95,19 @@ def _check(config: dict) -> dict:
     for sigma_t in config["sigma_t"]:
         if not float(sigma_t) > 0.0:
             raise ValueError(f"tail_acceleration: sigma_t: each must be > 0, got {sigma_t!r}")
-    for rho in config["rho"]:
+    slab = config["slab"]
+    if not isinstance(slab, dict):
+        raise ValueError(f"tail_acceleration: slab: must be a mapping, got {slab!r}")
+    check_config(
+        "tail_acceleration: slab", slab, _SLAB_KEYS, {"boundaries": ("absorbing", "refractive")}
+    )
+    missing = sorted(_SLAB_KEYS - set(slab))
+    if missing:
+        raise ValueError(f"tail_acceleration: slab: missing keys {missing}")
+    for sigma_t in slab["sigma_t"]:
+        if not float(sigma_t) > 0.0:
+            raise ValueError(f"tail_acceleration: slab.sigma_t: each must be > 0, got {sigma_t!r}")
+    for rho in [*config["rho"], *slab["rho"]]:
         if not 0.0 < float(rho) < 1.0:
             raise ValueError(f"tail_acceleration: rho: each must be in (0, 1), got {rho!r}")
     return dict(config)
@@ -110,9 +140,9 @@ def _timed(call, repeats: int) -> dict:
     }
 
 
-def _plain(medium, grid, k: int):
+def _plain(medium, grid, k: int, geometry):
     """Per-bounce images (K, H, W) of the plain series, float64 on the host."""
-    renderer = renderer_for(grid, lfj.Full(), k, medium.phase)
+    renderer = renderer_for(grid, lfj.Full(), k, medium.phase, geometry)
 
     def call():
         images = renderer(medium.sigma_t, medium.sigma_s, medium.g)[0]
@@ -121,14 +151,14 @@ def _plain(medium, grid, k: int):
     return call
 
 
-def _reference(ctx, medium, grid, cfg: dict) -> tuple[np.ndarray, int]:
+def _reference(ctx, medium, grid, cfg: dict, geometry) -> tuple[np.ndarray, int]:
     """Per-bounce image sums s_k of a series marched until its geometric tail estimate
     s_K·r/(1 − r)/Σs (r = s_K/s_{K−1}) is below ``reference_tol``; returns the total image
     and the bounce sums."""
     k = 256
     while True:
         ctx.progress(f"reference: {k} bounces")
-        images = _plain(medium, grid, k)()
+        images = _plain(medium, grid, k, geometry)()
         sums = images.sum(axis=(1, 2))
         r = sums[-1] / sums[-2] if sums[-2] > 0 else 0.0  # float32 underflows to 0
         if r < 1 and sums[-1] * r / (1 - r) <= cfg["reference_tol"] * sums.sum():
@@ -142,9 +172,17 @@ def _rel_l1(a, b) -> float:
     return float(np.abs(np.asarray(a, np.float64) - b).sum() / np.abs(b).sum())
 
 
-def _case(ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str) -> list[dict]:
-    medium = _medium(cfg, sigma_t, rho, phase)
-    images_ref, sums = _reference(ctx, medium, grid, cfg)
+def _case(
+    ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str, slab=None
+) -> list[dict]:
+    """The rows of one scene and ρ: the plane (``slab`` None) under ``phase``, or the
+    slab (ρ = ω, its own normalised 3-D phase function)."""
+    if slab is None:
+        medium, geometry, label = _medium(cfg, sigma_t, rho, phase), lfj.Plane(), "plane"
+    else:
+        medium = lfj.Medium(sigma_t, rho * sigma_t, cfg["slab"]["g"], "normalized")
+        geometry, label = slab, f"slab {slab.boundary}"
+    images_ref, sums = _reference(ctx, medium, grid, cfg, geometry)
     total_ref = images_ref.sum(axis=0)
     k0 = cfg["explicit_bounces"]
     tail_ref = images_ref[k0:].sum(axis=0)
@@ -153,6 +191,7 @@ def _case(ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str
     partial_error = 1.0 - np.cumsum(sums) / sums.sum()
     k_needed = int(np.argmax(partial_error <= cfg["target"])) + 1
     base = {
+        "geometry": label,
         "sigma_t": sigma_t,
         "phase": phase,
         "rho": rho,
@@ -163,7 +202,7 @@ def _case(ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str
     }
     rows = []
     for method in cfg["methods"]:
-        ctx.progress(f"{phase} rho {rho}: {method}")
+        ctx.progress(f"{label} {phase} rho {rho}: {method}")
         row = dict(base, method=method)
         if method.startswith("series"):
             if method == "series_auto":
@@ -175,12 +214,12 @@ def _case(ctx, cfg: dict, grid: lfj.Grid, sigma_t: float, rho: float, phase: str
                 row.update(skipped=f"{k} bounces > max_auto_bounces {cfg['max_auto_bounces']}")
                 rows.append(row)
                 continue
-            timed = _timed(_plain(medium, grid, k), cfg["repeats"])
+            timed = _timed(_plain(medium, grid, k, geometry), cfg["repeats"])
             total = timed.pop("out").sum(axis=0)
             row.update(error_total=_rel_l1(total, total_ref))
         else:
             renderer = renderer_for(
-                grid, lfj.Full(), k0, medium.phase, None, method, cfg["tail_tol"]
+                grid, lfj.Full(), k0, medium.phase, geometry, method, cfg["tail_tol"]
             )
 
             def call(renderer=renderer):
@@ -209,7 +248,7 @@ def run(config: dict, out: Path, ctx) -> dict:
     cfg = _check(config)
     grid = lfj.Grid(cfg["width"], cfg["height"], cfg["n_theta"], cfg["refine"])
     rows = []
-    shared = {k: v for k, v in cfg.items() if k not in ("sigma_t", "rho", "phases")}
+    shared = {k: v for k, v in cfg.items() if k not in ("sigma_t", "rho", "phases", "slab")}
     for sigma_t in cfg["sigma_t"]:
         for phase in cfg["phases"]:
             for rho in cfg["rho"]:
@@ -217,6 +256,23 @@ def run(config: dict, out: Path, ctx) -> dict:
                 rows += ctx.cached(
                     key,
                     lambda s=sigma_t, p=phase, r=rho: _case(ctx, cfg, grid, s, r, p),
+                )
+    sc = cfg["slab"]
+    slab_grid = lfj.Grid(sc["width"], sc["height"], sc["n_theta"], 1)
+    slab_shared = {k: v for k, v in sc.items() if k not in ("sigma_t", "boundaries", "rho")}
+    for sigma_t in sc["sigma_t"]:
+        for boundary in sc["boundaries"]:
+            slab = lfj.Slab(sc["thickness"], boundary, n_mu=sc["n_mu"], n_z=sc["n_z"])
+            for rho in sc["rho"]:
+                key = (
+                    f"slab|{slab}|{sigma_t}|{rho}|{sorted(slab_shared.items())}|"
+                    f"{sorted(shared.items())}"
+                )
+                rows += ctx.cached(
+                    key,
+                    lambda s=sigma_t, b=slab, r=rho: _case(
+                        ctx, cfg, slab_grid, s, r, "normalized", b
+                    ),
                 )
     data = {
         "grid": {
@@ -227,6 +283,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         },
         "sigma_t": cfg["sigma_t"],
         "g": cfg["g"],
+        "slab": cfg["slab"],
         "explicit_bounces": cfg["explicit_bounces"],
         "tail_tol": cfg["tail_tol"],
         "target": cfg["target"],
@@ -245,6 +302,7 @@ def run(config: dict, out: Path, ctx) -> dict:
             {
                 k: r.get(k)
                 for k in (
+                    "geometry",
                     "sigma_t",
                     "phase",
                     "rho",
@@ -264,13 +322,31 @@ def run(config: dict, out: Path, ctx) -> dict:
 def _plot(data: dict, path: Path) -> Path:
     from lightfield_jax.viz._common import finish, new_figure
 
-    scenes = data["sigma_t"]
-    fig = new_figure(11, 4.2 * len(scenes))
-    axes = fig.subplots(len(scenes), 2, squeeze=False)
-    styles = {"normalized": "-", "paper": "--"}
+    # One panel row per plane scene (σt; line style: phase convention), one for the
+    # slab rows (line style: the faces).
+    panels = [
+        (
+            f"plane σt {st}",
+            lambda r, st=st: r.get("geometry", "plane") == "plane" and r["sigma_t"] == st,
+            "phase",
+            {"normalized": "-", "paper": "--"},
+        )
+        for st in data["sigma_t"]
+    ]
+    panels += [
+        (
+            f"slab σt {st}",
+            lambda r, st=st: r.get("geometry", "plane") != "plane" and r["sigma_t"] == st,
+            "geometry",
+            {"slab absorbing": "-", "slab refractive": "--"},
+        )
+        for st in data["slab"]["sigma_t"]
+    ]
+    fig = new_figure(11, 4.2 * len(panels))
+    axes = fig.subplots(len(panels), 2, squeeze=False)
     x_all = [1.0 - r["rho"] for r in data["rows"]]
-    grid = data["grid"]
-    for (ax_t, ax_e), sigma_t in zip(axes, scenes, strict=True):
+    grid, slab = data["grid"], data["slab"]
+    for (ax_t, ax_e), (name, keep, style_key, styles) in zip(axes, panels, strict=True):
         for ax in (ax_t, ax_e):
             ax.set_xscale("log")
             ax.set_yscale("log")
@@ -279,32 +355,44 @@ def _plot(data: dict, path: Path) -> Path:
             ax.set_xlabel("1 − ρ  (ρ: per-bounce ratio bound ω·A(g) or ω)")
             ax.grid(True, which="both", alpha=0.3)
         for i, method in enumerate(_METHODS):
-            for phase, ls in styles.items():
+            for style, ls in styles.items():
                 rows = [
                     r
                     for r in data["rows"]
                     if r["method"] == method
-                    and r["phase"] == phase
-                    and r["sigma_t"] == sigma_t
+                    and keep(r)
+                    and r.get(style_key, "plane") == style
                     and "seconds" in r
                 ]
                 if not rows:
                     continue
                 x = [1.0 - r["rho"] for r in rows]
-                kw = dict(color=f"C{i}", ls=ls, marker="o", label=f"{method} ({phase})")
+                kw = dict(color=f"C{i}", ls=ls, marker="o", label=f"{method} ({style})")
                 ax_t.plot(x, [min(r["times_s"]) for r in rows], **kw)
                 ax_e.plot(x, [max(r["error_total"], 1e-9) for r in rows], **kw)
-        size = f"{grid['width'] * sigma_t:g} × {grid['height'] * sigma_t:g} mean free paths"
-        ax_t.set_title(f"σt {sigma_t} per px ({size}): time", fontsize=9)
-        ax_e.set_title(f"σt {sigma_t} per px: error (floored at 1e-9)", fontsize=9)
+        st = float(name.split()[-1])
+        if name.startswith("slab"):
+            size = (
+                f"{slab['width']}×{slab['height']} px, h {slab['thickness']:g} px, "
+                f"g {slab['g']}, n_theta {slab['n_theta']}, n_mu {slab['n_mu']}, "
+                f"n_z {slab['n_z']}"
+            )
+        else:
+            size = f"{grid['width'] * st:g} × {grid['height'] * st:g} mean free paths"
+        ax_t.set_title(f"{name} ({size}): time", fontsize=9)
+        ax_e.set_title(f"{name}: error (floored at 1e-9)", fontsize=9)
         ax_t.set_ylabel("seconds per render, fastest steady call")
         ax_e.set_ylabel("relative L1 error of Σ_k I_k vs reference")
         ax_e.axhline(data["target"], color="0.5", ls=":", lw=1, label="target = tail_tol")
         ax_e.legend(fontsize=7)
+    plane = (
+        f"Plane {grid['width']}×{grid['height']} px, n_theta {grid['n_theta']}, g {data['g']}; "
+        if data["sigma_t"]
+        else ""
+    )
     fig.suptitle(
         f"Bounce series after K0 = {data['explicit_bounces']} explicit bounces: marched vs "
-        f"solved. {grid['width']}×{grid['height']} px, n_theta {grid['n_theta']}, "
-        f"g {data['g']}, full illumination, float32; {os.cpu_count()} cores, load "
+        f"solved. {plane}full illumination, float32; {os.cpu_count()} cores, load "
         f"{data['load_average_1min']:.1f}",
         fontsize=9,
     )

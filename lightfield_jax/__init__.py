@@ -29,9 +29,6 @@ from lightfield_jax.forward.render import render as render
 from lightfield_jax.forward.render import single_scatter_closed_form as single_scatter_closed_form
 from lightfield_jax.forward.simulate import SimulatedCapture as SimulatedCapture
 from lightfield_jax.forward.simulate import simulate_capture as simulate_capture
-from lightfield_jax.forward.slab import AutoGeometry as AutoGeometry
-from lightfield_jax.forward.slab import Plane as Plane
-from lightfield_jax.forward.slab import Slab as Slab
 from lightfield_jax.forward.slab import SlabRenderer as SlabRenderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning as TailNotConvergedWarning
 from lightfield_jax.forward.tail import TailSolution as TailSolution
@@ -51,6 +48,9 @@ from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import enable_compilation_cache as enable_compilation_cache
 from lightfield_jax.inverse.separate import Separation as Separation
 from lightfield_jax.inverse.separate import separate as separate
+from lightfield_jax.scene.geometry import AutoGeometry as AutoGeometry
+from lightfield_jax.scene.geometry import Plane as Plane
+from lightfield_jax.scene.geometry import Slab as Slab
 from lightfield_jax.scene.grid import Grid as Grid
 from lightfield_jax.scene.grid import default_n_theta as default_n_theta
 from lightfield_jax.scene.grid import default_refine as default_refine

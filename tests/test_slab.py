@@ -19,15 +19,9 @@ import pytest
 import lightfield_jax as lfj
 from lightfield_jax.app.config import ConfigError, parse_simulation_config
 from lightfield_jax.forward.render import trace_count
-from lightfield_jax.forward.slab import (
-    Slab,
-    SlabRenderer,
-    elevation_nodes,
-    hg,
-    parse_geometry,
-    resolve_slab_grid,
-)
+from lightfield_jax.forward.slab import SlabRenderer, elevation_nodes, hg
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab, slab_single_scatter_sheet
+from lightfield_jax.scene.geometry import Slab, parse_geometry, resolve_slab_grid
 
 W, H = 48, 32
 BEAM = lfj.Beam(0.0, 16.0, 0.0, 1.0)
@@ -210,7 +204,7 @@ def test_k1_lightfield_and_renderer_dispatch():
     r = renderer(lfj.Grid(24, 16, 8), lfj.Beam(0, 8), 1, Slab(5.0, n_mu=4))
     images, fields = r(0.2, 0.1, 0.3, lightfield=True)
     assert images.shape == (1, 1, 16, 24) and fields.shape == (2, 1, 16, 24, 8)
-    from lightfield_jax.forward.slab import AutoGeometry
+    from lightfield_jax.scene.geometry import AutoGeometry
 
     grid = lfj.Grid(24, 16, 8)
     for bad in (AutoGeometry(Slab(5.0)), {"kind": "slab", "thickness": 5.0}, "slab"):

@@ -16,16 +16,16 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.forward.render import trace_count
-from lightfield_jax.forward.slab import (
+from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.forward.slab_layers import camera_integrals, transport_weights
+from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
+from lightfield_jax.scene.geometry import (
     Slab,
-    SlabRenderer,
     default_n_z,
     describe_geometry,
     parse_geometry,
     resolve_slab_grid,
 )
-from lightfield_jax.forward.slab_layers import camera_integrals, transport_weights
-from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
 
 FULL = lfj.Full(0.0, "left")
 
@@ -156,7 +156,8 @@ def test_bounce_is_a_pure_linear_step_that_reproduces_the_render():
         r = SlabRenderer(grid, lfj.Beam(0, 6), 4, slab)
         st, ss, g = jnp.asarray(0.25), jnp.asarray(0.2), jnp.asarray(0.6)
         images = np.asarray(r(st, ss, g)[0])[0]
-        bounce, i2, _, q = eqx.filter_jit(lambda m, *v: m.bounce_step(*v))(r, st, ss, g)
+        orders = eqx.filter_jit(lambda m, *v: m.scattered_orders(*v))(r, st, ss, g)
+        bounce, i2, q = orders.step, orders.second_image, orders.source
         np.testing.assert_allclose(np.asarray(i2)[0], images[1], rtol=1e-10)
         step = eqx.filter_jit(lambda b, q: b(q))
         q3, i3 = step(bounce, q)

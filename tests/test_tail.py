@@ -59,6 +59,57 @@ def test_tail_equals_the_long_series(rho, method, illum, refine):
     assert _relative_l1(res.tail_lightfield, lf_tail) < 20 * tol
 
 
+@pytest.mark.parametrize("boundary, method", [("absorbing", "gmres"), ("refractive", "bicgstab")])
+def test_slab_tail_equals_the_long_series(boundary, method):
+    """The slab's bounce goes through the same tail solve (albedo 0.9): K0 explicit
+    bounces unchanged, the tail and its light field equal the long series."""
+    grid = lfj.Grid(16, 12, 8, refine=1)
+    slab = lfj.Slab(4.0, boundary, n_mu=4, n_z=2)
+    medium = lfj.Medium(0.5, 0.45, 0.4, "normalized")
+    beam = lfj.Beam(0.0, 6.0)
+    k0, tol, long = 3, 1e-8, 100
+    res = lfj.render(
+        medium, grid, beam, k0, lightfield=True, geometry=slab, tail=method, tail_tol=tol
+    )
+    ref = lfj.render(medium, grid, beam, long, lightfield=True, geometry=slab)
+    ref_images = np.asarray(ref.images)
+    per_bounce = ref_images.sum(axis=(-2, -1))
+    assert per_bounce[-1] < 1e-12 * per_bounce.sum()
+    tail_ref = ref_images[k0:].sum(axis=0)
+    assert tail_ref.sum() > 0.25 * ref_images.sum()
+    assert res.tail_converged and res.tail_method == method and res.tail_steps >= 1
+    np.testing.assert_allclose(res.images, ref_images[:k0], rtol=1e-12, atol=1e-300)
+    assert _relative_l1(res.tail, tail_ref) < 20 * tol
+    assert _relative_l1(res.total, ref.total) < 20 * tol
+    lf_ref = np.asarray(ref.lightfields)
+    np.testing.assert_allclose(res.lightfields, lf_ref[: k0 + 1], rtol=1e-12, atol=1e-300)
+    assert _relative_l1(res.tail_lightfield, lf_ref[k0 + 1 :].sum(axis=0)) < 20 * tol
+
+
+def test_forward_jacobian_through_the_slab_tail_matches_central_differences():
+    slab = lfj.Slab(3.0, "refractive", n_mu=4, n_z=1)
+    renderer = lfj.make_renderer(
+        lfj.Grid(10, 8, 8, refine=1),
+        lfj.Beam(0.0, 4.0, 10.0, 1.0),
+        2,
+        "normalized",
+        slab,
+        tail="bicgstab",
+        tail_tol=1e-11,
+    )
+    weights = jnp.asarray(np.random.default_rng(1).random((1, 8, 10)))
+    loss = _loss_of(renderer, weights)
+    x0 = jnp.array([0.4, 0.36, 0.4, 1.3])  # (sigma_t, sigma_s, g, gain): albedo 0.9
+    # One direction that moves every parameter (a vmap over the four unit tangents costs
+    # a second compile of the slab's tail; the plane's test above runs that one).
+    e = jnp.array([0.7, -0.4, 1.0, 0.5])
+    value, slope = jax.jvp(loss, (x0,), (e,))
+    h = 1e-6
+    fd = (float(loss(x0 + h * e)) - float(loss(x0 - h * e))) / (2 * h)
+    assert float(value) == pytest.approx(float(loss(x0)), rel=1e-12)
+    assert float(slope) == pytest.approx(fd, rel=1e-6)
+
+
 def test_auto_keeps_a_few_explicit_bounces_and_paper_phase_works():
     # phase paper with rho = omega * A(0.8) = 0.95 < 1
     g = 0.8
@@ -164,9 +215,9 @@ def test_non_convergence_is_reported():
         ),
         (
             lambda g, b: lfj.make_renderer(
-                g, b, 2, "normalized", lfj.Slab(4.0, n_mu=4), tail="gmres"
+                g, b, 2, "normalized", lfj.Slab(4.0, n_mu=4, n_z=1), tail="cg"
             ),
-            "slab",
+            "tail: must be None or one of",
         ),
         (
             lambda g, b: Renderer(g, b, 2, tail="gmres").images_and_g_slope(0.2, 0.1, 0.3),
@@ -197,8 +248,14 @@ def test_tail_acceleration_experiment_reduced(tmp_path):
         if r["method"] in ("gmres", "bicgstab"):
             assert r["converged"] and r["error_explicit"] < 1e-6
             assert r["error_total"] < 10 * data["tail_tol"], r
-    for phase in ("normalized", "paper"):
-        by = {r["method"]: r for r in rows if r["phase"] == phase}
+    assert {r["geometry"] for r in rows} == {"plane", "slab absorbing", "slab refractive"}
+    for geometry, phase in (
+        ("plane", "normalized"),
+        ("plane", "paper"),
+        ("slab absorbing", "normalized"),
+        ("slab refractive", "normalized"),
+    ):
+        by = {r["method"]: r for r in rows if r["phase"] == phase and r["geometry"] == geometry}
         # the tail bound is conservative: more bounces than needed, and within target
         assert by["series_auto"]["bounces"] >= by["series_needed"]["bounces"]
         assert by["series_auto"]["error_total"] <= data["target"]

@@ -515,7 +515,7 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _fit_summary(fit) -> str:
-    from lightfield_jax.forward.slab import describe_geometry
+    from lightfield_jax.scene.geometry import describe_geometry
 
     lines = []
     for name, r in zip(fit.channels, fit.results, strict=True):

@@ -59,7 +59,7 @@ import numpy as np
 import yaml
 
 from lightfield_jax.capture.io import require_regular_file
-from lightfield_jax.forward.slab import Plane, Slab, parse_geometry, rho_bound
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import WALLS, Beam, Full, Illumination, Stripes
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
@@ -378,6 +378,9 @@ class SimulationConfig:
     geometry: Plane | Slab = Plane()
     source: str = "<dict>"
     raw: dict = dataclasses.field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "geometry", as_geometry(self.geometry))  # None: the plane
 
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""

@@ -161,7 +161,7 @@ from lightfield_jax.capture.io import (
     read_image,
     read_npy_stack,
 )
-from lightfield_jax.forward.slab import parse_geometry
+from lightfield_jax.scene.geometry import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
-from lightfield_jax.forward.slab import Slab, parse_geometry
+from lightfield_jax.scene.geometry import parse_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 from lightfield_jax.scene.medium import Medium
@@ -136,7 +136,7 @@ def render_results(
             light,
             m["bounces"],
             gain=fit["gain"],
-            geometry=geometry if isinstance(geometry, Slab) else None,
+            geometry=geometry,
         )
         notes += [f"[{name}] {n}" for n in left_out]
         written = write_transport(result, target)
@@ -186,7 +186,7 @@ def plot_simulation(
         light,
         sim.n_bounces,
         gain=config.gain,
-        geometry=config.geometry if isinstance(config.geometry, Slab) else None,
+        geometry=config.geometry,
     )
     stage("plot")
     m = config.medium

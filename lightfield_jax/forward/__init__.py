@@ -1,1 +1,2 @@
-"""The forward model: first scattering, bounce transport, the plane and slab renderers, the tail."""
+"""The forward model: shared kernels, the renderers' base class (bounce loop, refinement,
+tail), the plane and the slab as its subclasses, the tail solve, and :func:`render`."""

@@ -28,6 +28,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.forward.kernels import fft_convolve, padded_spectrum, splat
+
 # (outer radius, ring width): fine rings where T varies on the scale of the nodes'
 # spacing in θ, coarser where the integrand only varies with e^{−σt r}.
 _RING_BANDS = ((2.0, 1.0 / 16), (4.0, 1.0 / 8), (16.0, 0.25), (math.inf, 0.5))
@@ -122,9 +124,8 @@ def first_scatter_kernel(nodes: dict, phase_values, sigma_t, n_theta: int, heigh
     values = (
         phase_values * jnp.exp(-sigma_t * nodes["r"].astype(dtype)) * nodes["weight"].astype(dtype)
     )
-    contrib = (values[:, None] * nodes["splat"].astype(dtype)).reshape(-1)
     size = n_theta * 2 * height * 2 * width
-    kernel = jnp.zeros(size, values.dtype).at[nodes["index"].reshape(-1)].add(contrib)
+    kernel = splat(nodes["index"], nodes["splat"], values[None], size)
     return kernel.reshape(n_theta, 2 * height, 2 * width)
 
 
@@ -139,9 +140,7 @@ def convolve_first_scatter(source, kernel):
 def convolve_kernels(source, kernel):
     """(patterns, H, W) ⊛ (kernels, 2H, 2W) → (patterns, kernels, H, W), the linear
     FFT convolution (no clipping: kernels may be signed, e.g. derivatives)."""
-    n_pat, height, width = source.shape
-    two_h, two_w = kernel.shape[-2:]
-    src_f = jnp.fft.rfft2(source, s=(two_h, two_w))
-    ker_f = jnp.fft.rfft2(kernel)
-    field = jnp.fft.irfft2(src_f[:, None] * ker_f[None], s=(two_h, two_w))
-    return field[:, :, :height, :width]
+    _, height, width = source.shape
+    return fft_convolve(
+        padded_spectrum(source)[:, None], jnp.fft.rfft2(kernel)[None], height, width
+    )

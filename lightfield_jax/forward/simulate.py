@@ -30,7 +30,6 @@ from lightfield_jax.app.memory import check_memory, render_bytes
 from lightfield_jax.app.progress import Stage, quiet
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import RenderResult, render
-from lightfield_jax.forward.slab import Slab
 from lightfield_jax.scene.illumination import Full, Stripes
 
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "numpy", "lightfield_jax")
@@ -171,11 +170,8 @@ def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
     :func:`~lightfield_jax.app.memory.render_bytes`), from the sizes alone."""
     grid = config.grid.resolve(config.medium.g)
-    n_mu = 1
-    if isinstance(config.geometry, Slab):
-        m = config.medium
-        slab = config.geometry.resolve(m.g, m.sigma_t, m.sigma_s / m.sigma_t)
-        n_mu = slab.n_mu * slab.n_z  # fields per azimuth bin and pixel
+    m = config.medium
+    n_mu = config.geometry.fields_per_bin(m.g, m.sigma_t, m.sigma_s / m.sigma_t)
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
     return render_bytes(
         patterns,
@@ -321,23 +317,18 @@ def write_simulation(
     if sim.lightfields is not None:
         lf_shape = "[P, K+1, H, W, n_theta]" if sim.is_stripes else "[K+1, H, W, n_theta]"
         atomic_write_npy(folder / "lightfield.npy", sim.lightfields)
-        unit = (
-            "depth- and elevation-integrated radiance (∫dz∫dμ L) per radian of azimuth"
-            if isinstance(sim.config.geometry, Slab)
-            else "radiance per radian"
-        )
+        unit = sim.config.geometry.lightfield_unit
         files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K, {unit}"
     if sim.is_stripes:
         illum = sim.config.illumination
+        slab = sim.config.geometry.slab_or_none
         write_capture_yaml(
             folder / "capture.yaml",
             images=shifts,
             pattern=illum,
             dark_frame="dark.exr" if sim.dark is not None else None,
             black_level=sim.config.black_level,
-            geometry=sim.config.geometry.as_dict()
-            if isinstance(sim.config.geometry, Slab)
-            else None,
+            geometry=None if slab is None else slab.as_dict(),
             truth=sim.truth(),
         )
         files["capture.yaml"] = "the shifted images as a capture (input of the inverse pipeline)"

@@ -1,4 +1,4 @@
-"""The slab geometry (docs/model.md section 7): a tank of depth h, modelled in 3-D, cheaply.
+"""The slab renderer (docs/model.md section 7): a tank of depth h, modelled in 3-D, cheaply.
 
 Design (docs/slab_design.md option B, with depth layers: docs/slab_depth.md): the light
 field is kept as its averages over n_z depth layers, L_l(x, y, θ, μ), with θ the
@@ -29,11 +29,17 @@ What is exact and what is not: I_1 is exact; I_2 is exact up to the discretisati
 (the first source is uniform in depth, fact 2); from I_3 on the model keeps each
 order's source as its n_z layer averages, which ``monte_carlo_slab(...,
 depth_layers=n_z)`` reproduces exactly; the error against the true slab falls about as
-1/n_z (measured in docs/slab_depth.md; :func:`default_n_z` chooses n_z).
+1/n_z (measured in docs/slab_depth.md; :func:`~lightfield_jax.scene.geometry.default_n_z`
+chooses n_z).
 
 Units as the Monte Carlo oracle (:mod:`lightfield_jax.reference.montecarlo_slab`): the sheet
 has unit irradiance (power per unit area normal to θ0), lengths are pixels, σ per
 pixel, images are power per unit area of the top face (times the gain).
+
+The geometry itself (:class:`~lightfield_jax.scene.geometry.Slab`, its faces' Fresnel
+reflectance, its discretisation defaults) lives in :mod:`lightfield_jax.scene.geometry`;
+the bounce loop, refinement and the tail are the base class's
+(:class:`~lightfield_jax.forward.base.AbstractRenderer`).
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Literal
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -49,340 +55,25 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from lightfield_jax.forward.base import AbstractRenderer, FirstOrders
 from lightfield_jax.forward.first_scatter import kernel_nodes
-from lightfield_jax.forward.render import _count_trace, render_refined, unscattered_fluence
+from lightfield_jax.forward.kernels import bin_pair_offsets, fft_convolve, padded_spectrum, splat
 from lightfield_jax.forward.slab_layers import SlabBounce, camera_integrals, transport_weights
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
+from lightfield_jax.scene.illumination import Full, Illumination
 
-Boundary = Literal["absorbing", "refractive"]
-BOUNDARIES = ("absorbing", "refractive")
+if TYPE_CHECKING:
+    from lightfield_jax.scene.geometry import Slab
 
 # Gauss points across each polar ring of the kernels (the radial profile is an
 # exponential times piecewise-linear depth factors: 3 points are exact to ~1e-6 on the
 # rings that matter).
 _RING_GAUSS = 3
 # Sub-samples per azimuth bin of the triangle-weighted bin average of the phase matrix.
+# The plane uses 16; 16 here would move the slab's I_3..I_6 by 5e-5 to 1.6e-3 relative
+# (measured, g 0.4 and 0.8, n_mu 4), so each keeps its own count.
 _PHASE_SUBSAMPLES = 8
 _BALANCE_ITERATIONS = 4
-# The most depth layers a slab model may use (Slab.n_z).
-MAX_LAYERS = 16
-# Below this albedo the orders a depth average gets wrong (k ≥ 3) carry little light.
-DIM_ALBEDO = 0.3
-
-
-def _positive_finite(value, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what}: must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
-    return v
-
-
-@dataclasses.dataclass(frozen=True)
-class Plane:
-    """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4)."""
-
-    kind: Literal["plane"] = "plane"
-
-    def as_dict(self) -> dict:
-        return {"kind": "plane"}
-
-
-@dataclasses.dataclass(frozen=True)
-class Slab:
-    """A tank of depth ``thickness`` (pixels) with 3-D directions (docs/model.md §7).
-
-    Attributes:
-        thickness: depth h of the medium in pixels (> 0).
-        boundary: ``"absorbing"`` (index-matched faces: light that reaches them is gone)
-            or ``"refractive"`` (relative index ``n``: Fresnel reflection and total
-            internal reflection at the top and bottom faces; the camera sees through
-            the top face with transmission 1 − R(normal)).
-        n: relative refractive index of the medium (used with ``refractive``; ≥ 1).
-        n_mu: elevation nodes in μ ∈ [0, 1] (the discretisation, like ``n_theta``), or
-            ``None`` to choose from g (:func:`default_n_mu`).
-        n_z: depth layers of the light field (1: the depth average), or ``None`` to
-            choose from σt·h, the albedo and g (:func:`default_n_z`).
-    """
-
-    thickness: float
-    boundary: Boundary = "absorbing"
-    n: float = 1.33
-    n_mu: int | None = None
-    n_z: int | None = None
-    kind: Literal["slab"] = "slab"
-
-    def __post_init__(self):
-        if isinstance(self.thickness, (bool, str)):
-            raise ValueError(f"geometry.thickness: must be a number, got {self.thickness!r}")
-        object.__setattr__(
-            self, "thickness", _positive_finite(self.thickness, "geometry.thickness")
-        )
-        if self.boundary not in BOUNDARIES:
-            raise ValueError(
-                f"geometry.boundary: must be one of {', '.join(BOUNDARIES)}, got {self.boundary!r}"
-            )
-        n = _positive_finite(self.n, "geometry.n")
-        if n < 1.0:
-            raise ValueError(f"geometry.n: must be >= 1 (medium denser than outside), got {n!r}")
-        object.__setattr__(self, "n", n)
-        if self.n_mu is not None and (
-            not isinstance(self.n_mu, (int, np.integer))
-            or isinstance(self.n_mu, bool)
-            or not 1 <= self.n_mu <= 64
-        ):
-            raise ValueError(f"geometry.n_mu: must be an integer in [1, 64], got {self.n_mu!r}")
-        if self.n_mu is not None and self.boundary == "refractive" and self.n_mu < 4:
-            raise ValueError(
-                f"geometry.n_mu: refractive faces need at least 4 elevation nodes (2 on each "
-                f"side of the critical angle), got {self.n_mu!r}"
-            )
-        if self.n_z is not None and (
-            not isinstance(self.n_z, (int, np.integer))
-            or isinstance(self.n_z, bool)
-            or not 1 <= self.n_z <= MAX_LAYERS
-        ):
-            raise ValueError(
-                f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
-            )
-
-    def as_dict(self) -> dict:
-        d = {"kind": "slab", "thickness": self.thickness, "boundary": self.boundary}
-        if self.boundary == "refractive":
-            d["n"] = self.n
-        if self.n_mu is not None:
-            d["n_mu"] = int(self.n_mu)
-        if self.n_z is not None:
-            d["n_z"] = int(self.n_z)
-        return d
-
-    def resolve(self, g: float, sigma_t: float | None = None, albedo: float | None = None) -> Slab:
-        """This slab with ``n_mu`` chosen from g (and the thickness) and ``n_z`` from
-        σt·h, the albedo and g (:func:`default_n_z`; σt or the albedo unknown: the
-        count their worst case needs) when not given."""
-        n_mu = self.n_mu
-        if n_mu is None:
-            n_mu = default_n_mu(g, self.thickness, self.boundary, albedo)
-        n_z = self.n_z
-        if n_z is None:
-            tau = None if sigma_t is None else float(sigma_t) * self.thickness
-            n_z = default_n_z(tau, albedo, self.boundary)
-        return dataclasses.replace(self, n_mu=n_mu, n_z=n_z)
-
-    @property
-    def critical_cosine(self) -> float | None:
-        """cos of the critical angle of total internal reflection (refractive, n > 1)."""
-        if self.boundary == "absorbing" or self.n == 1.0:
-            return None
-        return math.sqrt(1.0 - 1.0 / self.n**2)
-
-    @property
-    def camera_transmission(self) -> float:
-        """T = 1 − R(1) through the top face (1 for absorbing faces)."""
-        if self.boundary == "absorbing":
-            return 1.0
-        return 1.0 - float(fresnel_reflectance(1.0, self.n))
-
-
-@dataclasses.dataclass(frozen=True)
-class AutoGeometry:
-    """Plane or slab, chosen per capture by the fit (``geometry: {kind: auto, ...}``):
-    the plane model where its misfit is at most ``threshold`` × the capture's relative
-    noise, else ``slab`` (:mod:`lightfield_jax.inverse.model_choice`)."""
-
-    slab: Slab
-    threshold: float = 1.0
-    kind: Literal["auto"] = "auto"
-
-    def as_dict(self) -> dict:
-        d = {**self.slab.as_dict(), "kind": "auto"}
-        if self.threshold != 1.0:
-            d["threshold"] = self.threshold
-        return d
-
-
-SceneGeometry = Plane | Slab
-
-
-def rho_bound(medium, geometry=None):
-    """The per-bounce energy ratio bound ρ of the tail bound: ω·A(g) (or ω) for the
-    plane per its phase convention, ω for a slab (its 3-D phase function is normalised
-    on the sphere, whatever ``medium.phase`` says)."""
-    return medium.albedo if isinstance(geometry, Slab) else medium.rho
-
-
-def _guides_light(boundary: str, albedo: float | None) -> bool:
-    """Refractive faces guide light far (total internal reflection) and, unless the
-    medium is dim (ω < 0.3, or unknown), the high orders that carry it matter."""
-    return boundary == "refractive" and (albedo is None or albedo >= DIM_ALBEDO)
-
-
-def default_slab_n_theta(g: float, boundary: str = "absorbing", albedo: float | None = None) -> int:
-    """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
-    the phase function at every quadrature node, so only the phase matrix of the later
-    bounces is binned: against 128 bins, 8 bins change I_3..I_5 by ≤ 0.11 % for g 0.4
-    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (measured on a 48×32 beam).
-    Light guided by refractive faces travels far between scatterings and needs at least
-    16 (measured, σt·h 0.3, g −0.3, ω 0.9, n_z 2: I_5 −2.2 % with 8 bins and 8 μ nodes
-    against the 3-D Monte Carlo, −1.0 % with 16)."""
-    a = abs(float(g))
-    if a <= 0.6:
-        n = 8
-    elif a <= 0.85:
-        n = 16
-    else:
-        n = 32
-    return max(n, 16) if _guides_light(boundary, albedo) else n
-
-
-def resolve_slab_grid(
-    grid: Grid,
-    slab: Slab,
-    g: float,
-    sigma_t: float | None = None,
-    albedo: float | None = None,
-) -> tuple[Grid, Slab]:
-    """Grid and slab with the discretisation the slab model needs for the medium filled
-    in: ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
-    does not smear thin beams), ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the
-    albedo ``None``: what their worst case needs)."""
-    if grid.n_theta is None:
-        n = default_slab_n_theta(g, slab.boundary, albedo)
-    else:
-        n = grid.n_theta
-    r = 1 if grid.refine is None else grid.refine
-    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g, sigma_t, albedo)
-
-
-def default_n_mu(
-    g: float,
-    thickness: float | None = None,
-    boundary: str = "absorbing",
-    albedo: float | None = None,
-) -> int:
-    """Elevation nodes for a phase function of asymmetry g: 4 for |g| ≤ 0.5, 8 to 0.7,
-    16 to 0.85, 24 beyond (measured: I_2, I_3 within 1 % of 16 nodes for g ≤ 0.4; g 0.8
-    needs 16). Absorbing slabs thinner than 2 px need more: the survival (1 − tμ/h)₊ then
-    confines the light to grazing μ ≲ h/r (measured against the layer-averaged oracle,
-    σt 0.1, g 0.4: ΣI_2 −15 % at h 0.25 px with 4 nodes, −1.7 % with 8, −0.2 % with 16):
-    at least 8 below 2 px, 16 below 0.5 px, 32 below 0.15 px."""
-    a = abs(float(g))
-    if a <= 0.5:
-        n = 4
-    elif a <= 0.7:
-        n = 8
-    elif a <= 0.85:
-        n = 16
-    else:
-        n = 24
-    if thickness is not None and boundary == "absorbing":
-        for limit, need in ((0.15, 32), (0.5, 16), (2.0, 8)):
-            if thickness < limit:
-                n = max(n, need)
-                break
-    return max(n, 16) if _guides_light(boundary, albedo) else n
-
-
-def default_n_z(
-    optical_thickness: float | None, albedo: float | None, boundary: str = "absorbing"
-) -> int:
-    """Depth layers for a slab of optical thickness σt·h and albedo ω (``None``:
-    unknown, the worst case): 1 for dim media (ω < 0.3: the orders a depth average
-    gets wrong, k ≥ 3, carry little light), else 8 behind absorbing faces, 4 behind
-    refractive ones thinner than one mean free path, 2 thicker ones.
-
-    Measured against the 3-D slab Monte Carlo (h 6.4 px, 48×32, full illumination,
-    σt·h 0.3 / 1.3 / 3, g −0.3 / 0.4 / 0.8 / 0.9; docs/slab_depth.md): the error of a
-    layer average falls about as 1/n_z. Absorbing faces empty the layers near them, so
-    the depth average misses I_6 by up to 20–50 %, 4 layers by up to 4.5 % (σt·h 1.3,
-    g −0.3), 8 layers by ≤ 2.2 %; refractive faces keep the light spread over the depth
-    (n_z = 1: 5–6 % at I_5, I_6 for g ≥ 0.8), 2 layers are within 1.3 % from σt·h 1.3
-    and 4 within 1.6 % at 0.3."""
-    if albedo is not None and albedo < DIM_ALBEDO:
-        return 1
-    if boundary == "absorbing":
-        return 8
-    return 4 if optical_thickness is None or optical_thickness < 1.0 else 2
-
-
-def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
-    """``geometry:`` of a simulate config or a capture file (absent: the plane).
-
-    ``kind: auto`` (captures only, ``allow_auto``) takes the slab's keys and an
-    optional ``threshold``; the fit chooses plane or slab (:class:`AutoGeometry`)."""
-    if spec is None:
-        return Plane()
-    if not isinstance(spec, dict):
-        raise ValueError(f"{where}: must be a mapping with 'kind', got {spec!r}")
-    kind = spec.get("kind", "plane")
-    if not isinstance(kind, str):
-        raise ValueError(f"{where}.kind: must be a string (plane, slab), got {kind!r}")
-    if "kind" not in spec and "thickness" in spec:
-        raise ValueError(f"{where}.kind: missing (a slab needs kind: slab with its thickness)")
-    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z"}
-    allowed = {"plane": {"kind"}, "slab": slab_keys}
-    if allow_auto:
-        allowed["auto"] = slab_keys | {"threshold"}
-    if kind not in allowed:
-        raise ValueError(
-            f"{where}.kind: must be {' or '.join(repr(k) for k in allowed)}, got {kind!r}"
-            + ("" if allow_auto or kind != "auto" else " (auto is for fits: a capture file)")
-        )
-    unknown = sorted(set(spec) - allowed[kind])
-    if unknown:
-        raise ValueError(
-            f"{where}.{unknown[0]}: unknown key for kind {kind!r}; allowed keys: "
-            f"{', '.join(sorted(allowed[kind]))}"
-        )
-    if kind == "plane":
-        return Plane()
-    if "thickness" not in spec:
-        raise ValueError(f"{where}.thickness: required for kind 'slab' (depth in pixels)")
-    boundary = spec.get("boundary", "absorbing")
-    if "n" in spec and boundary != "refractive":
-        raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
-    try:
-        slab = Slab(
-            thickness=spec["thickness"],
-            boundary=boundary,
-            n=spec.get("n", 1.33),
-            n_mu=spec.get("n_mu"),
-            n_z=spec.get("n_z"),
-        )
-    except ValueError as err:
-        raise ValueError(str(err).replace("geometry", where, 1)) from None
-    if kind == "slab":
-        return slab
-    threshold = _positive_finite(spec.get("threshold", 1.0), f"{where}.threshold")
-    return AutoGeometry(slab, threshold)
-
-
-def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
-    """Unpolarised Fresnel reflectance of a face seen from inside the slab.
-
-    Args:
-        cos_incidence: cosine of the angle between the ray and the face normal, in [0, 1].
-        n: relative index n_medium / n_outside (> 0). For n > 1, R = 1 (total internal
-            reflection) where sin θi ≥ 1/n.
-
-    Returns R = (r_s² + r_p²)/2 with r_s = (n cos θi − cos θt)/(n cos θi + cos θt),
-    r_p = (cos θi − n cos θt)/(cos θi + n cos θt), n sin θi = sin θt. R(1) =
-    ((n − 1)/(n + 1))². (Shared with the Monte Carlo oracle, whose tests check it
-    against the angle form of the Fresnel equations.)
-    """
-    ci = np.clip(np.asarray(cos_incidence, dtype=np.float64), 0.0, 1.0)
-    if n == 1.0:  # index matched: no interface (and no 0/0 at grazing incidence)
-        return np.zeros_like(ci)
-    sin_t2 = n * n * (1.0 - ci * ci)
-    tir = sin_t2 > 1.0
-    ct = np.sqrt(np.maximum(1.0 - sin_t2, 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rs = (n * ci - ct) / (n * ci + ct)
-        rp = (ci - n * ct) / (ci + n * ct)
-    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
 def hg(cos_angle, g):
@@ -426,32 +117,24 @@ def _slab_nodes(width: int, height: int, n_theta: int):
     }
 
 
-class SlabRenderer(eqx.Module):
+class SlabRenderer(AbstractRenderer):
     """A compiled slab forward model for one grid, illumination, slab and bounce count.
 
-    Same call signature and outputs as :class:`~lightfield_jax.Renderer`:
+    Same call signature and outputs as :class:`~lightfield_jax.Renderer`
+    (:class:`~lightfield_jax.forward.base.AbstractRenderer`, tail included):
     ``renderer(sigma_t, sigma_s, g, gain=1.0, lightfield=False)`` returns ``(images,
     lightfields)`` with images Float[Array, "patterns bounces H W"] and light fields
     (depth- and elevation-integrated: ∫_0^h ∫_{−1}^{1} L dμ dz per radian of azimuth)
     Float[Array, "bounces+1 patterns H W n_theta"] or ``None``. The phase function is
     the 3-D Henyey–Greenstein (normalised on the sphere) whatever ``phase`` says. The
-    light field is resolved in ``slab.n_z`` depth layers (:mod:`._slab_layers`).
+    light field is resolved in ``slab.n_z`` depth layers
+    (:mod:`lightfield_jax.forward.slab_layers`).
     """
 
-    height: int = eqx.field(static=True)
-    width: int = eqx.field(static=True)
-    n_theta: int = eqx.field(static=True)
     n_mu: int = eqx.field(static=True)
     n_z: int = eqx.field(static=True)
-    refine: int = eqx.field(static=True)
-    bounces: int = eqx.field(static=True)
-    phase: str = eqx.field(static=True)
-    theta0_bin: int = eqx.field(static=True)
     thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
     camera_t: float = eqx.field(static=True)
-    coverage: Float[Array, "patterns H W"]
-    mean_depth: Float[Array, "patterns H W"]
-    var_depth: Float[Array, "patterns H W"]
     t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
     cam_u: Float[Array, "n_mu nodes q"]  # vertical travel u = tμ
     w_over_s: Float[Array, "n_mu nodes q"]  # ring weight / s
@@ -469,36 +152,25 @@ class SlabRenderer(eqx.Module):
         bounces: int,
         slab: Slab,
         phase: str = "normalized",
+        *,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
     ):
-        if grid.n_theta is None:
-            raise ValueError("SlabRenderer needs grid.n_theta: call Grid.resolve(g) first")
-        if slab.n_mu is None or slab.n_z is None:
+        if grid.n_theta is not None and (slab.n_mu is None or slab.n_z is None):
             raise ValueError("SlabRenderer needs slab.n_mu and slab.n_z: call Slab.resolve first")
-        if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
-            raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
         if phase not in ("paper", "normalized"):
             raise ValueError(f"phase: must be paper or normalized, got {phase!r}")
-        f = self.refine = 1 if grid.refine is None else grid.refine
-        self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
+        self._setup(grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps)
+        f = self.refine
         self.n_mu = int(slab.n_mu)
         self.n_z = int(slab.n_z)
-        self.bounces = int(bounces)
-        self.phase = phase
         self.thickness = float(slab.thickness) * f
         self.camera_t = slab.camera_transmission
-        illumination.entry_wall(grid.width, grid.height)
-        cov, mean, var = source_moments(scaled(illumination, f), self.width, self.height)
-        self.coverage = jnp.asarray(cov)
-        self.mean_depth = jnp.asarray(mean)
-        self.var_depth = jnp.asarray(var)
         theta0 = math.radians(illumination.direction_deg)
-        self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
 
         mu, w_mu = elevation_nodes(self.n_mu, slab.critical_cosine)
         s = np.sqrt(1.0 - mu * mu)
-        refl = (
-            np.zeros_like(mu) if slab.boundary == "absorbing" else fresnel_reflectance(mu, slab.n)
-        )
         nodes = _slab_nodes(self.width, self.height, self.n_theta)
         t = nodes["r_sub"][None] / s[:, None, None]  # (n_mu, N, q)
         self.t_sub = jnp.asarray(t)
@@ -509,37 +181,36 @@ class SlabRenderer(eqx.Module):
         self.splat = jnp.asarray(nodes["splat"])
         self.mu = jnp.asarray(mu)
         self.w_mu = jnp.asarray(w_mu)
-        self.refl = jnp.asarray(refl)
+        self.refl = jnp.asarray(slab.reflectance(mu))
+
+    # σ/f and h·f on the refined grid: images (ratios like σs/σt) are unchanged; the
+    # depth-integrated fields are in refined pixels of depth: divided by f.
+    @property
+    def image_scale(self) -> float:
+        return 1.0
 
     @property
-    def n_patterns(self) -> int:
-        return self.coverage.shape[0]
+    def field_scale(self) -> float:
+        return 1.0 / self.refine
 
-    def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
-        # σ/f and h·f on the refined grid: images (ratios like σs/σt) are unchanged; the
-        # depth-integrated fields are in refined pixels of depth: divided by f.
-        f = self.refine
-        return render_refined(self, (sigma_t, sigma_s, g, gain), lightfield, 1, 1.0 / f)
+    @property
+    def direct_depth(self) -> float:
+        return self.thickness
+
+    def integrate(self, field):
+        """(patterns, n_z, n_mu, n_theta, H, W) → ∫dz ∫dμ: (patterns, n_theta, H, W)."""
+        dz = self.thickness / self.n_z
+        w_mu = self.w_mu.astype(field.dtype)
+        return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", w_mu, field)
 
     # -- pieces -------------------------------------------------------------------
-
-    def _splat(self, values):
-        """values (A, N) → kernels (A, n_theta, 2H, 2W): every node's four bilinear
-        corners receive a row of A values (one scatter of rows for all kernels)."""
-        count = values.shape[0]
-        cells = self.n_theta * 2 * self.height * 2 * self.width
-        contrib = self.splat.astype(values.dtype)[:, :, None] * values.T[:, None, :]
-        kernel = (
-            jnp.zeros((cells, count), values.dtype)
-            .at[self.index.reshape(-1)]
-            .add(contrib.reshape(-1, count))
-        )
-        return kernel.T.reshape(count, self.n_theta, 2 * self.height, 2 * self.width)
 
     def _kernels_f(self, values):
         """values (…, n_mu, N) → rfft2 of their kernels (…, n_mu, n_theta, 2H, W + 1)."""
         lead = values.shape[:-1]
-        kernels = self._splat(values.reshape((-1, values.shape[-1])))
+        size = self.n_theta * 2 * self.height * 2 * self.width
+        kernels = splat(self.index, self.splat, values.reshape((-1, values.shape[-1])), size)
+        kernels = kernels.reshape(-1, self.n_theta, 2 * self.height, 2 * self.width)
         return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
 
     def _phase_matrices(self, g, dtype):
@@ -552,10 +223,8 @@ class SlabRenderer(eqx.Module):
         """
         n, J = self.n_theta, self.n_mu
         dtheta = 2 * math.pi / n
-        ns = _PHASE_SUBSAMPLES
-        sub = np.arange(-ns, ns + 1)
-        tri = ((1.0 - np.abs(sub) / ns) / ns).astype(dtype)
-        delta = (np.arange(n)[:, None] + sub[None, :] / ns) * dtheta  # (n, 2ns+1)
+        delta, tri = bin_pair_offsets(n, _PHASE_SUBSAMPLES)  # (n, 2ns+1), (2ns+1,)
+        tri = tri.astype(dtype)
         mu = self.mu.astype(dtype)
         s = jnp.sqrt(1.0 - mu * mu)
         ss = (s[:, None] * s[None, :])[:, :, None, None]
@@ -619,110 +288,44 @@ class SlabRenderer(eqx.Module):
         ) * (dtheta / 16)
         return p1 / (2.0 * jnp.sum(self.w_mu.astype(dtype) * ring))
 
-    def bounce_step(self, sigma_t, sigma_s, g) -> SlabBounce:
-        """The bounce ``q -> (q_next, image)`` at these values (working-grid units:
-        σ per refined pixel), and the first two orders it starts from: returns
-        ``(bounce, i2, l1, q2)`` with I_2 (patterns, H, W), the layered light field
-        L_1 and source Q_2 (patterns, n_z, n_mu, n_theta, H, W)."""
+    def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
+        """I_1 = T σs p(cos 90°) (1 − e^{−σt h})/σt · S (docs/model.md §7) and, when
+        ``scattered``, the bounce step with I_2, the layered light field L_1 and source
+        Q_2 (patterns, n_z, n_mu, n_theta, H, W). I_2 comes straight from the
+        first-scatter kernels (the first source is uniform in depth: exact)."""
         dtype = sigma_t.dtype
-        n_z = self.n_z
-        shape = (2 * self.height, 2 * self.width)
-        source = unscattered_fluence(self, sigma_t)
+        t_cam = jnp.asarray(self.camera_t, dtype)
+        depth_factor = -jnp.expm1(-sigma_t * self.thickness) / sigma_t
+        image = t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source
+        if not scattered:
+            return FirstOrders(image)
+        n_z, height, width = self.n_z, self.height, self.width
         transport, camera = self._transport_and_camera(sigma_t, g, dtype)
         p1 = self._first_phase(g, dtype)
         # The first source is uniform in depth: layer l receives Σ_l' W_{l−l'}.
         first = jnp.stack([jnp.sum(transport[layer : layer + n_z], axis=0) for layer in range(n_z)])
         k1_f = self._kernels_f(p1 * first)  # (n_z, n_mu, n_theta, 2H, W+1)
         k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera, axis=0)), axis=(0, 1))
-        src_f = jnp.fft.rfft2(source, s=shape)
-        l1 = jnp.fft.irfft2(src_f[:, None, None, None] * k1_f, s=shape)
-        l1 = sigma_s * jnp.maximum(l1[..., : self.height, : self.width], 0.0)
-        i2 = jnp.fft.irfft2(src_f * k1_cam_f, s=shape)[..., : self.height, : self.width]
-        i2 = sigma_s**2 * jnp.maximum(i2, 0.0)
+        src_f = padded_spectrum(source)
+        l1 = sigma_s * jnp.maximum(
+            fft_convolve(src_f[:, None, None, None], k1_f, height, width), 0.0
+        )
+        i2 = sigma_s**2 * jnp.maximum(fft_convolve(src_f, k1_cam_f, height, width), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(
             transport_f=self._kernels_f(transport),
             camera_f=sigma_s * self._kernels_f(camera),
             mix_even=0.5 * sigma_s * (plus + minus),
             mix_odd=0.5 * sigma_s * (plus - minus),
-            height=self.height,
-            width=self.width,
+            height=height,
+            width=width,
         )
-        return bounce, i2, l1, bounce.scatter(l1)
-
-    @eqx.filter_jit
-    def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
-        _count_trace()
-        dtype = sigma_t.dtype
-        n = self.n_theta
-        h = self.thickness
-        dz = h / self.n_z
-        dtheta = 2 * math.pi / n
-        t_cam = jnp.asarray(self.camera_t, dtype)
-
-        source = unscattered_fluence(self, sigma_t)  # (P, H, W), uniform in depth
-        depth_factor = -jnp.expm1(-sigma_t * h) / sigma_t
-        images = [t_cam * sigma_s * hg(jnp.zeros((), dtype), g) * depth_factor * source]
-        fields = []
-        if lightfield:
-            l0 = jnp.zeros((source.shape[0], n) + source.shape[1:], dtype)
-            fields.append(l0.at[:, self.theta0_bin].set(h * source / dtheta))
-
-        def integrate(field):  # (P, n_z, n_mu, n, H, W) → ∫dz ∫dμ: (P, n, H, W)
-            return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", self.w_mu.astype(dtype), field)
-
-        if self.bounces > 1 or lightfield:
-            bounce, i2, l1, q = self.bounce_step(sigma_t, sigma_s, g)
-            if self.bounces > 1:
-                images.append(i2)
-            if lightfield:
-                fields.append(integrate(l1))
-            images = [jnp.stack(images)]
-            fields = [jnp.stack(fields)] if lightfield else []
-            if self.bounces > 2:
-
-                def body(q, _):
-                    q_next, image, field = bounce.step(q)
-                    return q_next, (image, integrate(field) if lightfield else None)
-
-                q, (more, more_fields) = jax.lax.scan(body, q, None, length=self.bounces - 2)
-                images.append(more)
-                if lightfield:
-                    fields.append(more_fields)
-            if lightfield and self.bounces > 1:
-                shape = (2 * self.height, 2 * self.width)
-                fields.append(integrate(bounce.transport(jnp.fft.rfft2(q, s=shape)))[None])
-        else:
-            images = [jnp.stack(images)]
-            fields = [jnp.stack(fields)] if lightfield else []
-        stacked = gain * jnp.moveaxis(jnp.concatenate(images, axis=0), 0, 1)
-        lf = gain * jnp.moveaxis(jnp.concatenate(fields, axis=0), 2, -1) if lightfield else None
-        return stacked, lf
-
-
-def describe_geometry(model: dict) -> str:
-    """A short description of a fit result's ``model`` geometry (and auto's choice)."""
-    geo = model.get("geometry") or {"kind": "plane"}
-    if geo.get("kind") == "slab":
-        text = f"slab h {geo['thickness']:g} px {geo['boundary']}"
-        if geo["boundary"] == "refractive":
-            text += f" n {geo['n']:g}"
-        text += f", n_mu {geo.get('n_mu')}, n_z {geo.get('n_z', 1)}"
-    else:
-        text = "plane"
-    choice = model.get("geometry_choice")
-    if choice and "reason" in choice:
-        text += f" (auto: {choice['reason']})"
-    elif choice:
-        text += f" (auto: plane error {choice['plane_error']:.2g} vs noise {choice['noise']:.2g})"
-    return text
+        return FirstOrders(image, bounce, i2, l1, bounce.scatter(l1))
 
 
 @functools.lru_cache(maxsize=64)
 def _bounce_ratio_cached(slab: Slab, key: tuple, width: int, height: int) -> float:
     sigma_t, albedo, g = key
-    from lightfield_jax.scene.illumination import Full
-
     f = max(1.0, max(width, height) / 24.0)  # the same tank, in pixels of f px
     w, h = max(4, round(width / f)), max(4, round(height / f))
     coarse = dataclasses.replace(
@@ -749,20 +352,8 @@ def slab_bounce_ratio(
 
 
 __all__ = [
-    "AutoGeometry",
-    "Plane",
-    "Slab",
     "SlabRenderer",
-    "SceneGeometry",
-    "default_n_mu",
-    "default_n_z",
-    "describe_geometry",
-    "default_slab_n_theta",
-    "resolve_slab_grid",
-    "rho_bound",
-    "slab_bounce_ratio",
     "elevation_nodes",
-    "fresnel_reflectance",
     "hg",
-    "parse_geometry",
+    "slab_bounce_ratio",
 ]

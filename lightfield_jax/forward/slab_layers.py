@@ -30,9 +30,13 @@ compiled program, so new σt, σs, g never recompile.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Complex, Float
+
+from lightfield_jax.forward.kernels import padded_spectrum
 
 
 def _wraps(m, refl):
@@ -80,7 +84,9 @@ class SlabBounce(eqx.Module):
     ``bounce(q) -> (q_next, image)`` maps the layered source Q_k (σs included),
     Float[Array, "patterns n_z n_mu n_theta H W"], to Q_{k+1} and the image I_{k+1}
     Float[Array, "patterns H W"]; :meth:`step` also returns the transported light field
-    L_k. Pure and linear in q (a Krylov solve may use it as its operator).
+    L_k. Pure; linear in q up to the clipping of FFT round-off below 0 (``clip``, on in
+    the march); :attr:`linear` is the same step without it, exactly linear (the
+    operator of a Krylov solve, whose vectors have signs).
 
     Attributes:
         transport_f: rfft2 of the kernels of W_δ, δ = −(n_z−1)..n_z−1 (index δ + n_z − 1),
@@ -89,6 +95,8 @@ class SlabBounce(eqx.Module):
             2H, W + 1), σs and T included.
         mix_even, mix_odd: ½(M⁺ ± M⁻) (σs included), M^± the discrete phase matrices
             from up-going directions into up-going (⁺) and down-going (⁻) ones.
+        clip: whether images and fields are clipped at 0 (FFT round-off of non-negative
+            sources).
     """
 
     transport_f: Complex[Array, "kernels n_mu n_theta fy fx"]
@@ -97,26 +105,38 @@ class SlabBounce(eqx.Module):
     mix_odd: Float[Array, "a a"]
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
+    clip: bool = eqx.field(static=True, default=True)
 
     @property
     def n_z(self) -> int:
         return self.camera_f.shape[0]
 
+    @property
+    def linear(self) -> SlabBounce:
+        """This step without clipping: exactly linear in q."""
+        return dataclasses.replace(self, clip=False)
+
     def __call__(self, q):
         q_next, image, _ = self.step(q)
         return q_next, image
 
+    def _clipped(self, a):
+        return jnp.maximum(a, 0.0) if self.clip else a
+
     def step(self, q):
         """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
-        shape = (2 * self.height, 2 * self.width)
-        q_f = jnp.fft.rfft2(q, s=shape)
+        q_f = padded_spectrum(q)
         image_f = jnp.einsum("plmnyx,lmnyx->pyx", q_f, self.camera_f)
-        image = jnp.fft.irfft2(image_f, s=shape)[..., : self.height, : self.width]
-        field = self.transport(q_f)
-        return self.scatter(field), jnp.maximum(image, 0.0), field
+        image = jnp.fft.irfft2(image_f, s=(2 * self.height, 2 * self.width))
+        field = self._transport_f(q_f)
+        return self.scatter(field), self._clipped(image[..., : self.height, : self.width]), field
 
-    def transport(self, q_f):
-        """L_l = Σ_l' K_{l−l'} ⊛ Q_l' from the sources' rfft2 (patterns, n_z, …)."""
+    def transport(self, q):
+        """L_l = Σ_l' K_{l−l'} ⊛ Q_l' (patterns, n_z, n_mu, n_theta, H, W)."""
+        return self._transport_f(padded_spectrum(q))
+
+    def _transport_f(self, q_f):
+        """:meth:`transport` from the sources' rfft2."""
         n_z = self.n_z
         out = jnp.zeros_like(q_f)
         for delta in range(-(n_z - 1), n_z):
@@ -126,7 +146,7 @@ class SlabBounce(eqx.Module):
             else:
                 out = out.at[:, : n_z + delta].add(k * q_f[:, -delta:])
         field = jnp.fft.irfft2(out, s=(2 * self.height, 2 * self.width))
-        return jnp.maximum(field[..., : self.height, : self.width], 0.0)
+        return self._clipped(field[..., : self.height, : self.width])
 
     def scatter(self, field):
         """Q_l = M⁺ L_l + M⁻ L_{n_z−1−l}, through the layer-mirror sums and differences

@@ -21,9 +21,10 @@ The solve talks to a renderer through a narrow interface, a *bounce step*: an
 - ``step.transport(q) -> field``: L_k = T Q_k in the step's own layout (only for the
   tail's light field).
 
-Any geometry whose bounce is such a step (the plane's :class:`~lightfield_jax.Renderer`
-today) gets the tail by handing :func:`solve_tail` its step, its first unmarched source
-Q_{K0+1} and image I_{K0+1}.
+The bounce loop of :class:`~lightfield_jax.forward.base.AbstractRenderer` hands
+:func:`solve_tail` its geometry's step (``step.linear``: the plane's step as is, the
+slab's without the clipping of FFT round-off that its march applies), its first
+unmarched source Q_{K0+1} and image I_{K0+1}: every geometry gets the tail.
 
 Derivatives (``jax.jvp``, ``jax.jacfwd``, ``jax.grad``, and ``vmap`` over them) are
 ``lineax.linear_solve``'s own, implicit, without storing the iterations: a tangent is

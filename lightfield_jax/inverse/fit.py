@@ -46,14 +46,7 @@ import optimistix as optx
 
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import make_renderer, renderer_for
-from lightfield_jax.forward.slab import (
-    AutoGeometry,
-    Plane,
-    Slab,
-    default_slab_n_theta,
-    parse_geometry,
-    slab_bounce_ratio,
-)
+from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.inverse.basins import Scan, basins, scan, worse_basin
 from lightfield_jax.inverse.data import FitData as _Data
 from lightfield_jax.inverse.data import FitProblem, prepare_data
@@ -70,6 +63,14 @@ from lightfield_jax.inverse.trust import (
     untrustworthy,
 )
 from lightfield_jax.inverse.two_step import full_for as _full_for
+from lightfield_jax.scene.geometry import (
+    AutoGeometry,
+    Plane,
+    Slab,
+    as_geometry,
+    default_slab_n_theta,
+    parse_geometry,
+)
 from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
 from lightfield_jax.scene.illumination import _INWARD_DEG, Stripes
 from lightfield_jax.scene.medium import bounces_for_tolerance, phase_integral
@@ -392,7 +393,7 @@ def size_model(
             _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
         )
     gw = min(0.99, abs(g) + 0.1)
-    slab = options.geometry if isinstance(options.geometry, Slab) else None
+    slab = as_geometry(options.geometry).slab_or_none
     if slab is not None:  # less sensitive to g than the plane: a smaller margin
         # Depth layers, elevation nodes and azimuth bins from the estimate (the albedo
         # and σt·h decide how much the depth must be resolved).
@@ -606,8 +607,8 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
     n_theta, geometry = min(options.n_theta or 32, 32), None
-    if isinstance(options.geometry, Slab):
-        slab = options.geometry
+    slab = as_geometry(options.geometry).slab_or_none
+    if slab is not None:
         n_theta = min(options.n_theta or 8, 8)
         geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4), n_z=1)
     rho = min(max(rho0, 0.3), 0.95)
@@ -953,7 +954,7 @@ def _fit_one(
 ) -> FitResult:
     """:func:`fit_images` with a ``floor``: the smallest model to use (its crop, θ bins,
     refinement, bounces), so that the channels of a capture share compiled programs."""
-    if isinstance(options.geometry, AutoGeometry):
+    if as_geometry(options.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,
             pattern,
@@ -966,15 +967,14 @@ def _fit_one(
             split=split,
             exposure=exposure,
         )
-    if isinstance(options.geometry, Plane):
-        options = dataclasses.replace(options, geometry=None)
-    elif isinstance(options.geometry, Slab):
-        # The slab's 3-D Henyey–Greenstein is normalised on the sphere: ρ = ω.
-        options = dataclasses.replace(options, phase="normalized")
-    elif options.geometry is not None:
-        raise ValueError(
-            f"geometry: must be a Plane, Slab or AutoGeometry, got {options.geometry!r}"
-        )
+    # The plane is None from here on; the slab's 3-D Henyey–Greenstein is normalised on
+    # the sphere (ρ = ω): its phase convention is "normalized".
+    geometry = as_geometry(options.geometry)
+    options = dataclasses.replace(
+        options,
+        geometry=geometry.slab_or_none,
+        phase=geometry.phase_convention(options.phase),
+    )
     say = progress or (lambda _msg: None)
     method = method_for(options.method)
     t_start = time.perf_counter()
@@ -1246,7 +1246,7 @@ def _model_from(d: dict) -> _Model:
         crop=tuple(d["crop"]),
         converges=d["series_converges"],
         rho=d["rho_estimate"],
-        geometry=geometry if isinstance(geometry, Slab) else None,
+        geometry=geometry.slab_or_none,
     )
 
 
@@ -1254,7 +1254,7 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
     """The smallest model every channel of ``capture`` is fitted with: the union of the
     channels' signal crops (one shape for all), the cheapest discretisation (grown to
     each channel's model as the channels are fitted). ``None`` under geometry auto."""
-    if isinstance(options.geometry, AutoGeometry):
+    if as_geometry(options.geometry).chosen_by_fit:
         return None
     images = np.asarray(capture.images)
     p, h, w = images.shape[:3]
@@ -1273,7 +1273,7 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
                 )
             )
         crop = tuple(f(c[k] for c in crops) for k, f in enumerate((min, min, max, max)))
-    slab = options.geometry if isinstance(options.geometry, Slab) else None
+    slab = as_geometry(options.geometry).slab_or_none
     return _Model(
         grid=Grid(crop[2] - crop[0], crop[3] - crop[1], 8, 1),
         bounces=2,
@@ -1293,7 +1293,7 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     m = result.model
     grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
     geometry = parse_geometry(m.get("geometry"), "model.geometry")
-    geometry = geometry if isinstance(geometry, Slab) else None
+    geometry = geometry.slab_or_none
     st, ss, g, c = result.sigma_t, result.sigma_s, result.g, result.gain
     b = result.black_level or 0.0
     k = m["bounces"]

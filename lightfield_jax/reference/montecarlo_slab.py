@@ -78,7 +78,6 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax.forward.slab import fresnel_reflectance
 from lightfield_jax.reference.montecarlo import (
     _add,
     _check_scene,
@@ -89,6 +88,7 @@ from lightfield_jax.reference.montecarlo import (
     _source,
     phase_function,
 )
+from lightfield_jax.scene.geometry import fresnel_reflectance
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 
 Boundary = Literal["absorbing", "refractive"]

@@ -6,10 +6,10 @@ import dataclasses
 
 import numpy as np
 
-from lightfield_jax.forward.slab import describe_geometry
 from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.fit import FitResult, fitted_images
 from lightfield_jax.inverse.separate import separate
+from lightfield_jax.scene.geometry import describe_geometry
 from lightfield_jax.scene.illumination import Stripes
 
 from ._common import finish, new_figure

@@ -1,0 +1,523 @@
+"""Scene geometry: the plane (the paper's 2-D model) or a slab (the tank's depth in 3-D).
+
+A geometry knows its renderer (:meth:`Plane.renderer`, :meth:`Slab.renderer`), its
+per-bounce energy ratio bound ρ (:meth:`Plane.rho_bound`), the discretisation a medium
+needs (:meth:`Plane.resolve_model`) and the size of its light field
+(:meth:`Plane.fields_per_bin`); the rest of the package asks it, never its type.
+"Plane" is written ``None``, ``Plane()`` or ``{kind: plane}`` by users:
+:func:`as_geometry` (Python values) and :func:`parse_geometry` (config and capture
+files) turn each into one object.
+
+Also here: the slab's discretisation defaults (:func:`default_n_mu`,
+:func:`default_n_z`, :func:`default_slab_n_theta`), the Fresnel reflectance of its faces
+and :func:`describe_geometry` (a fit result's model in words).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Literal
+
+import numpy as np
+
+from lightfield_jax.forward.plane import PlaneRenderer
+from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.scene.grid import Grid
+
+Boundary = Literal["absorbing", "refractive"]
+BOUNDARIES = ("absorbing", "refractive")
+# The most depth layers a slab model may use (Slab.n_z).
+MAX_LAYERS = 16
+# Below this albedo the orders a depth average gets wrong (k ≥ 3) carry little light.
+DIM_ALBEDO = 0.3
+
+
+def _positive_finite(value, what: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4)."""
+
+    kind: Literal["plane"] = "plane"
+
+    def as_dict(self) -> dict:
+        return {"kind": "plane"}
+
+    @property
+    def slab_or_none(self) -> Slab | None:
+        """This geometry as a :class:`Slab`, or ``None`` (the plane)."""
+        return None
+
+    @property
+    def chosen_by_fit(self) -> bool:
+        """Whether a fit chooses plane or slab per capture (:class:`AutoGeometry`)."""
+        return False
+
+    @property
+    def lightfield_unit(self) -> str:
+        """What the renderer's light fields hold."""
+        return "radiance per radian"
+
+    def phase_convention(self, phase: str) -> str:
+        """The phase convention this geometry renders a medium of ``phase`` with."""
+        return phase
+
+    def rho_bound(self, medium):
+        """The per-bounce energy ratio bound ρ of the tail bound: ω·A(g), or ω under
+        ``phase: normalized`` (docs/model.md §2)."""
+        return medium.rho
+
+    def resolve_model(self, medium, grid: Grid) -> tuple[Grid, Plane, object]:
+        """``(grid, geometry, rho)`` with the discretisation filled in from g
+        (:meth:`Grid.resolve`) and ρ of :meth:`rho_bound`."""
+        return grid.resolve(float(medium.g)), self, self.rho_bound(medium)
+
+    def fields_per_bin(self, g: float, sigma_t: float, albedo: float) -> int:
+        """Light-field values per pixel and azimuth bin of the model for a medium of
+        (g, σt, ω): 1 on the plane."""
+        return 1
+
+    def renderer(
+        self,
+        grid: Grid,
+        illumination,
+        bounces: int,
+        phase: str,
+        *,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
+    ) -> PlaneRenderer:
+        """The compiled forward model of this geometry (``grid`` resolved)."""
+        return PlaneRenderer(
+            grid,
+            illumination,
+            bounces,
+            phase,
+            tail=tail,
+            tail_tol=tail_tol,
+            tail_max_steps=tail_max_steps,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class Slab:
+    """A tank of depth ``thickness`` (pixels) with 3-D directions (docs/model.md §7).
+
+    Attributes:
+        thickness: depth h of the medium in pixels (> 0).
+        boundary: ``"absorbing"`` (index-matched faces: light that reaches them is gone)
+            or ``"refractive"`` (relative index ``n``: Fresnel reflection and total
+            internal reflection at the top and bottom faces; the camera sees through
+            the top face with transmission 1 − R(normal)).
+        n: relative refractive index of the medium (used with ``refractive``; ≥ 1).
+        n_mu: elevation nodes in μ ∈ [0, 1] (the discretisation, like ``n_theta``), or
+            ``None`` to choose from g (:func:`default_n_mu`).
+        n_z: depth layers of the light field (1: the depth average), or ``None`` to
+            choose from σt·h, the albedo and g (:func:`default_n_z`).
+    """
+
+    thickness: float
+    boundary: Boundary = "absorbing"
+    n: float = 1.33
+    n_mu: int | None = None
+    n_z: int | None = None
+    kind: Literal["slab"] = "slab"
+
+    def __post_init__(self):
+        if isinstance(self.thickness, (bool, str)):
+            raise ValueError(f"geometry.thickness: must be a number, got {self.thickness!r}")
+        object.__setattr__(
+            self, "thickness", _positive_finite(self.thickness, "geometry.thickness")
+        )
+        if self.boundary not in BOUNDARIES:
+            raise ValueError(
+                f"geometry.boundary: must be one of {', '.join(BOUNDARIES)}, got {self.boundary!r}"
+            )
+        n = _positive_finite(self.n, "geometry.n")
+        if n < 1.0:
+            raise ValueError(f"geometry.n: must be >= 1 (medium denser than outside), got {n!r}")
+        object.__setattr__(self, "n", n)
+        if self.n_mu is not None and (
+            not isinstance(self.n_mu, (int, np.integer))
+            or isinstance(self.n_mu, bool)
+            or not 1 <= self.n_mu <= 64
+        ):
+            raise ValueError(f"geometry.n_mu: must be an integer in [1, 64], got {self.n_mu!r}")
+        if self.n_mu is not None and self.boundary == "refractive" and self.n_mu < 4:
+            raise ValueError(
+                f"geometry.n_mu: refractive faces need at least 4 elevation nodes (2 on each "
+                f"side of the critical angle), got {self.n_mu!r}"
+            )
+        if self.n_z is not None and (
+            not isinstance(self.n_z, (int, np.integer))
+            or isinstance(self.n_z, bool)
+            or not 1 <= self.n_z <= MAX_LAYERS
+        ):
+            raise ValueError(
+                f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
+            )
+
+    def as_dict(self) -> dict:
+        d = {"kind": "slab", "thickness": self.thickness, "boundary": self.boundary}
+        if self.boundary == "refractive":
+            d["n"] = self.n
+        if self.n_mu is not None:
+            d["n_mu"] = int(self.n_mu)
+        if self.n_z is not None:
+            d["n_z"] = int(self.n_z)
+        return d
+
+    def resolve(self, g: float, sigma_t: float | None = None, albedo: float | None = None) -> Slab:
+        """This slab with ``n_mu`` chosen from g (and the thickness) and ``n_z`` from
+        σt·h, the albedo and g (:func:`default_n_z`; σt or the albedo unknown: the
+        count their worst case needs) when not given."""
+        n_mu = self.n_mu
+        if n_mu is None:
+            n_mu = default_n_mu(g, self.thickness, self.boundary, albedo)
+        n_z = self.n_z
+        if n_z is None:
+            tau = None if sigma_t is None else float(sigma_t) * self.thickness
+            n_z = default_n_z(tau, albedo, self.boundary)
+        return dataclasses.replace(self, n_mu=n_mu, n_z=n_z)
+
+    @property
+    def critical_cosine(self) -> float | None:
+        """cos of the critical angle of total internal reflection (refractive, n > 1)."""
+        if self.boundary == "absorbing" or self.n == 1.0:
+            return None
+        return math.sqrt(1.0 - 1.0 / self.n**2)
+
+    @property
+    def camera_transmission(self) -> float:
+        """T = 1 − R(1) through the top face (1 for absorbing faces)."""
+        if self.boundary == "absorbing":
+            return 1.0
+        return 1.0 - float(fresnel_reflectance(1.0, self.n))
+
+    def reflectance(self, mu: np.ndarray) -> np.ndarray:
+        """R(μ) of the faces at direction cosines ``mu`` (0 for absorbing faces)."""
+        if self.boundary == "absorbing":
+            return np.zeros_like(np.asarray(mu, dtype=np.float64))
+        return fresnel_reflectance(mu, self.n)
+
+    @property
+    def slab_or_none(self) -> Slab | None:
+        return self
+
+    @property
+    def chosen_by_fit(self) -> bool:
+        return False
+
+    @property
+    def lightfield_unit(self) -> str:
+        return "depth- and elevation-integrated radiance (∫dz∫dμ L) per radian of azimuth"
+
+    def phase_convention(self, phase: str) -> str:
+        """The 3-D Henyey–Greenstein of a slab is normalised on the sphere, whatever
+        ``phase`` says: ``"normalized"``."""
+        return "normalized"
+
+    def rho_bound(self, medium):
+        """ρ = ω: the 3-D phase function is normalised on the sphere."""
+        return medium.albedo
+
+    def resolve_model(self, medium, grid: Grid) -> tuple[Grid, Slab, object]:
+        """``(grid, slab, rho)`` with the discretisation the medium needs
+        (:func:`resolve_slab_grid`) and ρ = ω."""
+        g = float(medium.g)
+        grid, slab = resolve_slab_grid(grid, self, g, float(medium.sigma_t), float(medium.albedo))
+        return grid, slab, self.rho_bound(medium)
+
+    def fields_per_bin(self, g: float, sigma_t: float, albedo: float) -> int:
+        """Elevation nodes × depth layers the model keeps per pixel and azimuth bin."""
+        slab = self.resolve(g, sigma_t, albedo)
+        return slab.n_mu * slab.n_z
+
+    def renderer(
+        self,
+        grid: Grid,
+        illumination,
+        bounces: int,
+        phase: str,
+        *,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
+    ) -> SlabRenderer:
+        """The compiled slab model (``grid``, ``n_mu`` and ``n_z`` resolved)."""
+        return SlabRenderer(
+            grid,
+            illumination,
+            bounces,
+            self,
+            phase,
+            tail=tail,
+            tail_tol=tail_tol,
+            tail_max_steps=tail_max_steps,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class AutoGeometry:
+    """Plane or slab, chosen per capture by the fit (``geometry: {kind: auto, ...}``):
+    the plane model where its misfit is at most ``threshold`` × the capture's relative
+    noise, else ``slab`` (:mod:`lightfield_jax.inverse.model_choice`)."""
+
+    slab: Slab
+    threshold: float = 1.0
+    kind: Literal["auto"] = "auto"
+
+    def as_dict(self) -> dict:
+        d = {**self.slab.as_dict(), "kind": "auto"}
+        if self.threshold != 1.0:
+            d["threshold"] = self.threshold
+        return d
+
+    @property
+    def slab_or_none(self) -> Slab | None:
+        """``None``: plane or slab is not chosen yet."""
+        return None
+
+    @property
+    def chosen_by_fit(self) -> bool:
+        return True
+
+    def renderer(self, *args, **kwargs):
+        raise ValueError(f"geometry: must be None, a Plane or a Slab to render, got {self!r}")
+
+    def resolve_model(self, medium, grid: Grid):
+        raise ValueError(f"geometry: must be a Plane or a Slab, got {self!r}")
+
+
+def as_geometry(value) -> Plane | Slab | AutoGeometry:
+    """A geometry value of the Python API as one object: ``None`` is the plane."""
+    if value is None:
+        return Plane()
+    if isinstance(value, Plane | Slab | AutoGeometry):
+        return value
+    raise ValueError(
+        f"geometry: must be None, a Plane or a Slab (or an AutoGeometry in a fit), got {value!r}"
+    )
+
+
+def rho_bound(medium, geometry=None):
+    """The per-bounce energy ratio bound ρ of the tail bound: ω·A(g) (or ω) for the
+    plane per its phase convention, ω for a slab (its 3-D phase function is normalised
+    on the sphere, whatever ``medium.phase`` says)."""
+    return as_geometry(geometry).rho_bound(medium)
+
+
+def _guides_light(boundary: str, albedo: float | None) -> bool:
+    """Refractive faces guide light far (total internal reflection) and, unless the
+    medium is dim (ω < 0.3, or unknown), the high orders that carry it matter."""
+    return boundary == "refractive" and (albedo is None or albedo >= DIM_ALBEDO)
+
+
+def default_slab_n_theta(g: float, boundary: str = "absorbing", albedo: float | None = None) -> int:
+    """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
+    the phase function at every quadrature node, so only the phase matrix of the later
+    bounces is binned: against 128 bins, 8 bins change I_3..I_5 by ≤ 0.11 % for g 0.4
+    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (measured on a 48×32 beam).
+    Light guided by refractive faces travels far between scatterings and needs at least
+    16 (measured, σt·h 0.3, g −0.3, ω 0.9, n_z 2: I_5 −2.2 % with 8 bins and 8 μ nodes
+    against the 3-D Monte Carlo, −1.0 % with 16)."""
+    a = abs(float(g))
+    if a <= 0.6:
+        n = 8
+    elif a <= 0.85:
+        n = 16
+    else:
+        n = 32
+    return max(n, 16) if _guides_light(boundary, albedo) else n
+
+
+def resolve_slab_grid(
+    grid: Grid,
+    slab: Slab,
+    g: float,
+    sigma_t: float | None = None,
+    albedo: float | None = None,
+) -> tuple[Grid, Slab]:
+    """Grid and slab with the discretisation the slab model needs for the medium filled
+    in: ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
+    does not smear thin beams), ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the
+    albedo ``None``: what their worst case needs)."""
+    if grid.n_theta is None:
+        n = default_slab_n_theta(g, slab.boundary, albedo)
+    else:
+        n = grid.n_theta
+    r = 1 if grid.refine is None else grid.refine
+    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g, sigma_t, albedo)
+
+
+def default_n_mu(
+    g: float,
+    thickness: float | None = None,
+    boundary: str = "absorbing",
+    albedo: float | None = None,
+) -> int:
+    """Elevation nodes for a phase function of asymmetry g: 4 for |g| ≤ 0.5, 8 to 0.7,
+    16 to 0.85, 24 beyond (measured: I_2, I_3 within 1 % of 16 nodes for g ≤ 0.4; g 0.8
+    needs 16). Absorbing slabs thinner than 2 px need more: the survival (1 − tμ/h)₊ then
+    confines the light to grazing μ ≲ h/r (measured against the layer-averaged oracle,
+    σt 0.1, g 0.4: ΣI_2 −15 % at h 0.25 px with 4 nodes, −1.7 % with 8, −0.2 % with 16):
+    at least 8 below 2 px, 16 below 0.5 px, 32 below 0.15 px."""
+    a = abs(float(g))
+    if a <= 0.5:
+        n = 4
+    elif a <= 0.7:
+        n = 8
+    elif a <= 0.85:
+        n = 16
+    else:
+        n = 24
+    if thickness is not None and boundary == "absorbing":
+        for limit, need in ((0.15, 32), (0.5, 16), (2.0, 8)):
+            if thickness < limit:
+                n = max(n, need)
+                break
+    return max(n, 16) if _guides_light(boundary, albedo) else n
+
+
+def default_n_z(
+    optical_thickness: float | None, albedo: float | None, boundary: str = "absorbing"
+) -> int:
+    """Depth layers for a slab of optical thickness σt·h and albedo ω (``None``:
+    unknown, the worst case): 1 for dim media (ω < 0.3: the orders a depth average
+    gets wrong, k ≥ 3, carry little light), else 8 behind absorbing faces, 4 behind
+    refractive ones thinner than one mean free path, 2 thicker ones.
+
+    Measured against the 3-D slab Monte Carlo (h 6.4 px, 48×32, full illumination,
+    σt·h 0.3 / 1.3 / 3, g −0.3 / 0.4 / 0.8 / 0.9; docs/slab_depth.md): the error of a
+    layer average falls about as 1/n_z. Absorbing faces empty the layers near them, so
+    the depth average misses I_6 by up to 20–50 %, 4 layers by up to 4.5 % (σt·h 1.3,
+    g −0.3), 8 layers by ≤ 2.2 %; refractive faces keep the light spread over the depth
+    (n_z = 1: 5–6 % at I_5, I_6 for g ≥ 0.8), 2 layers are within 1.3 % from σt·h 1.3
+    and 4 within 1.6 % at 0.3."""
+    if albedo is not None and albedo < DIM_ALBEDO:
+        return 1
+    if boundary == "absorbing":
+        return 8
+    return 4 if optical_thickness is None or optical_thickness < 1.0 else 2
+
+
+def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
+    """``geometry:`` of a simulate config or a capture file (absent: the plane).
+
+    ``kind: auto`` (captures only, ``allow_auto``) takes the slab's keys and an
+    optional ``threshold``; the fit chooses plane or slab (:class:`AutoGeometry`)."""
+    if spec is None:
+        return Plane()
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: must be a mapping with 'kind', got {spec!r}")
+    kind = spec.get("kind", "plane")
+    if not isinstance(kind, str):
+        raise ValueError(f"{where}.kind: must be a string (plane, slab), got {kind!r}")
+    if "kind" not in spec and "thickness" in spec:
+        raise ValueError(f"{where}.kind: missing (a slab needs kind: slab with its thickness)")
+    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z"}
+    allowed = {"plane": {"kind"}, "slab": slab_keys}
+    if allow_auto:
+        allowed["auto"] = slab_keys | {"threshold"}
+    if kind not in allowed:
+        raise ValueError(
+            f"{where}.kind: must be {' or '.join(repr(k) for k in allowed)}, got {kind!r}"
+            + ("" if allow_auto or kind != "auto" else " (auto is for fits: a capture file)")
+        )
+    unknown = sorted(set(spec) - allowed[kind])
+    if unknown:
+        raise ValueError(
+            f"{where}.{unknown[0]}: unknown key for kind {kind!r}; allowed keys: "
+            f"{', '.join(sorted(allowed[kind]))}"
+        )
+    if kind == "plane":
+        return Plane()
+    if "thickness" not in spec:
+        raise ValueError(f"{where}.thickness: required for kind 'slab' (depth in pixels)")
+    boundary = spec.get("boundary", "absorbing")
+    if "n" in spec and boundary != "refractive":
+        raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
+    try:
+        slab = Slab(
+            thickness=spec["thickness"],
+            boundary=boundary,
+            n=spec.get("n", 1.33),
+            n_mu=spec.get("n_mu"),
+            n_z=spec.get("n_z"),
+        )
+    except ValueError as err:
+        raise ValueError(str(err).replace("geometry", where, 1)) from None
+    if kind == "slab":
+        return slab
+    threshold = _positive_finite(spec.get("threshold", 1.0), f"{where}.threshold")
+    return AutoGeometry(slab, threshold)
+
+
+def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a face seen from inside the slab.
+
+    Args:
+        cos_incidence: cosine of the angle between the ray and the face normal, in [0, 1].
+        n: relative index n_medium / n_outside (> 0). For n > 1, R = 1 (total internal
+            reflection) where sin θi ≥ 1/n.
+
+    Returns R = (r_s² + r_p²)/2 with r_s = (n cos θi − cos θt)/(n cos θi + cos θt),
+    r_p = (cos θi − n cos θt)/(cos θi + n cos θt), n sin θi = sin θt. R(1) =
+    ((n − 1)/(n + 1))². (Shared with the Monte Carlo oracle, whose tests check it
+    against the angle form of the Fresnel equations.)
+    """
+    ci = np.clip(np.asarray(cos_incidence, dtype=np.float64), 0.0, 1.0)
+    if n == 1.0:  # index matched: no interface (and no 0/0 at grazing incidence)
+        return np.zeros_like(ci)
+    sin_t2 = n * n * (1.0 - ci * ci)
+    tir = sin_t2 > 1.0
+    ct = np.sqrt(np.maximum(1.0 - sin_t2, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = (n * ci - ct) / (n * ci + ct)
+        rp = (ci - n * ct) / (ci + n * ct)
+    return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
+
+
+def describe_geometry(model: dict) -> str:
+    """A short description of a fit result's ``model`` geometry (and auto's choice)."""
+    geo = model.get("geometry") or {"kind": "plane"}
+    if geo.get("kind") == "slab":
+        text = f"slab h {geo['thickness']:g} px {geo['boundary']}"
+        if geo["boundary"] == "refractive":
+            text += f" n {geo['n']:g}"
+        text += f", n_mu {geo.get('n_mu')}, n_z {geo.get('n_z', 1)}"
+    else:
+        text = "plane"
+    choice = model.get("geometry_choice")
+    if choice and "reason" in choice:
+        text += f" (auto: {choice['reason']})"
+    elif choice:
+        text += f" (auto: plane error {choice['plane_error']:.2g} vs noise {choice['noise']:.2g})"
+    return text
+
+
+__all__ = [
+    "AutoGeometry",
+    "BOUNDARIES",
+    "Plane",
+    "Slab",
+    "as_geometry",
+    "default_n_mu",
+    "default_n_z",
+    "default_slab_n_theta",
+    "describe_geometry",
+    "fresnel_reflectance",
+    "parse_geometry",
+    "resolve_slab_grid",
+    "rho_bound",
+]
