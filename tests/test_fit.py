@@ -506,3 +506,65 @@ def test_any_optimistix_least_squares_solver_can_be_passed():
     err = _errors(result, "milk")
     assert result.converged, result.message
     assert abs(err["sigma_s"]) < 0.005 and abs(err["g"]) < 0.005, err
+
+
+# ------------------------------------------------------------------ the series' tail
+
+# A forward medium at albedo 0.95 (normalized phase): its series needs hundreds of
+# bounces (the tail bound at the fit's margin asks for thousands), so the joint fit
+# keeps K0 explicit bounces and solves for the rest.
+HIGH_ALBEDO = (0.5, 0.475, 0.5)
+TAIL_GRID = lfj.Grid(24, 16, 16, 1)
+
+
+@functools.cache
+def _high_albedo_images() -> np.ndarray:
+    """Six stripe images of the high-albedo medium, the plain series marched to the tail
+    bound's 1e-4 (no tail in the data)."""
+    medium = lfj.Medium(*HIGH_ALBEDO, "normalized")
+    return GAIN * np.asarray(lfj.render(medium, TAIL_GRID, lfj.Stripes(), "auto").total)
+
+
+def _tail_fit(**kwargs) -> lfj.FitResult:
+    return lfj.fit_images(
+        _high_albedo_images(),
+        lfj.Stripes(),
+        black_level=0.0,
+        phase="normalized",
+        n_theta=TAIL_GRID.n_theta,
+        refine=1,
+        model_error=False,
+        **kwargs,
+    )
+
+
+@pytest.mark.slow
+def test_a_high_albedo_capture_is_recovered_with_the_tail():
+    result = _tail_fit()
+    tail = result.to_dict()["model"]["tail"]
+    assert tail["method"] == "bicgstab" and tail["K0"] == result.model["bounces"] == 8
+    assert tail["converged"] and tail["steps"] > 0
+    assert result.converged, result.message
+    st, ss, g = HIGH_ALBEDO
+    assert abs(result.sigma_t / st - 1) < 0.01
+    assert abs(result.sigma_s / ss - 1) < 0.03
+    assert abs(result.g - g) < 0.02
+
+
+def test_a_tail_that_does_not_converge_is_not_trusted():
+    """Two BiCGStab iterations cannot sum this series' tail: the fit must say so and
+    never report convergence."""
+    result = _tail_fit(tail_max_steps=2)
+    assert not result.converged
+    assert any("tail solve" in r and "did not converge" in r for r in result.reasons), (
+        result.reasons
+    )
+    d = result.to_dict()
+    assert d["converged"] is False and d["model"]["tail"]["converged"] is False
+    assert d["model"]["tail"]["max_steps"] == 2
+
+
+def test_few_bounces_keep_the_explicit_series():
+    """The paper's milk needs few bounces: no tail, the per-bounce model as before."""
+    result = _fit("milk", SMALL, "joint")
+    assert result.model["tail"] is None and result.model["tail_bound"] is not None

@@ -886,28 +886,38 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
     obs = jnp.asarray(data.images, dtype)
     black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
     with stopwatch() as timing:
-        try:
-            y, result, steps, unit, jac_r, tail = jax.block_until_ready(
-                solve_joint(
-                    settings,
-                    _solver(options, dtype),
-                    renderer,
-                    full,
-                    obs,
-                    black_fixed,
-                    jnp.asarray(weights, dtype),
-                    y0,
-                )
+        failure = None
+        if model.tail is not None:
+            # The tail's tangent solves (the Jacobian) raise where they do not converge
+            # (lineax): a tail that does not converge at the start is reported from a
+            # primal render, without running the solver.
+            unit, tail = model_at(
+                renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
             )
-            failure = None
-        except RuntimeError as e:
-            if model.tail is None:
-                raise
-            # A tangent solve of the tail (the Jacobian) stopped before its tolerance:
-            # lineax raises there. The answer is the start, not trustworthy.
-            failure = str(e).strip().splitlines()[0]
-            st, ss, g, b = unpack(y0, fit_black, black_fixed)
-            unit, tail = model_at(renderer, full, pattern.lit, st, ss, g, b, dtype)
+            if not bool(tail.converged):
+                failure = f"at the start, {int(tail.steps)} iterations"
+        if failure is None:
+            try:
+                y, result, steps, unit, jac_r, tail = jax.block_until_ready(
+                    solve_joint(
+                        settings,
+                        _solver(options, dtype),
+                        renderer,
+                        full,
+                        obs,
+                        black_fixed,
+                        jnp.asarray(weights, dtype),
+                        y0,
+                    )
+                )
+            except RuntimeError:
+                if model.tail is None:
+                    raise
+                failure = "a tangent solve of the Jacobian during the solve"
+                unit, tail = model_at(
+                    renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
+                )
+        if failure is not None:  # the answer is the start, not trustworthy
             y, steps, result = y0, 0, optx.RESULTS.nonlinear_divergence
             jac_r = jnp.full(unit.shape + (3 + fit_black,), jnp.nan, dtype)
     st, ss, g, b = (float(v) for v in unpack(y, fit_black, black_fixed))
@@ -927,7 +937,7 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
         if failure is not None:
             tail_dict["converged"] = False
             tail_dict["error"] = failure
-            ok, msg = False, f"a tail solve of the Jacobian did not converge: {failure}"
+            ok, msg = False, f"the tail solve did not converge ({failure})"
     return _Stage(
         model=model,
         values={"sigma_t": st, "sigma_s": ss, "g": g, "black_level": b, "gain": gain},
@@ -1781,9 +1791,7 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     model = _model_from(result.model)
 
     def render(illumination):
-        out = _renderer(model, illumination, result.phase)(
-            result.sigma_t, result.sigma_s, result.g
-        )
+        out = _renderer(model, illumination, result.phase)(result.sigma_t, result.sigma_s, result.g)
         if model.tail is None:
             return np.asarray(out[0])
         return np.concatenate([np.asarray(out[0]), np.asarray(out[2].image)[:, None]], axis=1)
