@@ -98,6 +98,19 @@ class Scan:
     basins: tuple[Basin, ...]
     sigma_t: float
     seconds: dict
+    # Per g: the render's last per-bounce ratio ΣI_K/ΣI_{K−1} at σs_ref and σs_ref
+    # (NaN: not measured), for :meth:`ratio_at`.
+    ratios: np.ndarray | None = None
+    sigma_s_ref: np.ndarray | None = None
+
+    def ratio_at(self, g: float, albedo: float) -> float:
+        """The per-bounce ratio of the scan's model at (g, albedo): I_k ∝ σs^k, so the
+        ratio at σs is (σs/σs_ref)·ratio(σs_ref), interpolated linearly in g (NaN where
+        the scan did not measure it)."""
+        if self.ratios is None:
+            return math.nan
+        scaled = albedo * self.sigma_t / self.sigma_s_ref * self.ratios
+        return float(np.interp(g, self.gs, scaled))
 
     def as_dict(self) -> dict:
         return {
@@ -125,12 +138,17 @@ def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_
     basis = jnp.concatenate([stripes, lit_all], axis=0) * weights[None]
     basis = basis.reshape(2 * k, -1)
     sums = jnp.sum(images, axis=(0, 2, 3))
-    ratio = sums[-1] / jnp.maximum(sums[-2], jnp.finfo(sums.dtype).tiny) if k > 1 else 0.0
+    ratio = (
+        sums[-1] / jnp.maximum(sums[-2], jnp.finfo(sums.dtype).tiny)
+        if k > 1
+        else jnp.zeros((), sums.dtype)
+    )
     return basis @ basis.T, basis @ (weights * obs).reshape(-1), ref, ratio
 
 
 def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, albedos, black):
-    """Misfit (weighted mean square) and projected black level on gs × albedos."""
+    """Misfit (weighted mean square) and projected black level on gs × albedos, and per
+    g the render's last per-bounce ratio and σs_ref."""
     total = jnp.sum((weights * obs) ** 2)
     n = jnp.sum(weights > 0)
 
@@ -162,7 +180,8 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
                 cost = jnp.where(ur < 1, cost, jnp.inf)
             return cost, b
 
-        return jax.vmap(per_albedo)(albedos)
+        cost, b = jax.vmap(per_albedo)(albedos)
+        return cost, b, ratio, ref
 
     return jax.lax.map(per_g, gs)
 
@@ -190,12 +209,13 @@ def scan(
     are ρ ≥ 1. With ``extrapolate`` the orders past K are extrapolated geometrically
     from the render's last ratio (see the module) instead, and only ρ ≥ 1 and points
     where that extrapolation diverges are left out. Returns ``(misfit, black, gs,
-    albedos)`` as NumPy arrays."""
+    albedos, ratios, sigma_s_ref)`` as NumPy arrays (``ratios``: per g, the render's
+    last per-bounce ratio at σs_ref)."""
     dtype = obs.dtype
     gs = np.linspace(-0.9, 0.9, n_g)
     albedos = np.linspace(0.02, 0.98, n_albedo)
     settings = ScanSettings(phase, black_level is None, lit, extrapolate)
-    cost, black = jitted(_scan, ("settings",))(
+    cost, black, ratios, refs = jitted(_scan, ("settings",))(
         settings,
         renderer,
         full,
@@ -214,7 +234,8 @@ def scan(
             tail = np.where(rho < 1, rho**k / np.maximum(1 - rho, 1e-12), np.inf)
         cost[i, (rho >= 1) if extrapolate else (tail > 0.01)] = np.inf
     cost[~np.isfinite(cost)] = np.inf
-    return cost, black, gs, albedos
+    ratios, refs = np.asarray(ratios, np.float64), np.asarray(refs, np.float64)
+    return cost, black, gs, albedos, ratios, refs
 
 
 def _neighbours(i: int, j: int, shape) -> list[tuple[int, int]]:
