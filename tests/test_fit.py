@@ -570,3 +570,32 @@ def test_few_bounces_keep_the_explicit_series():
     """The paper's milk needs few bounces: no tail, the per-bounce model as before."""
     result = _fit("milk", SMALL, "joint")
     assert result.model["tail"] is None and result.model["tail_bound"] is not None
+
+
+def test_the_model_size_chooses_a_march_or_the_tail():
+    """``tail: auto``: the tail bound's count where it is at most max_bounces (the milk);
+    beyond it K0 and BiCGStab (albedo 0.99), unless the scan's measured per-bounce
+    ratio asks for a march within max_bounces; ``tail: None`` marches, capped."""
+    from lightfield_jax.inverse.fit import _by_measured_ratio, size_model
+
+    images = np.zeros((6, 24, 32))
+    crop = (0, 0, 32, 24)
+
+    def sized(albedo, **kw):
+        opts = lfj.FitOptions(phase="normalized", n_theta=16, refine=1, **kw)
+        return size_model(images, lfj.Stripes(), albedo, 0.5, opts, crop=crop), opts
+
+    low, _ = sized(0.3)
+    assert low.tail is None and low.bounces <= 16
+    high, opts = sized(0.99)
+    assert (high.tail, high.bounces) == ("bicgstab", opts.tail_bounces)
+    assert high.as_dict()["tail"]["K0"] == opts.tail_bounces
+    assert high.as_dict()["tail_bound"] is None
+    marched = _by_measured_ratio(high, opts, 0.75)
+    assert marched.tail is None and 32 <= marched.bounces <= opts.max_bounces
+    assert marched.as_dict()["ratio_measured"] == 0.75
+    assert _by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
+    capped, opts = sized(0.99, tail=None)
+    assert capped.tail is None and capped.bounces == opts.max_bounces
+    forced, opts = sized(0.3, tail="gmres")
+    assert (forced.tail, forced.bounces) == ("gmres", opts.tail_bounces)
