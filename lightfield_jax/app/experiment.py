@@ -136,7 +136,9 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
         path = shipped  # a shipped config, by name
     if not path.is_file():
         known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
-        raise FileNotFoundError(f"{path}: no such experiment config (shipped: {', '.join(known)})")
+        raise FileNotFoundError(
+            f"{path}: no such experiment config (shipped: {', '.join(known)})"
+        )
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
