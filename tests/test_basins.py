@@ -100,3 +100,55 @@ def test_each_reason_not_to_trust_a_solution():
     far = error_budget(jac, rng.normal(size=100), ["sigma_t", "sigma_s", "g"], 1e-4)
     (reason,) = untrustworthy(ok, far, 100.0)
     assert reason.startswith("misfit far above the capture's noise")
+
+
+def test_ratio_at_scales_the_measured_ratio_with_sigma_s():
+    """I_k ∝ σs^k: the ratio at albedo ω is (ω σt/σs_ref)·ratio(σs_ref), linear in g
+    between the scan's g values."""
+    cost = _two_wells()
+    scan = _scan_of(cost)
+    scan = Scan(
+        scan.gs,
+        scan.albedos,
+        cost,
+        scan.black,
+        scan.basins,
+        0.2,
+        {},
+        ratios=np.linspace(0.5, 0.8, 13),
+        sigma_s_ref=np.full(13, 0.18),
+    )
+    assert scan.ratio_at(-0.9, 0.9) == pytest.approx(0.5)
+    assert scan.ratio_at(0.9, 0.45) == pytest.approx(0.4)
+    assert scan.ratio_at(-0.75, 0.9) == pytest.approx(0.525)
+    assert math.isnan(_scan_of(cost).ratio_at(0.0, 0.5))  # not measured
+
+
+def test_an_extrapolated_scan_finds_a_high_albedo_basin():
+    """Albedo 0.95 (normalized phase): 24 marched bounces leave most of the light out,
+    the geometric tail puts it back, and the best basin is the truth's grid point."""
+    from lightfield_jax.forward.render import renderer_for
+    from lightfield_jax.inverse.basins import scan
+
+    st, ss, g = 0.5, 0.475, 0.5
+    grid = lfj.Grid(24, 16, 16, 1)
+    medium = lfj.Medium(st, ss, g, "normalized")
+    images = np.asarray(lfj.render(medium, grid, lfj.Stripes(), "auto").total)
+    weights = 1.0 / np.sqrt(images + 1e-3 * images.max())
+    cost, _black, gs, albedos, ratios, refs = scan(
+        renderer_for(grid, lfj.Stripes(), 24, "normalized"),
+        None,
+        images,
+        weights,
+        st,
+        phase="normalized",
+        lit=3,
+        black_level=0.0,
+        rho_limit=lambda _g, a: np.asarray(a),
+        extrapolate=True,
+    )
+    found = basins(cost, _black, gs, albedos, 1.0, 3)
+    best = found[0]
+    assert abs(best.g - g) <= 0.5 * (gs[1] - gs[0]) + 1e-9, found
+    assert abs(best.albedo - ss / st) <= 0.5 * (albedos[1] - albedos[0]) + 1e-9, found
+    assert np.all((ratios > 0) & (ratios < 1)) and np.all(refs > 0)

@@ -507,3 +507,96 @@ def test_any_optimistix_least_squares_solver_can_be_passed():
     err = _errors(result, "milk")
     assert result.converged, result.message
     assert abs(err["sigma_s"]) < 0.005 and abs(err["g"]) < 0.005, err
+
+
+# ------------------------------------------------------------------ the series' tail
+
+# A forward medium at albedo 0.95 (normalized phase): its series needs hundreds of
+# bounces (the tail bound at the fit's margin asks for thousands). On this small grid
+# walls leak much of the light at every bounce, so the automatic choice could march;
+# the tests name the tail solve to test it.
+HIGH_ALBEDO = (0.5, 0.475, 0.5)
+TAIL_GRID = lfj.Grid(24, 16, 16, 1)
+
+
+@functools.cache
+def _high_albedo_images() -> np.ndarray:
+    """Six stripe images of the high-albedo medium, the plain series marched to the tail
+    bound's 1e-4 (no tail in the data)."""
+    medium = lfj.Medium(*HIGH_ALBEDO, "normalized")
+    return GAIN * np.asarray(lfj.render(medium, TAIL_GRID, lfj.Stripes(), "auto").total)
+
+
+def _tail_fit(**kwargs) -> lfj.FitResult:
+    return lfj.fit_images(
+        _high_albedo_images(),
+        lfj.Stripes(),
+        black_level=0.0,
+        phase="normalized",
+        n_theta=TAIL_GRID.n_theta,
+        refine=1,
+        model_error=False,
+        tail="bicgstab",
+        **kwargs,
+    )
+
+
+@pytest.mark.slow
+def test_a_high_albedo_capture_is_recovered_with_the_tail():
+    result = _tail_fit()
+    tail = result.to_dict()["model"]["tail"]
+    assert tail["method"] == "bicgstab" and tail["K0"] == result.model["bounces"] == 8
+    assert tail["converged"] and tail["steps"] > 0
+    assert result.converged, result.message
+    st, ss, g = HIGH_ALBEDO
+    assert abs(result.sigma_t / st - 1) < 0.01
+    assert abs(result.sigma_s / ss - 1) < 0.03
+    assert abs(result.g - g) < 0.02
+
+
+def test_a_tail_that_does_not_converge_is_not_trusted():
+    """Two BiCGStab iterations cannot sum this series' tail: the fit must say so and
+    never report convergence."""
+    result = _tail_fit(tail_max_steps=2)
+    assert not result.converged
+    assert any("tail solve" in r and "did not converge" in r for r in result.reasons), (
+        result.reasons
+    )
+    d = result.to_dict()
+    assert d["converged"] is False and d["model"]["tail"]["converged"] is False
+    assert d["model"]["tail"]["max_steps"] == 2
+
+
+def test_few_bounces_keep_the_explicit_series():
+    """The paper's milk needs few bounces: no tail, the per-bounce model as before."""
+    result = _fit("milk", SMALL, "joint")
+    assert result.model["tail"] is None and result.model["tail_bound"] is not None
+
+
+def test_the_model_size_chooses_a_march_or_the_tail():
+    """``tail: auto``: the tail bound's count where it is at most max_bounces (the milk);
+    beyond it K0 and BiCGStab (albedo 0.99), unless the scan's measured per-bounce
+    ratio asks for a march within max_bounces; ``tail: None`` marches, capped."""
+    from lightfield_jax.inverse.fit import _by_measured_ratio, size_model
+
+    images = np.zeros((6, 24, 32))
+    crop = (0, 0, 32, 24)
+
+    def sized(albedo, **kw):
+        opts = lfj.FitOptions(phase="normalized", n_theta=16, refine=1, **kw)
+        return size_model(images, lfj.Stripes(), albedo, 0.5, opts, crop=crop), opts
+
+    low, _ = sized(0.3)
+    assert low.tail is None and low.bounces <= 16
+    high, opts = sized(0.99)
+    assert (high.tail, high.bounces) == ("bicgstab", opts.tail_bounces)
+    assert high.as_dict()["tail"]["K0"] == opts.tail_bounces
+    assert high.as_dict()["tail_bound"] is None
+    marched = _by_measured_ratio(high, opts, 0.75)
+    assert marched.tail is None and 32 <= marched.bounces <= opts.max_bounces
+    assert marched.as_dict()["ratio_measured"] == 0.75
+    assert _by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
+    capped, opts = sized(0.99, tail=None)
+    assert capped.tail is None and capped.bounces == opts.max_bounces
+    forced, opts = sized(0.3, tail="gmres")
+    assert (forced.tail, forced.bounces) == ("gmres", opts.tail_bounces)

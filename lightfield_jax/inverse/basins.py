@@ -13,6 +13,11 @@ bounces the capture's brightness ratio calls for):
   variable projection: at each grid point the model is linear in c·(1 − b) and c·b,
   whose least-squares values come from 2×2 normal equations built from the K×K Gram
   matrices of the weighted I_k, so the whole map costs n_g renders and small algebra;
+- where the fit sums the series' tail with a solve (high albedo: the series is too
+  long to march), the scan marches K bounces and extrapolates the rest geometrically:
+  Σ_{k>K} u^k I_k ≈ u^K I_K·(u r)/(1 − u r), r = ΣI_K/ΣI_{K−1} the per-bounce ratio
+  of the render at σs_ref (u r at σs = u·σs_ref), so I_K's coefficient becomes
+  u^K/(1 − u r) and the map still costs n_g renders; points with u r ≥ 1 are left out;
 - every local minimum of the map whose misfit is within ``tolerance`` (relative) of the
   best is a basin; the fit solves each with the full model and keeps the best.
 
@@ -56,6 +61,7 @@ class ScanSettings:
     phase: str
     fit_black: bool
     lit: int
+    extrapolate: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,6 +98,19 @@ class Scan:
     basins: tuple[Basin, ...]
     sigma_t: float
     seconds: dict
+    # Per g: the render's last per-bounce ratio ΣI_K/ΣI_{K−1} at σs_ref and σs_ref
+    # (NaN: not measured), for :meth:`ratio_at`.
+    ratios: np.ndarray | None = None
+    sigma_s_ref: np.ndarray | None = None
+
+    def ratio_at(self, g: float, albedo: float) -> float:
+        """The per-bounce ratio of the scan's model at (g, albedo): I_k ∝ σs^k, so the
+        ratio at σs is (σs/σs_ref)·ratio(σs_ref), interpolated linearly in g (NaN where
+        the scan did not measure it)."""
+        if self.ratios is None:
+            return math.nan
+        scaled = albedo * self.sigma_t / self.sigma_s_ref * self.ratios
+        return float(np.interp(g, self.gs, scaled))
 
     def as_dict(self) -> dict:
         return {
@@ -105,7 +124,8 @@ class Scan:
 
 def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_t, g):
     """The Gram matrix (2K × 2K) of the weighted basis [I_k^p, I_k^full] at g (rendered
-    at σs_ref(g)), its products with the weighted data (2K) and σs_ref."""
+    at σs_ref(g)), its products with the weighted data (2K), σs_ref and the per-bounce
+    ratio r = ΣI_K/ΣI_{K−1} of the render."""
     ref, _ = reference_sigma_s(sigma_t, g, settings.phase)
     images = renderer(sigma_t, ref, g)[0]  # (P, K, h, w)
     if full is None:
@@ -117,21 +137,32 @@ def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_
     lit_all = jnp.broadcast_to(full_images[:, None], stripes.shape)
     basis = jnp.concatenate([stripes, lit_all], axis=0) * weights[None]
     basis = basis.reshape(2 * k, -1)
-    return basis @ basis.T, basis @ (weights * obs).reshape(-1), ref
+    sums = jnp.sum(images, axis=(0, 2, 3))
+    ratio = (
+        sums[-1] / jnp.maximum(sums[-2], jnp.finfo(sums.dtype).tiny)
+        if k > 1
+        else jnp.zeros((), sums.dtype)
+    )
+    return basis @ basis.T, basis @ (weights * obs).reshape(-1), ref, ratio
 
 
 def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, albedos, black):
-    """Misfit (weighted mean square) and projected black level on gs × albedos."""
+    """Misfit (weighted mean square) and projected black level on gs × albedos, and per
+    g the render's last per-bounce ratio and σs_ref."""
     total = jnp.sum((weights * obs) ** 2)
     n = jnp.sum(weights > 0)
 
     def per_g(g):
-        gram, proj, ref = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
+        gram, proj, ref, ratio = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
         k = gram.shape[0] // 2
         orders = jnp.arange(1, k + 1, dtype=gram.dtype)
 
         def per_albedo(albedo):
-            v = (albedo * sigma_t / ref) ** orders
+            u = albedo * sigma_t / ref
+            v = u**orders
+            ur = u * ratio
+            if settings.extrapolate:  # Σ_{k≥K} u^k I_k ≈ u^K I_K / (1 − u r)
+                v = v.at[-1].divide(jnp.where(ur < 1, 1 - ur, 1.0))
             z = jnp.zeros_like(v)
             va, vb = jnp.concatenate([v, z]), jnp.concatenate([z, v])
             m = jnp.array([[va @ gram @ va, va @ gram @ vb], [vb @ gram @ va, vb @ gram @ vb]])
@@ -145,9 +176,12 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
             col = jnp.array([1.0 - b, b])
             norm = col @ m @ col
             cost = (total - (col @ rhs) ** 2 / norm) / n
+            if settings.extrapolate:
+                cost = jnp.where(ur < 1, cost, jnp.inf)
             return cost, b
 
-        return jax.vmap(per_albedo)(albedos)
+        cost, b = jax.vmap(per_albedo)(albedos)
+        return cost, b, ratio, ref
 
     return jax.lax.map(per_g, gs)
 
@@ -165,18 +199,23 @@ def scan(
     rho_limit,
     n_g: int = 13,
     n_albedo: int = 33,
+    extrapolate: bool = False,
 ):
     """The misfit map of the joint problem on the cheap model ``renderer`` (and ``full``
     for full illumination, or ``None`` when the phases tile the period), σt fixed.
 
     ``rho_limit(g, albedos)`` gives the per-bounce ratio ρ of each albedo at g; points
     whose ρ^K/(1 − ρ) exceeds 1 % (K the renderer's bounces) are left out (inf), as
-    are ρ ≥ 1. Returns ``(misfit, black, gs, albedos)`` as NumPy arrays."""
+    are ρ ≥ 1. With ``extrapolate`` the orders past K are extrapolated geometrically
+    from the render's last ratio (see the module) instead, and only ρ ≥ 1 and points
+    where that extrapolation diverges are left out. Returns ``(misfit, black, gs,
+    albedos, ratios, sigma_s_ref)`` as NumPy arrays (``ratios``: per g, the render's
+    last per-bounce ratio at σs_ref)."""
     dtype = obs.dtype
     gs = np.linspace(-0.9, 0.9, n_g)
     albedos = np.linspace(0.02, 0.98, n_albedo)
-    settings = ScanSettings(phase, black_level is None, lit)
-    cost, black = jitted(_scan, ("settings",))(
+    settings = ScanSettings(phase, black_level is None, lit, extrapolate)
+    cost, black, ratios, refs = jitted(_scan, ("settings",))(
         settings,
         renderer,
         full,
@@ -193,9 +232,10 @@ def scan(
         rho = np.asarray(rho_limit(float(g), albedos), np.float64)
         with np.errstate(divide="ignore"):
             tail = np.where(rho < 1, rho**k / np.maximum(1 - rho, 1e-12), np.inf)
-        cost[i, tail > 0.01] = np.inf
+        cost[i, (rho >= 1) if extrapolate else (tail > 0.01)] = np.inf
     cost[~np.isfinite(cost)] = np.inf
-    return cost, black, gs, albedos
+    ratios, refs = np.asarray(ratios, np.float64), np.asarray(refs, np.float64)
+    return cost, black, gs, albedos, ratios, refs
 
 
 def _neighbours(i: int, j: int, shape) -> list[tuple[int, int]]:

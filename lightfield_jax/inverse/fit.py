@@ -45,8 +45,9 @@ import numpy as np
 import optimistix as optx
 
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.forward.render import make_renderer, renderer_for
+from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.forward.slab import slab_bounce_ratio
+from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.basins import Scan, basins, scan, worse_basin
 from lightfield_jax.inverse.data import FitData as _Data
 from lightfield_jax.inverse.data import FitProblem, prepare_data
@@ -60,6 +61,7 @@ from lightfield_jax.inverse.trust import (
     at_bound,
     error_budget,
     noise_scale,
+    tail_unconverged,
     untrustworthy,
 )
 from lightfield_jax.inverse.two_step import full_for as _full_for
@@ -93,7 +95,18 @@ class FitOptions:
         phase: phase convention of the model (``paper`` or ``normalized``).
         bounces: K, or ``"auto"`` from the tail bound at the starting estimate.
         tolerance: relative tail tolerance for ``bounces: auto``.
-        max_bounces: cap on ``auto`` (the paper series near ρ = 1 needs many).
+        max_bounces: cap on ``auto`` without a tail (the paper series near ρ = 1 needs
+            many).
+        tail: (``joint``) how the bounce series is summed past its explicit bounces:
+            ``"auto"`` (default: the plane's series is marched while ``bounces: auto``
+            asks for at most ``max_bounces`` bounces, else ``tail_bounces`` explicit
+            bounces and a BiCGStab solve of the rest), ``None`` (always marched, capped
+            at ``max_bounces``), or ``"gmres"`` / ``"bicgstab"`` (always that solve
+            after ``tail_bounces``; :mod:`lightfield_jax.forward.tail`). The tail's
+            relative tolerance is ``tolerance``. Plane and slab alike.
+        tail_bounces: K0, the explicit bounces kept before a tail solve.
+        tail_max_steps: iteration limit of a tail solve; one that stops there makes
+            the result not trustworthy.
         n_theta: direction bins, or ``None`` to choose them from the starting g.
         refine: spatial refinement, or ``None`` to choose it from the starting g.
         g_grid: number of g values of the ``grid`` method's search on (−0.95, 0.95).
@@ -135,6 +148,9 @@ class FitOptions:
     bounces: int | str = "auto"
     tolerance: float = 1e-4
     max_bounces: int = 80
+    tail: str | None = "auto"
+    tail_bounces: int = 8
+    tail_max_steps: int = 200
     n_theta: int | None = None
     refine: int | None = None
     g_grid: int = 39
@@ -156,6 +172,16 @@ class FitOptions:
 
     def __post_init__(self):
         method_for(self.method)  # a known name or a FitMethod
+        if self.tail is not None and self.tail != "auto" and self.tail not in TAIL_METHODS:
+            raise ValueError(
+                f"tail: must be auto, None or one of {', '.join(TAIL_METHODS)}, got {self.tail!r}"
+            )
+        if not isinstance(self.tail_bounces, int) or self.tail_bounces < 2:
+            raise ValueError(f"tail_bounces: must be an integer >= 2, got {self.tail_bounces!r}")
+        if not isinstance(self.tail_max_steps, int) or self.tail_max_steps < 1:
+            raise ValueError(
+                f"tail_max_steps: must be an integer >= 1, got {self.tail_max_steps!r}"
+            )
         if self.g_grid < 3:
             raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
         if self.max_basins < 1:
@@ -323,9 +349,15 @@ class _Model:
     converges: bool
     rho: float  # ρ at the estimate the model was sized for
     geometry: Slab | None = None  # resolved (n_mu set); None: the plane
+    tail: str | None = None  # the tail solve after ``bounces`` = K0, or None: marched
+    tail_tol: float = 1e-4
+    tail_max_steps: int = 200
+    ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
 
     def as_dict(self) -> dict:
-        tail = self.rho**self.bounces / (1 - self.rho) if self.converges else None
+        marched = self.converges and self.tail is None
+        r = self.rho if self.ratio is None else self.ratio
+        tail = r**self.bounces / (1 - r) if marched else None
         return {
             "geometry": (self.geometry or Plane()).as_dict(),
             "width": self.grid.width,
@@ -336,7 +368,16 @@ class _Model:
             "crop": list(self.crop),
             "series_converges": self.converges,
             "rho_estimate": self.rho,
+            "ratio_measured": self.ratio,
             "tail_bound": tail,
+            "tail": None
+            if self.tail is None
+            else {
+                "method": self.tail,
+                "K0": self.bounces,
+                "tol": self.tail_tol,
+                "max_steps": self.tail_max_steps,
+            },
         }
 
 
@@ -435,15 +476,65 @@ def size_model(
         k = options.bounces
     elif converges:
         bound = min(rho * margin + 0.01, 0.995)
-        # Capped at max_bounces (the model's tail bound is reported with the result).
-        k = min(
-            _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)),
-            options.max_bounces,
-        )
+        k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
     else:
         k = options.max_bounces
-    return _Model(
+    model = _Model(
         grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho, geometry=slab
+    )
+    return _with_tail(model, options)
+
+
+def _tail_for(options: FitOptions, model: _Model) -> str | None:
+    """The tail solve of a model that would march ``model.bounces`` (``None``: it marches
+    them): under ``tail: auto`` with ``bounces: auto``, BiCGStab once they exceed
+    ``max_bounces`` (measured on the dense forward medium, 128×96, 32 θ bins, six
+    patterns: the value and Jacobian of K0 = 8 bounces and the BiCGStab tail cost what
+    80 marched bounces do); under a named method always; never for a divergent series."""
+    if not model.converges or options.tail is None:
+        return None
+    if options.tail == "auto":
+        auto = options.bounces == "auto" and model.bounces > options.max_bounces
+        return "bicgstab" if auto else None
+    return options.tail
+
+
+# Added to a measured per-bounce ratio before sizing a march from it (the ratio of the
+# scan's last bounce, on its cheap model, at the estimate rather than the answer).
+RATIO_MARGIN = 0.02
+
+
+def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Model:
+    """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
+    below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) instead of its tail, where it
+    has an automatic tail and that count is at most ``max_bounces``. Walls leak light at
+    every bounce, so the measured ratio is well below ρ = ω: 0.75 for the dense forward
+    medium (ω 0.8) on 128×96, a 48-bounce march, whose value and Jacobian cost 0.4× the
+    tail's (measured at 32 θ bins); a ratio near 1 still gets the tail."""
+    if model.tail is None or options.tail != "auto" or not math.isfinite(ratio):
+        return model
+    bound = min(ratio + RATIO_MARGIN, 0.995)
+    k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
+    if k > options.max_bounces:
+        return model
+    return dataclasses.replace(model, bounces=max(k, 2), tail=None, ratio=ratio)
+
+
+def _with_tail(model: _Model, options: FitOptions) -> _Model:
+    """``model`` with a tail and K0 explicit bounces where it gets one, else with its
+    bounces capped at ``max_bounces`` (``bounces: auto``; the model's tail bound is
+    reported with the result)."""
+    tail = _tail_for(options, model)
+    if tail is None:
+        if options.bounces == "auto":
+            return dataclasses.replace(model, bounces=min(model.bounces, options.max_bounces))
+        return model
+    return dataclasses.replace(
+        model,
+        bounces=options.tail_bounces,
+        tail=tail,
+        tail_tol=options.tolerance,
+        tail_max_steps=options.tail_max_steps,
     )
 
 
@@ -472,7 +563,18 @@ def _result_message(result) -> tuple[bool, str]:
 
 
 def _renderer(model: _Model, illumination, phase: str):
-    return renderer_for(model.grid, illumination, model.bounces, phase, model.geometry)
+    if model.tail is None:
+        return renderer_for(model.grid, illumination, model.bounces, phase, model.geometry)
+    return renderer_for(
+        model.grid,
+        illumination,
+        model.bounces,
+        phase,
+        model.geometry,
+        model.tail,
+        model.tail_tol,
+        model.tail_max_steps,
+    )
 
 
 def _joint_parts(pattern: Stripes, model: _Model, phase: str):
@@ -511,6 +613,7 @@ class _Stage:
     rms: float
     compile: float
     run: float
+    tail: dict | None = None  # the tail solve at the answer: steps, converged (or error)
 
 
 def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
@@ -522,18 +625,40 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
     obs = jnp.asarray(data.images, dtype)
     black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
     with stopwatch() as timing:
-        y, result, steps, unit, jac_r = jax.block_until_ready(
-            solve_joint(
-                settings,
-                _solver(options, dtype),
-                renderer,
-                full,
-                obs,
-                black_fixed,
-                jnp.asarray(weights, dtype),
-                y0,
+        failure = None
+        if model.tail is not None:
+            # The tail's tangent solves (the Jacobian) raise where they do not converge
+            # (lineax): a tail that does not converge at the start is reported from a
+            # primal render, without running the solver.
+            unit, tail = model_at(
+                renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
             )
-        )
+            if not bool(tail.converged):
+                failure = f"at the start, {int(tail.steps)} iterations"
+        if failure is None:
+            try:
+                y, result, steps, unit, jac_r, tail = jax.block_until_ready(
+                    solve_joint(
+                        settings,
+                        _solver(options, dtype),
+                        renderer,
+                        full,
+                        obs,
+                        black_fixed,
+                        jnp.asarray(weights, dtype),
+                        y0,
+                    )
+                )
+            except RuntimeError:
+                if model.tail is None:
+                    raise
+                failure = "a tangent solve of the Jacobian during the solve"
+                unit, tail = model_at(
+                    renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
+                )
+        if failure is not None:  # the answer is the start, not trustworthy
+            y, steps, result = y0, 0, optx.RESULTS.nonlinear_divergence
+            jac_r = jnp.full(unit.shape + (3 + fit_black,), jnp.nan, dtype)
     st, ss, g, b = (float(v) for v in unpack(y, fit_black, black_fixed))
     w = np.asarray(weights, np.float64)
     unit = np.asarray(unit, np.float64)
@@ -545,6 +670,13 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
     jac = np.concatenate([cols[:, :3], wr.reshape(-1, 1), cols[:, 3:]], axis=1)
     n = int(np.sum(data.mask)) * obs.shape[0]
     ok, msg = _result_message(result)
+    tail_dict = None
+    if model.tail is not None:
+        tail_dict = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+        if failure is not None:
+            tail_dict["converged"] = False
+            tail_dict["error"] = failure
+            ok, msg = False, f"the tail solve did not converge ({failure})"
     return _Stage(
         model=model,
         values={"sigma_t": st, "sigma_s": ss, "g": g, "black_level": b, "gain": gain},
@@ -559,6 +691,7 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
         rms=float(np.sqrt(np.sum(residual**2) / max(n, 1))),
         compile=timing.compile,
         run=timing.run,
+        tail=tail_dict,
     )
 
 
@@ -612,11 +745,10 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
         n_theta = min(options.n_theta or 8, 8)
         geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4), n_z=1)
     rho = min(max(rho0, 0.3), 0.95)
-    k = bounces_for_tolerance(rho, 1e-3, max_bounces=10**9)
-    k = min(_bucket_bounces(k), options.max_bounces)
+    k = _bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
     if isinstance(options.bounces, int):
         k = options.bounces
-    return _Model(
+    model = _Model(
         grid=Grid(width, height, n_theta, 1),
         bounces=max(k, 2),
         crop=crop,
@@ -624,6 +756,7 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
         rho=rho,
         geometry=geometry,
     )
+    return _with_tail(model, options)
 
 
 def _rho_of(options: FitOptions):
@@ -636,11 +769,19 @@ def _rho_of(options: FitOptions):
     return rho
 
 
+# Explicit bounces of the scan on a model with a tail: the orders beyond them are
+# extrapolated geometrically (:func:`lightfield_jax.inverse.basins.scan`).
+SCAN_TAIL_BOUNCES = 24
+
+
 def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigma_t0) -> Scan:
+    extrapolate = model.tail is not None
+    if extrapolate:
+        model = dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None)
     renderer, full = _joint_parts(pattern, model, options.phase)
     dtype = jnp.result_type(float)
     with stopwatch() as timing:
-        cost, black_map, gs, albedos = scan(
+        cost, black_map, gs, albedos, ratios, refs = scan(
             renderer,
             full,
             jnp.asarray(data.images, dtype),
@@ -650,6 +791,7 @@ def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigm
             lit=pattern.lit,
             black_level=black,
             rho_limit=_rho_of(options),
+            extrapolate=extrapolate,
         )
     found = basins(cost, black_map, gs, albedos, options.basin_tolerance, options.max_basins)
     return Scan(
@@ -660,6 +802,8 @@ def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigm
         basins=found,
         sigma_t=sigma_t0,
         seconds={"compile": timing.compile, "run": timing.run},
+        ratios=ratios if extrapolate else None,
+        sigma_s_ref=refs,
     )
 
 
@@ -697,6 +841,7 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
         sigma_t=v["sigma_t"],
         crop=coarse.crop,
     )
+    need = _by_measured_ratio(need, options, the_scan.ratio_at(v["g"], albedo))
     need = _at_least(need, floor)
     if _covers(coarse, need):
         # The cheap model is already as large as the answer needs: refit it with the
@@ -718,9 +863,10 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
 
 def _finer(model: _Model, options: FitOptions) -> _Model:
     """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
-    elevation nodes), 1.5× + 4 the bounces (the spatial refinement stays: 4× the cost
-    for a term the θ bins and bounces dominate below |g| 0.65, where the size rule
-    keeps refine 1)."""
+    elevation nodes), 1.5× + 4 the bounces or, with a tail, the same K0 and a tail
+    tolerance ten times as tight (the spatial refinement stays: 4× the cost for a term
+    the θ bins and bounces dominate below |g| 0.65, where the size rule keeps
+    refine 1)."""
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
@@ -730,17 +876,22 @@ def _finer(model: _Model, options: FitOptions) -> _Model:
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
     else:
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 256))
+    if model.tail is not None:  # the same K0, a tail ten times as tight
+        return dataclasses.replace(
+            model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
+        )
     bounces = model.bounces if isinstance(options.bounces, int) else model.bounces * 3 // 2 + 4
     return dataclasses.replace(model, grid=grid, bounces=bounces, geometry=geometry)
 
 
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
-    """r_fine − r at the solution (one render of :func:`_finer`'s model) and its seconds."""
+    """r_fine − r at the solution (one render of :func:`_finer`'s model), that model, its
+    tail solve's steps and convergence (``None`` without a tail) and its seconds."""
     fine = _finer(stage.model, options)
     renderer, full = _joint_parts(pattern, fine, options.phase)
     v = stage.values
     with stopwatch() as timing:
-        unit = model_at(
+        unit, tail = model_at(
             renderer,
             full,
             pattern.lit,
@@ -752,7 +903,10 @@ def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tu
         )
         unit = np.asarray(jax.block_until_ready(unit), np.float64)
     shift = (stage.weights * v["gain"] * (unit - stage.unit)).reshape(-1)
-    return shift, fine, timing
+    fine_tail = None
+    if fine.tail is not None:
+        fine_tail = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+    return shift, fine, fine_tail, timing
 
 
 def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say):
@@ -767,9 +921,15 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
 
     coarse = _scan_model(crop, options, rho0)
     weights = joint_weights(data.images, data.mask, data.exposure)
+    marched = (
+        f"{coarse.bounces} bounces"
+        if coarse.tail is None
+        else f"{SCAN_TAIL_BOUNCES} bounces and a geometric tail (the fit: K0 = "
+        f"{coarse.bounces} and a {coarse.tail} tail)"
+    )
     say(
         f"basin scan: g x albedo on a {coarse.grid.width}x{coarse.grid.height} model, "
-        f"n_theta {coarse.grid.n_theta}, {coarse.bounces} bounces"
+        f"n_theta {coarse.grid.n_theta}, {marched}"
     )
     the_scan = _run_scan(data, pattern, coarse, options, black, weights, data.sigma_t0)
     count(the_scan.seconds)
@@ -788,6 +948,12 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             (f"basin {i}", (st0, b.albedo * st0, b.g, b.black_level if black is None else black))
             for i, b in enumerate(found)
         ]
+    # One cheap model for every start: marched where the scan's measured ratio at each
+    # start allows it (see _by_measured_ratio).
+    ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
+    coarse = _by_measured_ratio(coarse, options, ratio)
+    if coarse.tail is None and the_scan.ratios is not None:
+        say(f"  measured per-bounce ratio {ratio:.3f}: {coarse.bounces} bounces marched")
     tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
     for label, start in starts:
@@ -835,13 +1001,15 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if black is None else [])
     fit_black = black is None
     noise = noise_scale(data.images, last.weights, pattern)
-    shift, fine = None, None
+    shift, fine, fine_tail = None, None, None
     if options.model_error:
-        shift, fine, t = _model_shift(data, pattern, last, options)
+        shift, fine, fine_tail, t = _model_shift(data, pattern, last, options)
         count(t)
     budget = error_budget(last.jac, last.residual, names, noise, shift)
     v = last.values
     reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
+    reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
+    reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
     other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
     if other is not None:
         reasons.append(
@@ -852,6 +1020,8 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     if reasons:
         ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" (solver: {msg})"
     model_dict = last.model.as_dict()
+    if last.tail is not None:
+        model_dict["tail"].update(last.tail)
     if fine is not None:
         model_dict["finer_model"] = {
             "n_theta": fine.grid.n_theta,
@@ -860,6 +1030,11 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             **(
                 {"n_mu": fine.geometry.n_mu, "n_z": fine.geometry.n_z}
                 if fine.geometry is not None
+                else {}
+            ),
+            **(
+                {"tail": {"method": fine.tail, "tol": fine.tail_tol, **fine_tail}}
+                if fine_tail is not None
                 else {}
             ),
         }
@@ -1023,9 +1198,14 @@ def _fit_one(
 
 
 def _covers(have: _Model, need: _Model) -> bool:
+    # A tail sums every order past K0: it covers any bounce count, a march only its own.
+    if need.tail is not None:
+        orders = have.tail == need.tail and have.bounces >= need.bounces
+    else:
+        orders = have.tail is not None or have.bounces >= need.bounces
     return (
         have.crop == need.crop
-        and have.bounces >= need.bounces
+        and orders
         and have.grid.n_theta >= need.grid.n_theta
         and have.grid.refine >= need.grid.refine
     )
@@ -1240,6 +1420,7 @@ def _one_line(result: FitResult) -> str:
 def _model_from(d: dict) -> _Model:
     """The :class:`_Model` of a result's ``model`` dict."""
     geometry = parse_geometry(d.get("geometry"), "model.geometry")
+    tail = d.get("tail") or {}
     return _Model(
         grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),
         bounces=d["bounces"],
@@ -1247,6 +1428,10 @@ def _model_from(d: dict) -> _Model:
         converges=d["series_converges"],
         rho=d["rho_estimate"],
         geometry=geometry.slab_or_none,
+        tail=tail.get("method"),
+        tail_tol=tail.get("tol", 1e-4),
+        tail_max_steps=tail.get("max_steps", 200),
+        ratio=d.get("ratio_measured"),
     )
 
 
@@ -1289,21 +1474,21 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
 def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     """The fitted model's per-bounce images of every pattern and under full illumination,
     gain and black level included, over the cropped model region placed in an image of
-    ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``."""
-    m = result.model
-    grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
-    geometry = parse_geometry(m.get("geometry"), "model.geometry")
-    geometry = geometry.slab_or_none
-    st, ss, g, c = result.sigma_t, result.sigma_s, result.g, result.gain
-    b = result.black_level or 0.0
-    k = m["bounces"]
-    stripes = np.asarray(make_renderer(grid, pattern, k, result.phase, geometry)(st, ss, g)[0])
-    full = np.asarray(
-        make_renderer(grid, _full_for(pattern), k, result.phase, geometry)(st, ss, g)[0][0]
-    )
+    ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``. A model with
+    a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k."""
+    model = _model_from(result.model)
+
+    def render(illumination):
+        out = _renderer(model, illumination, result.phase)(result.sigma_t, result.sigma_s, result.g)
+        if model.tail is None:
+            return np.asarray(out[0])
+        return np.concatenate([np.asarray(out[0]), np.asarray(out[2].image)[:, None]], axis=1)
+
+    c, b = result.gain, result.black_level or 0.0
+    stripes, full = render(pattern), render(_full_for(pattern))[0]
     stripes = c * ((1 - b) * stripes + b * full[None])
     full = c * full
-    x0, y0, x1, y1 = m["crop"]
+    x0, y0, x1, y1 = model.crop
     out_s = np.zeros(stripes.shape[:2] + tuple(shape))
     out_f = np.zeros(full.shape[:1] + tuple(shape))
     out_s[..., y0:y1, x0:x1] = stripes

@@ -1,11 +1,18 @@
 """The joint fit's compiled program: σt, σs, g (and the projector's black level b)
 fitted straight to the raw shifted stripe images, the gain eliminated in closed form.
 
-The model of pattern p at unit gain is (1 − b)·R_p + b·R_full with R = Σ_k u^k I_k
-(I_k ∝ σs^k: ``u`` rescales σs from the rendered one) and the residual is
+The model of pattern p at unit gain is (1 − b)·R_p + b·R_full and the residual is
 w·(c·model − observed), c the gain's least-squares value at each point and w the
-weights (1/√(I + floor): shot noise). One forward-mode pass along σt and g per step;
-σs, b and the gain enter in closed form.
+weights (1/√(I + floor): shot noise). R is rendered one of two ways:
+
+- explicit bounces only: R = Σ_k u^k I_k (I_k ∝ σs^k: ``u`` rescales σs from the
+  rendered one), one forward-mode pass along σt and g per step, σs in closed form;
+- with a tail (a renderer built with ``tail``: K0 explicit bounces and Σ_{k>K0} from a
+  Krylov solve, :mod:`lightfield_jax.forward.tail`): R = Σ_{k≤K0} I_k + tail at the
+  actual σs (the tail is not a polynomial in σs), one forward-mode pass along σt, σs
+  and g (the tail's tangents are implicit solves with the same operator).
+
+b and the gain enter in closed form either way.
 
 The solve is one module-level jitted function (:func:`solve`): the renderer, the
 settings (:class:`JointSettings`) and the optimistix solver are its static parts,
@@ -50,6 +57,44 @@ def bounces_at(x, sigma_s, renderer, full):
     return images, None if full is None else full(x[0], sigma_s, x[1])[0][0]
 
 
+def uses_tail(renderer) -> bool:
+    """Whether ``renderer`` sums the series' tail with a solve (its call then returns
+    ``(images, fields, tail)``)."""
+    return getattr(renderer, "tail", None) is not None
+
+
+def totals_at(x, renderer, full):
+    """Σ_k I_k of all orders (K0 explicit + the tail) at unit gain at (σt, σs, g) =
+    ``x``, shaped as one order: every pattern's ``(P, 1, h, w)`` and full
+    illumination's ``(1, h, w)`` (or ``None``), for :func:`unit_model` with u = 1."""
+
+    def total(render):
+        images, _, tail = render(x[0], x[1], x[2])
+        return (jnp.sum(images, axis=1) + tail.image)[:, None]
+
+    return total(renderer), None if full is None else total(full)[0]
+
+
+class TailStatus(eqx.Module):
+    """The tail solves of one render at the solution: the most Krylov iterations of any
+    of its renderers and whether all of them met their tolerance (explicit bounces only:
+    0 and ``True``)."""
+
+    steps: jax.Array
+    converged: jax.Array
+
+
+def tail_status(renderer, full, sigma_t, sigma_s, g) -> TailStatus:
+    """:class:`TailStatus` of a render at these values (a primal render: no tangents)."""
+    if not uses_tail(renderer):
+        return TailStatus(jnp.array(0), jnp.array(True))
+    tails = [r(sigma_t, sigma_s, g)[2] for r in (renderer, full) if r is not None]
+    return TailStatus(
+        steps=jnp.max(jnp.stack([t.steps for t in tails])),
+        converged=jnp.all(jnp.stack([t.converged for t in tails])),
+    )
+
+
 def unit_model(bounces, lit: int, u, black):
     """Σ_k u^k I_k of every pattern at unit gain, with the projector's black level b:
     (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
@@ -91,23 +136,38 @@ def _logit(x):
 
 
 _bounces_and_slopes = with_forward_jacobian(bounces_at)
+_totals_and_slopes = with_forward_jacobian(totals_at)
+
+
+def _orders_and_slopes(renderer, full, sigma_t, sigma_s, g):
+    """The orders of the model at these values, their slopes, and θ = (σt, σs, g, …) ↦
+    (Δx, u): the step of the forward-mode variables and the σs factor. Explicit: x =
+    (σt, g), the orders I_k rendered at σs held fixed (u = σs'/σs, closed form). With a
+    tail: x = (σt, σs, g), one order (the sum of all), u = 1."""
+    if uses_tail(renderer):
+        x = jnp.stack([sigma_t, sigma_s, g])
+        orders, slopes = _totals_and_slopes(x, renderer, full)
+        return orders, slopes, lambda theta: (theta[:3] - x, 1.0)
+    ref = jax.lax.stop_gradient(sigma_s)
+    x = jnp.stack([sigma_t, g])
+    orders, slopes = _bounces_and_slopes(x, ref, renderer, full)
+    return orders, slopes, lambda theta: (jnp.stack([theta[0], theta[2]]) - x, theta[1] / ref)
 
 
 def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y):
     """At y: the model at unit gain R (P, h, w) and ∂R/∂θ (P, h, w, n) in the physical
-    parameters θ = (σt, σs, g[, b]), from one forward-mode pass along σt and g (σs and b
-    in closed form)."""
+    parameters θ = (σt, σs, g[, b]), from one forward-mode pass (along σt and g, or σt,
+    σs and g with a tail; b in closed form)."""
     st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
-    x = jnp.stack([st, g])
-    bounces, slopes = _bounces_and_slopes(x, ss, renderer, full)
+    orders, slopes, step = _orders_and_slopes(renderer, full, st, ss, g)
 
     def model(theta):
-        dx = jnp.stack([theta[0], theta[2]]) - x
-        lin = jax.tree.map(lambda v, j: v + j @ dx, bounces, slopes)
-        return unit_model(lin, settings.lit, theta[1] / ss, theta[3] if settings.fit_black else b)
+        dx, u = step(theta)
+        lin = jax.tree.map(lambda v, j: v + j @ dx, orders, slopes)
+        return unit_model(lin, settings.lit, u, theta[3] if settings.fit_black else b)
 
     theta = jnp.stack([st, ss, g] + ([b] if settings.fit_black else []))
-    return unit_model(bounces, settings.lit, 1.0, b), jax.jacfwd(model)(theta)
+    return unit_model(orders, settings.lit, 1.0, b), jax.jacfwd(model)(theta)
 
 
 def _solve(
@@ -125,21 +185,31 @@ def _solve(
 
     def residual(y, _args):
         st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
-        ref = jax.lax.stop_gradient(ss)
-        bounces, _ = _bounces_and_slopes(jnp.stack([st, g]), ref, renderer, full)
-        r = unit_model(bounces, settings.lit, ss / ref, b)
+        if uses_tail(renderer):
+            orders, _ = _totals_and_slopes(jnp.stack([st, ss, g]), renderer, full)
+            r = unit_model(orders, settings.lit, 1.0, b)
+        else:
+            ref = jax.lax.stop_gradient(ss)
+            orders, _ = _bounces_and_slopes(jnp.stack([st, g]), ref, renderer, full)
+            r = unit_model(orders, settings.lit, ss / ref, b)
         wr = weights * r
         gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
         return (weights * (gain * r - obs)).reshape(-1)
 
     sol = optx.least_squares(residual, solver, y0, max_steps=settings.max_steps, throw=False)
     model, jac = _model_and_jacobian(settings, renderer, full, black_fixed, sol.value)
-    return sol.value, sol.result, sol.stats["num_steps"], model, jac
+    st, ss, g, _ = unpack(sol.value, settings.fit_black, black_fixed)
+    tail = tail_status(renderer, full, st, ss, g)
+    return sol.value, sol.result, sol.stats["num_steps"], model, jac, tail
 
 
 def solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, weights, y0):
     """Run ``solver`` on the weighted joint residual from ``y0``: ``(y, result, steps,
-    R, ∂R/∂θ)`` with R the model at unit gain at the solution (see the module)."""
+    R, ∂R/∂θ, tail)`` with R the model at unit gain at the solution (see the module) and
+    ``tail`` the :class:`TailStatus` of a render there.
+
+    With a tail, a tangent solve that does not converge stops the program with an
+    error (lineax raises there); the caller reports it (see ``fit``)."""
     # The solver's arrays (e.g. a learning rate) are traced, the rest is static.
     arrays, static = eqx.partition(solver, eqx.is_array)
     run = jitted(_solve, ("settings", "solver_static"))
@@ -147,15 +217,31 @@ def solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, wei
 
 
 def _model_only(lit: int, renderer, full, sigma_t, sigma_s, g, black):
-    bounces = bounces_at(jnp.stack([sigma_t, g]), sigma_s, renderer, full)
-    return unit_model(bounces, lit, 1.0, black)
+    if uses_tail(renderer):
+        orders = totals_at(jnp.stack([sigma_t, sigma_s, g]), renderer, full)
+    else:
+        orders = bounces_at(jnp.stack([sigma_t, g]), sigma_s, renderer, full)
+    return unit_model(orders, lit, 1.0, black), tail_status(renderer, full, sigma_t, sigma_s, g)
 
 
 def model_at(renderer, full, lit: int, sigma_t, sigma_s, g, black, dtype):
-    """The model at unit gain R (P, h, w) of ``renderer`` at given values (one forward
-    render; used for a finer model's residual at a solution)."""
+    """The model at unit gain R (P, h, w) of ``renderer`` at given values and the
+    :class:`TailStatus` of its render (one forward render; used for a finer model's
+    residual at a solution, and for a start's check)."""
     vals = (jnp.asarray(v, dtype) for v in (sigma_t, sigma_s, g, black))
     return jitted(_model_only, ("lit",))(lit, renderer, full, *vals)
 
 
-__all__ = ["JointSettings", "bounces_at", "model_at", "pack", "solve", "unit_model", "unpack"]
+__all__ = [
+    "JointSettings",
+    "TailStatus",
+    "bounces_at",
+    "model_at",
+    "pack",
+    "solve",
+    "tail_status",
+    "totals_at",
+    "unit_model",
+    "unpack",
+    "uses_tail",
+]

@@ -16,8 +16,9 @@
   bounces; no refit). Total = statistical ⊕ model; ``model_limited`` when the model
   term is the larger for σt, σs or g.
 - Not trustworthy (``converged: false`` with the reason, never converged): a solution
-  at a parameter bound, a misfit far above the noise, or one in a basin worse than
-  another the scan found.
+  at a parameter bound, a misfit far above the noise, one in a basin worse than
+  another the scan found, or one whose model summed its bounce series' tail with a
+  solve that stopped before its tolerance (the model there is not the series).
 """
 
 from __future__ import annotations
@@ -161,4 +162,23 @@ def untrustworthy(
     return reasons
 
 
-__all__ = ["Uncertainty", "at_bound", "error_budget", "noise_scale", "untrustworthy"]
+def tail_unconverged(tail: dict | None, max_steps: int, what: str) -> list[str]:
+    """The reason a solution is not to be trusted when ``what``'s tail solve (``tail``:
+    its ``steps``, ``converged`` and, where a tangent solve raised, ``error``; ``None``
+    without a tail) did not converge (empty: it did, or there is none)."""
+    if tail is None or tail["converged"]:
+        return []
+    detail = tail.get("error") or f"{tail['steps']} iterations"
+    return [
+        f"the tail solve of {what} did not converge within tail_max_steps = {max_steps} ({detail})"
+    ]
+
+
+__all__ = [
+    "Uncertainty",
+    "at_bound",
+    "error_budget",
+    "noise_scale",
+    "tail_unconverged",
+    "untrustworthy",
+]

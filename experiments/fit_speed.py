@@ -1,0 +1,202 @@
+"""How long does the joint fit take, and does its cost grow with the albedo?
+
+Each medium of ``media`` is rendered as a noiseless six-shift stripe capture
+(:func:`~lightfield_jax.simulate_capture`, period 6, gain 1, black level 0; the plain
+series marched to ``bounces``, no tail in the data) and fitted by the default joint fit
+(``fit`` holds extra :func:`~lightfield_jax.fit_images` keywords, e.g. ``tail``) in a
+fresh Python process, twice:
+
+- ``cold``: the first fit of the process, nothing compiled (no persistent XLA cache):
+  what ``lightfield-jax fit`` costs a user, split into XLA compile and run seconds
+  (the fit's own split; the process start and imports are apart, ``process``);
+- ``warm``: the same fit again in that process, on the programs already compiled.
+
+Per fit: errors of σt, σs (relative) and g (absolute), iterations, the model (bounces,
+or K0 and the tail's method and Krylov steps), the verdict and its reasons. The dense
+forward medium's and the refractive slab's cold times are also given as multiples of
+the milk's in the same run (the issue's target: at most 3×). The machine may be shared:
+compare rows of one run, and read each record's 1-minute load average.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax.app.experiment import check_config, load_helper, machine, versions
+from lightfield_jax.forward.slab import parse_geometry
+
+_KEYS = {"experiment", "width", "height", "media", "fit", "timeout", "reduced"}
+_MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}
+
+
+def _check(config: dict) -> dict:
+    check_config("fit_speed", config, _KEYS)
+    if not config.get("media"):
+        raise ValueError("fit_speed: media: must list at least one medium")
+    for i, m in enumerate(config["media"]):
+        unknown = sorted(set(m) - _MEDIUM_KEYS)
+        if unknown:
+            raise ValueError(f"fit_speed: media[{i}]: unknown keys {unknown}")
+        for key in ("name", "sigma_t", "sigma_s", "g"):
+            if key not in m:
+                raise ValueError(f"fit_speed: media[{i}]: missing key {key!r}")
+    return {"fit": {}, "timeout": 1800, **config}
+
+
+def _capture(cfg: dict, medium: dict) -> np.ndarray:
+    inv = load_helper("_inverse")
+    sim_cfg = inv.capture_config(
+        {"phase": "paper", **medium},
+        cfg["width"],
+        cfg["height"],
+        black_level=0.0,
+        bounces=medium.get("bounces", "auto"),
+    )
+    if medium.get("geometry"):
+        sim_cfg["geometry"] = dict(medium["geometry"])
+    return np.asarray(inv.simulate(sim_cfg).images)
+
+
+def _fit_kwargs(cfg: dict, medium: dict) -> dict:
+    kwargs = {"black_level": 0.0, "phase": medium.get("phase", "paper"), **cfg["fit"]}
+    if medium.get("geometry"):
+        kwargs["geometry"] = medium["geometry"]
+    return kwargs
+
+
+def _in_fresh_process(images: np.ndarray, truth: dict, kwargs: dict, timeout: float) -> dict:
+    """The cold and warm fits in a child process (killed after ``timeout`` seconds)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        np.save(tmp / "images.npy", images)
+        request = {"images": str(tmp / "images.npy"), "truth": truth, "kwargs": kwargs}
+        (tmp / "request.json").write_text(json.dumps(request))
+        t = time.perf_counter()
+        try:
+            done = subprocess.run(
+                [sys.executable, __file__, str(tmp / "request.json")],
+                capture_output=True,
+                text=True,
+                timeout=timeout,
+            )
+        except subprocess.TimeoutExpired:
+            done = None
+        path = (tmp / "request.json").with_suffix(".out.json")
+        if done is not None and done.returncode != 0:
+            return {"error_message": f"child process failed: {done.stderr[-2000:]}"}
+        if not path.exists():  # the cold fit did not finish either
+            return {"error_message": f"timeout: no result within {timeout:g} s"}
+        rec = json.loads(path.read_text())
+        if done is None:
+            rec["warm_timeout"] = timeout
+        rec["process_seconds"] = time.perf_counter() - t
+        return rec
+
+
+def _child(request_path: str) -> None:
+    t_start = time.perf_counter()
+    req = json.loads(Path(request_path).read_text())
+    inv = load_helper("_inverse")
+    kwargs = dict(req["kwargs"])
+    if kwargs.get("geometry"):
+        kwargs["geometry"] = parse_geometry(kwargs["geometry"], "geometry")
+    images = np.load(req["images"])
+    out = {"imports_seconds": time.perf_counter() - t_start}
+    for label in ("cold", "warm"):
+        load = os.getloadavg()[0]
+        log, t0 = [], time.perf_counter()
+        res = lfj.fit_images(
+            images,
+            lfj.Stripes(),
+            progress=lambda m, log=log, t0=t0: log.append(f"{time.perf_counter() - t0:.1f} s {m}"),
+            **kwargs,
+        )
+        out[label] = {
+            **inv.result_record(res, req["truth"]),
+            "reasons": list(res.reasons),
+            "load_avg": load,
+            "log": log,
+        }
+        # After each fit: a warm fit past the time limit leaves the cold one's record.
+        Path(request_path).with_suffix(".out.json").write_text(json.dumps(inv.jsonable(out)))
+
+
+def _summary_row(name: str, rec: dict) -> dict:
+    if "error_message" in rec:
+        return {"medium": name, "error_message": rec["error_message"]}
+    cold, warm = rec["cold"], rec.get("warm", {"seconds": {"total": None}})
+    model = cold["model"]
+    tail = model.get("tail")
+    return {
+        "medium": name,
+        "cold_seconds": cold["seconds"]["total"],
+        "cold_compile": cold["seconds"]["compile"],
+        "cold_run": cold["seconds"]["run"],
+        "warm_seconds": warm["seconds"]["total"],
+        "process_seconds": rec["process_seconds"],
+        "errors": cold["errors"],
+        "iterations": cold["iterations"],
+        "model": (
+            f"K = {model['bounces']}"
+            if tail is None
+            else f"K0 = {tail['K0']} + {tail['method']} ({tail.get('steps')} steps)"
+        ),
+        "n_theta": model["n_theta"],
+        "refine": model["refine"],
+        "converged": cold["converged"],
+        "reasons": cold["reasons"],
+        "load_avg": cold["load_avg"],
+    }
+
+
+def _write(ctx, cfg: dict, rows: list, records: dict) -> None:
+    """fit_speed.json with the rows so far, each timed also against the first medium's
+    (the milk's) cold fit."""
+    inv = load_helper("_inverse")
+    first = rows[0]
+    for r in rows:
+        if "cold_seconds" in r and "cold_seconds" in first:
+            r["cold_vs_first"] = r["cold_seconds"] / first["cold_seconds"]
+            r["run_vs_first"] = r["cold_run"] / first["cold_run"]
+    data = {
+        "width": cfg["width"],
+        "height": cfg["height"],
+        "fit": cfg["fit"],
+        "rows": rows,
+        "records": records,
+        "versions": versions(),
+        "machine": machine(),
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    ctx.write_json("fit_speed.json", inv.jsonable(data))
+
+
+def run(config: dict, out: Path, ctx) -> dict:
+    cfg = _check(config)
+    inv = load_helper("_inverse")
+    records, rows = {}, []
+    for medium in cfg["media"]:
+        name = medium["name"]
+        ctx.progress(f"{name}: capture")
+        images = _capture(cfg, medium)
+        truth = inv.truth_of(medium)
+        ctx.progress(f"{name}: fits in a fresh process")
+        rec = _in_fresh_process(images, truth, _fit_kwargs(cfg, medium), cfg["timeout"])
+        records[name] = {"medium": medium, **rec}
+        rows.append(_summary_row(name, rec))
+        ctx.progress(f"{name}: {json.dumps(inv.jsonable(rows[-1]))}")
+        _write(ctx, cfg, rows, records)  # after every medium: a long run keeps its rows
+    return {"rows": inv.jsonable(rows)}
+
+
+if __name__ == "__main__":
+    _child(sys.argv[1])
