@@ -861,12 +861,13 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
     return last
 
 
-def _finer(model: _Model, options: FitOptions) -> _Model:
+def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
-    elevation nodes), 1.5× + 4 the bounces or, with a tail, the same K0 and a tail
-    tolerance ten times as tight (the spatial refinement stays: 4× the cost for a term
-    the θ bins and bounces dominate below |g| 0.65, where the size rule keeps
-    refine 1)."""
+    elevation nodes and depth layers); on the plane also the spatial refinement the size
+    rule asks for at the answer's ``g`` where the fit's model stayed below it (the cell
+    cap sized it down: a forward medium's model error is then mostly spatial, and a
+    term that did not see it would report the fit as noise-limited); 1.5× + 4 the
+    bounces or, with a tail, the same K0 and a tail tolerance ten times as tight."""
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
@@ -875,7 +876,11 @@ def _finer(model: _Model, options: FitOptions) -> _Model:
         )
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
     else:
-        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 256))
+        grid = dataclasses.replace(
+            grid,
+            n_theta=min(2 * grid.n_theta, 256),
+            refine=max(grid.refine, default_refine(g)),
+        )
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
             model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
@@ -887,7 +892,7 @@ def _finer(model: _Model, options: FitOptions) -> _Model:
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
     """r_fine − r at the solution (one render of :func:`_finer`'s model), that model, its
     tail solve's steps and convergence (``None`` without a tail) and its seconds."""
-    fine = _finer(stage.model, options)
+    fine = _finer(stage.model, options, stage.values["g"])
     renderer, full = _joint_parts(pattern, fine, options.phase)
     v = stage.values
     with stopwatch() as timing:
