@@ -269,33 +269,3 @@ def test_contract_against_the_true_slab(tau, g, albedo, boundary):
     assert np.all(np.abs(cum) < 0.02 + 2 * noise), (cum, noise)
     assert ref[-1] < 1e-3 * ref.sum()  # the 40 orders are all that matter
     assert abs(got.sum() / ref.sum() - 1) < 0.01 + 2 * se.sum() / ref.sum()
-
-
-@pytest.mark.slow
-def test_fit_recovers_a_milk_like_medium_rendered_by_the_3d_monte_carlo():
-    """Stripe capture of a milk-like medium (ω 0.95, g 0.85) behind refractive faces,
-    rendered by the 3-D slab Monte Carlo (not by the model), fitted with the slab
-    geometry: σt within 1 %, σs within 3 %, g within 0.02."""
-    from lightfield_jax.inverse.fit import FitOptions, fit_images
-
-    st, albedo, g, h = 0.2, 0.95, 0.85, 6.4
-    pattern = lfj.Stripes(6, 3, tuple(range(6)))
-    mc = monte_carlo_slab(
-        40,
-        30,
-        h,
-        st,
-        albedo * st,
-        g,
-        pattern,
-        40,
-        boundary="refractive",
-        photons=4_000_000,
-        seed=17,
-        camera_sampling=0.3,
-    )
-    capture = mc.images.sum(axis=1)
-    fit = fit_images(capture, pattern, options=FitOptions(geometry=Slab(h, "refractive")))
-    assert fit.sigma_t == pytest.approx(st, rel=0.01), fit
-    assert fit.sigma_s == pytest.approx(albedo * st, rel=0.03), fit
-    assert fit.g == pytest.approx(g, abs=0.02), fit
