@@ -389,13 +389,17 @@ def default_n_mu(
     return max(n, 16) if _guides_light(boundary, albedo) else n
 
 
+# From this albedo on, refractive tanks get 4 depth layers whatever σt·h (see default_n_z).
+BRIGHT_ALBEDO = 0.9
+
+
 def default_n_z(
     optical_thickness: float | None, albedo: float | None, boundary: str = "absorbing"
 ) -> int:
     """Depth layers for a slab of optical thickness σt·h and albedo ω (``None``:
     unknown, the worst case): 1 for dim media (ω < 0.3: the orders a depth average
     gets wrong, k ≥ 3, carry little light), else 8 behind absorbing faces, 4 behind
-    refractive ones thinner than one mean free path, 2 thicker ones.
+    refractive ones thinner than one mean free path or with ω ≥ 0.9, 2 otherwise.
 
     Measured against the 3-D slab Monte Carlo (h 6.4 px, 48×32, full illumination,
     σt·h 0.3 / 1.3 / 3, g −0.3 / 0.4 / 0.8 / 0.9; docs/slab_depth.md): the error of a
@@ -403,12 +407,18 @@ def default_n_z(
     the depth average misses I_6 by up to 20–50 %, 4 layers by up to 4.5 % (σt·h 1.3,
     g −0.3), 8 layers by ≤ 2.2 %; refractive faces keep the light spread over the depth
     (n_z = 1: 5–6 % at I_5, I_6 for g ≥ 0.8), 2 layers are within 1.3 % from σt·h 1.3
-    and 4 within 1.6 % at 0.3."""
+    and 4 within 1.6 % at 0.3. Stripes see more: the dark rows next to the entry wall
+    get their light sideways from the lit rows in the orders k ≥ 3, and there two
+    layers spread it too far at high albedo (σt·h 1.3, ω 0.95, g 0.8, refractive: off-beam
+    rows next to the wall +2.6 … +8.5 % for k = 3 … 6 with 2 layers, ≤ 1.5 % with 4;
+    docs/slab_depth.md §6)."""
     if albedo is not None and albedo < DIM_ALBEDO:
         return 1
     if boundary == "absorbing":
         return 8
-    return 4 if optical_thickness is None or optical_thickness < 1.0 else 2
+    thin = optical_thickness is None or optical_thickness < 1.0
+    bright = albedo is None or albedo >= BRIGHT_ALBEDO
+    return 4 if thin or bright else 2
 
 
 def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
