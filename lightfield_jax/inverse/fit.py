@@ -1423,15 +1423,16 @@ def _one_line(result: FitResult) -> str:
 
 
 def _model_from(d: dict) -> _Model:
-    """The :class:`_Model` of a result's ``model`` dict."""
+    """The :class:`_Model` of a result's ``model`` dict (one written without the series'
+    estimate, e.g. by an earlier version, renders alike: what is not given is unknown)."""
     geometry = parse_geometry(d.get("geometry"), "model.geometry")
     tail = d.get("tail") or {}
     return _Model(
         grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),
         bounces=d["bounces"],
         crop=tuple(d["crop"]),
-        converges=d["series_converges"],
-        rho=d["rho_estimate"],
+        converges=d.get("series_converges", True),
+        rho=d.get("rho_estimate", math.nan),
         geometry=geometry.slab_or_none,
         tail=tail.get("method"),
         tail_tol=tail.get("tol", 1e-4),
