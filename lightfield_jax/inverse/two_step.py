@@ -26,7 +26,7 @@ import optimistix as optx
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.inverse.basins import reference_sigma_s
 from lightfield_jax.inverse.data import FitData
-from lightfield_jax.inverse.jacobian import with_forward_jacobian, with_jacobian
+from lightfield_jax.inverse.jacobian import with_jacobian
 from lightfield_jax.inverse.programs import jitted
 from lightfield_jax.inverse.trust import Uncertainty, error_budget
 from lightfield_jax.scene.illumination import Full, Stripes
@@ -101,16 +101,12 @@ def parabolic_minimum(xs, costs, best):
 
 def rendered_and_g_slope(renderer, sigma_t, phase: str):
     """``x = [g]`` → (I_k at (σt, σs_ref(g), g) under full illumination, (K, h, w), and
-    dI_k/dg, (K, h, w, 1)), differentiable in ``x`` through that slope. The plane's
-    renderer gives the slope in one pass of its own code
-    (:meth:`~lightfield_jax.Renderer.images_and_g_slope`); I_k ∝ σs^k carries the
-    change of σs_ref with g. Other renderers go through ``jax.jvp``."""
+    dI_k/dg, (K, h, w, 1)), differentiable in ``x`` through that slope. The renderer
+    gives the slope (``images_and_g_slope``: the plane in one pass of its own code, the
+    slab by ``jax.jvp``); I_k ∝ σs^k carries the change of σs_ref with g."""
 
     def reference(g):
         return reference_sigma_s(sigma_t, g, phase)[0]
-
-    if not hasattr(renderer, "images_and_g_slope"):
-        return with_forward_jacobian(lambda x: renderer(sigma_t, reference(x[0]), x[0])[0][0])
 
     def value_and_jacobian(x):
         g = x[0]
