@@ -49,6 +49,7 @@ from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.basins import Scan, basins, scan, worse_basin
+from lightfield_jax.inverse.correction import correct, design, projected
 from lightfield_jax.inverse.data import FitData as _Data
 from lightfield_jax.inverse.data import FitProblem, prepare_data
 from lightfield_jax.inverse.joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
@@ -137,6 +138,13 @@ class FitOptions:
             from the decay fit); the scan still runs, to report a worse basin.
         model_error: (``joint``) estimate the model's error at the solution from one
             render with a finer model (in ``uncertainty_model``).
+        correct: (``joint``) reach the model the answer needs by defect correction
+            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model
+            with the cheap model's Jacobian) instead of solving on it; where the
+            iteration does not converge the fit solves on it as before.
+        max_render_cells: cap on the corrected model's working size (as ``max_cells``,
+            for primal renders, which need no tangents).
+        correction_renders: at most this many renders in the correction.
         max_chi2: χ²/dof against the capture's noise above which a joint fit is not
             trustworthy (its misfit is far above the noise).
         solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
@@ -167,6 +175,9 @@ class FitOptions:
     basin_tolerance: float = 1.0
     start: tuple[float, float] | None = None
     model_error: bool = True
+    correct: bool = True
+    max_render_cells: int = 8_000_000
+    correction_renders: int = 8
     max_chi2: float = 100.0
     solver: optx.AbstractLeastSquaresSolver | None = None
 
@@ -353,9 +364,10 @@ class _Model:
     tail_tol: float = 1e-4
     tail_max_steps: int = 200
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
+    extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
 
     def as_dict(self) -> dict:
-        marched = self.converges and self.tail is None
+        marched = self.converges and self.tail is None and not self.extrapolate
         r = self.rho if self.ratio is None else self.ratio
         tail = r**self.bounces / (1 - r) if marched else None
         return {
@@ -370,6 +382,7 @@ class _Model:
             "rho_estimate": self.rho,
             "ratio_measured": self.ratio,
             "tail_bound": tail,
+            "extrapolated": self.extrapolate,
             "tail": None
             if self.tail is None
             else {
@@ -506,18 +519,24 @@ RATIO_MARGIN = 0.02
 
 def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Model:
     """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
-    below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) instead of its tail, where it
-    has an automatic tail and that count is at most ``max_bounces``. Walls leak light at
-    every bounce, so the measured ratio is well below ρ = ω: 0.75 for the dense forward
-    medium (ω 0.8) on 128×96, a 48-bounce march, whose value and Jacobian cost 0.4× the
-    tail's (measured at 32 θ bins); a ratio near 1 still gets the tail."""
-    if model.tail is None or options.tail != "auto" or not math.isfinite(ratio):
+    below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) where that is fewer than the
+    albedo's bound asked for: instead of its automatic tail where the count is at most
+    ``max_bounces``, or instead of a longer march. Walls leak light at every bounce, so
+    the measured ratio is well below ρ = ω: 0.71 for the dense forward medium (ω 0.8)
+    on 128×96, a 40-bounce march instead of the bound's 64 (its image sum within 3e-6
+    of 160 bounces'), whose value and Jacobian cost 0.4× the tail's (measured at 32 θ
+    bins); a ratio near 1 still gets the tail. The error term's finer model marches
+    1.5× as many, so a count too short shows there."""
+    auto = options.tail == "auto" and options.bounces == "auto"
+    if not (auto and model.converges and math.isfinite(ratio)):
         return model
     bound = min(ratio + RATIO_MARGIN, 0.995)
-    k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
-    if k > options.max_bounces:
-        return model
-    return dataclasses.replace(model, bounces=max(k, 2), tail=None, ratio=ratio)
+    k = max(_bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
+    if model.tail is not None and k <= options.max_bounces:
+        return dataclasses.replace(model, bounces=k, tail=None, ratio=ratio)
+    if model.tail is None and k < model.bounces:
+        return dataclasses.replace(model, bounces=k, ratio=ratio)
+    return model
 
 
 def _with_tail(model: _Model, options: FitOptions) -> _Model:
@@ -614,13 +633,15 @@ class _Stage:
     compile: float
     run: float
     tail: dict | None = None  # the tail solve at the answer: steps, converged (or error)
+    jac_unit: np.ndarray | None = None  # ∂R/∂(σt, σs, g[, b]) at unit gain, (P, h, w, n)
+    correction: dict | None = None  # the defect correction that produced it, if any
 
 
 def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
     """One compiled joint solve (:func:`lightfield_jax.inverse.joint.solve`) from ``y0``."""
     renderer, full = _joint_parts(pattern, model, options.phase)
     fit_black = black is None
-    settings = JointSettings(fit_black, pattern.lit, options.max_steps)
+    settings = JointSettings(fit_black, pattern.lit, options.max_steps, model.extrapolate)
     dtype = y0.dtype
     obs = jnp.asarray(data.images, dtype)
     black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
@@ -662,13 +683,9 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
     st, ss, g, b = (float(v) for v in unpack(y, fit_black, black_fixed))
     w = np.asarray(weights, np.float64)
     unit = np.asarray(unit, np.float64)
-    obs = np.asarray(data.images, np.float64)
-    wr = w * unit
-    gain = float(np.sum(wr * w * obs) / np.sum(wr * wr))
-    residual = (w * (gain * unit - obs)).reshape(-1)
-    cols = (w[..., None] * gain * np.asarray(jac_r, np.float64)).reshape(-1, jac_r.shape[-1])
-    jac = np.concatenate([cols[:, :3], wr.reshape(-1, 1), cols[:, 3:]], axis=1)
-    n = int(np.sum(data.mask)) * obs.shape[0]
+    jac_r = np.asarray(jac_r, np.float64)
+    gain, residual = projected(w, unit, data.images)
+    jac = design(w, unit, gain, jac_r)
     ok, msg = _result_message(result)
     tail_dict = None
     if model.tail is not None:
@@ -688,11 +705,17 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
         jac=jac,
         weights=w,
         residual=residual,
-        rms=float(np.sqrt(np.sum(residual**2) / max(n, 1))),
+        rms=_rms(residual, data),
         compile=timing.compile,
         run=timing.run,
         tail=tail_dict,
+        jac_unit=jac_r,
     )
+
+
+def _rms(residual: np.ndarray, data: _Data) -> float:
+    n = int(np.sum(data.mask)) * data.images.shape[0]
+    return float(np.sqrt(np.sum(residual**2) / max(n, 1)))
 
 
 def _joint_reweighted(data: _Data, stage: _Stage):
@@ -757,6 +780,19 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
         geometry=geometry,
     )
     return _with_tail(model, options)
+
+
+def _extrapolated(model: _Model, options: FitOptions) -> _Model:
+    """The cheap model of the solve: where the fit corrects its answer to the model it
+    needs (``correct``) and sizes the series itself, a long series (a tail, or more
+    than :data:`SCAN_TAIL_BOUNCES` bounces) becomes that many bounces and a geometric
+    tail (:func:`lightfield_jax.inverse.joint.unit_model`); its Jacobian only guides the
+    correction, which renders the series in full."""
+    auto = options.bounces == "auto" and options.tail == "auto"
+    long = model.tail is not None or model.bounces > SCAN_TAIL_BOUNCES
+    if not (options.correct and auto and long and model.converges):
+        return model
+    return dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None, extrapolate=True)
 
 
 def _rho_of(options: FitOptions):
@@ -843,22 +879,122 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
     )
     need = _by_measured_ratio(need, options, the_scan.ratio_at(v["g"], albedo))
     need = _at_least(need, floor)
-    if _covers(coarse, need):
+    target = need
+    if options.correct:
+        # Reached by primal renders only: sized without the solve's cell cap (the
+        # forward-mode Jacobian's memory), under the render's own.
+        target = size_model(
+            images,
+            pattern,
+            albedo=min(v["sigma_s"] / v["sigma_t"], 0.98),
+            g=v["g"],
+            options=dataclasses.replace(options, max_cells=options.max_render_cells),
+            margin=1.03,
+            sigma_t=v["sigma_t"],
+            crop=coarse.crop,
+        )
+        target = _by_measured_ratio(target, options, the_scan.ratio_at(v["g"], albedo))
+        target = _at_least(target, need)
+    if _covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
         return _joint_stage(
             data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
         )
-    say(
-        f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, "
-        f"{need.bounces} bounces"
-    )
+    spent = {"compile": 0.0, "run": 0.0}
+    if options.correct:
+        say(
+            f"  defect correction to the final model n_theta {target.grid.n_theta}, refine "
+            f"{target.grid.refine}, {_orders(target)}"
+        )
+        done = _corrected(data, pattern, first, target, options, black, say)
+        if done.ok:
+            return done
+        spent = {"compile": done.compile, "run": done.run}
+        say(f"  the correction stopped ({done.message}): solving on the final model")
+    say(f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}")
     mid = _joint_stage(data, pattern, need, options, black, weights, first.y)
     last = _joint_stage(data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y)
     last.steps += mid.steps
-    last.compile += mid.compile
-    last.run += mid.run
+    last.compile += mid.compile + spent["compile"]
+    last.run += mid.run + spent["run"]
     return last
+
+
+def _orders(model: _Model) -> str:
+    if model.tail is None:
+        return f"{model.bounces} bounces"
+    return f"K0 = {model.bounces} and a {model.tail} tail"
+
+
+def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, black, say):
+    """``target``'s answer by defect correction from ``first`` (the cheap model's
+    solve: its Jacobian, model weights from its answer; :mod:`.correction`). A stage
+    whose ``ok`` is False when the iteration did not converge (its seconds count)."""
+    renderer, full = _joint_parts(pattern, target, options.phase)
+    dtype = first.y.dtype
+    weights = _joint_reweighted(data, first)
+
+    def render(v):
+        unit, tail = model_at(
+            renderer,
+            full,
+            pattern.lit,
+            v["sigma_t"],
+            v["sigma_s"],
+            v["g"],
+            v["black_level"],
+            dtype,
+        )
+        unit = np.asarray(jax.block_until_ready(unit))
+        status = None
+        if target.tail is not None:
+            status = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+        return unit, status
+
+    black_range = BLACK_RANGE if black is None else None
+    with stopwatch() as timing:
+        c = correct(
+            render,
+            data.images,
+            weights,
+            first.values,
+            first.jac_unit,
+            black_range,
+            options.correction_renders,
+            noise_scale(data.images, weights, pattern),
+        )
+    for i, step in enumerate(c.steps):
+        say(f"    render {i + 1}: step {step['size']:.2e}")
+    record = {
+        "renders": len(c.steps),
+        "converged": c.converged,
+        "stopped": c.reason,
+        "steps": c.steps,
+        "seconds": {"compile": timing.compile, "run": timing.run},
+    }
+    ok = c.converged and first.ok
+    v = c.values
+    return _Stage(
+        model=target,
+        values={k: v[k] for k in ("sigma_t", "sigma_s", "g", "black_level", "gain")}
+        if c.unit is not None
+        else dict(first.values),
+        y=pack((v["sigma_t"], v["sigma_s"], v["g"], v["black_level"]), black is None, dtype),
+        ok=ok,
+        message=first.message if c.converged else c.reason,
+        steps=0,
+        unit=c.unit,
+        jac=c.jac,
+        weights=weights,
+        residual=c.residual,
+        rms=_rms(c.residual, data) if c.residual is not None else math.nan,
+        compile=timing.compile,
+        run=timing.run,
+        tail=c.tail,
+        jac_unit=first.jac_unit,
+        correction=record,
+    )
 
 
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
@@ -886,7 +1022,9 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
             model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
         )
     bounces = model.bounces if isinstance(options.bounces, int) else model.bounces * 3 // 2 + 4
-    return dataclasses.replace(model, grid=grid, bounces=bounces, geometry=geometry)
+    return dataclasses.replace(
+        model, grid=grid, bounces=bounces, geometry=geometry, extrapolate=False
+    )
 
 
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
@@ -959,6 +1097,9 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     coarse = _by_measured_ratio(coarse, options, ratio)
     if coarse.tail is None and the_scan.ratios is not None:
         say(f"  measured per-bounce ratio {ratio:.3f}: {coarse.bounces} bounces marched")
+    coarse = _extrapolated(coarse, options)
+    if coarse.extrapolate:
+        say(f"  the solve's model: {coarse.bounces} bounces and a geometric tail (corrected after)")
     tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
     for label, start in starts:
@@ -1027,6 +1168,8 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     model_dict = last.model.as_dict()
     if last.tail is not None:
         model_dict["tail"].update(last.tail)
+    if last.correction is not None:
+        model_dict["correction"] = last.correction
     if fine is not None:
         model_dict["finer_model"] = {
             "n_theta": fine.grid.n_theta,

@@ -47,6 +47,7 @@ class JointSettings:
     fit_black: bool
     lit: int
     max_steps: int
+    extrapolate: bool = False  # orders past the explicit K extrapolated geometrically
 
 
 def bounces_at(x, sigma_s, renderer, full):
@@ -95,11 +96,25 @@ def tail_status(renderer, full, sigma_t, sigma_s, g) -> TailStatus:
     )
 
 
-def unit_model(bounces, lit: int, u, black):
+# 1 − u·r is kept above this in the geometric extrapolation (u·r ≥ 1: no finite sum).
+_MIN_GAP = 1e-3
+
+
+def unit_model(bounces, lit: int, u, black, extrapolate: bool = False):
     """Σ_k u^k I_k of every pattern at unit gain, with the projector's black level b:
-    (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period)."""
+    (1 − b)·R_p + b·R_full (R_full = Σ_p R_p / lit when the phases tile the period).
+
+    ``extrapolate``: the orders past the last one, K, are summed geometrically,
+    Σ_{k≥K} u^k I_k ≈ u^K I_K/(1 − u r) with r = ΣI_K/ΣI_{K−1} the images' last
+    per-bounce ratio (as the basin scan does): a cheap model of a long series, which
+    the fit corrects to the marched one (:mod:`lightfield_jax.inverse.correction`)."""
     images, full_images = bounces
-    powers = u ** jnp.arange(1, images.shape[1] + 1, dtype=images.dtype)
+    k = images.shape[1]
+    powers = u ** jnp.arange(1, k + 1, dtype=images.dtype)
+    if extrapolate and k >= 2:
+        r = jnp.sum(images[:, -1]) / jnp.sum(images[:, -2])
+        gap = jnp.maximum(1.0 - u * r, _MIN_GAP)
+        powers = powers.at[-1].divide(gap)
     r = jnp.einsum("k,pkhw->phw", powers, images)
     r_full = (
         jnp.sum(r, axis=0) / lit
@@ -164,10 +179,12 @@ def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y)
     def model(theta):
         dx, u = step(theta)
         lin = jax.tree.map(lambda v, j: v + j @ dx, orders, slopes)
-        return unit_model(lin, settings.lit, u, theta[3] if settings.fit_black else b)
+        black = theta[3] if settings.fit_black else b
+        return unit_model(lin, settings.lit, u, black, settings.extrapolate)
 
     theta = jnp.stack([st, ss, g] + ([b] if settings.fit_black else []))
-    return unit_model(orders, settings.lit, 1.0, b), jax.jacfwd(model)(theta)
+    value = unit_model(orders, settings.lit, 1.0, b, settings.extrapolate)
+    return value, jax.jacfwd(model)(theta)
 
 
 def _solve(
@@ -191,7 +208,7 @@ def _solve(
         else:
             ref = jax.lax.stop_gradient(ss)
             orders, _ = _bounces_and_slopes(jnp.stack([st, g]), ref, renderer, full)
-            r = unit_model(orders, settings.lit, ss / ref, b)
+            r = unit_model(orders, settings.lit, ss / ref, b, settings.extrapolate)
         wr = weights * r
         gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
         return (weights * (gain * r - obs)).reshape(-1)
@@ -216,20 +233,21 @@ def solve(settings: JointSettings, solver, renderer, full, obs, black_fixed, wei
     return run(settings, static, arrays, renderer, full, obs, black_fixed, weights, y0)
 
 
-def _model_only(lit: int, renderer, full, sigma_t, sigma_s, g, black):
+def _model_only(lit: int, extrapolate: bool, renderer, full, sigma_t, sigma_s, g, black):
     if uses_tail(renderer):
         orders = totals_at(jnp.stack([sigma_t, sigma_s, g]), renderer, full)
     else:
         orders = bounces_at(jnp.stack([sigma_t, g]), sigma_s, renderer, full)
-    return unit_model(orders, lit, 1.0, black), tail_status(renderer, full, sigma_t, sigma_s, g)
+    status = tail_status(renderer, full, sigma_t, sigma_s, g)
+    return unit_model(orders, lit, 1.0, black, extrapolate), status
 
 
-def model_at(renderer, full, lit: int, sigma_t, sigma_s, g, black, dtype):
+def model_at(renderer, full, lit: int, sigma_t, sigma_s, g, black, dtype, extrapolate=False):
     """The model at unit gain R (P, h, w) of ``renderer`` at given values and the
     :class:`TailStatus` of its render (one forward render; used for a finer model's
-    residual at a solution, and for a start's check)."""
+    residual at a solution, the defect correction, and a start's check)."""
     vals = (jnp.asarray(v, dtype) for v in (sigma_t, sigma_s, g, black))
-    return jitted(_model_only, ("lit",))(lit, renderer, full, *vals)
+    return jitted(_model_only, ("lit", "extrapolate"))(lit, extrapolate, renderer, full, *vals)
 
 
 __all__ = [
