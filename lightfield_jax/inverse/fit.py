@@ -5,7 +5,8 @@ This module is the driver: :func:`fit_images` prepares the data
 (:mod:`lightfield_jax.inverse.data`), sizes the first model and hands the problem to a
 fit method (:mod:`lightfield_jax.inverse.methods`: ``GridSearch``, ``TwoStep``,
 ``Joint``, each taking any optimistix least-squares solver); it holds the joint fit's
-stages, the model sizing, the result and the capture fit. The methods, all on the same
+stages, the model sizing and the result (the fit of a whole capture, channel by
+channel, is :mod:`lightfield_jax.inverse.capture_fit`). The methods, all on the same
 forward model (:class:`~lightfield_jax.Renderer`):
 
 - ``grid`` (the paper's baseline): σt from the decay of the separated direct image D;
