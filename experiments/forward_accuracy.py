@@ -55,28 +55,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, pyplot, save_figure, write_csv
+from lightfield_jax.app.experiment import pyplot, save_figure, typed_config, write_csv
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.internal import monte_carlo_render, renderer_for
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}
-_KEYS = {
-    "experiment",
-    "width",
-    "height",
-    "photons",
-    "mc_splits",
-    "seed",
-    "n_theta",
-    "refine",
-    "bounces",
-    "convergence_refine",
-    "repeats",
-    "tolerance",
-    "bin",
-    "scenes",
-}
 # An error below this multiple of the Monte Carlo noise is reported as noise-limited.
 _NOISE_LIMITED = 3.0
 
@@ -115,17 +99,32 @@ def _scene(spec: dict) -> Scene:
     return Scene(spec["name"], spec.get("label", spec["name"]), medium, beam, params)
 
 
-def _check_config(config: dict) -> dict:
-    check_config("forward_accuracy", config, _KEYS)
-    missing = sorted(_KEYS - {"bin"} - set(config))
-    if missing:
-        raise ValueError(f"forward_accuracy: missing config keys {missing}")
-    cfg = dict(config)
-    cfg.setdefault("bin", 4)
-    b = cfg["bin"]
-    if cfg["width"] % b or cfg["height"] % b:
-        raise ValueError(f"forward_accuracy: width and height must be multiples of bin = {b}")
-    return cfg
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/forward_accuracy.yaml: the grid (pixels, multiples of ``bin``: the error
+    metric's block size), the Monte Carlo oracle (photons in total, run as ``mc_splits``
+    independent runs from ``seed``), the θ bins and refinements compared, the bounces
+    with per-bounce errors, the refinements of the space self-convergence, the timing
+    repeats, the auto bounces' tail bound and the scenes."""
+
+    width: int
+    height: int
+    photons: int
+    mc_splits: int
+    seed: int
+    n_theta: tuple[int, ...]
+    refine: tuple[int, ...]
+    bounces: int
+    convergence_refine: tuple[int, ...]
+    repeats: int
+    tolerance: float
+    scenes: tuple[dict, ...]
+    bin: int = 4
+
+    def __post_init__(self):
+        b = self.bin
+        if self.width % b or self.height % b:
+            raise ValueError(f"forward_accuracy: width and height must be multiples of bin = {b}")
 
 
 # ----------------------------------------------------------------------------- metrics
@@ -144,28 +143,28 @@ def _rel_l1(a: np.ndarray, ref: np.ndarray) -> float:
 # ------------------------------------------------------------------------- measurements
 
 
-def _monte_carlo(ctx, scene: Scene, cfg: dict, k_mc: int) -> dict:
+def _monte_carlo(ctx, scene: Scene, cfg: Config, k_mc: int) -> dict:
     """``mc_splits`` independent runs (seeds seed, seed+1, ...), each cached; binned.
 
     Returns the mean M, the standard error of each bin of M (from the spread of the
     splits), and the splits' energies per bounce.
     """
-    splits = cfg["mc_splits"]
-    n = cfg["photons"] // splits
+    splits = cfg.mc_splits
+    n = cfg.photons // splits
     runs = []
     for i in range(splits):
-        seed = cfg["seed"] + i
+        seed = cfg.seed + i
         key = (
-            f"mc|{json.dumps(scene.params, sort_keys=True)}|{cfg['width']}x{cfg['height']}"
-            f"|K{k_mc}|N{n}|seed{seed}|bin{cfg['bin']}"
+            f"mc|{json.dumps(scene.params, sort_keys=True)}|{cfg.width}x{cfg.height}"
+            f"|K{k_mc}|N{n}|seed{seed}|bin{cfg.bin}"
         )
 
         def compute(seed=seed, i=i):
             ctx.progress(f"Monte Carlo {scene.name} {i + 1}/{splits}")
             t0 = time.perf_counter()
             res = monte_carlo_render(
-                cfg["width"],
-                cfg["height"],
+                cfg.width,
+                cfg.height,
                 float(scene.medium.sigma_t),
                 float(scene.medium.sigma_s),
                 float(scene.medium.g),
@@ -176,7 +175,7 @@ def _monte_carlo(ctx, scene: Scene, cfg: dict, k_mc: int) -> dict:
                 seed=seed,
             )
             return {
-                "binned": _binned(res.images[0], cfg["bin"]).tolist(),
+                "binned": _binned(res.images[0], cfg.bin).tolist(),
                 "seconds": time.perf_counter() - t0,
                 "photons": n,
             }
@@ -257,38 +256,38 @@ def _hg(theta, g: float):
 
 
 def _render_images(
-    ctx, scene: Scene, cfg: dict, n_theta: int, refine: int, k: int, compiled: set
+    ctx, scene: Scene, cfg: Config, n_theta: int, refine: int, k: int, compiled: set
 ) -> np.ndarray:
     """Binned I_1..I_k of one render (cached)."""
     key = (
-        f"images|{json.dumps(scene.params, sort_keys=True)}|{cfg['width']}x{cfg['height']}"
-        f"|nt{n_theta}|r{refine}|K{k}|bin{cfg['bin']}|{jnp.result_type(float)}"
+        f"images|{json.dumps(scene.params, sort_keys=True)}|{cfg.width}x{cfg.height}"
+        f"|nt{n_theta}|r{refine}|K{k}|bin{cfg.bin}|{jnp.result_type(float)}"
     )
 
     def compute():
         ctx.progress(f"render {scene.name} n_theta {n_theta} refine {refine}")
-        grid = lfj.Grid(cfg["width"], cfg["height"], n_theta, refine)
+        grid = lfj.Grid(cfg.width, cfg.height, n_theta, refine)
         compiled.add((grid, scene.beam, k, scene.medium.phase))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
             images = np.asarray(lfj.render(scene.medium, grid, scene.beam, k).images, np.float64)
-        return _binned(images, cfg["bin"]).tolist()
+        return _binned(images, cfg.bin).tolist()
 
     return np.asarray(ctx.cached(key, compute))
 
 
 def _time_render(
-    ctx, scene: Scene, cfg: dict, n_theta: int, refine: int, k: int, compiled: set
+    ctx, scene: Scene, cfg: Config, n_theta: int, refine: int, k: int, compiled: set
 ) -> dict:
     """First call (setup + compile + run) and steady-state median of one render (cached)."""
     key = (
-        f"time|{json.dumps(scene.params, sort_keys=True)}|{cfg['width']}x{cfg['height']}"
-        f"|nt{n_theta}|r{refine}|K{k}|rep{cfg['repeats']}|{jnp.result_type(float)}|cold|yard"
+        f"time|{json.dumps(scene.params, sort_keys=True)}|{cfg.width}x{cfg.height}"
+        f"|nt{n_theta}|r{refine}|K{k}|rep{cfg.repeats}|{jnp.result_type(float)}|cold|yard"
     )
 
     def compute():
         ctx.progress(f"time {scene.name} n_theta {n_theta} refine {refine} K {k}")
-        grid = lfj.Grid(cfg["width"], cfg["height"], n_theta, refine)
+        grid = lfj.Grid(cfg.width, cfg.height, n_theta, refine)
 
         def call():
             return lfj.render(scene.medium, grid, scene.beam, k).images.block_until_ready()
@@ -305,7 +304,7 @@ def _time_render(
             with stopwatch() as first:
                 call()
             times = []
-            for _ in range(cfg["repeats"]):
+            for _ in range(cfg.repeats):
                 t0 = time.perf_counter()
                 call()
                 times.append(time.perf_counter() - t0)
@@ -316,7 +315,7 @@ def _time_render(
             "min_s": float(np.min(times)),
             "times_s": times,
             "load_average_1min": os.getloadavg()[0],
-            "yardstick_fft_s": _yardstick(64, cfg["height"], cfg["width"], repeats=7),
+            "yardstick_fft_s": _yardstick(64, cfg.height, cfg.width, repeats=7),
         }
 
     return ctx.cached(key, compute)
@@ -349,8 +348,8 @@ def _order(x, y) -> float | None:
 def _convergence(scene: Scene, rows: list[dict], self_theta: dict, self_space: dict, cfg):
     """Orders in θ and in space, against the Monte Carlo and self-convergence."""
     out = {"theta_vs_mc": [], "space_vs_mc": [], "theta_self": [], "space_self": []}
-    for k in range(1, cfg["bounces"] + 1):
-        for refine in cfg["refine"]:
+    for k in range(1, cfg.bounces + 1):
+        for refine in cfg.refine:
             sel = sorted(
                 (r for r in rows if r["k"] == k and r["refine"] == refine),
                 key=lambda r: r["n_theta"],
@@ -427,18 +426,18 @@ def _cauchy(images: dict, keys: list, k_max: int) -> list[list[tuple]]:
 
 
 def run(config: dict, out: Path, ctx) -> dict:
-    cfg = _check_config(config)
-    scenes = [_scene(s) for s in cfg["scenes"]]
-    w, h, kb = cfg["width"], cfg["height"], cfg["bounces"]
+    cfg = typed_config(Config, config)
+    scenes = [_scene(s) for s in cfg.scenes]
+    w, h, kb = cfg.width, cfg.height, cfg.bounces
     error_rows, time_rows, total_rows, convergence, scene_info = [], [], [], {}, {}
     compiled: set = set()  # static renderer configurations compiled in this process
 
     for scene in scenes:
         default = lfj.Grid(w, h).resolve(float(scene.medium.g))
-        k_auto = lfj.bounces_for_tolerance(scene.rho, cfg["tolerance"]) if scene.converges else None
+        k_auto = lfj.bounces_for_tolerance(scene.rho, cfg.tolerance) if scene.converges else None
         k_mc = max(kb, k_auto or 0)
-        n_thetas = sorted(set(cfg["n_theta"]) | {default.n_theta})
-        refines = sorted(set(cfg["refine"]) | {default.refine})
+        n_thetas = sorted(set(cfg.n_theta) | {default.n_theta})
+        refines = sorted(set(cfg.refine) | {default.refine})
         mc = _monte_carlo(ctx, scene, cfg, k_mc)
         m, splits = mc["mean"], mc["splits"]
         noise = [_l1_noise(splits[:, k]) for k in range(k_mc)]
@@ -459,7 +458,7 @@ def run(config: dict, out: Path, ctx) -> dict:
             "default_refine": default.refine,
             "mc_bounces": k_mc,
             "mc_photons": mc["photons"],
-            "mc_splits": cfg["mc_splits"],
+            "mc_splits": cfg.mc_splits,
             "mc_energy_noise": energy_noise[:kb],
             "i2_energy_quadrature": e2,
             "i2_energy_mc_bias": float(m[1].sum() / e2 - 1.0),
@@ -532,7 +531,7 @@ def run(config: dict, out: Path, ctx) -> dict:
             refine: _cauchy(images, [(n, refine) for n in n_thetas], kb) for refine in refines
         }
         space_keys = []
-        for refine in sorted(set(cfg["convergence_refine"]) | {default.refine}):
+        for refine in sorted(set(cfg.convergence_refine) | {default.refine}):
             key = (default.n_theta, refine)
             if key not in images:
                 images[key] = _render_images(
@@ -555,7 +554,7 @@ def run(config: dict, out: Path, ctx) -> dict:
     _write_csv(out / "timings.csv", time_rows)
     _write_csv(out / "total_vs_bounces.csv", total_rows)
     data = {
-        "grid": {"width": w, "height": h, "bin": cfg["bin"]},
+        "grid": {"width": w, "height": h, "bin": cfg.bin},
         "scenes": scene_info,
         "errors": error_rows,
         "timings": time_rows,
@@ -563,7 +562,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "convergence": convergence,
         "yardstick_shape": [64, h, w],
         "dtype": str(jnp.result_type(float)),
-        "repeats": cfg["repeats"],
+        "repeats": cfg.repeats,
     }
     ctx.write_json("forward_accuracy.json", data)
 

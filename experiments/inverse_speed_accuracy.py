@@ -51,6 +51,7 @@ nowhere else: it is drawn apart and left out of the comparison.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -64,37 +65,17 @@ import numpy as np
 import lightfield_jax as lfj
 from lightfield_jax import internal as lfi
 from lightfield_jax.app.experiment import (
-    check_config,
+    check_choices,
     load_helper,
     pyplot,
     save_figure,
+    typed_config,
     write_csv,
 )
 from lightfield_jax.app.timing import stopwatch
 
 inv = load_helper("_inverse")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "medium",
-    "period",
-    "lit",
-    "gain",
-    "noise",
-    "captures",
-    "g_grids",
-    "dense_g_grids",
-    "dense_repeats",
-    "methods",
-    "repeats",
-    "start_grid",
-    "max_steps",
-    "match_slack",
-    "match_errors",
-}
 CAPTURES = ("noiseless", "noisy", "perfect_split")
 # Times compared: a cold fit's wall time and its run time (compile excluded), and the
 # wall time of the same fit again in the same process (compiled programs reused).
@@ -102,30 +83,58 @@ _PARTS = ("total", "run", "warm")
 METHODS = ("grid", "gradient", "joint", "jaxopt_lm", "jaxopt_gn")
 
 
-def _check(config: dict) -> None:
-    check_config(
-        "inverse_speed_accuracy", config, _KEYS, {"captures": CAPTURES, "methods": METHODS}
-    )
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/inverse_speed_accuracy.yaml: the capture (pixels, the medium, stripe
+    period and lit width, gain, the noisy capture's noise), the captures and methods
+    compared, the grid densities (``dense_g_grids``: perfect split only, run
+    ``dense_repeats`` times, default ``repeats``), the solvers' coarse start and step
+    limit, and the matched-accuracy slack and target errors."""
+
+    dtype: str
+    width: int
+    height: int
+    medium: dict
+    period: int
+    lit: int
+    gain: float
+    noise: dict
+    captures: tuple[str, ...]
+    g_grids: tuple[int, ...]
+    methods: tuple[str, ...]
+    repeats: int
+    start_grid: int
+    max_steps: int
+    match_slack: float
+    match_errors: tuple[float, ...]
+    dense_g_grids: tuple[int, ...] = ()
+    dense_repeats: int | None = None
+
+    def __post_init__(self):
+        name = "inverse_speed_accuracy"
+        check_choices(name, "captures", self.captures, CAPTURES)
+        check_choices(name, "methods", self.methods, METHODS)
 
 
-def _repeats(config: dict, capture: str, label: str) -> int:
+def _repeats(config: Config, capture: str, label: str) -> int:
     """How often a fit runs: ``repeats``, or ``dense_repeats`` (default: the same) for
     the dense grids of the perfect split (minutes per fit; their time is run time,
     which varies little)."""
     dense = label.startswith("grid-") and int(label.split("-")[1]) in set(
-        config.get("dense_g_grids", [])
-    ) - set(config["g_grids"])
+        config.dense_g_grids
+    ) - set(config.g_grids)
     if dense and capture == "perfect_split":
-        return min(config.get("dense_repeats", config["repeats"]), config["repeats"])
-    return config["repeats"]
+        dense_repeats = config.repeats if config.dense_repeats is None else config.dense_repeats
+        return min(dense_repeats, config.repeats)
+    return config.repeats
 
 
-def _labels(config: dict, capture: str) -> list[str]:
+def _labels(config: Config, capture: str) -> list[str]:
     out = []
-    for m in config["methods"]:
+    for m in config.methods:
         if m == "grid":
-            dense = config.get("dense_g_grids", []) if capture == "perfect_split" else []
-            out += [f"grid-{n}" for n in sorted(set(config["g_grids"]) | set(dense))]
+            dense = config.dense_g_grids if capture == "perfect_split" else ()
+            out += [f"grid-{n}" for n in sorted(set(config.g_grids) | set(dense))]
         elif not (m == "joint" and capture == "perfect_split"):
             out.append(m.replace("_", "-"))
     return out
@@ -181,7 +190,7 @@ def _jaxopt_run(solver: str, max_steps: int, renderer, sigma_t, d, m, mask, gs, 
 _jaxopt_jitted = jax.jit(_jaxopt_run, static_argnames=("solver", "max_steps"))
 
 
-def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: dict) -> dict:
+def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: Config) -> dict:
     """The ``gradient`` method's two-step problem solved by jaxopt (``lm`` or ``gn``).
 
     Same pieces as the package's two-step solve (:mod:`lightfield_jax.internal`): σt
@@ -206,12 +215,12 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: di
         jnp.asarray(data.direct, dtype),
         jnp.asarray(data.multiple, dtype),
         jnp.asarray(data.mask),
-        jnp.linspace(-0.95, 0.95, config["start_grid"], dtype=dtype),
+        jnp.linspace(-0.95, 0.95, config.start_grid, dtype=dtype),
         jnp.asarray(scale, dtype),
     )
     with warnings.catch_warnings(), stopwatch() as timing:
         warnings.filterwarnings("ignore", category=DeprecationWarning, module="jaxopt")
-        out = _jaxopt_jitted(solver, config["max_steps"], *args)
+        out = _jaxopt_jitted(solver, config.max_steps, *args)
         s, g, iters, err = jax.block_until_ready(out)
     total = time.perf_counter() - t_start
     iters = int(iters)
@@ -220,7 +229,7 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: di
     return {
         **values,
         "finite": finite,
-        "converged": finite and iters < config["max_steps"],
+        "converged": finite and iters < config.max_steps,
         "message": f"jaxopt {solver}: {iters} iterations, stop error {float(err):.3g}",
         "iterations": iters,
         "seconds": {"compile": timing.compile, "run": total - timing.compile, "total": total},
@@ -235,7 +244,7 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: di
 class _Captures:
     """The captures, rendered on first use only (a resumed run may need none)."""
 
-    def __init__(self, config: dict):
+    def __init__(self, config: Config):
         self.config = config
         self._sims: dict = {}
 
@@ -245,15 +254,15 @@ class _Captures:
             c = self.config
             noise = None
             if name == "noisy":
-                noise = {**c["noise"], "seed": int(c["noise"].get("seed", 0)) + repeat}
+                noise = {**c.noise, "seed": int(c.noise.get("seed", 0)) + repeat}
             cfg = inv.capture_config(
-                c["medium"],
-                c["width"],
-                c["height"],
-                period=c["period"],
-                lit=c["lit"],
+                c.medium,
+                c.width,
+                c.height,
+                period=c.period,
+                lit=c.lit,
                 noise=noise,
-                gain=c["gain"],
+                gain=c.gain,
             )
             self._sims[key] = inv.simulate(cfg)
         sim = self._sims[key]
@@ -274,7 +283,7 @@ def _one(config, captures, capture, label, repeat, records) -> dict:
 
 
 def _fit_once(config, captures, capture, label, repeat, records) -> dict:
-    truth = inv.truth_of(config["medium"])
+    truth = inv.truth_of(config.medium)
     sim, split = captures.get(capture, repeat)
     pattern = sim.config.illumination
     if label.startswith("jaxopt"):
@@ -291,8 +300,8 @@ def _fit_once(config, captures, capture, label, repeat, records) -> dict:
         black_level=0.0,
         method=method,
         split=split,
-        start_grid=config["start_grid"],
-        max_steps=config["max_steps"],
+        start_grid=config.start_grid,
+        max_steps=config.max_steps,
         **extra,
     )
 
@@ -401,9 +410,9 @@ def _aggregate(config, records, labels_by_capture):
                 "repeats": len(recs),
                 "iterations": inv.median(x.get("iterations", math.nan) for x in recs),
                 "load_avg": inv.median(x.get("load_avg", math.nan) for x in recs),
-                "coverage": _coverage(recs, inv.truth_of(config["medium"])),
+                "coverage": _coverage(recs, inv.truth_of(config.medium)),
             }
-        truth_g = float(config["medium"]["g"])
+        truth_g = float(config.medium["g"])
         for lb, v in rows.items():
             if lb.startswith("grid-"):
                 v["truth_on_grid"] = _on_grid(truth_g, int(lb.split("-")[1]))
@@ -423,7 +432,7 @@ def _aggregate(config, records, labels_by_capture):
                 continue
             sp = {}
             for part in _PARTS:
-                m = _matched(grid_pts[part], v["errors"]["error"], config["match_slack"])
+                m = _matched(grid_pts[part], v["errors"]["error"], config.match_slack)
                 t = v["seconds"][part]
                 m["method_seconds"] = t
                 m["speedup"] = m["grid_seconds"] / t
@@ -434,29 +443,29 @@ def _aggregate(config, records, labels_by_capture):
         agg[capture] = {
             "methods": rows,
             "speedup_vs_grid": speedups,
-            "speedup_at_targets": _at_targets(rows, grid_pts, config["match_errors"]),
+            "speedup_at_targets": _at_targets(rows, grid_pts, config.match_errors),
         }
     return agg
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
     captures = _Captures(config)
-    labels_by_capture = {c: _labels(config, c) for c in config["captures"]}
+    labels_by_capture = {c: _labels(config, c) for c in config.captures}
     records: dict = {}
     tag = (
-        f"lib{inv.library_fingerprint()}|{config['dtype']}|"
-        f"{config['width']}x{config['height']}|{config['medium']}|"
-        f"p{config['period']}/{config['lit']}|gain{config['gain']}|noise{config['noise']}|"
-        f"start{config['start_grid']}|steps{config['max_steps']}"
+        f"lib{inv.library_fingerprint()}|{config.dtype}|"
+        f"{config.width}x{config.height}|{config.medium}|"
+        f"p{config.period}/{config.lit}|gain{config.gain}|noise{config.noise}|"
+        f"start{config.start_grid}|steps{config.max_steps}"
     )
-    with inv.precision(config["dtype"]):
+    with inv.precision(config.dtype):
         # One untimed fit first: what every fit of a capture this size shares (the
         # separation and the decay fit of σt, compiled on first use) is then warm for
         # all, and the first timed fit does not pay for it alone.
-        first = config["captures"][0]
-        _fit_once(config, captures, first, f"grid-{min(config['g_grids'])}", 0, records)
-        for repeat in range(config["repeats"]):
+        first = config.captures[0]
+        _fit_once(config, captures, first, f"grid-{min(config.g_grids)}", 0, records)
+        for repeat in range(config.repeats):
             for capture, labels in labels_by_capture.items():
                 todo = list(labels)
                 if any(lb.startswith("jaxopt") for lb in todo) and "gradient" not in todo:
@@ -464,7 +473,7 @@ def run(config: dict, out: Path, ctx) -> dict:
                 for label in todo:
                     if repeat >= _repeats(config, capture, label):
                         continue
-                    ctx.progress(f"repeat {repeat + 1}/{config['repeats']}: {capture}, {label}")
+                    ctx.progress(f"repeat {repeat + 1}/{config.repeats}: {capture}, {label}")
                     key = f"{tag}|{capture}|{label}|{repeat}"
                     records[(capture, label, repeat)] = ctx.cached(
                         key,
@@ -478,7 +487,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "speed_accuracy.json",
         inv.jsonable(
             {
-                "truth": inv.truth_of(config["medium"]),
+                "truth": inv.truth_of(config.medium),
                 "aggregate": agg,
                 "records": [
                     {"capture": c, "method": lb, "repeat": r, **rec}
@@ -674,8 +683,8 @@ def _plot(config, agg, records, labels_by_capture, out: Path) -> list[str]:
             if i == 0 and j == 0:
                 ax.legend(fontsize=7)
     fig.suptitle(
-        f"Paper's milk {config['width']}×{config['height']}, {config['period']}-px stripes: "
-        f"error vs time (median of {config['repeats']})",
+        f"Paper's milk {config.width}×{config.height}, {config.period}-px stripes: "
+        f"error vs time (median of {config.repeats})",
         fontsize=10,
     )
     fig.tight_layout()

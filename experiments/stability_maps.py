@@ -35,6 +35,7 @@ not cold ones (``inverse_speed_accuracy`` measures those).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -44,10 +45,11 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import (
-    check_config,
+    check_choices,
     load_helper,
     pyplot,
     save_figure,
+    typed_config,
     write_csv,
 )
 from lightfield_jax.inverse.methods import METHODS
@@ -55,32 +57,38 @@ from lightfield_jax.inverse.methods import METHODS
 inv = load_helper("_inverse")
 batch = load_helper("_batch")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "methods",
-    "base",
-    "xla_cache",
-    "bias_threshold",
-    "ill_conditioned",
-    "divergent_bounces",
-    "max_truth_bounces",
-    "tolerance",
-    "joint_timeout",
-    "albedo_g",
-    "noise",
-    "period",
-    "shifts",
-    "black_level",
-    "start",
-}
 SWEEPS = ("noise", "period", "shifts", "black_level")
 
 
-def _check(config: dict) -> None:
-    check_config("stability_maps", config, _KEYS, {"methods": METHODS})
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/stability_maps.yaml: the captures (pixels), the methods, the 1-D sweeps'
+    ``base`` medium, the persistent XLA cache, the outcome thresholds, the truths'
+    bounces, the joint fit's time limit (s), the albedo × g map and the optional sweeps
+    (``noise``, ``period``, ``shifts``, ``black_level``) and ``start`` (null or absent:
+    skipped)."""
+
+    dtype: str
+    width: int
+    height: int
+    methods: tuple[str, ...]
+    base: dict
+    xla_cache: bool
+    bias_threshold: float
+    ill_conditioned: float
+    divergent_bounces: int
+    max_truth_bounces: int
+    tolerance: float
+    joint_timeout: float
+    albedo_g: dict
+    noise: dict | None = None
+    period: dict | None = None
+    shifts: dict | None = None
+    black_level: dict | None = None
+    start: dict | None = None
+
+    def __post_init__(self):
+        check_choices("stability_maps", "methods", self.methods, METHODS)
 
 
 # ------------------------------------------------------------------------ captures
@@ -90,24 +98,24 @@ def _rho(medium: dict) -> float:
     return medium["sigma_s"] / medium["sigma_t"] * float(lfj.phase_integral(medium["g"]))
 
 
-def _truth_bounces(medium: dict, config: dict) -> tuple[int, str]:
+def _truth_bounces(medium: dict, config: Config) -> tuple[int, str]:
     """Bounces of a truth and how they were chosen (``auto``, ``capped``, ``divergent``)."""
     rho = _rho(medium)
     if rho >= 1.0:
-        return config["divergent_bounces"], "divergent"
-    k = lfj.bounces_for_tolerance(rho, config["tolerance"], max_bounces=100_000)
-    if k > config["max_truth_bounces"]:
-        return config["max_truth_bounces"], "capped"
+        return config.divergent_bounces, "divergent"
+    k = lfj.bounces_for_tolerance(rho, config.tolerance, max_bounces=100_000)
+    if k > config.max_truth_bounces:
+        return config.max_truth_bounces, "capped"
     return k, "auto"
 
 
-def _simulated(cell: dict, config: dict) -> np.ndarray:
+def _simulated(cell: dict, config: Config) -> np.ndarray:
     """A cell's noise-free capture through ``simulate_capture`` (stripes, black level)."""
     k, _how = _truth_bounces(cell["medium"], config)
     cfg = inv.capture_config(
         cell["medium"],
-        config["width"],
-        config["height"],
+        config.width,
+        config.height,
         period=cell["period"],
         lit=cell["lit"],
         phases=cell["phases"],
@@ -121,7 +129,7 @@ class _BatchedTruths:
     """Noise-free stripe captures of many media, rendered in groups of equal (g, K):
     one :func:`_batch.batched_render` call (vmap over σt, σs) per group."""
 
-    def __init__(self, cells: list[dict], config: dict):
+    def __init__(self, cells: list[dict], config: Config):
         self.config = config
         self.groups: dict = {}
         for i, cell in enumerate(cells):
@@ -138,7 +146,7 @@ class _BatchedTruths:
     def _render_group(self, i: int) -> None:
         (g, k), members = next((key, m) for key, m in self.groups.items() if i in m)
         cell = self.cells[i]
-        grid = lfj.Grid(self.config["width"], self.config["height"]).resolve(g)
+        grid = lfj.Grid(self.config.width, self.config.height).resolve(g)
         stripes = lfj.Stripes(cell["period"], cell["lit"], tuple(cell["phases"]))
         renderer = lfj.Renderer(grid, stripes, k, "paper")
         params = np.array(
@@ -149,10 +157,10 @@ class _BatchedTruths:
             self.done[j] = im
 
 
-def _cell(config: dict, **changes) -> dict:
+def _cell(config: Config, **changes) -> dict:
     """The base cell (the config's ``base`` medium, period 6, 6 shifts, no noise) with
     ``changes``."""
-    base = config["base"]
+    base = config.base
     cell = {
         "medium": {k: float(base[k]) for k in ("sigma_t", "sigma_s", "g")},
         "period": 6,
@@ -167,17 +175,17 @@ def _cell(config: dict, **changes) -> dict:
     return cell
 
 
-def _key(cell: dict, method: str, config: dict) -> str:
+def _key(cell: dict, method: str, config: Config) -> str:
     return (
         f"lib{inv.library_fingerprint()}|"
-        f"{config['dtype']}|{config['width']}x{config['height']}|{method}|{cell['medium']}|"
+        f"{config.dtype}|{config.width}x{config.height}|{method}|{cell['medium']}|"
         f"p{cell['period']}/{cell['lit']}|{cell['phases']}|n{cell['noise']}|s{cell['seed']}|"
-        f"b{cell['black_level']}/{cell['known_black']}|K{config['divergent_bounces']}/"
-        f"{config['max_truth_bounces']}|tol{config['tolerance']}"
+        f"b{cell['black_level']}/{cell['known_black']}|K{config.divergent_bounces}/"
+        f"{config.max_truth_bounces}|tol{config.tolerance}"
     )
 
 
-def _fit(cell: dict, method: str, images: np.ndarray, config: dict, xla_dir) -> dict:
+def _fit(cell: dict, method: str, images: np.ndarray, config: Config, xla_dir) -> dict:
     medium = cell["medium"]
     pattern = lfj.Stripes(cell["period"], cell["lit"], tuple(cell["phases"]))
     black = cell["black_level"] if cell["known_black"] else None
@@ -187,8 +195,8 @@ def _fit(cell: dict, method: str, images: np.ndarray, config: dict, xla_dir) -> 
             images,
             pattern,
             truth,
-            timeout=config["joint_timeout"],
-            dtype=config["dtype"],
+            timeout=config.joint_timeout,
+            dtype=config.dtype,
             xla_cache_dir=xla_dir,
             method=method,
             black_level=black,
@@ -200,23 +208,23 @@ def _fit(cell: dict, method: str, images: np.ndarray, config: dict, xla_dir) -> 
     rec["failure"] = inv.failure(
         rec,
         truth_rho=rec["truth"]["rho"],
-        bias=config["bias_threshold"],
-        ill_conditioned=config["ill_conditioned"],
+        bias=config.bias_threshold,
+        ill_conditioned=config.ill_conditioned,
     )
     return inv.jsonable(rec)
 
 
 def _run_cells(name, cells, images_of, config, ctx) -> list[dict]:
     rows = []
-    xla_dir = ctx.out / "xla_cache" if config["xla_cache"] else None
+    xla_dir = ctx.out / "xla_cache" if config.xla_cache else None
     for i, cell in enumerate(cells):
-        for method in config["methods"]:
+        for method in config.methods:
             ctx.progress(f"{name} {i + 1}/{len(cells)}: {method}")
             rec = ctx.cached(
                 f"{name}|{_key(cell, method, config)}",
                 lambda c=cell, m=method, i=i: _fit(c, m, images_of(i), config, xla_dir),
             )
-            if method == "joint" and rec["seconds"]["total"] > config["joint_timeout"]:
+            if method == "joint" and rec["seconds"]["total"] > config.joint_timeout:
                 # A result that came later than the limit (a run before the limit
                 # existed) counts as a timeout too; its values stay in the record.
                 rec = {**rec, "failure": "timeout", "late": True}
@@ -224,8 +232,8 @@ def _run_cells(name, cells, images_of, config, ctx) -> list[dict]:
     return rows
 
 
-def _albedo_g(config: dict, ctx) -> tuple[list[dict], list[dict]]:
-    spec = config["albedo_g"]
+def _albedo_g(config: Config, ctx) -> tuple[list[dict], list[dict]]:
+    spec = config.albedo_g
     st = float(spec["sigma_t"])
     cells = [
         _cell(config, medium={"sigma_t": st, "sigma_s": st * w, "g": float(g)})
@@ -238,12 +246,12 @@ def _albedo_g(config: dict, ctx) -> tuple[list[dict], list[dict]]:
     )
 
 
-def _sweep_cells(name: str, config: dict) -> list[dict]:
-    spec = config[name]
+def _sweep_cells(name: str, config: Config) -> list[dict]:
+    spec = getattr(config, name)
     if name == "noise":
         return [_cell(config, noise=(p, r), seed=i) for i, (p, r) in enumerate(spec["levels"])]
     if name == "period":
-        base = config["base"]
+        base = config.base
         w, g = base["sigma_s"] / base["sigma_t"], base["g"]
         return [
             _cell(
@@ -267,7 +275,7 @@ def _sweep_cells(name: str, config: dict) -> list[dict]:
     raise ValueError(name)
 
 
-def _sweep(name: str, config: dict, ctx) -> tuple[list[dict], list[dict]]:
+def _sweep(name: str, config: Config, ctx) -> tuple[list[dict], list[dict]]:
     cells = _sweep_cells(name, config)
     memo: dict[int, np.ndarray] = {}
 
@@ -283,7 +291,7 @@ def _sweep(name: str, config: dict, ctx) -> tuple[list[dict], list[dict]]:
 # ------------------------------------------------------------------- initial guess
 
 
-def _start_solve(medium: dict, start: tuple, images, config: dict) -> dict:
+def _start_solve(medium: dict, start: tuple, images, config: Config) -> dict:
     """One joint fit from ``start``'s (σs, g) (σt from the decay fit, as always), the
     basin search off: where the solve from there ends, and whether it is trusted."""
     t0 = time.perf_counter()
@@ -306,13 +314,13 @@ def _start_solve(medium: dict, start: tuple, images, config: dict) -> dict:
         "model": fit.model,
     }
     rec["failure"] = inv.failure(
-        rec, bias=config["bias_threshold"], ill_conditioned=config["ill_conditioned"]
+        rec, bias=config.bias_threshold, ill_conditioned=config.ill_conditioned
     )
     return inv.jsonable(rec)
 
 
-def _starts(config: dict, ctx) -> list[dict]:
-    spec = config["start"]
+def _starts(config: Config, ctx) -> list[dict]:
+    spec = config.start
     rows = []
     for medium in spec["media"]:
         m = {k: float(medium[k]) for k in ("sigma_t", "sigma_s", "g")}
@@ -341,17 +349,17 @@ def _starts(config: dict, ctx) -> list[dict]:
 # ------------------------------------------------------------------------ driver
 
 
-def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
-    cache = out / "xla_cache" if config["xla_cache"] else None
+def run(raw: dict, out: Path, ctx) -> dict:
+    config = typed_config(Config, raw)
+    cache = out / "xla_cache" if config.xla_cache else None
     results = {}
-    with inv.precision(config["dtype"]), inv.xla_cache(cache):
+    with inv.precision(config.dtype), inv.xla_cache(cache):
         cells, rows = _albedo_g(config, ctx)
         results["albedo_g"] = rows
         for name in SWEEPS:
-            if config.get(name):
+            if getattr(config, name):
                 results[name] = _sweep(name, config, ctx)[1]
-        starts = _starts(config, ctx) if config.get("start") else []
+        starts = _starts(config, ctx) if config.start else []
     all_rows = [r for rows in results.values() for r in rows]
     _write_csv(out / "stability.csv", all_rows, starts)
     ctx.write_json("stability.json", inv.jsonable({"fits": all_rows, "starts": starts}))
@@ -390,7 +398,7 @@ def _summary(config, results, starts, figures) -> dict:
         "failure_counts": {name: _counts(rows) for name, rows in results.items()},
         "albedo_g_failures": {
             m: [brief(r) for r in results["albedo_g"] if r["method"] == m and r["failure"] != "ok"]
-            for m in config["methods"]
+            for m in config.methods
         },
         "sweeps": {
             name: [
@@ -568,11 +576,11 @@ _COLORS = {"grid": "tab:red", "gradient": "tab:blue", "joint": "tab:green"}
 _ERROR = "error: max(|Δσt|/σt, |Δσs|/σs, |Δg|)"
 
 
-def _capture_text(config: dict) -> str:
+def _capture_text(config: Config) -> str:
     """The captures' parameters, for the figures' captions."""
     return (
-        f"{config['width']}×{config['height']} px stripe captures (period 6, lit 3, 6 shifts "
-        f"unless varied), {config['dtype']}; grid, gradient: two-step (Nayar split, then fit "
+        f"{config.width}×{config.height} px stripe captures (period 6, lit 3, 6 shifts "
+        f"unless varied), {config.dtype}; grid, gradient: two-step (Nayar split, then fit "
         "the global part); joint: all parameters from the raw images"
     )
 
@@ -595,9 +603,9 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
 
     plt = pyplot()
 
-    spec = config["albedo_g"]
+    spec = config.albedo_g
     albedos, gs = list(spec["albedo"]), list(spec["g"])
-    methods = config["methods"]
+    methods = config.methods
     xi, gv = _index_coords(gs)
     yi, wv = _index_coords(albedos)
     gg, ww = np.meshgrid(gv, wv)
@@ -662,10 +670,10 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
         f"Where each method fails over albedo × g: σt {spec['sigma_t']} px⁻¹, noiseless; "
         f"cell text: outcome and error (floored at 1e-4); gray: no result\n"
         f"red hatching: ρ = ω·A(g) ≥ 1 (phase: paper), the bounce series diverges, the truth "
-        f"is cut after {config['divergent_bounces']} bounces\n"
-        f"ok: error ≤ {config['bias_threshold']:g}; bias: converged, error above; cond: bias "
-        f"with condition number > {config['ill_conditioned']:.0e}; n.c.: not converged; "
-        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {config['joint_timeout']:g} s\n"
+        f"is cut after {config.divergent_bounces} bounces\n"
+        f"ok: error ≤ {config.bias_threshold:g}; bias: converged, error above; cond: bias "
+        f"with condition number > {config.ill_conditioned:.0e}; n.c.: not converged; "
+        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {config.joint_timeout:g} s\n"
         + _capture_text(config),
         fontsize=9,
     )
@@ -686,7 +694,7 @@ def _plot_sweeps(config, results, out: Path) -> str:
     )
     for ax, name in zip(axes[0], names, strict=False):
         rows = results[name]
-        for method in config["methods"]:
+        for method in config.methods:
             mine = [r for r in rows if r["method"] == method]
             if name == "black_level":
                 # one category per (b, given or not): a single level still reads
@@ -724,24 +732,24 @@ def _plot_sweeps(config, results, out: Path) -> str:
                 ax.set_xticks(range(len(mine)), labels, rotation=45, ha="right", fontsize=7)
                 ax.set_xlabel("photons at the brightest pixel, read noise / brightest pixel")
         ax.set_yscale("log")
-        ax.axhline(config["bias_threshold"], color="k", lw=0.8, ls=":")
+        ax.axhline(config.bias_threshold, color="k", lw=0.8, ls=":")
         ax.set_ylabel(_ERROR, fontsize=8)
         ax.set_title(_SWEEP_TITLES.get(name, name), fontsize=10)
         ax.grid(True, which="both", alpha=0.3)
     handles = [
         Line2D([], [], color=c, lw=_LW.get(m, 1), alpha=0.5 if m == "grid" else 1, label=m)
         for m, c in _COLORS.items()
-        if m in config["methods"]
+        if m in config.methods
     ]
     handles += [
         Line2D([], [], color="gray", marker=mk, ls="none", label=f) for f, mk in _MARKERS.items()
     ]
     fig.legend(handles=handles, fontsize=8, loc="center right", title="method / outcome")
-    base = config["base"]
+    base = config.base
     fig.suptitle(
         f"Recovery error against one capture setting at a time: σt {base['sigma_t']} px⁻¹, "
         f"σs {base['sigma_s']} px⁻¹, g {base['g']} (the paper's milk) unless varied; "
-        f"dotted: the 'ok' threshold {config['bias_threshold']:g} (grid, wide pale red, lies "
+        f"dotted: the 'ok' threshold {config.bias_threshold:g} (grid, wide pale red, lies "
         "under gradient where they agree)\n" + _capture_text(config),
         fontsize=9,
     )
@@ -777,7 +785,7 @@ def _plot_starts(config, starts, out: Path) -> str:
 
     plt = pyplot()
 
-    spec = config["start"]
+    spec = config.start
     media = list(dict.fromkeys(s["medium"] for s in starts))
     fs, dg = list(spec["sigma_s_factor"]), list(spec["g_offset"])
     with_st = any(s["sigma_t_factor"] != 1.0 for s in starts)
@@ -843,7 +851,7 @@ def _plot_starts(config, starts, out: Path) -> str:
         inv.log_axes(ax, y=False)
         ax.set_yscale("log")
         ax.set_ylim(1e-7, 2.0)
-        ax.axhline(config["bias_threshold"], color="k", lw=0.8, ls=":")
+        ax.axhline(config.bias_threshold, color="k", lw=0.8, ls=":")
         ax.set_xlabel("start σt / true σt")
         ax.set_ylabel("final error (dotted: the 'ok' threshold)", fontsize=8)
         ax.set_title(f"{med}: σt starts (σs, g = truth)", fontsize=9)
@@ -851,8 +859,8 @@ def _plot_starts(config, starts, out: Path) -> str:
     fig.suptitle(
         "The joint fit's basin of convergence: one Levenberg–Marquardt solve from each start "
         "(coarse stage skipped), on the model the truth needs\n"
-        f"noiseless {config['width']}×{config['height']} px captures, period 6, lit 3, "
-        f"6 shifts; ok: error ≤ {config['bias_threshold']:g}; n.c.: not converged; "
+        f"noiseless {config.width}×{config.height} px captures, period 6, lit 3, "
+        f"6 shifts; ok: error ≤ {config.bias_threshold:g}; n.c.: not converged; "
         "it: iterations; start |g| clipped to 0.95, start σs to 0.98·σt",
         fontsize=9,
     )

@@ -32,12 +32,12 @@ from lightfield_jax.forward.simulate import simulate_capture as simulate_capture
 from lightfield_jax.forward.slab import SlabRenderer as SlabRenderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning as TailNotConvergedWarning
 from lightfield_jax.forward.tail import TailSolution as TailSolution
+from lightfield_jax.inverse.capture_fit import CaptureFit as CaptureFit
+from lightfield_jax.inverse.capture_fit import fit_capture as fit_capture
 from lightfield_jax.inverse.decay import DecayFit as DecayFit
 from lightfield_jax.inverse.decay import fit_decay as fit_decay
-from lightfield_jax.inverse.fit import CaptureFit as CaptureFit
 from lightfield_jax.inverse.fit import FitOptions as FitOptions
 from lightfield_jax.inverse.fit import FitResult as FitResult
-from lightfield_jax.inverse.fit import fit_capture as fit_capture
 from lightfield_jax.inverse.fit import fit_images as fit_images
 from lightfield_jax.inverse.fit import fitted_images as fitted_images
 from lightfield_jax.inverse.methods import FitMethod as FitMethod

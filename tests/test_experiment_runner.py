@@ -1,5 +1,6 @@
 """The experiment runner works from an installed package, not only from the source tree."""
 
+import dataclasses
 import tomllib
 from pathlib import Path
 
@@ -64,6 +65,24 @@ def test_a_typed_config_is_frozen_with_tuples():
     raw = _experiment.load_experiment_config(ROOT / "configs" / "plane_vs_slab.yaml")
     config = _experiment.typed_config(_plane_vs_slab_config(), raw)
     assert config.albedo == tuple(raw["albedo"]) and config.width == raw["width"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.width = 1
+
+
+@pytest.mark.parametrize("name", ["inverse_speed_accuracy", "stability_maps", "forward_accuracy"])
+def test_an_experiment_refuses_an_unknown_config_key(name, tmp_path):
+    script = _experiment._load_script(name)
+    ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=False)
+    for reduced in (False, True):  # the shipped config, full and reduced, is valid
+        raw = _experiment.load_experiment_config(ROOT / "configs" / f"{name}.yaml", reduced)
+        config = _experiment.typed_config(script.Config, raw)
+        assert config.width == raw["width"]
+    with pytest.raises(ValueError, match=rf"^{name}: unknown config keys \['widht'\]$"):
+        script.run({**raw, "widht": 32}, tmp_path, ctx)  # refused before any work
+    missing = {k: v for k, v in raw.items() if k != "width"}
+    with pytest.raises(ValueError, match=rf"^{name}: missing config key 'width'$"):
+        script.run(missing, tmp_path, ctx)
+    assert not any(tmp_path.iterdir())
     with pytest.raises(dataclasses.FrozenInstanceError):
         config.width = 1
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -12,7 +13,12 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import load_helper, run_experiment
+from lightfield_jax.app.experiment import (
+    load_experiment_config,
+    load_helper,
+    run_experiment,
+    typed_config,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -59,13 +65,25 @@ def test_inverse_speed_accuracy_reduced(tmp_path):
 
 def test_inverse_speed_accuracy_dense_grids_repeat_less():
     script = load_helper("inverse_speed_accuracy")
-    config = {"repeats": 3, "g_grids": [9, 19], "dense_g_grids": [19, 321], "dense_repeats": 1}
+    raw = load_experiment_config(CONFIGS / "inverse_speed_accuracy.yaml")
+    dense = {"repeats": 3, "g_grids": [9, 19], "dense_g_grids": [19, 321], "dense_repeats": 1}
+    config = typed_config(script.Config, {**raw, **dense})
     assert script._repeats(config, "perfect_split", "grid-321") == 1
     assert script._repeats(config, "perfect_split", "grid-19") == 3  # also a plain grid
     assert script._repeats(config, "perfect_split", "gradient") == 3
     assert script._repeats(config, "noisy", "grid-9") == 3
-    assert "grid-321" in script._labels({**config, "methods": ["grid"]}, "perfect_split")
-    assert "grid-321" not in script._labels({**config, "methods": ["grid"]}, "noisy")
+    grid_only = dataclasses.replace(config, methods=("grid",))
+    assert "grid-321" in script._labels(grid_only, "perfect_split")
+    assert "grid-321" not in script._labels(grid_only, "noisy")
+    # Without dense_repeats the dense grids run as often as the others.
+    unset = {k: v for k, v in {**raw, **dense}.items() if k != "dense_repeats"}
+    assert script._repeats(typed_config(script.Config, unset), "perfect_split", "grid-321") == 3
+    # Without dense_g_grids there are none.
+    plain = {k: v for k, v in unset.items() if k != "dense_g_grids"}
+    labels = script._labels(
+        dataclasses.replace(typed_config(script.Config, plain), methods=("grid",)), "perfect_split"
+    )
+    assert labels == ["grid-9", "grid-19"]
 
 
 @pytest.mark.slow  # minutes on 2 cores; run with -m slow

@@ -21,7 +21,7 @@ from lightfield_jax.capture.hdr import (
     write_response,
 )
 from lightfield_jax.capture.io import CaptureError, write_png
-from lightfield_jax.inverse.fit import fit_capture
+from lightfield_jax.inverse.capture_fit import fit_capture
 
 MEDIUM = {"sigma_t": 0.1, "sigma_s": 0.05, "g": 0.3}
 TIMES = [0.001, 0.008, 0.064]

@@ -222,7 +222,7 @@ def test_a_failure_while_plotting_replaces_no_output(capture, capsys, tmp_path, 
 def test_library_failures_are_translated_and_name_the_capture(capture, capsys, monkeypatch):
     import equinox as eqx
 
-    import lightfield_jax.inverse.fit as fit_module
+    import lightfield_jax.inverse.capture_fit as capture_fit_module
 
     def singular(*args, **kwargs):
         raise eqx.EquinoxRuntimeError(
@@ -230,7 +230,7 @@ def test_library_failures_are_translated_and_name_the_capture(capture, capsys, m
             "means that you have a bug upstream of Lineax"
         )
 
-    monkeypatch.setattr(fit_module, "fit_capture", singular)
+    monkeypatch.setattr(capture_fit_module, "fit_capture", singular)
     line = _refused(
         capsys, "fit", capture / "capture.yaml", match="the solve met a singular or non-finite"
     )
@@ -239,7 +239,7 @@ def test_library_failures_are_translated_and_name_the_capture(capture, capsys, m
     def decay(*args, **kwargs):
         raise ValueError("decay fit: no usable points along the beam")
 
-    monkeypatch.setattr(fit_module, "fit_capture", decay)
+    monkeypatch.setattr(capture_fit_module, "fit_capture", decay)
     line = _refused(capsys, "fit", capture / "capture.yaml", match="decay fit: no usable")
     assert line.startswith(f"lightfield-jax: error: {capture / 'capture.yaml'}: ")
 

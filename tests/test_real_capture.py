@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-import lightfield_jax.inverse.fit as fit_module
+import lightfield_jax.inverse.capture_fit as capture_fit_module
 import lightfield_jax.viz as viz
 from lightfield_jax.app.cli import main
 from lightfield_jax.capture.calibration import mosaic_score
@@ -511,7 +511,7 @@ def test_each_channel_fit_converges(fitted):
 
 
 def test_fit_plot_draws_the_channels(rgb, fitted, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(fit_module, "fit_capture", lambda *a, **k: fitted)
+    monkeypatch.setattr(capture_fit_module, "fit_capture", lambda *a, **k: fitted)
     folder = rgb[0]
     status = main(
         [
@@ -633,7 +633,7 @@ def test_a_faded_far_edge_is_not_a_wall(lit_from, mirror):
 
 def test_a_faded_edge_is_reported_on_screen_and_in_results(fitted, tmp_path, capsys, monkeypatch):
     # The record does not depend on the fit: any fit stands in for this capture's.
-    monkeypatch.setattr(fit_module, "fit_capture", lambda *a, **k: fitted)
+    monkeypatch.setattr(capture_fit_module, "fit_capture", lambda *a, **k: fitted)
     names = []
     for i, f in enumerate(_faded_frames()):
         names.append(f"f{i}.exr")

@@ -205,7 +205,7 @@ import json, sys, time
 t0 = time.perf_counter()
 import lightfield_jax
 from lightfield_jax.capture.capture import load_capture
-from lightfield_jax.inverse.fit import fit_capture
+from lightfield_jax.inverse.capture_fit import fit_capture
 import_s = time.perf_counter() - t0
 capture = load_capture(sys.argv[1])
 out = {"import_s": import_s}

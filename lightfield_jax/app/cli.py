@@ -661,7 +661,8 @@ def _fit(args: argparse.Namespace) -> int | None:
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
-    from lightfield_jax.inverse.fit import FitOptions, fit_capture
+    from lightfield_jax.inverse.capture_fit import fit_capture
+    from lightfield_jax.inverse.fit import FitOptions
 
     inputs = capture_files(args.capture)
     _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])
@@ -740,7 +741,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_directory, atomic_write_json
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
-    from lightfield_jax.inverse.fit import fit_capture
+    from lightfield_jax.inverse.capture_fit import fit_capture
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:

@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lightfield_jax.capture.inspect import SNR_USABLE, Inspection
-from lightfield_jax.inverse.fit import CaptureFit
+from lightfield_jax.inverse.capture_fit import CaptureFit
 
 from ._common import finish as _finish
 from ._common import new_figure as _figure

@@ -1,0 +1,180 @@
+"""The fit of a whole capture (:func:`fit_capture`): every channel fitted with
+:func:`~lightfield_jax.fit_images`'s driver (:mod:`lightfield_jax.inverse.fit`), the
+channels sharing one smallest model (the union of their signal crops, grown to each
+channel's model as they are fitted) so that they share compiled programs; the results
+gathered in a :class:`CaptureFit`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from lightfield_jax.inverse.fit import (
+    FitOptions,
+    FitResult,
+    _at_least,
+    _fit_one,
+    _Model,
+    _model_from,
+    _signal_crop,
+)
+from lightfield_jax.inverse.methods import FitMethod
+from lightfield_jax.scene.geometry import as_geometry, parse_geometry
+from lightfield_jax.scene.grid import Grid
+
+
+@dataclasses.dataclass(frozen=True)
+class CaptureFit:
+    """The fit of every channel of a capture (one :class:`FitResult` each)."""
+
+    channels: tuple[str, ...]
+    results: tuple[FitResult, ...]
+
+    @property
+    def converged(self) -> bool:
+        return all(r.converged for r in self.results)
+
+    def __getitem__(self, channel: str) -> FitResult:
+        return self.results[self.channels.index(channel)]
+
+    def to_dict(self) -> dict:
+        """``results.json``: the result's keys for one channel; for several, each key
+        holds a list in channel order and ``per_channel`` the full results."""
+        if len(self.results) == 1:
+            return {**self.results[0].to_dict(), "channel": self.channels[0]}
+        dicts = [r.to_dict() for r in self.results]
+        keys = (
+            "sigma_t",
+            "sigma_s",
+            "sigma_a",
+            "g",
+            "albedo",
+            "gain",
+            "black_level",
+            "rho",
+            "iterations",
+            "residual",
+        )
+        out = {k: [d[k] for d in dicts] for k in keys}
+        out["uncertainty"] = {
+            k: [d["uncertainty"].get(k) for d in dicts] for k in dicts[0]["uncertainty"]
+        }
+        out.update(
+            method=dicts[0]["method"],
+            converged=self.converged,
+            seconds={"total": sum(d["seconds"]["total"] for d in dicts)},
+            model=[d["model"] for d in dicts],
+            channels=list(self.channels),
+            per_channel=dict(zip(self.channels, dicts, strict=True)),
+        )
+        return out
+
+
+def fit_capture(
+    capture,
+    method: str | FitMethod = "joint",
+    *,
+    channels: Sequence[str] | None = None,
+    options: FitOptions | None = None,
+    progress: Callable[[str], None] | None = None,
+    **overrides,
+) -> CaptureFit:
+    """Fit a loaded capture (:func:`~lightfield_jax.load_capture`), channel by channel.
+
+    Args:
+        capture: the capture (images dark-subtracted and cropped to the medium).
+        method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
+            (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
+            :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
+            whose own settings (its solver, start, grid size) replace these.
+        channels: channel names to fit (default: every channel the capture holds).
+        options, overrides: see :func:`fit_images`.
+        progress: called with a description of each stage.
+    """
+    names = tuple(capture.channel_names)
+    chosen = names if channels is None else tuple(channels)
+    for c in chosen:
+        if c not in names:
+            raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
+    results = []
+    say = progress or (lambda _m: None)
+    opts = dataclasses.replace(options or FitOptions(), method=method, **overrides)
+    if opts.geometry is None and "geometry" not in overrides:
+        geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
+        opts = dataclasses.replace(opts, geometry=geometry)
+    floor = _capture_floor(capture, [names.index(c) for c in chosen], opts)
+    for c in chosen:
+        i = names.index(c)
+        result = _fit_one(
+            capture.images[..., i],
+            capture.pattern,
+            opts,
+            (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
+            mask=np.all(capture.mask[..., i : i + 1], axis=-1),
+            black_level=capture.black_level,
+            saturation=capture.saturation,
+            pixel_size_mm=capture.pixel_size_mm,
+            exposure=_channel_exposure(capture, i),
+            floor=floor,
+        )
+        results.append(result)
+        if len(chosen) > 1:
+            say(f"[{c}] {_one_line(result)}")
+        if floor is not None:
+            # The next channel's model is at least this one's: one compiled program
+            # serves every channel whose need it covers.
+            floor = _at_least(floor, _model_from(result.model))
+    return CaptureFit(channels=chosen, results=tuple(results))
+
+
+def _channel_exposure(capture, i: int):
+    """Channel i of a capture's merged-bracket exposure T, or ``None``."""
+    exposure = getattr(capture, "exposure", None)
+    return None if exposure is None else exposure[..., i]
+
+
+def _one_line(result: FitResult) -> str:
+    flag = "converged" if result.converged else "NOT converged"
+    return (
+        f"sigma_t {result.sigma_t:.5g}, sigma_s {result.sigma_s:.5g}, g {result.g:.4f} "
+        f"({flag}; {result.seconds['total']:.1f} s, {result.seconds['compile']:.1f} s compile)"
+    )
+
+
+def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model | None:
+    """The smallest model every channel of ``capture`` is fitted with: the union of the
+    channels' signal crops (one shape for all), the cheapest discretisation (grown to
+    each channel's model as the channels are fitted). ``None`` under geometry auto."""
+    if as_geometry(options.geometry).chosen_by_fit:
+        return None
+    images = np.asarray(capture.images)
+    p, h, w = images.shape[:3]
+    crop = (0, 0, w, h)
+    if options.crop:
+        crops = []
+        for i in channels:
+            keep = np.all(capture.mask[..., i : i + 1], axis=-1) & np.all(
+                np.isfinite(images[..., i]), axis=0
+            )
+            crops.append(
+                _signal_crop(
+                    np.where(keep[None], images[..., i], 0.0),
+                    capture.pattern,
+                    options.crop_fraction,
+                )
+            )
+        crop = tuple(f(c[k] for c in crops) for k, f in enumerate((min, min, max, max)))
+    slab = as_geometry(options.geometry).slab_or_none
+    return _Model(
+        grid=Grid(crop[2] - crop[0], crop[3] - crop[1], 8, 1),
+        bounces=2,
+        crop=crop,
+        converges=True,
+        rho=0.0,
+        geometry=None
+        if slab is None
+        else dataclasses.replace(slab, n_mu=slab.n_mu or 4, n_z=slab.n_z or 1),
+    )
