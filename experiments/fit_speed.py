@@ -32,7 +32,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import check_config, load_helper, machine, versions
-from lightfield_jax.forward.slab import parse_geometry
+from lightfield_jax.scene.geometry import parse_geometry
 
 _KEYS = {"experiment", "width", "height", "media", "fit", "timeout", "reduced"}
 _MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}

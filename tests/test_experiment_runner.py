@@ -5,6 +5,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+import yaml
 
 from lightfield_jax.app import experiment as _experiment
 
@@ -116,3 +117,16 @@ def test_write_csv_is_one_table(tmp_path):
     path = _experiment.write_csv(tmp_path / "t.csv", ["x", "y"], ([i, i * i] for i in range(3)))
     with open(path, newline="") as f:
         assert list(csv.reader(f)) == [["x", "y"], ["0", "0"], ["1", "1"], ["2", "4"]]
+
+
+def test_every_experiment_script_loads_and_every_config_names_one():
+    """Each script under experiments/ imports (a stale import fails here, not in a
+    long run) and each shipped config names a script that exists."""
+    names = sorted(p.stem for p in _experiment.EXPERIMENTS_DIR.glob("*.py") if p.stem[0] != "_")
+    for name in names:
+        assert callable(_experiment._load_script(name).run), name
+    configs = _experiment.EXPERIMENTS_DIR.parent / "configs"
+    for path in sorted(configs.glob("*.yaml")):
+        experiment = yaml.safe_load(path.read_text()).get("experiment")
+        if experiment is not None:  # the others are simulate configs
+            assert experiment in names, (path.name, experiment)
