@@ -1,23 +1,23 @@
 """Defect correction: the answer of a large model from primal renders alone.
 
-The joint fit solves on a cheap model (few θ bins, the native grid) because every
-solver step needs a forward-mode Jacobian: three tangents through every bounce. The
-model the answer needs (more θ bins, a refined grid for forward scattering, more
-bounces) is then reached by the classical defect-correction iteration
+The joint fit solves on a cheap model (32 θ bins, the native grid, a long series cut
+short and extrapolated) because every solver step needs a forward-mode Jacobian: three
+tangents through every bounce. The model the answer needs (more θ bins, a refined grid
+for forward scattering, the whole series) is then reached in two phases:
 
-    p ← p − J_c⁺ · r(p),
+1. the defect-correction iteration p ← p − J_c⁺ · r(p): r the large model's weighted
+   residual (one primal render per iteration, the gain in closed form as in the
+   solve), J_c the cheap model's Jacobian at its answer (at the cheap model's gain:
+   gain·∂R is what both models approximate). It converges linearly, at the rate
+   ‖I − J_c⁺ J‖, to where J_cᵀ r = 0;
+2. then the large model's own Jacobian J by forward differences at that point (one
+   primal render per parameter) and Gauss–Newton steps with it until a step is below
+   tolerance: the answer is the large model's least-squares answer (Jᵀ r = 0), and J
+   is what the error budget uses.
 
-r the weighted residual of the large model (one primal render per iteration, the gain
-in closed form as in the solve) and J_c the cheap model's Jacobian at its answer,
-re-weighted and re-scaled to the current gain. It converges linearly, at the rate
-‖I − J_c⁺ J‖: the models differ by a few percent, so a few renders do what a full
-solve on the large model did (measured: docs/fit_speed.md). Its fixed point solves
-J_cᵀ r = 0 instead of Jᵀ r = 0: at a residual of pure noise the difference is a
-fraction of the statistical 1σ of the size of J − J_c.
-
-An iteration that stops shrinking, leaves the parameters' domain or meets a tail
-solve that did not converge ends without an answer; the caller then solves on the
-large model itself.
+An iteration that stops shrinking, leaves the parameters' domain, meets a non-finite
+render or a tail solve that did not converge ends without an answer; the caller then
+solves on a model of its own.
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ class Correction:
     converged: bool
     reason: str
     tail: dict | None = None
+    renders: int = 0
 
 
 def in_domain(v: dict, black_range) -> bool:
@@ -75,6 +76,26 @@ def in_domain(v: dict, black_range) -> bool:
     if black_range is not None:
         ok = ok and black_range[0] < v["black_level"] < black_range[1]
     return bool(ok)
+
+
+# Forward-difference steps of the large model's Jacobian: relative on σt and σs,
+# absolute on g and b. The Jacobian is taken again at the answer when that lies more
+# than REFRESH tolerances from where it was taken.
+DIFFERENCE_STEP = 1e-3
+REFRESH = 10.0
+
+
+def _step_size(step: dict, v: dict, jac, names, noise: float) -> float:
+    """max_k |step_k| / tolerance_k × STEP_TOLERANCE (below STEP_TOLERANCE: done), the
+    tolerance STEP_TOLERANCE relative on σt, σs (absolute on g, b) or NOISE_FRACTION of
+    the statistical 1σ where that is larger."""
+    tol = {"sigma_t": v["sigma_t"], "sigma_s": v["sigma_s"], "g": 1.0, "black_level": 1.0}
+    tol = {k: tol[k] * STEP_TOLERANCE for k in names}
+    if noise > 0:
+        sigma = np.sqrt(noise * np.clip(np.diag(np.linalg.pinv(jac.T @ jac)), 0, None))
+        for k, s in zip(names, np.delete(sigma, 3), strict=True):
+            tol[k] = max(tol[k], NOISE_FRACTION * s)
+    return max(abs(step[k]) / tol[k] for k in names) * STEP_TOLERANCE
 
 
 def correct(
@@ -87,46 +108,99 @@ def correct(
     max_iterations: int = 8,
     noise: float = float("nan"),
 ) -> Correction:
-    """Defect-correct ``values`` (σt, σs, g, black_level) to the model ``render`` draws.
+    """Correct ``values`` (σt, σs, g, black_level, gain: the cheap model's answer) to
+    the model ``render`` draws (see the module).
 
     ``render(values)`` returns the large model at unit gain (P, h, w) and its tail
     solve's ``{"steps", "converged"}`` (``None`` without a tail); ``jac_unit`` is the
     cheap model's ∂R/∂(σt, σs, g[, b]) at unit gain; ``black_range`` is the black
     level's range when it is fitted (``None``: given); ``noise`` is the variance of
     one weighted residual that the capture's noise gives (NaN: unknown), which sets
-    how small a step must be to end the iteration."""
+    how small a step must be to end the iteration. At most ``max_iterations`` renders
+    at iterates, plus one per parameter for the large model's Jacobian."""
     names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black_range is not None else [])
     v = {k: float(values[k]) for k in ("sigma_t", "sigma_s", "g", "black_level")}
-    steps, last_size = [], None
-    unit = jac = residual = tail = None
-    for it in range(max_iterations):
-        rendered = v
-        unit, tail = render(v)
+    gain_cheap = float(values["gain"])
+    steps, last_size, exact = [], None, None
+    rendered, unit, jac, residual, tail = v, None, None, None, None
+    count = [0]
+
+    def drawn(at):
+        count[0] += 1
+        unit, tail = render(at)
         unit = np.asarray(unit, np.float64)
         if tail is not None and not tail["converged"]:
-            reason = "its tail solve did not converge"
-            return Correction(v, None, None, None, steps, False, reason, tail)
+            return None, tail, "its tail solve did not converge"
         if not np.all(np.isfinite(unit)):
-            return Correction(v, None, None, None, steps, False, "a non-finite render", tail)
-        gain, residual = projected(weights, unit, obs)
-        jac = design(weights, unit, gain, jac_unit)
-        delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+            return None, tail, "a non-finite render"
+        return unit, tail, None
+
+    def stop(reason, ok=False):
+        return Correction(rendered, unit, jac, residual, steps, ok, reason, tail, count[0])
+
+    def gauss_newton(jac_now):
+        delta, *_ = np.linalg.lstsq(jac_now, -residual, rcond=None)
         step = {k: float(d) for k, d in zip(names, np.delete(delta, 3), strict=True)}
-        scale = {"sigma_t": v["sigma_t"], "sigma_s": v["sigma_s"], "g": 1.0, "black_level": 1.0}
-        scale = {k: scale[k] * STEP_TOLERANCE for k in names}
-        if noise > 0:  # a tenth of the statistical 1σ, where larger
-            sigma = np.sqrt(noise * np.clip(np.diag(np.linalg.pinv(jac.T @ jac)), 0, None))
-            sigma = np.delete(sigma, 3)
-            scale = {
-                k: max(scale[k], NOISE_FRACTION * s) for k, s in zip(names, sigma, strict=True)
-            }
-        size = max(abs(step[k]) / scale[k] for k in names) * STEP_TOLERANCE
-        steps.append({"size": size, **step})
+        return step, _step_size(step, v, jac_now, names, noise)
+
+    def refresh():
+        """The large model's Jacobian at ``v`` by forward differences (``exact``)."""
+        nonlocal exact, jac_at, tail
+        columns = []
+        for k in names:
+            h = DIFFERENCE_STEP * (v[k] if k in ("sigma_t", "sigma_s") else 1.0)
+            moved, tail_k, failure = drawn({**v, k: v[k] + h})
+            if failure:
+                tail = tail_k
+                return failure
+            columns.append((moved - unit) / h)
+        exact, jac_at = np.stack(columns, axis=-1), v
+        return None
+
+    jac_at = None
+    best = None  # the lowest misfit rendered: (‖r‖², values, model, tail, residual)
+    for _ in range(max_iterations):
+        rendered = v
+        unit, tail, failure = drawn(v)
+        if failure:
+            return stop(failure)
+        gain, residual = projected(weights, unit, obs)
         v["gain"] = gain
+        if best is None or residual @ residual < best[0]:
+            best = (residual @ residual, v, unit, tail, residual)
+        jac = design(weights, unit, *((gain_cheap, jac_unit) if exact is None else (gain, exact)))
+        step, size = gauss_newton(jac)
+        steps.append({"size": size, "jacobian": "cheap" if exact is None else "exact", **step})
+        slow = last_size is not None and size > MAX_RATE * last_size
+        if exact is None and (size < STEP_TOLERANCE or slow):
+            # Phase 2 (converged, or slowly: the cheap Jacobian is too far from the
+            # large model's): the large model's own Jacobian at the best point so far,
+            # and its step.
+            _, v, unit, tail, residual = best
+            rendered, gain = v, v["gain"]
+            failure = refresh()
+            if failure:
+                return stop(failure)
+            jac = design(weights, unit, gain, exact)
+            step, size = gauss_newton(jac)
+            steps.append({"size": size, "jacobian": "exact", **step})
+            last_size, slow = None, False
+        if size < STEP_TOLERANCE and exact is not None and jac_at is not v:
+            # Converged with a Jacobian from elsewhere: its own here, and one more look
+            # (the answer is where the large model's Jacobian at it is orthogonal to
+            # the residual, which a misfit makes depend on where J was taken).
+            far = {k: v[k] - jac_at[k] for k in names}
+            if _step_size(far, v, jac, names, noise) > REFRESH * STEP_TOLERANCE:
+                failure = refresh()
+                if failure:
+                    return stop(failure)
+                jac = design(weights, unit, gain, exact)
+                step, size = gauss_newton(jac)
+                steps.append({"size": size, "jacobian": "exact", **step})
         if size < STEP_TOLERANCE:
-            return Correction(v, unit, jac, residual, steps, True, "converged", tail)
-        if last_size is not None and it >= 2 and size > MAX_RATE * last_size:
-            return Correction(v, unit, jac, residual, steps, False, "its steps stopped shrinking")
+            return stop("converged", ok=True)
+        if slow:
+            return stop("its steps stopped shrinking")
         last_size = size
         for _ in range(6):  # halved until inside the domain
             new = {**v, **{k: v[k] + step[k] for k in names}}
@@ -134,10 +208,9 @@ def correct(
                 break
             step = {k: s / 2 for k, s in step.items()}
         else:
-            return Correction(v, unit, jac, residual, steps, False, "its step left the domain")
+            return stop("its step left the domain")
         v = new
-    reason = f"no convergence in {max_iterations} renders"
-    return Correction(rendered, unit, jac, residual, steps, False, reason, tail)
+    return stop(f"no convergence in {max_iterations} renders at iterates")
 
 
 __all__ = ["Correction", "correct", "design", "in_domain", "projected"]

@@ -140,12 +140,14 @@ class FitOptions:
         model_error: (``joint``) estimate the model's error at the solution from one
             render with a finer model (in ``uncertainty_model``).
         correct: (``joint``) reach the model the answer needs by defect correction
-            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model
-            with the cheap model's Jacobian) instead of solving on it; where the
-            iteration does not converge the fit solves on it as before.
+            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model,
+            first with the cheap model's Jacobian, then with its own by forward
+            differences) instead of solving on it; where the iteration does not
+            converge the fit solves on that model as capped by ``max_cells``.
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
             for primal renders, which need no tangents).
-        correction_renders: at most this many renders in the correction.
+        correction_renders: at most this many renders at iterates in the correction
+            (besides one per parameter for the Jacobian).
         max_chi2: χ²/dof against the capture's noise above which a joint fit is not
             trustworthy (its misfit is far above the noise).
         solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
@@ -200,6 +202,15 @@ class FitOptions:
             raise ValueError(f"max_basins: must be at least 1, got {self.max_basins!r}")
         if not self.basin_tolerance >= 0:
             raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
+        if not isinstance(self.correction_renders, int) or self.correction_renders < 1:
+            raise ValueError(
+                f"correction_renders: must be an integer >= 1, got {self.correction_renders!r}"
+            )
+        if not self.max_render_cells >= self.max_cells:
+            raise ValueError(
+                f"max_render_cells: must be at least max_cells ({self.max_cells}), got "
+                f"{self.max_render_cells!r}"
+            )
         check_start(self.start)
         check_solver(self.solver)
 
@@ -758,7 +769,8 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
 
 
 def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
-    """The cheap model of the basin scan and of the joint fit's first stage: 32 θ bins
+    """The cheap model of the basin scan (and, through :func:`_extrapolated`, of the
+    joint fit's first solve): 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one depth layer),
     the bounces the capture's brightness ratio calls for (tail below 1e-3 at
     ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
@@ -853,12 +865,14 @@ def _same_answer(a: dict, b: dict) -> bool:
 
 
 def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
-    """The joint fit after its first stage ``first`` (on the cheap model): the model its
-    answer needs (the larger of that and ``floor``), polished there; the model-weighted
-    refit runs once, on the last stage. Returns the last stage (``first`` itself when it
-    ends at a bound of the model or in a basin worse than the scan's best)."""
+    """The joint fit after its first stage ``first`` (the cheap model's solve): the
+    model its answer needs (the larger of that and ``floor``) reached by defect
+    correction (``correct``: :func:`_corrected`), or else solved on (capped by
+    ``max_cells``: two solves, the second with the model's weights). Returns the last
+    stage (``first`` itself when it ends at a bound of the model or in a basin worse
+    than the scan's best; a refit of the cheap model with the model's weights where
+    that model already covers the need)."""
     coarse = first.model
-    weights = first.weights
     v = first.values
     albedo = v["sigma_s"] / v["sigma_t"]
     if at_bound(v, BLACK_RANGE if black is None else None) or worse_basin(
@@ -868,92 +882,87 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
         # the model, and not worth the large model it would ask for.
         say("  at a bound or in a worse basin on the cheap model: not refined")
         return first
-    need = size_model(
-        images,
-        pattern,
-        albedo=min(v["sigma_s"] / v["sigma_t"], 0.98),
-        g=v["g"],
-        options=options,
-        margin=1.03,
-        sigma_t=v["sigma_t"],
-        crop=coarse.crop,
-    )
-    need = _by_measured_ratio(need, options, the_scan.ratio_at(v["g"], albedo))
-    need = _at_least(need, floor)
-    target = need
-    if options.correct:
-        # Reached by primal renders only: sized without the solve's cell cap (the
-        # forward-mode Jacobian's memory), under the render's own.
-        target = size_model(
+    ratio = the_scan.ratio_at(v["g"], albedo)
+
+    def needed(max_cells: int) -> _Model:
+        model = size_model(
             images,
             pattern,
-            albedo=min(v["sigma_s"] / v["sigma_t"], 0.98),
+            albedo=min(albedo, 0.98),
             g=v["g"],
-            options=dataclasses.replace(options, max_cells=options.max_render_cells),
+            options=dataclasses.replace(options, max_cells=max_cells),
             margin=1.03,
             sigma_t=v["sigma_t"],
             crop=coarse.crop,
         )
-        target = _by_measured_ratio(target, options, the_scan.ratio_at(v["g"], albedo))
-        target = _at_least(target, need)
+        return _by_measured_ratio(model, options, ratio)
+
+    # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
+    # the corrected one, reached by primal renders, by max_render_cells.
+    need = needed(options.max_cells)
+    correct = options.correct and first.ok
+    if correct:
+        target = _at_least(_at_least(needed(options.max_render_cells), need), floor)
+    else:
+        need = target = _at_least(need, floor)
     if _covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
         return _joint_stage(
             data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
         )
-    spent = {"compile": 0.0, "run": 0.0}
-    if options.correct:
+    spent, record = {"compile": 0.0, "run": 0.0}, None
+    if correct:
         say(
             f"  defect correction to the final model n_theta {target.grid.n_theta}, refine "
             f"{target.grid.refine}, {_orders(target)}"
         )
-        done = _corrected(data, pattern, first, target, options, black, say)
-        if done.ok:
+        done, record = _corrected(data, pattern, first, target, options, black, say)
+        if done is not None:
             return done
-        spent = {"compile": done.compile, "run": done.run}
-        say(f"  the correction stopped ({done.message}): solving on the final model")
-    say(f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}")
-    mid = _joint_stage(data, pattern, need, options, black, weights, first.y)
-    last = _joint_stage(data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y)
-    last.steps += mid.steps
-    last.compile += mid.compile + spent["compile"]
-    last.run += mid.run + spent["run"]
+        spent = record["seconds"]
+        say(f"  the correction stopped ({record['stopped']}): solving on the final model")
+    if _covers(coarse, need):
+        last = _joint_stage(
+            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
+        )
+    else:
+        say(
+            f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}"
+        )
+        mid = _joint_stage(data, pattern, need, options, black, first.weights, first.y)
+        last = _joint_stage(
+            data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y
+        )
+        last.steps += mid.steps
+        last.compile += mid.compile
+        last.run += mid.run
+    last.compile += spent["compile"]
+    last.run += spent["run"]
+    if record is not None:
+        last.correction = {**record, "fallback": "solved on the model instead"}
     return last
 
 
 def _orders(model: _Model) -> str:
+    if model.extrapolate:
+        return f"{model.bounces} bounces and a geometric tail"
     if model.tail is None:
         return f"{model.bounces} bounces"
     return f"K0 = {model.bounces} and a {model.tail} tail"
 
 
 def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, black, say):
-    """``target``'s answer by defect correction from ``first`` (the cheap model's
-    solve: its Jacobian, model weights from its answer; :mod:`.correction`). A stage
-    whose ``ok`` is False when the iteration did not converge (its seconds count)."""
+    """``target``'s answer by defect correction from ``first`` (the cheap model's solve:
+    its answer and Jacobian, model weights from its answer; :mod:`.correction`): the
+    stage (``None`` where the iteration did not converge) and its record."""
     renderer, full = _joint_parts(pattern, target, options.phase)
     dtype = first.y.dtype
     weights = _joint_reweighted(data, first)
 
     def render(v):
-        unit, tail = model_at(
-            renderer,
-            full,
-            pattern.lit,
-            v["sigma_t"],
-            v["sigma_s"],
-            v["g"],
-            v["black_level"],
-            dtype,
-        )
-        unit = np.asarray(jax.block_until_ready(unit))
-        status = None
-        if target.tail is not None:
-            status = {"steps": int(tail.steps), "converged": bool(tail.converged)}
-        return unit, status
+        return _render_model(renderer, full, pattern, target, v, dtype)
 
-    black_range = BLACK_RANGE if black is None else None
     with stopwatch() as timing:
         c = correct(
             render,
@@ -961,41 +970,62 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
             weights,
             first.values,
             first.jac_unit,
-            black_range,
+            BLACK_RANGE if black is None else None,
             options.correction_renders,
             noise_scale(data.images, weights, pattern),
         )
-    for i, step in enumerate(c.steps):
-        say(f"    render {i + 1}: step {step['size']:.2e}")
+    for step in c.steps:
+        say(f"    step {step['size']:.2e} ({step['jacobian']} Jacobian)")
     record = {
-        "renders": len(c.steps),
+        "renders": c.renders,
         "converged": c.converged,
         "stopped": c.reason,
         "steps": c.steps,
         "seconds": {"compile": timing.compile, "run": timing.run},
     }
-    ok = c.converged and first.ok
+    if not (c.converged and first.ok):
+        return None, record
     v = c.values
-    return _Stage(
+    stage = _Stage(
         model=target,
-        values={k: v[k] for k in ("sigma_t", "sigma_s", "g", "black_level", "gain")}
-        if c.unit is not None
-        else dict(first.values),
+        values={k: v[k] for k in ("sigma_t", "sigma_s", "g", "black_level", "gain")},
         y=pack((v["sigma_t"], v["sigma_s"], v["g"], v["black_level"]), black is None, dtype),
-        ok=ok,
-        message=first.message if c.converged else c.reason,
+        ok=True,
+        message=first.message,
         steps=0,
         unit=c.unit,
         jac=c.jac,
         weights=weights,
         residual=c.residual,
-        rms=_rms(c.residual, data) if c.residual is not None else math.nan,
+        rms=_rms(c.residual, data),
         compile=timing.compile,
         run=timing.run,
         tail=c.tail,
-        jac_unit=first.jac_unit,
+        jac_unit=None,
         correction=record,
     )
+    return stage, record
+
+
+def _render_model(renderer, full, pattern, model: _Model, v: dict, dtype):
+    """``model``'s render at unit gain at ``v`` (σt, σs, g, black level), as float64
+    numpy, and its tail solve's ``{"steps", "converged"}`` (``None`` without a tail)."""
+    unit, tail = model_at(
+        renderer,
+        full,
+        pattern.lit,
+        v["sigma_t"],
+        v["sigma_s"],
+        v["g"],
+        v["black_level"],
+        dtype,
+        model.extrapolate,
+    )
+    unit = np.asarray(jax.block_until_ready(unit), np.float64)
+    status = None
+    if model.tail is not None:
+        status = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+    return unit, status
 
 
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
@@ -1035,21 +1065,8 @@ def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tu
     renderer, full = _joint_parts(pattern, fine, options.phase)
     v = stage.values
     with stopwatch() as timing:
-        unit, tail = model_at(
-            renderer,
-            full,
-            pattern.lit,
-            v["sigma_t"],
-            v["sigma_s"],
-            v["g"],
-            v["black_level"],
-            jnp.result_type(float),
-        )
-        unit = np.asarray(jax.block_until_ready(unit), np.float64)
+        unit, fine_tail = _render_model(renderer, full, pattern, fine, v, jnp.result_type(float))
     shift = (stage.weights * v["gain"] * (unit - stage.unit)).reshape(-1)
-    fine_tail = None
-    if fine.tail is not None:
-        fine_tail = {"steps": int(tail.steps), "converged": bool(tail.converged)}
     return shift, fine, fine_tail, timing
 
 
@@ -1068,8 +1085,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     marched = (
         f"{coarse.bounces} bounces"
         if coarse.tail is None
-        else f"{SCAN_TAIL_BOUNCES} bounces and a geometric tail (the fit: K0 = "
-        f"{coarse.bounces} and a {coarse.tail} tail)"
+        else f"{SCAN_TAIL_BOUNCES} bounces and a geometric tail"
     )
     say(
         f"basin scan: g x albedo on a {coarse.grid.width}x{coarse.grid.height} model, "
@@ -1095,12 +1111,10 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     # One cheap model for every start: marched where the scan's measured ratio at each
     # start allows it (see _by_measured_ratio).
     ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
-    coarse = _by_measured_ratio(coarse, options, ratio)
-    if coarse.tail is None and the_scan.ratios is not None:
-        say(f"  measured per-bounce ratio {ratio:.3f}: {coarse.bounces} bounces marched")
-    coarse = _extrapolated(coarse, options)
-    if coarse.extrapolate:
-        say(f"  the solve's model: {coarse.bounces} bounces and a geometric tail (corrected after)")
+    coarse = _extrapolated(_by_measured_ratio(coarse, options, ratio), options)
+    if the_scan.ratios is not None:
+        say(f"  measured per-bounce ratio {ratio:.3f}")
+    say(f"  the solve's model: {_orders(coarse)}")
     tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
     for label, start in starts:
@@ -1347,7 +1361,10 @@ def _fit_one(
 
 
 def _covers(have: _Model, need: _Model) -> bool:
-    # A tail sums every order past K0: it covers any bounce count, a march only its own.
+    # A tail sums every order past K0: it covers any bounce count, a march only its own;
+    # an extrapolated series (the cheap solve's) covers none (it is always corrected).
+    if have.extrapolate:
+        return False
     if need.tail is not None:
         orders = have.tail == need.tail and have.bounces >= need.bounces
     else:
@@ -1461,6 +1478,7 @@ def _model_from(d: dict) -> _Model:
         tail_tol=tail.get("tol", 1e-4),
         tail_max_steps=tail.get("max_steps", 200),
         ratio=d.get("ratio_measured"),
+        extrapolate=bool(d.get("extrapolated", False)),
     )
 
 
