@@ -68,9 +68,6 @@ def test_correction_reaches_the_large_models_answer(stretch):
     for k in ("sigma_t", "sigma_s", "g"):
         assert abs(c.values[k] - TRUTH[k]) < 5e-4 * max(abs(TRUTH[k]), 0.1), (k, c.values)
     assert abs(c.values["gain"] / 2.5 - 1) < 5e-4
-    # It ends with the large model's own Jacobian (one render per parameter).
-    assert c.steps[-1]["jacobian"] == "exact"
-    assert c.renders >= len(c.steps) + 2
 
 
 def test_with_a_misfit_it_is_the_large_models_least_squares_answer():

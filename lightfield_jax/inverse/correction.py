@@ -10,10 +10,12 @@ for forward scattering, the whole series) is then reached in two phases:
    solve), J_c the cheap model's Jacobian at its answer (at the cheap model's gain:
    gain·∂R is what both models approximate). It converges linearly, at the rate
    ‖I − J_c⁺ J‖, to where J_cᵀ r = 0;
-2. then the large model's own Jacobian J by forward differences at that point (one
-   primal render per parameter) and Gauss–Newton steps with it until a step is below
-   tolerance: the answer is the large model's least-squares answer (Jᵀ r = 0), and J
-   is what the error budget uses.
+2. only where those steps stop shrinking (the cheap Jacobian too far from the large
+   model's): the large model's own Jacobian J by forward differences at the best
+   point so far (one primal render per parameter) and Gauss–Newton steps with it.
+   Finishing every correction this way was measured worse: on a forward medium at
+   ω 0.99 (128×96, float32) the difference Jacobian moved σt from +0.6 % to +3.2 % off
+   the truth along the flat σt–g valley.
 
 An iteration that stops shrinking, leaves the parameters' domain, meets a non-finite
 render or a tail solve that did not converge ends without an answer; the caller then
@@ -172,7 +174,7 @@ def correct(
         step, size = gauss_newton(jac)
         steps.append({"size": size, "jacobian": "cheap" if exact is None else "exact", **step})
         slow = last_size is not None and size > MAX_RATE * last_size
-        if exact is None and (size < STEP_TOLERANCE or slow):
+        if exact is None and slow:
             # Phase 2 (converged, or slowly: the cheap Jacobian is too far from the
             # large model's): the large model's own Jacobian at the best point so far,
             # and its step.

@@ -140,9 +140,9 @@ class FitOptions:
         model_error: (``joint``) estimate the model's error at the solution from one
             render with a finer model (in ``uncertainty_model``).
         correct: (``joint``) reach the model the answer needs by defect correction
-            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model,
-            first with the cheap model's Jacobian, then with its own by forward
-            differences) instead of solving on it; where the iteration does not
+            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model
+            with the cheap model's Jacobian, its own by forward differences where
+            those steps stop shrinking) instead of solving on it; where the iteration does not
             converge the fit solves on that model as capped by ``max_cells``.
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
             for primal renders, which need no tangents).
