@@ -49,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import textwrap
 import time
 from pathlib import Path
 
@@ -366,9 +367,14 @@ def _albedo_g(config: Config, ctx) -> tuple[list[dict], list[dict]]:
 
 def _measured_tail(energy: np.ndarray) -> tuple[float | None, float | None]:
     """(relative tail, ratio r): the energy past the last bounce K estimated as
-    E_K·r/(1 − r) with r = E_K/E_{K−1}, over Σ E_k (None where r ≥ 1 or unknown)."""
+    E_K·r/(1 − r) with r = E_K/E_{K−1}, over Σ E_k (None where r ≥ 1 or unknown).
+    Bounces that underflowed to 0 at the end are left out: the estimate is then from the
+    last two nonzero ones (an upper bound of the tail past K)."""
     energy = np.asarray(energy, np.float64)
     total = float(energy.sum())
+    nonzero = np.flatnonzero(energy > 0.0)
+    if len(nonzero):
+        energy = energy[: nonzero[-1] + 1]
     if len(energy) < 2 or energy[-2] <= 0.0 or total <= 0.0:
         return None, None
     r = float(energy[-1] / energy[-2])
@@ -984,14 +990,15 @@ def _plot_albedo_g(config, rows, out: Path, row: str = "albedo_g") -> str:
             f"red hatching: ρ = ω·A(g) ≥ 1 (phase: paper), the bounce series diverges, the "
             f"truth is cut after {config.divergent_bounces} bounces"
         )
-    fig.suptitle(
+    title = (
         first + "\n"
         f"ok: error ≤ {config.bias_threshold:g}; bias: converged, error above; cond: bias "
         f"with condition number > {config.ill_conditioned:.0e}; n.c.: not converged; "
-        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {timeout:g} s\n"
-        + _capture_text(config),
-        fontsize=9,
+        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {timeout:g} s\n" + _capture_text(config)
     )
+    # lines wrapped to the figure's width (about 15 characters an inch at 9 pt)
+    chars = int(15 * 4.6 * len(methods))
+    fig.suptitle("\n".join(textwrap.fill(line, chars) for line in title.split("\n")), fontsize=9)
     fig.tight_layout()
     name = f"{row}.png"
     save_figure(fig, out / name, dpi=110)

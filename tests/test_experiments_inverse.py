@@ -147,6 +147,9 @@ def test_stability_maps_rows_config():
     tail, ratio = script._measured_tail(0.8 ** np.arange(10))
     assert ratio == pytest.approx(0.8)
     assert tail == pytest.approx(0.8**10 / (1 - 0.8**10))
+    # Bounces that underflowed to 0 at the end: estimated from the last nonzero ones.
+    tail0, ratio0 = script._measured_tail(np.r_[0.8 ** np.arange(10), 0.0, 0.0])
+    assert (tail0, ratio0) == pytest.approx((tail, ratio))
     for bad, match in (
         ({"high_albedo": {**raw["high_albedo"], "albedos": [0.9]}}, "unknown keys"),
         ({"refractive_slab": {**raw["refractive_slab"], "geometry": {"kind": "plane"}}}, "slab"),
