@@ -229,7 +229,8 @@ def fit_record_limited(
 ) -> dict:
     """:func:`fit_record` in a child process killed after ``timeout`` seconds (a fit's
     cost follows the model its start asks for and is otherwise unbounded); a killed fit
-    is recorded with ``timeout`` set. The child shares the persistent XLA cache."""
+    is recorded with ``timeout`` set. The child shares the persistent XLA cache. A
+    ``geometry`` keyword (a :class:`~lightfield_jax.Slab`) is passed as its dict."""
     import json
     import subprocess
     import tempfile
@@ -237,6 +238,8 @@ def fit_record_limited(
 
     t = time.perf_counter()
     load = os.getloadavg()[0]
+    if kwargs.get("geometry") is not None:  # a Plane or Slab travels as its dict
+        kwargs = {**kwargs, "geometry": kwargs["geometry"].as_dict()}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         np.save(tmp / "images.npy", np.asarray(images))
@@ -267,6 +270,7 @@ def fit_record_limited(
             return {
                 "error_message": f"timeout: no result within {timeout:g} s",
                 "timeout": True,
+                "timeout_s": timeout,
                 "finite": False,
                 "converged": False,
                 "errors": {k: None for k in (*PARAMS, "error")},
@@ -286,8 +290,13 @@ def _child(request_path: str) -> None:
     req = json.loads(open(request_path).read())
     images = np.load(req["images"])
     pattern = lfj.Stripes(**{**req["pattern"], "phases": tuple(req["pattern"]["phases"])})
+    kwargs = dict(req["kwargs"])
+    if kwargs.get("geometry") is not None:
+        from lightfield_jax.scene.geometry import parse_geometry
+
+        kwargs["geometry"] = parse_geometry(kwargs["geometry"], "geometry")
     with precision(req["dtype"]), xla_cache(req["xla_cache_dir"]):
-        rec = fit_record(images, pattern, req["truth"], **req["kwargs"])
+        rec = fit_record(images, pattern, req["truth"], **kwargs)
     with open(req["out"], "w") as f:
         json.dump(jsonable(rec), f)
 

@@ -19,6 +19,17 @@ on small simulated stripe captures (``width`` × ``height``), over:
 - ``start`` (``joint`` only): the joint fit started away from the truth, σs × a
   factor, g + an offset (``FitOptions.start``; σt comes from the decay fit, so its
   factor is recorded but not applied), the basin search off.
+- ``high_albedo``: albedo × g near ω = 1 under ``phase: normalized`` (captures and
+  fits), where ρ = ω < 1: the series converges but slowly. Truths are marched to the
+  bounces ``tolerance`` needs, capped at the row's ``max_truth_bounces``; the record
+  keeps the a-priori tail bound ρ^K/(1 − ρ) and the tail measured on the render (the
+  last bounce's energy extrapolated geometrically with its ratio to the one before).
+- ``refractive_slab``: media captured by the slab model with refractive faces (the
+  row's ``geometry``) and fitted with the same slab (``FitOptions.geometry``).
+
+Both rows take their own ``methods`` (default: the config's) and ``joint_timeout``
+(default: the config's), and report each fit's time (``high_albedo.png``,
+``refractive_slab.png``).
 
 Each fit's outcome is classified (:func:`_inverse.failure`): ``ok`` (error at most
 ``bias_threshold``), ``biased`` (converged, finite, error above it), ``ill-conditioned``
@@ -38,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import textwrap
 import time
 from pathlib import Path
 
@@ -53,11 +65,19 @@ from lightfield_jax.app.experiment import (
     write_csv,
 )
 from lightfield_jax.inverse.methods import METHODS
+from lightfield_jax.scene.geometry import parse_geometry
 
 inv = load_helper("_inverse")
 batch = load_helper("_batch")
 
 SWEEPS = ("noise", "period", "shifts", "black_level")
+# Rows with their own captures (phase, geometry), methods, truth cap and time limit.
+ROWS = ("high_albedo", "refractive_slab")
+_ROW_KEYS = {
+    "high_albedo": {"sigma_t", "albedo", "g", "methods", "max_truth_bounces", "joint_timeout"},
+    "refractive_slab": {"geometry", "media", "methods", "max_truth_bounces", "joint_timeout"},
+}
+_MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,8 +85,8 @@ class Config:
     """configs/stability_maps.yaml: the captures (pixels), the methods, the 1-D sweeps'
     ``base`` medium, the persistent XLA cache, the outcome thresholds, the truths'
     bounces, the joint fit's time limit (s), the albedo × g map and the optional sweeps
-    (``noise``, ``period``, ``shifts``, ``black_level``) and ``start`` (null or absent:
-    skipped)."""
+    (``noise``, ``period``, ``shifts``, ``black_level``), ``start`` and rows
+    (``high_albedo``, ``refractive_slab``) (null or absent: skipped)."""
 
     dtype: str
     width: int
@@ -86,27 +106,74 @@ class Config:
     shifts: dict | None = None
     black_level: dict | None = None
     start: dict | None = None
+    high_albedo: dict | None = None
+    refractive_slab: dict | None = None
 
     def __post_init__(self):
         check_choices("stability_maps", "methods", self.methods, METHODS)
+        for name in ROWS:
+            spec = getattr(self, name)
+            if spec is None:
+                continue
+            if not isinstance(spec, dict):
+                raise ValueError(f"stability_maps: {name}: must be a mapping or null")
+            unknown = sorted(set(spec) - _ROW_KEYS[name])
+            if unknown:
+                raise ValueError(f"stability_maps: {name}: unknown keys {unknown}")
+            check_choices("stability_maps", f"{name}.methods", spec.get("methods", ()), METHODS)
+        if self.refractive_slab is not None:
+            spec = self.refractive_slab
+            if not isinstance(
+                parse_geometry(spec.get("geometry"), "stability_maps: refractive_slab.geometry"),
+                lfj.Slab,
+            ):
+                raise ValueError("stability_maps: refractive_slab.geometry: must be a slab")
+            for i, m in enumerate(spec.get("media") or ()):
+                if not isinstance(m, dict) or set(m) != _MEDIUM_KEYS:
+                    raise ValueError(
+                        f"stability_maps: refractive_slab.media[{i}]: must have the keys "
+                        f"{sorted(_MEDIUM_KEYS)}, got {m!r}"
+                    )
+
+
+def _row(config: Config, name: str) -> dict:
+    """A row's settings with their defaults: methods, truth cap, joint time limit."""
+    spec = getattr(config, name)
+    return {
+        "methods": tuple(spec.get("methods") or config.methods),
+        "max_truth_bounces": int(spec.get("max_truth_bounces") or config.max_truth_bounces),
+        "joint_timeout": float(spec.get("joint_timeout") or config.joint_timeout),
+    }
 
 
 # ------------------------------------------------------------------------ captures
 
 
 def _rho(medium: dict) -> float:
-    return medium["sigma_s"] / medium["sigma_t"] * float(lfj.phase_integral(medium["g"]))
+    """ρ of the tail bound: ω·A(g) under ``phase: paper`` (the default), ω under
+    ``normalized`` (also a slab's: its phase function is normalised on the sphere)."""
+    albedo = medium["sigma_s"] / medium["sigma_t"]
+    if medium.get("phase", "paper") == "normalized":
+        return albedo
+    return albedo * float(lfj.phase_integral(medium["g"]))
 
 
-def _truth_bounces(medium: dict, config: Config) -> tuple[int, str]:
-    """Bounces of a truth and how they were chosen (``auto``, ``capped``, ``divergent``)."""
+def _truth_bounces(medium: dict, config: Config, cap: int | None = None) -> tuple[int, str]:
+    """Bounces of a truth and how they were chosen (``auto``, ``capped``, ``divergent``);
+    ``cap``: the most bounces (default ``max_truth_bounces``)."""
+    cap = config.max_truth_bounces if cap is None else cap
     rho = _rho(medium)
     if rho >= 1.0:
         return config.divergent_bounces, "divergent"
     k = lfj.bounces_for_tolerance(rho, config.tolerance, max_bounces=100_000)
-    if k > config.max_truth_bounces:
-        return config.max_truth_bounces, "capped"
+    if k > cap:
+        return cap, "capped"
     return k, "auto"
+
+
+def _tail_bound(rho: float, k: int) -> float | None:
+    """The a-priori relative tail after K bounces, ρ^K/(1 − ρ) (None: ρ ≥ 1)."""
+    return rho**k / (1.0 - rho) if rho < 1.0 else None
 
 
 def _simulated(cell: dict, config: Config) -> np.ndarray:
@@ -175,36 +242,64 @@ def _cell(config: Config, **changes) -> dict:
     return cell
 
 
-def _key(cell: dict, method: str, config: Config) -> str:
-    return (
+def _key(cell: dict, method: str, config: Config, cap: int | None = None) -> str:
+    key = (
         f"lib{inv.library_fingerprint()}|"
         f"{config.dtype}|{config.width}x{config.height}|{method}|{cell['medium']}|"
         f"p{cell['period']}/{cell['lit']}|{cell['phases']}|n{cell['noise']}|s{cell['seed']}|"
         f"b{cell['black_level']}/{cell['known_black']}|K{config.divergent_bounces}/"
-        f"{config.max_truth_bounces}|tol{config.tolerance}"
+        f"{config.max_truth_bounces if cap is None else cap}|tol{config.tolerance}"
     )
+    if cell.get("geometry"):
+        key += f"|geo{cell['geometry']}"
+    return key
 
 
-def _fit(cell: dict, method: str, images: np.ndarray, config: Config, xla_dir) -> dict:
+def _fit(
+    cell: dict,
+    method: str,
+    images: np.ndarray,
+    config: Config,
+    xla_dir,
+    *,
+    timeout: float,
+    cap: int | None = None,
+    truth_extra=None,
+) -> dict:
+    """One fit of a cell's capture as a record, its truth (ρ, bounces, tail bound, and
+    ``truth_extra()``'s keys) and outcome; ``joint`` in a child process killed after
+    ``timeout`` seconds. The medium's ``phase`` and the cell's ``geometry`` (when
+    given) are the fit's too."""
     medium = cell["medium"]
     pattern = lfj.Stripes(cell["period"], cell["lit"], tuple(cell["phases"]))
     black = cell["black_level"] if cell["known_black"] else None
     truth = inv.truth_of(medium)
+    kwargs = {"method": method, "black_level": black}
+    if "phase" in medium:
+        kwargs["phase"] = medium["phase"]
+    if cell.get("geometry"):
+        kwargs["geometry"] = parse_geometry(cell["geometry"], "geometry")
     if method == "joint":
         rec = inv.fit_record_limited(
             images,
             pattern,
             truth,
-            timeout=config.joint_timeout,
+            timeout=timeout,
             dtype=config.dtype,
             xla_cache_dir=xla_dir,
-            method=method,
-            black_level=black,
+            **kwargs,
         )
     else:
-        rec = inv.fit_record(images, pattern, truth, method=method, black_level=black)
-    k, how = _truth_bounces(medium, config)
-    rec["truth"] = {"rho": _rho(medium), "bounces": k, "bounces_how": how}
+        rec = inv.fit_record(images, pattern, truth, **kwargs)
+    k, how = _truth_bounces(medium, config, cap)
+    rho = _rho(medium)
+    rec["truth"] = {
+        "rho": rho,
+        "bounces": k,
+        "bounces_how": how,
+        "tail_bound": _tail_bound(rho, k),
+        **(truth_extra() if truth_extra is not None else {}),
+    }
     rec["failure"] = inv.failure(
         rec,
         truth_rho=rec["truth"]["rho"],
@@ -214,17 +309,41 @@ def _fit(cell: dict, method: str, images: np.ndarray, config: Config, xla_dir) -
     return inv.jsonable(rec)
 
 
-def _run_cells(name, cells, images_of, config, ctx) -> list[dict]:
+def _run_cells(
+    name,
+    cells,
+    images_of,
+    config,
+    ctx,
+    *,
+    methods=None,
+    timeout: float | None = None,
+    cap: int | None = None,
+    truth_extra=None,
+) -> list[dict]:
+    """Every method's fit of every cell (cached). ``methods``, ``timeout`` (joint, s) and
+    ``cap`` (truth bounces) default to the config's; ``truth_extra(i)``: more about
+    cell i's truth for its record (called after ``images_of(i)``)."""
     rows = []
     xla_dir = ctx.out / "xla_cache" if config.xla_cache else None
+    timeout = config.joint_timeout if timeout is None else timeout
     for i, cell in enumerate(cells):
-        for method in config.methods:
+        for method in methods or config.methods:
             ctx.progress(f"{name} {i + 1}/{len(cells)}: {method}")
-            rec = ctx.cached(
-                f"{name}|{_key(cell, method, config)}",
-                lambda c=cell, m=method, i=i: _fit(c, m, images_of(i), config, xla_dir),
-            )
-            if method == "joint" and rec["seconds"]["total"] > config.joint_timeout:
+            key = f"{name}|{_key(cell, method, config, cap)}"
+
+            def compute(c=cell, m=method, i=i):
+                extra = None if truth_extra is None else functools.partial(truth_extra, i)
+                images = images_of(i)
+                return _fit(
+                    c, m, images, config, xla_dir, timeout=timeout, cap=cap, truth_extra=extra
+                )
+
+            rec = ctx.cached(key, compute)
+            if rec.get("timeout") and (rec.get("timeout_s") or 0.0) < timeout:
+                # Killed under a lower limit (an earlier config): measured again.
+                rec = ctx.cached(f"{key}|timeout{timeout:g}", compute)
+            if method == "joint" and rec["seconds"]["total"] > timeout:
                 # A result that came later than the limit (a run before the limit
                 # existed) counts as a timeout too; its values stay in the record.
                 rec = {**rec, "failure": "timeout", "late": True}
@@ -244,6 +363,115 @@ def _albedo_g(config: Config, ctx) -> tuple[list[dict], list[dict]]:
     return cells, _run_cells(
         "albedo_g", cells, lambda i: inv.camera(truths.images(i), None, 0), config, ctx
     )
+
+
+def _measured_tail(energy: np.ndarray) -> tuple[float | None, float | None]:
+    """(relative tail, ratio r): the energy past the last bounce K estimated as
+    E_K·r/(1 − r) with r = E_K/E_{K−1}, over Σ E_k (None where r ≥ 1 or unknown).
+    Bounces that underflowed to 0 at the end are left out: the estimate is then from the
+    last two nonzero ones (an upper bound of the tail past K)."""
+    energy = np.asarray(energy, np.float64)
+    total = float(energy.sum())
+    nonzero = np.flatnonzero(energy > 0.0)
+    if len(nonzero):
+        energy = energy[: nonzero[-1] + 1]
+    if len(energy) < 2 or energy[-2] <= 0.0 or total <= 0.0:
+        return None, None
+    r = float(energy[-1] / energy[-2])
+    if r >= 1.0:
+        return None, r
+    return float(energy[-1] * r / (1.0 - r) / total), r
+
+
+def _truth_capture(cell: dict, config: Config, cap: int) -> tuple[np.ndarray, dict]:
+    """A row's noise-free capture (the medium's phase, the cell's geometry; bounces for
+    ``tolerance``, at most ``cap``) and what its render measured: the tail past the last
+    bounce (:func:`_measured_tail`), the model's size and the render's seconds."""
+    k, _how = _truth_bounces(cell["medium"], config, cap)
+    cfg = inv.capture_config(
+        cell["medium"],
+        config.width,
+        config.height,
+        period=cell["period"],
+        lit=cell["lit"],
+        phases=cell["phases"],
+        bounces=k,
+    )
+    if cell.get("geometry"):
+        cfg["geometry"] = dict(cell["geometry"])
+    t0 = time.perf_counter()
+    sim = inv.simulate(cfg)
+    seconds = time.perf_counter() - t0
+    energy = np.asarray(sim.bounces, np.float64).sum(axis=(0, 2, 3))  # per bounce
+    tail, ratio = _measured_tail(energy)
+    info = {
+        "tail_measured": tail,
+        "last_ratio": ratio,
+        "n_theta": int(sim.n_theta),
+        "refine": int(sim.refine),
+        "render_seconds": seconds,
+    }
+    return np.asarray(sim.images), info
+
+
+def _row_run(name: str, cells: list[dict], config: Config, ctx) -> list[dict]:
+    """The fits of a row's cells, on captures from :func:`_truth_capture`."""
+    row = _row(config, name)
+    truths: dict[int, tuple] = {}
+
+    def truth(i):
+        if i not in truths:
+            ctx.progress(f"{name} {i + 1}/{len(cells)}: truth")
+            truths[i] = _truth_capture(cells[i], config, row["max_truth_bounces"])
+        return truths[i]
+
+    return _run_cells(
+        name,
+        cells,
+        lambda i: inv.camera(truth(i)[0], None, 0),
+        config,
+        ctx,
+        methods=row["methods"],
+        timeout=row["joint_timeout"],
+        cap=row["max_truth_bounces"],
+        truth_extra=lambda i: truth(i)[1],
+    )
+
+
+def _row_cells(name: str, config: Config) -> list[dict]:
+    """The cells of a row: ``high_albedo``'s albedo × g (phase normalized) or
+    ``refractive_slab``'s media (in its slab)."""
+    spec = getattr(config, name)
+    if name == "high_albedo":
+        st = float(spec["sigma_t"])
+        return [
+            _cell(
+                config,
+                medium={
+                    "sigma_t": st,
+                    "sigma_s": st * float(w),
+                    "g": float(g),
+                    "phase": "normalized",
+                },
+            )
+            for w in spec["albedo"]
+            for g in spec["g"]
+        ]
+    if name == "refractive_slab":
+        geometry = parse_geometry(spec["geometry"], "refractive_slab.geometry").as_dict()
+        return [
+            _cell(
+                config,
+                medium={
+                    **{k: float(m[k]) for k in ("sigma_t", "sigma_s", "g")},
+                    "phase": "normalized",  # a slab's phase function: on the sphere
+                },
+                geometry=geometry,
+                name=str(m["name"]),
+            )
+            for m in spec["media"]
+        ]
+    raise ValueError(name)
 
 
 def _sweep_cells(name: str, config: Config) -> list[dict]:
@@ -360,6 +588,9 @@ def run(raw: dict, out: Path, ctx) -> dict:
             if getattr(config, name):
                 results[name] = _sweep(name, config, ctx)[1]
         starts = _starts(config, ctx) if config.start else []
+        for name in ROWS:
+            if getattr(config, name):
+                results[name] = _row_run(name, _row_cells(name, config), config, ctx)
     all_rows = [r for rows in results.values() for r in rows]
     _write_csv(out / "stability.csv", all_rows, starts)
     ctx.write_json("stability.json", inv.jsonable({"fits": all_rows, "starts": starts}))
@@ -367,6 +598,10 @@ def run(raw: dict, out: Path, ctx) -> dict:
     figures.append(_plot_sweeps(config, results, out))
     if starts:
         figures.append(_plot_starts(config, starts, out))
+    if "high_albedo" in results:
+        figures.append(_plot_albedo_g(config, results["high_albedo"], out, row="high_albedo"))
+    if "refractive_slab" in results:
+        figures.append(_plot_refractive_slab(config, results["refractive_slab"], out))
     return inv.jsonable(_summary(config, results, starts, figures))
 
 
@@ -412,11 +647,31 @@ def _summary(config, results, starts, figures) -> dict:
                 for r in rows
             ]
             for name, rows in results.items()
-            if name != "albedo_g"
+            if name != "albedo_g" and name not in ROWS
         },
         "timing_note": "compile times use the persistent XLA cache when xla_cache is on",
         "library_fingerprint": inv.library_fingerprint(),
     }
+    for name in ROWS:
+        if name in results:
+            summary[name] = [
+                {
+                    "method": r["method"],
+                    "setting": _setting_label(name, r["setting"]),
+                    "failure": r["failure"],
+                    "error": r["errors"]["error"],
+                    "errors": {k: r["errors"][k] for k in inv.PARAMS},
+                    "converged": r["converged"],
+                    "iterations": r.get("iterations"),
+                    "seconds": r["seconds"]["total"],
+                    "truth": {
+                        k: (r.get("truth") or {}).get(k)
+                        for k in ("rho", "bounces", "bounces_how", "tail_bound", "tail_measured")
+                    },
+                    "message": r.get("message", r.get("error_message")),
+                }
+                for r in results[name]
+            ]
     if starts:
         summary["start"] = {
             "counts": {
@@ -442,6 +697,12 @@ def _summary(config, results, starts, figures) -> dict:
 
 
 def _setting_label(name: str, s: dict) -> str:
+    if name in ROWS:
+        m = s["medium"]
+        what = f"albedo {m['sigma_s'] / m['sigma_t']:.4g}, g {m['g']:g}"
+        if name == "high_albedo":
+            return f"{what}, sigma_t {m['sigma_t']:g} (normalized)"
+        return f"{s.get('name', '')}: sigma_t {m['sigma_t']:g}, {what} ({_geometry_label(s)})"
     if name == "noise":
         p, r = s["noise"]
         return f"photons {p:g}, read {r:g}" if p else f"read {r:g}"
@@ -451,6 +712,14 @@ def _setting_label(name: str, s: dict) -> str:
     if name == "shifts":
         return f"{len(s['phases'])} shifts {s['phases']}"
     return f"b {s['black_level']:g} ({'known' if s['known_black'] else 'unknown'})"
+
+
+def _geometry_label(s: dict) -> str:
+    geo = s.get("geometry")
+    if not geo:
+        return "plane"
+    text = f"slab h {geo['thickness']:g} {geo['boundary']}"
+    return text + (f" n {geo['n']:g}" if "n" in geo else "")
 
 
 def _write_csv(path: Path, rows, starts) -> None:
@@ -480,11 +749,17 @@ def _write_csv(path: Path, rows, starts) -> None:
         "iterations",
         "condition_number",
         "total_s",
+        "phase",
+        "geometry",
+        "truth_bounces",
+        "truth_tail_bound",
+        "truth_tail_measured",
     ]
 
     def lines():
         for r in rows:
             s, m, e = r["setting"], r["setting"]["medium"], r["errors"]
+            truth = r.get("truth") or {}
             noise = s["noise"] or (None, None)
             yield (
                 [
@@ -513,6 +788,11 @@ def _write_csv(path: Path, rows, starts) -> None:
                     r.get("iterations"),
                     r.get("condition_number"),
                     r["seconds"]["total"],
+                    m.get("phase", "paper"),
+                    _geometry_label(s),
+                    truth.get("bounces"),
+                    truth.get("tail_bound"),
+                    truth.get("tail_measured"),
                 ]
             )
         for s in starts:
@@ -544,6 +824,11 @@ def _write_csv(path: Path, rows, starts) -> None:
                     s["iterations"],
                     s["condition_number"],
                     s["seconds"]["total"],
+                    "paper",
+                    "plane",
+                    None,
+                    None,
+                    None,
                 ]
             )
 
@@ -598,18 +883,25 @@ def _index_coords(values, n: int = 200):
     return idx, inside + below + above
 
 
-def _plot_albedo_g(config, rows, out: Path) -> str:
+def _plot_albedo_g(config, rows, out: Path, row: str = "albedo_g") -> str:
+    """The albedo × g map of ``row``: ``albedo_g`` (phase paper, the ρ = 1 contour) or
+    ``high_albedo`` (phase normalized, ρ = ω < 1; each fit's seconds in its cell)."""
     from matplotlib.colors import LogNorm
 
     plt = pyplot()
 
-    spec = config.albedo_g
+    spec = getattr(config, row)
+    normalized = row == "high_albedo"
     albedos, gs = list(spec["albedo"]), list(spec["g"])
-    methods = config.methods
+    methods = config.methods if row == "albedo_g" else _row(config, row)["methods"]
+    timeout = config.joint_timeout if row == "albedo_g" else _row(config, row)["joint_timeout"]
     xi, gv = _index_coords(gs)
     yi, wv = _index_coords(albedos)
     gg, ww = np.meshgrid(gv, wv)
-    rho = ww * np.asarray(lfj.phase_integral(np.clip(gg, -0.99, 0.99)))
+    if normalized:
+        rho = ww
+    else:
+        rho = ww * np.asarray(lfj.phase_integral(np.clip(gg, -0.99, 0.99)))
     xx, yy = np.meshgrid(xi, yi)
     fig, axes = plt.subplots(2, len(methods), figsize=(4.6 * len(methods), 7.8), squeeze=False)
     for j, method in enumerate(methods):
@@ -626,7 +918,7 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             err[a, b] = np.nan if e is None else max(e, 1e-4)
             c = r.get("condition_number")
             cond[a, b] = np.nan if c is None else c
-            codes[(a, b)] = (r["failure"], e)
+            codes[(a, b)] = (r["failure"], e, r["seconds"]["total"])
         for i, (data, label, norm) in enumerate(
             (
                 (err, _ERROR, LogNorm(1e-4, 1.0)),
@@ -644,13 +936,19 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
                 extent=(-0.5, len(gs) - 0.5, -0.5, len(albedos) - 0.5),
             )
             fig.colorbar(mesh, ax=ax, label=label, shrink=0.85)
-            cs = ax.contour(xx, yy, rho, levels=[1.0], colors="r", linewidths=2)
-            ax.clabel(cs, fmt={1.0: "ρ = 1"}, fontsize=8)
-            hatched = ax.contourf(xx, yy, rho, levels=[1.0, np.inf], colors="none", hatches=["///"])
-            hatched.set_edgecolor("r")
-            hatched.set_linewidth(0.0)
-            for (a, b), (f, e) in codes.items():
+            if np.nanmax(rho) >= 1.0 > np.nanmin(rho):
+                cs = ax.contour(xx, yy, rho, levels=[1.0], colors="r", linewidths=2)
+                ax.clabel(cs, fmt={1.0: "ρ = 1"}, fontsize=8)
+            if np.nanmax(rho) >= 1.0:
+                hatched = ax.contourf(
+                    xx, yy, rho, levels=[1.0, np.inf], colors="none", hatches=["///"]
+                )
+                hatched.set_edgecolor("r")
+                hatched.set_linewidth(0.0)
+            for (a, b), (f, e, t) in codes.items():
                 txt = _CODES[f] if i == 1 or e is None else f"{_CODES[f]}\n{e:.2g}"
+                if normalized and i == 0:
+                    txt += f"\n{t:.0f} s"
                 ax.text(
                     b,
                     a,
@@ -666,19 +964,43 @@ def _plot_albedo_g(config, rows, out: Path) -> str:
             ax.set_ylabel("albedo ω = σs/σt")
             what = "error" if i == 0 else "condition number of JᵀJ"
             ax.set_title(f"{method}: {what}", fontsize=9)
-    fig.suptitle(
-        f"Where each method fails over albedo × g: σt {spec['sigma_t']} px⁻¹, noiseless; "
-        f"cell text: outcome and error (floored at 1e-4); gray: no result\n"
-        f"red hatching: ρ = ω·A(g) ≥ 1 (phase: paper), the bounce series diverges, the truth "
-        f"is cut after {config.divergent_bounces} bounces\n"
+    if normalized:
+        cap = _row(config, row)["max_truth_bounces"]
+        capped: dict[float, list[dict]] = {}
+        for r in rows:
+            t = r.get("truth") or {}
+            if t.get("bounces_how") == "capped":
+                m = r["setting"]["medium"]
+                capped.setdefault(round(m["sigma_s"] / m["sigma_t"], 6), []).append(t)
+        capped_text = "; ".join(
+            f"ω {w:g}: K {ts[0]['bounces']}, bound {ts[0]['tail_bound']:.2g}, measured ≤ "
+            + _largest_tail(ts)
+            for w, ts in sorted(capped.items())
+        )
+        first = (
+            f"High albedo, phase: normalized (ρ = ω < 1): σt {spec['sigma_t']} px⁻¹, "
+            "noiseless; cell text: outcome, error (floored at 1e-4), fit seconds; gray: no "
+            f"result\ntruths marched to the bounces for a tail of {config.tolerance:g}, at "
+            f"most {cap}" + (f" (capped: {capped_text})" if capped_text else "")
+        )
+    else:
+        first = (
+            f"Where each method fails over albedo × g: σt {spec['sigma_t']} px⁻¹, noiseless; "
+            f"cell text: outcome and error (floored at 1e-4); gray: no result\n"
+            f"red hatching: ρ = ω·A(g) ≥ 1 (phase: paper), the bounce series diverges, the "
+            f"truth is cut after {config.divergent_bounces} bounces"
+        )
+    title = (
+        first + "\n"
         f"ok: error ≤ {config.bias_threshold:g}; bias: converged, error above; cond: bias "
         f"with condition number > {config.ill_conditioned:.0e}; n.c.: not converged; "
-        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {config.joint_timeout:g} s\n"
-        + _capture_text(config),
-        fontsize=9,
+        f"div: ρ ≥ 1; NaN; exc: exception; time: joint over {timeout:g} s\n" + _capture_text(config)
     )
+    # lines wrapped to the figure's width (about 15 characters an inch at 9 pt)
+    chars = int(15 * 4.6 * len(methods))
+    fig.suptitle("\n".join(textwrap.fill(line, chars) for line in title.split("\n")), fontsize=9)
     fig.tight_layout()
-    name = "albedo_g.png"
+    name = f"{row}.png"
     save_figure(fig, out / name, dpi=110)
     return name
 
@@ -866,5 +1188,79 @@ def _plot_starts(config, starts, out: Path) -> str:
     )
     fig.tight_layout()
     name = "start_basin.png"
+    save_figure(fig, out / name, dpi=110)
+    return name
+
+
+def _largest_tail(truths: list[dict]) -> str:
+    tails = [t.get("tail_measured") for t in truths]
+    if any(v is None for v in tails):
+        return "?"
+    return f"{max(tails):.1e}"
+
+
+def _plot_refractive_slab(config, rows, out: Path) -> str:
+    """A table: per medium and method, the truth, the outcome, the errors and the time."""
+    plt = pyplot()
+
+    spec = config.refractive_slab
+    geo = parse_geometry(spec["geometry"], "refractive_slab.geometry")
+    cols = [
+        "medium",
+        "σt",
+        "ω",
+        "g",
+        "truth K",
+        "method",
+        "outcome",
+        "Δσt/σt",
+        "Δσs/σs",
+        "Δg",
+        "iterations",
+        "fit s",
+    ]
+
+    def fmt(v, f="{:+.2g}"):
+        return "–" if v is None else f.format(v)
+
+    cells = []
+    for r in rows:
+        m, e, t = r["setting"]["medium"], r["errors"], r.get("truth") or {}
+        cells.append(
+            [
+                r["setting"].get("name", ""),
+                f"{m['sigma_t']:g}",
+                f"{m['sigma_s'] / m['sigma_t']:.3g}",
+                f"{m['g']:g}",
+                f"{t.get('bounces', '?')}"
+                + (" (capped)" if t.get("bounces_how") == "capped" else ""),
+                r["method"],
+                r["failure"],
+                fmt(e["sigma_t"]),
+                fmt(e["sigma_s"]),
+                fmt(e["g"]),
+                fmt(r.get("iterations"), "{}"),
+                f"{r['seconds']['total']:.0f}",
+            ]
+        )
+    fig, ax = plt.subplots(figsize=(12, 1.4 + 0.35 * max(len(cells), 1)))
+    ax.axis("off")
+    table = ax.table(cellText=cells or [["–"] * len(cols)], colLabels=cols, loc="center")
+    table.auto_set_font_size(False)
+    table.set_fontsize(8)
+    table.scale(1.0, 1.3)
+    for k, r in enumerate(rows, start=1):
+        table[k, cols.index("outcome")].set_facecolor(
+            "#c8e6c9" if r["failure"] == "ok" else "#ffcdd2"
+        )
+    fig.suptitle(
+        f"Refractive slab (thickness {geo.thickness:g} px, n {geo.n:g}): captures rendered by "
+        f"the slab model and fitted with the same slab; ok: error ≤ {config.bias_threshold:g}; "
+        f"joint limit {_row(config, 'refractive_slab')['joint_timeout']:g} s\n"
+        + _capture_text(config),
+        fontsize=9,
+    )
+    fig.tight_layout()
+    name = "refractive_slab.png"
     save_figure(fig, out / name, dpi=110)
     return name

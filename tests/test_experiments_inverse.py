@@ -102,9 +102,62 @@ def test_stability_maps_reduced(tmp_path):
         assert cell["truth"]["rho"] >= 1 and cell["failure"] != "ok", cell["method"]
     (start,) = fits["starts"]
     assert start["converged"] and start["failure"] == "ok"
+    # The rows with their own captures and time limit: every fit ends and is timed.
+    for name, methods in (("high_albedo", {"grid", "joint"}), ("refractive_slab", {"joint"})):
+        rows = [r for r in fits["fits"] if r["sweep"] == name]
+        assert {r["method"] for r in rows} == methods, name
+        assert f"{name}.png" in summary["figures"]
+        assert len(summary[name]) == len(rows)
+        for r in rows:
+            assert r["setting"]["medium"]["phase"] == "normalized"
+            assert r["truth"]["rho"] < 1 and r["failure"] != "timeout", (name, r["method"])
+            assert r["seconds"]["total"] > 0
+    # albedo 0.99: capped at 100 bounces; the a-priori bound is above 1, the tail measured
+    # on the render (light leaves the small capture) far below it.
+    high = [r for r in fits["fits"] if r["sweep"] == "high_albedo"]
+    truth = high[0]["truth"]
+    assert truth["bounces"] == 100 and truth["bounces_how"] == "capped"
+    assert truth["tail_bound"] > 1 and 0 <= truth["tail_measured"] < truth["tail_bound"]
+    (slab,) = [r for r in fits["fits"] if r["sweep"] == "refractive_slab"]
+    assert slab["setting"]["geometry"]["boundary"] == "refractive"
+    assert slab["model"]["geometry"]["kind"] == "slab"
     # A rerun resumes from the cache: same numbers.
     again = run_experiment(config, tmp_path, reduced=True)["summary"]
     assert json.dumps(again) == json.dumps(summary)
+
+
+def test_stability_maps_rows_config():
+    script = load_helper("stability_maps")
+    raw = load_experiment_config(CONFIGS / "stability_maps.yaml")
+    config = typed_config(script.Config, raw)
+    high = script._row_cells("high_albedo", config)
+    assert len(high) == len(raw["high_albedo"]["albedo"]) * len(raw["high_albedo"]["g"])
+    assert all(c["medium"]["phase"] == "normalized" for c in high)
+    w99 = next(c for c in high if c["medium"]["sigma_s"] / c["medium"]["sigma_t"] > 0.985)
+    assert script._rho(w99["medium"]) == pytest.approx(0.99)
+    assert script._truth_bounces(w99["medium"], config, 400) == (400, "capped")
+    slab = script._row_cells("refractive_slab", config)
+    assert [c["name"] for c in slab] == [m["name"] for m in raw["refractive_slab"]["media"]]
+    assert all(c["geometry"]["boundary"] == "refractive" for c in slab)
+    # The slab's geometry is in the cache key: the plane and the slab are two fits.
+    plane = {k: v for k, v in slab[0].items() if k != "geometry"}
+    assert script._key(plane, "joint", config) != script._key(slab[0], "joint", config)
+    assert script._row(config, "refractive_slab")["methods"] == ("joint",)
+    assert script._row(config, "high_albedo")["methods"] == config.methods
+    # A geometric series: the measured tail is its exact tail.
+    tail, ratio = script._measured_tail(0.8 ** np.arange(10))
+    assert ratio == pytest.approx(0.8)
+    assert tail == pytest.approx(0.8**10 / (1 - 0.8**10))
+    # Bounces that underflowed to 0 at the end: estimated from the last nonzero ones.
+    tail0, ratio0 = script._measured_tail(np.r_[0.8 ** np.arange(10), 0.0, 0.0])
+    assert (tail0, ratio0) == pytest.approx((tail, ratio))
+    for bad, match in (
+        ({"high_albedo": {**raw["high_albedo"], "albedos": [0.9]}}, "unknown keys"),
+        ({"refractive_slab": {**raw["refractive_slab"], "geometry": {"kind": "plane"}}}, "slab"),
+        ({"refractive_slab": {**raw["refractive_slab"], "methods": ["nope"]}}, "nope"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            typed_config(script.Config, {**raw, **bad})
 
 
 @pytest.mark.slow  # minutes on 2 cores; run with -m slow
