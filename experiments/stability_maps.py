@@ -176,9 +176,10 @@ def _tail_bound(rho: float, k: int) -> float | None:
     return rho**k / (1.0 - rho) if rho < 1.0 else None
 
 
-def _simulated(cell: dict, config: Config) -> np.ndarray:
-    """A cell's noise-free capture through ``simulate_capture`` (stripes, black level)."""
-    k, _how = _truth_bounces(cell["medium"], config)
+def _capture_cfg(cell: dict, config: Config, cap: int | None = None) -> dict:
+    """The ``simulate`` config of a cell's noise-free capture: its stripes, black level
+    and geometry, the truth's bounces (:func:`_truth_bounces`, at most ``cap``)."""
+    k, _how = _truth_bounces(cell["medium"], config, cap)
     cfg = inv.capture_config(
         cell["medium"],
         config.width,
@@ -189,7 +190,14 @@ def _simulated(cell: dict, config: Config) -> np.ndarray:
         black_level=cell.get("black_level") or None,
         bounces=k,
     )
-    return inv.simulate(cfg).images
+    if cell.get("geometry"):
+        cfg["geometry"] = dict(cell["geometry"])
+    return cfg
+
+
+def _simulated(cell: dict, config: Config) -> np.ndarray:
+    """A cell's noise-free capture through ``simulate_capture`` (stripes, black level)."""
+    return inv.simulate(_capture_cfg(cell, config)).images
 
 
 class _BatchedTruths:
@@ -387,20 +395,8 @@ def _truth_capture(cell: dict, config: Config, cap: int) -> tuple[np.ndarray, di
     """A row's noise-free capture (the medium's phase, the cell's geometry; bounces for
     ``tolerance``, at most ``cap``) and what its render measured: the tail past the last
     bounce (:func:`_measured_tail`), the model's size and the render's seconds."""
-    k, _how = _truth_bounces(cell["medium"], config, cap)
-    cfg = inv.capture_config(
-        cell["medium"],
-        config.width,
-        config.height,
-        period=cell["period"],
-        lit=cell["lit"],
-        phases=cell["phases"],
-        bounces=k,
-    )
-    if cell.get("geometry"):
-        cfg["geometry"] = dict(cell["geometry"])
     t0 = time.perf_counter()
-    sim = inv.simulate(cfg)
+    sim = inv.simulate(_capture_cfg(cell, config, cap))
     seconds = time.perf_counter() - t0
     energy = np.asarray(sim.bounces, np.float64).sum(axis=(0, 2, 3))  # per bounce
     tail, ratio = _measured_tail(energy)

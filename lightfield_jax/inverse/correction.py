@@ -159,6 +159,17 @@ def correct(
         exact, jac_at = np.stack(columns, axis=-1), v
         return None
 
+    def exact_step():
+        """The large model's Jacobian at ``v`` and its Gauss–Newton step (recorded):
+        ``(jac, step, size, failure)``."""
+        failure = refresh()
+        if failure:
+            return None, None, None, failure
+        jac = design(weights, unit, gain, exact)
+        step, size = gauss_newton(jac)
+        steps.append({"size": size, "jacobian": "exact", **step})
+        return jac, step, size, None
+
     jac_at = None
     best = None  # the lowest misfit rendered: (‖r‖², values, model, tail, residual)
     for _ in range(max_iterations):
@@ -175,17 +186,13 @@ def correct(
         steps.append({"size": size, "jacobian": "cheap" if exact is None else "exact", **step})
         slow = last_size is not None and size > MAX_RATE * last_size
         if exact is None and slow:
-            # Phase 2 (converged, or slowly: the cheap Jacobian is too far from the
-            # large model's): the large model's own Jacobian at the best point so far,
-            # and its step.
+            # Phase 2 (the cheap Jacobian is too far from the large model's): the large
+            # model's own Jacobian at the best point so far, and its step.
             _, v, unit, tail, residual = best
             rendered, gain = v, v["gain"]
-            failure = refresh()
+            jac, step, size, failure = exact_step()
             if failure:
                 return stop(failure)
-            jac = design(weights, unit, gain, exact)
-            step, size = gauss_newton(jac)
-            steps.append({"size": size, "jacobian": "exact", **step})
             last_size, slow = None, False
         if size < STEP_TOLERANCE and exact is not None and jac_at is not v:
             # Converged with a Jacobian from elsewhere: its own here, and one more look
@@ -193,12 +200,9 @@ def correct(
             # the residual, which a misfit makes depend on where J was taken).
             far = {k: v[k] - jac_at[k] for k in names}
             if _step_size(far, v, jac, names, noise) > REFRESH * STEP_TOLERANCE:
-                failure = refresh()
+                jac, step, size, failure = exact_step()
                 if failure:
                     return stop(failure)
-                jac = design(weights, unit, gain, exact)
-                step, size = gauss_newton(jac)
-                steps.append({"size": size, "jacobian": "exact", **step})
         if size < STEP_TOLERANCE:
             return stop("converged", ok=True)
         if slow:
