@@ -138,3 +138,37 @@ def test_prepared_data_are_frozen_and_cropped_alike():
     assert cut.sigma_t0 == data.sigma_t0
     with pytest.raises(dataclasses.FrozenInstanceError):
         cut.images = data.images
+
+
+@pytest.mark.parametrize("method", ["grid", pytest.param("gradient", marks=pytest.mark.slow)])
+def test_two_step_methods_march_where_the_joint_fit_gets_a_tail(method):
+    # ω 0.99: the joint fit's model sums the series past K0 by a tail solve; the
+    # two-step residual needs per-bounce images, so it marches max_bounces and says
+    # the series was truncated instead of raising (or calling the answer converged).
+    medium = lfj.Medium(0.1, 0.099, 0.0, phase="normalized")
+    grid = lfj.Grid(48, 32, 16, 1)
+    images = np.asarray(lfj.render(medium, grid, lfj.Stripes(), 400).total)
+    fit = lfj.fit_images(
+        images,
+        lfj.Stripes(),
+        method=method,
+        phase="normalized",
+        n_theta=16,
+        refine=1,
+        model_error=False,
+    )
+    assert fit.model["tail"] is None and fit.model["bounces"] == 80
+    assert not fit.converged and "truncated at 80 bounces" in fit.message
+    # With the series marched far enough the same method trusts its answer.
+    long = lfj.fit_images(
+        images,
+        lfj.Stripes(),
+        method=method,
+        phase="normalized",
+        n_theta=16,
+        refine=1,
+        model_error=False,
+        max_bounces=400,
+    )
+    assert long.model["tail"] is None and long.model["bounces"] > 80
+    assert "truncated" not in long.message

@@ -159,6 +159,11 @@ def _with_solver(options: FitOptions, solver) -> FitOptions:
     return options if solver is None else dataclasses.replace(options, solver=solver)
 
 
+# The two-step methods march at most ``max_bounces``; orders left out that sum to more
+# than this fraction of the single-scattering image make the fit untrustworthy.
+TRUNCATION_LIMIT = 0.01
+
+
 def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
     """The two-step methods after σt: solve on the first model; where the estimate needs
     a much larger model (4× the θ bins, a finer grid, more bounces: a forward-peaked
@@ -167,12 +172,26 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
 
     data = problem.data
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
+    # The two-step residual is a polynomial in σs over per-bounce images: it marches
+    # every bounce (at most ``max_bounces``), never a tail solve.
+    options = dataclasses.replace(options, tail=None)
+    model = problem.model
+    if model.tail is not None:
+        model = size_model(
+            problem.images,
+            problem.pattern,
+            albedo=problem.rho0,
+            g=0.0,
+            options=options,
+            sigma_t=data.sigma_t0,
+            crop=model.crop,
+        )
 
     def on(model):
         renderer = _renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g)
 
-    model = _at_least(problem.model, problem.floor)
+    model = _at_least(model, problem.floor)
     sol = on(model)
     compile_s = sol.compile
     s, g = sol.sigma_s, sol.g
@@ -202,6 +221,16 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     ok, msg = _result_message(sol.result)
     if solver is None:
         msg = f"grid search over {n_g} values of g"
+    truncated = model.as_dict()["tail_bound"]
+    if truncated is not None and truncated > TRUNCATION_LIMIT:
+        ok, msg = (
+            False,
+            (
+                f"the series is truncated at {model.bounces} bounces (the orders left out sum "
+                f"to about {truncated:.2g} of I_1 at the estimate): raise max_bounces or use "
+                f"method: joint"
+            ),
+        )
     if not data.decay_converged:
         ok, msg = False, "the decay fit of sigma_t did not converge"
     stat = {"sigma_t": data.sigma_t0_err, **sol.budget.statistical}
