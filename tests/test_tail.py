@@ -29,7 +29,9 @@ def _relative_l1(a, b):
     [
         (0.9, "bicgstab", lfj.Beam(0.0, 8.0, 10.0, 2.0), 1),
         (0.99, "bicgstab", lfj.Beam(0.0, 8.0, 10.0, 2.0), 1),
-        (0.99, "gmres", lfj.Stripes(period=6, lit=3, phases=(0, 3)), 2),
+        pytest.param(
+            0.99, "gmres", lfj.Stripes(period=6, lit=3, phases=(0, 3)), 2, marks=pytest.mark.slow
+        ),
     ],
 )
 def test_tail_equals_the_long_series(rho, method, illum, refine):
