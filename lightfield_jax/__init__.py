@@ -36,14 +36,14 @@ from lightfield_jax.inverse.capture_fit import CaptureFit as CaptureFit
 from lightfield_jax.inverse.capture_fit import fit_capture as fit_capture
 from lightfield_jax.inverse.decay import DecayFit as DecayFit
 from lightfield_jax.inverse.decay import fit_decay as fit_decay
-from lightfield_jax.inverse.fit import FitOptions as FitOptions
-from lightfield_jax.inverse.fit import FitResult as FitResult
 from lightfield_jax.inverse.fit import fit_images as fit_images
 from lightfield_jax.inverse.fit import fitted_images as fitted_images
 from lightfield_jax.inverse.methods import FitMethod as FitMethod
 from lightfield_jax.inverse.methods import GridSearch as GridSearch
 from lightfield_jax.inverse.methods import Joint as Joint
 from lightfield_jax.inverse.methods import TwoStep as TwoStep
+from lightfield_jax.inverse.options import FitOptions as FitOptions
+from lightfield_jax.inverse.options import FitResult as FitResult
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import enable_compilation_cache as enable_compilation_cache
 from lightfield_jax.inverse.separate import Separation as Separation

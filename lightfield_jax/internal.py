@@ -27,8 +27,6 @@ from lightfield_jax.inverse.data import FitData as FitData
 from lightfield_jax.inverse.data import FitProblem as FitProblem
 from lightfield_jax.inverse.data import FitSolution as FitSolution
 from lightfield_jax.inverse.data import prepare_data as prepare_data
-from lightfield_jax.inverse.fit import joint_weights as joint_weights
-from lightfield_jax.inverse.fit import size_model as size_model
 from lightfield_jax.inverse.jacobian import with_forward_jacobian as with_forward_jacobian
 from lightfield_jax.inverse.jacobian import with_jacobian as with_jacobian
 from lightfield_jax.inverse.joint import JointSettings as JointSettings
@@ -37,6 +35,8 @@ from lightfield_jax.inverse.joint import pack as pack
 from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.joint import unit_model as unit_model
 from lightfield_jax.inverse.joint import unpack as unpack
+from lightfield_jax.inverse.joint_stage import joint_weights as joint_weights
+from lightfield_jax.inverse.model_size import size_model as size_model
 from lightfield_jax.inverse.two_step import TwoStepSettings as TwoStepSettings
 from lightfield_jax.inverse.two_step import TwoStepSolution as TwoStepSolution
 from lightfield_jax.inverse.two_step import full_for as full_for

@@ -578,7 +578,7 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     """``tail: auto``: the tail bound's count where it is at most max_bounces (the milk);
     beyond it K0 and BiCGStab (albedo 0.99), unless the scan's measured per-bounce
     ratio asks for a march within max_bounces; ``tail: None`` marches, capped."""
-    from lightfield_jax.inverse.fit import _by_measured_ratio, size_model
+    from lightfield_jax.inverse.model_size import _by_measured_ratio, size_model
 
     images = np.zeros((6, 24, 32))
     crop = (0, 0, 32, 24)

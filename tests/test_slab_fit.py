@@ -17,8 +17,9 @@ import yaml
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import load_helper, run_experiment
 from lightfield_jax.forward.slab import slab_bounce_ratio
-from lightfield_jax.inverse.fit import FitOptions, fit_images
+from lightfield_jax.inverse.fit import fit_images
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
+from lightfield_jax.inverse.options import FitOptions
 from lightfield_jax.scene.geometry import AutoGeometry, Slab
 
 PATTERN = lfj.Stripes(6, 3, tuple(range(6)))

@@ -11,7 +11,7 @@ import yaml
 import lightfield_jax as lfj
 import lightfield_jax.viz as viz
 from lightfield_jax.app.cli import main
-from lightfield_jax.inverse.fit import FitResult
+from lightfield_jax.inverse.options import FitResult
 
 MEDIUM = {"sigma_t": 0.12, "sigma_s": 0.05, "g": 0.3}
 SIM = {

@@ -123,7 +123,8 @@ def bench_slab(
     Levenberg–Marquardt step needs per parameter) and, with ``fits``, a noiseless joint
     fit of each model to its own render (wall time, compile included)."""
     from lightfield_jax.forward.render import make_renderer, resolve_model
-    from lightfield_jax.inverse.fit import FitOptions, fit_images
+    from lightfield_jax.inverse.fit import fit_images
+    from lightfield_jax.inverse.options import FitOptions
     from lightfield_jax.scene.geometry import Slab
     from lightfield_jax.scene.illumination import Stripes
     from lightfield_jax.scene.medium import Medium

@@ -662,7 +662,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
     from lightfield_jax.inverse.capture_fit import fit_capture
-    from lightfield_jax.inverse.fit import FitOptions
+    from lightfield_jax.inverse.options import FitOptions
 
     inputs = capture_files(args.capture)
     _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])

@@ -21,7 +21,7 @@ finds them in the images themselves, in the image frame of docs/model.md section
   dark (below the lit threshold), to the frame's edge or to where something lit begins
   again (``Geometry.faded``: where the light faded and how far the ROI now reaches). The
   fit then crops its model where each channel's light falls into its noise
-  (:func:`~lightfield_jax.inverse.fit.size_model`): the black wall a finite model needs
+  (:func:`~lightfield_jax.inverse.model_size.size_model`): the black wall a finite model needs
   somewhere stands where the light is at the noise floor, not at the detection's
   threshold (2·10⁻³ of the peak). Faded side edges (light that does not reach the
   side walls) are reported, not extended: the projector does not light beyond them,

@@ -12,16 +12,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from lightfield_jax.inverse.fit import (
-    FitOptions,
-    FitResult,
-    _at_least,
-    _fit_one,
-    _Model,
-    _model_from,
-    _signal_crop,
-)
+from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
+from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
+from lightfield_jax.inverse.options import FitOptions, FitResult
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry
 from lightfield_jax.scene.grid import Grid
 

@@ -21,7 +21,7 @@ from lightfield_jax.inverse.separate import separate
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.fit import _Model
+    from lightfield_jax.inverse.model_size import _Model
 
 
 @dataclasses.dataclass(frozen=True)

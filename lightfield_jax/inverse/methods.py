@@ -32,10 +32,13 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from lightfield_jax.inverse.data import FitProblem, FitSolution
+from lightfield_jax.inverse.joint_fit import _joint_fit
+from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
+from lightfield_jax.inverse.model_size import _at_least, size_model
 from lightfield_jax.inverse.two_step import TwoStepSettings, full_for, solve_two_step
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.fit import FitOptions
+    from lightfield_jax.inverse.options import FitOptions
 
 
 def check_solver(solver, key: str = "solver") -> None:
@@ -99,8 +102,6 @@ class TwoStep(FitMethod):
             raise ValueError(f"start_grid: must be at least 3, got {self.start_grid!r}")
 
     def solve(self, problem, options, say):
-        from lightfield_jax.inverse.fit import _solver
-
         options = _with_solver(options, self.solver)
         solver = _solver(options, jnp.result_type(float))
         say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
@@ -122,8 +123,6 @@ class Joint(FitMethod):
         check_start(self.start)
 
     def solve(self, problem, options, say):
-        from lightfield_jax.inverse.fit import _joint_fit
-
         options = _with_solver(options, self.solver)
         if self.start is not None:
             options = dataclasses.replace(options, start=self.start)
@@ -168,8 +167,6 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     """The two-step methods after σt: solve on the first model; where the estimate needs
     a much larger model (4× the θ bins, a finer grid, more bounces: a forward-peaked
     medium), once more on that one (a 2× θ difference costs less than a refit)."""
-    from lightfield_jax.inverse.fit import _at_least, _renderer, _result_message, size_model
-
     data = problem.data
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
     # The two-step residual is a polynomial in σs over per-bounce images: it marches

@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 
 from lightfield_jax.inverse.decay import entry_coordinates
-from lightfield_jax.inverse.fit import FitResult, fitted_images
+from lightfield_jax.inverse.fit import fitted_images
+from lightfield_jax.inverse.options import FitResult
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.scene.geometry import describe_geometry
 from lightfield_jax.scene.illumination import Stripes

@@ -1,0 +1,399 @@
+"""The joint fit (:func:`_joint_fit`, the ``joint`` method's solve): the basin scan on a
+cheap model, one solve of that model from every start the scan keeps, and from each
+answer the model it needs, reached by defect correction or else solved on
+(:func:`_continuation`, :func:`_corrected`); the best final misfit is kept. Then the
+error term from a finer model's residual at the answer (:func:`_finer`,
+:func:`_model_shift`), the error budget and the verdict
+(:mod:`lightfield_jax.inverse.trust`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import jax.numpy as jnp
+
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.inverse.basins import worse_basin
+from lightfield_jax.inverse.correction import correct
+from lightfield_jax.inverse.data import FitData as _Data
+from lightfield_jax.inverse.joint import BLACK_RANGE, pack
+from lightfield_jax.inverse.joint_stage import (
+    _joint_parts,
+    _joint_reweighted,
+    _joint_stage,
+    _render_model,
+    _rms,
+    _run_scan,
+    _Stage,
+    joint_weights,
+)
+from lightfield_jax.inverse.model_size import (
+    SCAN_TAIL_BOUNCES,
+    _at_least,
+    _by_measured_ratio,
+    _covers,
+    _extrapolated,
+    _Model,
+    _orders,
+    _scan_model,
+    size_model,
+)
+from lightfield_jax.inverse.trust import (
+    at_bound,
+    error_budget,
+    noise_scale,
+    tail_unconverged,
+    untrustworthy,
+)
+from lightfield_jax.scene.grid import default_refine
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.options import FitOptions
+
+
+def _same_answer(a: dict, b: dict) -> bool:
+    return (
+        abs(a["sigma_t"] / b["sigma_t"] - 1) < 1e-3
+        and abs(a["sigma_s"] / b["sigma_s"] - 1) < 1e-2
+        and abs(a["g"] - b["g"]) < 1e-2
+    )
+
+
+def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
+    """The joint fit after its first stage ``first`` (the cheap model's solve): the
+    model its answer needs (the larger of that and ``floor``) reached by defect
+    correction (``correct``: :func:`_corrected`), or else solved on (capped by
+    ``max_cells``: two solves, the second with the model's weights). Returns the last
+    stage (``first`` itself when it ends at a bound of the model or in a basin worse
+    than the scan's best; a refit of the cheap model with the model's weights where
+    that model already covers the need)."""
+    coarse = first.model
+    v = first.values
+    albedo = v["sigma_s"] / v["sigma_t"]
+    if at_bound(v, BLACK_RANGE if black is None else None) or worse_basin(
+        the_scan, v["g"], albedo, options.basin_tolerance
+    ):
+        # At a bound or in a worse basin on the cheap model: not trustworthy whatever
+        # the model, and not worth the large model it would ask for.
+        say("  at a bound or in a worse basin on the cheap model: not refined")
+        return first
+    ratio = the_scan.ratio_at(v["g"], albedo)
+
+    def needed(max_cells: int) -> _Model:
+        model = size_model(
+            images,
+            pattern,
+            albedo=min(albedo, 0.98),
+            g=v["g"],
+            options=dataclasses.replace(options, max_cells=max_cells),
+            margin=1.03,
+            sigma_t=v["sigma_t"],
+            crop=coarse.crop,
+        )
+        return _by_measured_ratio(model, options, ratio)
+
+    # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
+    # the corrected one, reached by primal renders, by max_render_cells.
+    need = needed(options.max_cells)
+    correct = options.correct and first.ok
+    if correct:
+        target = _at_least(_at_least(needed(options.max_render_cells), need), floor)
+    else:
+        need = target = _at_least(need, floor)
+    if _covers(coarse, target):
+        # The cheap model is already as large as the answer needs: refit it with the
+        # model's weights, and that is the answer.
+        return _joint_stage(
+            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
+        )
+    spent, record = {"compile": 0.0, "run": 0.0}, None
+    if correct:
+        say(
+            f"  defect correction to the final model n_theta {target.grid.n_theta}, refine "
+            f"{target.grid.refine}, {_orders(target)}"
+        )
+        done, record = _corrected(data, pattern, first, target, options, black, say)
+        if done is not None:
+            return done
+        spent = record["seconds"]
+        say(f"  the correction stopped ({record['stopped']}): solving on the final model")
+    if _covers(coarse, need):
+        last = _joint_stage(
+            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
+        )
+    else:
+        say(
+            f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}"
+        )
+        mid = _joint_stage(data, pattern, need, options, black, first.weights, first.y)
+        last = _joint_stage(
+            data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y
+        )
+        last.steps += mid.steps
+        last.compile += mid.compile
+        last.run += mid.run
+    last.compile += spent["compile"]
+    last.run += spent["run"]
+    if record is not None:
+        last.correction = {**record, "fallback": "solved on the model instead"}
+    return last
+
+
+def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, black, say):
+    """``target``'s answer by defect correction from ``first`` (the cheap model's solve:
+    its answer and Jacobian, model weights from its answer; :mod:`.correction`): the
+    stage (``None`` where the iteration did not converge) and its record."""
+    renderer, full = _joint_parts(pattern, target, options.phase)
+    dtype = first.y.dtype
+    weights = _joint_reweighted(data, first)
+
+    def render(v):
+        return _render_model(renderer, full, pattern, target, v, dtype)
+
+    with stopwatch() as timing:
+        c = correct(
+            render,
+            data.images,
+            weights,
+            first.values,
+            first.jac_unit,
+            BLACK_RANGE if black is None else None,
+            options.correction_renders,
+            noise_scale(data.images, weights, pattern),
+        )
+    for step in c.steps:
+        say(f"    step {step['size']:.2e} ({step['jacobian']} Jacobian)")
+    record = {
+        "renders": c.renders,
+        "converged": c.converged,
+        "stopped": c.reason,
+        "steps": c.steps,
+        "seconds": {"compile": timing.compile, "run": timing.run},
+    }
+    if not (c.converged and first.ok):
+        return None, record
+    v = c.values
+    stage = _Stage(
+        model=target,
+        values={k: v[k] for k in ("sigma_t", "sigma_s", "g", "black_level", "gain")},
+        y=pack((v["sigma_t"], v["sigma_s"], v["g"], v["black_level"]), black is None, dtype),
+        ok=True,
+        message=first.message,
+        steps=0,
+        unit=c.unit,
+        jac=c.jac,
+        weights=weights,
+        residual=c.residual,
+        rms=_rms(c.residual, data),
+        compile=timing.compile,
+        run=timing.run,
+        tail=c.tail,
+        jac_unit=None,
+        correction=record,
+    )
+    return stage, record
+
+
+def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
+    """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
+    elevation nodes and depth layers); on the plane also the spatial refinement the size
+    rule asks for at the answer's ``g`` where the fit's model stayed below it (the cell
+    cap sized it down: a forward medium's model error is then mostly spatial, and a
+    term that did not see it would report the fit as noise-limited); the same bounces
+    with the rest of the series extrapolated geometrically or, with a tail, the same K0
+    and a tail tolerance ten times as tight."""
+    grid = model.grid
+    geometry = model.geometry
+    if geometry is not None:
+        geometry = dataclasses.replace(
+            geometry, n_mu=min(2 * geometry.n_mu, 32), n_z=min(2 * geometry.n_z, 8)
+        )
+        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
+    else:
+        grid = dataclasses.replace(
+            grid,
+            n_theta=min(2 * grid.n_theta, 256),
+            refine=max(grid.refine, default_refine(g)),
+        )
+    if model.tail is not None:  # the same K0, a tail ten times as tight
+        return dataclasses.replace(
+            model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
+        )
+    # The same bounces and, where the fit sized them, the orders past them summed
+    # geometrically from the last per-bounce ratio: the series' truncation error shows
+    # in r_fine − r as it did when 1.5× + 4 bounces were marched, at the cost of the
+    # bounces already marched (the dense forward medium, 128×96: 32 bounces instead of
+    # 52 at 128 θ bins and refine 2).
+    return dataclasses.replace(
+        model, grid=grid, geometry=geometry, extrapolate=not isinstance(options.bounces, int)
+    )
+
+
+def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
+    """r_fine − r at the solution (one render of :func:`_finer`'s model), that model, its
+    tail solve's steps and convergence (``None`` without a tail) and its seconds."""
+    fine = _finer(stage.model, options, stage.values["g"])
+    renderer, full = _joint_parts(pattern, fine, options.phase)
+    v = stage.values
+    with stopwatch() as timing:
+        unit, fine_tail = _render_model(renderer, full, pattern, fine, v, jnp.result_type(float))
+    shift = (stage.weights * v["gain"] * (unit - stage.unit)).reshape(-1)
+    return shift, fine, fine_tail, timing
+
+
+def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say):
+    """The joint fit with its global start (:mod:`lightfield_jax.inverse.basins`): scan, solve
+    every basin kept (or the given start), keep the best; then the error budget and the
+    verdict. Returns the :func:`_finish` keywords and the seconds."""
+    seconds = {"compile": 0.0, "run": 0.0}
+
+    def count(t):
+        seconds["compile"] += t["compile"] if isinstance(t, dict) else t.compile
+        seconds["run"] += t["run"] if isinstance(t, dict) else t.run
+
+    coarse = _scan_model(crop, options, rho0)
+    weights = joint_weights(data.images, data.mask, data.exposure)
+    marched = (
+        f"{coarse.bounces} bounces"
+        if coarse.tail is None
+        else f"{SCAN_TAIL_BOUNCES} bounces and a geometric tail"
+    )
+    say(
+        f"basin scan: g x albedo on a {coarse.grid.width}x{coarse.grid.height} model, "
+        f"n_theta {coarse.grid.n_theta}, {marched}"
+    )
+    the_scan = _run_scan(data, pattern, coarse, options, black, weights, data.sigma_t0)
+    count(the_scan.seconds)
+    st0 = data.sigma_t0
+    if options.start is not None:
+        ss, g = options.start
+        starts = [("given", (st0, ss, g, 0.0 if black is None else black))]
+    else:
+        found = the_scan.basins if options.basin_search else the_scan.basins[:1]
+        if not found:
+            raise ValueError(
+                "the basin scan found no valid model for this capture (every albedo's "
+                "bounce series diverges or is truncated): give bounces or a start"
+            )
+        starts = [
+            (f"basin {i}", (st0, b.albedo * st0, b.g, b.black_level if black is None else black))
+            for i, b in enumerate(found)
+        ]
+    # One cheap model for every start: marched where the scan's measured ratio at each
+    # start allows it (see _by_measured_ratio).
+    ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
+    coarse = _extrapolated(_by_measured_ratio(coarse, options, ratio), options)
+    if the_scan.ratios is not None:
+        say(f"  measured per-bounce ratio {ratio:.3f}")
+    say(f"  the solve's model: {_orders(coarse)}")
+    tried, stages, labels = [], [], []
+    dtype = jnp.result_type(float)
+    for label, start in starts:
+        say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
+        y0 = pack(start, black is None, dtype)
+        first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
+        count(first)
+        record = {
+            "label": label,
+            "start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]},
+        }
+        same = next(
+            (i for i, (f, _) in enumerate(stages) if _same_answer(f.values, first.values)), None
+        )
+        if same is not None:  # the cheap model's answer of an earlier start: not again
+            tried.append({**record, "same_as": labels[same]})
+            say(f"  {label}: the same answer as {labels[same]}")
+            continue
+        last = _continuation(data, pattern, first, options, black, images, floor, the_scan, say)
+        count(last)
+        tried.append(
+            {
+                **record,
+                "final": {k: last.values[k] for k in ("sigma_t", "sigma_s", "g")},
+                "residual": last.rms,
+                "converged": last.ok,
+                "iterations": first.steps + last.steps,
+            }
+        )
+        say(
+            f"  {label}: sigma_t {last.values['sigma_t']:.5g}, sigma_s "
+            f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g} "
+            f"after {first.steps + last.steps} solver iterations"
+        )
+        stages.append((first, last))
+        labels.append(label)
+    # The best final misfit (models may differ between starts: the weighted RMS is
+    # comparable across them).
+    best = min(range(len(stages)), key=lambda i: stages[i][1].rms)
+    last = stages[best][1]
+    solved = [r for r in tried if "final" in r]
+    for i, record in enumerate(solved):
+        record["chosen"] = i == best
+
+    names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if black is None else [])
+    fit_black = black is None
+    noise = noise_scale(data.images, last.weights, pattern)
+    shift, fine, fine_tail = None, None, None
+    if options.model_error:
+        shift, fine, fine_tail, t = _model_shift(data, pattern, last, options)
+        count(t)
+    budget = error_budget(last.jac, last.residual, names, noise, shift)
+    v = last.values
+    reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
+    reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
+    reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
+    other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
+    if other is not None:
+        reasons.append(
+            f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
+            f"{other.albedo:.2f}, scan misfit {other.misfit:.3g})"
+        )
+    ok, msg = last.ok, last.message
+    if reasons:
+        ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" (solver: {msg})"
+    model_dict = last.model.as_dict()
+    if last.tail is not None:
+        model_dict["tail"].update(last.tail)
+    if last.correction is not None:
+        model_dict["correction"] = last.correction
+    if fine is not None:
+        model_dict["finer_model"] = {
+            "n_theta": fine.grid.n_theta,
+            "refine": fine.grid.refine,
+            "bounces": fine.bounces,
+            "extrapolated": fine.extrapolate,
+            **(
+                {"n_mu": fine.geometry.n_mu, "n_z": fine.geometry.n_z}
+                if fine.geometry is not None
+                else {}
+            ),
+            **(
+                {"tail": {"method": fine.tail, "tol": fine.tail_tol, **fine_tail}}
+                if fine_tail is not None
+                else {}
+            ),
+        }
+    scan_dict = the_scan.as_dict()
+    scan_dict["tried"] = tried
+    return (
+        last.model,
+        seconds,
+        dict(
+            method="joint",
+            sigma_t=v["sigma_t"],
+            sigma_s=v["sigma_s"],
+            g=v["g"],
+            gain=v["gain"],
+            black_level=v["black_level"],
+            budget=budget,
+            converged=ok,
+            message=msg,
+            iterations=sum(r["iterations"] for r in solved),
+            residual=last.rms,
+            basins=scan_dict,
+            reasons=tuple(reasons),
+            model_dict=model_dict,
+        ),
+    )

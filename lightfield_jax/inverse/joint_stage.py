@@ -1,0 +1,257 @@
+"""One joint solve and the pieces the joint fit's stages share: the least-squares solver
+a fit's options ask for and its status message; a model's renderers (the stripes' and,
+where the phases do not tile the period, full illumination's); the shot-noise weights;
+:class:`_Stage` (one solve's model, answer, Jacobian and residual) and
+:func:`_joint_stage` (one compiled solve from a start, :mod:`lightfield_jax.inverse.joint`);
+the basin scan on the cheap model (:func:`_run_scan`, :mod:`lightfield_jax.inverse.basins`);
+and a model's render at an answer (:func:`_render_model`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.inverse.basins import Scan, basins, scan
+from lightfield_jax.inverse.correction import design, projected
+from lightfield_jax.inverse.data import FitData as _Data
+from lightfield_jax.inverse.joint import JointSettings, model_at, unpack
+from lightfield_jax.inverse.joint import solve as solve_joint
+from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, _Model, _phase_integral
+from lightfield_jax.inverse.two_step import full_for as _full_for
+from lightfield_jax.scene.illumination import Stripes
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.options import FitOptions
+
+
+def _solver(options: FitOptions, dtype):
+    """The optimistix least-squares solver: ``options.solver``, else Levenberg-Marquardt
+    with tolerances from ``options`` or the dtype."""
+    if options.solver is not None:
+        return options.solver
+    wide = jnp.finfo(dtype).bits > 32
+    rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
+    atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
+    return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+
+def _result_message(result) -> tuple[bool, str]:
+    ok = bool(result == optx.RESULTS.successful)
+    if ok:
+        return True, "converged"
+    return False, str(optx.RESULTS[result]) if hasattr(optx.RESULTS, "__getitem__") else "failed"
+
+
+def _renderer(model: _Model, illumination, phase: str):
+    if model.tail is None:
+        return renderer_for(model.grid, illumination, model.bounces, phase, model.geometry)
+    return renderer_for(
+        model.grid,
+        illumination,
+        model.bounces,
+        phase,
+        model.geometry,
+        model.tail,
+        model.tail_tol,
+        model.tail_max_steps,
+    )
+
+
+def _joint_parts(pattern: Stripes, model: _Model, phase: str):
+    """The stripes' renderer and, when the phases do not tile the period, full
+    illumination's (else ``None``)."""
+    renderer = _renderer(model, pattern, phase)
+    tiles = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
+    return renderer, None if tiles else _renderer(model, _full_for(pattern), phase)
+
+
+def joint_weights(images, mask, exposure=None):
+    """Shot-noise weights of the raw images, 1/√(I + floor) (floor 1e-3 of the peak), 0
+    outside ``mask``; times √(T/max T) for merged exposure brackets of effective exposure
+    T (their variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
+    floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
+    w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
+    if exposure is not None:
+        w = w * np.sqrt(exposure / np.max(exposure))
+    return np.where(mask[None], w, 0.0)
+
+
+@dataclasses.dataclass
+class _Stage:
+    """One joint solve: the model, the answer and what the error budget needs."""
+
+    model: _Model
+    values: dict  # sigma_t, sigma_s, g, black_level, gain
+    y: jax.Array
+    ok: bool
+    message: str
+    steps: int
+    unit: np.ndarray  # the model at unit gain, (P, h, w)
+    jac: np.ndarray  # ∂r/∂(σt, σs, g, gain[, b]), (N, p)
+    weights: np.ndarray
+    residual: np.ndarray
+    rms: float
+    compile: float
+    run: float
+    tail: dict | None = None  # the tail solve at the answer: steps, converged (or error)
+    jac_unit: np.ndarray | None = None  # ∂R/∂(σt, σs, g[, b]) at unit gain, (P, h, w, n)
+    correction: dict | None = None  # the defect correction that produced it, if any
+
+
+def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
+    """One compiled joint solve (:func:`lightfield_jax.inverse.joint.solve`) from ``y0``."""
+    renderer, full = _joint_parts(pattern, model, options.phase)
+    fit_black = black is None
+    settings = JointSettings(fit_black, pattern.lit, options.max_steps, model.extrapolate)
+    dtype = y0.dtype
+    obs = jnp.asarray(data.images, dtype)
+    black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
+    with stopwatch() as timing:
+        failure = None
+        if model.tail is not None:
+            # The tail's tangent solves (the Jacobian) raise where they do not converge
+            # (lineax): a tail that does not converge at the start is reported from a
+            # primal render, without running the solver.
+            unit, tail = model_at(
+                renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
+            )
+            if not bool(tail.converged):
+                failure = f"at the start, {int(tail.steps)} iterations"
+        if failure is None:
+            try:
+                y, result, steps, unit, jac_r, tail = jax.block_until_ready(
+                    solve_joint(
+                        settings,
+                        _solver(options, dtype),
+                        renderer,
+                        full,
+                        obs,
+                        black_fixed,
+                        jnp.asarray(weights, dtype),
+                        y0,
+                    )
+                )
+            except RuntimeError:
+                if model.tail is None:
+                    raise
+                failure = "a tangent solve of the Jacobian during the solve"
+                unit, tail = model_at(
+                    renderer, full, pattern.lit, *unpack(y0, fit_black, black_fixed), dtype
+                )
+        if failure is not None:  # the answer is the start, not trustworthy
+            y, steps, result = y0, 0, optx.RESULTS.nonlinear_divergence
+            jac_r = jnp.full(unit.shape + (3 + fit_black,), jnp.nan, dtype)
+    st, ss, g, b = (float(v) for v in unpack(y, fit_black, black_fixed))
+    w = np.asarray(weights, np.float64)
+    unit = np.asarray(unit, np.float64)
+    jac_r = np.asarray(jac_r, np.float64)
+    gain, residual = projected(w, unit, data.images)
+    jac = design(w, unit, gain, jac_r)
+    ok, msg = _result_message(result)
+    tail_dict = None
+    if model.tail is not None:
+        tail_dict = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+        if failure is not None:
+            tail_dict["converged"] = False
+            tail_dict["error"] = failure
+            ok, msg = False, f"the tail solve did not converge ({failure})"
+    return _Stage(
+        model=model,
+        values={"sigma_t": st, "sigma_s": ss, "g": g, "black_level": b, "gain": gain},
+        y=y,
+        ok=ok,
+        message=msg,
+        steps=int(steps),
+        unit=unit,
+        jac=jac,
+        weights=w,
+        residual=residual,
+        rms=_rms(residual, data),
+        compile=timing.compile,
+        run=timing.run,
+        tail=tail_dict,
+        jac_unit=jac_r,
+    )
+
+
+def _rms(residual: np.ndarray, data: _Data) -> float:
+    n = int(np.sum(data.mask)) * data.images.shape[0]
+    return float(np.sqrt(np.sum(residual**2) / max(n, 1)))
+
+
+def _joint_reweighted(data: _Data, stage: _Stage):
+    """Weights from the fitted model (gain × model) instead of the noisy data (weights
+    from the data itself bias a weighted fit toward low values)."""
+    return joint_weights(stage.values["gain"] * stage.unit, data.mask, data.exposure)
+
+
+def _rho_of(options: FitOptions):
+    """ρ(g, albedos) of the model's phase convention (ω for the slab and ``normalized``)."""
+
+    def rho(g: float, albedos):
+        a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
+        return np.asarray(albedos) * a
+
+    return rho
+
+
+def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigma_t0) -> Scan:
+    extrapolate = model.tail is not None
+    if extrapolate:
+        model = dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None)
+    renderer, full = _joint_parts(pattern, model, options.phase)
+    dtype = jnp.result_type(float)
+    with stopwatch() as timing:
+        cost, black_map, gs, albedos, ratios, refs = scan(
+            renderer,
+            full,
+            jnp.asarray(data.images, dtype),
+            jnp.asarray(weights, dtype),
+            sigma_t0,
+            phase=options.phase,
+            lit=pattern.lit,
+            black_level=black,
+            rho_limit=_rho_of(options),
+            extrapolate=extrapolate,
+        )
+    found = basins(cost, black_map, gs, albedos, options.basin_tolerance, options.max_basins)
+    return Scan(
+        gs=gs,
+        albedos=albedos,
+        misfit=cost,
+        black=black_map,
+        basins=found,
+        sigma_t=sigma_t0,
+        seconds={"compile": timing.compile, "run": timing.run},
+        ratios=ratios if extrapolate else None,
+        sigma_s_ref=refs,
+    )
+
+
+def _render_model(renderer, full, pattern, model: _Model, v: dict, dtype):
+    """``model``'s render at unit gain at ``v`` (σt, σs, g, black level), as float64
+    numpy, and its tail solve's ``{"steps", "converged"}`` (``None`` without a tail)."""
+    unit, tail = model_at(
+        renderer,
+        full,
+        pattern.lit,
+        v["sigma_t"],
+        v["sigma_s"],
+        v["g"],
+        v["black_level"],
+        dtype,
+        model.extrapolate,
+    )
+    unit = np.asarray(jax.block_until_ready(unit), np.float64)
+    status = None
+    if model.tail is not None:
+        status = {"steps": int(tail.steps), "converged": bool(tail.converged)}
+    return unit, status

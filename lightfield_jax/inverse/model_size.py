@@ -1,0 +1,338 @@
+"""The model-sizing rules of a fit: :class:`_Model` (the grid, bounces, crop, geometry and
+tail solve of one forward model) and :func:`size_model` (the smallest model a capture
+needs at an estimate: bounces from the tail bound, θ bins and refinement from g, the crop
+from the signal, all capped by ``max_cells``); the tail rule and the march sized from a
+measured per-bounce ratio; the buckets of bounce counts that let nearby needs share
+compiled programs; the basin scan's cheap model and the joint solve's extrapolated one;
+and whether one model covers another.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import TYPE_CHECKING
+
+import jax
+import numpy as np
+
+from lightfield_jax.forward.slab import slab_bounce_ratio
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
+from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
+from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.scene.medium import bounces_for_tolerance, phase_integral
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.options import FitOptions
+
+
+# A(g) of a Python float, compiled once (op by op, its dozen operations would each
+# compile on first use).
+_phase_integral = jax.jit(phase_integral)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Model:
+    grid: Grid
+    bounces: int
+    crop: tuple[int, int, int, int]  # x0, y0, x1, y1 inside the image
+    converges: bool
+    rho: float  # ρ at the estimate the model was sized for
+    geometry: Slab | None = None  # resolved (n_mu set); None: the plane
+    tail: str | None = None  # the tail solve after ``bounces`` = K0, or None: marched
+    tail_tol: float = 1e-4
+    tail_max_steps: int = 200
+    ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
+    extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
+
+    def as_dict(self) -> dict:
+        marched = self.converges and self.tail is None and not self.extrapolate
+        r = self.rho if self.ratio is None else self.ratio
+        tail = r**self.bounces / (1 - r) if marched else None
+        return {
+            "geometry": (self.geometry or Plane()).as_dict(),
+            "width": self.grid.width,
+            "height": self.grid.height,
+            "n_theta": self.grid.n_theta,
+            "refine": self.grid.refine,
+            "bounces": self.bounces,
+            "crop": list(self.crop),
+            "series_converges": self.converges,
+            "rho_estimate": self.rho,
+            "ratio_measured": self.ratio,
+            "tail_bound": tail,
+            "extrapolated": self.extrapolate,
+            "tail": None
+            if self.tail is None
+            else {
+                "method": self.tail,
+                "K0": self.bounces,
+                "tol": self.tail_tol,
+                "max_steps": self.tail_max_steps,
+            },
+        }
+
+
+def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple[int, ...]:
+    """Crop along the propagation direction to where the signal stands out: Imax,
+    averaged across the light, must exceed its noise floor (the median of the farthest
+    tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
+    wall stays; at least 16 pixels are kept, in multiples of 8."""
+    p, h, w = images.shape
+    along_x = pattern.entry in ("left", "right")
+    imax = np.nanmax(images, axis=0)
+    prof = np.nanmean(imax, axis=0 if along_x else 1)
+    if pattern.entry in ("right", "bottom"):
+        prof = prof[::-1]
+    n = prof.size
+    tenth = max(n // 10, 2)
+    tail = prof[-tenth:]
+    floor = float(np.median(tail))
+    scatter = float(np.median(np.abs(tail - floor))) * 1.4826
+    peak = float(np.max(prof))
+    before = float(np.median(prof[-2 * tenth : -tenth]))
+    if before - floor > 3.0 * scatter + fraction * (peak - floor):
+        # Still decaying at the far wall: the farthest tenth is signal, not a floor.
+        return (0, 0, w, h)
+    above = prof - floor > max(fraction * (peak - floor), 3.0 * scatter)
+    last = int(np.flatnonzero(above).max()) + 1 if above.any() else n
+    # Rounded up to a multiple of 8 (within the image): captures and channels of nearby
+    # extents share one shape, and so their compiled programs.
+    keep = min(n, _bucket(max(last + 2, 16), 8))
+    if pattern.entry in ("left", "top"):
+        lo, hi = 0, keep
+    else:
+        lo, hi = n - keep, n
+    return (lo, 0, hi, h) if along_x else (0, lo, w, hi)
+
+
+def size_model(
+    images: np.ndarray,
+    pattern: Stripes,
+    albedo: float,
+    g: float,
+    options: FitOptions,
+    margin: float = 1.15,
+    sigma_t: float | None = None,
+    crop: tuple[int, int, int, int] | None = None,
+) -> _Model:
+    """The smallest model the capture needs: bounces from the tail bound at the estimate
+    (ρ × ``margin``, capped below 1; rounded up to a bucket), θ bins and refinement from
+    g, crop from the signal (or ``crop``). ``series_converges`` is judged at the
+    estimate itself."""
+    p, h, w = images.shape
+    if crop is None:
+        crop = (
+            _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
+        )
+    gw = min(0.99, abs(g) + 0.1)
+    slab = as_geometry(options.geometry).slab_or_none
+    if slab is not None:  # less sensitive to g than the plane: a smaller margin
+        # Depth layers, elevation nodes and azimuth bins from the estimate (the albedo
+        # and σt·h decide how much the depth must be resolved).
+        g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
+        n_theta = options.n_theta or default_slab_n_theta(g_slab, slab.boundary, albedo_slab)
+        refine = options.refine or 1
+        slab = slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
+    else:
+        n_theta = options.n_theta or default_n_theta(gw)
+        refine = options.refine or default_refine(abs(g))
+    width, height = crop[2] - crop[0], crop[3] - crop[1]
+    while width * height * n_theta * refine**2 > options.max_cells:
+        if refine > 1 and options.refine is None:
+            refine -= 1
+        elif n_theta > 32 and options.n_theta is None:
+            n_theta //= 2
+        else:
+            break
+    if slab is not None:
+        # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
+        user_mu = options.geometry.n_mu is not None
+        while (
+            width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2 > 4 * options.max_cells
+        ):
+            if n_theta > 8 and options.n_theta is None:
+                n_theta //= 2
+            elif slab.n_mu > 4 and not user_mu:
+                slab = dataclasses.replace(slab, n_mu=slab.n_mu // 2)
+            else:
+                break
+    grid = Grid(width, height, n_theta, refine)
+    a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
+    rho = min(albedo, 1.0) * a
+    if slab is not None and sigma_t is not None:
+        # Light leaves through the faces: the slab's measured per-bounce ratio, not ω.
+        rho = min(rho, slab_bounce_ratio(slab, sigma_t, min(albedo, 1.0), g, width, height))
+    converges = rho < 1.0
+    if isinstance(options.bounces, int):
+        k = options.bounces
+    elif converges:
+        bound = min(rho * margin + 0.01, 0.995)
+        k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
+    else:
+        k = options.max_bounces
+    model = _Model(
+        grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho, geometry=slab
+    )
+    return _with_tail(model, options)
+
+
+def _tail_for(options: FitOptions, model: _Model) -> str | None:
+    """The tail solve of a model that would march ``model.bounces`` (``None``: it marches
+    them): under ``tail: auto`` with ``bounces: auto``, BiCGStab once they exceed
+    ``max_bounces`` (measured on the dense forward medium, 128×96, 32 θ bins, six
+    patterns: the value and Jacobian of K0 = 8 bounces and the BiCGStab tail cost what
+    80 marched bounces do); under a named method always; never for a divergent series."""
+    if not model.converges or options.tail is None:
+        return None
+    if options.tail == "auto":
+        auto = options.bounces == "auto" and model.bounces > options.max_bounces
+        return "bicgstab" if auto else None
+    return options.tail
+
+
+# Added to a measured per-bounce ratio before sizing a march from it (the ratio of the
+# scan's last bounce, on its cheap model, at the estimate rather than the answer).
+RATIO_MARGIN = 0.02
+
+
+def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Model:
+    """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
+    below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) where that is fewer than the
+    albedo's bound asked for: instead of its automatic tail where the count is at most
+    ``max_bounces``, or instead of a longer march. Walls leak light at every bounce, so
+    the measured ratio is well below ρ = ω: 0.71 for the dense forward medium (ω 0.8)
+    on 128×96, a 40-bounce march instead of the bound's 64 (its image sum within 3e-6
+    of 160 bounces'), whose value and Jacobian cost 0.4× the tail's (measured at 32 θ
+    bins); a ratio near 1 still gets the tail. The error term's finer model marches
+    bounces plus a geometric sum of the rest, so a count too short shows there."""
+    auto = options.tail == "auto" and options.bounces == "auto"
+    if not (auto and model.converges and math.isfinite(ratio)):
+        return model
+    bound = min(ratio + RATIO_MARGIN, 0.995)
+    k = max(_bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
+    if model.tail is not None and k <= options.max_bounces:
+        return dataclasses.replace(model, bounces=k, tail=None, ratio=ratio)
+    if model.tail is None and k < model.bounces:
+        return dataclasses.replace(model, bounces=k, ratio=ratio)
+    return model
+
+
+def _with_tail(model: _Model, options: FitOptions) -> _Model:
+    """``model`` with a tail and K0 explicit bounces where it gets one, else with its
+    bounces capped at ``max_bounces`` (``bounces: auto``; the model's tail bound is
+    reported with the result)."""
+    tail = _tail_for(options, model)
+    if tail is None:
+        if options.bounces == "auto":
+            return dataclasses.replace(model, bounces=min(model.bounces, options.max_bounces))
+        return model
+    return dataclasses.replace(
+        model,
+        bounces=options.tail_bounces,
+        tail=tail,
+        tail_tol=options.tolerance,
+        tail_max_steps=options.tail_max_steps,
+    )
+
+
+def _bucket(n: int, step: int) -> int:
+    return -(-n // step) * step
+
+
+def _bucket_bounces(k: int) -> int:
+    """Bounce counts above 8 rounded up to a few buckets (every 4 to 32, every 8 beyond),
+    so captures and stages of nearby needs share a compiled program (compiling costs
+    seconds, a few more bounces a fraction of the run)."""
+    return k if k <= 8 else _bucket(k, 4) if k <= 32 else _bucket(k, 8)
+
+
+def _at_least(model: _Model, floor: _Model | None) -> _Model:
+    """``model`` grown to ``floor`` (bounces, θ bins, refinement, elevation nodes)."""
+    if floor is None:
+        return model
+    grid = dataclasses.replace(
+        model.grid,
+        n_theta=max(model.grid.n_theta, floor.grid.n_theta),
+        refine=max(model.grid.refine, floor.grid.refine),
+    )
+    geometry = model.geometry
+    if geometry is not None and floor.geometry is not None:
+        geometry = dataclasses.replace(
+            geometry,
+            n_mu=max(geometry.n_mu, floor.geometry.n_mu),
+            n_z=max(geometry.n_z, floor.geometry.n_z),
+        )
+    return dataclasses.replace(
+        model, grid=grid, bounces=max(model.bounces, floor.bounces), geometry=geometry
+    )
+
+
+def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
+    """The cheap model of the basin scan (and, through :func:`_extrapolated`, of the
+    joint fit's first solve): 32 θ bins
+    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one depth layer),
+    the bounces the capture's brightness ratio calls for (tail below 1e-3 at
+    ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
+    width, height = crop[2] - crop[0], crop[3] - crop[1]
+    n_theta, geometry = min(options.n_theta or 32, 32), None
+    slab = as_geometry(options.geometry).slab_or_none
+    if slab is not None:
+        n_theta = min(options.n_theta or 8, 8)
+        geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4), n_z=1)
+    rho = min(max(rho0, 0.3), 0.95)
+    k = _bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
+    if isinstance(options.bounces, int):
+        k = options.bounces
+    model = _Model(
+        grid=Grid(width, height, n_theta, 1),
+        bounces=max(k, 2),
+        crop=crop,
+        converges=True,
+        rho=rho,
+        geometry=geometry,
+    )
+    return _with_tail(model, options)
+
+
+def _extrapolated(model: _Model, options: FitOptions) -> _Model:
+    """The cheap model of the solve: where the fit corrects its answer to the model it
+    needs (``correct``) and sizes the series itself, a long series (a tail, or more
+    than :data:`SCAN_TAIL_BOUNCES` bounces) becomes that many bounces and a geometric
+    tail (:func:`lightfield_jax.inverse.joint.unit_model`); its Jacobian only guides the
+    correction, which renders the series in full."""
+    auto = options.bounces == "auto" and options.tail == "auto"
+    long = model.tail is not None or model.bounces > SCAN_TAIL_BOUNCES
+    if not (options.correct and auto and long and model.converges):
+        return model
+    return dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None, extrapolate=True)
+
+
+# Explicit bounces of the scan on a model with a tail: the orders beyond them are
+# extrapolated geometrically (:func:`lightfield_jax.inverse.basins.scan`).
+SCAN_TAIL_BOUNCES = 24
+
+
+def _orders(model: _Model) -> str:
+    if model.extrapolate:
+        return f"{model.bounces} bounces and a geometric tail"
+    if model.tail is None:
+        return f"{model.bounces} bounces"
+    return f"K0 = {model.bounces} and a {model.tail} tail"
+
+
+def _covers(have: _Model, need: _Model) -> bool:
+    # A tail sums every order past K0: it covers any bounce count, a march only its own;
+    # an extrapolated series (the cheap solve's) covers none (it is always corrected).
+    if have.extrapolate:
+        return False
+    if need.tail is not None:
+        orders = have.tail == need.tail and have.bounces >= need.bounces
+    else:
+        orders = have.tail is not None or have.bounces >= need.bounces
+    return (
+        have.crop == need.crop
+        and orders
+        and have.grid.n_theta >= need.grid.n_theta
+        and have.grid.refine >= need.grid.refine
+    )

@@ -1,0 +1,296 @@
+"""The settings and the result of a fit: :class:`FitOptions` (every setting of
+:func:`~lightfield_jax.fit_images`, checked when made) and :class:`FitResult` (the fitted
+values, their 1σ uncertainties and correlations, the verdict, the timings and the model
+used), with the helpers of its ``results.json`` form (:meth:`FitResult.to_dict`: strict
+JSON, σa's and the albedo's errors from the correlations).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import optimistix as optx
+
+from lightfield_jax.forward.tail import TAIL_METHODS
+from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
+from lightfield_jax.inverse.model_size import _phase_integral
+from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab
+
+_PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """Settings of a fit (all optional).
+
+    Attributes:
+        method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
+            (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
+            :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
+            whose own settings (its solver, start, grid size) replace these.
+        phase: phase convention of the model (``paper`` or ``normalized``).
+        bounces: K, or ``"auto"`` from the tail bound at the starting estimate.
+        tolerance: relative tail tolerance for ``bounces: auto``.
+        max_bounces: cap on ``auto`` without a tail (the paper series near ρ = 1 needs
+            many).
+        tail: (``joint``) how the bounce series is summed past its explicit bounces:
+            ``"auto"`` (default: the plane's series is marched while ``bounces: auto``
+            asks for at most ``max_bounces`` bounces, else ``tail_bounces`` explicit
+            bounces and a BiCGStab solve of the rest), ``None`` (always marched, capped
+            at ``max_bounces``), or ``"gmres"`` / ``"bicgstab"`` (always that solve
+            after ``tail_bounces``; :mod:`lightfield_jax.forward.tail`). The tail's
+            relative tolerance is ``tolerance``. Plane and slab alike.
+        tail_bounces: K0, the explicit bounces kept before a tail solve.
+        tail_max_steps: iteration limit of a tail solve; one that stops there makes
+            the result not trustworthy.
+        n_theta: direction bins, or ``None`` to choose them from the starting g.
+        refine: spatial refinement, or ``None`` to choose it from the starting g.
+        g_grid: number of g values of the ``grid`` method's search on (−0.95, 0.95).
+        start_grid: number of g values of the coarse search that starts ``gradient``.
+        max_cells: cap on the model's working size (W·H·n_theta·refine²): the
+            refinement, then n_theta, are lowered to fit it.
+        crop: crop the model along the propagation direction to where the signal is
+            above ``crop_fraction`` of its peak.
+        crop_fraction: see ``crop``.
+        max_steps: iteration limit of the optimistix solves.
+        geometry: the model's geometry: ``None`` or :class:`Plane` (the paper's 2-D
+            model), a :class:`Slab` (the tank's depth, docs/model.md §7; its 3-D phase
+            function is normalised on the sphere, so ``phase`` is ``normalized``), or
+            :class:`AutoGeometry` (the plane where its misfit is below the capture's
+            noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
+        rtol, atol: solver tolerances (relative, absolute on the unconstrained values
+            and on the residual's components); ``None`` picks them from the data's
+            dtype (float32: 1e-4, 1e-4; float64: 1e-8, 1e-10). float32 cannot resolve
+            changes of the residual much below 1e-4 of its scale: with tighter
+            tolerances LM converges within a few steps and then spends ten more
+            shrinking its step in rounding noise (same answer to 1e-6).
+        basin_search: (``joint``) solve every basin the global scan keeps, not only
+            its best (:mod:`lightfield_jax.inverse.basins`).
+        max_basins: at most this many basins are solved.
+        basin_tolerance: a local minimum of the scan is kept when its misfit is at most
+            (1 + tolerance) × the best.
+        start: (σs, g) to start the joint fit from instead of the scan's basins (σt
+            from the decay fit); the scan still runs, to report a worse basin.
+        model_error: (``joint``) estimate the model's error at the solution from one
+            render with a finer model (in ``uncertainty_model``).
+        correct: (``joint``) reach the model the answer needs by defect correction
+            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model
+            with the cheap model's Jacobian, its own by forward differences where
+            those steps stop shrinking) instead of solving on it; where the iteration does not
+            converge the fit solves on that model as capped by ``max_cells``.
+        max_render_cells: cap on the corrected model's working size (as ``max_cells``,
+            for primal renders, which need no tangents).
+        correction_renders: at most this many renders at iterates in the correction
+            (besides one per parameter for the Jacobian).
+        max_chi2: χ²/dof against the capture's noise above which a joint fit is not
+            trustworthy (its misfit is far above the noise).
+        solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
+            ``rtol``, ``atol``).
+    """
+
+    method: str | FitMethod = "joint"
+    phase: str = "paper"
+    bounces: int | str = "auto"
+    tolerance: float = 1e-4
+    max_bounces: int = 80
+    tail: str | None = "auto"
+    tail_bounces: int = 8
+    tail_max_steps: int = 200
+    n_theta: int | None = None
+    refine: int | None = None
+    g_grid: int = 39
+    start_grid: int = 9
+    max_cells: int = 2_000_000
+    crop: bool = True
+    crop_fraction: float = 1e-4
+    max_steps: int = 100
+    rtol: float | None = None
+    atol: float | None = None
+    geometry: Plane | Slab | AutoGeometry | None = None
+    basin_search: bool = True
+    max_basins: int = 3
+    basin_tolerance: float = 1.0
+    start: tuple[float, float] | None = None
+    model_error: bool = True
+    correct: bool = True
+    max_render_cells: int = 8_000_000
+    correction_renders: int = 8
+    max_chi2: float = 100.0
+    solver: optx.AbstractLeastSquaresSolver | None = None
+
+    def __post_init__(self):
+        method_for(self.method)  # a known name or a FitMethod
+        if self.tail is not None and self.tail != "auto" and self.tail not in TAIL_METHODS:
+            raise ValueError(
+                f"tail: must be auto, None or one of {', '.join(TAIL_METHODS)}, got {self.tail!r}"
+            )
+        if not isinstance(self.tail_bounces, int) or self.tail_bounces < 2:
+            raise ValueError(f"tail_bounces: must be an integer >= 2, got {self.tail_bounces!r}")
+        if not isinstance(self.tail_max_steps, int) or self.tail_max_steps < 1:
+            raise ValueError(
+                f"tail_max_steps: must be an integer >= 1, got {self.tail_max_steps!r}"
+            )
+        if self.g_grid < 3:
+            raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
+        if self.max_basins < 1:
+            raise ValueError(f"max_basins: must be at least 1, got {self.max_basins!r}")
+        if not self.basin_tolerance >= 0:
+            raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
+        if not isinstance(self.correction_renders, int) or self.correction_renders < 1:
+            raise ValueError(
+                f"correction_renders: must be an integer >= 1, got {self.correction_renders!r}"
+            )
+        if not self.max_render_cells >= self.max_cells:
+            raise ValueError(
+                f"max_render_cells: must be at least max_cells ({self.max_cells}), got "
+                f"{self.max_render_cells!r}"
+            )
+        check_start(self.start)
+        check_solver(self.solver)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """What a fit recovered, and how much to trust it.
+
+    Values are per pixel (σ's), the gain in image units per unit source irradiance.
+    ``uncertainty`` holds the total 1σ errors (NaN where not estimated): the statistical
+    part (``uncertainty_statistical``: the capture's noise, scaled up by √(χ²/dof)
+    where that exceeds 1) ⊕ the model part (``uncertainty_model``: the shift a finer
+    model's residual implies at the solution; the joint fit only). ``correlation`` holds
+    the correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
+    ``chi2_dof`` is the misfit against the capture's noise (``noise``: the variance of
+    one weighted residual that noise alone gives), ``chi2_model`` against the noise ⊕
+    the model's own error (what the verdict uses); ``model_limited`` is true where the
+    model term is the larger for σt, σs or g. ``converged`` is false, with
+    ``reasons``, for a solution that is not trustworthy: at a parameter bound, with a
+    misfit far above the noise, or in a basin worse than another the scan found.
+    ``basins`` (joint) holds the scan and every start tried, with its answer.
+    """
+
+    method: str
+    sigma_t: float
+    sigma_s: float
+    g: float
+    gain: float
+    black_level: float | None
+    uncertainty: dict
+    correlation: dict
+    converged: bool
+    message: str
+    iterations: int
+    residual: float
+    seconds: dict
+    model: dict
+    phase: str = "paper"
+    pixel_size_mm: float | None = None
+    condition_number: float = math.nan
+    uncertainty_statistical: dict = dataclasses.field(default_factory=dict)
+    uncertainty_model: dict = dataclasses.field(default_factory=dict)
+    chi2_dof: float = math.nan
+    chi2_model: float = math.nan
+    noise: float = math.nan
+    model_limited: bool = False
+    reasons: tuple[str, ...] = ()
+    basins: dict | None = None
+
+    @property
+    def sigma_a(self) -> float:
+        return self.sigma_t - self.sigma_s
+
+    @property
+    def albedo(self) -> float:
+        return self.sigma_s / self.sigma_t
+
+    @property
+    def rho(self) -> float:
+        if not math.isfinite(self.g):
+            return math.nan
+        a = float(_phase_integral(self.g)) if self.phase == "paper" else 1.0
+        return self.albedo * a
+
+    def to_dict(self) -> dict:
+        """The ``results.json`` form (docs/model.md units: per pixel; also mm⁻¹ if known)."""
+        unc = dict(self.uncertainty)
+        if "sigma_a" not in unc:
+            unc["sigma_a"] = _combine(unc, self.correlation, "sigma_t", "sigma_s", -1.0)
+        if "albedo" not in unc:
+            unc["albedo"] = _albedo_error(self, unc)
+        out = {
+            "method": self.method,
+            "sigma_t": _json_float(self.sigma_t),
+            "sigma_s": _json_float(self.sigma_s),
+            "sigma_a": _json_float(self.sigma_a),
+            "g": _json_float(self.g),
+            "albedo": _json_float(self.albedo),
+            "gain": _json_float(self.gain),
+            "black_level": None if self.black_level is None else _json_float(self.black_level),
+            "rho": _json_float(self.rho),
+            "phase": self.phase,
+            "uncertainty": {k: _json_float(v) for k, v in unc.items()},
+            "correlation": {k: _json_float(v) for k, v in self.correlation.items()},
+            "uncertainty_statistical": {
+                k: _json_float(v) for k, v in self.uncertainty_statistical.items()
+            },
+            "uncertainty_model": {k: _json_float(v) for k, v in self.uncertainty_model.items()},
+            "chi2_dof": _json_float(self.chi2_dof),
+            "chi2_model": _json_float(self.chi2_model),
+            "noise": _json_float(self.noise),
+            "model_limited": self.model_limited,
+            "condition_number": _json_float(self.condition_number),
+            "converged": self.converged,
+            "reasons": list(self.reasons),
+            "message": self.message,
+            "iterations": self.iterations,
+            "residual": _json_float(self.residual),
+            "seconds": self.seconds,
+            "model": self.model,
+        }
+        if self.basins is not None:
+            out["basins"] = _json_clean(self.basins)
+        if self.pixel_size_mm:
+            mm = self.pixel_size_mm
+            out["per_mm"] = {
+                "pixel_size_mm": mm,
+                "sigma_t": _json_float(self.sigma_t / mm),
+                "sigma_s": _json_float(self.sigma_s / mm),
+                "sigma_a": _json_float(self.sigma_a / mm),
+                "uncertainty": {
+                    k: _json_float(unc[k] / mm) for k in ("sigma_t", "sigma_s", "sigma_a")
+                },
+            }
+        return out
+
+
+def _json_float(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _json_clean(obj):
+    """Nested dicts/lists with non-finite floats as ``None`` (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, float):
+        return _json_float(obj)
+    return obj
+
+
+def _combine(unc, corr, a, b, sign):
+    ua, ub = unc.get(a, math.nan), unc.get(b, math.nan)
+    r = corr.get(f"{a},{b}", corr.get(f"{b},{a}", 0.0))
+    return math.sqrt(max(ua**2 + ub**2 + 2 * sign * r * ua * ub, 0.0))
+
+
+def _albedo_error(res: FitResult, unc) -> float:
+    ut, us = unc.get("sigma_t", math.nan), unc.get("sigma_s", math.nan)
+    if math.isnan(ut):
+        ut = 0.0
+    r = res.correlation.get("sigma_t,sigma_s", 0.0)
+    w = res.albedo
+    rel2 = (us / res.sigma_s) ** 2 + (ut / res.sigma_t) ** 2
+    rel2 -= 2 * r * (us / res.sigma_s) * (ut / res.sigma_t)
+    return w * math.sqrt(max(rel2, 0.0))
