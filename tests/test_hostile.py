@@ -562,3 +562,24 @@ def test_a_signal_stops_a_fit_at_once_and_leaves_no_output(simulated, tmp_path, 
     assert code == status and elapsed < 3.0, (code, elapsed)
     assert "interrupted" in message
     assert list(tmp_path.iterdir()) == []  # no output, no temporary
+
+
+def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture, capsys):
+    """The estimate covers the correction's and error term's renders (larger than the
+    solve's fields): a limit between the two refuses the fit before it starts."""
+    import lightfield_jax as lfj
+    from lightfield_jax.app import memory
+    from lightfield_jax.app.cli import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
+
+    loaded = lfj.load_capture(capture / "capture.yaml")
+    h, w = loaded.shape
+    options = lfj.FitOptions()
+    samples, n = loaded.images.size, loaded.n_images
+    solve = memory.fit_bytes(samples, n, min(h * w * FIT_N_THETA, options.max_cells))
+    renders = memory.correction_bytes(
+        samples, n, min(h * w * RENDER_CELLS_PER_PIXEL, 2 * options.max_render_cells)
+    )
+    assert renders > solve
+    limit = str((solve + renders) // 2)
+    line = _refused(capsys, "fit", capture / "capture.yaml", "--max-memory", limit, match="the fit")
+    assert "needs about" in line

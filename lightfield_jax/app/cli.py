@@ -572,6 +572,10 @@ def _shown(capture, i: int) -> dict:
 # Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
 # (g <= 0.5); more are capped by FitOptions.max_cells.
 FIT_N_THETA = 32
+# Cells per pixel of the largest primal render a fit may make (a forward medium's
+# error-term model: 128 θ bins at refinement 2); more are capped at twice
+# FitOptions.max_render_cells.
+RENDER_CELLS_PER_PIXEL = 128 * 2**2
 
 
 # The two-step methods separate the direct light first; on stripe captures the
@@ -657,7 +661,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from lightfield_jax.app.memory import check_memory, fit_bytes
+    from lightfield_jax.app.memory import check_memory, correction_bytes, fit_bytes
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
@@ -673,9 +677,15 @@ def _fit(args: argparse.Namespace) -> int | None:
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
     _outputs(files=[out, *figures], inputs=inputs)
     h, w = capture.shape
-    cells = min(h * w * FIT_N_THETA, FitOptions().max_cells)
+    defaults = FitOptions()
+    cells = min(h * w * FIT_N_THETA, defaults.max_cells)
+    rendered = min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells)
     check_memory(
-        fit_bytes(capture.images.size, capture.n_images, cells), f"{capture.source}: the fit"
+        max(
+            fit_bytes(capture.images.size, capture.n_images, cells),
+            correction_bytes(capture.images.size, capture.n_images, rendered),
+        ),
+        f"{capture.source}: the fit",
     )
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}

@@ -150,12 +150,20 @@ def fit_bytes(samples: int, n_images: int, cells: int) -> int:
     return capture_bytes(samples) + FIT_FIELDS * n_images * cells * 4
 
 
+def correction_bytes(samples: int, n_images: int, cells: int) -> int:
+    """A fit's primal renders (its defect correction and error term) of ``cells``
+    (W·H·n_theta·refine², at most twice the fit's ``max_render_cells``) per image, with
+    the capture loaded."""
+    return capture_bytes(samples) + RENDER_FIELDS * n_images * cells * 4
+
+
 __all__ = [
     "MAX_MEMORY_ENV",
     "MemoryLimitError",
     "available_bytes",
     "capture_bytes",
     "check_memory",
+    "correction_bytes",
     "fit_bytes",
     "format_size",
     "image_bytes",

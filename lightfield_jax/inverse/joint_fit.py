@@ -201,7 +201,8 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     elevation nodes and depth layers); on the plane also the spatial refinement the size
     rule asks for at the answer's ``g`` where the fit's model stayed below it (the cell
     cap sized it down: a forward medium's model error is then mostly spatial, and a
-    term that did not see it would report the fit as noise-limited); the same bounces
+    term that did not see it would report the fit as noise-limited; not past twice
+    ``max_render_cells``, the memory a render may take); the same bounces
     with the rest of the series extrapolated geometrically or, with a tail, the same K0
     and a tail tolerance ten times as tight."""
     grid = model.grid
@@ -212,11 +213,11 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
         )
         grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
     else:
-        grid = dataclasses.replace(
-            grid,
-            n_theta=min(2 * grid.n_theta, 256),
-            refine=max(grid.refine, default_refine(g)),
-        )
+        n_theta = min(2 * grid.n_theta, 256)
+        refine = max(grid.refine, default_refine(g))
+        if grid.width * grid.height * n_theta * refine**2 > 2 * options.max_render_cells:
+            refine = grid.refine  # at most twice the model's cells (memory)
+        grid = dataclasses.replace(grid, n_theta=n_theta, refine=refine)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
             model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
