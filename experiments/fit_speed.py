@@ -20,6 +20,7 @@ compare rows of one run, and read each record's 1-minute load average.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -31,33 +32,51 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper, machine, versions
+from lightfield_jax.app.experiment import load_helper, machine, typed_config, versions
 from lightfield_jax.scene.geometry import parse_geometry
 
-_KEYS = {"experiment", "width", "height", "media", "fit", "timeout", "reduced"}
 _MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}
 
 
-def _check(config: dict) -> dict:
-    check_config("fit_speed", config, _KEYS)
-    if not config.get("media"):
-        raise ValueError("fit_speed: media: must list at least one medium")
-    for i, m in enumerate(config["media"]):
-        unknown = sorted(set(m) - _MEDIUM_KEYS)
-        if unknown:
-            raise ValueError(f"fit_speed: media[{i}]: unknown keys {unknown}")
-        for key in ("name", "sigma_t", "sigma_s", "g"):
-            if key not in m:
-                raise ValueError(f"fit_speed: media[{i}]: missing key {key!r}")
-    return {"fit": {}, "timeout": 1800, **config}
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/fit_speed.yaml: the captures' size (pixels), the media (each: name,
+    sigma_t, sigma_s, g; optional phase, geometry, the truth's bounces), extra
+    :func:`~lightfield_jax.fit_images` keywords and the time limit (s) of each medium's
+    child process."""
+
+    width: int
+    height: int
+    media: tuple[dict, ...]
+    fit: dict = dataclasses.field(default_factory=dict)
+    timeout: float = 1800.0
+
+    def __post_init__(self):
+        if not self.media:
+            raise ValueError("fit_speed: media: must list at least one medium")
+        for i, m in enumerate(self.media):
+            unknown = sorted(set(m) - _MEDIUM_KEYS)
+            if unknown:
+                raise ValueError(f"fit_speed: media[{i}]: unknown keys {unknown}")
+            for key in ("name", "sigma_t", "sigma_s", "g"):
+                if key not in m:
+                    raise ValueError(f"fit_speed: media[{i}]: missing key {key!r}")
+            if m.get("geometry"):
+                parse_geometry(m["geometry"], f"fit_speed: media[{i}].geometry")
+        if self.width < 8 or self.height < 8:
+            raise ValueError(
+                f"fit_speed: width, height: at least 8, got {self.width}x{self.height}"
+            )
+        if not self.timeout > 0:
+            raise ValueError(f"fit_speed: timeout: must be positive, got {self.timeout!r}")
 
 
-def _capture(cfg: dict, medium: dict) -> np.ndarray:
+def _capture(cfg: Config, medium: dict) -> np.ndarray:
     inv = load_helper("_inverse")
     sim_cfg = inv.capture_config(
         {"phase": "paper", **medium},
-        cfg["width"],
-        cfg["height"],
+        cfg.width,
+        cfg.height,
         black_level=0.0,
         bounces=medium.get("bounces", "auto"),
     )
@@ -66,8 +85,8 @@ def _capture(cfg: dict, medium: dict) -> np.ndarray:
     return np.asarray(inv.simulate(sim_cfg).images)
 
 
-def _fit_kwargs(cfg: dict, medium: dict) -> dict:
-    kwargs = {"black_level": 0.0, "phase": medium.get("phase", "paper"), **cfg["fit"]}
+def _fit_kwargs(cfg: Config, medium: dict) -> dict:
+    kwargs = {"black_level": 0.0, "phase": medium.get("phase", "paper"), **cfg.fit}
     if medium.get("geometry"):
         kwargs["geometry"] = medium["geometry"]
     return kwargs
@@ -158,7 +177,7 @@ def _summary_row(name: str, rec: dict) -> dict:
     }
 
 
-def _write(ctx, cfg: dict, rows: list, records: dict) -> None:
+def _write(ctx, cfg: Config, rows: list, records: dict) -> None:
     """fit_speed.json with the rows so far, each timed also against the first medium's
     (the milk's) cold fit."""
     inv = load_helper("_inverse")
@@ -168,9 +187,9 @@ def _write(ctx, cfg: dict, rows: list, records: dict) -> None:
             r["cold_vs_first"] = r["cold_seconds"] / first["cold_seconds"]
             r["run_vs_first"] = r["cold_run"] / first["cold_run"]
     data = {
-        "width": cfg["width"],
-        "height": cfg["height"],
-        "fit": cfg["fit"],
+        "width": cfg.width,
+        "height": cfg.height,
+        "fit": cfg.fit,
         "rows": rows,
         "records": records,
         "versions": versions(),
@@ -181,16 +200,16 @@ def _write(ctx, cfg: dict, rows: list, records: dict) -> None:
 
 
 def run(config: dict, out: Path, ctx) -> dict:
-    cfg = _check(config)
+    cfg = typed_config(Config, config)
     inv = load_helper("_inverse")
     records, rows = {}, []
-    for medium in cfg["media"]:
+    for medium in cfg.media:
         name = medium["name"]
         ctx.progress(f"{name}: capture")
         images = _capture(cfg, medium)
         truth = inv.truth_of(medium)
         ctx.progress(f"{name}: fits in a fresh process")
-        rec = _in_fresh_process(images, truth, _fit_kwargs(cfg, medium), cfg["timeout"])
+        rec = _in_fresh_process(images, truth, _fit_kwargs(cfg, medium), cfg.timeout)
         records[name] = {"medium": medium, **rec}
         rows.append(_summary_row(name, rec))
         ctx.progress(f"{name}: {json.dumps(inv.jsonable(rows[-1]))}")

@@ -70,7 +70,9 @@ def test_a_typed_config_is_frozen_with_tuples():
         config.width = 1
 
 
-@pytest.mark.parametrize("name", ["inverse_speed_accuracy", "stability_maps", "forward_accuracy"])
+@pytest.mark.parametrize(
+    "name", ["inverse_speed_accuracy", "stability_maps", "forward_accuracy", "fit_speed"]
+)
 def test_an_experiment_refuses_an_unknown_config_key(name, tmp_path):
     script = _experiment._load_script(name)
     ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=False)
