@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 
+import lightfield_jax as lfj
 from lightfield_jax import Stripes
 from lightfield_jax.app.config import parse_simulation_config
 from lightfield_jax.capture.capture import (
@@ -22,6 +23,7 @@ from lightfield_jax.capture.io import (
     write_png,
 )
 from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+from lightfield_jax.inverse import capture_fit
 
 H, W, P = 8, 12, 3
 PATTERN = Stripes(period=6, lit=3, phases=(0, 2, 4))
@@ -245,6 +247,16 @@ def test_phases_inconsistent_with_image_count(tmp_path):
         ("truth: {sigma: 0.2}\n", r"truth\.sigma: unknown key"),
         ("truth: {phase: flat}\n", r"truth\.phase: must be one of paper, normalized"),
         ("truth: {g: high}\n", r"truth\.g: must be a number"),
+        ("fit: {n_thet: 64}\n", r"fit\.n_thet: unknown key \(did you mean 'n_theta'\?\)"),
+        ("fit: {method: grid}\n", r"fit\.method: unknown key"),
+        ("fit: {max_steps: 1.5}\n", r"fit\.max_steps: must be an integer, got 1\.5"),
+        ("fit: {correct: yes please}\n", r"fit\.correct: must be true or false"),
+        ("fit: {tail: krylov}\n", r"fit\.tail: must be one of auto, "),
+        ("fit: {bounces: many}\n", r"fit\.bounces: must be an integer"),
+        ("fit: {start: [0.1]}\n", r"fit\.start: must be \[sigma_s, g\]"),
+        ("fit: {start: [0.1, 1.5]}\n", r"fit: start: must be \(sigma_s > 0, \|g\| < 1\)"),
+        ("fit: {max_render_cells: 10}\n", r"fit: max_render_cells: must be at least max_cells"),
+        ("fit: [1, 2]\n", r"fit: must be a mapping of keys"),
     ],
 )
 def test_bad_keys_and_values(tmp_path, extra, match):
@@ -253,6 +265,38 @@ def test_bad_keys_and_values(tmp_path, extra, match):
     key = extra.split(":")[0]
     text = "".join(v for k, v in base.items() if k != key) + extra
     _error(tmp_path, match, text=text)
+
+
+def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
+    names = _images(tmp_path)
+    text = (
+        f"images: {names}\npattern: {{period: 6, lit: 3}}\n"
+        "fit: {n_theta: 64, bounces: 12, tail: null, rtol: 1.0e-5, correct: false, "
+        "start: [0.03, 0.4], max_render_cells: 4000000}\n"
+    )
+    capture = _capture(tmp_path, text=text)
+    assert capture.fit_options == {
+        "n_theta": 64,
+        "bounces": 12,
+        "tail": None,
+        "rtol": 1e-5,
+        "correct": False,
+        "start": (0.03, 0.4),
+        "max_render_cells": 4_000_000,
+    }
+    # fit_capture fits with them (the call's own keywords win).
+    seen = []
+
+    def fake_fit(images, pattern, options, *args, **kwargs):
+        seen.append(options)
+        raise StopIteration
+
+    monkeypatch.setattr(capture_fit, "_capture_floor", lambda *a: None)
+    monkeypatch.setattr(capture_fit, "_fit_one", fake_fit)
+    with pytest.raises(StopIteration):
+        lfj.fit_capture(capture, max_steps=7)
+    assert seen[0].n_theta == 64 and seen[0].start == (0.03, 0.4) and not seen[0].correct
+    assert seen[0].max_steps == 7 and seen[0].bounces == 12
 
 
 def test_dark_frame_size_and_channels(tmp_path):

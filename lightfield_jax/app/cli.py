@@ -677,7 +677,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
     _outputs(files=[out, *figures], inputs=inputs)
     h, w = capture.shape
-    defaults = FitOptions()
+    defaults = FitOptions(**capture.fit_options)
     cells = min(h * w * FIT_N_THETA, defaults.max_cells)
     rendered = min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells)
     check_memory(

@@ -16,6 +16,7 @@ inverse pipeline reads it)::
     saturation: 0.98             # optional
     channel: all                 # optional
     geometry: {kind: plane}      # optional
+    fit: {max_render_cells: 4000000, n_theta: 64}   # optional: FitOptions fields
     truth: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, gain: 1.0, phase: paper}  # optional
 
 Keys:
@@ -74,6 +75,13 @@ Keys:
   1.33``; optional ``n_mu``, the elevation nodes). Every fit method uses it.
   ``{kind: auto, thickness: 6.4, ...}`` (the slab's keys): the fit uses the plane
   model where its misfit is below the capture's noise, else the slab.
+- ``fit``: settings of the fit (:class:`~lightfield_jax.FitOptions` fields: the
+  model's ``n_theta``, ``refine``, ``bounces``, ``tail``, ``max_cells``,
+  ``max_render_cells``; the solve's ``max_steps``, ``rtol``, ``atol``, ``start``; the
+  basin search's ``basin_search``, ``max_basins``; ``model_error``, ``correct``,
+  ``max_chi2`` ...; see ``help(lfj.FitOptions)``), used by ``lightfield-jax fit`` and
+  :func:`~lightfield_jax.fit_capture`. The method and the phase convention are the
+  command's options, the geometry the key above.
 - ``truth``: the true parameters of a simulated capture (``sigma_t``, ``sigma_s``,
   ``g``, ``gain``, ``phase``, ``black_level``), for reports.
 
@@ -126,7 +134,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lightfield_jax.app.config import _as_int, _Section, brief, load_yaml
+from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _Section, brief, load_yaml
 from lightfield_jax.app.memory import capture_bytes, check_memory
 from lightfield_jax.capture.calibration import (
     BlackLevel,
@@ -181,8 +189,37 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "flat_field",
     "exposure_times",
     "response",
+    "fit",
 )
 AUTO = "auto"
+# FitOptions a capture file may set under ``fit:`` (the method and the phase convention
+# are the command's flags, the geometry has its own key, a solver has no YAML form).
+_FIT_INTS = (
+    "max_bounces",
+    "tail_bounces",
+    "tail_max_steps",
+    "g_grid",
+    "start_grid",
+    "max_cells",
+    "max_steps",
+    "max_basins",
+    "max_render_cells",
+    "correction_renders",
+)
+_FIT_OPTIONAL_INTS = ("n_theta", "refine")
+_FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2")
+_FIT_OPTIONAL_FLOATS = ("rtol", "atol")
+_FIT_BOOLS = ("crop", "basin_search", "model_error", "correct")
+FIT_KEYS: tuple[str, ...] = (
+    "bounces",
+    "tail",
+    "start",
+    *_FIT_INTS,
+    *_FIT_OPTIONAL_INTS,
+    *_FIT_FLOATS,
+    *_FIT_OPTIONAL_FLOATS,
+    *_FIT_BOOLS,
+)
 GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
 _AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
 _PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
@@ -229,6 +266,8 @@ class Capture:
             ``None`` for single exposures.
         exposure: the merged images' effective exposure T (seconds) [P, H, W, C] after
             the ROI crop (their noise: Var ∝ image / T), or ``None``.
+        fit_options: the file's ``fit:`` settings (:class:`~lightfield_jax.FitOptions`
+            fields), which :func:`~lightfield_jax.fit_capture` uses unless told otherwise.
     """
 
     images: np.ndarray
@@ -255,6 +294,7 @@ class Capture:
     flat_field: Path | None = None
     brackets: Brackets | None = None
     exposure: np.ndarray | None = None
+    fit_options: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def n_images(self) -> int:
@@ -283,6 +323,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     top = _Section(str(path), "", load_yaml(path, CaptureError), CAPTURE_KEYS, error=CaptureError)
     base = path.parent
     channel = _channel(top)
+    fit_options = _fit_options(top)  # before any image is read
     notes: list[str] = []  # what was measured or decided: Capture.notes
     issues: list[str] = []  # what the user must know: CaptureWarnings
     merged = _brackets(top, base, channel, notes)
@@ -421,6 +462,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         },
         geometry=geometry,
         truth=truth,
+        fit_options=fit_options,
         warnings=tuple(issues),
         notes=tuple(notes),
         detected=detected,
@@ -1001,6 +1043,41 @@ def _geometry(top: _Section) -> dict[str, Any]:
         return parse_geometry(top.data["geometry"], top.key("geometry"), allow_auto=True).as_dict()
     except ValueError as err:
         raise top.error(f"{top.source}: {err}") from None
+
+
+def _fit_options(top: _Section) -> dict[str, Any]:
+    """The ``fit:`` mapping: FitOptions fields (:data:`FIT_KEYS`), each checked for its
+    type, then together by FitOptions itself (ranges), before any image is read."""
+    from lightfield_jax.forward.tail import TAIL_METHODS
+    from lightfield_jax.inverse.options import FitOptions
+
+    if "fit" not in top.data or top.data["fit"] is None:
+        return {}
+    s = top.section("fit", FIT_KEYS)
+    out: dict[str, Any] = {}
+    for k in s.data:
+        value = s.data[k]
+        if k in _FIT_INTS or k in _FIT_OPTIONAL_INTS:
+            out[k] = s.int(k, None if k in _FIT_OPTIONAL_INTS else _REQUIRED)
+        elif k in _FIT_FLOATS or k in _FIT_OPTIONAL_FLOATS:
+            out[k] = s.float(k, None if k in _FIT_OPTIONAL_FLOATS else _REQUIRED)
+        elif k in _FIT_BOOLS:
+            if not isinstance(value, bool):
+                s.fail(s.key(k), f"must be true or false, got {brief(value)}")
+            out[k] = value
+        elif k == "bounces":
+            out[k] = AUTO if value == AUTO else s.int(k)
+        elif k == "tail":
+            out[k] = None if value is None else s.choice(k, (AUTO, *TAIL_METHODS))
+        else:  # start: [sigma_s, g]
+            if not (isinstance(value, list) and len(value) == 2):
+                s.fail(s.key(k), f"must be [sigma_s, g], got {brief(value)}")
+            out[k] = tuple(_as_float(s, s.key(k), v) for v in value)
+    try:
+        FitOptions(**out)
+    except ValueError as err:
+        s.fail("fit", str(err))
+    return out
 
 
 def _truth(top: _Section) -> dict[str, Any] | None:

@@ -85,7 +85,8 @@ def fit_capture(
             :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
             whose own settings (its solver, start, grid size) replace these.
         channels: channel names to fit (default: every channel the capture holds).
-        options, overrides: see :func:`fit_images`.
+        options, overrides: see :func:`fit_images` (``options`` ``None``: the capture
+            file's ``fit:`` settings, :attr:`Capture.fit_options`).
         progress: called with a description of each stage.
     """
     names = tuple(capture.channel_names)
@@ -95,7 +96,9 @@ def fit_capture(
             raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
     results = []
     say = progress or (lambda _m: None)
-    opts = dataclasses.replace(options or FitOptions(), method=method, **overrides)
+    if options is None:  # the capture file's fit: settings, under the call's own
+        options = FitOptions(**getattr(capture, "fit_options", {}))
+    opts = dataclasses.replace(options, method=method, **overrides)
     if opts.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
         opts = dataclasses.replace(opts, geometry=geometry)
