@@ -148,27 +148,11 @@ def test_two_step_methods_march_where_the_joint_fit_gets_a_tail(method):
     medium = lfj.Medium(0.1, 0.099, 0.0, phase="normalized")
     grid = lfj.Grid(48, 32, 16, 1)
     images = np.asarray(lfj.render(medium, grid, lfj.Stripes(), 400).total)
-    fit = lfj.fit_images(
-        images,
-        lfj.Stripes(),
-        method=method,
-        phase="normalized",
-        n_theta=16,
-        refine=1,
-        model_error=False,
-    )
+    kwargs = dict(method=method, phase="normalized", n_theta=16, refine=1, model_error=False)
+    fit = lfj.fit_images(images, lfj.Stripes(), **kwargs)
     assert fit.model["tail"] is None and fit.model["bounces"] == 80
     assert not fit.converged and "truncated at 80 bounces" in fit.message
     # With the series marched far enough the same method trusts its answer.
-    long = lfj.fit_images(
-        images,
-        lfj.Stripes(),
-        method=method,
-        phase="normalized",
-        n_theta=16,
-        refine=1,
-        model_error=False,
-        max_bounces=400,
-    )
+    long = lfj.fit_images(images, lfj.Stripes(), max_bounces=400, **kwargs)
     assert long.model["tail"] is None and long.model["bounces"] > 80
     assert "truncated" not in long.message
