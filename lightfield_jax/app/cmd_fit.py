@@ -1,0 +1,322 @@
+"""The ``fit`` and ``demo`` subcommands (see :mod:`lightfield_jax.app.cli`)."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+from lightfield_jax.app.cli import (
+    _XLA_CACHE_HELP,
+    DEMO_CONFIG,
+    _about,
+    _outputs,
+    _positive_int,
+    _progress,
+    _say,
+    _use_xla_cache,
+    _warn,
+    arg,
+    command,
+    xla_cache_folder,
+)
+
+# --------------------------------------------------------------------------- fit
+
+
+def _fit_summary(fit) -> str:
+    from lightfield_jax.scene.geometry import describe_geometry
+
+    lines = []
+    for name, r in zip(fit.channels, fit.results, strict=True):
+        u = r.uncertainty
+        lines.append(
+            f"[{name}] {r.method}: sigma_t {r.sigma_t:.5g} ± {u.get('sigma_t', float('nan')):.2g}, "
+            f"sigma_s {r.sigma_s:.5g} ± {u.get('sigma_s', float('nan')):.2g}, "
+            f"g {r.g:.4f} ± {u.get('g', float('nan')):.2g} (per px; albedo {r.albedo:.3f}, "
+            f"rho {r.rho:.3f}); {'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
+            f" in {r.iterations} iterations, {r.seconds['total']:.1f} s "
+            f"(compile {r.seconds['compile']:.1f} s); model {describe_geometry(r.model)}, "
+            f"{r.model['width']}x{r.model['height']}, n_theta {r.model['n_theta']}, "
+            f"K {r.model['bounces']}"
+        )
+    return "\n".join(lines)
+
+
+def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
+    """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
+    if len(channels) == 1:
+        return [plot]
+    return [plot] + [plot.with_name(f"{plot.stem}_{name}{plot.suffix}") for name in channels]
+
+
+def _fit_figures(capture, fit, figures: list[Path], write) -> None:
+    """FIG.png: the profiles and residuals of the fit; with several channels, FIG.png
+    holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles. Each
+    figure is written to ``write(target)`` (a staged temporary)."""
+    from lightfield_jax.viz import plot_channels, plot_fit
+
+    if len(fit.channels) == 1:
+        i = capture.channel_names.index(fit.channels[0])
+        plot_fit(
+            capture.images[..., i],
+            capture.pattern,
+            fit.results[0],
+            write(figures[0]),
+            **_shown(capture, i),
+        )
+        return
+    plot_channels(fit, write(figures[0]), pixel_size_mm=capture.pixel_size_mm)
+    for name, result, target in zip(fit.channels, fit.results, figures[1:], strict=True):
+        i = capture.channel_names.index(name)
+        plot_fit(
+            capture.images[..., i], capture.pattern, result, write(target), **_shown(capture, i)
+        )
+
+
+def _shown(capture, i: int) -> dict:
+    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
+    return {"mask": capture.mask[..., i], "truth": capture.truth}
+
+
+# Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
+# (g <= 0.5); more are capped by FitOptions.max_cells.
+FIT_N_THETA = 32
+# Cells per pixel of the largest primal render a fit may make (a forward medium's
+# error-term model: 128 θ bins at refinement 2); more are capped at twice
+# FitOptions.max_render_cells.
+RENDER_CELLS_PER_PIXEL = 128 * 2**2
+
+
+# The two-step methods separate the direct light first; on stripe captures the
+# separation is biased (the multiple light is not the same under every shift), and
+# their ± (the noise's spread) says nothing of it.
+TWO_STEP_METHODS = ("grid", "gradient")
+TWO_STEP_CAVEAT = (
+    "the two-step methods (grid, gradient) carry the separation bias on stripe "
+    "captures: their ± are statistical only (noise), not the error, which can be far "
+    "larger; use --method joint (the raw images) for unbiased estimates"
+)
+
+
+def _label_two_step(method: str, result: dict) -> dict:
+    """``result`` with, for a two-step method, the caveat and what its ± mean."""
+    if method in TWO_STEP_METHODS:
+        result["uncertainty_kind"] = "statistical only (separation bias not included)"
+        result["caveat"] = TWO_STEP_CAVEAT
+    else:
+        result["uncertainty_kind"] = "statistical"
+    return result
+
+
+def _roi_record(capture) -> dict:
+    """results.json's ``medium_roi``: the ROI, where it came from, how each edge was
+    found (wall, frame, faded) and what was done about a faded far edge."""
+    det = capture.detected
+    measured = det is not None and "roi" not in det.given
+    given = "given" if capture.roi is not None else "whole frame"
+    return {
+        "roi": None if capture.roi is None else list(capture.roi),
+        "source": "auto" if measured else given,
+        "edges": det.edges if measured else None,
+        "faded": det.faded if measured else None,
+        "note": det.fade_note() if measured and det.faded else None,
+    }
+
+
+def _shown(capture, i: int) -> dict:
+    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
+    return {"mask": capture.mask[..., i], "truth": capture.truth}
+
+
+@command(
+    "fit",
+    "recover sigma_t, sigma_s and g from a stripe capture",
+    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see README)"),
+    arg(
+        "--method",
+        choices=("joint", "gradient", "grid"),
+        default="joint",
+        help="joint: raw images (default); gradient/grid: the paper's two-step method",
+    ),
+    arg(
+        "--channel",
+        action="append",
+        metavar="NAME",
+        help="fit only this channel (repeatable; default: the capture's channel key)",
+    ),
+    arg("--out", default="results.json", metavar="FILE", help="JSON results (%(default)s)"),
+    arg(
+        "--plot",
+        metavar="FIG.png",
+        help="also write the profiles and residual figure; with several channels FIG.png "
+        "shows sigma_t, sigma_s, g per channel and FIG_<channel>.png each one's profiles",
+    ),
+    arg(
+        "--phase",
+        choices=("paper", "normalized"),
+        default="paper",
+        help="phase convention of the model (default: %(default)s)",
+    ),
+    arg(
+        "--max-steps",
+        type=_positive_int,
+        metavar="N",
+        help="iteration limit of the solves (default: FitOptions.max_steps)",
+    ),
+    arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
+)
+def _fit(args: argparse.Namespace) -> int | None:
+    """Fit a capture and write FILE (keys: sigma_t, sigma_s, sigma_a, g, albedo, gain,
+    black_level, uncertainty, correlation, method, converged, iterations, residual,
+    seconds, model; per channel when several). Exit status 1, with the results
+    written and a warning, when a solve does not converge."""
+    from lightfield_jax.app.memory import check_memory, correction_bytes, fit_bytes
+    from lightfield_jax.app.outputs import staged_files
+    from lightfield_jax.capture.capture import capture_files, load_capture
+    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.inverse.capture_fit import fit_capture
+    from lightfield_jax.inverse.options import FitOptions
+
+    inputs = capture_files(args.capture)
+    _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])
+    out = Path(args.out)
+    _use_xla_cache(args)
+    capture = load_capture(args.capture)
+    channels = args.channel or capture.channel_names
+    figures = _figure_names(Path(args.plot), channels) if args.plot else []
+    _outputs(files=[out, *figures], inputs=inputs)
+    h, w = capture.shape
+    defaults = FitOptions(**capture.fit_options)
+    cells = min(h * w * FIT_N_THETA, defaults.max_cells)
+    rendered = min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells)
+    check_memory(
+        max(
+            fit_bytes(capture.images.size, capture.n_images, cells),
+            correction_bytes(capture.images.size, capture.n_images, rendered),
+        ),
+        f"{capture.source}: the fit",
+    )
+    with _progress(args, f"fit ({args.method})") as stage, _about(capture):
+        limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
+        fit = fit_capture(
+            capture,
+            args.method,
+            channels=args.channel,
+            progress=stage,
+            phase=args.phase,
+            **limits,
+        )
+        figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
+        result = _label_two_step(args.method, fit.to_dict())
+        result["capture"] = str(capture.source)
+        if capture.truth:
+            result["truth"] = capture.truth
+        result["medium_roi"] = _roi_record(capture)
+        with staged_files() as write:
+            if figures:
+                stage("plot")
+                _fit_figures(capture, fit, figures, write)
+            atomic_write_json(write(out), result)
+    for note in capture.notes:
+        _say(args, f"note: {note}")
+    _say(args, _fit_summary(fit))
+    if args.method in TWO_STEP_METHODS:
+        _say(args, f"note: {TWO_STEP_CAVEAT}")
+    _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")
+    if not fit.converged:
+        _warn(args, "the fit did not converge: results were written with converged: false")
+        return 1
+    return None
+
+
+# --------------------------------------------------------------------------- demo
+
+
+@command(
+    "demo",
+    "simulate the paper's milk capture and recover it with every method",
+    arg("--out", default="demo_out", metavar="DIR", help="output folder (%(default)s)"),
+    arg("--methods", default="grid,gradient,joint", help="comma-separated (%(default)s)"),
+    arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
+)
+def _demo(args: argparse.Namespace) -> int | None:
+    """Simulate the paper's milk (sigma_t 0.2051, sigma_s 0.0366, g 0.4 per pixel) as a
+    six-shift stripe capture with shot and read noise (gain 400: about 20000 photons
+    at image value 1) and a projector black level of 0.01, write it to DIR as a
+    capture, fit it with each method, print a table (truth, each method, error,
+    time) and write DIR/results.json and
+    DIR/demo_fit.png (the joint fit's profiles and residuals)."""
+    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.io import atomic_directory, atomic_write_json
+    from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.inverse.capture_fit import fit_capture
+
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    for m in methods:
+        if m not in ("grid", "gradient", "joint"):
+            raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
+    _outputs(folders=[args.out])
+    out = Path(args.out)
+    config = parse_simulation_config(DEMO_CONFIG, source="demo config")
+    _use_xla_cache(args)
+    with _progress(args, "demo") as stage:
+        stage("simulate the capture")
+        sim = simulate_capture(config, stage=stage)
+        with atomic_directory(out) as staging:
+            write_simulation(sim, staging)
+        capture = load_capture(out / "capture.yaml")
+        truth = sim.truth()
+        rows, results, again = [], {}, {}
+        for method in methods:
+            stage(f"fit: {method}")
+            fit = fit_capture(capture, method, progress=stage).results[0]
+            results[method] = _label_two_step(method, fit.to_dict())
+            rows.append((method, fit))
+            # The same fit once more: the programs compiled above are reused, as for
+            # another channel or the next capture of this size in one process.
+            stage(f"fit again: {method}")
+            again[method] = fit_capture(capture, method).results[0].seconds["total"]
+        atomic_write_json(out / "results.json", {"truth": truth, "fits": results})
+        if "joint" in results:
+            stage("plot")
+            from lightfield_jax.viz import plot_fit
+
+            joint = dict(rows)["joint"]
+            plot_fit(capture.images[..., 0], capture.pattern, joint, out / "demo_fit.png")
+    head = (
+        f"{'method':<9} {'sigma_t':>9} {'err':>7} {'sigma_s':>9} {'err':>7} {'g':>7} "
+        f"{'err':>7} {'time s':>7} {'again s':>7} {'conv':>5}"
+    )
+    lines = [
+        "paper's milk, 128x96, 6 shifted stripes (period 6), shot + read noise",
+        head,
+        f"{'truth':<9} {truth['sigma_t']:>9.5f} {'':>7} {truth['sigma_s']:>9.5f} {'':>7} "
+        f"{truth['g']:>7.3f}",
+    ]
+    for method, r in rows:
+        lines.append(
+            f"{method:<9} {r.sigma_t:>9.5f} {100 * (r.sigma_t / truth['sigma_t'] - 1):>+6.1f}% "
+            f"{r.sigma_s:>9.5f} {100 * (r.sigma_s / truth['sigma_s'] - 1):>+6.1f}% "
+            f"{r.g:>7.3f} {r.g - truth['g']:>+7.3f} {r.seconds['total']:>7.1f} "
+            f"{again[method]:>7.2f} {'yes' if r.converged else 'NO':>5}"
+        )
+    folder = None if args.no_xla_cache else xla_cache_folder()
+    if any(m in TWO_STEP_METHODS for m in methods):
+        lines.append(f"note: {TWO_STEP_CAVEAT}")
+    lines.append("again: the same fit once more in this process (its compiled programs reused)")
+    lines.append(
+        "time: wall clock, XLA compilation included"
+        + (
+            f" (compiled programs cached in {folder}: a second run loads them)"
+            if folder is not None
+            else " (no compilation cache)"
+        )
+    )
+    _say(args, "\n".join(lines))
+    _say(
+        args,
+        f"wrote {out}/ (capture, results.json" + (", demo_fit.png)" if "joint" in results else ")"),
+    )
+    return None if all(r.converged for _, r in rows) else 1

@@ -1,0 +1,85 @@
+"""The ``render`` and ``experiment`` subcommands (see :mod:`lightfield_jax.app.cli`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from lightfield_jax.app.cli import (
+    _outputs,
+    _progress,
+    _say,
+    _warn,
+    arg,
+    command,
+)
+
+# --------------------------------------------------------------------------- render
+
+
+@command(
+    "render",
+    "render a fitted medium's per-bounce images and light fields in its capture's geometry",
+    arg("results", metavar="RESULTS.json", help="a results file of lightfield-jax fit"),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--plot",
+        action="store_true",
+        help="also write the paper's figures: bounce_images.png, bounce_profiles.png, "
+        "lightfield.png",
+    ),
+)
+def _render_command(args: argparse.Namespace) -> None:
+    """Render the medium a fit recovered (RESULTS.json names its capture, whose entry
+    wall and light direction are used) under full illumination, on the fit's model
+    (its region of the medium ROI, theta bins, bounces, geometry), and write into DIR
+    (one subfolder per channel when the results hold several):
+
+      bounces.npy     float32 [K, H, W] per-bounce images (index k-1 holds I_k),
+                      fitted gain included
+      bounces.exr     channels I1..IK
+      lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
+                      (left out, with a warning, above 5e7 floats)
+      render.json     the medium, model region, illumination
+      *.png           with --plot: the bounce images, each bounce's profile along
+                      the light, the light fields with direction glyphs
+
+    Nothing is written unless the whole command succeeds."""
+    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.capture.views import render_results
+
+    _outputs(
+        folders=[args.out],
+        inputs=[args.results],
+        folder_names=("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png"),
+    )
+    out = Path(args.out)
+    with _progress(args, "render") as stage, atomic_directory(out) as staging:
+        files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
+    for note in notes:
+        _warn(args, note)
+    _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
+
+
+# --------------------------------------------------------------------------- experiment
+
+
+@command(
+    "experiment",
+    "run a config-driven experiment (experiments/NAME.py with configs/NAME.yaml)",
+    arg("config", metavar="CONFIG.yaml", help="an experiment config (configs/)"),
+    arg("--out", metavar="DIR", help="results folder (default: results/NAME)"),
+    arg("--reduced", action="store_true", help="the config's reduced size (as the tests run)"),
+)
+def _experiment(args: argparse.Namespace) -> None:
+    """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
+    summary.json with the config, software versions, machine and date. A rerun into
+    the same DIR resumes from the work already stored in DIR/cache."""
+    from lightfield_jax.app.experiment import run_experiment
+
+    _outputs(folders=[args.out])
+    with _progress(args, "experiment") as stage:
+        record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
+    _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
+    _say(args, f"experiment {record['experiment']} done in {record['seconds']:.1f} s")

@@ -1,0 +1,213 @@
+"""The ``simulate`` and ``bench`` subcommands (see :mod:`lightfield_jax.app.cli`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lightfield_jax.app.cli import (
+    DEMO_CONFIG,
+    _outputs,
+    _positive_int,
+    _progress,
+    _say,
+    _warn,
+    arg,
+    command,
+)
+
+# --------------------------------------------------------------------------- simulate
+
+
+# The names simulate writes into its folder (see its help).
+SIMULATE_FILES = (
+    "bounces*.npy",
+    "bounces*.exr",
+    "total.exr",
+    "shift_*.exr",
+    "capture.yaml",
+    "dark.exr",
+    "lightfield.npy",
+    "metadata.json",
+)
+
+
+@command(
+    "simulate",
+    "render a config into per-bounce and captured images",
+    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax.app.config)"),
+    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--lightfield",
+        action="store_true",
+        help="also write lightfield.npy, L_0..L_K (memory: (K+1)*P*H*W*n_theta floats)",
+    ),
+    arg(
+        "--plot",
+        metavar="FIGDIR",
+        help="also write the paper's figures of the scene into FIGDIR (created; files "
+        "replaced): bounce_images.png, bounce_profiles.png, lightfield.png",
+    ),
+)
+def _simulate(args: argparse.Namespace) -> None:
+    """Render a simulate config and write into DIR:
+
+      bounces.npy     float32 per-bounce images [K, H, W] (index k-1 holds I_k);
+                      stripes: [P, K, H, W], one row per phase
+      bounces.exr     channels I1..IK (beam, full)
+      bounces_XX.exr  channels I1..IK of shift XX (stripes)
+      total.exr       channel Y: the captured image, sum of the bounces (beam, full)
+      shift_XX.exr    channel Y: the captured image of shift XX (stripes)
+      capture.yaml    the shifts as a capture file, input of the inverse pipeline
+                      (stripes)
+      dark.exr        channel Y: dark frame (when the config has dark_level)
+      lightfield.npy  with --lightfield: float32 [K+1, H, W, n_theta], L_0..L_K in
+                      radiance per radian; stripes: [P, K+1, H, W, n_theta]
+      metadata.json   config, K, rho, convergence, n_theta, refine, timings, versions
+
+    Per-bounce images and light fields include the gain and (stripes) the black level;
+    captured images add the dark level and noise. Nothing is written unless the whole
+    command succeeds.
+    """
+    from lightfield_jax.app.config import load_simulation_config
+    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+
+    _outputs(
+        folders=[args.out, args.plot],
+        inputs=[args.config],
+        folder_names=(*SIMULATE_FILES, "*.png"),
+    )
+    config = load_simulation_config(args.config)
+    out = Path(args.out)
+    plot = Path(args.plot) if args.plot else None
+    with _progress(args, "simulate") as stage:
+        sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
+        stage("write files")
+        with atomic_directory(out) as staging:
+            files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
+        if plot is not None:
+            from lightfield_jax.capture.views import plot_simulation
+
+            with atomic_directory(plot) as staging:
+                figures, notes = plot_simulation(sim, staging, stage=stage)
+            for note in notes:
+                _warn(args, note)
+            _say(args, f"wrote {', '.join(figures)} to {plot}")
+    converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
+    _say(
+        args,
+        f"wrote {len(files)} files to {out}: K = {sim.n_bounces} bounces, rho = {sim.rho:.4f} "
+        f"({converges}), n_theta = {sim.n_theta}, refine = {sim.refine}; "
+        f"compile {sim.timing['compile']:.2f} s, run {sim.timing['run']:.2f} s",
+    )
+
+
+# --------------------------------------------------------------------------- bench
+
+
+def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
+    """``64x64x32,128x128x64`` → ((64, 64, 32), (128, 128, 64)), validated as grids."""
+    from lightfield_jax.scene.grid import Grid
+
+    sizes = []
+    for item in text.split(","):
+        parts = item.strip().lower().split("x")
+        try:
+            size = tuple(int(p) for p in parts)
+        except ValueError:
+            size = ()
+        if len(size) != 3:
+            raise argparse.ArgumentTypeError(
+                f"{item.strip()!r} is not WIDTHxHEIGHTxN_THETA (e.g. 64x64x32)"
+            )
+        try:
+            Grid(*size)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{item.strip()!r}: {e}") from None
+        sizes.append(size)
+    return tuple(sizes)
+
+
+@command(
+    "bench",
+    "time the forward model on a few grid sizes",
+    arg(
+        "--sizes",
+        type=_grid_sizes,
+        default="64x64x32,128x128x64,256x256x128",
+        metavar="WxHxN,...",
+        help="grid sizes WIDTHxHEIGHTxN_THETA (default: %(default)s)",
+    ),
+    arg(
+        "--repeats",
+        type=_positive_int,
+        default=None,
+        help="timed runs per measurement (default 5; with --fits 3 processes per method)",
+    ),
+    arg("--out", default="bench.json", metavar="FILE", help="JSON results (default: %(default)s)"),
+    arg(
+        "--slab",
+        action="store_true",
+        help="instead: the slab geometry against the plane on a 128x128 6-phase stripe "
+        "capture (forward, one derivative column, a joint fit each)",
+    ),
+    arg("--no-fits", action="store_true", help="with --slab: skip the joint fits"),
+    arg(
+        "--fits",
+        action="store_true",
+        help="instead: each fit method on the demo's capture (128x96, 6 stripes), each fit "
+        "in a fresh process with no compilation cache, then once more warm (--repeats "
+        "processes per method, default 3 here)",
+    ),
+)
+def _bench(args: argparse.Namespace) -> None:
+    """Measure compile time, time per bounce, gradient time and peak memory of the
+    forward model (a single beam, float32) for each grid size, print a line per size
+    and write all numbers to a JSON file. Asserts nothing. With ``--slab``: the slab
+    model against the plane (forward, derivative, joint fit). With ``--fits``: the fit
+    methods' wall time, cold (a fresh process) and warm."""
+    from lightfield_jax.app.bench import bench_fits, bench_slab, run_benchmark
+    from lightfield_jax.capture.io import atomic_write_json
+
+    _outputs(files=[args.out])
+    out = Path(args.out)
+    if args.fits and args.slab:
+        raise ValueError("bench: --fits and --slab are separate benchmarks: give one")
+    if args.fits:
+        with _progress(args, "bench", 1) as stage:
+            stage("fit methods, each in a fresh process")
+            result = bench_fits(
+                DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: _say(args, m)
+            )
+        atomic_write_json(out, result)
+        _say(args, f"wrote {out}")
+        return
+    if args.slab:
+        with _progress(args, "bench", 3) as stage:
+            stage("slab vs plane")
+            result = bench_slab(
+                repeats=args.repeats or 5, fits=not args.no_fits, progress=lambda m: _say(args, m)
+            )
+        atomic_write_json(out, result)
+        _say(args, f"wrote {out}")
+        return
+    sizes = args.sizes
+    from lightfield_jax.app.memory import check_memory, render_bytes
+
+    for w, h, n in sizes:
+        # value_and_grad keeps the forward pass's fields of its 10 bounces.
+        check_memory(render_bytes(10, h, w, n), f"bench --sizes {w}x{h}x{n}")
+    with _progress(args, "bench", len(sizes)) as stage:
+        names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])
+        stage(f"{sizes[0][0]}x{sizes[0][1]}x{sizes[0][2]}")
+
+        def report(line: str) -> None:
+            _say(args, line)
+            following = next(names, None)
+            if following is not None:
+                stage(following)
+
+        result = run_benchmark(sizes, args.repeats or 5, progress=report)
+    atomic_write_json(out, result)
+    _say(args, f"wrote {out}")
