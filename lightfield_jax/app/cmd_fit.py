@@ -124,11 +124,6 @@ def _roi_record(capture) -> dict:
     }
 
 
-def _shown(capture, i: int) -> dict:
-    """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
-    return {"mask": capture.mask[..., i], "truth": capture.truth}
-
-
 @command(
     "fit",
     "recover sigma_t, sigma_s and g from a stripe capture",
