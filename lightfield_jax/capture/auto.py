@@ -1,0 +1,157 @@
+"""What loading measures from the images: the ``auto`` values (geometry detection, the
+black level), and the checks that the images agree with the capture file (light, stripes)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lightfield_jax.app.config import _Section
+from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
+from lightfield_jax.capture.detect import (
+    Geometry,
+    _across_first,
+    _coefficients,
+    detect_geometry,
+)
+from lightfield_jax.capture.io import CaptureError, ImageData
+from lightfield_jax.capture.keys import AUTO
+from lightfield_jax.scene.illumination import Stripes
+
+
+def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
+    """Measure what the capture leaves ``auto`` (see :mod:`lightfield_jax.capture.detect`)."""
+    asked = [k for k in ("phases", "entry", "direction_deg") if spec[k] == AUTO]
+    asked = (["medium_roi"] if roi == AUTO else []) + [f"pattern.{k}" for k in asked]
+    try:
+        return detect_geometry(
+            images,
+            period=spec["period"],
+            lit=spec["lit"],
+            reference=white,
+            floor=0.0 if dark_subtracted else None,
+            roi=None if roi == AUTO else roi,
+            entry=None if spec["entry"] == AUTO else spec["entry"],
+            direction_deg=None if spec["direction_deg"] == AUTO else spec["direction_deg"],
+        )
+    except ValueError as e:
+        raise CaptureError(f"{top.source}: {', '.join(asked)}: auto: {e}") from None
+
+
+def _check_light(top: _Section, images: np.ndarray, dark: ImageData | None) -> None:
+    """Refuse images without light: no value above zero (every value zero, or negative
+    images), or, with a dark frame, images darker than it (99 % of the values after
+    subtracting it below zero by more than 10⁻³ of the dark level: past quantisation)."""
+    finite = images[np.isfinite(images)]
+    if finite.size == 0:
+        return  # every value non-finite: the mask's check says so
+    brightest = float(finite.max())
+    if dark is not None:
+        level = float(np.percentile(finite, 99))
+        dark_level = float(np.nanmedian(np.abs(dark.pixels)))
+        if level < -1e-3 * dark_level:
+            top.fail(
+                "dark_frame",
+                f"{dark.path.name} is brighter than the images (after subtracting it, 99% "
+                f"of the image values are <= {level:.3g}): a dark frame is taken with the "
+                "projector off, darker than every image",
+            )
+        return
+    if brightest == 0:
+        top.fail("images", "every pixel of every image is 0: no light was captured")
+    if brightest < 0:
+        top.fail(
+            "images",
+            f"every image value is negative (the largest is {brightest:.3g}): images of "
+            "light are not negative (values must be linear, black at 0)",
+        )
+
+
+# Stripe contrast of an image: its Fourier amplitude across the stripes at the period
+# against that at 2/3 of it (not a harmonic of the stripes: noise alone gives about 1,
+# a 24-row crop of rendered stripes about 4, the window's leakage included). A capture
+# whose median contrast reaches _STRIPED has stripes; an image of it whose amplitude is
+# below _UNSTRIPED times the median image's is not a stripe image (a white or black
+# frame listed among them: measured 0.003).
+_STRIPED, _UNSTRIPED = 2.5, 0.1
+# Declared phases are compared with measured ones only when the detector is sure of
+# them: the stripes' period found within 2 % and every phase within 0.1 row of an
+# integer (noise images reach neither).
+_SURE_PHASES = 0.8
+
+
+def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> str | None:
+    """Refuse a capture whose images contradict its pattern: an image without stripes
+    of the period in a capture that has them, or given phases that differ from those
+    the stripe detector (:func:`~lightfield_jax.capture.detect.detect_geometry`) measures
+    with confidence. Default phases (``pattern.phases`` absent) that differ are
+    returned as a note's text instead. ``images`` and ``roi``: the full frame's;
+    ``phases_from``: ``given``, ``default`` or ``auto``."""
+    x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
+    crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
+    stack = _across_first(crop, pattern.entry)
+    u0 = y0 if pattern.entry in ("left", "right") else x0
+
+    def amplitude(period):
+        return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
+
+    stripes = amplitude(pattern.period)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        contrast = np.median(stripes / amplitude(1.5 * pattern.period))
+        relative = stripes / np.median(stripes)
+    if not contrast >= _STRIPED:
+        return None  # no stripes to compare with
+    for name, r in zip(names, relative, strict=True):
+        if not r >= _UNSTRIPED:
+            top.fail(
+                "images",
+                f"{name} shows no stripes of period {pattern.period} (stripe amplitude "
+                f"{r:.2g} times the other images'): a white or black frame listed as a "
+                "stripe image? (give it as white_frame or black_frame)",
+            )
+    if phases_from == "auto" or len(names) < 2:
+        return None
+    try:
+        found = detect_geometry(
+            images,
+            period=pattern.period,
+            lit=pattern.lit,
+            floor=None if dark is None else 0.0,
+            roi=(x0, y0, x1, y1),
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+        )
+    except ValueError:
+        return None  # stripes too faint to measure: nothing to compare
+    sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
+    if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
+        return None
+    message = (
+        f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
+        f"{list(found.phases)} (measured by the stripe detector, phase confidence "
+        f"{found.parts['phases']:.2f}); correct them, or set pattern.phases: auto"
+    )
+    if phases_from == "default":
+        return f"pattern.phases (absent: the default) {message}"
+    top.fail("pattern.phases", message)
+
+
+def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:
+    black, white = frames.get("black_frame"), frames.get("white_frame")
+    tiles = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
+    try:
+        return estimate_black_level(
+            images,
+            pattern.lit_fraction,
+            tiles_period=tiles,
+            mask=mask,
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+            black=None if black is None else _broadcast(black, images),
+            white=None if white is None else _broadcast(white, images),
+        )
+    except ValueError as e:
+        raise CaptureError(f"{top.source}: {e}") from None
+
+
+def _broadcast(frame: np.ndarray, images: np.ndarray) -> np.ndarray:
+    return np.broadcast_to(frame, images.shape[1:])

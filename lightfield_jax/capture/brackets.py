@@ -1,0 +1,168 @@
+"""Exposure brackets: reading them, their ``exposure_times`` and ``response``, and
+merging them to linear radiance (:mod:`lightfield_jax.capture.hdr`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+from lightfield_jax.app.config import _Section
+from lightfield_jax.capture.calibration import (
+    check_sample_formats,
+    drop_constant_alpha,
+    sensor_top_code,
+)
+from lightfield_jax.capture.frames import _aux_frame, _file, _read, _size
+from lightfield_jax.capture.hdr import (
+    CLIP,
+    RESPONSES,
+    linear_response,
+    merge_bracket,
+    merge_capture,
+)
+from lightfield_jax.capture.io import CaptureError, ImageData
+from lightfield_jax.capture.keys import _AUX_FRAMES, _positive
+
+
+def _brackets(top: _Section, base: Path, channel, notes: list[str]):
+    """Exposure brackets merged to linear radiance (:mod:`lightfield_jax.capture.hdr`):
+    ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
+    frame subtracted per exposure before merging (so the calibration frames hold no
+    dark frame any more); ``None`` when the images are not brackets (lists)."""
+    value = top.get("images")
+    rows = [isinstance(v, list) for v in value] if isinstance(value, list) else []
+    if not any(rows):
+        for key in ("exposure_times", "response"):
+            if key in top.data:
+                top.fail(key, "applies to bracketed images only (a list of exposures per shift)")
+        return None
+    if not all(rows):
+        top.fail(
+            "images",
+            "mixes files and brackets: give every shift as a list of exposures, or every "
+            "shift as one file",
+        )
+    times = _exposure_times(top)
+
+    def read(key, file, first=None):
+        if first is not None:
+            return _aux_frame(top, key, base, channel, first, value=file)
+        return _read(top, key, _file(top, key, file, base), channel)
+
+    shifts = []
+    for i, row in enumerate(value):
+        if len(row) != len(times):
+            top.fail(
+                f"images[{i}]",
+                f"lists {len(row)} exposure(s) for {len(times)} exposure_times; give one file "
+                "per exposure time, in the same order",
+            )
+        shifts.append([read(f"images[{i}][{j}]", v) for j, v in enumerate(row)])
+    listed = [(f"images[{i}][{j}]", f) for i, row in enumerate(shifts) for j, f in enumerate(row)]
+    first = listed[0][1]
+    for key, f in listed[1:]:
+        if f.pixels.shape != first.pixels.shape:
+            top.fail(
+                key,
+                f"{f.path.name} is {_size(f)}, but images[0][0] ({first.path.name}) is "
+                f"{_size(first)}; every image must have the same size and channels",
+            )
+    try:
+        kept = iter(drop_constant_alpha([f for _, f in listed], notes))
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: images: {e}") from None
+    shifts = [[next(kept) for _ in row] for row in shifts]
+    first = shifts[0][0]
+    aux: dict[str, list[ImageData] | None] = {}
+    for key in _AUX_FRAMES:
+        files = top.get(key, None)
+        if files is not None and (not isinstance(files, list) or len(files) != len(times)):
+            top.fail(
+                key,
+                f"with bracketed images give one file per exposure time ({len(times)}), in "
+                f"their order, got {files!r}",
+            )
+        aux[key] = (
+            None if files is None else [read(f"{key}[{j}]", f, first) for j, f in enumerate(files)]
+        )
+    try:
+        check_sample_formats(
+            listed, [(f"{k}[{j}]", f) for k, v in aux.items() if v for j, f in enumerate(v)]
+        )
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: {e}") from None
+    levels = (1 << first.bit_depth) if first.is_integer else None
+    images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
+    clip = _positive(top, "saturation")
+    # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
+    sensor = None
+    if clip is None:
+        sensor = sensor_top_code(images.reshape(-1, *images.shape[2:]), [f for _, f in listed])
+    full = 1.0 if sensor is None else sensor[0]
+    if sensor is not None:
+        levels = 1 << sensor[1]
+        notes.append(f"{sensor[1]}-bit data in 16-bit files: samples divided by its top code")
+    images = images / full
+    response = _response(top, base, images, times, first.pixels.shape[-1])
+    clip = clip or CLIP
+    dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
+    dark = None if dark is None else dark / full
+    radiance, record = merge_capture(
+        images, times, response, levels=levels, dark=dark, clip=clip,
+        files=[[f.path for f in row] for row in shifts],
+    )  # fmt: skip
+    frames = [_merged_frame(r, row[-1]) for r, row in zip(radiance, shifts, strict=True)]
+    merged: dict[str, ImageData | None] = dict.fromkeys(_AUX_FRAMES)
+    for key in ("black_frame", "white_frame", "flat_field"):
+        if aux[key] is not None:
+            stack = np.stack([f.pixels for f in aux[key]]) / full
+            m = merge_bracket(stack, times, response, levels=levels, dark=dark, clip=clip)
+            merged[key] = _merged_frame(m.radiance, aux[key][-1])
+    if dark is not None:
+        notes.append("dark_frame: subtracted from every exposure before the merge")
+    return frames, merged, record
+
+
+def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
+    """A merged bracket as a float frame, named after its longest exposure."""
+    return dataclasses.replace(
+        longest, pixels=radiance.astype(np.float32), bit_depth=32, sample_type="float"
+    )
+
+
+def _exposure_times(top: _Section) -> list[float]:
+    value = top.get("exposure_times", None)
+    if not isinstance(value, list) or len(value) < 2:
+        top.fail(
+            "exposure_times",
+            f"bracketed images need a list of at least two exposure times (seconds), got {value!r}",
+        )
+    for i, t in enumerate(value):
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < math.inf:
+            top.fail(f"exposure_times[{i}]", f"must be a positive number of seconds, got {t!r}")
+    if any(b <= a for a, b in zip(value, value[1:], strict=False)):
+        top.fail("exposure_times", f"must increase (shortest first), got {value!r}")
+    return [float(t) for t in value]
+
+
+def _response(top: _Section, base: Path, images: np.ndarray, times, n_channels: int):
+    """The inverse response: ``linear`` (default), ``auto`` (from the brackets) or a
+    table file (:func:`~lightfield_jax.capture.hdr.load_response`)."""
+    from lightfield_jax.capture.hdr import calibrate_response, load_response
+
+    value = top.get("response", "linear")
+    if not isinstance(value, str) or not value:
+        top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {value!r}")
+    try:
+        if value == "linear":
+            return linear_response()
+        if value == "auto":
+            p, j, h, w, c = images.shape
+            pooled = np.moveaxis(images, 1, 0).reshape(j, p * h * w, c)
+            return calibrate_response(pooled, times)
+        return load_response(_file(top, "response", value, base), n_channels)
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: response: {e}") from None

@@ -1,0 +1,213 @@
+"""Reading a capture's images and calibration frames (dark, black, white, flat), the
+calibration, and the masks of non-finite and saturated pixels."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lightfield_jax.app.config import _Section, brief
+from lightfield_jax.app.memory import capture_bytes, check_memory
+from lightfield_jax.capture.io import (
+    CaptureError,
+    CaptureFileNotFoundError,
+    ImageData,
+    _channel_index,
+    image_values,
+    read_image,
+    read_npy_stack,
+)
+
+
+def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
+    """Refuse, from the first file's header, a capture too large to load (a file that
+    cannot be read is left to the read, which names its key)."""
+    try:
+        samples = image_values(files[0]) * len(files)
+    except CaptureError:
+        return
+    check_memory(
+        capture_bytes(samples), f"{top.source}: images ({len(files)} file(s), {samples} samples)"
+    )
+
+
+def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
+    try:
+        return read_image(file, channel)
+    except CaptureFileNotFoundError as e:
+        raise CaptureFileNotFoundError(f"{top.source}: {key}: {e}") from None
+    except CaptureError as e:
+        raise CaptureError(f"{top.source}: {key}: {e}") from None
+
+
+def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
+    if not isinstance(value, str) or not value:
+        top.fail(key, f"must be a file path, got {brief(value)}")
+    return base / value
+
+
+def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
+    value = top.get("images")
+    if isinstance(value, str):
+        file = _file(top, "images", value, base)
+        if file.suffix.lower() != ".npy":
+            top.fail(
+                "images",
+                f"a single file must be a .npy stack [P, H, W(, C)], got {brief(value)}; "
+                "list the image files otherwise",
+            )
+        _check_capture_memory(top, [file])
+        try:
+            frames = read_npy_stack(file)
+            if channel is not None:
+                index = _channel_index(frames[0].channel_names, channel, file)
+                frames = [
+                    dataclasses.replace(
+                        f, pixels=f.pixels[..., [index]], channel_names=(f.channel_names[index],)
+                    )
+                    for f in frames
+                ]
+        except CaptureFileNotFoundError as e:
+            raise CaptureFileNotFoundError(f"{top.source}: images: {e}") from None
+        except CaptureError as e:
+            raise CaptureError(f"{top.source}: images: {e}") from None
+        return frames
+    if not isinstance(value, list):
+        top.fail("images", f"must be a list of image files or one .npy stack, got {brief(value)}")
+    if not value:
+        top.fail("images", "the list is empty: give one image per phase")
+    files = [_file(top, f"images[{i}]", v, base) for i, v in enumerate(value)]
+    _check_capture_memory(top, files)
+    frames = [_read(top, f"images[{i}]", file, channel) for i, file in enumerate(files)]
+    first = frames[0]
+    for i, f in enumerate(frames[1:], start=1):
+        if f.pixels.shape != first.pixels.shape:
+            top.fail(
+                f"images[{i}]",
+                f"{f.path.name} is {_size(f)}, but images[0] ({first.path.name}) is "
+                f"{_size(first)}; every image must have the same size and channels",
+            )
+    return frames
+
+
+def _size(image: ImageData) -> str:
+    h, w, c = image.pixels.shape
+    return f"{w}x{h} pixels with {c} channel(s)"
+
+
+def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, value=None):
+    """A calibration frame (dark, black, white, flat; ``value``: its file, default the
+    key's): the images' size, and one channel or as many as they have."""
+    value = top.get(key, None) if value is None else value
+    if value is None:
+        return None
+    frame = _read(top, key, _file(top, key, value, base), channel)
+    h, w, c = first.pixels.shape
+    fh, fw, fc = frame.pixels.shape
+    if fc == c + 1 and frame.channel_names[-1] == "A":
+        frame = dataclasses.replace(
+            frame, pixels=frame.pixels[..., :c], channel_names=frame.channel_names[:c]
+        )
+        fc = c
+    if (fh, fw) != (h, w) or fc not in (1, c):
+        top.fail(
+            key,
+            f"{value} is {_size(frame)}, but the images are {_size(first)} (a "
+            f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
+            "they have)",
+        )
+    return frame
+
+
+def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None):
+    """The flat field, dark frame subtracted, divided by its median: NaN where it is
+    not positive (those pixels are masked)."""
+    if flat is None:
+        return None
+    f = flat.pixels if dark is None else flat.pixels - dark
+    good = np.isfinite(f) & (f > 0)
+    if good.mean() < 0.5:
+        top.fail(
+            "flat_field",
+            f"{flat.path.name} is not positive in {100 * (1 - good.mean()):.0f}% of its "
+            "pixels (after the dark frame): not a flat field",
+        )
+    return np.where(good, f / np.median(f[good]), np.nan)
+
+
+def _calibrate(a: np.ndarray, dark: np.ndarray | None, flat: np.ndarray | None) -> np.ndarray:
+    """(a − dark) / flat: the images (or a calibration frame) in linear units."""
+    if dark is not None:
+        a = a - dark
+    return a if flat is None else a / flat
+
+
+def _nonfinite(
+    raw: np.ndarray,
+    frames: Sequence[tuple[ImageData, np.ndarray]],
+    names: Sequence[str],
+    notes: list[str],
+) -> np.ndarray:
+    """[H, W, C] True where an image or a calibration frame (dark, flat: each with its
+    cropped pixels; a flat field is NaN where not positive) is NaN or Inf; notes the
+    counts."""
+    bad = ~np.isfinite(raw)
+    counts = {n: int(c) for n, c in zip(names, bad.sum(axis=(1, 2, 3)), strict=True) if c}
+    out = bad.any(axis=0)
+    for image, pixels in frames:
+        frame_bad = ~np.isfinite(pixels)
+        if frame_bad.any():
+            counts[image.path.name] = int(frame_bad.sum())
+        out = out | np.broadcast_to(frame_bad, out.shape)
+    if counts:
+        listed = ", ".join(f"{n}: {c}" for n, c in counts.items())
+        notes.append(
+            f"{sum(counts.values())} pixel value(s) are NaN or Inf ({listed}); "
+            f"{int(out.sum())} pixel(s) masked"
+        )
+    return out
+
+
+def _saturated(
+    raw: np.ndarray,
+    frames: Sequence[ImageData],
+    names: Sequence[str],
+    saturation: float | None,
+    sensor: tuple[float, int] | None,
+    notes: list[str],
+) -> np.ndarray:
+    """[H, W, C] True where a raw image is saturated (>= saturation) or clipped (at the
+    top code of an integer frame, or of the sensor's bits in a 16-bit file, when no
+    saturation is given); notes what was found."""
+    with np.errstate(invalid="ignore"):
+        if saturation is not None:
+            hit = raw >= saturation
+        else:
+            integer = np.array([f.is_integer for f in frames])[:, None, None, None]
+            hit = integer & (raw >= (1.0 if sensor is None else sensor[0]))
+    per_frame = hit.sum(axis=(1, 2, 3))
+    finite = np.isfinite(raw).sum(axis=(1, 2, 3))
+    full = [n for n, h, f in zip(names, per_frame, finite, strict=True) if f and h == f]
+    if full:
+        notes.append(f"every pixel is saturated in {', '.join(full)}")
+    listed = ", ".join(f"{n}: {int(h)}" for n, h in zip(names, per_frame, strict=True) if h)
+    out = hit.any(axis=0)
+    if listed and saturation is not None:
+        notes.append(
+            f"pixel values at or above saturation {saturation:g} ({listed}); "
+            f"{int(out.sum())} pixel(s) masked"
+        )
+    elif listed:
+        bits = sorted({f.bit_depth for f, h in zip(frames, per_frame, strict=True) if h})
+        codes = ", ".join(f"{(1 << b) - 1} ({b}-bit)" for b in bits)
+        if sensor is not None:
+            codes = f"{(1 << sensor[1]) - 1} ({sensor[1]}-bit data in 16-bit files)"
+        notes.append(
+            f"integer frames clipped at their top code {codes} ({listed}); "
+            f"{int(out.sum())} pixel(s) masked (set saturation: to change the threshold)"
+        )
+    return out

@@ -1,0 +1,258 @@
+"""The capture file's keys: their tables, and the parsers of the keys that need no image
+(``channel``, ``pattern``, ``medium_roi``, ``black_level``, ``pixel_size_mm``,
+``saturation``, ``geometry``, ``fit``, ``truth``).
+The format: :mod:`lightfield_jax.capture.capture`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _Section, brief
+from lightfield_jax.capture.detect import Geometry
+from lightfield_jax.capture.io import CaptureError
+from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.scene.illumination import WALLS, Stripes
+from lightfield_jax.scene.medium import PHASE_CONVENTIONS
+
+CAPTURE_KEYS: tuple[str, ...] = (
+    "images",
+    "pattern",
+    "dark_frame",
+    "black_level",
+    "medium_roi",
+    "pixel_size_mm",
+    "saturation",
+    "channel",
+    "geometry",
+    "truth",
+    "black_frame",
+    "white_frame",
+    "flat_field",
+    "exposure_times",
+    "response",
+    "fit",
+)
+AUTO = "auto"
+# FitOptions a capture file may set under ``fit:`` (the method and the phase convention
+# are the command's flags, the geometry has its own key, a solver has no YAML form).
+_FIT_INTS = (
+    "max_bounces",
+    "tail_bounces",
+    "tail_max_steps",
+    "g_grid",
+    "start_grid",
+    "max_cells",
+    "max_steps",
+    "max_basins",
+    "max_render_cells",
+    "correction_renders",
+)
+_FIT_OPTIONAL_INTS = ("n_theta", "refine")
+_FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2")
+_FIT_OPTIONAL_FLOATS = ("rtol", "atol")
+_FIT_BOOLS = ("crop", "basin_search", "model_error", "correct")
+FIT_KEYS: tuple[str, ...] = (
+    "bounces",
+    "tail",
+    "start",
+    *_FIT_INTS,
+    *_FIT_OPTIONAL_INTS,
+    *_FIT_FLOATS,
+    *_FIT_OPTIONAL_FLOATS,
+    *_FIT_BOOLS,
+)
+GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
+_AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
+_PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
+_TRUTH_FLOATS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
+_TRUTH_KEYS = (*_TRUTH_FLOATS, "phase")
+
+
+def _channel(top: _Section) -> str | int | None:
+    """The channel selection for read_image: a name, an index, or None for all."""
+    value = top.get("channel", "all")
+    if isinstance(value, bool) or not isinstance(value, (str, int)) or value == "":
+        top.fail("channel", f"must be a channel name, an index or 'all', got {brief(value)}")
+    if isinstance(value, int) and value < 0:
+        top.fail("channel", f"must be a non-negative index, got {brief(value)}")
+    return None if value == "all" else value
+
+
+def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict[str, Any]:
+    """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
+    ``"auto"`` (measured from the images)."""
+    s = top.section("pattern", _PATTERN_KEYS)
+    spec: dict[str, Any] = {"period": s.int("period", 6), "lit": s.int("lit", 3)}
+    if spec["period"] > max(height, width):
+        s.fail(
+            s.key("period"),
+            f"{spec['period']} rows is longer than the {width}x{height} images: a stripe "
+            "period is a few rows",
+        )
+    phases = s.get("phases", None)
+    spec["phases_from"] = "default" if phases is None else "given"
+    if phases is None:
+        phases = list(range(n_images))
+    elif phases == AUTO:
+        pass
+    elif not isinstance(phases, list) or not phases:
+        s.fail(
+            s.key("phases"), f"must be a non-empty list of integers or 'auto', got {brief(phases)}"
+        )
+    else:
+        phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+        outside = [p for p in phases if not 0 <= p < spec["period"]]
+        if outside:
+            s.fail(
+                s.key("phases"),
+                f"{brief(outside)} outside [0, period) = [0, {spec['period']}); a phase "
+                "counts rows modulo the period",
+            )
+    if phases != AUTO and len(phases) != n_images:
+        s.fail(
+            s.key("phases"),
+            f"lists {len(phases)} phase(s) for {n_images} image(s); give one phase per image",
+        )
+    spec["phases"] = phases
+    spec["direction_deg"] = (
+        AUTO if s.get("direction_deg", None) == AUTO else (s.float("direction_deg", None))
+    )
+    spec["entry"] = s.choice("entry", (*WALLS, AUTO), "left")
+    # Validate what is given now, before any detection.
+    _stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
+    return spec
+
+
+def _stripes(top: _Section, spec: dict[str, Any], detected: Geometry | None, check=False):
+    """The Stripes of a pattern spec, ``auto`` values taken from ``detected``."""
+
+    def pick(key, measured):
+        value = spec[key]
+        if value != AUTO:
+            return value
+        return None if detected is None else measured
+
+    entry = pick("entry", detected and detected.entry)
+    direction = pick("direction_deg", detected and detected.direction_deg)
+    phases = pick("phases", detected and detected.phases)
+    if check and entry is None:
+        entry = "left" if direction is None else _any_wall(direction)
+    try:
+        return Stripes(
+            spec["period"], spec["lit"], tuple(phases), direction_deg=direction, entry=entry
+        )
+    except ValueError as e:
+        message = str(e).replace("illumination.", "pattern.").replace("illumination:", "pattern:")
+        raise CaptureError(f"{top.source}: {message}") from None
+
+
+def _any_wall(direction_deg: float) -> str:
+    """A wall that light heading ``direction_deg`` can enter (for validation only)."""
+    t = math.radians(direction_deg)
+    c, s = math.cos(t), math.sin(t)
+    if abs(c) >= abs(s):
+        return "left" if c > 0 else "right"
+    return "top" if s > 0 else "bottom"
+
+
+def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
+    """The pattern with wall cells counted from the ROI's edge instead of the frame's."""
+    offset = y0 if pattern.entry in ("left", "right") else x0
+    phases = tuple((p + offset) % pattern.period for p in pattern.phases)
+    return dataclasses.replace(pattern, phases=phases)
+
+
+def _black_level(top: _Section) -> float | str | None:
+    if top.get("black_level", None) == AUTO:
+        return AUTO
+    value = top.float("black_level", None)
+    if value is not None and not 0.0 <= value < 1.0:
+        top.fail("black_level", f"must lie in [0, 1), got {brief(value)} (or 'auto': measured)")
+    return value
+
+
+def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
+    value = top.get("medium_roi", None)
+    if value is None or value == AUTO:
+        return value
+    if (
+        not isinstance(value, list)
+        or len(value) != 4
+        or any(isinstance(v, bool) or not isinstance(v, int) for v in value)
+    ):
+        top.fail(
+            "medium_roi",
+            f"must be a list of 4 integers [x0, y0, x1, y1] or 'auto', got {brief(value)}",
+        )
+    x0, y0, x1, y1 = value
+    if not (0 <= x0 and x0 + 2 <= x1 <= width and 0 <= y0 and y0 + 2 <= y1 <= height):
+        top.fail(
+            "medium_roi",
+            f"{value} does not fit the {width}x{height} image: need 0 <= x0, x0 + 2 <= x1 <= "
+            f"{width}, 0 <= y0, y0 + 2 <= y1 <= {height} (x1, y1 exclusive)",
+        )
+    return (x0, y0, x1, y1)
+
+
+def _positive(top: _Section, key: str) -> float | None:
+    value = top.float(key, None)
+    if value is not None and value <= 0:
+        top.fail(key, f"must be > 0, got {brief(value)}")
+    return value
+
+
+def _geometry(top: _Section) -> dict[str, Any]:
+    """The model geometry: ``{kind: plane}`` (default) or a slab (docs/model.md §7)."""
+    if "geometry" not in top.data:
+        return {"kind": "plane"}
+    try:
+        return parse_geometry(top.data["geometry"], top.key("geometry"), allow_auto=True).as_dict()
+    except ValueError as err:
+        raise top.error(f"{top.source}: {err}") from None
+
+
+def _fit_options(top: _Section) -> dict[str, Any]:
+    """The ``fit:`` mapping: FitOptions fields (:data:`FIT_KEYS`), each checked for its
+    type, then together by FitOptions itself (ranges), before any image is read."""
+    from lightfield_jax.forward.tail import TAIL_METHODS
+    from lightfield_jax.inverse.options import FitOptions
+
+    if "fit" not in top.data or top.data["fit"] is None:
+        return {}
+    s = top.section("fit", FIT_KEYS)
+    out: dict[str, Any] = {}
+    for k in s.data:
+        value = s.data[k]
+        if k in _FIT_INTS or k in _FIT_OPTIONAL_INTS:
+            out[k] = s.int(k, None if k in _FIT_OPTIONAL_INTS else _REQUIRED)
+        elif k in _FIT_FLOATS or k in _FIT_OPTIONAL_FLOATS:
+            out[k] = s.float(k, None if k in _FIT_OPTIONAL_FLOATS else _REQUIRED)
+        elif k in _FIT_BOOLS:
+            if not isinstance(value, bool):
+                s.fail(s.key(k), f"must be true or false, got {brief(value)}")
+            out[k] = value
+        elif k == "bounces":
+            out[k] = AUTO if value == AUTO else s.int(k)
+        elif k == "tail":
+            out[k] = None if value is None else s.choice(k, (AUTO, *TAIL_METHODS))
+        else:  # start: [sigma_s, g]
+            if not (isinstance(value, list) and len(value) == 2):
+                s.fail(s.key(k), f"must be [sigma_s, g], got {brief(value)}")
+            out[k] = tuple(_as_float(s, s.key(k), v) for v in value)
+    try:
+        FitOptions(**out)
+    except ValueError as err:
+        s.fail("fit", str(err))
+    return out
+
+
+def _truth(top: _Section) -> dict[str, Any] | None:
+    if "truth" not in top.data:
+        return None
+    s = top.section("truth", _TRUTH_KEYS)
+    truth: dict[str, Any] = {k: s.float(k) for k in _TRUTH_FLOATS if k in s.data}
+    if "phase" in s.data:
+        truth["phase"] = s.choice("phase", PHASE_CONVENTIONS)
+    return truth

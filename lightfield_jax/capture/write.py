@@ -1,0 +1,76 @@
+"""Writing a capture file (the format: :mod:`lightfield_jax.capture.capture`)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lightfield_jax.capture.io import atomic_write_text
+from lightfield_jax.scene.illumination import Stripes
+
+
+def write_capture_yaml(
+    path: str | os.PathLike,
+    *,
+    images: Sequence[str | os.PathLike] | str | os.PathLike,
+    pattern: Stripes,
+    dark_frame: str | os.PathLike | None = None,
+    black_level: float | str | None = None,
+    medium_roi: Sequence[int] | str | None = None,
+    pixel_size_mm: float | None = None,
+    saturation: float | None = None,
+    channel: str | int | None = None,
+    geometry: dict[str, Any] | None = None,
+    truth: dict[str, Any] | None = None,
+    black_frame: str | os.PathLike | None = None,
+    white_frame: str | os.PathLike | None = None,
+    flat_field: str | os.PathLike | None = None,
+) -> Path:
+    """Write a capture file (atomically); keys left ``None`` are omitted.
+
+    ``images`` is a list of image files or one ``.npy`` stack, and ``dark_frame``,
+    ``black_frame``, ``white_frame`` and ``flat_field`` files, all given relative to the
+    capture file's folder. ``medium_roi`` and ``black_level`` may be ``"auto"``.
+    """
+
+    def plain(value):
+        if isinstance(value, np.generic):
+            return value.item()
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [plain(v) for v in value]
+        if isinstance(value, os.PathLike):
+            return os.fspath(value)
+        return value
+
+    data = {
+        "images": images if isinstance(images, (str, os.PathLike)) else list(images),
+        "pattern": {
+            "period": pattern.period,
+            "lit": pattern.lit,
+            "phases": list(pattern.phases),
+            "direction_deg": pattern.direction_deg,
+            "entry": pattern.entry,
+        },
+        "dark_frame": dark_frame,
+        "black_level": black_level,
+        "medium_roi": medium_roi,
+        "pixel_size_mm": pixel_size_mm,
+        "saturation": saturation,
+        "channel": channel,
+        "geometry": geometry,
+        "truth": truth,
+        "black_frame": black_frame,
+        "white_frame": white_frame,
+        "flat_field": flat_field,
+    }
+    data = plain({k: v for k, v in data.items() if v is not None})
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+    header = "# lightfield_jax capture file (format: lightfield_jax.capture.capture)\n"
+    return atomic_write_text(path, header + text)
