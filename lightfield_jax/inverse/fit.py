@@ -148,6 +148,8 @@ def _fit_one(
     )
     say = progress or (lambda _msg: None)
     method = method_for(options.method)
+    if method.per_bounce:
+        options = dataclasses.replace(options, tail=None)
     t_start = time.perf_counter()
     say("separating direct and multiple scattering")
     whole = prepare_data(

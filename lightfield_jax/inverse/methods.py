@@ -61,6 +61,10 @@ class FitMethod(eqx.Module):
     """A fit method: :meth:`solve` turns a prepared capture into fitted values."""
 
     name: eqx.AbstractClassVar[str]
+    # Whether the method needs every bounce's image (the two-step residual is a
+    # polynomial in σs over them): its models march at most ``max_bounces``, never a
+    # tail solve (the fit sizes them with ``tail: None``).
+    per_bounce: ClassVar[bool] = False
 
     @abc.abstractmethod
     def solve(
@@ -77,6 +81,7 @@ class GridSearch(FitMethod):
 
     g_values: int | None = None
     name: ClassVar[str] = "grid"
+    per_bounce: ClassVar[bool] = True
 
     def __check_init__(self):
         if self.g_values is not None and self.g_values < 3:
@@ -95,6 +100,7 @@ class TwoStep(FitMethod):
     solver: optx.AbstractLeastSquaresSolver | None = None
     start_grid: int | None = None
     name: ClassVar[str] = "gradient"
+    per_bounce: ClassVar[bool] = True
 
     def __check_init__(self):
         check_solver(self.solver)
@@ -169,26 +175,12 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     medium), once more on that one (a 2× θ difference costs less than a refit)."""
     data = problem.data
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
-    # The two-step residual is a polynomial in σs over per-bounce images: it marches
-    # every bounce (at most ``max_bounces``), never a tail solve.
-    options = dataclasses.replace(options, tail=None)
-    model = problem.model
-    if model.tail is not None:
-        model = size_model(
-            problem.images,
-            problem.pattern,
-            albedo=problem.rho0,
-            g=0.0,
-            options=options,
-            sigma_t=data.sigma_t0,
-            crop=model.crop,
-        )
 
     def on(model):
         renderer = _renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g)
 
-    model = _at_least(model, problem.floor)
+    model = _at_least(problem.model, problem.floor)
     sol = on(model)
     compile_s = sol.compile
     s, g = sol.sigma_s, sol.g
@@ -218,7 +210,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     ok, msg = _result_message(sol.result)
     if solver is None:
         msg = f"grid search over {n_g} values of g"
-    truncated = model.as_dict()["tail_bound"]
+    truncated = model.tail_bound
     if truncated is not None and truncated > TRUNCATION_LIMIT:
         ok, msg = (
             False,

@@ -45,10 +45,17 @@ class _Model:
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
     extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
 
-    def as_dict(self) -> dict:
-        marched = self.converges and self.tail is None and not self.extrapolate
+    @property
+    def tail_bound(self) -> float | None:
+        """ρ^K/(1 − ρ) of a marched series (the measured ratio where it sized K, else ρ
+        at the estimate): the orders left out, relative to I_1; ``None`` with a tail
+        solve, an extrapolated tail or a divergent series."""
+        if not (self.converges and self.tail is None and not self.extrapolate):
+            return None
         r = self.rho if self.ratio is None else self.ratio
-        tail = r**self.bounces / (1 - r) if marched else None
+        return r**self.bounces / (1 - r)
+
+    def as_dict(self) -> dict:
         return {
             "geometry": (self.geometry or Plane()).as_dict(),
             "width": self.grid.width,
@@ -60,7 +67,7 @@ class _Model:
             "series_converges": self.converges,
             "rho_estimate": self.rho,
             "ratio_measured": self.ratio,
-            "tail_bound": tail,
+            "tail_bound": self.tail_bound,
             "extrapolated": self.extrapolate,
             "tail": None
             if self.tail is None
