@@ -9,7 +9,13 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.inverse.basins import Scan, basin_of, basins, local_minima, worse_basin
-from lightfield_jax.inverse.trust import error_budget, noise_scale, untrustworthy
+from lightfield_jax.inverse.trust import (
+    CONSISTENCY_P,
+    error_budget,
+    noise_scale,
+    split_groups,
+    untrustworthy,
+)
 
 
 def _two_wells(deep=(10, 28), shallow=(2, 4), depth_ratio=3.0):
@@ -152,3 +158,58 @@ def test_an_extrapolated_scan_finds_a_high_albedo_basin():
     assert abs(best.g - g) <= 0.5 * (gs[1] - gs[0]) + 1e-9, found
     assert abs(best.albedo - ss / st) <= 0.5 * (albedos[1] - albedos[0]) + 1e-9, found
     assert np.all((ratios > 0) & (ratios < 1)) and np.all(refs > 0)
+
+
+def test_split_groups_cut_by_distance_from_the_wall_and_by_the_stripes():
+    pattern = lfj.Stripes(6, 3, (0, 1))
+    groups = split_groups((2, 12, 8), pattern)
+    near = groups["near/far"].reshape(2, 12, 8)
+    assert (near[:, :, :4] == 0).all() and (near[:, :, 4:] == 1).all()
+    lit = groups["lit/dark"].reshape(2, 12, 8)
+    assert list(lit[0, :, 0]) == [0, 0, 0, 1, 1, 1] * 2  # row r lit iff (r + 0) % 6 < 3
+    assert list(lit[1, :, 0]) == [0, 0, 1, 1, 1, 0] * 2  # phase 1
+    assert (lit == lit[:, :, :1]).all()  # a lit row is lit along its whole length
+    right = split_groups((1, 4, 6), lfj.Stripes(6, 3, (0,), entry="right"))["near/far"]
+    assert list(right.reshape(4, 6)[0]) == [1, 1, 1, 0, 0, 0]
+    top = split_groups((1, 6, 4), lfj.Stripes(6, 3, (0,), entry="top"))
+    assert list(top["near/far"].reshape(6, 4)[:, 0]) == [0, 0, 0, 1, 1, 1]
+    assert list(top["lit/dark"].reshape(6, 4)[0]) == [0, 0, 0, 1]  # columns are the cells
+
+
+def _least_squares_residual(jac, data):
+    """r = J·p̂ − y at the least-squares answer p̂ (the fit's sign: model − capture)."""
+    p_hat = np.linalg.lstsq(jac, data, rcond=None)[0]
+    return jac @ p_hat - data, p_hat
+
+
+def test_consistency_adds_a_model_term_only_where_the_parts_disagree():
+    rng = np.random.default_rng(3)
+    n, alpha = 400, 1e-4
+    jac = rng.normal(size=(n, 3))
+    names = ["sigma_t", "sigma_s", "g"]
+    group = (np.arange(n) >= n // 2).astype(np.int8)
+    p_true = np.array([0.2, 0.1, 0.5])
+    noise = np.sqrt(alpha) * rng.normal(size=n)
+    # A right model: the two halves agree within their noise; no model term.
+    residual, _ = _least_squares_residual(jac, jac @ p_true + noise)
+    right = error_budget(jac, residual, names, alpha, groups={"halves": group})
+    assert right.consistency["halves"]["p"] > CONSISTENCY_P
+    assert all(math.isnan(right.model[k]) for k in names) and not right.model_limited
+    # The second half's data want other parameters (a model error the noise cannot
+    # explain): the split says so, and each half's answer is recovered from J and r.
+    delta = np.array([0.03, -0.02, 0.05])
+    data = jac @ p_true + noise + np.where(group[:, None] == 1, jac * delta, 0).sum(axis=1)
+    residual, p_hat = _least_squares_residual(jac, data)
+    wrong = error_budget(jac, residual, names, alpha, groups={"halves": group})
+    split = wrong.consistency["halves"]
+    assert split["p"] < 1e-12 and wrong.model_limited
+    # The parts' own answers are p_true and p_true + delta: the larger shift from p̂.
+    expect = np.maximum(abs(p_true - p_hat), abs(p_true + delta - p_hat))
+    assert [split["shift"][k] for k in names] == pytest.approx(expect, abs=5e-3)
+    assert [wrong.model[k] for k in names] == [split["shift"][k] for k in names]
+    assert wrong.total["g"] == pytest.approx(math.hypot(wrong.statistical["g"], wrong.model["g"]))
+    # A finer model's larger shift is kept: the model term is the larger of the two.
+    finer = error_budget(jac, residual, names, alpha, jac @ (10 * delta), {"halves": group})
+    assert finer.model["g"] == pytest.approx(10 * 0.05, rel=1e-6)
+    # Without a measured noise there is nothing to compare the disagreement with.
+    assert error_budget(jac, residual, names, math.nan, groups={"halves": group}).consistency == {}

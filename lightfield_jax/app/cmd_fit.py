@@ -25,17 +25,24 @@ from lightfield_jax.app.cli import (
 
 
 def _fit_summary(fit) -> str:
+    from lightfield_jax.inverse.trust import CONSISTENCY_P
     from lightfield_jax.scene.geometry import describe_geometry
 
     lines = []
     for name, r in zip(fit.channels, fit.results, strict=True):
         u = r.uncertainty
+        split = [k for k, v in r.consistency.items() if v["p"] < CONSISTENCY_P]
+        limited = ""
+        if r.model_limited:
+            limited = "; model-limited (± is mostly the model's error" + (
+                f": the capture's {' and '.join(split)} parts disagree)" if split else ")"
+            )
         lines.append(
             f"[{name}] {r.method}: sigma_t {r.sigma_t:.5g} ± {u.get('sigma_t', float('nan')):.2g}, "
             f"sigma_s {r.sigma_s:.5g} ± {u.get('sigma_s', float('nan')):.2g}, "
             f"g {r.g:.4f} ± {u.get('g', float('nan')):.2g} (per px; albedo {r.albedo:.3f}, "
             f"rho {r.rho:.3f}); {'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
-            f" in {r.iterations} iterations, {r.seconds['total']:.1f} s "
+            f"{limited} in {r.iterations} iterations, {r.seconds['total']:.1f} s "
             f"(compile {r.seconds['compile']:.1f} s); model {describe_geometry(r.model)}, "
             f"{r.model['width']}x{r.model['height']}, n_theta {r.model['n_theta']}, "
             f"K {r.model['bounces']}"

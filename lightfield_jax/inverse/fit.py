@@ -225,6 +225,7 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, *
         chi2_model=budget.chi2_model,
         noise=budget.noise,
         model_limited=budget.model_limited,
+        consistency=budget.consistency,
         converged=bool(values.pop("converged")),
         iterations=int(values.pop("iterations")),
         seconds=seconds,

@@ -44,6 +44,7 @@ from lightfield_jax.inverse.trust import (
     at_bound,
     error_budget,
     noise_scale,
+    split_groups,
     tail_unconverged,
     untrustworthy,
 )
@@ -340,7 +341,8 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     if options.model_error:
         shift, fine, fine_tail, t = _model_shift(data, pattern, last, options)
         count(t)
-    budget = error_budget(last.jac, last.residual, names, noise, shift)
+    groups = split_groups(data.images.shape, pattern)
+    budget = error_budget(last.jac, last.residual, names, noise, shift, groups)
     v = last.values
     reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")

@@ -162,8 +162,12 @@ class FitResult:
     the correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
     ``chi2_dof`` is the misfit against the capture's noise (``noise``: the variance of
     one weighted residual that noise alone gives), ``chi2_model`` against the noise ⊕
-    the model's own error (what the verdict uses); ``model_limited`` is true where the
-    model term is the larger for σt, σs or g. ``converged`` is false, with
+    the model's own error (what the verdict uses). ``consistency`` (joint) holds, per
+    split of the capture in two (``near/far`` from the entry wall, ``lit/dark`` by the
+    stripes), the χ²₃ of the two parts' disagreement, its chance ``p`` and each part's
+    larger shift from the answer: a split with ``p`` below 1e-3 shows a model error the
+    finer model cannot, and its shift enters the model part. ``model_limited`` is true
+    where the model part is the larger for σt, σs or g. ``converged`` is false, with
     ``reasons``, for a solution that is not trustworthy: at a parameter bound, with a
     misfit far above the noise, or in a basin worse than another the scan found.
     ``basins`` (joint) holds the scan and every start tried, with its answer.
@@ -192,6 +196,7 @@ class FitResult:
     chi2_model: float = math.nan
     noise: float = math.nan
     model_limited: bool = False
+    consistency: dict = dataclasses.field(default_factory=dict)
     reasons: tuple[str, ...] = ()
     basins: dict | None = None
 
@@ -238,6 +243,14 @@ class FitResult:
             "chi2_model": _json_float(self.chi2_model),
             "noise": _json_float(self.noise),
             "model_limited": self.model_limited,
+            "consistency": {
+                split: {
+                    "chi2": _json_float(v["chi2"]),
+                    "p": _json_float(v["p"]),
+                    "shift": {k: _json_float(x) for k, x in v["shift"].items()},
+                }
+                for split, v in self.consistency.items()
+            },
             "condition_number": _json_float(self.condition_number),
             "converged": self.converged,
             "reasons": list(self.reasons),

@@ -13,8 +13,18 @@
   says it is larger: Birge's rule).
 - Model error: at the solution, the shift a finer model's residual implies,
   δp = −J⁺·(r_fine − r) (one render with a finer grid, more direction bins and more
-  bounces; no refit). Total = statistical ⊕ model; ``model_limited`` when the model
-  term is the larger for σt, σs or g.
+  bounces; no refit).
+- Consistency between parts of the capture (:func:`split_groups`): the capture is cut
+  in two, by the distance from the entry wall (near half, far half) and by the stripes
+  (lit rows, dark rows), and each part's own least-squares answer is taken from the
+  whole fit's J and r (linearised: δp_A = −(J_AᵀJ_A)⁻¹J_Aᵀr_A; no refit). Where the
+  model explains the capture the two answers differ by their noise alone,
+  (δp_A − δp_B)ᵀ(C_A + C_B)⁻¹(δp_A − δp_B) ~ χ²₃ over σt, σs, g. Where that is
+  significant (p < ``CONSISTENCY_P``) the model misses something the data see (a finer
+  discretisation of the same model cannot show it), and the larger shift of either
+  part from the whole answer is an error of the model: the model term is the larger
+  of this and the finer model's shift. Total = statistical ⊕ model;
+  ``model_limited`` when the model term is the larger for σt, σs or g.
 - Not trustworthy (``converged: false`` with the reason, never converged): a solution
   at a parameter bound, a misfit far above the noise, one in a basin worse than
   another the scan found, or one whose model summed its bounce series' tail with a
@@ -34,6 +44,81 @@ from lightfield_jax.scene.illumination import Stripes
 # below ALBEDO_BOUNDS[0] or above [1], the black level within 0.01 of its range.
 G_BOUND = 0.95
 ALBEDO_BOUNDS = (0.005, 0.995)
+# A split of the capture whose two parts disagree beyond this chance (their noise
+# alone) shows a model error.
+CONSISTENCY_P = 1e-3
+_PHYSICAL = ("sigma_t", "sigma_s", "g")
+
+
+def split_groups(shape: tuple[int, int, int], pattern: Stripes) -> dict[str, np.ndarray]:
+    """Two ways to cut a (P, h, w) capture's residuals in two (0/1 per residual, in
+    the residual's order): ``near/far`` by the distance from the entry wall (the half
+    nearer the wall is 0), ``lit/dark`` by the stripes (pixel rows, or columns for the
+    top and bottom walls, whose wall cell is lit in that image: 0). Each cut depends on
+    the geometry alone, never on the data, so under a right model the two parts' answers
+    differ by their noise alone."""
+    n_img, h, w = shape
+    across_rows = pattern.entry in ("left", "right")
+    extent = w if across_rows else h
+    along = np.arange(extent)
+    if pattern.entry in ("left", "top"):
+        near = along < extent // 2
+    else:
+        near = along >= extent - extent // 2
+    cell = np.arange(h if across_rows else w)
+    phases = np.asarray(pattern.phases)[:, None]
+    lit = (cell[None, :] + phases) % pattern.period < pattern.lit  # (P, cells)
+    if across_rows:
+        near_img = np.broadcast_to(near[None, None, :], (n_img, h, w))
+        lit_img = np.broadcast_to(lit[:, :, None], (n_img, h, w))
+    else:
+        near_img = np.broadcast_to(near[None, :, None], (n_img, h, w))
+        lit_img = np.broadcast_to(lit[:, None, :], (n_img, h, w))
+    return {
+        "near/far": (~near_img).astype(np.int8).reshape(-1),
+        "lit/dark": (~lit_img).astype(np.int8).reshape(-1),
+    }
+
+
+def _chi2_3_sf(x: float) -> float:
+    """P(χ²₃ > x)."""
+    return math.erfc(math.sqrt(x / 2)) + math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
+
+
+def _consistency(jac, residual, names, scale, groups) -> dict:
+    """Per split: χ²₃ of the two parts' disagreement, its chance, and each parameter's
+    larger shift of a part from the whole answer (see the module docstring)."""
+    idx = [names.index(k) for k in _PHYSICAL if k in names]
+    out = {}
+    for label, group in groups.items():
+        parts = []
+        for side in (0, 1):
+            rows = (group == side) & np.any(jac != 0, axis=1)
+            if rows.sum() < 4 * jac.shape[1]:
+                break
+            j, r = jac[rows], residual[rows]
+            try:
+                inv = np.linalg.inv(j.T @ j)
+            except np.linalg.LinAlgError:
+                break
+            parts.append((-inv @ (j.T @ r), scale * inv))
+        if len(parts) < 2 or len(idx) < 3:
+            continue
+        (d0, c0), (d1, c1) = parts
+        diff = (d0 - d1)[idx]
+        cov = (c0 + c1)[np.ix_(idx, idx)]
+        try:
+            t = float(diff @ np.linalg.solve(cov, diff))
+        except np.linalg.LinAlgError:
+            continue
+        if not math.isfinite(t):
+            continue
+        out[label] = {
+            "chi2": t,
+            "p": _chi2_3_sf(t),
+            "shift": {names[i]: float(max(abs(d0[i]), abs(d1[i]))) for i in idx},
+        }
+    return out
 
 
 def noise_scale(images: np.ndarray, weights: np.ndarray, pattern: Stripes) -> float:
@@ -74,6 +159,8 @@ class Uncertainty:
     noise: float
     model_limited: bool
     chi2_model: float = math.nan  # χ²/dof against the noise ⊕ the model's own error
+    # Per split (split_groups): chi2, p and the parts' shifts; {} where not tested.
+    consistency: dict = dataclasses.field(default_factory=dict)
 
 
 def error_budget(
@@ -82,9 +169,12 @@ def error_budget(
     names: list[str],
     noise: float,
     residual_shift: np.ndarray | None = None,
+    groups: dict[str, np.ndarray] | None = None,
 ) -> Uncertainty:
     """Statistical errors from ``jac`` (∂r/∂p, n × p) and the noise α, χ²/dof of
-    ``residual``, and the model term −J⁺·``residual_shift`` (r_fine − r) if given."""
+    ``residual``, and the model term: −J⁺·``residual_shift`` (r_fine − r) if given, or
+    the shift of a part of the capture whose answer disagrees with the other's (per
+    split of ``groups``, :func:`split_groups`; where the noise is known), the larger."""
     jac = np.asarray(jac, np.float64)
     residual = np.asarray(residual, np.float64)
     n, p = jac.shape
@@ -116,12 +206,21 @@ def error_budget(
         model = {k: float(abs(v)) for k, v in zip(names, shift, strict=True)}
         floor = (noise if math.isfinite(noise) else 0.0) + float(dr @ dr) / max(n - p, 1)
         chi2_model = s2 / floor if floor > 0 else math.nan
+    consistency = {}
+    if groups and math.isfinite(chi2):
+        consistency = _consistency(jac, residual, names, scale, groups)
+        for split in consistency.values():
+            if split["p"] < CONSISTENCY_P:
+                for k, v in split["shift"].items():
+                    model[k] = v if not math.isfinite(model[k]) else max(model[k], v)
     total = {
         k: math.hypot(stat[k], model[k]) if math.isfinite(model[k]) else stat[k] for k in names
     }
-    physical = [k for k in ("sigma_t", "sigma_s", "g") if k in names]
+    physical = [k for k in _PHYSICAL if k in names]
     limited = any(math.isfinite(model[k]) and model[k] > stat[k] for k in physical)
-    return Uncertainty(stat, model, total, corr, cond, chi2, noise, limited, chi2_model)
+    return Uncertainty(
+        stat, model, total, corr, cond, chi2, noise, limited, chi2_model, consistency
+    )
 
 
 def at_bound(values: dict, black_range: tuple[float, float] | None = None) -> list[str]:
@@ -179,6 +278,7 @@ __all__ = [
     "at_bound",
     "error_budget",
     "noise_scale",
+    "split_groups",
     "tail_unconverged",
     "untrustworthy",
 ]
