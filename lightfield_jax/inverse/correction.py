@@ -25,6 +25,7 @@ solves on a model of its own.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -107,7 +108,7 @@ def correct(
     values: dict,
     jac_unit,
     black_range: tuple[float, float] | None,
-    max_iterations: int = 8,
+    max_iterations: int = 16,
     noise: float = float("nan"),
 ) -> Correction:
     """Correct ``values`` (σt, σs, g, black_level, gain: the cheap model's answer) to
@@ -119,7 +120,9 @@ def correct(
     level's range when it is fitted (``None``: given); ``noise`` is the variance of
     one weighted residual that the capture's noise gives (NaN: unknown), which sets
     how small a step must be to end the iteration. At most ``max_iterations`` renders
-    at iterates, plus one per parameter for the large model's Jacobian."""
+    at iterates, plus one per parameter for the large model's Jacobian; the iteration
+    ends early where its steps, shrinking at their last rate, would not reach the
+    tolerance within them."""
     names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black_range is not None else [])
     v = {k: float(values[k]) for k in ("sigma_t", "sigma_s", "g", "black_level")}
     gain_cheap = float(values["gain"])
@@ -172,7 +175,7 @@ def correct(
 
     jac_at = None
     best = None  # the lowest misfit rendered: (‖r‖², values, model, tail, residual)
-    for _ in range(max_iterations):
+    for iteration in range(1, max_iterations + 1):
         rendered = v
         unit, tail, failure = drawn(v)
         if failure:
@@ -207,6 +210,14 @@ def correct(
             return stop("converged", ok=True)
         if slow:
             return stop("its steps stopped shrinking")
+        if last_size is not None and len(steps) >= 3:
+            rate = size / last_size
+            need = math.log(STEP_TOLERANCE / size) / math.log(rate) if rate > 0 else 0.0
+            if iteration + need > max_iterations:
+                return stop(
+                    f"its steps shrink by {rate:.2f} per render: no convergence within "
+                    f"{max_iterations} renders at iterates"
+                )
         last_size = size
         for _ in range(6):  # halved until inside the domain
             new = {**v, **{k: v[k] + step[k] for k in names}}

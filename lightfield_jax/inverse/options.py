@@ -82,7 +82,8 @@ class FitOptions:
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
             for primal renders, which need no tangents).
         correction_renders: at most this many renders at iterates in the correction
-            (besides one per parameter for the Jacobian).
+            (besides one per parameter for the Jacobian); it stops sooner where its
+            steps, shrinking at their last rate, would not converge within them.
         max_chi2: χ²/dof against the capture's noise above which a joint fit is not
             trustworthy (its misfit is far above the noise).
         solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
@@ -115,7 +116,7 @@ class FitOptions:
     model_error: bool = True
     correct: bool = True
     max_render_cells: int = 8_000_000
-    correction_renders: int = 8
+    correction_renders: int = 16
     max_chi2: float = 100.0
     solver: optx.AbstractLeastSquaresSolver | None = None
 
