@@ -343,10 +343,6 @@ if __name__ != "__main__":
 
     for _module in ("cmd_simulate", "cmd_fit", "cmd_capture", "cmd_render"):
         importlib.import_module(f"lightfield_jax.app.{_module}")
-    from lightfield_jax.app.cmd_fit import (  # noqa: F401 (re-exported)
-        FIT_N_THETA,
-        RENDER_CELLS_PER_PIXEL,
-    )
 
 
 if __name__ == "__main__":  # pragma: no cover
