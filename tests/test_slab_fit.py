@@ -203,7 +203,16 @@ def _true_slab_fit(medium: str):
         "sigma_s": truth["albedo"] * config["sigma_t"],
         "g": truth["g"],
     }
-    return fit, recovery.errors(fit, config, truth), truth_values
+    err = recovery.errors(fit, config, truth)
+    d = fit.to_dict()
+    print(  # the measurement (pytest -s): docs/slab_depth.md section 6
+        medium,
+        {k: err[k] for k in truth_values},
+        {k: d[k] for k in ("uncertainty", "uncertainty_statistical", "consistency")},
+        {k: d[k] for k in ("model_limited", "converged", "reasons", "chi2_dof", "seconds")},
+        {k: d["model"].get(k) for k in ("n_theta", "bounces", "geometry", "correction")},
+    )
+    return fit, err, truth_values
 
 
 @pytest.mark.slow  # minutes on 2 cores; run with -m slow
