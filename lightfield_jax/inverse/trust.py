@@ -85,24 +85,31 @@ def _chi2_3_sf(x: float) -> float:
     return math.erfc(math.sqrt(x / 2)) + math.sqrt(2 * x / math.pi) * math.exp(-x / 2)
 
 
+def _part(jac, residual, rows, scale):
+    """One part's least-squares shift from the whole answer, linearised
+    (−(J_AᵀJ_A)⁻¹J_Aᵀr_A), and its covariance; ``None`` where the part has too few
+    rows or a singular JᵀJ."""
+    if rows.sum() < 4 * jac.shape[1]:
+        return None
+    j, r = jac[rows], residual[rows]
+    try:
+        inv = np.linalg.inv(j.T @ j)
+    except np.linalg.LinAlgError:
+        return None
+    return -inv @ (j.T @ r), scale * inv
+
+
 def _consistency(jac, residual, names, scale, groups) -> dict:
     """Per split: χ²₃ of the two parts' disagreement, its chance, and each parameter's
     larger shift of a part from the whole answer (see the module docstring)."""
     idx = [names.index(k) for k in _PHYSICAL if k in names]
+    if len(idx) < 3:
+        return {}
+    active = np.any(jac != 0, axis=1)  # masked pixels' rows carry nothing
     out = {}
     for label, group in groups.items():
-        parts = []
-        for side in (0, 1):
-            rows = (group == side) & np.any(jac != 0, axis=1)
-            if rows.sum() < 4 * jac.shape[1]:
-                break
-            j, r = jac[rows], residual[rows]
-            try:
-                inv = np.linalg.inv(j.T @ j)
-            except np.linalg.LinAlgError:
-                break
-            parts.append((-inv @ (j.T @ r), scale * inv))
-        if len(parts) < 2 or len(idx) < 3:
+        parts = [_part(jac, residual, active & (group == side), scale) for side in (0, 1)]
+        if any(part is None for part in parts):
             continue
         (d0, c0), (d1, c1) = parts
         diff = (d0 - d1)[idx]
