@@ -246,13 +246,7 @@ def fit_record_limited(
         request = {
             "images": str(tmp / "images.npy"),
             "out": str(tmp / "record.json"),
-            "pattern": {
-                "period": pattern.period,
-                "lit": pattern.lit,
-                "phases": list(pattern.phases),
-                "direction_deg": pattern.direction_deg,
-                "entry": pattern.entry,
-            },
+            "pattern": pattern.as_dict(),
             "truth": truth,
             "kwargs": kwargs,
             "dtype": dtype,

@@ -51,13 +51,7 @@ def write_capture_yaml(
 
     data = {
         "images": images if isinstance(images, (str, os.PathLike)) else list(images),
-        "pattern": {
-            "period": pattern.period,
-            "lit": pattern.lit,
-            "phases": list(pattern.phases),
-            "direction_deg": pattern.direction_deg,
-            "entry": pattern.entry,
-        },
+        "pattern": pattern.as_dict(),
         "dark_frame": dark_frame,
         "black_level": black_level,
         "medium_roi": medium_roi,

@@ -149,6 +149,16 @@ class Stripes:
     def n_patterns(self) -> int:
         return len(self.phases)
 
+    def as_dict(self) -> dict:
+        """The YAML/JSON form (``Stripes(**d)`` gives it back)."""
+        return {
+            "period": self.period,
+            "lit": self.lit,
+            "phases": list(self.phases),
+            "direction_deg": self.direction_deg,
+            "entry": self.entry,
+        }
+
     @property
     def lit_fraction(self) -> float:
         return self.lit / self.period
