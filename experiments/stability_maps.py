@@ -100,7 +100,7 @@ class Config:
     max_truth_bounces: int
     tolerance: float
     joint_timeout: float
-    albedo_g: dict
+    albedo_g: dict | None = None
     noise: dict | None = None
     period: dict | None = None
     shifts: dict | None = None
@@ -578,8 +578,8 @@ def run(raw: dict, out: Path, ctx) -> dict:
     cache = out / "xla_cache" if config.xla_cache else None
     results = {}
     with inv.precision(config.dtype), inv.xla_cache(cache):
-        cells, rows = _albedo_g(config, ctx)
-        results["albedo_g"] = rows
+        if config.albedo_g:
+            results["albedo_g"] = _albedo_g(config, ctx)[1]
         for name in SWEEPS:
             if getattr(config, name):
                 results[name] = _sweep(name, config, ctx)[1]
@@ -590,8 +590,11 @@ def run(raw: dict, out: Path, ctx) -> dict:
     all_rows = [r for rows in results.values() for r in rows]
     _write_csv(out / "stability.csv", all_rows, starts)
     ctx.write_json("stability.json", inv.jsonable({"fits": all_rows, "starts": starts}))
-    figures = [_plot_albedo_g(config, results["albedo_g"], out)]
-    figures.append(_plot_sweeps(config, results, out))
+    figures = []
+    if "albedo_g" in results:
+        figures.append(_plot_albedo_g(config, results["albedo_g"], out))
+    if any(name in results for name in SWEEPS):
+        figures.append(_plot_sweeps(config, results, out))
     if starts:
         figures.append(_plot_starts(config, starts, out))
     if "high_albedo" in results:
@@ -628,7 +631,11 @@ def _summary(config, results, starts, figures) -> dict:
         "data": ["stability.json", "stability.csv"],
         "failure_counts": {name: _counts(rows) for name, rows in results.items()},
         "albedo_g_failures": {
-            m: [brief(r) for r in results["albedo_g"] if r["method"] == m and r["failure"] != "ok"]
+            m: [
+                brief(r)
+                for r in results.get("albedo_g", ())
+                if r["method"] == m and r["failure"] != "ok"
+            ]
             for m in config.methods
         },
         "sweeps": {
