@@ -650,6 +650,39 @@ def _scene_title(data: dict, name: str) -> str:
     )
 
 
+def _error_time_panel(ax, rows: list[dict], key: str) -> None:
+    """Error ``key`` (%) against render time (ms), one line per refinement labelled with
+    its θ bins, the default grid starred."""
+    styles = {1: ("o", "-"), 2: ("s", "--"), 3: ("^", ":"), 4: ("D", "-.")}
+    for i, refine in enumerate(sorted({r["refine"] for r in rows})):
+        pts = sorted((r for r in rows if r["refine"] == refine), key=lambda r: r["n_theta"])
+        marker, line = styles.get(refine, ("x", "-"))
+        x = [1e3 * r["render_median_s"] for r in pts]
+        y = [100 * r[key] for r in pts]
+        ax.loglog(x, y, marker=marker, ls=line, color=f"C{i}", label=f"refine {refine}")
+        for r, xi, yi in zip(pts, x, y, strict=False):
+            ax.annotate(
+                f"{r['n_theta']}",
+                (xi, yi),
+                textcoords="offset points",
+                xytext=(4, 4),
+                fontsize=7,
+                color=f"C{i}",
+            )
+    for r in rows:
+        if r["is_default"]:
+            ax.loglog(
+                1e3 * r["render_median_s"],
+                100 * r[key],
+                "*",
+                ms=16,
+                mfc="none",
+                mec="k",
+                mew=1.5,
+                label="default grid",
+            )
+
+
 def _plot_error_vs_time(out: Path, scene: Scene, data: dict) -> Path:
     plt = pyplot()
     info = data["scenes"][scene.name]
@@ -658,36 +691,8 @@ def _plot_error_vs_time(out: Path, scene: Scene, data: dict) -> Path:
     totals = [r for r in data["total_vs_bounces"] if r["scene"] == scene.name and r["is_auto"]]
     ncols = len(ks) + (1 if totals else 0)
     fig, axes = plt.subplots(1, ncols, figsize=(4.3 * ncols, 4.4), squeeze=False)
-    styles = {1: ("o", "-"), 2: ("s", "--"), 3: ("^", ":"), 4: ("D", "-.")}
     for ax, k in zip(axes[0], ks, strict=False):
-        sel = [r for r in rows if r["k"] == k]
-        for i, refine in enumerate(sorted({r["refine"] for r in sel})):
-            pts = sorted((r for r in sel if r["refine"] == refine), key=lambda r: r["n_theta"])
-            marker, line = styles.get(refine, ("x", "-"))
-            x = [1e3 * r["render_median_s"] for r in pts]
-            y = [100 * r["error"] for r in pts]
-            ax.loglog(x, y, marker=marker, ls=line, color=f"C{i}", label=f"refine {refine}")
-            for r, xi, yi in zip(pts, x, y, strict=False):
-                ax.annotate(
-                    f"{r['n_theta']}",
-                    (xi, yi),
-                    textcoords="offset points",
-                    xytext=(4, 4),
-                    fontsize=7,
-                    color=f"C{i}",
-                )
-        for r in sel:
-            if r["is_default"]:
-                ax.loglog(
-                    1e3 * r["render_median_s"],
-                    100 * r["error"],
-                    "*",
-                    ms=16,
-                    mfc="none",
-                    mec="k",
-                    mew=1.5,
-                    label="default grid",
-                )
+        _error_time_panel(ax, [r for r in rows if r["k"] == k], "error")
         ax.axhline(100 * info["mc_noise"][k - 1], color="0.5", ls=":", label="MC noise level")
         _log_ticks(ax)
         ax.set_title(f"$I_{k}$ (render of K = {k} bounces)")
@@ -697,33 +702,7 @@ def _plot_error_vs_time(out: Path, scene: Scene, data: dict) -> Path:
         ax.legend(fontsize=7)
     if totals:
         ax = axes[0][-1]
-        for i, refine in enumerate(sorted({r["refine"] for r in totals})):
-            pts = sorted((r for r in totals if r["refine"] == refine), key=lambda r: r["n_theta"])
-            marker, line = styles.get(refine, ("x", "-"))
-            x = [1e3 * r["render_median_s"] for r in pts]
-            y = [100 * r["error_total"] for r in pts]
-            ax.loglog(x, y, marker=marker, ls=line, color=f"C{i}", label=f"refine {refine}")
-            for r, xi, yi in zip(pts, x, y, strict=False):
-                ax.annotate(
-                    f"{r['n_theta']}",
-                    (xi, yi),
-                    textcoords="offset points",
-                    xytext=(4, 4),
-                    fontsize=7,
-                    color=f"C{i}",
-                )
-            for r in pts:
-                if r["is_default"]:
-                    ax.loglog(
-                        1e3 * r["render_median_s"],
-                        100 * r["error_total"],
-                        "*",
-                        ms=16,
-                        mfc="none",
-                        mec="k",
-                        mew=1.5,
-                        label="default grid",
-                    )
+        _error_time_panel(ax, totals, "error_total")
         ax.axhline(100 * info["mc_noise_total"], color="0.5", ls=":", label="MC noise level")
         _log_ticks(ax)
         ax.set_title(f"total image, K = auto = {info['auto_bounces']} bounces")

@@ -59,7 +59,6 @@ import warnings
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
@@ -203,21 +202,11 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: Co
     """
     load = os.getloadavg()[0]
     t_start = time.perf_counter()
-    dtype = jnp.result_type(float)
     data = lfi.prepare_data(images, pattern, black_level=0.0, split=split)
     data = data.cropped(tuple(model["crop"]))
     grid = lfj.Grid(*data.mask.shape[::-1], model["n_theta"], model["refine"])
     renderer = lfj.Renderer(grid, lfi.full_for(pattern), model["bounces"], "paper")
-    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
-    args = (
-        renderer,
-        jnp.asarray(data.sigma_t0, dtype),
-        jnp.asarray(data.direct, dtype),
-        jnp.asarray(data.multiple, dtype),
-        jnp.asarray(data.mask),
-        jnp.linspace(-0.95, 0.95, config.start_grid, dtype=dtype),
-        jnp.asarray(scale, dtype),
-    )
+    args = lfi.problem_arrays(data, renderer, config.start_grid)
     with warnings.catch_warnings(), stopwatch() as timing:
         warnings.filterwarnings("ignore", category=DeprecationWarning, module="jaxopt")
         out = _jaxopt_jitted(solver, config.max_steps, *args)

@@ -11,7 +11,8 @@ instead of copying them.
   paper's eq. 10 with its Jacobian (:func:`two_step_residual`, the images' slope along g
   from :func:`rendered_and_g_slope`), the per-g σs polynomial fit
   (:func:`poly_fit_sigma_s`), the search over g (:func:`search_g`) and the solve's
-  parametrisation and start (:func:`to_params`, :func:`search_start`).
+  parametrisation and start (:func:`to_params`, :func:`search_start`) and the
+  program's data arguments (:func:`problem_arrays`).
 - The joint problem (:mod:`lightfield_jax.inverse.joint`): its compiled solve
   (:func:`solve_joint`, :class:`JointSettings`), the model at unit gain
   (:func:`unit_model`, :func:`model_at`), the parametrisation (:func:`pack`,
@@ -42,6 +43,7 @@ from lightfield_jax.inverse.two_step import TwoStepSolution as TwoStepSolution
 from lightfield_jax.inverse.two_step import full_for as full_for
 from lightfield_jax.inverse.two_step import masked_dot as masked_dot
 from lightfield_jax.inverse.two_step import poly_fit_sigma_s as poly_fit_sigma_s
+from lightfield_jax.inverse.two_step import problem_arrays as problem_arrays
 from lightfield_jax.inverse.two_step import rendered_and_g_slope as rendered_and_g_slope
 from lightfield_jax.inverse.two_step import search_g as search_g
 from lightfield_jax.inverse.two_step import search_start as search_start
@@ -67,6 +69,7 @@ __all__ = [
     "monte_carlo_slab",
     "pack",
     "poly_fit_sigma_s",
+    "problem_arrays",
     "prepare_data",
     "reference_sigma_s",
     "rendered_and_g_slope",

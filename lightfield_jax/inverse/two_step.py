@@ -255,6 +255,25 @@ class TwoStepSolution:
     compile: float
 
 
+def problem_arrays(data: FitData, renderer, n_g: int) -> tuple:
+    """The arguments of the two-step program after its static settings: ``(renderer,
+    σt, D, M, mask, g values, scale)``, each value that depends on the data an argument
+    rather than a constant of the program (a persistent compilation cache then serves
+    any capture of this shape). ``scale``, the RMS of M, puts the residuals in units of
+    the data, so solver tolerances mean the same for any exposure."""
+    dtype = jnp.result_type(float)
+    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
+    return (
+        renderer,
+        jnp.asarray(data.sigma_t0, dtype),
+        jnp.asarray(data.direct, dtype),
+        jnp.asarray(data.multiple, dtype),
+        jnp.asarray(data.mask),
+        jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
+        jnp.asarray(scale, dtype),
+    )
+
+
 def solve_two_step(
     data: FitData, renderer, solver, settings: TwoStepSettings, n_g: int
 ) -> TwoStepSolution:
@@ -267,21 +286,8 @@ def solve_two_step(
     σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
     derivative in σs is exact without the renderer, and one forward-mode pass through
     the renderer along g gives the Jacobian of each step."""
-    dtype = jnp.result_type(float)
-    # Residuals in units of the data's RMS, so solver tolerances mean the same for any
-    # exposure.
-    scale = float(np.sqrt(np.mean(np.square(data.multiple[data.mask])))) or 1.0
-    # Every value that depends on the data is an argument, not a constant of the
-    # program: a persistent compilation cache then serves any capture of this shape.
-    args = (
-        renderer,
-        jnp.asarray(data.sigma_t0, dtype),
-        jnp.asarray(data.direct, dtype),
-        jnp.asarray(data.multiple, dtype),
-        jnp.asarray(data.mask),
-        jnp.linspace(-0.95, 0.95, n_g, dtype=dtype),
-        jnp.asarray(scale, dtype),
-    )
+    args = problem_arrays(data, renderer, n_g)
+    scale = float(args[-1])
     run = jitted(_two_step_run, ("settings", "solver_static"))
     arrays, static = eqx.partition(solver, eqx.is_array)
     with stopwatch() as timing:
