@@ -1,0 +1,122 @@
+"""More hostile inputs (after tests/test_hostile.py): values a file may hold that the
+work would otherwise ignore, replace quietly, or turn into an overflow. Each is refused
+with one line naming the file, the key and the value, exit status 2, before the work."""
+
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lightfield_jax.app.cli import XLA_CACHE_ENV, main
+from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+H, W = 24, 32
+SIMULATE = f"""\
+grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
+medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}}
+illumination: {{kind: stripes, period: 6, lit: 3}}
+gain: 400.0
+black_level: 0.02
+dark_level: 0.01
+noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
+"""
+
+
+@pytest.fixture(autouse=True)
+def _environment(monkeypatch):
+    monkeypatch.setenv(XLA_CACHE_ENV, "off")
+    monkeypatch.delenv(MAX_MEMORY_ENV, raising=False)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """The milk as a 32x24 six-shift stripe capture with a dark frame."""
+    folder = tmp_path_factory.mktemp("hostile_more")
+    (folder / "sim.yaml").write_text(SIMULATE)
+    assert main(["simulate", str(folder / "sim.yaml"), "--out", str(folder / "cap"), "-q"]) == 0
+    return folder / "cap"
+
+
+@pytest.fixture
+def capture(simulated, tmp_path):
+    folder = tmp_path / "cap"
+    shutil.copytree(simulated, folder)
+    return folder
+
+
+def _refused(capsys, *argv, match: str) -> str:
+    """The command exits 2 with one error line containing ``match``."""
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    lines = err.splitlines()
+    assert status == 2, (status, out, err)
+    assert len(lines) == 1 and lines[0].startswith("lightfield-jax: error: "), err
+    assert match in lines[0], lines[0]
+    return lines[0]
+
+
+def _edit(folder: Path, **changes) -> Path:
+    path = folder / "capture.yaml"
+    data = yaml.safe_load(path.read_text())
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+# ------------------------------------------------------------- a capture's fit: settings
+
+
+@pytest.mark.parametrize(
+    ("fit", "match"),
+    [
+        ({"bounces": 0}, "fit: bounces: must be an integer >= 1 or 'auto', got 0"),
+        ({"bounces": -3}, "fit: bounces: must be an integer >= 1 or 'auto', got -3"),
+        ({"n_theta": 1}, "fit: n_theta: must be a multiple of 8 (>= 8), got 1"),
+        ({"refine": 0}, "fit: refine: must be an integer in [1, 8], got 0"),
+        ({"max_cells": 0}, "fit: max_cells: must be an integer >= 1, got 0"),
+        ({"max_steps": 0}, "fit: max_steps: must be an integer >= 1, got 0"),
+        ({"max_bounces": 0}, "fit: max_bounces: must be an integer >= 1, got 0"),
+        ({"start_grid": 0}, "fit: start_grid: must be at least 3, got 0"),
+        ({"tolerance": 0.0}, "fit: tolerance: must lie in (0, 1), got 0.0"),
+        ({"crop_fraction": 5.0}, "fit: crop_fraction: must lie in [0, 1)"),
+        ({"rtol": -1.0}, "fit: rtol: must be a finite number >= 0 or None, got -1.0"),
+        ({"max_chi2": 0.0}, "fit: max_chi2: must be > 0, got 0.0"),
+    ],
+)
+def test_fit_settings_out_of_range_are_refused_on_loading(capture, capsys, fit, match):
+    """Before: a bounce count below 1 became 2, max_cells 0 and crop_fraction 5 were
+    ignored, max_steps 0 made a fit that "did not converge", all after the work."""
+    _edit(capture, fit=fit)
+    line = _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+    assert str(capture / "capture.yaml") in line
+
+
+def test_fit_options_refuse_out_of_range_values():
+    from lightfield_jax import FitOptions
+
+    FitOptions(bounces=1, n_theta=8, refine=8, rtol=0.0, atol=None, crop_fraction=0.0)
+    for bad in (
+        {"bounces": True},
+        {"phase": "nonsense"},
+        {"tolerance": float("nan")},
+        {"atol": float("inf")},
+        {"n_theta": 12},
+        {"refine": 9},
+        {"max_chi2": float("nan")},
+    ):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            FitOptions(**bad)
+
+
+@pytest.mark.parametrize(
+    "fit", [{"n_theta": 2**30}, {"n_theta": 2**16}, {"refine": 8, "n_theta": 4096}]
+)
+def test_fixed_model_sizes_count_in_the_fits_memory_estimate(capture, capsys, tmp_path, fit):
+    """θ bins and a refinement the capture fixes are not lowered to max_cells: before,
+    the estimate ignored them and the fit ran out of memory (or was killed)."""
+    _edit(capture, fit=fit)
+    out = tmp_path / "r.json"
+    argv = ("fit", capture / "capture.yaml", "--out", out, "--max-memory", "8G")
+    _refused(capsys, *argv, match="the fit needs about")
+    assert not out.exists()
