@@ -120,3 +120,30 @@ def test_fixed_model_sizes_count_in_the_fits_memory_estimate(capture, capsys, tm
     argv = ("fit", capture / "capture.yaml", "--out", out, "--max-memory", "8G")
     _refused(capsys, *argv, match="the fit needs about")
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ simulate: float32
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"gain": 1e39}, "gain: must be at most 1e+30 (images are float32), got 1e+39"),
+        ({"dark_level": 1e300}, "dark_level: must be at most 1e+30"),
+        ({"noise": {"read": 1e300}}, "noise.read: must be at most 1e+30"),
+        ({"noise": {"photons": 1e300}}, "noise.photons: 1e+300 photons at image value 1.0"),
+        ({"dark_level": 1e12}, "noise.photons: 100000.0 photons"),
+        ({"medium": {"sigma_t": 1e39, "sigma_s": 1e38, "g": 0.4}}, "medium.sigma_t: must lie in"),
+        ({"medium": {"sigma_t": 1e-40, "sigma_s": 1e-41, "g": 0.4}}, "medium.sigma_t: must lie"),
+    ],
+)
+def test_simulate_values_beyond_float32_are_refused(tmp_path, capsys, change, match):
+    """Before: a gain of 1e39 wrote NaN images with exit status 0; a huge photon count,
+    gain or dark level ended in numpy's 'lam value too large' after the render; σt of
+    1e-40 (0 in float32) in 'bounces: cannot convert float NaN to integer'."""
+    config = yaml.safe_load(SIMULATE)
+    config.update(change)
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=match)
+    assert str(path) in line and not (tmp_path / "o").exists()
