@@ -2,9 +2,11 @@
 work would otherwise ignore, replace quietly, or turn into an overflow. Each is refused
 with one line naming the file, the key and the value, exit status 2, before the work."""
 
+import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -147,3 +149,50 @@ def test_simulate_values_beyond_float32_are_refused(tmp_path, capsys, change, ma
     path.write_text(yaml.safe_dump(config))
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=match)
     assert str(path) in line and not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------ render: results
+
+
+def _results(capture: Path, tmp_path: Path, **changes) -> Path:
+    """A results file as lightfield-jax fit writes it (the keys render reads)."""
+    model = {"width": W, "height": H, "n_theta": 16, "refine": 1, "bounces": 4}
+    model.update(changes.pop("model", {}))
+    data = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "gain": 400.0, "phase": "paper"}
+    data.update(changes)
+    data["model"] = {**model, "crop": [0, 0, W, H], "geometry": {"kind": "plane"}}
+    data["capture"] = str(capture / "capture.yaml")
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [
+        ({"model": {"bounces": 10**9}}, "channel Y: the render needs about"),
+        ({"model": {"width": 10**7}}, "channel Y: the render needs about"),
+        ({"sigma_t": -1.0}, "channel Y: medium.sigma_t: must be > 0"),
+        ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),
+        ({"model": {"n_theta": 7}}, "channel Y: grid.n_theta: must be a multiple of 8"),
+        ({"model": {"bounces": 0}}, "channel Y: bounces: must be a positive integer"),
+        ({"gain": -5.0}, "channel Y: gain: must lie in (0, 1e+30], got -5.0"),
+        ({"gain": 1e39}, "channel Y: gain: must lie in (0, 1e+30], got 1e+39"),
+    ],
+)
+def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, changes, match):
+    """Before: a bounce count of 1e9 ended in XLA's RESOURCE_EXHAUSTED traceback, a
+    width of 1e7 in a MemoryError after 40 s, a negative or huge gain rendered negative
+    or non-finite images, and the model's errors did not name the results file."""
+    results = _results(capture, tmp_path, **changes)
+    line = _refused(
+        capsys, "render", results, "--out", tmp_path / "r", "--max-memory", "8G", match=match
+    )
+    assert line.startswith(f"lightfield-jax: error: {results}: ")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
+    results = _results(capture, tmp_path)
+    assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
+    assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
