@@ -196,3 +196,53 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     results = _results(capture, tmp_path)
     assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
     assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
+
+
+# ------------------------------------------------------------------ smaller
+
+
+def test_a_period_below_2_is_named_before_the_phases(capture, capsys, tmp_path):
+    """Before: 'pattern.phases: [0, 1, ...] outside [0, period) = [0, 0)' (and
+    'illumination.shifts: must be an integer in [1, period] = [1, 0]')."""
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    for period in (0, -6, 1):
+        _edit(capture, pattern={**pattern, "period": period})
+        _refused(
+            capsys,
+            *("inspect", capture / "capture.yaml"),
+            match=f"pattern.period: must be an integer >= 2, got {period}",
+        )
+    config = yaml.safe_load(SIMULATE)
+    config["illumination"]["period"] = 0
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    _refused(
+        capsys,
+        *("simulate", path, "--out", tmp_path / "o"),
+        match="illumination.period: must be an integer >= 2, got 0",
+    )
+
+
+@pytest.mark.parametrize(
+    ("truth", "match"),
+    [
+        ({"sigma_t": -1.0}, "truth.sigma_t: must be > 0"),
+        ({"sigma_t": 0.2, "sigma_s": 5.0}, "truth.sigma_s: must satisfy 0 <= sigma_s <= sigma_t"),
+        ({"g": 3.0}, "truth.g: must satisfy -1 < g < 1, got 3.0"),
+        ({"gain": 0.0}, "truth.gain: must be > 0"),
+        ({"black_level": 1.5}, "truth.black_level: must lie in [0, 1)"),
+    ],
+)
+def test_an_impossible_truth_is_refused(capture, capsys, truth, match):
+    """Before: accepted, and the fit's report compared its answer with it."""
+    _edit(capture, truth=truth)
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
+def test_memory_sizes_below_a_byte_and_empty_demo_methods_are_refused(capture, capsys, tmp_path):
+    """Before: --max-memory 0.0001 was a limit of 0 B; demo --methods ',' simulated the
+    milk and wrote a folder without a fit."""
+    status = main(["inspect", str(capture / "capture.yaml"), "--max-memory", "0.0001"])
+    assert status == 2 and "memory size: expected a size" in capsys.readouterr().err
+    _refused(capsys, "demo", "--out", tmp_path / "d", "--methods", " , ", match="names no method")
+    assert not (tmp_path / "d").exists()

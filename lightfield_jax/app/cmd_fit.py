@@ -264,6 +264,8 @@ def _demo(args: argparse.Namespace) -> int | None:
     for m in methods:
         if m not in ("grid", "gradient", "joint"):
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
+    if not methods:
+        raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
     _outputs(folders=[args.out])
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")

@@ -482,6 +482,8 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     if kind == "full":
         return _build(s, Full, direction_deg=direction, entry=entry)
     period, lit = s.int("period", 6), s.int("lit", 3)
+    if period < 2:  # before the shifts and phases, which count rows modulo it
+        s.fail(s.key("period"), f"must be an integer >= 2, got {period}")
     if period > max(grid.width, grid.height):
         s.fail(
             s.key("period"),
