@@ -246,3 +246,22 @@ def test_memory_sizes_below_a_byte_and_empty_demo_methods_are_refused(capture, c
     assert status == 2 and "memory size: expected a size" in capsys.readouterr().err
     _refused(capsys, "demo", "--out", tmp_path / "d", "--methods", " , ", match="names no method")
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize(
+    ("images", "pattern", "match"),
+    [
+        (np.ones((6, H, W), np.complex64), "stripes", "images: must be real numbers, got dtype"),
+        (np.zeros((6, 0, 0), np.float32), "stripes", r"height and width >= 2\), got shape"),
+        (np.ones((6, 1, 1), np.float32), "stripes", r"height and width >= 2\), got shape"),
+        (np.ones((6, H, W), np.float32), None, "pattern: must be a Stripes, got NoneType"),
+    ],
+)
+def test_fit_images_refuses_arrays_that_are_not_images(images, pattern, match):
+    """Before: complex images lost their imaginary part with a numpy warning and were
+    fitted; (6, 0, 0) ended in 'zero-size array to reduction operation max'; a pattern
+    of None in an AttributeError."""
+    import lightfield_jax as lfj
+
+    with pytest.raises(ValueError, match=match):
+        lfj.fit_images(images, lfj.Stripes() if pattern == "stripes" else pattern)
