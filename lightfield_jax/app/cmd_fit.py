@@ -190,8 +190,13 @@ def _fit(args: argparse.Namespace) -> int | None:
     _outputs(files=[out, *figures], inputs=inputs)
     h, w = capture.shape
     defaults = FitOptions(**capture.fit_options)
-    cells = min(h * w * FIT_N_THETA, defaults.max_cells)
-    rendered = min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells)
+    # θ bins or a refinement fixed by the capture's fit: settings are never lowered to
+    # max_cells, so they bound the model from below.
+    fixed = h * w * (defaults.n_theta or FIT_N_THETA) * (defaults.refine or 1) ** 2
+    if defaults.n_theta is None and defaults.refine is None:
+        fixed = 0
+    cells = max(min(h * w * FIT_N_THETA, defaults.max_cells), fixed)
+    rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells), fixed)
     check_memory(
         max(
             fit_bytes(capture.images.size, capture.n_images, cells),
@@ -259,6 +264,8 @@ def _demo(args: argparse.Namespace) -> int | None:
     for m in methods:
         if m not in ("grid", "gradient", "joint"):
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
+    if not methods:
+        raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
     _outputs(folders=[args.out])
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")

@@ -302,6 +302,14 @@ def _as_int(section: _Section, where: str, value: Any) -> int:
 # --------------------------------------------------------------------------- simulate
 
 
+# Images are rendered and written in float32 (at most 3.4e38): image-unit values (gain,
+# dark level, read noise) and σt are kept far inside its range; the shot-noise draw
+# counts photons in 64-bit integers (at most 9.2e18), so photons × (gain + dark level),
+# about the largest count, is kept below MAX_PHOTONS.
+MAX_VALUE = 1e30
+MAX_PHOTONS = 1e15
+
+
 @dataclasses.dataclass(frozen=True)
 class MediumConfig:
     """The medium's parameters as plain floats (per pixel); see :class:`Medium`.
@@ -316,6 +324,11 @@ class MediumConfig:
     phase: Literal["paper", "normalized"] = "paper"
 
     def __post_init__(self):
+        if 0 < self.sigma_t < 1 / MAX_VALUE or self.sigma_t > MAX_VALUE:
+            raise ValueError(
+                f"medium.sigma_t: must lie in [{1 / MAX_VALUE:g}, {MAX_VALUE:g}] per pixel "
+                f"(the render is float32), got {self.sigma_t!r}"
+            )
         self.medium()
 
     def medium(self) -> Medium:
@@ -469,6 +482,8 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     if kind == "full":
         return _build(s, Full, direction_deg=direction, entry=entry)
     period, lit = s.int("period", 6), s.int("lit", 3)
+    if period < 2:  # before the shifts and phases, which count rows modulo it
+        s.fail(s.key("period"), f"must be an integer >= 2, got {period}")
     if period > max(grid.width, grid.height):
         s.fail(
             s.key("period"),
@@ -494,11 +509,21 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     )
 
 
+def _at_most(s: _Section, key: str, value: float, limit: float = MAX_VALUE) -> None:
+    if value > limit:
+        s.fail(key, f"must be at most {limit:g} (images are float32), got {value!r}")
+
+
 def _camera(top: _Section, illumination: Illumination) -> dict:
     """The optional gain, noise, black-level and dark-level keys."""
     gain = top.float("gain", 1.0)
     if gain <= 0:
         top.fail("gain", f"must be > 0, got {gain!r}")
+    _at_most(top, "gain", gain)
+    dark_level = top.float("dark_level", None)
+    if dark_level is not None and dark_level < 0:
+        top.fail("dark_level", f"must be >= 0 (image units), got {dark_level!r}")
+    _at_most(top, "dark_level", dark_level or 0.0)
     noise = None
     if "noise" in top.data:
         s = top.section("noise", _NOISE_KEYS)
@@ -507,9 +532,17 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
         photons = s.float("photons", None)
         if photons is not None and photons <= 0:
             s.fail(s.key("photons"), f"must be > 0, got {photons!r}")
+        if photons is not None and photons * (gain + (dark_level or 0.0)) > MAX_PHOTONS:
+            s.fail(
+                s.key("photons"),
+                f"{photons!r} photons at image value 1.0 times the brightest value (gain + "
+                f"dark_level = {gain + (dark_level or 0.0):g}) exceeds {MAX_PHOTONS:g}, "
+                "more photons than the shot-noise draw counts",
+            )
         read = s.float("read", 0.0)
         if read < 0:
             s.fail(s.key("read"), f"must be >= 0 (image units), got {read!r}")
+        _at_most(s, s.key("read"), read)
         seed = s.int("seed", 0)
         if seed < 0:
             s.fail(s.key("seed"), f"must be a non-negative integer, got {seed!r}")
@@ -520,9 +553,6 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
             top.fail("black_level", "applies only to illumination kind stripes")
         if not 0.0 <= black_level < 1.0:
             top.fail("black_level", f"must lie in [0, 1), got {black_level!r}")
-    dark_level = top.float("dark_level", None)
-    if dark_level is not None and dark_level < 0:
-        top.fail("dark_level", f"must be >= 0 (image units), got {dark_level!r}")
     return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
 
 

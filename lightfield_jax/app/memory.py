@@ -31,9 +31,10 @@ class MemoryLimitError(ValueError):
 def parse_size(text: str) -> int:
     """``"8G"``, ``"512M"``, ``"2.5GiB"``, ``"1000000"`` (bytes) → bytes."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:I?B)?\s*", str(text).upper())
-    if m is None or float(m.group(1)) <= 0:
+    nbytes = 0 if m is None else int(float(m.group(1)) * _UNITS[m.group(2)])
+    if nbytes < 1:  # also a fraction of a byte
         raise ValueError(f"memory size: expected a size such as 8G or 512M, got {text!r}")
-    return int(float(m.group(1)) * _UNITS[m.group(2)])
+    return nbytes
 
 
 def format_size(nbytes: float) -> str:

@@ -85,6 +85,8 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
     ``"auto"`` (measured from the images)."""
     s = top.section("pattern", _PATTERN_KEYS)
     spec: dict[str, Any] = {"period": s.int("period", 6), "lit": s.int("lit", 3)}
+    if spec["period"] < 2:  # before the phases, which count rows modulo it
+        s.fail(s.key("period"), f"must be an integer >= 2, got {spec['period']}")
     if spec["period"] > max(height, width):
         s.fail(
             s.key("period"),
@@ -253,6 +255,19 @@ def _truth(top: _Section) -> dict[str, Any] | None:
         return None
     s = top.section("truth", _TRUTH_KEYS)
     truth: dict[str, Any] = {k: s.float(k) for k in _TRUTH_FLOATS if k in s.data}
+    # The ranges of a medium (a report compares the fit with these).
+    t, v = truth.get("sigma_t"), truth.get("sigma_s")
+    if t is not None and t <= 0:
+        s.fail(s.key("sigma_t"), f"must be > 0 (per pixel), got {t!r}")
+    if v is not None and not 0 <= v <= (math.inf if t is None else t * (1 + 1e-6)):
+        bound = "" if t is None else f" <= sigma_t = {t!r}"
+        s.fail(s.key("sigma_s"), f"must satisfy 0 <= sigma_s{bound}, got {v!r}")
+    if "g" in truth and not -1 < truth["g"] < 1:
+        s.fail(s.key("g"), f"must satisfy -1 < g < 1, got {truth['g']!r}")
+    if "gain" in truth and truth["gain"] <= 0:
+        s.fail(s.key("gain"), f"must be > 0, got {truth['gain']!r}")
+    if "black_level" in truth and not 0 <= truth["black_level"] < 1:
+        s.fail(s.key("black_level"), f"must lie in [0, 1), got {truth['black_level']!r}")
     if "phase" in s.data:
         truth["phase"] = s.choice("phase", PHASE_CONVENTIONS)
     return truth

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from lightfield_jax.app.config import MAX_VALUE
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
 from lightfield_jax.scene.geometry import parse_geometry
 from lightfield_jax.scene.grid import Grid
@@ -40,14 +41,30 @@ def full_light(illumination) -> Beam | Full:
 
 
 def render_transport(
-    medium: Medium, grid: Grid, light, bounces, *, gain=1.0, geometry=None
+    medium: Medium, grid: Grid, light, bounces, *, gain=1.0, geometry=None, what="the render"
 ) -> tuple[RenderResult, list[str]]:
     """Per-bounce images and (memory allowing) light fields of a scene; notes say what
-    was left out."""
-    resolved, _, rho = resolve_model(medium, grid, geometry)
+    was left out. A render estimated to need more memory than the limit is refused
+    (:func:`~lightfield_jax.app.memory.check_memory`, naming ``what``)."""
+    from lightfield_jax.app.memory import check_memory, render_bytes
+
+    resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces)
     size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
     fields = size <= MAX_LIGHTFIELD_FLOATS
+    g, sigma_t = float(medium.g), float(medium.sigma_t)
+    n_mu = model_geometry.fields_per_bin(g, sigma_t, float(medium.sigma_s) / sigma_t)
+    nbytes = render_bytes(
+        1,
+        resolved.height,
+        resolved.width,
+        resolved.n_theta,
+        refine=resolved.refine,
+        n_mu=n_mu,
+        bounces=k,
+        lightfield=fields,
+    )
+    check_memory(nbytes, what)
     result = render(medium, grid, light, k, gain=gain, lightfield=fields, geometry=geometry)
     if fields:
         return result, []
@@ -126,9 +143,16 @@ def render_results(
         target = folder / name if len(channels) > 1 else folder
         target.mkdir(exist_ok=True)
         m = fit["model"]
+        where = f"{source}: channel {name}"
         geometry = parse_geometry(m.get("geometry"), f"{source}: model.geometry")
-        medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
-        grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+        if not 0 < fit["gain"] <= MAX_VALUE:
+            raise ValueError(f"{where}: gain: must lie in (0, {MAX_VALUE:g}], got {fit['gain']!r}")
+        try:
+            medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
+            grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+            resolve_bounces(0.0, m["bounces"])  # its type; "auto" is resolved below
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
         stage(f"render {name}")
         result, left_out = render_transport(
             medium,
@@ -137,6 +161,7 @@ def render_results(
             m["bounces"],
             gain=fit["gain"],
             geometry=geometry,
+            what=f"{where}: the render",
         )
         notes += [f"[{name}] {n}" for n in left_out]
         written = write_transport(result, target)

@@ -80,11 +80,16 @@ def prepare_data(
     """One channel's :class:`FitData` over the whole image (see :func:`fit_images` for
     the arguments). Raises ``ValueError`` for images of the wrong shape, a ``split`` of
     another shape, or a decay that gives no usable σt."""
-    images = np.asarray(images, dtype=jnp.result_type(float))
-    if images.ndim != 3 or images.shape[0] != pattern.n_patterns:
+    if not isinstance(pattern, Stripes):
+        raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
+    given = np.asarray(images)
+    if given.dtype.kind not in "biuf":  # complex, strings, objects: not intensities
+        raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
+    images = given.astype(jnp.result_type(float))
+    if images.ndim != 3 or images.shape[0] != pattern.n_patterns or min(images.shape[1:]) < 2:
         raise ValueError(
             f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
-            f"phases, got shape {images.shape}"
+            f"phases (height and width >= 2), got shape {images.shape}"
         )
     finite = np.all(np.isfinite(images), axis=0)
     mask = finite if mask is None else (np.asarray(mask, bool) & finite)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import optimistix as optx
 
 from lightfield_jax.forward.tail import TAIL_METHODS
@@ -147,8 +148,53 @@ class FitOptions:
                 f"max_render_cells: must be at least max_cells ({self.max_cells}), got "
                 f"{self.max_render_cells!r}"
             )
+        self._check_ranges()
         check_start(self.start)
         check_solver(self.solver)
+
+    def _check_ranges(self) -> None:
+        """Refuse settings the fit would otherwise ignore or quietly replace (a bounce
+        count below 1 taken as 2, ``max_cells: 0`` or ``crop_fraction: 5`` ignored, a
+        negative tolerance)."""
+        from lightfield_jax.scene.medium import PHASE_CONVENTIONS
+
+        def is_int(v) -> bool:
+            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+        def is_number(v) -> bool:
+            return isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
+
+        if self.phase not in PHASE_CONVENTIONS:
+            raise ValueError(
+                f"phase: must be one of {', '.join(PHASE_CONVENTIONS)}, got {self.phase!r}"
+            )
+        if self.bounces != "auto" and not (is_int(self.bounces) and self.bounces >= 1):
+            raise ValueError(f"bounces: must be an integer >= 1 or 'auto', got {self.bounces!r}")
+        if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
+            raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")
+        if self.n_theta is not None and not (
+            is_int(self.n_theta) and self.n_theta >= 8 and self.n_theta % 8 == 0
+        ):
+            raise ValueError(f"n_theta: must be a multiple of 8 (>= 8), got {self.n_theta!r}")
+        if self.refine is not None and not (is_int(self.refine) and 1 <= self.refine <= 8):
+            raise ValueError(f"refine: must be an integer in [1, 8], got {self.refine!r}")
+        if not (is_int(self.start_grid) and self.start_grid >= 3):
+            raise ValueError(f"start_grid: must be at least 3, got {self.start_grid!r}")
+        for name in ("max_bounces", "max_cells", "max_steps"):
+            value = getattr(self, name)
+            if not (is_int(value) and value >= 1):
+                raise ValueError(f"{name}: must be an integer >= 1, got {value!r}")
+        if not (is_number(self.crop_fraction) and 0.0 <= self.crop_fraction < 1.0):
+            raise ValueError(
+                f"crop_fraction: must lie in [0, 1) (a fraction of the peak), "
+                f"got {self.crop_fraction!r}"
+            )
+        for name in ("rtol", "atol"):
+            value = getattr(self, name)
+            if value is not None and not (is_number(value) and 0.0 <= value < math.inf):
+                raise ValueError(f"{name}: must be a finite number >= 0 or None, got {value!r}")
+        if not (is_number(self.max_chi2) and self.max_chi2 > 0):
+            raise ValueError(f"max_chi2: must be > 0, got {self.max_chi2!r}")
 
 
 @dataclasses.dataclass(frozen=True)
