@@ -176,8 +176,10 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),
         ({"model": {"n_theta": 7}}, "channel Y: grid.n_theta: must be a multiple of 8"),
         ({"model": {"bounces": 0}}, "channel Y: bounces: must be a positive integer"),
-        ({"gain": -5.0}, "channel Y: gain: must lie in (0, 1e+30], got -5.0"),
-        ({"gain": 1e39}, "channel Y: gain: must lie in (0, 1e+30], got 1e+39"),
+        ({"gain": -5.0}, "channel Y: gain: must be a number in (0, 1e+30], got -5.0"),
+        ({"gain": 1e39}, "channel Y: gain: must be a number in (0, 1e+30], got 1e+39"),
+        ({"gain": True}, "channel Y: gain: must be a number in (0, 1e+30], got True"),
+        ({"gain": "400"}, "channel Y: no usable gain"),
     ],
 )
 def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, changes, match):
@@ -199,6 +201,16 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
 
 
 # ------------------------------------------------------------------ smaller
+
+
+def test_a_saturation_beyond_float32_is_refused(capture, capsys):
+    """Before: inspect went on with numpy's 'overflow encountered in cast' warning."""
+    _edit(capture, saturation=1.0e300)
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="saturation: must be at most 3.4e+38 (float32), got 1e+300",
+    )
 
 
 def test_a_period_below_2_is_named_before_the_phases(capture, capsys, tmp_path):

@@ -141,12 +141,16 @@ def render_results(
     files, notes = {}, []
     for name, fit in channels.items():
         target = folder / name if len(channels) > 1 else folder
-        target.mkdir(exist_ok=True)
         m = fit["model"]
         where = f"{source}: channel {name}"
         geometry = parse_geometry(m.get("geometry"), f"{source}: model.geometry")
-        if not 0 < fit["gain"] <= MAX_VALUE:
-            raise ValueError(f"{where}: gain: must lie in (0, {MAX_VALUE:g}], got {fit['gain']!r}")
+        gain = fit.get("gain")
+        if (
+            isinstance(gain, bool)
+            or not isinstance(gain, (int, float))
+            or not 0 < gain <= MAX_VALUE
+        ):
+            raise ValueError(f"{where}: gain: must be a number in (0, {MAX_VALUE:g}], got {gain!r}")
         try:
             medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
             grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
@@ -159,11 +163,12 @@ def render_results(
             grid,
             light,
             m["bounces"],
-            gain=fit["gain"],
+            gain=float(gain),
             geometry=geometry,
             what=f"{where}: the render",
         )
         notes += [f"[{name}] {n}" for n in left_out]
+        target.mkdir(exist_ok=True)
         written = write_transport(result, target)
         about = {
             "results": str(source),
