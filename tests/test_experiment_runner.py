@@ -132,3 +132,24 @@ def test_every_experiment_script_loads_and_every_config_names_one():
         experiment = yaml.safe_load(path.read_text()).get("experiment")
         if experiment is not None:  # the others are simulate configs
             assert experiment in names, (path.name, experiment)
+
+
+def test_every_shipped_experiment_config_is_valid_in_full_and_reduced():
+    """Each experiment config (and its ``reduced:`` form) passes its script's own
+    checks: its typed ``Config``, or its ``_check``; a typo in a config fails here, not
+    after hours of a run."""
+    configs = _experiment.EXPERIMENTS_DIR.parent / "configs"
+    checked = 0
+    for path in sorted(configs.glob("*.yaml")):
+        name = yaml.safe_load(path.read_text()).get("experiment")
+        if name is None:
+            continue
+        script = _experiment._load_script(name)
+        for reduced in (False, True):
+            raw = _experiment.load_experiment_config(path, reduced)
+            if hasattr(script, "Config"):
+                _experiment.typed_config(script.Config, raw)
+            else:
+                script._check(raw)
+            checked += 1
+    assert checked >= 2 * 10
