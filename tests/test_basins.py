@@ -73,6 +73,28 @@ def test_noise_scale_measures_shot_noise_in_weighted_units():
     assert noise_scale(clean, weights, lfj.Stripes()) < 1e-3 * alpha
 
 
+def test_noise_scale_is_the_mean_weighted_variance_where_dark_pixels_are_many():
+    """Shot noise ∝ I (no floor) and a fast decay: most pixels lie below the weights'
+    floor and carry less weighted variance than the bright ones. χ² compares the mean
+    of (w·r)² with α, so α must be that mean (the median of z² was 2.7-11× below it on
+    simulated captures); differences of the residual (the fitted model given) keep a
+    kink of the signal out."""
+    rng = np.random.default_rng(2)
+    x = np.arange(64)
+    step = np.where(x >= 10, 1.5, 1.0)  # a kink: a step of the signal
+    clean = np.broadcast_to(2.0 * np.exp(-0.3 * x) * step, (6, 48, 64))
+    floor = 1e-3 * clean.max()
+    alpha = 1e-4
+    noisy = clean + rng.normal(size=clean.shape) * np.sqrt(alpha * clean)
+    weights = 1.0 / np.sqrt(clean + floor)
+    expected = float(np.mean((weights**2 * alpha * clean)[..., 2:-2]))
+    assert expected < 0.5 * alpha  # the test is about heterogeneous pixels
+    median = float(np.median(((np.diff(noisy, 4, axis=2) / np.sqrt(70)) * weights[..., 2:-2]) ** 2))
+    assert median / 0.45494 < 0.5 * expected  # where the median alone goes wrong
+    got = noise_scale(noisy, weights, lfj.Stripes(), model=clean)
+    assert got == pytest.approx(expected, rel=0.1)
+
+
 def test_model_term_is_the_least_squares_shift_of_the_finer_residual():
     rng = np.random.default_rng(0)
     jac = rng.normal(size=(200, 3))

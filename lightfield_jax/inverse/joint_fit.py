@@ -162,7 +162,7 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
             first.jac_unit,
             BLACK_RANGE if black is None else None,
             options.correction_renders,
-            noise_scale(data.images, weights, pattern),
+            noise_scale(data.images, weights, pattern, first.values["gain"] * first.unit),
         )
     for step in c.steps:
         say(f"    step {step['size']:.2e} ({step['jacobian']} Jacobian)")
@@ -336,7 +336,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
 
     names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if black is None else [])
     fit_black = black is None
-    noise = noise_scale(data.images, last.weights, pattern)
+    noise = noise_scale(data.images, last.weights, pattern, last.values["gain"] * last.unit)
     shift, fine, fine_tail = None, None, None
     if options.model_error:
         shift, fine, fine_tail, t = _model_shift(data, pattern, last, options)

@@ -128,10 +128,17 @@ def _consistency(jac, residual, names, scale, groups) -> dict:
     return out
 
 
-def noise_scale(images: np.ndarray, weights: np.ndarray, pattern: Stripes) -> float:
+def noise_scale(
+    images: np.ndarray, weights: np.ndarray, pattern: Stripes, model: np.ndarray | None = None
+) -> float:
     """α: the variance of one weighted residual w·(model − I) that the capture's noise
-    gives (NaN where it cannot be measured: fewer than 16 pixels along the light)."""
+    gives, measured from 4th differences along the light (NaN where it cannot be
+    measured: fewer than 16 pixels along the light). With ``model`` (the fitted images,
+    like ``images``) the differences are taken of I − model, so that neither the
+    signal's curvature nor its kinks (the entry wall) enter; without it, of I."""
     a = np.asarray(images, np.float64)
+    if model is not None:
+        a = a - np.asarray(model, np.float64)
     w = np.asarray(weights, np.float64)
     axis = 2 if pattern.entry in ("left", "right") else 1
     if a.shape[axis] < 8:
@@ -147,9 +154,21 @@ def noise_scale(images: np.ndarray, weights: np.ndarray, pattern: Stripes) -> fl
     z2 = (d4 * centre_w)[valid] ** 2
     if z2.size < 16:
         return math.nan
-    # The median of a χ²₁ variable is 0.4549 of its mean: robust to the entry wall's
-    # kink and to stray pixels.
-    return float(np.median(z2) / 0.45494)
+    # χ² compares the mean of (w·r)² with α, so α is the mean of z², less stray pixels
+    # (and, without a model, the signal's kinks). The median alone is not that mean:
+    # shot noise is ∝ I while the weights floor at 1e-3 of the peak, so pixels darker
+    # than that carry less weighted variance, and where they are many (a fast decay)
+    # the median is theirs (a backward medium's capture: 11× below the mean). So: a
+    # first scale from the median (that of χ²₁ is 0.4549 of its mean), the mean of what
+    # lies below 1000 of it, then the mean of what lies below 50 of that (χ²₁ exceeds
+    # 50 with chance 2e-12).
+    alpha = float(np.median(z2) / 0.45494)
+    for limit in (1000.0, 50.0):
+        kept = z2[z2 <= limit * alpha]
+        if kept.size < 16:
+            break
+        alpha = float(np.mean(kept))
+    return alpha
 
 
 @dataclasses.dataclass(frozen=True)
