@@ -48,6 +48,7 @@ def test_forward_accuracy_reduced(tmp_path):
     assert json.dumps(again["summary"]["scenes"]) == json.dumps(summary["scenes"])
 
 
+@pytest.mark.slow  # the default suite keeps to ~10 min on 2 cores
 def test_paper_figures_reduced(tmp_path):
     record = run_experiment(CONFIGS / "paper_figures.yaml", tmp_path, reduced=True)
     summary = record["summary"]

@@ -376,6 +376,7 @@ def test_simulate_config_out_of_range_exits_2(tmp_path, capsys, medium, message)
 # --------------------------------------------------------------------------------- demo
 
 
+@pytest.mark.slow  # the default suite keeps to ~10 min on 2 cores
 def test_demo_with_the_gradient_method(tmp_path, capsys):
     out = tmp_path / "demo"
     status, stdout, err = _run(capsys, "demo", "--out", out, "--methods", "gradient")

@@ -34,6 +34,7 @@ def _values(result: lfj.FitResult) -> np.ndarray:
     return np.array([result.sigma_t, result.sigma_s, result.g, result.gain])
 
 
+@pytest.mark.slow  # the default suite keeps to ~10 min on 2 cores
 def test_joint_with_dogleg_gives_the_levenberg_marquardt_answer():
     start = (0.03, 0.3)
     lm = lfj.fit_images(_images(), lfj.Stripes(), method=lfj.Joint(start=start), **MODEL)
