@@ -128,21 +128,10 @@ def _consistency(jac, residual, names, scale, groups) -> dict:
     return out
 
 
-def noise_scale(
-    images: np.ndarray, weights: np.ndarray, pattern: Stripes, model: np.ndarray | None = None
-) -> float:
-    """α: the variance of one weighted residual w·(model − I) that the capture's noise
-    gives, measured from 4th differences along the light (NaN where it cannot be
-    measured: fewer than 16 pixels along the light). With ``model`` (the fitted images,
-    like ``images``) the differences are taken of I − model, so that neither the
-    signal's curvature nor its kinks (the entry wall) enter; without it, of I."""
-    a = np.asarray(images, np.float64)
-    if model is not None:
-        a = a - np.asarray(model, np.float64)
-    w = np.asarray(weights, np.float64)
-    axis = 2 if pattern.entry in ("left", "right") else 1
-    if a.shape[axis] < 8:
-        return math.nan
+def _fourth_differences(a: np.ndarray, w: np.ndarray, axis: int) -> np.ndarray | None:
+    """The weighted 4th differences along ``axis`` squared, z² (each a χ²₁ times the
+    noise's weighted variance where the signal is smooth), where all five pixels are
+    valid; ``None`` where fewer than 16."""
     d4 = np.diff(a, n=4, axis=axis) / math.sqrt(70.0)
     sl = [slice(None)] * 3
     sl[axis] = slice(2, a.shape[axis] - 2)
@@ -152,23 +141,48 @@ def noise_scale(
         sl[axis] = slice(s, a.shape[axis] - 4 + s)
         valid &= w[tuple(sl)] > 0
     z2 = (d4 * centre_w)[valid] ** 2
-    if z2.size < 16:
+    return z2 if z2.size >= 16 else None
+
+
+def noise_scale(
+    images: np.ndarray, weights: np.ndarray, pattern: Stripes, model: np.ndarray | None = None
+) -> float:
+    """α: the variance of one weighted residual w·(model − I) that the capture's noise
+    gives, measured from 4th differences along the light (NaN where it cannot be
+    measured: fewer than 16 pixels along the light).
+
+    χ² compares the mean of (w·r)² with α, so α is a mean. Without ``model``: the
+    median of the images' squared differences (that of χ²₁ is 0.4549 of its mean),
+    robust to the signal's kinks (the entry wall) but low where pixels differ in
+    weighted variance: shot noise is ∝ I while the weights floor at 1e-3 of the peak,
+    so where dark pixels are many the median is theirs (a backward medium's capture:
+    11× below the mean). With ``model`` (the fitted images, like ``images``): the
+    differences of the residual I − model (the signal's curvature and kinks cancel),
+    their mean less outliers (a median scale, the mean below 1000× it, the mean below
+    50× that: χ²₁ exceeds 50 with chance 2e-12); never below the images' median scale,
+    which on a noiseless capture (float rounding only) keeps the signal's own 4th
+    differences as the floor of what this probe can tell from noise."""
+    a = np.asarray(images, np.float64)
+    w = np.asarray(weights, np.float64)
+    axis = 2 if pattern.entry in ("left", "right") else 1
+    if a.shape[axis] < 8:
         return math.nan
-    # χ² compares the mean of (w·r)² with α, so α is the mean of z², less stray pixels
-    # (and, without a model, the signal's kinks). The median alone is not that mean:
-    # shot noise is ∝ I while the weights floor at 1e-3 of the peak, so pixels darker
-    # than that carry less weighted variance, and where they are many (a fast decay)
-    # the median is theirs (a backward medium's capture: 11× below the mean). So: a
-    # first scale from the median (that of χ²₁ is 0.4549 of its mean), the mean of what
-    # lies below 1000 of it, then the mean of what lies below 50 of that (χ²₁ exceeds
-    # 50 with chance 2e-12).
+    z2 = _fourth_differences(a, w, axis)
+    if z2 is None:
+        return math.nan
+    floor = float(np.median(z2) / 0.45494)
+    if model is None:
+        return floor
+    z2 = _fourth_differences(a - np.asarray(model, np.float64), w, axis)
+    if z2 is None:
+        return floor
     alpha = float(np.median(z2) / 0.45494)
     for limit in (1000.0, 50.0):
         kept = z2[z2 <= limit * alpha]
         if kept.size < 16:
             break
         alpha = float(np.mean(kept))
-    return alpha
+    return max(alpha, floor)
 
 
 @dataclasses.dataclass(frozen=True)
