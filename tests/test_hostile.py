@@ -728,7 +728,7 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
     _refused(
         capsys,
         *("inspect", capture / "capture.yaml"),
-        match="saturation: must be at most 3.4e+38 (float32), got 1e+300",
+        match="saturation: must be at most 1e+30 (images are float32), got 1e+300",
     )
 
 

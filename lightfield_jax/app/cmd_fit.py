@@ -192,9 +192,9 @@ def _fit(args: argparse.Namespace) -> int | None:
     defaults = FitOptions(**capture.fit_options)
     # θ bins or a refinement fixed by the capture's fit: settings are never lowered to
     # max_cells, so they bound the model from below.
-    fixed = h * w * (defaults.n_theta or FIT_N_THETA) * (defaults.refine or 1) ** 2
-    if defaults.n_theta is None and defaults.refine is None:
-        fixed = 0
+    fixed = 0
+    if defaults.n_theta is not None or defaults.refine is not None:
+        fixed = h * w * (defaults.n_theta or FIT_N_THETA) * (defaults.refine or 1) ** 2
     cells = max(min(h * w * FIT_N_THETA, defaults.max_cells), fixed)
     rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells), fixed)
     check_memory(

@@ -9,7 +9,7 @@ import dataclasses
 import math
 from typing import Any
 
-from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _Section, brief
+from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _at_most, _Section, brief
 from lightfield_jax.capture.detect import Geometry
 from lightfield_jax.capture.io import CaptureError
 from lightfield_jax.scene.geometry import parse_geometry
@@ -198,15 +198,12 @@ def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | 
     return (x0, y0, x1, y1)
 
 
-_FLOAT32_MAX = 3.4e38
-
-
 def _positive(top: _Section, key: str) -> float | None:
     value = top.float(key, None)
     if value is not None and value <= 0:
         top.fail(key, f"must be > 0, got {brief(value)}")
-    if value is not None and value > _FLOAT32_MAX:  # images are float32
-        top.fail(key, f"must be at most {_FLOAT32_MAX:.3g} (float32), got {brief(value)}")
+    if value is not None:
+        _at_most(top, key, value)
     return value
 
 

@@ -46,25 +46,13 @@ def render_transport(
     """Per-bounce images and (memory allowing) light fields of a scene; notes say what
     was left out. A render estimated to need more memory than the limit is refused
     (:func:`~lightfield_jax.app.memory.check_memory`, naming ``what``)."""
-    from lightfield_jax.app.memory import check_memory, render_bytes
+    from lightfield_jax.app.memory import check_memory, scene_render_bytes
 
     resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces)
     size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
     fields = size <= MAX_LIGHTFIELD_FLOATS
-    g, sigma_t = float(medium.g), float(medium.sigma_t)
-    n_mu = model_geometry.fields_per_bin(g, sigma_t, float(medium.sigma_s) / sigma_t)
-    nbytes = render_bytes(
-        1,
-        resolved.height,
-        resolved.width,
-        resolved.n_theta,
-        refine=resolved.refine,
-        n_mu=n_mu,
-        bounces=k,
-        lightfield=fields,
-    )
-    check_memory(nbytes, what)
+    check_memory(scene_render_bytes(1, resolved, model_geometry, medium, k, fields), what)
     result = render(medium, grid, light, k, gain=gain, lightfield=fields, geometry=geometry)
     if fields:
         return result, []

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.app.config import SimulationConfig, load_simulation_config
-from lightfield_jax.app.memory import check_memory, render_bytes
+from lightfield_jax.app.memory import check_memory, scene_render_bytes
 from lightfield_jax.app.progress import Stage, quiet
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import RenderResult, render
@@ -170,19 +170,8 @@ def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
     :func:`~lightfield_jax.app.memory.render_bytes`), from the sizes alone."""
     grid = config.grid.resolve(config.medium.g)
-    m = config.medium
-    n_mu = config.geometry.fields_per_bin(m.g, m.sigma_t, m.sigma_s / m.sigma_t)
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
-    return render_bytes(
-        patterns,
-        grid.height,
-        grid.width,
-        grid.n_theta,
-        refine=grid.refine,
-        n_mu=n_mu,
-        bounces=k,
-        lightfield=lightfield,
-    )
+    return scene_render_bytes(patterns, grid, config.geometry, config.medium, k, lightfield)
 
 
 def simulate_capture(

@@ -17,6 +17,8 @@ from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
 from lightfield_jax.inverse.model_size import _phase_integral
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab
+from lightfield_jax.scene.grid import check_n_theta, check_refine
+from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
@@ -156,7 +158,6 @@ class FitOptions:
         """Refuse settings the fit would otherwise ignore or quietly replace (a bounce
         count below 1 taken as 2, ``max_cells: 0`` or ``crop_fraction: 5`` ignored, a
         negative tolerance)."""
-        from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 
         def is_int(v) -> bool:
             return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
@@ -172,12 +173,8 @@ class FitOptions:
             raise ValueError(f"bounces: must be an integer >= 1 or 'auto', got {self.bounces!r}")
         if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
             raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")
-        if self.n_theta is not None and not (
-            is_int(self.n_theta) and self.n_theta >= 8 and self.n_theta % 8 == 0
-        ):
-            raise ValueError(f"n_theta: must be a multiple of 8 (>= 8), got {self.n_theta!r}")
-        if self.refine is not None and not (is_int(self.refine) and 1 <= self.refine <= 8):
-            raise ValueError(f"refine: must be an integer in [1, 8], got {self.refine!r}")
+        check_n_theta(self.n_theta, "n_theta")
+        check_refine(self.refine, "refine")
         if not (is_int(self.start_grid) and self.start_grid >= 3):
             raise ValueError(f"start_grid: must be at least 3, got {self.start_grid!r}")
         for name in ("max_bounces", "max_cells", "max_steps"):

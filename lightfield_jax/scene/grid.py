@@ -48,6 +48,22 @@ def default_n_theta(g: float) -> int:
     return _N_THETA_MAX
 
 
+def check_n_theta(n, key: str = "grid.n_theta") -> None:
+    """Refuse θ bins that are not ``None`` or a multiple of 8 (>= 8), naming ``key``."""
+    if n is not None and (
+        not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 8 or n % 8
+    ):
+        raise ValueError(f"{key}: must be a multiple of 8 (>= 8), got {n!r}")
+
+
+def check_refine(r, key: str = "grid.refine") -> None:
+    """Refuse a refinement that is not ``None`` or an integer in [1, 8], naming ``key``."""
+    if r is not None and (
+        not isinstance(r, (int, np.integer)) or isinstance(r, bool) or not 1 <= r <= 8
+    ):
+        raise ValueError(f"{key}: must be an integer in [1, 8], got {r!r}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Grid:
     """The (x, y, θ) grid. Sizes are static (they set array shapes).
@@ -72,16 +88,8 @@ class Grid:
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 2:
                 raise ValueError(f"grid.{name}: must be an integer >= 2, got {v!r}")
-        n = self.n_theta
-        if n is not None and (
-            not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 8 or n % 8
-        ):
-            raise ValueError(f"grid.n_theta: must be a multiple of 8 (>= 8), got {n!r}")
-        r = self.refine
-        if r is not None and (
-            not isinstance(r, (int, np.integer)) or isinstance(r, bool) or not 1 <= r <= 8
-        ):
-            raise ValueError(f"grid.refine: must be an integer in [1, 8], got {r!r}")
+        check_n_theta(self.n_theta)
+        check_refine(self.refine)
 
     def resolve(self, g: float) -> Grid:
         """This grid with ``n_theta`` and ``refine`` filled in from g where not given."""
