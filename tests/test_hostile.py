@@ -796,3 +796,37 @@ def test_fit_images_refuses_arrays_that_are_not_images(images, pattern, match):
 
     with pytest.raises(ValueError, match=match):
         lfj.fit_images(images, lfj.Stripes() if pattern == "stripes" else pattern)
+
+
+def test_an_all_saturated_capture_is_one_error_line_with_its_cause(capture, capsys):
+    """Before: two warnings (every pixel saturated; pixels masked), then the error."""
+    for i in range(P):
+        write_exr(capture / f"shift_{i:02d}.exr", {"Y": np.ones((H, W))})
+    _edit(capture, saturation=1.0)
+    line = _refused(capsys, "fit", capture / "capture.yaml", match="images: no usable pixel")
+    assert "every pixel is saturated in shift_00.exr" in line
+
+
+@pytest.mark.parametrize("roi", [[10, 10, 12, 12], [0, 0, 32, 5]])
+def test_a_medium_too_small_to_fit_is_refused(capture, capsys, roi):
+    """Before: a 2x2 medium_roi was fitted, with 'Mean of empty slice' and a chi2 of NaN."""
+    _edit(capture, medium_roi=roi)
+    size = f"{roi[2] - roi[0]}x{roi[3] - roi[1]} px"
+    for command in ("fit", "inspect"):
+        _refused(
+            capsys, command, capture / "capture.yaml", match=f"medium_roi: the medium is {size}"
+        )
+
+
+@pytest.mark.parametrize(
+    ("geometry", "match"),
+    [
+        ({"kind": "slab", "thickness": 1.0e12}, "geometry.thickness: must be at most 100000 px"),
+        ({"kind": "slab", "thickness": 6.4, "boundary": "refractive", "n": 1.0e9}, "in [1, 4]"),
+        ({"kind": "slab", "thickness": 6.4, "boundary": "refractive", "n": 0.5}, "in [1, 4]"),
+    ],
+)
+def test_slabs_beyond_any_real_tank_are_refused(capture, capsys, geometry, match):
+    """Before: a 1e12 px deep tank was accepted and an index of 1e9 rendered NaN."""
+    _edit(capture, geometry=geometry)
+    _refused(capsys, "fit", capture / "capture.yaml", match=match)

@@ -178,6 +178,10 @@ from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
 from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.scene.illumination import Stripes
 
+# The smallest medium (px per side, after medium_roi) a capture may have: the direct
+# light's decay and the noise's 4th differences need pixels along the light.
+MIN_SIDE = 6
+
 
 class CaptureWarning(UserWarning):
     """Pixels of a capture were masked (non-finite, saturated or clipped)."""
@@ -353,6 +357,13 @@ def load_capture(path: str | os.PathLike) -> Capture:
         if flat_pixels is not None:
             flat_pixels = flat_pixels[y0:y1, x0:x1]
         pattern = _crop_pattern(pattern, x0, y0)
+    if min(raw.shape[1:3]) < MIN_SIDE:
+        top.fail(
+            "images" if roi is None else "medium_roi",
+            f"the medium is {raw.shape[2]}x{raw.shape[1]} px: a fit needs at least "
+            f"{MIN_SIDE}x{MIN_SIDE} px (the direct light's decay and the noise are measured "
+            f"along the light)",
+        )
     checked = [(dark, dark_pixels)] if dark is not None else []
     if flat_pixels is not None:
         checked.append((aux["flat_field"], flat_pixels))
@@ -365,10 +376,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
         exposure = brackets.exposure[:, y0:y1, x0:x1]
         notes.append(brackets.summary())
     mask = ~(nonfinite | saturated)
+    if not mask.any():  # an error, not warnings and then an error: the cause goes with it
+        cause = f" ({issues[0]})" if issues else ""
+        top.fail(
+            "images",
+            f"no usable pixel: every pixel is non-finite or saturated in some image{cause}",
+        )
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
-    if not mask.any():
-        top.fail("images", "no usable pixel: every pixel is non-finite or saturated in some image")
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     contradiction = _check_stripes(
         top, full_pattern, calibrated, full_roi, names, phases_from, dark

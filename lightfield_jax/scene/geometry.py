@@ -29,6 +29,11 @@ Boundary = Literal["absorbing", "refractive"]
 BOUNDARIES = ("absorbing", "refractive")
 # The most depth layers a slab model may use (Slab.n_z).
 MAX_LAYERS = 16
+# The deepest tank (px) and the largest refractive index a slab takes: beyond them
+# float32 loses the depth's exponentials (renders drift at 1e8 px) or the faces trap all
+# light (NaN at n 1e9); no real tank or medium comes near either.
+MAX_THICKNESS = 1e5
+MAX_INDEX = 4.0
 # Below this albedo the orders a depth average gets wrong (k ≥ 3) carry little light.
 DIM_ALBEDO = 0.3
 
@@ -136,16 +141,23 @@ class Slab:
     def __post_init__(self):
         if isinstance(self.thickness, (bool, str)):
             raise ValueError(f"geometry.thickness: must be a number, got {self.thickness!r}")
-        object.__setattr__(
-            self, "thickness", _positive_finite(self.thickness, "geometry.thickness")
-        )
+        thickness = _positive_finite(self.thickness, "geometry.thickness")
+        if thickness > MAX_THICKNESS:
+            raise ValueError(
+                f"geometry.thickness: must be at most {MAX_THICKNESS:g} px (a thin tank; "
+                f"float32 loses the depth's exponentials beyond), got {self.thickness!r}"
+            )
+        object.__setattr__(self, "thickness", thickness)
         if self.boundary not in BOUNDARIES:
             raise ValueError(
                 f"geometry.boundary: must be one of {', '.join(BOUNDARIES)}, got {self.boundary!r}"
             )
         n = _positive_finite(self.n, "geometry.n")
-        if n < 1.0:
-            raise ValueError(f"geometry.n: must be >= 1 (medium denser than outside), got {n!r}")
+        if not 1.0 <= n <= MAX_INDEX:
+            raise ValueError(
+                f"geometry.n: must lie in [1, {MAX_INDEX:g}] (the medium's refractive index, "
+                f"relative to outside: water 1.33, glass about 1.5), got {n!r}"
+            )
         object.__setattr__(self, "n", n)
         if self.n_mu is not None and (
             not isinstance(self.n_mu, (int, np.integer))
