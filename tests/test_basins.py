@@ -120,7 +120,7 @@ def test_each_reason_not_to_trust_a_solution():
     ok = {"sigma_t": 0.2, "sigma_s": 0.05, "g": 0.4, "black_level": 0.0}
     assert untrustworthy(ok, budget, 100.0, (-0.2, 1.0)) == []
     assert "g = -0.968" in untrustworthy({**ok, "g": -0.968}, budget, 100.0)[0]
-    assert "albedo" in untrustworthy({**ok, "sigma_s": 0.2 * 0.999}, budget, 100.0)[0]
+    assert "albedo" in untrustworthy({**ok, "sigma_s": 0.2 * 0.9999}, budget, 100.0)[0]
     assert "albedo" in untrustworthy({**ok, "sigma_s": 1e-5}, budget, 100.0)[0]
     assert "black level" in untrustworthy({**ok, "black_level": 0.995}, budget, 100.0, (-0.2, 1))[0]
     rng = np.random.default_rng(0)

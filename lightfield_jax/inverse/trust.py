@@ -43,7 +43,7 @@ from lightfield_jax.scene.illumination import Stripes
 # A solution this close to a constraint's edge is at a bound: |g| ≥ G_BOUND, albedo
 # below ALBEDO_BOUNDS[0] or above [1], the black level within 0.01 of its range.
 G_BOUND = 0.95
-ALBEDO_BOUNDS = (0.005, 0.995)
+ALBEDO_BOUNDS = (0.005, 0.9995)
 # A split of the capture whose two parts disagree beyond this chance (their noise
 # alone) shows a model error.
 CONSISTENCY_P = 1e-3
@@ -159,7 +159,9 @@ def noise_scale(
     11× below the mean). With ``model`` (the fitted images, like ``images``): the
     differences of the residual I − model (the signal's curvature and kinks cancel),
     their mean less outliers (a median scale, the mean below 1000× it, the mean below
-    50× that: χ²₁ exceeds 50 with chance 2e-12); never below the images' median scale,
+    50× that: χ²₁ exceeds 50 with chance 2e-12; the first scale is the 90th
+    percentile's where that is larger, so that pixels counting no photon do not set
+    it to 0); never below the images' median scale,
     which on a noiseless capture (float rounding only) keeps the signal's own 4th
     differences as the floor of what this probe can tell from noise."""
     a = np.asarray(images, np.float64)
@@ -176,7 +178,10 @@ def noise_scale(
     z2 = _fourth_differences(a - np.asarray(model, np.float64), w, axis)
     if z2 is None:
         return floor
-    alpha = float(np.median(z2) / 0.45494)
+    # The first scale: the median's, or the 90th percentile's where more than half of the
+    # differences are (near) zero, as in a photon-starved capture whose dark pixels
+    # count 0 (their median alone put χ²/dof at 4e8 on a fit within 2 % of the truth).
+    alpha = max(float(np.median(z2) / 0.45494), float(np.quantile(z2, 0.9) / 2.7055))
     for limit in (1000.0, 50.0):
         kept = z2[z2 <= limit * alpha]
         if kept.size < 16:
