@@ -818,6 +818,17 @@ def test_a_medium_too_small_to_fit_is_refused(capture, capsys, roi):
         )
 
 
+def test_a_medium_too_short_along_the_light_is_refused_by_fit(capture, capsys):
+    """7 px along the light (entry left: x): inspected, but a fit's noise estimate needs 8."""
+    _edit(capture, medium_roi=[0, 0, 7, 24])
+    status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status in (0, 1) and "Traceback" not in err, (status, err)
+    _refused(capsys, "fit", capture / "capture.yaml", match="at least 8 px along the light (x")
+    _edit(capture, medium_roi=[0, 0, 8, 6])
+    status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status in (0, 1) and "Traceback" not in err, (status, err)
+
+
 @pytest.mark.parametrize(
     ("geometry", "match"),
     [

@@ -176,10 +176,11 @@ from lightfield_jax.capture.keys import (
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
 from lightfield_jax.capture.write import write_capture_yaml
+from lightfield_jax.inverse.data import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
 
-# The smallest medium (px per side, after medium_roi) a capture may have: the direct
-# light's decay and the noise's 4th differences need pixels along the light.
+# The smallest medium (px per side, after medium_roi) a capture may have; a fit also
+# needs MIN_ALONG px along the light (inverse/data.py).
 MIN_SIDE = 6
 
 
@@ -360,13 +361,13 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if min(raw.shape[1:3]) < MIN_SIDE:
         top.fail(
             "images" if roi is None else "medium_roi",
-            f"the medium is {raw.shape[2]}x{raw.shape[1]} px: a fit needs at least "
-            f"{MIN_SIDE}x{MIN_SIDE} px (the direct light's decay and the noise are measured "
-            f"along the light)",
+            f"the medium is {raw.shape[2]}x{raw.shape[1]} px: at least {MIN_SIDE}x{MIN_SIDE} "
+            f"px are needed (a fit: {MIN_ALONG} along the light)",
         )
     checked = [(dark, dark_pixels)] if dark is not None else []
     if flat_pixels is not None:
         checked.append((aux["flat_field"], flat_pixels))
+    first_mask_issue = len(issues)
     nonfinite = _nonfinite(raw, checked, names, issues)
     saturated = _saturated(raw, frames, names, saturation, sensor, issues) & ~nonfinite
     exposure = None
@@ -377,7 +378,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         notes.append(brackets.summary())
     mask = ~(nonfinite | saturated)
     if not mask.any():  # an error, not warnings and then an error: the cause goes with it
-        cause = f" ({issues[0]})" if issues else ""
+        masked = issues[first_mask_issue:]
+        cause = f" ({masked[0]})" if masked else ""
         top.fail(
             "images",
             f"no usable pixel: every pixel is non-finite or saturated in some image{cause}",

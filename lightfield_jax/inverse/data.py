@@ -20,6 +20,10 @@ from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.scene.illumination import Stripes
 
+# The fewest pixels along the light a fit takes: the noise's 4th differences
+# (inverse/trust.py) need 8.
+MIN_ALONG = 8
+
 if TYPE_CHECKING:
     from lightfield_jax.inverse.model_size import _Model
 
@@ -90,6 +94,14 @@ def prepare_data(
         raise ValueError(
             f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
             f"phases (height and width >= 2), got shape {images.shape}"
+        )
+    along_x = pattern.entry in ("left", "right")
+    along = images.shape[2] if along_x else images.shape[1]
+    if along < MIN_ALONG:
+        raise ValueError(
+            f"images: the medium is {images.shape[2]}x{images.shape[1]} px: a fit needs at "
+            f"least {MIN_ALONG} px along the light ({'x' if along_x else 'y'}: the direct "
+            f"light's decay and the noise's 4th differences)"
         )
     finite = np.all(np.isfinite(images), axis=0)
     mask = finite if mask is None else (np.asarray(mask, bool) & finite)

@@ -63,7 +63,9 @@ class FitOptions:
             :class:`AutoGeometry` (the plane where its misfit is below the capture's
             noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
         rtol, atol: solver tolerances (relative, absolute on the unconstrained values
-            and on the residual's components); ``None`` picks them from the data's
+            and on the residual's components; the joint fit's residual is solved
+            normalised, Σ(w·I)² = 1e3: :data:`~lightfield_jax.inverse.joint.RESIDUAL_GAIN`);
+            ``None`` picks them from the data's
             dtype (float32: 1e-4, 1e-4; float64: 1e-8, 1e-10). float32 cannot resolve
             changes of the residual much below 1e-4 of its scale: with tighter
             tolerances LM converges within a few steps and then spends ten more
