@@ -176,11 +176,11 @@ from lightfield_jax.capture.keys import (
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
 from lightfield_jax.capture.write import write_capture_yaml
-from lightfield_jax.inverse.data import MIN_ALONG
+from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
 
 # The smallest medium (px per side, after medium_roi) a capture may have; a fit also
-# needs MIN_ALONG px along the light (inverse/data.py).
+# needs MIN_ALONG px along the light (inverse/trust.py).
 MIN_SIDE = 6
 
 

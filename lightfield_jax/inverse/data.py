@@ -18,11 +18,8 @@ import numpy as np
 
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
+from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
-
-# The fewest pixels along the light a fit takes: the noise's 4th differences
-# (inverse/trust.py) need 8.
-MIN_ALONG = 8
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.model_size import _Model

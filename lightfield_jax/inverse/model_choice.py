@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
 
 
@@ -58,9 +59,9 @@ def relative_noise(images, pattern: Stripes, mask=None) -> float:
     if a.ndim != 3:
         raise ValueError(f"images: expected [P, H, W], got shape {a.shape}")
     axis = 2 if pattern.entry in ("left", "right") else 1
-    if a.shape[axis] < 8:
+    if a.shape[axis] < MIN_ALONG:
         raise ValueError(
-            f"images: need at least 8 pixels along the light to measure the noise, "
+            f"images: need at least {MIN_ALONG} pixels along the light to measure the noise, "
             f"got {a.shape[axis]}"
         )
     if mask is not None:

@@ -47,6 +47,9 @@ ALBEDO_BOUNDS = (0.005, 0.9995)
 # A split of the capture whose two parts disagree beyond this chance (their noise
 # alone) shows a model error.
 CONSISTENCY_P = 1e-3
+# The fewest pixels along the light the noise's 4th differences are measured over (a
+# fit needs them: inverse/data.py).
+MIN_ALONG = 8
 _PHYSICAL = ("sigma_t", "sigma_s", "g")
 
 
@@ -167,7 +170,7 @@ def noise_scale(
     a = np.asarray(images, np.float64)
     w = np.asarray(weights, np.float64)
     axis = 2 if pattern.entry in ("left", "right") else 1
-    if a.shape[axis] < 8:
+    if a.shape[axis] < MIN_ALONG:
         return math.nan
     z2 = _fourth_differences(a, w, axis)
     if z2 is None:
