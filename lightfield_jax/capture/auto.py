@@ -89,7 +89,7 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
     stack = _across_first(crop, pattern.entry)
-    u0 = y0 if pattern.entry in ("left", "right") else x0
+    u0 = y0 if pattern.along_x else x0
 
     def amplitude(period):
         return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)

@@ -82,7 +82,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.scene.illumination import WALLS, _check_direction
+from lightfield_jax.scene.illumination import WALLS, _check_direction, along_x
 
 _OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top"}
 _ACROSS = {"left": "rows", "right": "rows", "top": "columns", "bottom": "columns"}
@@ -151,7 +151,7 @@ class Geometry:
     def fade_note(self) -> str:
         """What was done about a faded far edge, in words."""
         f = self.faded
-        axis = "x" if f["side"] in ("left", "right") else "y"
+        axis = "x" if along_x(f["side"]) else "y"
         until = "the frame's edge" if f["until"] == "frame" else "where the frame is lit again"
         return (
             f"the light fades before the {f['side']} wall at {axis} = {f['at']}: not a wall "
@@ -483,7 +483,7 @@ def _extend_faded(s: np.ndarray, roi, side: str, threshold: float):
     averaged across the light over the ROI, stays below the lit threshold."""
     x0, y0, x1, y1 = roi
     h, w = s.shape
-    if side in ("left", "right"):
+    if along_x(side):
         profile = s[y0:y1].mean(axis=0)
         start, stop, step = (x1, w, 1) if side == "right" else (x0 - 1, -1, -1)
     else:

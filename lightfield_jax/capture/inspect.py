@@ -188,12 +188,12 @@ def inspect_capture(capture: Capture) -> Inspection:
     n_bins = int(math.ceil(float(s.max()) / _BIN_PX)) + 1
     index = np.floor(s / _BIN_PX).astype(int)
     centres = (np.arange(n_bins) + 0.5) * _BIN_PX
-    across = h if pattern.entry in ("left", "right") else w
+    across = h if pattern.along_x else w
     on_wall = (u >= 0) & (u < across)
     snr_d, snr_m, reach = [], [], []
     for i in range(n):
         valid = capture.mask[..., i] & on_wall
-        rows = pattern.entry in ("left", "right")
+        rows = pattern.along_x
         snr_d.append(_snr(direct[..., i], valid, index, n_bins, rows))
         snr_m.append(_snr(multiple[..., i], valid, index, n_bins, rows))
         good = np.flatnonzero(np.nan_to_num(snr_d[-1], nan=0.0) >= SNR_USABLE)

@@ -161,7 +161,7 @@ def _any_wall(direction_deg: float) -> str:
 
 def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
     """The pattern with wall cells counted from the ROI's edge instead of the frame's."""
-    offset = y0 if pattern.entry in ("left", "right") else x0
+    offset = y0 if pattern.along_x else x0
     phases = tuple((p + offset) % pattern.period for p in pattern.phases)
     return dataclasses.replace(pattern, phases=phases)
 

@@ -92,7 +92,7 @@ def prepare_data(
             f"images: expected ({pattern.n_patterns}, height, width) for {pattern.n_patterns} "
             f"phases (height and width >= 2), got shape {images.shape}"
         )
-    along_x = pattern.entry in ("left", "right")
+    along_x = pattern.along_x
     along = images.shape[2] if along_x else images.shape[1]
     if along < MIN_ALONG:
         raise ValueError(

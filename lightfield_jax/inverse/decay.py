@@ -44,7 +44,14 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from lightfield_jax.scene.illumination import _INWARD_DEG, WALLS, Wall, _check_direction, _finite
+from lightfield_jax.scene.illumination import (
+    _INWARD_DEG,
+    WALLS,
+    Wall,
+    _check_direction,
+    _finite,
+    along_x,
+)
 from lightfield_jax.scene.medium import _is_concrete
 
 # A log-linear start below this (data that do not decay) is raised to it: far smaller
@@ -101,7 +108,7 @@ def entry_coordinates(
     t0 = math.radians(direction_deg)
     cos0, sin0 = math.cos(t0), math.sin(t0)
     y, x = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
-    if entry in ("left", "right"):
+    if along_x(entry):
         s = (x - (0.0 if entry == "left" else width)) / cos0
         return s, y - s * sin0
     s = (y - (0.0 if entry == "top" else height)) / sin0
@@ -298,7 +305,7 @@ def fit_decay(
 
     height, width = direct.shape
     s, u = entry_coordinates(height, width, entry, direction_deg)
-    across = entry in ("left", "right")
+    across = along_x(entry)
     n_lines = height if across else width
     line = np.clip(np.floor(u), 0, n_lines - 1).astype(np.int32)
     # u is linear across a pixel, spanning u ± half: a pixel is fully lit through the

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from lightfield_jax.inverse.trust import MIN_ALONG
+from lightfield_jax.inverse.trust import MIN_ALONG, five_point, stencil_centre
 from lightfield_jax.scene.illumination import Stripes
 
 
@@ -58,7 +58,7 @@ def relative_noise(images, pattern: Stripes, mask=None) -> float:
     a = np.asarray(images, np.float64)
     if a.ndim != 3:
         raise ValueError(f"images: expected [P, H, W], got shape {a.shape}")
-    axis = 2 if pattern.entry in ("left", "right") else 1
+    axis = 2 if pattern.along_x else 1
     if a.shape[axis] < MIN_ALONG:
         raise ValueError(
             f"images: need at least {MIN_ALONG} pixels along the light to measure the noise, "
@@ -66,11 +66,9 @@ def relative_noise(images, pattern: Stripes, mask=None) -> float:
         )
     if mask is not None:
         a = np.where(np.asarray(mask, bool)[None], a, np.nan)
-    d4 = np.diff(a, n=4, axis=axis) / np.sqrt(70.0)
-    sl = [slice(None)] * 3
-    sl[axis] = slice(2, a.shape[axis] - 2)
-    centre = a[tuple(sl)]
-    ok = np.isfinite(d4) & np.isfinite(centre)
+    finite = np.isfinite(a)
+    d4, ok = five_point(np.where(finite, a, 0.0), finite, axis)
+    centre = stencil_centre(a, axis)
     if ok.sum() < 16:
         raise ValueError("images: too few valid pixels to measure the noise")
     signal = np.sum(centre[ok] ** 2)

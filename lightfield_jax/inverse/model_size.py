@@ -86,7 +86,7 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
     wall stays; at least 16 pixels are kept, in multiples of 8."""
     p, h, w = images.shape
-    along_x = pattern.entry in ("left", "right")
+    along_x = pattern.along_x
     imax = np.nanmax(images, axis=0)
     prof = np.nanmean(imax, axis=0 if along_x else 1)
     if pattern.entry in ("right", "bottom"):

@@ -61,7 +61,7 @@ def split_groups(shape: tuple[int, int, int], pattern: Stripes) -> dict[str, np.
     the geometry alone, never on the data, so under a right model the two parts' answers
     differ by their noise alone."""
     n_img, h, w = shape
-    across_rows = pattern.entry in ("left", "right")
+    across_rows = pattern.along_x
     extent = w if across_rows else h
     along = np.arange(extent)
     if pattern.entry in ("left", "top"):
@@ -131,19 +131,33 @@ def _consistency(jac, residual, names, scale, groups) -> dict:
     return out
 
 
+def stencil_centre(x: np.ndarray, axis: int) -> np.ndarray:
+    """``x`` without two pixels at each end along ``axis``: the centres of the five-pixel
+    stencils of :func:`five_point`."""
+    sl = [slice(None)] * x.ndim
+    sl[axis] = slice(2, x.shape[axis] - 2)
+    return x[tuple(sl)]
+
+
+def five_point(a: np.ndarray, w: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """The 4th differences of ``a`` along ``axis`` over √70 (the noise's standard
+    deviation where the signal is smooth and the noise white) and where all five pixels
+    of each have weight ``w > 0``."""
+    d4 = np.diff(a, n=4, axis=axis) / math.sqrt(70.0)
+    valid = np.ones(d4.shape, bool)
+    sl = [slice(None)] * a.ndim
+    for s in range(5):  # every one of the five pixels must be valid
+        sl[axis] = slice(s, a.shape[axis] - 4 + s)
+        valid &= w[tuple(sl)] > 0
+    return d4, valid
+
+
 def _fourth_differences(a: np.ndarray, w: np.ndarray, axis: int) -> np.ndarray | None:
     """The weighted 4th differences along ``axis`` squared, z² (each a χ²₁ times the
     noise's weighted variance where the signal is smooth), where all five pixels are
     valid; ``None`` where fewer than 16."""
-    d4 = np.diff(a, n=4, axis=axis) / math.sqrt(70.0)
-    sl = [slice(None)] * 3
-    sl[axis] = slice(2, a.shape[axis] - 2)
-    centre_w = w[tuple(sl)]
-    valid = centre_w > 0
-    for s in range(5):  # every one of the five pixels must be valid
-        sl[axis] = slice(s, a.shape[axis] - 4 + s)
-        valid &= w[tuple(sl)] > 0
-    z2 = (d4 * centre_w)[valid] ** 2
+    d4, valid = five_point(a, w, axis)
+    z2 = (d4 * stencil_centre(w, axis))[valid] ** 2
     return z2 if z2.size >= 16 else None
 
 
@@ -169,7 +183,7 @@ def noise_scale(
     differences as the floor of what this probe can tell from noise."""
     a = np.asarray(images, np.float64)
     w = np.asarray(weights, np.float64)
-    axis = 2 if pattern.entry in ("left", "right") else 1
+    axis = 2 if pattern.along_x else 1
     if a.shape[axis] < MIN_ALONG:
         return math.nan
     z2 = _fourth_differences(a, w, axis)

@@ -49,7 +49,7 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax.scene.illumination import Beam, Full, Stripes
+from lightfield_jax.scene.illumination import Beam, Full, Stripes, along_x
 
 Estimator = Literal["track", "collision"]
 # Intervals of the tabulated CDF of the relative scattering angle (inverse-CDF sampling).
@@ -127,7 +127,7 @@ class _Source:
 
 def _normal_cos(wall: str, theta0: float) -> float:
     """|cos| of the angle between the heading and the wall's normal."""
-    return abs(math.cos(theta0)) if wall in ("left", "right") else abs(math.sin(theta0))
+    return abs(math.cos(theta0)) if along_x(wall) else abs(math.sin(theta0))
 
 
 def _beam_wall(beam: Beam, width: int, height: int) -> str:
@@ -161,9 +161,9 @@ def _source(illumination, width: int, height: int) -> _Source:
         )
     theta0 = math.radians(illumination.direction_deg)
     ncos = _normal_cos(wall, theta0)
-    extent = float(height if wall in ("left", "right") else width)
+    extent = float(height if along_x(wall) else width)
     if isinstance(illumination, Beam):
-        centre = illumination.y if wall in ("left", "right") else illumination.x
+        centre = illumination.y if along_x(wall) else illumination.x
         half = 0.5 * illumination.width / ncos  # transverse width w covers w/|cos| of wall
         lo, hi = max(centre - half, 0.0), min(centre + half, extent)
         power = ncos * (hi - lo)

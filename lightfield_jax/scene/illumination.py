@@ -32,6 +32,12 @@ WALLS: tuple[str, ...] = ("left", "right", "top", "bottom")
 _INWARD_DEG = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}
 
 
+def along_x(wall: str) -> bool:
+    """Whether light entering through ``wall`` crosses the image along x (its rows):
+    the left and right walls; the top and bottom walls send it along y."""
+    return wall in ("left", "right")
+
+
 def _check_direction(entry: str, direction_deg: float, what: str) -> None:
     t = math.radians(direction_deg)
     inward = {
@@ -163,6 +169,11 @@ class Stripes:
     def lit_fraction(self) -> float:
         return self.lit / self.period
 
+    @property
+    def along_x(self) -> bool:
+        """Whether the light crosses the image along x (:func:`along_x` of the entry)."""
+        return along_x(self.entry)
+
     def entry_wall(self, width: int, height: int) -> str:
         return self.entry
 
@@ -226,8 +237,8 @@ def _lit_measure(illum: Illumination, wall: str, lo: np.ndarray, hi: np.ndarray,
         u = np.clip(u, 0.0, extent)
         if isinstance(illum, Beam):
             t = math.radians(illum.direction_deg)
-            normal_cos = abs(math.cos(t)) if wall in ("left", "right") else abs(math.sin(t))
-            centre = illum.y if wall in ("left", "right") else illum.x
+            normal_cos = abs(math.cos(t)) if along_x(wall) else abs(math.sin(t))
+            centre = illum.y if along_x(wall) else illum.x
             half = 0.5 * illum.width / normal_cos
             return (np.clip(u, centre - half, centre + half) - (centre - half))[None]
         if isinstance(illum, Full):
@@ -269,7 +280,7 @@ def source_moments(
     t0 = math.radians(illum.direction_deg)
     c, s = math.cos(t0), math.sin(t0)
     sub = (np.arange(supersample) + 0.5) / supersample
-    if wall in ("left", "right"):
+    if along_x(wall):
         normal_n, along_n, extent = width, height, height
         wall_pos, cos_n, slope = (0.0 if wall == "left" else float(width)), c, s
     else:
@@ -289,6 +300,6 @@ def source_moments(
     cov = cnt / supersample
     mean = m1 / safe
     var = np.maximum(m2 / safe - mean**2, 0.0)
-    if wall in ("left", "right"):  # (P, along=y, normal=x) is already (P, H, W)
+    if along_x(wall):  # (P, along=y, normal=x) is already (P, H, W)
         return cov, mean, var
     return (np.swapaxes(a, 1, 2) for a in (cov, mean, var))

@@ -30,7 +30,14 @@ import numpy as np
 
 from lightfield_jax.forward.render import RenderResult
 from lightfield_jax.inverse.decay import DecayFit, entry_coordinates
-from lightfield_jax.scene.illumination import _INWARD_DEG, Beam, Full, Illumination, Stripes
+from lightfield_jax.scene.illumination import (
+    _INWARD_DEG,
+    Beam,
+    Full,
+    Illumination,
+    Stripes,
+    along_x,
+)
 
 from ._common import finish as _finish
 from ._common import new_figure as _figure
@@ -108,7 +115,7 @@ def light_path_coordinates(
         )
     entry, direction = illumination.entry, illumination.direction_deg
     s, u = entry_coordinates(height, width, entry, direction)
-    across = entry in ("left", "right")
+    across = along_x(entry)
     n_lines = height if across else width
     t0 = math.radians(direction)
     half = 0.5 * (1.0 + abs(math.tan(t0) if across else 1.0 / math.tan(t0)))
@@ -154,7 +161,7 @@ def _decay_model(fit: DecayFit, shape, entry: str, direction_deg: float) -> np.n
     """The fitted direct image c_ℓ·exp(−σt s) (NaN on lines the fit did not use)."""
     height, width = shape
     s, u = entry_coordinates(height, width, entry, direction_deg)
-    n_lines = height if entry in ("left", "right") else width
+    n_lines = height if along_x(entry) else width
     line = np.clip(np.floor(u), 0, n_lines - 1).astype(int)
     amplitude = np.asarray(fit.amplitude, dtype=np.float64)
     return amplitude[line] * np.exp(-float(fit.sigma_t) * s)
