@@ -122,16 +122,13 @@ def write_capture(path: Path, config: dict, medium: dict, capture: dict) -> None
 
 def fit_capture(config: dict, images: np.ndarray, variance: np.ndarray, progress) -> lfj.FitResult:
     """The joint slab fit of a capture, weighted by its Monte Carlo noise."""
-    from lightfield_jax.inverse.fit import fit_images
-    from lightfield_jax.inverse.options import FitOptions
-
     slab = lfj.Slab(config["thickness"], "refractive", n=config["n"], n_z=config["n_z"])
     exposure = images / np.maximum(variance, np.finfo(np.float64).tiny)
-    return fit_images(
+    return lfj.fit_images(
         images,
         pattern(config),
         exposure=exposure,
-        options=FitOptions(geometry=slab, model_error=config["model_error"]),
+        options=lfj.FitOptions(geometry=slab, model_error=config["model_error"]),
         progress=progress,
     )
 

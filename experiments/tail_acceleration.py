@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, machine, versions
+from lightfield_jax.app.experiment import check_config, machine, pyplot, save_figure, versions
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.scene.medium import bounces_for_tolerance
@@ -320,8 +320,6 @@ def run(config: dict, out: Path, ctx) -> dict:
 
 
 def _plot(data: dict, path: Path) -> Path:
-    from lightfield_jax.viz._common import finish, new_figure
-
     # One panel row per plane scene (σt; line style: phase convention), one for the
     # slab rows (line style: the faces).
     panels = [
@@ -342,7 +340,7 @@ def _plot(data: dict, path: Path) -> Path:
         )
         for st in data["slab"]["sigma_t"]
     ]
-    fig = new_figure(11, 4.2 * len(panels))
+    fig = pyplot().figure(figsize=(11, 4.2 * len(panels)), layout="constrained")
     axes = fig.subplots(len(panels), 2, squeeze=False)
     x_all = [1.0 - r["rho"] for r in data["rows"]]
     grid, slab = data["grid"], data["slab"]
@@ -396,4 +394,4 @@ def _plot(data: dict, path: Path) -> Path:
         f"{data['load_average_1min']:.1f}",
         fontsize=9,
     )
-    return finish(fig, path)
+    return save_figure(fig, path)
