@@ -35,6 +35,7 @@ from lightfield_jax.inverse.model_size import (
     _by_measured_ratio,
     _covers,
     _extrapolated,
+    _finer_cheap,
     _Model,
     _orders,
     _scan_model,
@@ -292,11 +293,22 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     say(f"  the solve's model: {_orders(coarse)}")
     tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
+    black_range = BLACK_RANGE if black is None else None
     for label, start in starts:
         say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
         y0 = pack(start, black is None, dtype)
         first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
         count(first)
+        retry = _finer_cheap(coarse)
+        if retry is not None and (not first.ok or at_bound(first.values, black_range)):
+            say(
+                "  the cheap model's solve did not converge or ended at a bound: again on "
+                f"n_theta {retry.grid.n_theta}, n_mu {retry.geometry.n_mu}"
+            )
+            again = _joint_stage(data, pattern, retry, options, black, weights, y0)
+            count(again)
+            again.steps += first.steps
+            first = again
         record = {
             "label": label,
             "start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]},
