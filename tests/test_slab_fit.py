@@ -20,6 +20,7 @@ from lightfield_jax.app.experiment import load_helper, run_experiment
 from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.inverse.fit import fit_images
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
+from lightfield_jax.inverse.model_size import _finer_cheap, _scan_model
 from lightfield_jax.inverse.options import FitOptions
 from lightfield_jax.scene.geometry import AutoGeometry, Slab
 
@@ -242,3 +243,21 @@ def test_a_fit_of_the_true_slab_is_honest_about_its_error(medium):
         assert abs(getattr(fit, key) - value) < 2 * fit.uncertainty[key], (key, err, fit)
     if abs(err["sigma_t"]) > 0.01 or abs(err["sigma_s"]) > 0.03 or abs(err["g"]) > 0.02:
         assert fit.model_limited, (err, fit)
+
+
+def test_the_second_cheap_slab_model_is_finer_and_within_the_users_settings():
+    """A slab's cheap solve that runs away is solved again on 16 azimuth bins × 8 μ
+    nodes, never on the plane, and not against the user's fixed bins, nodes or cell cap."""
+    crop = (0, 0, 32, 24)
+    slab = Slab(6.4, "refractive", 1.33)
+    cheap = _scan_model(crop, FitOptions(geometry=slab), 0.5)
+    assert (cheap.grid.n_theta, cheap.geometry.n_mu) == (8, 4)
+    finer = _finer_cheap(cheap, FitOptions(geometry=slab))
+    assert (finer.grid.n_theta, finer.geometry.n_mu) == (16, 8)
+    assert finer.geometry.n_z == cheap.geometry.n_z and finer.bounces == cheap.bounces
+    assert _finer_cheap(finer, FitOptions(geometry=slab)) is None
+    assert _finer_cheap(_scan_model(crop, FitOptions(), 0.5), FitOptions()) is None
+    assert _finer_cheap(cheap, FitOptions(geometry=slab, n_theta=8)) is None
+    fixed = Slab(6.4, "refractive", 1.33, n_mu=4)
+    assert _finer_cheap(cheap, FitOptions(geometry=fixed)) is None
+    assert _finer_cheap(cheap, FitOptions(geometry=slab, max_cells=32 * 24 * 16)) is None

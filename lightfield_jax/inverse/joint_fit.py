@@ -143,6 +143,44 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
     return last
 
 
+def _runaway(stage: _Stage) -> bool:
+    """A cheap solve that did not converge (a tail that failed aside) or ended with g or
+    the albedo at a bound."""
+    tail_failed = stage.tail is not None and "error" in stage.tail
+    return (not stage.ok and not tail_failed) or bool(at_bound(stage.values))
+
+
+def _cheap_solve(data, pattern, coarse: _Model, options, black, weights, y0, say):
+    """The cheap model's solve from ``y0``; a slab's that ran away (:func:`_runaway`) is
+    solved again on :func:`_finer_cheap`'s model, kept where it converged off the
+    bounds or fits better. Returns the stage kept, every stage run (for their seconds)
+    and the retry's record (``None`` without one)."""
+    first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
+    retry = _finer_cheap(coarse, options)
+    if retry is None or not _runaway(first):
+        return first, [first], None
+    say(
+        "  the cheap model's solve did not converge or ended at a bound: again on "
+        f"n_theta {retry.grid.n_theta}, n_mu {retry.geometry.n_mu}"
+    )
+    again = _joint_stage(data, pattern, retry, options, black, weights, y0)
+    kept = not _runaway(again) or again.rms < first.rms
+    record = {
+        "n_theta": retry.grid.n_theta,
+        "n_mu": retry.geometry.n_mu,
+        "first": {k: first.values[k] for k in ("sigma_t", "sigma_s", "g")},
+        "first_converged": first.ok,
+        "converged": again.ok,
+        "kept": kept,
+    }
+    ran = [first, again]
+    first, other = (again, first) if kept else (first, again)
+    # The steps of both solves (their seconds come from ``ran``), on a copy: ``ran``
+    # keeps each stage's own.
+    first = dataclasses.replace(first, steps=first.steps + other.steps)
+    return first, ran, record
+
+
 def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, black, say):
     """``target``'s answer by defect correction from ``first`` (the cheap model's solve:
     its answer and Jacobian, model weights from its answer; :mod:`.correction`): the
@@ -293,25 +331,16 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     say(f"  the solve's model: {_orders(coarse)}")
     tried, stages, labels = [], [], []
     dtype = jnp.result_type(float)
-    black_range = BLACK_RANGE if black is None else None
     for label, start in starts:
         say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
         y0 = pack(start, black is None, dtype)
-        first = _joint_stage(data, pattern, coarse, options, black, weights, y0)
-        count(first)
-        retry = _finer_cheap(coarse)
-        if retry is not None and (not first.ok or at_bound(first.values, black_range)):
-            say(
-                "  the cheap model's solve did not converge or ended at a bound: again on "
-                f"n_theta {retry.grid.n_theta}, n_mu {retry.geometry.n_mu}"
-            )
-            again = _joint_stage(data, pattern, retry, options, black, weights, y0)
-            count(again)
-            again.steps += first.steps
-            first = again
+        first, ran, retried = _cheap_solve(data, pattern, coarse, options, black, weights, y0, say)
+        for stage in ran:
+            count(stage)
         record = {
             "label": label,
             "start": {"sigma_t": start[0], "sigma_s": start[1], "g": start[2]},
+            **({"retried": retried} if retried is not None else {}),
         }
         same = next(
             (i for i, (f, _) in enumerate(stages) if _same_answer(f.values, first.values)), None
@@ -321,20 +350,23 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             say(f"  {label}: the same answer as {labels[same]}")
             continue
         last = _continuation(data, pattern, first, options, black, images, floor, the_scan, say)
-        count(last)
+        steps = first.steps
+        if last is not first:  # else its seconds and steps are counted already
+            count(last)
+            steps += last.steps
         tried.append(
             {
                 **record,
                 "final": {k: last.values[k] for k in ("sigma_t", "sigma_s", "g")},
                 "residual": last.rms,
                 "converged": last.ok,
-                "iterations": first.steps + last.steps,
+                "iterations": steps,
             }
         )
         say(
             f"  {label}: sigma_t {last.values['sigma_t']:.5g}, sigma_s "
             f"{last.values['sigma_s']:.5g}, g {last.values['g']:.4f}, residual {last.rms:.4g} "
-            f"after {first.steps + last.steps} solver iterations"
+            f"after {steps} solver iterations"
         )
         stages.append((first, last))
         labels.append(label)

@@ -307,21 +307,33 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
 RETRY_SLAB = (16, 8)
 
 
-def _finer_cheap(model: _Model) -> _Model | None:
-    """The slab's cheap model with 16 azimuth bins and 8 elevation nodes (``None`` on
-    the plane, or where it has them already), for a solve that ran to a bound on the
-    8 × 4 one: a forward medium's lobe is not resolved there. Measured on the 3-D Monte
-    Carlo's capture of ω 0.99, g 0.9 behind refractive faces (32×24): on 8 × 4 the solve
-    ran 200 steps to albedo 1.0000 (σt −15 %); on 16 × 8 it converged and the
-    correction reached σt +1.8 %, σs +1.7 %, g +0.011."""
+def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
+    """The slab's cheap model with 16 azimuth bins and 8 elevation nodes, for a solve
+    that did not converge or ran to a bound on the 8 × 4 one: a forward medium's lobe
+    is not resolved there. Measured on the 3-D Monte Carlo's capture of ω 0.99, g 0.9
+    behind refractive faces (32×24): on 8 × 4 the solve ran its 100 steps to albedo
+    1.0000 (σt −15 %); on 16 × 8 it converged and the correction reached σt +1.8 %, σs
+    +1.7 %, g +0.011. ``None`` on the plane, where the model has them already, where
+    the user fixed the bins or nodes, or where it would pass ``max_cells`` (the cap of
+    :func:`size_model`)."""
     slab = model.geometry
+    user_slab = as_geometry(options.geometry).slab_or_none
     n_theta, n_mu = RETRY_SLAB
-    if slab is None or (model.grid.n_theta >= n_theta and slab.n_mu >= n_mu):
+    if (
+        slab is None
+        or options.n_theta is not None
+        or (user_slab is not None and user_slab.n_mu is not None)
+        or (model.grid.n_theta >= n_theta and slab.n_mu >= n_mu)
+    ):
+        return None
+    n_theta, n_mu = max(model.grid.n_theta, n_theta), max(slab.n_mu, n_mu)
+    cells = model.grid.width * model.grid.height * 4 * n_theta * n_mu * slab.n_z
+    if cells * model.grid.refine**2 > 4 * options.max_cells:
         return None
     return dataclasses.replace(
         model,
-        grid=dataclasses.replace(model.grid, n_theta=max(model.grid.n_theta, n_theta)),
-        geometry=dataclasses.replace(slab, n_mu=max(slab.n_mu, n_mu)),
+        grid=dataclasses.replace(model.grid, n_theta=n_theta),
+        geometry=dataclasses.replace(slab, n_mu=n_mu),
     )
 
 
