@@ -134,15 +134,19 @@ def test_model_term_is_the_least_squares_shift_of_the_finer_residual():
 
 
 def test_each_reason_not_to_trust_a_solution():
-    budget = error_budget(np.eye(3), np.zeros(3), ["sigma_t", "sigma_s", "g"], 1.0)
+    budget = error_budget(np.eye(3), np.zeros(3), ["sigma_t", "sigma_s", "g"], 1e-6)
     ok = {"sigma_t": 0.2, "sigma_s": 0.05, "g": 0.4, "black_level": 0.0}
     assert untrustworthy(ok, budget, 100.0, (-0.2, 1.0)) == []
+    # A 1σ of 0.03 (noise 9e-4) is 60 % of σs, 15 % of σt, 0.03 on g: σs alone.
+    vague = error_budget(np.eye(3), np.zeros(3), ["sigma_t", "sigma_s", "g"], 9e-4)
+    (reason,) = untrustworthy(ok, vague, 100.0)
+    assert reason.startswith("sigma_s is not identifiable") and "60 %" in reason
     assert "g = -0.968" in untrustworthy({**ok, "g": -0.968}, budget, 100.0)[0]
     assert "albedo" in untrustworthy({**ok, "sigma_s": 0.2 * 0.9999}, budget, 100.0)[0]
     assert "albedo" in untrustworthy({**ok, "sigma_s": 1e-5}, budget, 100.0)[0]
     assert "black level" in untrustworthy({**ok, "black_level": 0.995}, budget, 100.0, (-0.2, 1))[0]
     rng = np.random.default_rng(0)
-    jac = rng.normal(size=(100, 3))
+    jac = 100 * rng.normal(size=(100, 3))  # 1σ ~1e-3: identified, and χ² ~1e4
     far = error_budget(jac, rng.normal(size=100), ["sigma_t", "sigma_s", "g"], 1e-4)
     (reason,) = untrustworthy(ok, far, 100.0)
     assert reason.startswith("misfit far above the capture's noise")
