@@ -155,9 +155,7 @@ def size_model(
     if slab is not None:
         # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
         user_mu = options.geometry.n_mu is not None
-        while (
-            width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2 > 4 * options.max_cells
-        ):
+        while _slab_over_cap(width, height, n_theta, refine, slab, options):
             if n_theta > 8 and options.n_theta is None:
                 n_theta //= 2
             elif slab.n_mu > 4 and not user_mu:
@@ -307,6 +305,13 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
 RETRY_SLAB = (16, 8)
 
 
+def _slab_over_cap(width, height, n_theta, refine, slab: Slab, options: FitOptions) -> bool:
+    """Whether a slab model passes ``max_cells``: it works on azimuth × elevation × depth
+    fields over the 2H × 2W FFT domain, allowed 4 × ``max_cells``."""
+    cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
+    return cells > 4 * options.max_cells
+
+
 def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
     """The slab's cheap model with 16 azimuth bins and 8 elevation nodes, for a solve
     that did not converge or ran to a bound on the 8 × 4 one: a forward medium's lobe
@@ -326,15 +331,11 @@ def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
         or (model.grid.n_theta >= n_theta and slab.n_mu >= n_mu)
     ):
         return None
-    n_theta, n_mu = max(model.grid.n_theta, n_theta), max(slab.n_mu, n_mu)
-    cells = model.grid.width * model.grid.height * 4 * n_theta * n_mu * slab.n_z
-    if cells * model.grid.refine**2 > 4 * options.max_cells:
+    grid = dataclasses.replace(model.grid, n_theta=max(model.grid.n_theta, n_theta))
+    slab = dataclasses.replace(slab, n_mu=max(slab.n_mu, n_mu))
+    if _slab_over_cap(grid.width, grid.height, grid.n_theta, grid.refine, slab, options):
         return None
-    return dataclasses.replace(
-        model,
-        grid=dataclasses.replace(model.grid, n_theta=n_theta),
-        geometry=dataclasses.replace(slab, n_mu=n_mu),
-    )
+    return dataclasses.replace(model, grid=grid, geometry=slab)
 
 
 def _extrapolated(model: _Model, options: FitOptions) -> _Model:

@@ -317,10 +317,12 @@ def unidentified(values: dict, budget: Uncertainty) -> list[str]:
     :data:`IDENTIFIED` (relative for σt and σs, absolute for g): the capture does not
     determine them (empty: it determines all; NaN where the noise was not measured)."""
     reasons = []
-    for name, scale in (("sigma_t", values["sigma_t"]), ("sigma_s", values["sigma_s"]), ("g", 1)):
+    for name in _PHYSICAL:
         sd = budget.statistical.get(name, math.nan)
-        if math.isfinite(sd) and sd > IDENTIFIED * abs(scale):
-            spread = f"{100 * sd / abs(scale):.0f} %" if scale != 1 else f"{sd:.2f}"
+        relative = name != "g"
+        scale = abs(values[name]) if relative else 1.0
+        if math.isfinite(sd) and sd > IDENTIFIED * scale:
+            spread = f"{100 * sd / scale:.0f} %" if relative else f"{sd:.2f}"
             reasons.append(
                 f"{name} is not identifiable from this capture: its statistical 1σ (the "
                 f"capture's noise alone) is ± {spread}"
