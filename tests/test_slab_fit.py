@@ -44,6 +44,23 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
     assert fit.phase == "normalized"  # the 3-D phase function is normalised
 
 
+def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
+    """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 8 azimuth bins (what the
+    cheap model has) but 8 depth layers (it has one): the cheap model does not stand in
+    for the layered one (the depth average is off by 1 % on σs here), the fit corrects
+    its answer to the layers."""
+    st, ss, g = 0.2, 0.16, 0.4
+    slab = Slab(6.4)  # layers and nodes from the medium, as a user gives it
+    fit = fit_images(
+        slab_capture(st, ss, g, slab, 32, 24), PATTERN, options=FitOptions(geometry=slab)
+    )
+    assert fit.model["geometry"]["n_z"] == 8
+    assert fit.converged, fit.message
+    assert fit.sigma_t == pytest.approx(st, rel=1e-3)
+    assert fit.sigma_s == pytest.approx(ss, rel=1e-3)
+    assert fit.g == pytest.approx(g, abs=1e-3)
+
+
 @pytest.mark.parametrize("method", ["grid", "gradient"])
 def test_two_step_methods_with_the_slab_and_a_perfect_split(method):
     st, ss, g = 0.2051, 0.11, 0.4

@@ -373,9 +373,17 @@ def _covers(have: _Model, need: _Model) -> bool:
         orders = have.tail == need.tail and have.bounces >= need.bounces
     else:
         orders = have.tail is not None or have.bounces >= need.bounces
+    # A slab's depth layers and elevation nodes are part of its size: a cheap model of
+    # one layer does not cover a need of eight.
+    depth = need.geometry is None or (
+        have.geometry is not None
+        and have.geometry.n_mu >= need.geometry.n_mu
+        and have.geometry.n_z >= need.geometry.n_z
+    )
     return (
         have.crop == need.crop
         and orders
+        and depth
         and have.grid.n_theta >= need.grid.n_theta
         and have.grid.refine >= need.grid.refine
     )
