@@ -78,6 +78,23 @@ def test_two_step_methods_with_the_slab_and_a_perfect_split(method):
     assert fit.g == pytest.approx(g, abs=0.01)
 
 
+@pytest.mark.slow  # a minute on 2 cores
+def test_a_two_step_fit_is_solved_again_with_the_elevation_nodes_its_g_needs():
+    """The two-step methods size their first model at g 0 (4 elevation nodes behind
+    absorbing faces); at g 0.7 the slab needs 16: the fit is solved again with them."""
+    st, ss, g = 0.2051, 0.11, 0.7
+    slab = Slab(6.4)
+    medium = lfj.Medium(st, ss, g)
+    stripes = np.asarray(lfj.render(medium, lfj.Grid(32, 24), PATTERN, 8, geometry=slab).total)
+    full = lfj.render(medium, lfj.Grid(32, 24), lfj.Full(0.0, "left"), 8, geometry=slab)
+    full = np.asarray(full.images)
+    opts = FitOptions(method="gradient", geometry=slab, bounces=8)
+    fit = fit_images(stripes, PATTERN, options=opts, split=(full[0], full[1:].sum(axis=0)))
+    assert fit.model["geometry"]["n_mu"] == 16 and fit.model["geometry"]["n_z"] == 8
+    assert fit.sigma_s == pytest.approx(ss, rel=0.01)
+    assert fit.g == pytest.approx(g, abs=0.01)
+
+
 @pytest.mark.slow
 def test_the_plane_model_is_biased_on_a_slab_capture():
     # The reason the slab exists (docs/model.md §7): with the plane model, σs or g are off.
@@ -278,3 +295,39 @@ def test_the_second_cheap_slab_model_is_finer_and_within_the_users_settings():
     fixed = Slab(6.4, "refractive", 1.33, n_mu=4)
     assert _finer_cheap(cheap, FitOptions(geometry=fixed)) is None
     assert _finer_cheap(cheap, FitOptions(geometry=slab, max_cells=32 * 24 * 16)) is None
+
+
+def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
+    """A 128×96 capture of a g 0.9 medium behind refractive faces passes the cell cap at
+    its 24 elevation nodes: the cap halves them to 12 and 6, then stops at 4 (refractive
+    faces need 4: it used to go to 3 and raise)."""
+    from lightfield_jax.inverse.model_size import size_model
+
+    opts = FitOptions(geometry=Slab(6.4, "refractive", 1.33), phase="normalized")
+    crop = (0, 0, 128, 96)
+    model = size_model(np.zeros((6, 96, 128)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, crop)
+    assert model.geometry.n_mu == 4 and model.geometry.n_z == 4
+
+
+@pytest.mark.parametrize(
+    "slab, n_theta, finer",
+    [
+        (Slab(6.4), None, (16, 48, 16)),  # absorbing: 8 bins, 24 nodes, 8 layers
+        (Slab(6.4, n_z=16), None, (16, 24, 16)),  # the user's 16 layers stay
+        # Already past the cap: nothing finer fits, and nothing coarser is taken.
+        (Slab(6.4, "refractive", 1.33, n_mu=64), 128, (128, 64, 4)),
+    ],
+)
+def test_the_error_terms_slab_model_is_finer_and_never_coarser(slab, n_theta, finer):
+    """The model error term's model doubles the layers, then the nodes, then the bins,
+    each within the memory cap, and never goes below the fit's model (it capped layers at
+    8 and nodes at 32: the depth error of an 8-layer model went unseen)."""
+    from lightfield_jax.inverse.joint_fit import _finer
+    from lightfield_jax.inverse.model_size import size_model
+
+    opts = FitOptions(geometry=slab, phase="normalized", n_theta=n_theta)
+    model = size_model(np.zeros((6, 24, 32)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, (0, 0, 32, 24))
+    fine = _finer(model, opts, 0.9)
+    assert (fine.grid.n_theta, fine.geometry.n_mu, fine.geometry.n_z) == finer
+    assert fine.grid.n_theta >= model.grid.n_theta
+    assert fine.geometry.n_mu >= model.geometry.n_mu and fine.geometry.n_z >= model.geometry.n_z

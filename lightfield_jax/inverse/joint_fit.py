@@ -39,6 +39,7 @@ from lightfield_jax.inverse.model_size import (
     _Model,
     _orders,
     _scan_model,
+    _slab_over_cap,
     size_model,
 )
 from lightfield_jax.inverse.trust import (
@@ -237,26 +238,48 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
 
 
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
-    """A finer model than ``model`` for its error term: twice the θ bins (and the slab's
-    elevation nodes and depth layers); on the plane also the spatial refinement the size
-    rule asks for at the answer's ``g`` where the fit's model stayed below it (the cell
-    cap sized it down: a forward medium's model error is then mostly spatial, and a
-    term that did not see it would report the fit as noise-limited; not past twice
-    ``max_render_cells``, the memory a render may take); the same bounces
-    with the rest of the series extrapolated geometrically or, with a tail, the same K0
-    and a tail tolerance ten times as tight."""
+    """A finer model than ``model`` for its error term, never coarser in any dimension.
+
+    - The plane: twice the θ bins (past 256 only within twice ``max_render_cells``,
+      the memory a render may take) and the spatial refinement the size rule asks for
+      at the answer's ``g`` where the fit's model stayed below it (the cell cap sized
+      it down: a forward medium's model error is then mostly spatial, and a term that
+      did not see it would report the fit as noise-limited), within that cap; where
+      neither fits (256 θ bins and refine 2 already), one more refinement if it does.
+    - The slab: twice its depth layers (at most 16), elevation nodes (64) and azimuth
+      bins (128), in that order of priority, each only within four times
+      ``max_render_cells`` (the slab's cell count, :func:`_slab_over_cap`).
+
+    Then the same bounces with the rest of the series extrapolated geometrically or,
+    with a tail, the same K0 and a tail tolerance ten times as tight."""
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
-        geometry = dataclasses.replace(
-            geometry, n_mu=min(2 * geometry.n_mu, 32), n_z=min(2 * geometry.n_z, 8)
-        )
-        grid = dataclasses.replace(grid, n_theta=min(2 * grid.n_theta, 64))
+        cap = 4 * options.max_render_cells
+        wide = dataclasses.replace(options, max_cells=cap, max_render_cells=cap)
+        for name, limit in (("n_z", 16), ("n_mu", 64), ("n_theta", 128)):
+            owner = grid if name == "n_theta" else geometry
+            value = min(2 * getattr(owner, name), limit)
+            if value <= getattr(owner, name):
+                continue
+            g2 = dataclasses.replace(grid, n_theta=value) if name == "n_theta" else grid
+            s2 = geometry if name == "n_theta" else dataclasses.replace(geometry, **{name: value})
+            if not _slab_over_cap(g2.width, g2.height, g2.n_theta, g2.refine, s2, wide):
+                grid, geometry = g2, s2
     else:
-        n_theta = min(2 * grid.n_theta, 256)
+        cap = 2 * options.max_render_cells
+
+        def cells(n_theta: int, refine: int) -> int:
+            return grid.width * grid.height * n_theta * refine**2
+
+        n_theta = 2 * grid.n_theta
         refine = max(grid.refine, default_refine(g))
-        if grid.width * grid.height * n_theta * refine**2 > 2 * options.max_render_cells:
+        if cells(n_theta, refine) > cap:
             refine = grid.refine  # at most twice the model's cells (memory)
+        if n_theta > 256 and cells(n_theta, refine) > cap:
+            n_theta = grid.n_theta
+        if (n_theta, refine) == (grid.n_theta, grid.refine) and cells(n_theta, refine + 1) <= cap:
+            refine += 1
         grid = dataclasses.replace(grid, n_theta=n_theta, refine=refine)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
@@ -270,6 +293,13 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     return dataclasses.replace(
         model, grid=grid, geometry=geometry, extrapolate=not isinstance(options.bounces, int)
     )
+
+
+def _refined(model: _Model, fine: _Model) -> list[str]:
+    pairs = [("n_theta", model.grid, fine.grid), ("refine", model.grid, fine.grid)]
+    if model.geometry is not None:
+        pairs += [(k, model.geometry, fine.geometry) for k in ("n_mu", "n_z")]
+    return [k for k, a, b in pairs if getattr(b, k) > getattr(a, k)]
 
 
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
@@ -407,6 +437,9 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         model_dict["correction"] = last.correction
     if fine is not None:
         model_dict["finer_model"] = {
+            # The dimensions it refines (none: nothing finer fits the memory cap, and
+            # the term counts only the series' truncation).
+            "refined": _refined(last.model, fine),
             "n_theta": fine.grid.n_theta,
             "refine": fine.grid.refine,
             "bounces": fine.bounces,

@@ -195,14 +195,23 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
             sigma_t=data.sigma_t0,
             crop=model.crop,
         )
+        # A slab's depth layers and elevation nodes too (g decides the nodes, the
+        # albedo the layers).
+        deeper = need.geometry is not None and (
+            need.geometry.n_z > model.geometry.n_z
+            or need.geometry.n_mu >= 2 * model.geometry.n_mu
+        )
         if (
             need.grid.n_theta >= 4 * model.grid.n_theta
             or need.grid.refine > model.grid.refine
             or need.bounces > model.bounces
+            or deeper
         ):
+            slab = need.geometry
             say(
                 f"{name}: again with the model the estimate needs (n_theta "
-                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces)"
+                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces"
+                + (f", n_mu {slab.n_mu}, n_z {slab.n_z})" if slab is not None else ")")
             )
             model = _at_least(need, model)
             sol = on(model)

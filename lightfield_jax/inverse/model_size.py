@@ -113,6 +113,10 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     return (lo, 0, hi, h) if along_x else (0, lo, w, hi)
 
 
+# The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
+MIN_CAPPED_MU = 4
+
+
 def size_model(
     images: np.ndarray,
     pattern: Stripes,
@@ -158,8 +162,10 @@ def size_model(
         while _slab_over_cap(width, height, n_theta, refine, slab, options):
             if n_theta > 8 and options.n_theta is None:
                 n_theta //= 2
-            elif slab.n_mu > 4 and not user_mu:
-                slab = dataclasses.replace(slab, n_mu=slab.n_mu // 2)
+            elif slab.n_mu > MIN_CAPPED_MU and not user_mu:
+                # Never below 4 nodes: refractive faces need 2 on each side of the
+                # critical angle (24 halves to 12, 6, then 4).
+                slab = dataclasses.replace(slab, n_mu=max(MIN_CAPPED_MU, slab.n_mu // 2))
             else:
                 break
     grid = Grid(width, height, n_theta, refine)
@@ -284,7 +290,9 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     slab = as_geometry(options.geometry).slab_or_none
     if slab is not None:
         n_theta = min(options.n_theta or 8, 8)
-        geometry = dataclasses.replace(slab, n_mu=min(slab.n_mu or 4, 4), n_z=1)
+        geometry = dataclasses.replace(
+            slab, n_mu=min(slab.n_mu or MIN_CAPPED_MU, MIN_CAPPED_MU), n_z=1
+        )
     rho = min(max(rho0, 0.3), 0.95)
     k = _bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
     if isinstance(options.bounces, int):
