@@ -13,6 +13,7 @@ The default suite fits small grids (48x32, the forward medium 32x24; 16 directio
 the model matching the data's); the 128x96 versions are marked ``slow``.
 """
 
+import dataclasses
 import functools
 import math
 
@@ -644,3 +645,27 @@ def test_the_error_terms_plane_model_is_finer_past_256_bins():
     assert (fine.grid.n_theta, fine.grid.refine) == (512, 2)
     capped = lfj.FitOptions(phase="normalized", max_cells=10**5, max_render_cells=10**5)
     assert _finer(model, capped, 0.9).grid == model.grid  # nothing finer fits
+
+
+@pytest.mark.parametrize("ratio, cut", [(0.999, True), (1.2, True), (0.9, False)])
+def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
+    """Under the paper's phase ρ = ω·A(g) passes 1 for g ≳ 0.7 and the fit marches
+    ``max_bounces``; where the ratio measured at the answer leaves more than 1 % of I_1
+    past them, the fit says so (a reason: not converged); a ratio the march covers
+    (0.9^80) gives none, nor does a series the bound called convergent."""
+    from lightfield_jax.inverse.basins import Scan
+    from lightfield_jax.inverse.joint_fit import _cut_series
+    from lightfield_jax.inverse.model_size import _Model
+
+    model = _Model(lfj.Grid(32, 24, 32, 1), 80, (0, 0, 32, 24), converges=False, rho=1.3)
+    two = np.array([-0.9, 0.9])
+    scan = Scan(
+        two, two, np.zeros((2, 2)), np.zeros((2, 2)), (), 0.2, {}, two * 0 + ratio, two * 0 + 0.2
+    )
+    values = {"sigma_t": 0.2, "sigma_s": 0.2, "g": 0.8}  # albedo 1: the ratio as measured
+    reasons = _cut_series(model, scan, values)
+    assert bool(reasons) == cut
+    if cut:
+        assert "cut at 80 bounces" in reasons[0]
+    converges = dataclasses.replace(model, converges=True)
+    assert _cut_series(converges, scan, values) == []

@@ -10,6 +10,7 @@ error term from a finer model's residual at the answer (:func:`_finer`,
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
@@ -295,6 +296,31 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     )
 
 
+# A marched series whose left-out orders exceed this share of I_1 is not a model of the
+# capture (the two-step methods' limit, methods.TRUNCATION_LIMIT).
+CUT_LIMIT = 0.01
+
+
+def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
+    """A reason where the model marched a series its bound called divergent (ρ ≥ 1 at the
+    estimate: the paper's phase gains energy per bounce for g ≳ 0.7, ρ = ω·A(g)) and the
+    per-bounce ratio measured by the scan, at the answer, says the orders past its
+    ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1."""
+    if model.converges or model.tail is not None or model.extrapolate:
+        return []
+    r = the_scan.ratio_at(v["g"], v["sigma_s"] / v["sigma_t"])
+    if not math.isfinite(r):
+        r = model.rho
+    left = math.inf if r >= 1 else r**model.bounces / (1 - r)
+    if left <= CUT_LIMIT:
+        return []
+    return [
+        f"the bounce series is cut at {model.bounces} bounces where it has not converged "
+        f"(per-bounce ratio {r:.3f} at the answer, ρ {model.rho:.3f} at the estimate): "
+        "the orders left out are not negligible; raise max_bounces, or phase: normalized"
+    ]
+
+
 def _refined(model: _Model, fine: _Model) -> list[str]:
     pairs = [("n_theta", model.grid, fine.grid), ("refine", model.grid, fine.grid)]
     if model.geometry is not None:
@@ -421,6 +447,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
     reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
+    reasons += _cut_series(last.model, the_scan, v)
     other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
     if other is not None:
         reasons.append(
