@@ -100,12 +100,9 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
 
     # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
     # the corrected one, reached by primal renders, by max_render_cells.
-    need = needed(options.max_cells)
+    need = _at_least(needed(options.max_cells), floor)
     correct = options.correct and first.ok
-    if correct:
-        target = _at_least(_at_least(needed(options.max_render_cells), need), floor)
-    else:
-        need = target = _at_least(need, floor)
+    target = _at_least(needed(options.max_render_cells), need) if correct else need
     if _covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
