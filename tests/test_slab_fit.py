@@ -3,6 +3,7 @@ the plane-or-slab choice of ``geometry: auto``, and the capture/CLI path."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -44,6 +45,25 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
     assert fit.phase == "normalized"  # the 3-D phase function is normalised
 
 
+def test_a_one_layer_model_does_not_cover_a_need_of_eight():
+    """The cheap slab model (8 bins, 4 nodes, 1 layer) stands in for the model the answer
+    needs only where it is as large in every dimension: behind absorbing faces at ω 0.8,
+    g 0.4 the need is 8 bins (what it has) but 8 layers."""
+    from lightfield_jax.inverse.model_size import _covers, size_model
+
+    opts = FitOptions(geometry=Slab(6.4), phase="normalized")
+    crop = (0, 0, 32, 24)
+    cheap = dataclasses.replace(_scan_model(crop, opts, 0.5), extrapolate=False)
+    need = size_model(np.zeros((6, 24, 32)), PATTERN, 0.8, 0.4, opts, 1.03, 0.2, crop)
+    assert (need.grid.n_theta, need.geometry.n_z) == (8, 8)
+    assert cheap.grid.n_theta == 8 and cheap.geometry.n_z == 1
+    bounces = dataclasses.replace(cheap, bounces=need.bounces)
+    assert not _covers(bounces, need)
+    layered = dataclasses.replace(bounces, geometry=need.geometry)
+    assert _covers(layered, need)
+
+
+@pytest.mark.slow  # a minute on 2 cores
 def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
     """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 8 azimuth bins (what the
     cheap model has) but 8 depth layers (it has one): the cheap model does not stand in
