@@ -235,6 +235,10 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
     return stage, record
 
 
+# The finest spatial refinement a Grid takes (scene.grid.check_refine).
+REFINE_LIMIT = 8
+
+
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     """A finer model than ``model`` for its error term, never coarser in any dimension.
 
@@ -276,7 +280,8 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
             refine = grid.refine  # at most twice the model's cells (memory)
         if n_theta > 256 and cells(n_theta, refine) > cap:
             n_theta = grid.n_theta
-        if (n_theta, refine) == (grid.n_theta, grid.refine) and cells(n_theta, refine + 1) <= cap:
+        same = (n_theta, refine) == (grid.n_theta, grid.refine)
+        if same and refine < REFINE_LIMIT and cells(n_theta, refine + 1) <= cap:
             refine += 1
         grid = dataclasses.replace(grid, n_theta=n_theta, refine=refine)
     if model.tail is not None:  # the same K0, a tail ten times as tight
@@ -294,7 +299,8 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
 
 
 # A marched series whose left-out orders exceed this share of I_1 is not a model of the
-# capture (the two-step methods' limit, methods.TRUNCATION_LIMIT).
+# capture (the limit the two-step methods apply to a convergent series' march,
+# methods.TRUNCATION_LIMIT).
 CUT_LIMIT = 0.01
 
 
@@ -314,7 +320,8 @@ def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     return [
         f"the bounce series is cut at {model.bounces} bounces where it has not converged "
         f"(per-bounce ratio {r:.3f} at the answer, ρ {model.rho:.3f} at the estimate): "
-        "the orders left out are not negligible; raise max_bounces, or phase: normalized"
+        "the orders left out are not negligible; raise max_bounces (or bounces), or use "
+        "phase: normalized"
     ]
 
 
