@@ -41,6 +41,7 @@ from lightfield_jax.inverse.model_size import (
     _orders,
     _scan_model,
     _slab_over_cap,
+    discretisation,
     size_model,
 )
 from lightfield_jax.inverse.trust import (
@@ -51,7 +52,7 @@ from lightfield_jax.inverse.trust import (
     tail_unconverged,
     untrustworthy,
 )
-from lightfield_jax.scene.grid import default_refine
+from lightfield_jax.scene.grid import REFINE_LIMIT, default_refine
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions
@@ -235,10 +236,6 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
     return stage, record
 
 
-# The finest spatial refinement a Grid takes (scene.grid.check_refine).
-REFINE_LIMIT = 8
-
-
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     """A finer model than ``model`` for its error term, never coarser in any dimension.
 
@@ -257,16 +254,20 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
+
+        def doubled(n: int, limit: int) -> int:
+            return max(n, min(2 * n, limit))  # never below the model's own
+
         cap = 4 * options.max_render_cells
-        wide = dataclasses.replace(options, max_cells=cap, max_render_cells=cap)
         for name, limit in (("n_z", 16), ("n_mu", 64), ("n_theta", 128)):
-            owner = grid if name == "n_theta" else geometry
-            value = min(2 * getattr(owner, name), limit)
-            if value <= getattr(owner, name):
-                continue
-            g2 = dataclasses.replace(grid, n_theta=value) if name == "n_theta" else grid
-            s2 = geometry if name == "n_theta" else dataclasses.replace(geometry, **{name: value})
-            if not _slab_over_cap(g2.width, g2.height, g2.n_theta, g2.refine, s2, wide):
+            g2, s2 = grid, geometry
+            if name == "n_theta":
+                g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limit))
+            else:
+                s2 = dataclasses.replace(
+                    geometry, **{name: doubled(getattr(geometry, name), limit)}
+                )
+            if not _slab_over_cap(g2.width, g2.height, g2.n_theta, g2.refine, s2, cap):
                 grid, geometry = g2, s2
     else:
         cap = 2 * options.max_render_cells
@@ -323,13 +324,6 @@ def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
         "the orders left out are not negligible; raise max_bounces (or bounces), or use "
         "phase: normalized"
     ]
-
-
-def _refined(model: _Model, fine: _Model) -> list[str]:
-    pairs = [("n_theta", model.grid, fine.grid), ("refine", model.grid, fine.grid)]
-    if model.geometry is not None:
-        pairs += [(k, model.geometry, fine.geometry) for k in ("n_mu", "n_z")]
-    return [k for k, a, b in pairs if getattr(b, k) > getattr(a, k)]
 
 
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
@@ -470,7 +464,9 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         model_dict["finer_model"] = {
             # The dimensions it refines (none: nothing finer fits the memory cap, and
             # the term counts only the series' truncation).
-            "refined": _refined(last.model, fine),
+            "refined": [
+                k for k, n in discretisation(fine).items() if n > discretisation(last.model)[k]
+            ],
             "n_theta": fine.grid.n_theta,
             "refine": fine.grid.refine,
             "bounces": fine.bounces,

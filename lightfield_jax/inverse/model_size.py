@@ -159,7 +159,7 @@ def size_model(
     if slab is not None:
         # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
         user_mu = options.geometry.n_mu is not None
-        while _slab_over_cap(width, height, n_theta, refine, slab, options):
+        while _slab_over_cap(width, height, n_theta, refine, slab, options.max_cells):
             if n_theta > 8 and options.n_theta is None:
                 n_theta //= 2
             elif slab.n_mu > MIN_CAPPED_MU and not user_mu:
@@ -313,11 +313,12 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
 RETRY_SLAB = (16, 8)
 
 
-def _slab_over_cap(width, height, n_theta, refine, slab: Slab, options: FitOptions) -> bool:
-    """Whether a slab model passes ``max_cells``: it works on azimuth × elevation × depth
-    fields over the 2H × 2W FFT domain, allowed 4 × ``max_cells``."""
+def _slab_over_cap(width, height, n_theta, refine, slab: Slab, max_cells: int) -> bool:
+    """Whether a slab model passes a cap of ``max_cells`` (a plane's cell count): it
+    works on azimuth × elevation × depth fields over the 2H × 2W FFT domain, allowed
+    4 × ``max_cells``."""
     cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
-    return cells > 4 * options.max_cells
+    return cells > 4 * max_cells
 
 
 def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
@@ -341,7 +342,7 @@ def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
         return None
     grid = dataclasses.replace(model.grid, n_theta=max(model.grid.n_theta, n_theta))
     slab = dataclasses.replace(slab, n_mu=max(slab.n_mu, n_mu))
-    if _slab_over_cap(grid.width, grid.height, grid.n_theta, grid.refine, slab, options):
+    if _slab_over_cap(grid.width, grid.height, grid.n_theta, grid.refine, slab, options.max_cells):
         return None
     return dataclasses.replace(model, grid=grid, geometry=slab)
 
@@ -381,17 +382,17 @@ def _covers(have: _Model, need: _Model) -> bool:
         orders = have.tail == need.tail and have.bounces >= need.bounces
     else:
         orders = have.tail is not None or have.bounces >= need.bounces
-    # A slab's depth layers and elevation nodes are part of its size: a cheap model of
-    # one layer does not cover a need of eight.
-    depth = need.geometry is None or (
-        have.geometry is not None
-        and have.geometry.n_mu >= need.geometry.n_mu
-        and have.geometry.n_z >= need.geometry.n_z
-    )
-    return (
-        have.crop == need.crop
-        and orders
-        and depth
-        and have.grid.n_theta >= need.grid.n_theta
-        and have.grid.refine >= need.grid.refine
-    )
+    # Every dimension of the discretisation, a slab's depth layers and elevation nodes
+    # included: a cheap model of one layer does not cover a need of eight.
+    sizes = discretisation(have)
+    finer = all(sizes.get(k, 0) >= v for k, v in discretisation(need).items())
+    return have.crop == need.crop and orders and finer
+
+
+def discretisation(model: _Model) -> dict[str, int]:
+    """The model's discretisation: θ bins and refinement; a slab's elevation nodes and
+    depth layers too."""
+    sizes = {"n_theta": model.grid.n_theta, "refine": model.grid.refine}
+    if model.geometry is not None:
+        sizes.update(n_mu=model.geometry.n_mu, n_z=model.geometry.n_z)
+    return sizes

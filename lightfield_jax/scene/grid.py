@@ -20,6 +20,8 @@ _N_THETA_MAX = 256
 # Spatial refinement chosen from |g| (see Grid.refine).
 _REFINE_RULE: tuple[tuple[float, int], ...] = ((0.65, 1),)
 _REFINE_MAX = 2
+# The finest refinement a grid takes.
+REFINE_LIMIT = 8
 
 
 def default_refine(g: float) -> int:
@@ -57,11 +59,12 @@ def check_n_theta(n, key: str = "grid.n_theta") -> None:
 
 
 def check_refine(r, key: str = "grid.refine") -> None:
-    """Refuse a refinement that is not ``None`` or an integer in [1, 8], naming ``key``."""
+    """Refuse a refinement that is not ``None`` or an integer in [1, REFINE_LIMIT],
+    naming ``key``."""
     if r is not None and (
-        not isinstance(r, (int, np.integer)) or isinstance(r, bool) or not 1 <= r <= 8
+        not isinstance(r, (int, np.integer)) or isinstance(r, bool) or not 1 <= r <= REFINE_LIMIT
     ):
-        raise ValueError(f"{key}: must be an integer in [1, 8], got {r!r}")
+        raise ValueError(f"{key}: must be an integer in [1, {REFINE_LIMIT}], got {r!r}")
 
 
 @dataclasses.dataclass(frozen=True)
