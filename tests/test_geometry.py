@@ -38,7 +38,8 @@ def test_each_geometry_gives_its_renderer_bound_and_size():
     assert plane.phase_convention("paper") == "paper"
     assert slab.phase_convention("paper") == "normalized"
     assert plane.fields_per_bin(0.7, 0.3, 0.9) == 1
-    assert slab.fields_per_bin(0.7, 0.3, 0.9) == 8
+    # 4 elevation nodes × 2 layers × 2 coefficients of the linear depth profile
+    assert slab.fields_per_bin(0.7, 0.3, 0.9) == 16
     assert plane.slab_or_none is None and slab.slab_or_none is slab
     grid, resolved, _ = lfj.Slab(4.0).resolve_model(medium, lfj.Grid(12, 8))
     assert grid.n_theta is not None and resolved.n_mu is not None and resolved.n_z is not None

@@ -58,7 +58,12 @@ from jaxtyping import Array, Float
 from lightfield_jax.forward.base import AbstractRenderer, FirstOrders
 from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import bin_pair_offsets, fft_convolve, padded_spectrum, splat
-from lightfield_jax.forward.slab_layers import SlabBounce, camera_integrals, transport_weights
+from lightfield_jax.forward.slab_layers import (
+    PAIRS,
+    SlabBounce,
+    camera_integrals,
+    transport_weights,
+)
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Illumination
 
@@ -133,6 +138,7 @@ class SlabRenderer(AbstractRenderer):
 
     n_mu: int = eqx.field(static=True)
     n_z: int = eqx.field(static=True)
+    n_m: int = eqx.field(static=True)  # depth profile coefficients per layer: 1 or 2
     thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
     camera_t: float = eqx.field(static=True)
     t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
@@ -165,6 +171,7 @@ class SlabRenderer(AbstractRenderer):
         f = self.refine
         self.n_mu = int(slab.n_mu)
         self.n_z = int(slab.n_z)
+        self.n_m = slab.depth_coefficients
         self.thickness = float(slab.thickness) * f
         self.camera_t = slab.camera_transmission
         theta0 = math.radians(illumination.direction_deg)
@@ -198,10 +205,11 @@ class SlabRenderer(AbstractRenderer):
         return self.thickness
 
     def integrate(self, field):
-        """(patterns, n_z, n_mu, n_theta, H, W) → ∫dz ∫dμ: (patterns, n_theta, H, W)."""
+        """(patterns, n_m·n_z, n_mu, n_theta, H, W) → ∫dz ∫dμ: (patterns, n_theta, H,
+        W); only the layer averages integrate to anything (∫φ_1 = 0)."""
         dz = self.thickness / self.n_z
         w_mu = self.w_mu.astype(field.dtype)
-        return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", w_mu, field)
+        return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", w_mu, field[:, : self.n_z])
 
     # -- pieces -------------------------------------------------------------------
 
@@ -251,8 +259,9 @@ class SlabRenderer(AbstractRenderer):
         return plus * scale, minus * scale
 
     def _transport_and_camera(self, sigma_t, g, dtype):
-        """Node values of the layer-to-layer transport kernels W_δ, δ = −(n_z−1)..n_z−1
-        (2 n_z − 1, n_mu, N), and of the camera kernels per source layer (n_z, n_mu, N):
+        """Node values of the layer-to-layer transport kernels W^{ab}_δ per distinct
+        profile pair, δ = −(n_z−1)..n_z−1 (pairs, 2 n_z − 1, n_mu, N), and of the camera
+        kernels per source coefficient and layer (n_m·n_z, n_mu, N):
         T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart)."""
         h, n_z = self.thickness, self.n_z
         u = jax.lax.stop_gradient(self.cam_u.astype(dtype))
@@ -261,17 +270,23 @@ class SlabRenderer(AbstractRenderer):
         v = u / (h / n_z)
         transport = jnp.stack(
             [
-                jnp.sum(att * transport_weights(v, refl, n_z, delta), axis=-1)
-                for delta in range(-(n_z - 1), n_z)
+                jnp.stack(
+                    [
+                        jnp.sum(att * transport_weights(v, refl, n_z, delta, pair), axis=-1)
+                        for delta in range(-(n_z - 1), n_z)
+                    ]
+                )
+                for pair in PAIRS[self.n_m]
             ]
         )
         mu = self.mu.astype(dtype)
         weight = (self.w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
         camera = []
-        for layer in range(n_z):
-            up, down = camera_integrals(u, h, n_z, layer, refl, sigma_t)
-            up, down = jnp.sum(att * up, axis=-1), jnp.sum(att * down, axis=-1)
-            camera.append(weight * (hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down))
+        for moment in range(self.n_m):
+            for layer in range(n_z):
+                up, down = camera_integrals(u, h, n_z, layer, refl, sigma_t, moment)
+                up, down = jnp.sum(att * up, axis=-1), jnp.sum(att * down, axis=-1)
+                camera.append(weight * (hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down))
         return transport, jnp.stack(camera)
 
     def _first_phase(self, g, dtype):
@@ -302,14 +317,19 @@ class SlabRenderer(AbstractRenderer):
         n_z, height, width = self.n_z, self.height, self.width
         transport, camera = self._transport_and_camera(sigma_t, g, dtype)
         p1 = self._first_phase(g, dtype)
-        # The first source is uniform in depth: layer l receives Σ_l' W_{l−l'}.
-        first = jnp.stack([jnp.sum(transport[layer : layer + n_z], axis=0) for layer in range(n_z)])
-        k1_f = self._kernels_f(p1 * first)  # (n_z, n_mu, n_theta, 2H, W+1)
-        k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera, axis=0)), axis=(0, 1))
+        # The first source is uniform in depth: layer l receives Σ_l' W^{a0}_{l−l'}
+        # (W^{10} = −3 W^{01}), and only the average's camera kernels see it.
+        first = jnp.stack([jnp.sum(transport[0, layer : layer + n_z], axis=0) for layer in range(n_z)])
+        if self.n_m == 2:
+            slope = jnp.stack(
+                [jnp.sum(transport[1, layer : layer + n_z], axis=0) for layer in range(n_z)]
+            )
+            first = jnp.concatenate([first, -3.0 * slope])
+        k1_f = self._kernels_f(p1 * first)  # (n_m·n_z, n_mu, n_theta, 2H, W+1)
+        k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), axis=(0, 1))
         src_f = padded_spectrum(source)
-        l1 = sigma_s * jnp.maximum(
-            fft_convolve(src_f[:, None, None, None], k1_f, height, width), 0.0
-        )
+        l1 = fft_convolve(src_f[:, None, None, None], k1_f, height, width)
+        l1 = sigma_s * jnp.concatenate([jnp.maximum(l1[:, :n_z], 0.0), l1[:, n_z:]], axis=1)
         i2 = sigma_s**2 * jnp.maximum(fft_convolve(src_f, k1_cam_f, height, width), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(

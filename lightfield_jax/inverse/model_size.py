@@ -274,6 +274,8 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
             n_mu=max(geometry.n_mu, floor.geometry.n_mu),
             n_z=max(geometry.n_z, floor.geometry.n_z),
         )
+        if floor.geometry.profile == "linear" and geometry.profile != "linear":
+            geometry = dataclasses.replace(geometry, depth_profile="linear")
     return dataclasses.replace(
         model, grid=grid, bounces=max(model.bounces, floor.bounces), geometry=geometry
     )
@@ -318,6 +320,7 @@ def _slab_over_cap(width, height, n_theta, refine, slab: Slab, max_cells: int) -
     works on azimuth × elevation × depth fields over the 2H × 2W FFT domain, allowed
     4 × ``max_cells``."""
     cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
+    cells *= slab.depth_coefficients
     return cells > 4 * max_cells
 
 
@@ -390,9 +393,13 @@ def _covers(have: _Model, need: _Model) -> bool:
 
 
 def discretisation(model: _Model) -> dict[str, int]:
-    """The model's discretisation: θ bins and refinement; a slab's elevation nodes and
-    depth layers too."""
+    """The model's discretisation: θ bins and refinement; a slab's elevation nodes,
+    depth layers and the order of its depth profile (0 constant, 1 linear) too."""
     sizes = {"n_theta": model.grid.n_theta, "refine": model.grid.refine}
     if model.geometry is not None:
-        sizes.update(n_mu=model.geometry.n_mu, n_z=model.geometry.n_z)
+        sizes.update(
+            n_mu=model.geometry.n_mu,
+            n_z=model.geometry.n_z,
+            depth_order=model.geometry.depth_coefficients - 1,
+        )
     return sizes

@@ -114,6 +114,9 @@ class Plane:
         )
 
 
+DEPTH_PROFILES = ("constant", "linear")
+
+
 @dataclasses.dataclass(frozen=True)
 class Slab:
     """A tank of depth ``thickness`` (pixels) with 3-D directions (docs/model.md §7).
@@ -129,6 +132,10 @@ class Slab:
             ``None`` to choose from g (:func:`default_n_mu`).
         n_z: depth layers of the light field (1: the depth average), or ``None`` to
             choose from σt·h, the albedo and g (:func:`default_n_z`).
+        depth_profile: the light's profile within each layer: ``"constant"`` (its
+            average: first order in the layer thickness Δ) or ``"linear"`` (average and
+            slope: second order, twice the unknowns per layer), or ``None``: linear
+            where there are two layers or more (:attr:`profile`).
     """
 
     thickness: float
@@ -136,6 +143,7 @@ class Slab:
     n: float = 1.33
     n_mu: int | None = None
     n_z: int | None = None
+    depth_profile: str | None = None
     kind: Literal["slab"] = "slab"
 
     def __post_init__(self):
@@ -178,6 +186,11 @@ class Slab:
             raise ValueError(
                 f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
             )
+        if self.depth_profile is not None and self.depth_profile not in DEPTH_PROFILES:
+            raise ValueError(
+                f"geometry.depth_profile: must be one of {', '.join(DEPTH_PROFILES)}, "
+                f"got {self.depth_profile!r}"
+            )
 
     def as_dict(self) -> dict:
         d = {"kind": "slab", "thickness": self.thickness, "boundary": self.boundary}
@@ -187,7 +200,26 @@ class Slab:
             d["n_mu"] = int(self.n_mu)
         if self.n_z is not None:
             d["n_z"] = int(self.n_z)
+        if self.n_z is not None or self.depth_profile is not None:
+            d["depth_profile"] = self.profile
         return d
+
+    @property
+    def profile(self) -> str:
+        """The depth profile in effect: ``depth_profile``, or where it is ``None``
+        ``"linear"`` with two layers or more and ``"constant"`` with one (the depth
+        average keeps its cost). Measured (docs/slab_depth.md §7): 2 linear layers are
+        within 0.1 % of the converged depth behind refractive faces where 4 constant
+        ones leave up to 2.3 %, 4 within 0.13 % behind absorbing ones where 8 leave
+        up to 0.9 %."""
+        if self.depth_profile is not None:
+            return self.depth_profile
+        return "linear" if (self.n_z or 1) >= 2 else "constant"
+
+    @property
+    def depth_coefficients(self) -> int:
+        """Unknowns per layer: 1 (constant profile) or 2 (linear)."""
+        return 2 if self.profile == "linear" else 1
 
     def resolve(self, g: float, sigma_t: float | None = None, albedo: float | None = None) -> Slab:
         """This slab with ``n_mu`` chosen from g (and the thickness) and ``n_z`` from
@@ -251,9 +283,10 @@ class Slab:
         return grid, slab, self.rho_bound(medium)
 
     def fields_per_bin(self, g: float, sigma_t: float, albedo: float) -> int:
-        """Elevation nodes × depth layers the model keeps per pixel and azimuth bin."""
+        """Elevation nodes × depth layers × profile coefficients the model keeps per
+        pixel and azimuth bin."""
         slab = self.resolve(g, sigma_t, albedo)
-        return slab.n_mu * slab.n_z
+        return slab.n_mu * slab.n_z * slab.depth_coefficients
 
     def renderer(
         self,
@@ -401,36 +434,28 @@ def default_n_mu(
     return max(n, 16) if _guides_light(boundary, albedo) else n
 
 
-# From this albedo on, refractive tanks get 4 depth layers whatever σt·h (see default_n_z).
-BRIGHT_ALBEDO = 0.9
-
-
 def default_n_z(
     optical_thickness: float | None, albedo: float | None, boundary: str = "absorbing"
 ) -> int:
     """Depth layers for a slab of optical thickness σt·h and albedo ω (``None``:
     unknown, the worst case): 1 for dim media (ω < 0.3: the orders a depth average
-    gets wrong, k ≥ 3, carry little light), else 8 behind absorbing faces, 4 behind
-    refractive ones thinner than one mean free path or with ω ≥ 0.9, 2 otherwise.
+    gets wrong, k ≥ 3, carry little light), else 4 behind absorbing faces and 2 behind
+    refractive ones, with the light linear in depth within each layer
+    (:attr:`Slab.profile`). ``optical_thickness`` is accepted for the callers' sake;
+    the linear profile made the count independent of it.
 
-    Measured against the 3-D slab Monte Carlo (h 6.4 px, 48×32, full illumination,
-    σt·h 0.3 / 1.3 / 3, g −0.3 / 0.4 / 0.8 / 0.9; docs/slab_depth.md): the error of a
-    layer average falls about as 1/n_z. Absorbing faces empty the layers near them, so
-    the depth average misses I_6 by up to 20–50 %, 4 layers by up to 4.5 % (σt·h 1.3,
-    g −0.3), 8 layers by ≤ 2.2 %; refractive faces keep the light spread over the depth
-    (n_z = 1: 5–6 % at I_5, I_6 for g ≥ 0.8), 2 layers are within 1.3 % from σt·h 1.3
-    and 4 within 1.6 % at 0.3. Stripes see more: the dark rows next to the entry wall
-    get their light sideways from the lit rows in the orders k ≥ 3, and there two
-    layers spread it too far at high albedo (σt·h 1.3, ω 0.95, g 0.8, refractive: off-beam
-    rows next to the wall +2.6 … +8.5 % for k = 3 … 6 with 2 layers, ≤ 1.5 % with 4;
-    docs/slab_depth.md §6)."""
+    Measured (docs/slab_depth.md): against the 3-D slab Monte Carlo, the layer
+    average's error falls as 1/n_z (absorbing faces empty the layers near them: the
+    depth average misses I_6 by 20–50 %; 8 constant layers left ≤ 2.2 %, and the dark
+    rows next to the entry wall of a stripe capture +1.5 … +8.5 % at k 3 … 6 with 2
+    constant layers behind refractive faces). The linear profile is second order: on
+    a 1-px beam at the entry wall (orders 3–6, image sums and the off-beam rows next to
+    the wall, against the converged depth), 2 linear layers behind refractive faces are
+    within 0.1 % (4 constant ones: up to 2.3 %), 4 behind absorbing faces within 0.13 %
+    (8 constant ones: up to 0.94 %)."""
     if albedo is not None and albedo < DIM_ALBEDO:
         return 1
-    if boundary == "absorbing":
-        return 8
-    thin = optical_thickness is None or optical_thickness < 1.0
-    bright = albedo is None or albedo >= BRIGHT_ALBEDO
-    return 4 if thin or bright else 2
+    return 4 if boundary == "absorbing" else 2
 
 
 def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
@@ -447,7 +472,7 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
         raise ValueError(f"{where}.kind: must be a string (plane, slab), got {kind!r}")
     if "kind" not in spec and "thickness" in spec:
         raise ValueError(f"{where}.kind: missing (a slab needs kind: slab with its thickness)")
-    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z"}
+    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z", "depth_profile"}
     allowed = {"plane": {"kind"}, "slab": slab_keys}
     if allow_auto:
         allowed["auto"] = slab_keys | {"threshold"}
@@ -476,6 +501,7 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
             n=spec.get("n", 1.33),
             n_mu=spec.get("n_mu"),
             n_z=spec.get("n_z"),
+            depth_profile=spec.get("depth_profile"),
         )
     except ValueError as err:
         raise ValueError(str(err).replace("geometry", where, 1)) from None
@@ -518,6 +544,8 @@ def describe_geometry(model: dict) -> str:
         if geo["boundary"] == "refractive":
             text += f" n {geo['n']:g}"
         text += f", n_mu {geo.get('n_mu')}, n_z {geo.get('n_z', 1)}"
+        if geo.get("depth_profile") == "linear":
+            text += " (linear in depth)"
     else:
         text = "plane"
     choice = model.get("geometry_choice")
