@@ -76,6 +76,92 @@ def test_layer_weights_against_brute_force(refl, n_z):
             np.testing.assert_allclose(np.asarray(b), [e[2] for e in expected], rtol=1e-6)
 
 
+def brute_force_moments(u, h, n_z, source, refl, sigma_t, samples=200_000):
+    """The linear profile's coefficients by sampling: a source of profile φ_b (φ_0 = 1,
+    φ_1 = 2η − 1 on the layer's local height η) in layer ``source``, its rays unfolded
+    with vertical travel u; per receiving layer and coefficient a, (2a + 1)·mean[R^m
+    φ_a(ξ) φ_b(η)], and the camera integrals of φ_b."""
+    dz = h / n_z
+    eta = (np.arange(samples) + 0.5) / samples
+    a = (source + eta) * dz + u
+    m = np.floor(a / h)
+    y = a - m * h
+    rm = np.where(m == 0, 1.0, refl ** np.maximum(m, 1))
+    layer = np.minimum(np.floor(y / dz), n_z - 1).astype(int)
+    xi = y / dz - layer
+    phi = (np.ones_like(eta), 2 * eta - 1), (np.ones_like(xi), 2 * xi - 1)
+    w = {
+        (i, j): (2 * i + 1)
+        * np.bincount(layer, rm * phi[1][i] * phi[0][j], minlength=n_z)
+        / samples
+        for i in (0, 1)
+        for j in (0, 1)
+    }
+    up = dz * np.mean(rm * phi[0][1] * np.exp(-sigma_t * (h - y)))
+    down = dz * np.mean(rm * phi[0][1] * np.exp(-sigma_t * y))
+    return w, up, down
+
+
+@pytest.mark.parametrize("refl", [0.0, 0.4, 1.0])
+def test_linear_profile_weights_against_brute_force(refl):
+    """W^{ab}_δ of the linear profile (w^{10} = −3 w^{01}) and the camera integrals of
+    the slope, against sampling the unfolded rays."""
+    h, sigma_t, n_z = 6.4, 0.35, 3
+    u = np.array([0.0, 0.7, 2.5, 6.4, 9.1, 23.3])
+    factor = {"00": 1.0, "01": 1.0, "10": -3.0, "11": 1.0}
+    with jax.enable_x64(True):
+        for source in range(n_z):
+            expected = [brute_force_moments(x, h, n_z, source, refl, sigma_t) for x in u]
+            for (i, j), name in (((0, 0), "00"), ((0, 1), "01"), ((1, 0), "10"), ((1, 1), "11")):
+                w = np.array([e[0][i, j] for e in expected])
+                got = np.stack(
+                    [
+                        factor[name]
+                        * np.asarray(
+                            transport_weights(
+                                jnp.asarray(u / (h / n_z)),
+                                refl,
+                                n_z,
+                                lay - source,
+                                "01" if name == "10" else name,
+                            )
+                        )
+                        for lay in range(n_z)
+                    ],
+                    axis=1,
+                )
+                np.testing.assert_allclose(got, w, atol=1e-4, err_msg=name)
+            a, b = camera_integrals(
+                jnp.asarray(u), h, n_z, source, refl, jnp.asarray(sigma_t), moment=1
+            )
+            np.testing.assert_allclose(np.asarray(a), [e[1] for e in expected], atol=1e-6)
+            np.testing.assert_allclose(np.asarray(b), [e[2] for e in expected], atol=1e-6)
+
+
+@pytest.mark.parametrize("boundary", ["absorbing", "refractive"])
+def test_the_linear_profile_converges_faster_than_the_layer_average(boundary):
+    """Second order in the layer thickness: on a beam at the entry wall (ω 0.95, g 0.8,
+    orders 3–6), 2 linear layers are closer to the converged depth (8 linear layers)
+    than 4 constant ones, and 4 linear layers within 0.2 %."""
+    st, ss, g = 0.2, 0.19, 0.8
+    beam = lfj.Beam(0.0, 6.5, 0.0, 1.0)
+
+    def sums(n_z, profile):
+        slab = Slab(6.4, boundary, n_mu=4, n_z=n_z, depth_profile=profile)
+        grid = lfj.Grid(16, 12, 8, 1)
+        im = np.asarray(SlabRenderer(grid, beam, 6, slab)(st, ss, g)[0], np.float64)[0]
+        return im[2:].sum((1, 2))
+
+    with jax.enable_x64(True):
+        converged = sums(8, "linear")
+        error = {
+            key: np.max(np.abs(sums(*key) / converged - 1))
+            for key in ((2, "linear"), (4, "linear"), (4, "constant"))
+        }
+    assert error[(2, "linear")] < error[(4, "constant")], error
+    assert error[(4, "linear")] < 2e-3, error
+
+
 def test_one_layer_is_the_depth_average():
     """n_z = 1 has the survival S(v) = R^⌊v⌋(1 − f(1 − R)) of the depth-averaged model
     (docs/slab_design.md fact 3; the renders of the two agreed to 1e-16 before the
@@ -112,7 +198,8 @@ def test_layers_match_their_exact_monte_carlo_target():
         depth_layers=3,
         seed=5,
     )
-    im = render(st, ss, g, Slab(h, "refractive", n_mu=4, n_z=3), 48, 32, 4, beam)
+    slab = Slab(h, "refractive", n_mu=4, n_z=3, depth_profile="constant")
+    im = render(st, ss, g, slab, 48, 32, 4, beam)
     err = im.sum((1, 2)) / mc.images[0].sum((1, 2)) - 1
     noise = mc.total_stderr[0] / mc.images[0].sum((1, 2))
     # The discretisation (4 μ nodes, 8 azimuth bins) measured ≤ 0.7 % here.
@@ -153,7 +240,9 @@ def _mirrored(q, n_z: int):
     """The layer mirror z → h − z of a layered source: layers reversed within each
     profile coefficient, the slopes' sign flipped."""
     q = np.asarray(q)
-    blocks = [q[:, a * n_z : (a + 1) * n_z][:, ::-1] * (-1.0) ** a for a in range(q.shape[1] // n_z)]
+    blocks = [
+        q[:, a * n_z : (a + 1) * n_z][:, ::-1] * (-1.0) ** a for a in range(q.shape[1] // n_z)
+    ]
     return np.concatenate(blocks, axis=1)
 
 

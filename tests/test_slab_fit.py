@@ -45,28 +45,31 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
     assert fit.phase == "normalized"  # the 3-D phase function is normalised
 
 
-def test_a_one_layer_model_does_not_cover_a_need_of_eight():
-    """The cheap slab model (8 bins, 4 nodes, 1 layer) stands in for the model the answer
-    needs only where it is as large in every dimension: behind absorbing faces at ω 0.8,
-    g 0.4 the need is 8 bins (what it has) but 8 layers."""
+def test_a_one_layer_model_does_not_cover_a_need_of_four():
+    """The cheap slab model (8 bins, 4 nodes, 1 constant layer) stands in for the model
+    the answer needs only where it is as large in every dimension: behind absorbing faces
+    at ω 0.8, g 0.4 the need is 8 bins (what it has) but 4 layers, linear in depth."""
     from lightfield_jax.inverse.model_size import _covers, size_model
 
     opts = FitOptions(geometry=Slab(6.4), phase="normalized")
     crop = (0, 0, 32, 24)
     cheap = dataclasses.replace(_scan_model(crop, opts, 0.5), extrapolate=False)
     need = size_model(np.zeros((6, 24, 32)), PATTERN, 0.8, 0.4, opts, 1.03, 0.2, crop)
-    assert (need.grid.n_theta, need.geometry.n_z) == (8, 8)
+    assert (need.grid.n_theta, need.geometry.n_z, need.geometry.profile) == (8, 4, "linear")
     assert cheap.grid.n_theta == 8 and cheap.geometry.n_z == 1
     bounces = dataclasses.replace(cheap, bounces=need.bounces)
     assert not _covers(bounces, need)
     layered = dataclasses.replace(bounces, geometry=need.geometry)
     assert _covers(layered, need)
+    # As many layers, but each one's average only: not the need either.
+    constant = dataclasses.replace(need.geometry, depth_profile="constant")
+    assert not _covers(dataclasses.replace(bounces, geometry=constant), need)
 
 
 @pytest.mark.slow  # a minute on 2 cores
 def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
     """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 8 azimuth bins (what the
-    cheap model has) but 8 depth layers (it has one): the cheap model does not stand in
+    cheap model has) but 4 linear depth layers (it has one constant one): the cheap model does not stand in
     for the layered one (the depth average is off by 1 % on σs here), the fit corrects
     its answer to the layers."""
     st, ss, g = 0.2, 0.16, 0.4
@@ -74,7 +77,8 @@ def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
     fit = fit_images(
         slab_capture(st, ss, g, slab, 32, 24), PATTERN, options=FitOptions(geometry=slab)
     )
-    assert fit.model["geometry"]["n_z"] == 8
+    assert fit.model["geometry"]["n_z"] == 4
+    assert fit.model["geometry"]["depth_profile"] == "linear"
     assert fit.converged, fit.message
     assert fit.sigma_t == pytest.approx(st, rel=1e-3)
     assert fit.sigma_s == pytest.approx(ss, rel=1e-3)
@@ -192,7 +196,9 @@ def test_cli_fit_uses_the_capture_geometry(tmp_path):
     out = tmp_path / "cap"
     subprocess.run([*run, "simulate", str(tmp_path / "sim.yaml"), "--out", str(out)], check=True)
     capture = yaml.safe_load((out / "capture.yaml").read_text())
-    assert capture["geometry"] == cfg["geometry"]
+    # The capture records the geometry it was rendered with, the depth profile in effect
+    # included (one layer: its average).
+    assert capture["geometry"] == {**cfg["geometry"], "depth_profile": "constant"}
     result = tmp_path / "fit.json"
     subprocess.run(
         [*run, "fit", str(out / "capture.yaml"), "--out", str(result)], check=True, timeout=600
@@ -320,22 +326,23 @@ def test_the_second_cheap_slab_model_is_finer_and_within_the_users_settings():
 def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
     """A 128×96 capture of a g 0.9 medium behind refractive faces passes the cell cap at
     its 24 elevation nodes: the cap halves them to 12 and 6, then stops at 4 (refractive
-    faces need 4: it used to go to 3 and raise)."""
+    faces need 4: it used to go to 3 and raise). The depth keeps its 2 linear layers."""
     from lightfield_jax.inverse.model_size import size_model
 
     opts = FitOptions(geometry=Slab(6.4, "refractive", 1.33), phase="normalized")
     crop = (0, 0, 128, 96)
     model = size_model(np.zeros((6, 96, 128)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, crop)
-    assert model.geometry.n_mu == 4 and model.geometry.n_z == 4
+    assert model.geometry.n_mu == 4 and model.geometry.n_z == 2
 
 
 @pytest.mark.parametrize(
     "slab, n_theta, finer",
     [
-        (Slab(6.4), None, (16, 48, 16)),  # absorbing: 8 bins, 24 nodes, 8 layers
-        (Slab(6.4, n_z=16), None, (16, 24, 16)),  # the user's 16 layers stay
+        (Slab(6.4), None, (16, 48, 8)),  # absorbing: 8 bins, 24 nodes, 4 linear layers
+        # The user's 16 layers stay (linear: the cap left the model 12 nodes).
+        (Slab(6.4, n_z=16), None, (16, 12, 16)),
         # Already past the cap: nothing finer fits, and nothing coarser is taken.
-        (Slab(6.4, "refractive", 1.33, n_mu=64), 128, (128, 64, 4)),
+        (Slab(6.4, "refractive", 1.33, n_mu=64), 128, (128, 64, 2)),
     ],
 )
 def test_the_error_terms_slab_model_is_finer_and_never_coarser(slab, n_theta, finer):

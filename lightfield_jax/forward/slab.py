@@ -319,7 +319,9 @@ class SlabRenderer(AbstractRenderer):
         p1 = self._first_phase(g, dtype)
         # The first source is uniform in depth: layer l receives Σ_l' W^{a0}_{l−l'}
         # (W^{10} = −3 W^{01}), and only the average's camera kernels see it.
-        first = jnp.stack([jnp.sum(transport[0, layer : layer + n_z], axis=0) for layer in range(n_z)])
+        first = jnp.stack(
+            [jnp.sum(transport[0, layer : layer + n_z], axis=0) for layer in range(n_z)]
+        )
         if self.n_m == 2:
             slope = jnp.stack(
                 [jnp.sum(transport[1, layer : layer + n_z], axis=0) for layer in range(n_z)]
