@@ -69,9 +69,9 @@ def test_a_one_layer_model_does_not_cover_a_need_of_four():
 @pytest.mark.slow  # a minute on 2 cores
 def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
     """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 8 azimuth bins (what the
-    cheap model has) but 4 linear depth layers (it has one constant one): the cheap model does not stand in
-    for the layered one (the depth average is off by 1 % on σs here), the fit corrects
-    its answer to the layers."""
+    cheap model has) but 4 linear depth layers (it has one constant one): the cheap
+    model does not stand in for the layered one (the depth average is off by 1 % on σs
+    here), the fit corrects its answer to the layers."""
     st, ss, g = 0.2, 0.16, 0.4
     slab = Slab(6.4)  # layers and nodes from the medium, as a user gives it
     fit = fit_images(

@@ -39,7 +39,6 @@ from jaxtyping import Array, Complex, Float
 
 from lightfield_jax.forward.kernels import padded_spectrum
 
-
 _GAUSS4 = tuple(tuple(float(v) for v in a) for a in np.polynomial.legendre.leggauss(4))
 
 
