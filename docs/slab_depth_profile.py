@@ -1,0 +1,127 @@
+"""The tables of docs/slab_depth.md section 7: the linear depth profile against the layer
+average.
+
+1. Convergence in depth (no Monte Carlo: the converged depth is 8 linear layers). A
+   1-px beam entering at the left wall (y = 8.5 of 24×17), 16 azimuth bins × 8 μ nodes,
+   6 orders, float64; per scene the largest error of orders 3–6 in the image sum and in
+   the off-beam rows next to the wall (rows 0–6 and 10–16, columns 0–5).
+2. Cost: one render of 48×32, full illumination, refractive, g 0.8, 16 × 16 angles,
+   10 bounces, float32 (compile, then the fastest of 3 calls).
+3. With ``--mc``: the same beam against the 3-D slab Monte Carlo (g 0.9, ω 0.99,
+   refractive, 32 × 24 angles, 2 × 1e6 photons).
+
+Run: .venv/bin/python docs/slab_depth_profile.py [--mc]  (about 2 minutes on 2 cores;
+4 more with --mc)
+"""
+
+import sys
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import lightfield_jax as lfj
+from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
+from lightfield_jax.scene.geometry import Slab
+
+W, H, K = 24, 17, 6
+BEAM = lfj.Beam(0, 8.5, 0.0, 1.0)
+OFF = np.r_[0:7, 10:17]
+MODELS = [("constant", n) for n in (1, 2, 4, 8)] + [("linear", n) for n in (1, 2, 4)]
+
+
+def beam_render(boundary, sigma_t, sigma_s, g, profile, n_z, n_theta=16, n_mu=8):
+    slab = Slab(6.4, boundary, n=1.33, n_mu=n_mu, n_z=n_z, depth_profile=profile)
+    renderer = SlabRenderer(lfj.Grid(W, H, n_theta, 1), BEAM, K, slab)
+    return np.asarray(renderer(sigma_t, sigma_s, g)[0], np.float64)[0]
+
+
+def orders(image):
+    """Orders 3–6: image sums, then the off-beam rows next to the wall."""
+    return np.concatenate([image[2:].sum((1, 2)), image[2:, OFF, 0:6].sum((1, 2))])
+
+
+def convergence():
+    print("| faces | σt·h | ω | g | " + " | ".join(f"{p} {n}" for p, n in MODELS) + " |")
+    scenes = [
+        ("absorbing", 1.3, 0.95, 0.8),
+        ("absorbing", 0.3, 0.9, -0.3),
+        ("absorbing", 3.0, 0.95, 0.4),
+        ("refractive", 1.3, 0.99, 0.9),
+        ("refractive", 3.0, 0.95, 0.8),
+        ("refractive", 0.3, 0.95, -0.3),
+    ]
+    for boundary, tau, albedo, g in scenes:
+        st = tau / 6.4
+        ref = orders(beam_render(boundary, st, albedo * st, g, "linear", 8))
+        cells = []
+        for profile, n_z in MODELS:
+            err = 100 * np.abs(
+                orders(beam_render(boundary, st, albedo * st, g, profile, n_z)) / ref - 1
+            )
+            cells.append(f"{err[:4].max():.2f} / {err[4:].max():.2f}")
+        print(
+            f"| {boundary} | {tau:g} | {albedo:g} | {g:g} | " + " | ".join(cells) + " |", flush=True
+        )
+
+
+def cost():
+    print("| profile | n_z | compile s | render s |")
+    full = lfj.Full(0.0, "left")
+    render = eqx.filter_jit(lambda r, a, b, c: r(a, b, c)[0])
+    for profile, n_z in MODELS:
+        slab = Slab(6.4, "refractive", n_mu=16, n_z=n_z, depth_profile=profile)
+        renderer = SlabRenderer(lfj.Grid(48, 32, 16, 1), full, 10, slab)
+        values = [jnp.float32(v) for v in (0.2, 0.19, 0.8)]
+        start = time.perf_counter()
+        jax.block_until_ready(render(renderer, *values))
+        first = time.perf_counter() - start
+        runs = []
+        for _ in range(3):
+            start = time.perf_counter()
+            jax.block_until_ready(render(renderer, *values))
+            runs.append(time.perf_counter() - start)
+        print(f"| {profile} | {n_z} | {first - min(runs):.1f} | {min(runs):.2f} |", flush=True)
+
+
+def against_monte_carlo():
+    st, albedo, g = 0.2, 0.99, 0.9
+    mc = np.stack(
+        [
+            np.asarray(
+                monte_carlo_slab(
+                    W,
+                    H,
+                    6.4,
+                    st,
+                    albedo * st,
+                    g,
+                    BEAM,
+                    K,
+                    boundary="refractive",
+                    photons=1_000_000,
+                    seed=seed,
+                    camera_sampling=0.3,
+                ).images[0]
+            )
+            for seed in (31, 32)
+        ]
+    )
+    ref = orders(mc.mean(0))
+    half = 100 * np.abs(orders(mc[0]) - orders(mc[1])) / ref / 2
+    print(f"Monte Carlo σ of the mean, % (orders 3–6; off-beam rows): {np.round(half, 2)}")
+    for profile, n_z in MODELS:
+        image = beam_render("refractive", st, albedo * st, g, profile, n_z, 32, 24)
+        err = 100 * (orders(image) / ref - 1)
+        print(f"{profile} {n_z}: sums {np.round(err[:4], 2)}, off-beam rows {np.round(err[4:], 2)}")
+
+
+if __name__ == "__main__":
+    with jax.enable_x64(True):
+        convergence()
+        if "--mc" in sys.argv:
+            against_monte_carlo()
+    cost()
