@@ -114,7 +114,8 @@ def test_a_two_step_fit_is_solved_again_with_the_elevation_nodes_its_g_needs():
     full = np.asarray(full.images)
     opts = FitOptions(method="gradient", geometry=slab, bounces=8)
     fit = fit_images(stripes, PATTERN, options=opts, split=(full[0], full[1:].sum(axis=0)))
-    assert fit.model["geometry"]["n_mu"] == 16 and fit.model["geometry"]["n_z"] == 8
+    geometry = fit.model["geometry"]
+    assert (geometry["n_mu"], geometry["n_z"], geometry["depth_profile"]) == (16, 4, "linear")
     assert fit.sigma_s == pytest.approx(ss, rel=0.01)
     assert fit.g == pytest.approx(g, abs=0.01)
 
