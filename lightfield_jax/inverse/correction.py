@@ -17,13 +17,6 @@ for forward scattering, the whole series) is then reached in two phases:
    ω 0.99 (128×96, float32) the difference Jacobian moved σt from +0.6 % to +3.2 % off
    the truth along the flat σt–g valley.
 
-Phase 1 converges linearly, usually at a steady rate along one direction (the slow
-mode of I − J_c⁺J). Where its last three steps say so (:func:`_extrapolated_step`: two
-consecutive rates within EXTRAPOLATE_RATES of each other, below MAX_RATE, and the steps
-parallel), the step is extrapolated to the sum of the geometric series it starts,
-s/(1 − rate) (Aitken's Δ²). The fixed point is the plain iteration's; an extrapolation
-that misses shows in the next step, which the same tests judge.
-
 An iteration that stops shrinking, leaves the parameters' domain, meets a non-finite
 render or a tail solve that did not converge ends without an answer; the caller then
 solves on a model of its own.
@@ -93,30 +86,6 @@ def in_domain(v: dict, black_range) -> bool:
 # than REFRESH tolerances from where it was taken.
 DIFFERENCE_STEP = 1e-3
 REFRESH = 10.0
-# Aitken's extrapolation of phase 1: the largest difference of two consecutive rates,
-# and the smallest cosine between consecutive (scaled) steps, it takes as a steady
-# geometric series.
-EXTRAPOLATE_RATES = 0.1
-EXTRAPOLATE_COSINE = 0.95
-
-
-def _extrapolated_step(recent: list, scale: dict, names) -> tuple[dict, float] | None:
-    """``(step / (1 − rate), rate)`` from the last three plain steps of phase 1
-    (``recent``, oldest first) where they form a steady geometric series: consecutive
-    rates within EXTRAPOLATE_RATES, both below MAX_RATE, consecutive steps parallel
-    (cosine ≥ EXTRAPOLATE_COSINE, σt and σs relative); else ``None``."""
-    vecs = [np.array([st[k] / scale[k] for k in names]) for st in recent]
-    norms = [float(np.linalg.norm(x)) for x in vecs]
-    if len(vecs) < 3 or min(norms) <= 0:
-        return None
-    rates = [norms[1] / norms[0], norms[2] / norms[1]]
-    cosines = [float(vecs[i] @ vecs[i + 1]) / (norms[i] * norms[i + 1]) for i in (0, 1)]
-    if max(rates) >= MAX_RATE or abs(rates[1] - rates[0]) > EXTRAPOLATE_RATES:
-        return None
-    if min(cosines) < EXTRAPOLATE_COSINE:
-        return None
-    factor = 1.0 / (1.0 - rates[1])
-    return {k: recent[-1][k] * factor for k in names}, rates[1]
 
 
 def _step_size(step: dict, v: dict, jac, names, noise: float) -> float:
@@ -141,7 +110,6 @@ def correct(
     black_range: tuple[float, float] | None,
     max_iterations: int = 16,
     noise: float = float("nan"),
-    extrapolate: bool = True,
 ) -> Correction:
     """Correct ``values`` (σt, σs, g, black_level, gain: the cheap model's answer) to
     the model ``render`` draws (see the module).
@@ -154,8 +122,7 @@ def correct(
     how small a step must be to end the iteration. At most ``max_iterations`` renders
     at iterates, plus one per parameter for the large model's Jacobian; the iteration
     ends early where its steps, shrinking at their last rate, would not reach the
-    tolerance within them. ``extrapolate``: Aitken's extrapolation of phase 1's steady
-    series (the same answer in fewer renders)."""
+    tolerance within them."""
     names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black_range is not None else [])
     v = {k: float(values[k]) for k in ("sigma_t", "sigma_s", "g", "black_level")}
     gain_cheap = float(values["gain"])
@@ -208,10 +175,6 @@ def correct(
 
     jac_at = None
     best = None  # the lowest misfit rendered: (‖r‖², values, model, tail, residual)
-    # Phase 1's plain steps since its start or its last extrapolation; σt and σs
-    # relative, g and b absolute.
-    recent = []
-    scale = {k: abs(v[k]) if k in ("sigma_t", "sigma_s") else 1.0 for k in names}
     for iteration in range(1, max_iterations + 1):
         rendered = v
         unit, tail, failure = drawn(v)
@@ -256,13 +219,6 @@ def correct(
                     f"{max_iterations} renders at iterates"
                 )
         last_size = size
-        if exact is None and extrapolate:
-            recent = [*recent[-2:], dict(step)]
-            jump = _extrapolated_step(recent, scale, names)
-            if jump is not None:
-                step, rate = jump
-                steps[-1]["extrapolated"] = {"rate": rate, **step}
-                recent = []
         for _ in range(6):  # halved until inside the domain
             new = {**v, **{k: v[k] + step[k] for k in names}}
             if in_domain(new, black_range):
