@@ -64,6 +64,10 @@ def test_a_one_layer_model_does_not_cover_a_need_of_four():
     # As many layers, but each one's average only: not the need either.
     constant = dataclasses.replace(need.geometry, depth_profile="constant")
     assert not _covers(dataclasses.replace(bounces, geometry=constant), need)
+    # The cheap model's one layer is its average whatever profile the user asks of the
+    # answer's model (a linear one would double the cheap solve's cost).
+    linear = FitOptions(geometry=Slab(6.4, depth_profile="linear"), phase="normalized")
+    assert _scan_model(crop, linear, 0.5).geometry.profile == "constant"
 
 
 @pytest.mark.slow  # a minute on 2 cores

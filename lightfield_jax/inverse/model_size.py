@@ -284,7 +284,8 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
 def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     """The cheap model of the basin scan (and, through :func:`_extrapolated`, of the
     joint fit's first solve): 32 θ bins
-    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one depth layer),
+    on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one constant depth
+    layer),
     the bounces the capture's brightness ratio calls for (tail below 1e-3 at
     ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
@@ -293,7 +294,10 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     if slab is not None:
         n_theta = min(options.n_theta or 8, 8)
         geometry = dataclasses.replace(
-            slab, n_mu=min(slab.n_mu or MIN_CAPPED_MU, MIN_CAPPED_MU), n_z=1
+            slab,
+            n_mu=min(slab.n_mu or MIN_CAPPED_MU, MIN_CAPPED_MU),
+            n_z=1,
+            depth_profile=None,  # one layer, its average: the user's profile is the need's
         )
     rho = min(max(rho0, 0.3), 0.95)
     k = _bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
