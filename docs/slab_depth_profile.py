@@ -8,7 +8,8 @@ average.
 2. Cost: one render of 48×32, full illumination, refractive, g 0.8, 16 × 16 angles,
    10 bounces, float32 (compile, then the fastest of 3 calls).
 3. With ``--mc``: the same beam against the 3-D slab Monte Carlo (g 0.9, ω 0.99,
-   refractive, 32 × 24 angles, 2 × 1e6 photons).
+   refractive, 32 × 24 angles, 2 × 1e6 photons), per depth model; then, at 2 linear
+   layers, per in-plane discretisation (azimuth bins, μ nodes, spatial refinement).
 
 Run: .venv/bin/python docs/slab_depth_profile.py [--mc]  (about 2 minutes on 2 cores;
 4 more with --mc)
@@ -39,9 +40,10 @@ def beam_render(boundary, sigma_t, sigma_s, g, profile, n_z, n_theta=16, n_mu=8)
     return np.asarray(renderer(sigma_t, sigma_s, g)[0], np.float64)[0]
 
 
-def orders(image):
-    """Orders 3–6: image sums, then the off-beam rows next to the wall."""
-    return np.concatenate([image[2:].sum((1, 2)), image[2:, OFF, 0:6].sum((1, 2))])
+def orders(image, first=3):
+    """Orders ``first``–6: image sums, then the off-beam rows next to the wall."""
+    k = first - 1
+    return np.concatenate([image[k:].sum((1, 2)), image[k:, OFF, 0:6].sum((1, 2))])
 
 
 def convergence():
@@ -117,6 +119,15 @@ def against_monte_carlo():
         image = beam_render("refractive", st, albedo * st, g, profile, n_z, 32, 24)
         err = 100 * (orders(image) / ref - 1)
         print(f"{profile} {n_z}: sums {np.round(err[:4], 2)}, off-beam rows {np.round(err[4:], 2)}")
+    for n_theta, n_mu, refine in ((32, 24, 1), (64, 24, 1), (128, 24, 1), (32, 48, 1), (32, 24, 2)):
+        slab = Slab(6.4, "refractive", n=1.33, n_mu=n_mu, n_z=2)
+        renderer = SlabRenderer(lfj.Grid(W, H, n_theta, refine), BEAM, K, slab)
+        image = np.asarray(renderer(st, albedo * st, g)[0], np.float64)[0]
+        err = 100 * (orders(image, 2) / orders(mc.mean(0), 2) - 1)
+        print(
+            f"{n_theta} bins × {n_mu} μ, refine {refine} (orders 2–6): sums "
+            f"{np.round(err[:5], 2)}, off-beam rows {np.round(err[5:], 1)}"
+        )
 
 
 if __name__ == "__main__":
