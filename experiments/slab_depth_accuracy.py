@@ -122,6 +122,7 @@ def _cell(config: Config, tau: float, g: float, boundary: str) -> dict:
         "n_theta": grid.n_theta,
         "n_mu": slab.n_mu,
         "n_z": slab.n_z,
+        "depth_profile": slab.profile,
         "mc": {"sums": ref.tolist(), "stderr": mc.total_stderr[0].tolist(), "seconds": mc_seconds},
         "layered": {"sums": layered.tolist(), "compile_s": compile_s, "render_s": warm_s},
         "average": {"sums": average.tolist(), "compile_s": compile1_s, "render_s": warm1_s},
@@ -168,7 +169,8 @@ def run(raw: dict, out: Path, ctx) -> dict:
     table = []
     for row in rows:
         for albedo in config.albedo:
-            entry = {k: row[k] for k in ("tau", "g", "boundary", "n_theta", "n_mu", "n_z")}
+            keys = ("tau", "g", "boundary", "n_theta", "n_mu", "n_z", "depth_profile")
+            entry = {k: row.get(k) for k in keys}
             entry["albedo"] = albedo
             for model in ("layered", "average"):
                 entry[model] = _errors(row, model, albedo, top, orders)

@@ -25,7 +25,7 @@ import numpy as np
 
 from lightfield_jax.app.config import MAX_VALUE
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.scene.geometry import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 from lightfield_jax.scene.medium import Medium
@@ -131,7 +131,7 @@ def render_results(
         target = folder / name if len(channels) > 1 else folder
         m = fit["model"]
         where = f"{source}: channel {name}"
-        geometry = parse_geometry(m.get("geometry"), f"{source}: model.geometry")
+        geometry = parse_fitted_geometry(m.get("geometry"), f"{source}: model.geometry")
         gain = fit.get("gain")
         if (
             isinstance(gain, bool)

@@ -306,7 +306,7 @@ class SlabRenderer(AbstractRenderer):
     def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
         """I_1 = T σs p(cos 90°) (1 − e^{−σt h})/σt · S (docs/model.md §7) and, when
         ``scattered``, the bounce step with I_2, the layered light field L_1 and source
-        Q_2 (patterns, n_z, n_mu, n_theta, H, W). I_2 comes straight from the
+        Q_2 (patterns, n_m·n_z, n_mu, n_theta, H, W). I_2 comes straight from the
         first-scatter kernels (the first source is uniform in depth: exact)."""
         dtype = sigma_t.dtype
         t_cam = jnp.asarray(self.camera_t, dtype)

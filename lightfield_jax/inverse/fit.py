@@ -56,7 +56,7 @@ from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
-from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_geometry
+from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import _INWARD_DEG, Stripes
 
@@ -284,7 +284,7 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
 def _model_from(d: dict) -> _Model:
     """The :class:`_Model` of a result's ``model`` dict (one written without the series'
     estimate, e.g. by an earlier version, renders alike: what is not given is unknown)."""
-    geometry = parse_geometry(d.get("geometry"), "model.geometry")
+    geometry = parse_fitted_geometry(d.get("geometry"), "model.geometry")
     tail = d.get("tail") or {}
     return _Model(
         grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),

@@ -472,7 +472,11 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             "bounces": fine.bounces,
             "extrapolated": fine.extrapolate,
             **(
-                {"n_mu": fine.geometry.n_mu, "n_z": fine.geometry.n_z}
+                {
+                    "n_mu": fine.geometry.n_mu,
+                    "n_z": fine.geometry.n_z,
+                    "depth_profile": fine.geometry.profile,
+                }
                 if fine.geometry is not None
                 else {}
             ),

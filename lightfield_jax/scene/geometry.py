@@ -511,6 +511,16 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
     return AutoGeometry(slab, threshold)
 
 
+def parse_fitted_geometry(spec, where: str = "model.geometry"):
+    """The geometry of a fit result's ``model`` (:func:`parse_geometry`). A slab with
+    ``n_z`` and no ``depth_profile`` was written before the profile existed, when every
+    layer kept its average: it is read as ``"constant"`` (the model that was fitted)."""
+    if isinstance(spec, dict) and spec.get("kind") == "slab":
+        if spec.get("n_z") is not None and "depth_profile" not in spec:
+            spec = {**spec, "depth_profile": "constant"}
+    return parse_geometry(spec, where)
+
+
 def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
     """Unpolarised Fresnel reflectance of a face seen from inside the slab.
 
