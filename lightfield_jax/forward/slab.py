@@ -60,8 +60,10 @@ from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import bin_pair_offsets, fft_convolve, padded_spectrum, splat
 from lightfield_jax.forward.slab_layers import (
     PAIRS,
+    TERMS,
     SlabBounce,
     camera_integrals,
+    clip_averages,
     transport_weights,
 )
 from lightfield_jax.scene.grid import Grid
@@ -317,21 +319,24 @@ class SlabRenderer(AbstractRenderer):
         n_z, height, width = self.n_z, self.height, self.width
         transport, camera = self._transport_and_camera(sigma_t, g, dtype)
         p1 = self._first_phase(g, dtype)
-        # The first source is uniform in depth: layer l receives Σ_l' W^{a0}_{l−l'}
-        # (W^{10} = −3 W^{01}), and only the average's camera kernels see it.
-        first = jnp.stack(
-            [jnp.sum(transport[0, layer : layer + n_z], axis=0) for layer in range(n_z)]
+        # The first source is uniform in depth (its average alone): coefficient a of layer
+        # l receives Σ_l' W^{a0}_{l−l'}, and only the average's camera kernels see it.
+        first = jnp.concatenate(
+            [
+                factor
+                * jnp.stack(
+                    [jnp.sum(transport[pair, layer : layer + n_z], axis=0) for layer in range(n_z)]
+                )
+                for _, b, pair, factor in TERMS[self.n_m]
+                if b == 0
+            ]
         )
-        if self.n_m == 2:
-            slope = jnp.stack(
-                [jnp.sum(transport[1, layer : layer + n_z], axis=0) for layer in range(n_z)]
-            )
-            first = jnp.concatenate([first, -3.0 * slope])
         k1_f = self._kernels_f(p1 * first)  # (n_m·n_z, n_mu, n_theta, 2H, W+1)
         k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), axis=(0, 1))
         src_f = padded_spectrum(source)
-        l1 = fft_convolve(src_f[:, None, None, None], k1_f, height, width)
-        l1 = sigma_s * jnp.concatenate([jnp.maximum(l1[:, :n_z], 0.0), l1[:, n_z:]], axis=1)
+        l1 = sigma_s * clip_averages(
+            fft_convolve(src_f[:, None, None, None], k1_f, height, width), n_z
+        )
         i2 = sigma_s**2 * jnp.maximum(fft_convolve(src_f, k1_cam_f, height, width), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(

@@ -67,6 +67,20 @@ def _overlap(x, pair: str):
 # The distinct transport kernels of each profile: the constant profile's one, the linear
 # profile's three (w^{10} = −3 w^{01}).
 PAIRS = {1: ("00",), 2: ("00", "01", "11")}
+# Per profile, how they couple coefficients: (receiving coefficient a, source
+# coefficient b, index of the kernel in PAIRS, factor).
+TERMS = {
+    1: ((0, 0, 0, 1.0),),
+    2: ((0, 0, 0, 1.0), (0, 1, 1, 1.0), (1, 0, 1, -3.0), (1, 1, 2, 1.0)),
+}
+
+
+def clip_averages(field, n_z: int):
+    """A layered field (patterns, n_m·n_z, …) with its layer averages clipped at 0 (FFT
+    round-off of non-negative light); the slopes, signed, are left as they are."""
+    if field.shape[1] == n_z:
+        return jnp.maximum(field, 0.0)
+    return jnp.concatenate([jnp.maximum(field[:, :n_z], 0.0), field[:, n_z:]], axis=1)
 
 
 def transport_weights(v, refl, n_z: int, delta: int, pair: str = "00"):
@@ -197,13 +211,6 @@ class SlabBounce(eqx.Module):
     def _clipped(self, a):
         return jnp.maximum(a, 0.0) if self.clip else a
 
-    def _clipped_field(self, field):
-        """The layer averages clipped at 0; the slopes are signed."""
-        if not self.clip or self.n_m == 1:
-            return self._clipped(field)
-        n_z = self.n_z
-        return jnp.concatenate([jnp.maximum(field[:, :n_z], 0.0), field[:, n_z:]], axis=1)
-
     def step(self, q):
         """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
         q_f = padded_spectrum(q)
@@ -219,23 +226,20 @@ class SlabBounce(eqx.Module):
     def _transport_f(self, q_f):
         """:meth:`transport` from the sources' rfft2."""
         n_z = self.n_z
-        # (receiving coefficient a, source coefficient b, kernel pair, factor)
-        if self.n_m == 1:
-            terms = ((0, 0, 0, 1.0),)
-        else:
-            terms = ((0, 0, 0, 1.0), (0, 1, 1, 1.0), (1, 0, 1, -3.0), (1, 1, 2, 1.0))
         out = jnp.zeros_like(q_f)
-        for a, b, pair, factor in terms:
+        for a, b, pair, factor in TERMS[self.n_m]:
+            source = q_f[:, b * n_z : (b + 1) * n_z]
+            if factor != 1.0:
+                source = factor * source  # once per bounce, not per kernel
             for delta in range(-(n_z - 1), n_z):
-                k = self.transport_f[pair, delta + n_z - 1]
-                if factor != 1.0:
-                    k = factor * k
                 lo, hi = max(delta, 0), n_z + min(delta, 0)  # receiving layers
-                dst = slice(a * n_z + lo, a * n_z + hi)
-                src = slice(b * n_z + lo - delta, b * n_z + hi - delta)
-                out = out.at[:, dst].add(k * q_f[:, src])
+                k = self.transport_f[pair, delta + n_z - 1]
+                out = out.at[:, a * n_z + lo : a * n_z + hi].add(
+                    k * source[:, lo - delta : hi - delta]
+                )
         field = jnp.fft.irfft2(out, s=(2 * self.height, 2 * self.width))
-        return self._clipped_field(field[..., : self.height, : self.width])
+        field = field[..., : self.height, : self.width]
+        return clip_averages(field, n_z) if self.clip else field
 
     def scatter(self, field):
         """Q_l = M⁺ L_l + M⁻ L_{n_z−1−l} per coefficient, through the layer-mirror sums
