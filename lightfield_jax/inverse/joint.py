@@ -154,27 +154,38 @@ _bounces_and_slopes = with_forward_jacobian(bounces_at)
 _totals_and_slopes = with_forward_jacobian(totals_at)
 
 
-def _orders_and_slopes(renderer, full, sigma_t, sigma_s, g):
-    """The orders of the model at these values, their slopes, and θ = (σt, σs, g, …) ↦
-    (Δx, u): the step of the forward-mode variables and the σs factor. Explicit: x =
-    (σt, g), the orders I_k rendered at σs held fixed (u = σs'/σs, closed form). With a
-    tail: x = (σt, σs, g), one order (the sum of all), u = 1."""
+def _forward_variables(renderer, sigma_t, sigma_s, g):
+    """The forward-mode variables x of a render at these values and θ = (σt, σs, g, …)
+    ↦ (Δx, u): their step and the σs factor. Explicit: x = (σt, g), the orders I_k
+    rendered at σs held fixed (u = σs'/σs, closed form). With a tail: x = (σt, σs, g),
+    one order (the sum of all), u = 1."""
     if uses_tail(renderer):
         x = jnp.stack([sigma_t, sigma_s, g])
-        orders, slopes = _totals_and_slopes(x, renderer, full)
-        return orders, slopes, lambda theta: (theta[:3] - x, 1.0)
+        return x, lambda theta: (theta[:3] - x, 1.0)
     ref = jax.lax.stop_gradient(sigma_s)
     x = jnp.stack([sigma_t, g])
-    orders, slopes = _bounces_and_slopes(x, ref, renderer, full)
-    return orders, slopes, lambda theta: (jnp.stack([theta[0], theta[2]]) - x, theta[1] / ref)
+    return x, lambda theta: (jnp.stack([theta[0], theta[2]]) - x, theta[1] / ref)
 
 
-def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y):
+def _orders_and_slopes(renderer, full, sigma_t, sigma_s, g):
+    """The orders of the model at these values and their slopes along
+    :func:`_forward_variables`' x (one forward-mode pass)."""
+    x, _ = _forward_variables(renderer, sigma_t, sigma_s, g)
+    if uses_tail(renderer):
+        return _totals_and_slopes(x, renderer, full)
+    return _bounces_and_slopes(x, jax.lax.stop_gradient(sigma_s), renderer, full)
+
+
+def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y, rendered=None):
     """At y: the model at unit gain R (P, h, w) and ∂R/∂θ (P, h, w, n) in the physical
     parameters θ = (σt, σs, g[, b]), from one forward-mode pass (along σt and g, or σt,
-    σs and g with a tail; b in closed form)."""
+    σs and g with a tail; b in closed form), or from ``rendered``: that pass's
+    ``(orders, slopes)`` at y, already done."""
     st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
-    orders, slopes, step = _orders_and_slopes(renderer, full, st, ss, g)
+    _, step = _forward_variables(renderer, st, ss, g)
+    if rendered is None:
+        rendered = _orders_and_slopes(renderer, full, st, ss, g)
+    orders, slopes = rendered
 
     def model(theta):
         dx, u = step(theta)
@@ -218,19 +229,28 @@ def _solve(
 
     def residual(y, _args):
         st, ss, g, b = unpack(y, settings.fit_black, black_fixed)
+        rendered = _orders_and_slopes(renderer, full, st, ss, g)
+        orders = rendered[0]
         if uses_tail(renderer):
-            orders, _ = _totals_and_slopes(jnp.stack([st, ss, g]), renderer, full)
             r = unit_model(orders, settings.lit, 1.0, b)
         else:
-            ref = jax.lax.stop_gradient(ss)
-            orders, _ = _bounces_and_slopes(jnp.stack([st, g]), ref, renderer, full)
-            r = unit_model(orders, settings.lit, ss / ref, b, settings.extrapolate)
+            u = ss / jax.lax.stop_gradient(ss)
+            r = unit_model(orders, settings.lit, u, b, settings.extrapolate)
         wr = weights * r
         gain = jnp.sum(wr * weights * obs) / jnp.sum(wr * wr)
-        return (scale * weights * (gain * r - obs)).reshape(-1)
+        # The render and its slopes are the solve's auxiliary output: the model and its
+        # Jacobian at the answer come from them, not from a second forward-mode pass.
+        return (scale * weights * (gain * r - obs)).reshape(-1), jax.lax.stop_gradient(rendered)
 
-    sol = optx.least_squares(residual, solver, y0, max_steps=settings.max_steps, throw=False)
-    model, jac = _model_and_jacobian(settings, renderer, full, black_fixed, sol.value)
+    sol = optx.least_squares(
+        residual, solver, y0, has_aux=True, max_steps=settings.max_steps, throw=False
+    )
+    # Gauss-Newton solvers (Levenberg-Marquardt among them) keep the auxiliary output at
+    # their last accepted point, which is the answer (``sol.aux`` is the one before it);
+    # any other solver's answer gets its own forward-mode pass (a second copy of the
+    # render in the compiled program: about 1.5 s more to compile).
+    at_answer = sol.state.aux if isinstance(solver, optx.AbstractGaussNewton) else None
+    model, jac = _model_and_jacobian(settings, renderer, full, black_fixed, sol.value, at_answer)
     st, ss, g, _ = unpack(sol.value, settings.fit_black, black_fixed)
     tail = tail_status(renderer, full, st, ss, g)
     return sol.value, sol.result, sol.stats["num_steps"], model, jac, tail

@@ -24,6 +24,7 @@ from lightfield_jax.inverse.joint_stage import (
     _joint_parts,
     _joint_reweighted,
     _joint_stage,
+    _refit,
     _render_model,
     _rms,
     _run_scan,
@@ -107,9 +108,7 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
     if _covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
-        return _joint_stage(
-            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
-        )
+        return _refit(data, pattern, first, options, black)
     spent, record = {"compile": 0.0, "run": 0.0}, None
     if correct:
         say(
@@ -122,17 +121,13 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
         spent = record["seconds"]
         say(f"  the correction stopped ({record['stopped']}): solving on the final model")
     if _covers(coarse, need):
-        last = _joint_stage(
-            data, pattern, coarse, options, black, _joint_reweighted(data, first), first.y
-        )
+        last = _refit(data, pattern, first, options, black)
     else:
         say(
             f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}"
         )
         mid = _joint_stage(data, pattern, need, options, black, first.weights, first.y)
-        last = _joint_stage(
-            data, pattern, need, options, black, _joint_reweighted(data, mid), mid.y
-        )
+        last = _refit(data, pattern, mid, options, black)
         last.steps += mid.steps
         last.compile += mid.compile
         last.run += mid.run
@@ -460,6 +455,8 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         model_dict["tail"].update(last.tail)
     if last.correction is not None:
         model_dict["correction"] = last.correction
+    if last.refit is not None:
+        model_dict["refit"] = last.refit
     if fine is not None:
         model_dict["finer_model"] = {
             # The dimensions it refines (none: nothing finer fits the memory cap, and
