@@ -418,6 +418,51 @@ def test_a_start_forced_into_the_wrong_basin_is_not_trusted():
     assert wrong.g < 0 and wrong.to_dict()["converged"] is False
     (tried,) = wrong.to_dict()["basins"]["tried"]
     assert tried["start"]["g"] == -0.9 and tried["chosen"]
+    # The better basin the scan found is not on the slope of this answer's: the line
+    # from the answer to that basin's start does not rise all the way (it would be
+    # skipped as the same basin otherwise).
+    from types import SimpleNamespace
+
+    from lightfield_jax.inverse.fit import _model_from
+    from lightfield_jax.inverse.joint_fit import _downhill_from
+    from lightfield_jax.inverse.joint_stage import joint_weights
+
+    scan = wrong.to_dict()["basins"]
+    best = scan["basins"][0]
+    model = _model_from(wrong.model)
+    x0, y0, x1, y1 = model.crop
+    cropped = images[:, y0:y1, x0:x1]
+    data = SimpleNamespace(images=cropped)
+    weights = joint_weights(cropped, np.ones(cropped.shape[1:], bool))
+    answer = {k: getattr(wrong, k) for k in ("sigma_t", "sigma_s", "g", "black_level")}
+    start = (scan["sigma_t"], best["albedo"] * scan["sigma_t"], best["g"], 0.0)
+    options = lfj.FitOptions(geometry=REFRACTIVE)
+    assert not _downhill_from(data, lfj.Stripes(), model, options, weights, start, answer)
+
+
+def test_basins_on_the_slope_of_an_answer_found_are_not_solved_again(monkeypatch):
+    """Shot noise breaks the scan's flat σt–g valley into several grid minima; those
+    whose line to the first answer rises all the way are not solved (the answer is the
+    one solving each of them gives)."""
+    import lightfield_jax.inverse.joint_fit as joint_fit
+
+    clean = _stripe_images("milk", lfj.Grid(64, 48))
+    clean = clean / clean.max()
+    images = np.random.default_rng(1).poisson(clean * 2e4) / 2e4
+
+    def fit():
+        result = lfj.fit_images(images, lfj.Stripes())
+        return result, result.to_dict()["basins"]["tried"]
+
+    skipping, tried = fit()
+    skipped = [t for t in tried if t.get("by") == "a line downhill to it"]
+    assert skipping.converged and skipped, tried
+    monkeypatch.setattr(joint_fit, "_downhill_from", lambda *args: False)
+    solving, tried = fit()
+    assert all("by" not in t for t in tried)
+    assert {t["label"] for t in skipped} <= {t["label"] for t in tried if "same_as" in t}
+    for key in ("sigma_t", "sigma_s", "g", "black_level"):
+        assert getattr(skipping, key) == getattr(solving, key), key
 
 
 @pytest.mark.slow
