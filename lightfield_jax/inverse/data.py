@@ -38,6 +38,9 @@ class FitData:
         decay_converged: whether that decay fit converged.
         exposure: merged exposure brackets' effective exposure T (s), ``(P, h, w)``,
             or ``None``.
+        noise_floor: the read-noise floor of the joint fit's weights, in image units
+            (:func:`~lightfield_jax.inverse.trust.noise_floor`; ``None``: the
+            shot-noise weights' own, 1e-3 of the peak).
     """
 
     images: np.ndarray
@@ -48,6 +51,7 @@ class FitData:
     sigma_t0_err: float
     decay_converged: bool
     exposure: np.ndarray | None = None
+    noise_floor: float | None = None
 
     def cropped(self, crop: tuple[int, int, int, int]) -> FitData:
         """The data inside ``crop`` = (x0, y0, x1, y1), every image cut alike."""

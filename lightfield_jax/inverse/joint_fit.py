@@ -51,6 +51,7 @@ from lightfield_jax.inverse.model_size import (
 from lightfield_jax.inverse.trust import (
     at_bound,
     error_budget,
+    noise_floor,
     noise_scale,
     split_groups,
     tail_unconverged,
@@ -382,7 +383,11 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         seconds["run"] += t["run"] if isinstance(t, dict) else t.run
 
     coarse = _scan_model(crop, options, rho0)
-    weights = joint_weights(data.images, data.mask, data.exposure)
+    if data.exposure is None:  # merged brackets: the variance follows T, not I alone
+        data = dataclasses.replace(data, noise_floor=noise_floor(data.images, data.mask, pattern))
+        if data.noise_floor is not None:
+            say(f"  read noise seen: weights 1/sqrt(I + {data.noise_floor:.3g})")
+    weights = joint_weights(data.images, data.mask, data.exposure, data.noise_floor)
     marched = (
         f"{coarse.bounces} bounces"
         if coarse.tail is None
@@ -511,6 +516,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         model_dict["correction"] = last.correction
     if last.refit is not None:
         model_dict["refit"] = last.refit
+    model_dict["noise_floor"] = data.noise_floor
     if fine is not None:
         model_dict["finer_model"] = {
             # The dimensions it refines (none: nothing finer fits the memory cap, and

@@ -73,11 +73,14 @@ def _joint_parts(pattern: Stripes, model: _Model, phase: str):
     return renderer, None if tiles else _renderer(model, _full_for(pattern), phase)
 
 
-def joint_weights(images, mask, exposure=None):
-    """Shot-noise weights of the raw images, 1/√(I + floor) (floor 1e-3 of the peak), 0
-    outside ``mask``; times √(T/max T) for merged exposure brackets of effective exposure
-    T (their variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
-    floor = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
+def joint_weights(images, mask, exposure=None, floor=None):
+    """Noise weights of the raw images, 1/√(I + floor): shot noise (variance ∝ I) and
+    read noise (constant, ``floor`` in units of the shot noise's I: the capture's
+    :func:`~lightfield_jax.inverse.trust.noise_floor`), the floor at least 1e-3 of the
+    peak; 0 outside ``mask``; times √(T/max T) for merged exposure brackets of effective
+    exposure T (their variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
+    least = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
+    floor = least if floor is None else max(floor, least)
     w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
     if exposure is not None:
         w = w * np.sqrt(exposure / np.max(exposure))
@@ -191,7 +194,9 @@ def _rms(residual: np.ndarray, data: _Data) -> float:
 def _joint_reweighted(data: _Data, stage: _Stage):
     """Weights from the fitted model (gain × model) instead of the noisy data (weights
     from the data itself bias a weighted fit toward low values)."""
-    return joint_weights(stage.values["gain"] * stage.unit, data.mask, data.exposure)
+    return joint_weights(
+        stage.values["gain"] * stage.unit, data.mask, data.exposure, data.noise_floor
+    )
 
 
 # The linearised refit (:func:`_linear_refit`) is kept where it moves every parameter by

@@ -161,6 +161,75 @@ def _fourth_differences(a: np.ndarray, w: np.ndarray, axis: int) -> np.ndarray |
     return z2 if z2.size >= 16 else None
 
 
+# The fewest samples per intensity bin of :func:`noise_floor`, and the most bins.
+FLOOR_SAMPLES = 64
+FLOOR_BINS = 12
+# Floors beyond this multiple of the peak make the weights uniform to 0.05 %: read
+# noise alone (no growth of the variance with the signal seen).
+FLOOR_UNIFORM = 1e3
+
+
+def _clipped_mean(z2: np.ndarray) -> float:
+    """The mean of χ²₁-like samples less outliers: a first scale from the median or,
+    where most samples are (near) zero, the 90th percentile; then the mean of those
+    below 1000×, then 50× the scale (χ²₁ exceeds 50 with chance 2e-12)."""
+    scale = max(float(np.median(z2) / 0.45494), float(np.quantile(z2, 0.9) / 2.7055))
+    for limit in (1000.0, 50.0):
+        kept = z2[z2 <= limit * scale]
+        if kept.size < 16:
+            break
+        scale = float(np.mean(kept))
+    return scale
+
+
+def noise_floor(images: np.ndarray, mask: np.ndarray, pattern: Stripes) -> float | None:
+    """The capture's read-noise floor in image units: b/a of the variance model
+    var(I) = a·I + b (shot noise ∝ I, read noise constant), fitted to the squared 4th
+    differences along the light (each a χ²₁ times the variance where the signal is
+    smooth: the noise dominates them at any photon count a camera gives) binned by the
+    stencil's centre intensity (weighted least squares, each bin's variance known to
+    √(2/n)), each bin's mean less outliers (the entry wall's kink;
+    :func:`_clipped_mean`; a mean, not a median: dark pixels counting 0 or 1 photon
+    are not Gaussian). ``FLOOR_UNIFORM`` × the
+    peak where the variance does not grow with the signal (read noise alone); ``None``
+    where no read noise is seen (the intercept within 2σ of 0) or where it cannot be
+    measured (fewer than two bins of :data:`FLOOR_SAMPLES`, or fewer than 16 pixels
+    along the light)."""
+    a = np.asarray(images, np.float64)
+    axis = 2 if pattern.along_x else 1
+    if a.shape[axis] < MIN_ALONG:
+        return None
+    valid_px = np.broadcast_to(np.asarray(mask, bool)[None], a.shape) & np.isfinite(a)
+    d4, valid = five_point(np.where(valid_px, a, 0.0), valid_px.astype(float), axis)
+    centre = stencil_centre(a, axis)[valid]
+    z2 = d4[valid] ** 2
+    n_bins = min(FLOOR_BINS, centre.size // FLOOR_SAMPLES)
+    if n_bins < 2:
+        return None
+    order = np.argsort(centre)
+    level, var, sd = [], [], []
+    for part in np.array_split(order, n_bins):
+        level.append(float(np.mean(centre[part])))
+        var.append(_clipped_mean(z2[part]))
+        sd.append(var[-1] * math.sqrt(2.0 / part.size))  # a mean of n χ²₁
+    level, var, sd = np.array(level), np.array(var), np.array(sd)
+    peak = float(np.max(np.where(valid_px, a, -np.inf)))
+    design = np.stack([level, np.ones_like(level)], axis=1)
+    (slope, intercept), *_ = np.linalg.lstsq(design, var, rcond=None)
+    # Errors from the bins' scatter about the line or from their own noise, the larger.
+    scatter = np.sum((var - design @ np.array([slope, intercept])) ** 2) / max(n_bins - 2, 1)
+    noise = np.mean(sd**2)
+    cov = np.linalg.inv(design.T @ design) * max(scatter, noise)
+    err_slope, err_intercept = np.sqrt(np.diag(cov))
+    # Each term only where the data show it (2σ): no read noise seen, the shot-noise
+    # weights' own floor (None); no growth with the signal, uniform weights.
+    if intercept < 2 * err_intercept:
+        return None
+    if slope < 2 * err_slope:
+        return FLOOR_UNIFORM * peak
+    return float(min(intercept / slope, FLOOR_UNIFORM * peak))
+
+
 def noise_scale(
     images: np.ndarray, weights: np.ndarray, pattern: Stripes, model: np.ndarray | None = None
 ) -> float:
