@@ -603,6 +603,11 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
         ({"crop_fraction": 5.0}, "fit: crop_fraction: must lie in [0, 1)"),
         ({"rtol": -1.0}, "fit: rtol: must be a finite number >= 0 or None, got -1.0"),
         ({"max_chi2": 0.0}, "fit: max_chi2: must be > 0, got 0.0"),
+        (
+            {"bounces": 20, "tail": "gmres"},
+            "fit: bounces: 20 marches exactly that many bounces, but tail: gmres keeps "
+            "tail_bounces",
+        ),
     ],
 )
 def test_fit_settings_out_of_range_are_refused_on_loading(capture, capsys, fit, match):

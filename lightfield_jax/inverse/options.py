@@ -33,7 +33,9 @@ class FitOptions:
             :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
             whose own settings (its solver, start, grid size) replace these.
         phase: phase convention of the model (``paper`` or ``normalized``).
-        bounces: K, or ``"auto"`` from the tail bound at the starting estimate.
+        bounces: K, or ``"auto"`` from the tail bound at the starting estimate. K is
+            marched as given, so it cannot go with a named ``tail`` (whose explicit
+            bounces are ``tail_bounces``).
         tolerance: relative tail tolerance for ``bounces: auto``.
         max_bounces: cap on ``auto`` without a tail (the paper series near ρ = 1 needs
             many).
@@ -130,6 +132,14 @@ class FitOptions:
         if self.tail is not None and self.tail != "auto" and self.tail not in TAIL_METHODS:
             raise ValueError(
                 f"tail: must be auto, None or one of {', '.join(TAIL_METHODS)}, got {self.tail!r}"
+            )
+        if isinstance(self.bounces, int) and self.tail in TAIL_METHODS:
+            # A named tail keeps tail_bounces explicit bounces: a count given as
+            # ``bounces`` as well would be silently replaced.
+            raise ValueError(
+                f"bounces: {self.bounces} marches exactly that many bounces, but tail: "
+                f"{self.tail} keeps tail_bounces ({self.tail_bounces}) explicit bounces "
+                "before its solve: give tail_bounces instead (or tail: null to march)"
             )
         if not isinstance(self.tail_bounces, int) or self.tail_bounces < 2:
             raise ValueError(f"tail_bounces: must be an integer >= 2, got {self.tail_bounces!r}")
