@@ -714,7 +714,8 @@ def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
     """Under the paper's phase ρ = ω·A(g) passes 1 for g ≳ 0.7 and the fit marches
     ``max_bounces``; where the ratio measured at the answer leaves more than 1 % of I_1
     past them, the fit says so (a reason: not converged); a ratio the march covers
-    (0.9^80) gives none, nor does a series the bound called convergent."""
+    (0.9^80) gives none. A series the bound called convergent but marched to a given
+    count (``tail: null`` caps it at ``max_bounces``) is judged alike."""
     from lightfield_jax.inverse.basins import Scan
     from lightfield_jax.inverse.joint_fit import _cut_series
     from lightfield_jax.inverse.model_size import _Model
@@ -729,5 +730,7 @@ def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
     assert bool(reasons) == cut
     if cut:
         assert "cut at 80 bounces" in reasons[0]
-    converges = dataclasses.replace(model, converges=True)
-    assert _cut_series(converges, scan, values) == []
+    converges = dataclasses.replace(model, converges=True, rho=0.95)
+    assert bool(_cut_series(converges, scan, values)) == cut
+    summed = dataclasses.replace(converges, tail="bicgstab")
+    assert _cut_series(summed, scan, values) == []

@@ -340,11 +340,14 @@ CUT_LIMIT = 0.01
 
 
 def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
-    """A reason where the model marched a series its bound called divergent (ρ ≥ 1 at the
-    estimate: the paper's phase gains energy per bounce for g ≳ 0.7, ρ = ω·A(g)) and the
+    """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
-    ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1."""
-    if model.converges or model.tail is not None or model.extrapolate:
+    ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1.
+    That happens where the bound called the series divergent (ρ ≥ 1 at the estimate:
+    the paper's phase gains energy per bounce for g ≳ 0.7, ρ = ω·A(g)) and the march
+    stopped at ``max_bounces``, and where a count was given (``bounces: K``, or
+    ``tail: null`` capping the march at ``max_bounces``)."""
+    if model.tail is not None or model.extrapolate:
         return []
     r = the_scan.ratio_at(v["g"], v["sigma_s"] / v["sigma_t"])
     if not math.isfinite(r):
@@ -352,11 +355,11 @@ def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     left = math.inf if r >= 1 else r**model.bounces / (1 - r)
     if left <= CUT_LIMIT:
         return []
+    remedy = "or use phase: normalized" if not model.converges else "or use tail: auto"
     return [
         f"the bounce series is cut at {model.bounces} bounces where it has not converged "
         f"(per-bounce ratio {r:.3f} at the answer, ρ {model.rho:.3f} at the estimate): "
-        "the orders left out are not negligible; raise max_bounces (or bounces), or use "
-        "phase: normalized"
+        f"the orders left out are not negligible; raise max_bounces (or bounces), {remedy}"
     ]
 
 
