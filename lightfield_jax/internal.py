@@ -16,7 +16,7 @@ instead of copying them.
 - The joint problem (:mod:`lightfield_jax.inverse.joint`): its compiled solve
   (:func:`solve_joint`, :class:`JointSettings`), the model at unit gain
   (:func:`unit_model`, :func:`model_at`), the parametrisation (:func:`pack`,
-  :func:`unpack`) and the shot-noise weights (:func:`joint_weights`).
+  :func:`unpack`) and the noise weights (:func:`joint_weights`).
 - Model size and renderers: :func:`size_model`, :func:`renderer_for`, full
   illumination of a stripe pattern (:func:`full_for`).
 - Monte Carlo oracles: :func:`monte_carlo_render`, :func:`monte_carlo_slab`.

@@ -121,13 +121,12 @@ def test_noise_floor_tells_read_noise_from_shot_noise(seed):
     assert noise_floor(both, mask, lfj.Stripes()) == pytest.approx(0.003**2 * photons, rel=0.3)
 
 
-def test_a_read_noise_capture_is_fitted_with_read_noise_weights(monkeypatch):
+def test_a_read_noise_capture_is_fitted_with_read_noise_weights():
     """Read noise of 3 % of the peak on the milk (48×36): with shot-noise weights the
     dark pixels (noise-dominated, weighted 30× the bright ones) drove the fit to
-    g −0.97 (not converged); weights with the measured floor recover the medium with
-    the truth inside the reported total 2σ."""
-    import lightfield_jax.inverse.joint_fit as joint_fit
-
+    g −0.97 (not converged; seed 0, measured once, docs/fit_speed.md); weights with
+    the measured floor recover the medium with the truth inside the reported total
+    2σ."""
     clean = _milk_capture()
     images = clean + np.random.default_rng(0).normal(0.0, 0.03, clean.shape)
     result = lfj.fit_images(images, lfj.Stripes())
@@ -135,9 +134,6 @@ def test_a_read_noise_capture_is_fitted_with_read_noise_weights(monkeypatch):
     assert result.model["noise_floor"] >= 0.5 * FLOOR_UNIFORM
     for key, truth in zip(("sigma_t", "sigma_s", "g"), (0.2051, 0.0366, 0.4), strict=True):
         assert abs(getattr(result, key) - truth) < 2 * result.uncertainty[key], key
-    monkeypatch.setattr(joint_fit, "noise_floor", lambda *args: None)
-    shot_weights = lfj.fit_images(images, lfj.Stripes())
-    assert not shot_weights.converged and shot_weights.model["noise_floor"] is None
 
 
 def test_noise_scale_of_a_photon_starved_capture_is_not_zero():

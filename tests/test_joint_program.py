@@ -1,8 +1,9 @@
 """The joint fit's compiled solve (lightfield_jax.inverse.joint.solve): the model and
 Jacobian it returns at its answer come from the solver's last accepted render (its
 auxiliary output), so they must be exactly what a fresh forward-mode pass at the
-returned answer gives, however the solve ended (converged, or stopped after a few steps
-with rejected ones among them), with explicit bounces and with a tail solve."""
+returned answer gives, however the solve ended (converged, or stopped after two or three
+steps, where the auxiliary output ``sol.aux`` would still be the previous point's), with
+explicit bounces and with a tail solve."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -23,7 +24,7 @@ TRUTH = (0.2, 0.1, 0.5)
 
 
 @pytest.mark.parametrize("tail", [None, "bicgstab"])
-@pytest.mark.parametrize("max_steps", [2, 50])
+@pytest.mark.parametrize("max_steps", [2, 3, 50])
 def test_the_returned_model_and_jacobian_are_those_at_the_answer(tail, max_steps):
     pattern = lfj.Stripes()
     obs = 2.0 * np.asarray(lfj.render(lfj.Medium(*TRUTH, "normalized"), GRID, pattern, 12).total)
@@ -37,7 +38,7 @@ def test_the_returned_model_and_jacobian_are_those_at_the_answer(tail, max_steps
     y, _, steps, model, jac, _ = solve(
         settings, solver, renderer, None, jnp.asarray(obs, dtype), black, weights, y0
     )
-    assert int(steps) >= 2
+    assert 2 <= int(steps) <= max_steps
     assert not np.allclose(np.asarray(y), np.asarray(y0))  # it moved
     fresh_model, fresh_jac = _model_and_jacobian(settings, renderer, None, black, y)
     scale = float(jnp.max(jnp.abs(fresh_model)))

@@ -73,30 +73,34 @@ def _same_answer(a: dict, b: dict) -> bool:
 
 # Points of the line from a solved answer to another basin's start at which the cheap
 # model's misfit is evaluated (:func:`_downhill_from`), as fractions of the way.
-LINE_POINTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+LINE_POINTS = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
 
 
 def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answer: dict):
     """Whether the cheap model's misfit (the gain projected out) rises monotonically
-    along the straight line in (σt, σs, g, b) from a solved ``answer`` to ``start`` (one
-    primal render per point of :data:`LINE_POINTS`): then ``start`` is not a local
-    minimum of the continuous misfit but a point on the slope of the answer's own
-    basin, and solving from it would only find the answer again. Shot noise breaks
+    along the straight line in (albedo, g, b) at the answer's σt from a solved
+    ``answer`` to ``start`` (one primal render per point of :data:`LINE_POINTS`; the
+    start's albedo and g are the scan's, its σt the answer's, so that the decay
+    estimate's error does not add a bowl of its own along the line): then ``start`` is
+    not a local minimum of the continuous misfit but a point on the slope of the
+    answer's own basin, and solving from it would only find the answer again. A rising
+    line is necessary, not sufficient, for that: a minimum off the line, within a
+    grid cell of the start, would go unseen (as it does by the scan). Shot noise breaks
     the scan's flat σt–g valley into grid points that are each the lowest of their
     neighbours: on the paper's milk with 2·10⁴ photons (128×96) the scan kept three
     such basins and each was solved to the same answer (6, 5 and 7 solver steps). A
     line that rises and falls (a barrier, or a curved valley the chord cuts across),
     or a render that fails, says nothing: the start is solved."""
     renderer, full = _joint_parts(pattern, coarse, options.phase)
-    keys = ("sigma_t", "sigma_s", "g", "black_level")
-    a = np.array([answer[k] for k in keys])
-    b = np.array(start, dtype=float)
+    sigma_t = answer["sigma_t"]
+    a = np.array([answer["sigma_s"] / sigma_t, answer["g"], answer["black_level"]])
+    b = np.array([start[1] / start[0], start[2], start[3]], dtype=float)
     dtype = jnp.result_type(float)
     misfits = []
     for t in LINE_POINTS:
-        unit, tail = _render_model(
-            renderer, full, pattern, coarse, dict(zip(keys, a + t * (b - a), strict=True)), dtype
-        )
+        albedo, g, black = a + t * (b - a)
+        v = {"sigma_t": sigma_t, "sigma_s": albedo * sigma_t, "g": g, "black_level": black}
+        unit, tail = _render_model(renderer, full, pattern, coarse, v, dtype)
         if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
             return False
         residual = projected(weights, unit, data.images)[1]
@@ -106,14 +110,27 @@ def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answe
     return all(later >= earlier - slack for earlier, later in itertools.pairwise(misfits))
 
 
+def _anchors(stage: _Stage, the_scan, options, black) -> bool:
+    """Whether a cheap solve's answer may stand for the basins on its slopes
+    (:func:`_downhill_from`): converged, off the bounds and not in a basin of the scan
+    worse than its best."""
+    v = stage.values
+    albedo = v["sigma_s"] / v["sigma_t"]
+    return (
+        stage.ok
+        and not at_bound(v, BLACK_RANGE if black is None else None)
+        and worse_basin(the_scan, v["g"], albedo, options.basin_tolerance) is None
+    )
+
+
 def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
     """The joint fit after its first stage ``first`` (the cheap model's solve): the
     model its answer needs (the larger of that and ``floor``) reached by defect
     correction (``correct``: :func:`_corrected`), or else solved on (capped by
-    ``max_cells``: two solves, the second with the model's weights). Returns the last
-    stage (``first`` itself when it ends at a bound of the model or in a basin worse
-    than the scan's best; a refit of the cheap model with the model's weights where
-    that model already covers the need)."""
+    ``max_cells``: a solve, then its refit with the model's weights, :func:`_refit`).
+    Returns the last stage (``first`` itself when it ends at a bound of the model or in
+    a basin worse than the scan's best; the cheap model's refit with the model's
+    weights where that model already covers the need)."""
     coarse = first.model
     v = first.values
     albedo = v["sigma_s"] / v["sigma_t"]
@@ -355,7 +372,11 @@ def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     left = math.inf if r >= 1 else r**model.bounces / (1 - r)
     if left <= CUT_LIMIT:
         return []
-    remedy = "or use phase: normalized" if not model.converges else "or use tail: auto"
+    remedy = (
+        "or use phase: normalized"
+        if not model.converges
+        else "or let a tail solve sum the rest (bounces: auto, tail: auto)"
+    )
     return [
         f"the bounce series is cut at {model.bounces} bounces where it has not converged "
         f"(per-bounce ratio {r:.3f} at the answer, ρ {model.rho:.3f} at the estimate): "
@@ -437,7 +458,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
                 (
                     i
                     for i, (f, _) in enumerate(stages)
-                    if f.ok
+                    if _anchors(f, the_scan, options, black)
                     and _downhill_from(data, pattern, coarse, options, weights, start, f.values)
                 ),
                 None,

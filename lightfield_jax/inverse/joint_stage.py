@@ -20,11 +20,18 @@ import optimistix as optx
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.basins import Scan, basins, scan
-from lightfield_jax.inverse.correction import design, projected
+from lightfield_jax.inverse.correction import (
+    STEP_TOLERANCE,
+    _step_size,
+    design,
+    in_domain,
+    projected,
+)
 from lightfield_jax.inverse.data import FitData as _Data
-from lightfield_jax.inverse.joint import JointSettings, model_at, pack, unpack
+from lightfield_jax.inverse.joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
 from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, _Model, _phase_integral
+from lightfield_jax.inverse.trust import noise_scale
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.scene.illumination import Stripes
 
@@ -257,14 +264,49 @@ def _linear_refit(data: _Data, stage: _Stage, weights, black) -> _Stage | None:
     )
 
 
+def _rendered_at(data: _Data, pattern, stage: _Stage, options: FitOptions, black):
+    """``stage`` (a linearised refit) with its model rendered at its answer, kept where
+    that render confirms it: inside the parameters' domain, and a Gauss–Newton step
+    from the rendered residual (the stage's Jacobian) below the correction's tolerance
+    (2·10⁻⁴ relative, or a tenth of the statistical 1σ where that is larger:
+    :mod:`.correction`); else ``None``. The residual, χ² and error budget are then
+    the render's, not the linear model's."""
+    names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black is None else [])
+    v = stage.values
+    if not in_domain(v, BLACK_RANGE if black is None else None):
+        return None
+    renderer, full = _joint_parts(pattern, stage.model, options.phase)
+    unit, tail = _render_model(renderer, full, pattern, stage.model, v, stage.y.dtype)
+    if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+        return None
+    gain, residual = projected(stage.weights, unit, data.images)
+    jac = design(stage.weights, unit, gain, stage.jac_unit)
+    delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+    step = dict(zip(names, np.delete(delta, 3).tolist(), strict=True))
+    noise = noise_scale(data.images, stage.weights, pattern, gain * unit)
+    if not _step_size(step, v, jac, names, noise) < STEP_TOLERANCE:
+        return None
+    return dataclasses.replace(
+        stage,
+        values={**v, "gain": gain},
+        unit=unit,
+        jac=jac,
+        residual=residual,
+        rms=_rms(residual, data),
+        tail=tail,
+    )
+
+
 def _refit(data: _Data, pattern, stage: _Stage, options: FitOptions, black) -> _Stage:
     """``stage`` refitted with the model's weights at its answer
-    (:func:`_joint_reweighted`): linearised where that holds
-    (:func:`_linear_refit`), else solved again from its answer."""
+    (:func:`_joint_reweighted`): linearised where that holds and a render there
+    confirms it (:func:`_linear_refit`, :func:`_rendered_at`), else solved again from
+    its answer."""
     weights = _joint_reweighted(data, stage)
     linear = _linear_refit(data, stage, weights, black)
-    if linear is not None:
-        return linear
+    checked = None if linear is None else _rendered_at(data, pattern, linear, options, black)
+    if checked is not None:
+        return checked
     solved = _joint_stage(data, pattern, stage.model, options, black, weights, stage.y)
     solved.refit = "solved"
     return solved

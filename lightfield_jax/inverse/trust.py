@@ -187,14 +187,15 @@ def noise_floor(images: np.ndarray, mask: np.ndarray, pattern: Stripes) -> float
     var(I) = a·I + b (shot noise ∝ I, read noise constant), fitted to the squared 4th
     differences along the light (each a χ²₁ times the variance where the signal is
     smooth: the noise dominates them at any photon count a camera gives) binned by the
-    stencil's centre intensity (weighted least squares, each bin's variance known to
-    √(2/n)), each bin's mean less outliers (the entry wall's kink;
+    stencil's centre intensity (least squares over the bins; each term's error from the
+    bins' scatter about the line or their own noise, √(2/n) of a mean of n χ²₁, the
+    larger), each bin's mean less outliers (the entry wall's kink;
     :func:`_clipped_mean`; a mean, not a median: dark pixels counting 0 or 1 photon
     are not Gaussian). ``FLOOR_UNIFORM`` × the
     peak where the variance does not grow with the signal (read noise alone); ``None``
     where no read noise is seen (the intercept within 2σ of 0) or where it cannot be
-    measured (fewer than two bins of :data:`FLOOR_SAMPLES`, or fewer than 16 pixels
-    along the light)."""
+    measured (fewer than two bins of :data:`FLOOR_SAMPLES`, fewer than
+    :data:`MIN_ALONG` pixels along the light, or a degenerate fit)."""
     a = np.asarray(images, np.float64)
     axis = 2 if pattern.along_x else 1
     if a.shape[axis] < MIN_ALONG:
@@ -219,13 +220,15 @@ def noise_floor(images: np.ndarray, mask: np.ndarray, pattern: Stripes) -> float
     # Errors from the bins' scatter about the line or from their own noise, the larger.
     scatter = np.sum((var - design @ np.array([slope, intercept])) ** 2) / max(n_bins - 2, 1)
     noise = np.mean(sd**2)
-    cov = np.linalg.inv(design.T @ design) * max(scatter, noise)
+    cov = np.linalg.pinv(design.T @ design) * max(scatter, noise)
     err_slope, err_intercept = np.sqrt(np.diag(cov))
     # Each term only where the data show it (2σ): no read noise seen, the shot-noise
     # weights' own floor (None); no growth with the signal, uniform weights.
-    if intercept < 2 * err_intercept:
+    if not (np.isfinite(slope) and np.isfinite(intercept) and err_intercept > 0):
         return None
-    if slope < 2 * err_slope:
+    if not intercept > 2 * err_intercept:
+        return None
+    if not slope > 2 * err_slope:
         return FLOOR_UNIFORM * peak
     return float(min(intercept / slope, FLOOR_UNIFORM * peak))
 
