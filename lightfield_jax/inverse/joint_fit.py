@@ -123,7 +123,48 @@ def _anchors(stage: _Stage, the_scan, options, black) -> bool:
     )
 
 
-def _continuation(data, pattern, first: _Stage, options, black, images, floor, the_scan, say):
+# A later start's answer is not taken to its model where both its cheap misfit and the
+# misfit predicted for it there exceed the best answer's by this share
+# (:func:`_cannot_win`).
+HOPELESS_MARGIN = 0.25
+
+
+def _cannot_win(data, pattern, first: _Stage, target: _Model, options, best) -> str | None:
+    """A reason where ``first`` (a later start's cheap answer) is not worth taking to
+    ``target``, else ``None``. ``best`` is the best (cheap stage, final stage) so far.
+    In the data's weights: the cheap misfit exceeds the best cheap misfit, and the
+    misfit ``target`` reaches from ``first``'s answer by one Gauss–Newton step (one
+    primal render there, the cheap Jacobian) exceeds the best final misfit, both by
+    :data:`HOPELESS_MARGIN`. Measured on a read-noise capture (milk, 48×36, 0.3 %):
+    the second basin's answer at g −0.9 asked for 256 θ bins and a 2× grid, whose
+    correction did not converge and whose solve took 124 s to end at 1.79× the first
+    basin's misfit, the prediction's own ratio (1.79)."""
+    w = first.weights
+    best_first, best_last = best
+    cheap = float(first.residual @ first.residual)
+    if not cheap > (1.0 + HOPELESS_MARGIN) * float(best_first.residual @ best_first.residual):
+        return None
+    renderer, full = _joint_parts(pattern, target, options.phase)
+    unit, tail = _render_model(renderer, full, pattern, target, first.values, first.y.dtype)
+    if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+        return None
+    _, r_fine = projected(w, unit, data.images)
+    delta, *_ = np.linalg.lstsq(first.jac, -r_fine, rcond=None)
+    moved = r_fine + first.jac @ delta
+    predicted = float(moved @ moved)
+    _, r_best = projected(w, best_last.unit, data.images)
+    s_best = float(r_best @ r_best)
+    if not predicted > (1.0 + HOPELESS_MARGIN) * s_best:
+        return None
+    return (
+        f"worse than an answer found: its misfit on the final model {predicted / s_best:.3g}× "
+        "the best answer's (one Gauss-Newton step predicted); not refined"
+    )
+
+
+def _continuation(
+    data, pattern, first: _Stage, options, black, images, floor, the_scan, say, best=None
+):
     """The joint fit after its first stage ``first`` (the cheap model's solve): the
     model its answer needs (the larger of that and ``floor``) reached by defect
     correction (``correct``: :func:`_corrected`), or else solved on (capped by
@@ -165,6 +206,11 @@ def _continuation(data, pattern, first: _Stage, options, black, images, floor, t
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
         return _refit(data, pattern, first, options, black)
+    if best is not None:
+        reason = _cannot_win(data, pattern, first, target, options, best)
+        if reason is not None:
+            say(f"  {reason}")
+            return dataclasses.replace(first, unrefined=reason)
     spent, record = {"compile": 0.0, "run": 0.0}, None
     if correct:
         say(
@@ -478,10 +524,23 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             (i for i, (f, _) in enumerate(stages) if _same_answer(f.values, first.values)), None
         )
         if same is not None:  # the cheap model's answer of an earlier start: not again
-            tried.append({**record, "same_as": labels[same]})
+            tried.append({**record, "same_as": labels[same], "iterations": first.steps})
             say(f"  {label}: the same answer as {labels[same]}")
             continue
-        last = _continuation(data, pattern, first, options, black, images, floor, the_scan, say)
+        best = min(stages, key=lambda pair: pair[1].rms, default=None)
+        last = _continuation(
+            data, pattern, first, options, black, images, floor, the_scan, say, best
+        )
+        if last.unrefined is not None:  # worse than an answer found: not a candidate
+            tried.append(
+                {
+                    **record,
+                    "cheap": {k: first.values[k] for k in ("sigma_t", "sigma_s", "g")},
+                    "not_refined": last.unrefined,
+                    "iterations": first.steps,
+                }
+            )
+            continue
         steps = first.steps
         if last is not first:  # else its seconds and steps are counted already
             count(last)
@@ -582,7 +641,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             budget=budget,
             converged=ok,
             message=msg,
-            iterations=sum(r["iterations"] for r in solved),
+            iterations=sum(r.get("iterations", 0) for r in tried),
             residual=last.rms,
             basins=scan_dict,
             reasons=tuple(reasons),

@@ -115,6 +115,7 @@ class _Stage:
     jac_unit: np.ndarray | None = None  # ∂R/∂(σt, σs, g[, b]) at unit gain, (P, h, w, n)
     correction: dict | None = None  # the defect correction that produced it, if any
     refit: str | None = None  # how its weights' refit was done ("linearised", "solved")
+    unrefined: str | None = None  # why a cheap solve was not taken to its model
 
 
 def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black, weights, y0):
