@@ -270,13 +270,7 @@ def noise_scale(
     # The first scale: the median's, or the 90th percentile's where more than half of the
     # differences are (near) zero, as in a photon-starved capture whose dark pixels
     # count 0 (their median alone put χ²/dof at 4e8 on a fit within 2 % of the truth).
-    alpha = max(float(np.median(z2) / 0.45494), float(np.quantile(z2, 0.9) / 2.7055))
-    for limit in (1000.0, 50.0):
-        kept = z2[z2 <= limit * alpha]
-        if kept.size < 16:
-            break
-        alpha = float(np.mean(kept))
-    return max(alpha, floor)
+    return max(_clipped_mean(z2), floor)
 
 
 @dataclasses.dataclass(frozen=True)
