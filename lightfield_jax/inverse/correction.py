@@ -101,6 +101,20 @@ def _step_size(step: dict, v: dict, jac, names, noise: float) -> float:
     return max(abs(step[k]) / tol[k] for k in names) * STEP_TOLERANCE
 
 
+def parameter_names(fit_black: bool) -> list[str]:
+    """The fitted parameters besides the gain: σt, σs, g (and b where it is fitted)."""
+    return ["sigma_t", "sigma_s", "g"] + (["black_level"] if fit_black else [])
+
+
+def gauss_newton_step(jac, residual, names, v: dict, noise: float) -> tuple[dict, float]:
+    """The Gauss–Newton step of the weighted residual with ``jac`` (columns σt, σs, g,
+    gain[, b]: :func:`design`) as ``{name: step}`` (the gain's dropped: projected) and
+    its size against the tolerance (:func:`_step_size`)."""
+    delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+    step = {k: float(d) for k, d in zip(names, np.delete(delta, 3), strict=True)}
+    return step, _step_size(step, v, jac, names, noise)
+
+
 def correct(
     render: Callable[[dict], tuple[np.ndarray, dict | None]],
     obs,
@@ -123,7 +137,7 @@ def correct(
     at iterates, plus one per parameter for the large model's Jacobian; the iteration
     ends early where its steps, shrinking at their last rate, would not reach the
     tolerance within them."""
-    names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black_range is not None else [])
+    names = parameter_names(black_range is not None)
     v = {k: float(values[k]) for k in ("sigma_t", "sigma_s", "g", "black_level")}
     gain_cheap = float(values["gain"])
     steps, last_size, exact = [], None, None
@@ -144,9 +158,7 @@ def correct(
         return Correction(rendered, unit, jac, residual, steps, ok, reason, tail, count[0])
 
     def gauss_newton(jac_now):
-        delta, *_ = np.linalg.lstsq(jac_now, -residual, rcond=None)
-        step = {k: float(d) for k, d in zip(names, np.delete(delta, 3), strict=True)}
-        return step, _step_size(step, v, jac_now, names, noise)
+        return gauss_newton_step(jac_now, residual, names, v, noise)
 
     def refresh():
         """The large model's Jacobian at ``v`` by forward differences (``exact``)."""
@@ -230,4 +242,12 @@ def correct(
     return stop(f"no convergence in {max_iterations} renders at iterates")
 
 
-__all__ = ["Correction", "correct", "design", "in_domain", "projected"]
+__all__ = [
+    "Correction",
+    "correct",
+    "design",
+    "gauss_newton_step",
+    "in_domain",
+    "parameter_names",
+    "projected",
+]

@@ -32,6 +32,7 @@ from lightfield_jax.inverse.joint_stage import (
     _rms,
     _run_scan,
     _Stage,
+    _usable_render,
     joint_weights,
 )
 from lightfield_jax.inverse.model_size import (
@@ -91,7 +92,6 @@ def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answe
     such basins and each was solved to the same answer (6, 5 and 7 solver steps). A
     line that rises and falls (a barrier, or a curved valley the chord cuts across),
     or a render that fails, says nothing: the start is solved."""
-    renderer, full = _joint_parts(pattern, coarse, options.phase)
     sigma_t = answer["sigma_t"]
     a = np.array([answer["sigma_s"] / sigma_t, answer["g"], answer["black_level"]])
     b = np.array([start[1] / start[0], start[2], start[3]], dtype=float)
@@ -100,27 +100,29 @@ def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answe
     for t in LINE_POINTS:
         albedo, g, black = a + t * (b - a)
         v = {"sigma_t": sigma_t, "sigma_s": albedo * sigma_t, "g": g, "black_level": black}
-        unit, tail = _render_model(renderer, full, pattern, coarse, v, dtype)
-        if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+        rendered = _usable_render(pattern, coarse, options, v, dtype)
+        if rendered is None:
             return False
-        residual = projected(weights, unit, data.images)[1]
+        residual = projected(weights, rendered[0], data.images)[1]
         misfits.append(float(residual @ residual))
     # Rising, up to float32 rounding of the render (relative 1e-6 of the misfit).
     slack = 1e-6 * misfits[0]
     return all(later >= earlier - slack for earlier, later in itertools.pairwise(misfits))
 
 
+def _off_course(v: dict, the_scan, options, black) -> bool:
+    """Whether answer ``v`` is at a bound of the model or in a basin of the scan worse
+    than its best."""
+    albedo = v["sigma_s"] / v["sigma_t"]
+    return bool(at_bound(v, BLACK_RANGE if black is None else None)) or (
+        worse_basin(the_scan, v["g"], albedo, options.basin_tolerance) is not None
+    )
+
+
 def _anchors(stage: _Stage, the_scan, options, black) -> bool:
     """Whether a cheap solve's answer may stand for the basins on its slopes
-    (:func:`_downhill_from`): converged, off the bounds and not in a basin of the scan
-    worse than its best."""
-    v = stage.values
-    albedo = v["sigma_s"] / v["sigma_t"]
-    return (
-        stage.ok
-        and not at_bound(v, BLACK_RANGE if black is None else None)
-        and worse_basin(the_scan, v["g"], albedo, options.basin_tolerance) is None
-    )
+    (:func:`_downhill_from`): converged and not :func:`_off_course`."""
+    return stage.ok and not _off_course(stage.values, the_scan, options, black)
 
 
 # A later start's answer is not taken to its model where both its cheap misfit and the
@@ -144,11 +146,10 @@ def _cannot_win(data, pattern, first: _Stage, target: _Model, options, best) -> 
     cheap = float(first.residual @ first.residual)
     if not cheap > (1.0 + HOPELESS_MARGIN) * float(best_first.residual @ best_first.residual):
         return None
-    renderer, full = _joint_parts(pattern, target, options.phase)
-    unit, tail = _render_model(renderer, full, pattern, target, first.values, first.y.dtype)
-    if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+    rendered = _usable_render(pattern, target, options, first.values, first.y.dtype)
+    if rendered is None:
         return None
-    _, r_fine = projected(w, unit, data.images)
+    _, r_fine = projected(w, rendered[0], data.images)
     delta, *_ = np.linalg.lstsq(first.jac, -r_fine, rcond=None)
     moved = r_fine + first.jac @ delta
     predicted = float(moved @ moved)
@@ -175,9 +176,7 @@ def _continuation(
     coarse = first.model
     v = first.values
     albedo = v["sigma_s"] / v["sigma_t"]
-    if at_bound(v, BLACK_RANGE if black is None else None) or worse_basin(
-        the_scan, v["g"], albedo, options.basin_tolerance
-    ):
+    if _off_course(v, the_scan, options, black):
         # At a bound or in a worse basin on the cheap model: not trustworthy whatever
         # the model, and not worth the large model it would ask for.
         say("  at a bound or in a worse basin on the cheap model: not refined")

@@ -22,9 +22,10 @@ from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.basins import Scan, basins, scan
 from lightfield_jax.inverse.correction import (
     STEP_TOLERANCE,
-    _step_size,
     design,
+    gauss_newton_step,
     in_domain,
+    parameter_names,
     projected,
 )
 from lightfield_jax.inverse.data import FitData as _Data
@@ -227,7 +228,7 @@ def _linear_refit(data: _Data, stage: _Stage, weights, black) -> _Stage | None:
     128×96 milk (docs/fit_speed.md)."""
     if not stage.ok or stage.jac_unit is None or not np.all(np.isfinite(stage.jac_unit)):
         return None
-    names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black is None else [])
+    names = parameter_names(black is None)
     jac_unit = stage.jac_unit
     p0 = np.array([stage.values[k] for k in names])
     scale = np.array([p0[0], p0[1]] + [1.0] * (len(names) - 2))
@@ -272,20 +273,18 @@ def _rendered_at(data: _Data, pattern, stage: _Stage, options: FitOptions, black
     (2·10⁻⁴ relative, or a tenth of the statistical 1σ where that is larger:
     :mod:`.correction`); else ``None``. The residual, χ² and error budget are then
     the render's, not the linear model's."""
-    names = ["sigma_t", "sigma_s", "g"] + (["black_level"] if black is None else [])
     v = stage.values
     if not in_domain(v, BLACK_RANGE if black is None else None):
         return None
-    renderer, full = _joint_parts(pattern, stage.model, options.phase)
-    unit, tail = _render_model(renderer, full, pattern, stage.model, v, stage.y.dtype)
-    if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+    rendered = _usable_render(pattern, stage.model, options, v, stage.y.dtype)
+    if rendered is None:
         return None
+    unit, tail = rendered
     gain, residual = projected(stage.weights, unit, data.images)
     jac = design(stage.weights, unit, gain, stage.jac_unit)
-    delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
-    step = dict(zip(names, np.delete(delta, 3).tolist(), strict=True))
     noise = noise_scale(data.images, stage.weights, pattern, gain * unit)
-    if not _step_size(step, v, jac, names, noise) < STEP_TOLERANCE:
+    _, size = gauss_newton_step(jac, residual, parameter_names(black is None), v, noise)
+    if not size < STEP_TOLERANCE:
         return None
     return dataclasses.replace(
         stage,
@@ -354,6 +353,16 @@ def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigm
         ratios=ratios if extrapolate else None,
         sigma_s_ref=refs,
     )
+
+
+def _usable_render(pattern, model: _Model, options: FitOptions, v: dict, dtype):
+    """:func:`_render_model` of ``model`` at ``v`` (its renderers for ``pattern``), or
+    ``None`` where its tail solve did not converge or the render is not finite."""
+    renderer, full = _joint_parts(pattern, model, options.phase)
+    unit, tail = _render_model(renderer, full, pattern, model, v, dtype)
+    if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
+        return None
+    return unit, tail
 
 
 def _render_model(renderer, full, pattern, model: _Model, v: dict, dtype):
