@@ -77,7 +77,9 @@ def _same_answer(a: dict, b: dict) -> bool:
 LINE_POINTS = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
 
 
-def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answer: dict):
+def _downhill_from(
+    data, pattern, coarse: _Model, options, weights, start, answer: dict, origins=None
+):
     """Whether the cheap model's misfit (the gain projected out) rises monotonically
     along the straight line in (albedo, g, b) at the answer's σt from a solved
     ``answer`` to ``start`` (one primal render per point of :data:`LINE_POINTS`; the
@@ -91,13 +93,18 @@ def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answe
     neighbours: on the paper's milk with 2·10⁴ photons (128×96) the scan kept three
     such basins and each was solved to the same answer (6, 5 and 7 solver steps). A
     line that rises and falls (a barrier, or a curved valley the chord cuts across),
-    or a render that fails, says nothing: the start is solved."""
+    or a render that fails, says nothing: the start is solved. ``origins`` keeps the
+    misfit at the answer itself (t = 0) between calls, keyed by the answer's ``id``
+    (the answers stay alive through the fit)."""
     sigma_t = answer["sigma_t"]
     a = np.array([answer["sigma_s"] / sigma_t, answer["g"], answer["black_level"]])
     b = np.array([start[1] / start[0], start[2], start[3]], dtype=float)
     dtype = jnp.result_type(float)
-    misfits = []
+    misfits, origins = [], {} if origins is None else origins
     for t in LINE_POINTS:
+        if t == 0 and id(answer) in origins:
+            misfits.append(origins[id(answer)])
+            continue
         albedo, g, black = a + t * (b - a)
         v = {"sigma_t": sigma_t, "sigma_s": albedo * sigma_t, "g": g, "black_level": black}
         rendered = _usable_render(pattern, coarse, options, v, dtype)
@@ -105,6 +112,8 @@ def _downhill_from(data, pattern, coarse: _Model, options, weights, start, answe
             return False
         residual = projected(weights, rendered[0], data.images)[1]
         misfits.append(float(residual @ residual))
+        if t == 0:
+            origins[id(answer)] = misfits[0]
     # Rising, up to float32 rounding of the render (relative 1e-6 of the misfit).
     slack = 1e-6 * misfits[0]
     return all(later >= earlier - slack for earlier, later in itertools.pairwise(misfits))
@@ -491,6 +500,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         say(f"  measured per-bounce ratio {ratio:.3f}")
     say(f"  the solve's model: {_orders(coarse)}")
     tried, stages, labels = [], [], []
+    origins = {}  # per anchoring answer, its misfit on the cheap model (_downhill_from)
     dtype = jnp.result_type(float)
     for label, start in starts:
         say(f"joint fit from {label}: sigma_s {start[1]:.4g}, g {start[2]:.3f}")
@@ -504,7 +514,9 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
                     i
                     for i, (f, _) in enumerate(stages)
                     if _anchors(f, the_scan, options, black)
-                    and _downhill_from(data, pattern, coarse, options, weights, start, f.values)
+                    and _downhill_from(
+                        data, pattern, coarse, options, weights, start, f.values, origins
+                    )
                 ),
                 None,
             )
