@@ -17,7 +17,10 @@ T). Bin edges fall between nodes, so each node lands in exactly one bin.
 Node geometry is static (numpy, built once per grid); only the node values
 p(θ − θ0)·e^{−σt r} depend on σt and g, so new values never rebuild or recompile.
 The convolution is an FFT over a (2H, 2W) zero-padded domain: no wrap-around for
-offsets |Δ| < (H, W).
+offsets |Δ| < (H, W). Where S factors as u_p(across)·f(along) (light entering through
+a wall along its normal: every stripe pattern's rows share the decay e^{−σt x}), it is
+two matrix products instead (:func:`convolve_separable`, :func:`separable_source`):
+the same sums, 2–5× faster than the FFTs on the CPU.
 """
 
 from __future__ import annotations
@@ -129,12 +132,57 @@ def first_scatter_kernel(nodes: dict, phase_values, sigma_t, n_theta: int, heigh
     return kernel.reshape(n_theta, 2 * height, 2 * width)
 
 
-def convolve_first_scatter(source, kernel):
-    """L_1/σs per pattern: (patterns, H, W) ⊛ (n_theta, 2H, 2W) → (patterns, n_theta, H, W)."""
-    # Both factors are non-negative; FFT round-off (about 1e-7 of the maximum in
-    # float32) leaves small negative values that would break logarithms and 1/model
-    # weights downstream.
-    return jnp.maximum(convolve_kernels(source, kernel), 0.0)
+def separable_source(coverage, mean, var, tol: float = 1e-9):
+    """Whether the unscattered fluence of these source moments (each (P, H, W), see
+    :func:`~lightfield_jax.scene.illumination.source_moments`) factors as
+    u_p(across)·f(along): the coverage constant along one axis and the depth's mean and
+    variance of every lit pixel the same along the other (light entering through a wall
+    along its normal), each to ``tol`` (relative to 1 and to the depth; coverages below
+    ``tol``, round-off of the lit length, count as unlit). Returns ``(axis, u)`` with
+    ``axis`` "x" (f varies along x: u is (P, H)) or "y" (u is (P, W)), or ``None``."""
+    coverage, mean, var = (np.asarray(a, np.float64) for a in (coverage, mean, var))
+    lit = coverage > tol
+    if not lit.any():
+        return None
+    for axis, along in (("x", 2), ("y", 1)):
+        across = 3 - along
+        u = np.take(coverage, 0, axis=along)
+        if np.max(np.abs(coverage - np.expand_dims(u, along))) > tol:
+            continue
+        lit_along = np.any(lit, axis=(0, across))
+        shared = True
+        for moment in (mean, var):
+            ref = np.where(lit_along, np.max(np.where(lit, moment, -np.inf), axis=(0, across)), 0)
+            off = np.abs(moment - np.expand_dims(ref, (0, across)))
+            shared = shared and bool(np.all((off <= tol * (1.0 + np.abs(moment))) | ~lit))
+        if shared:
+            return axis, u
+    return None
+
+
+@functools.lru_cache(maxsize=32)
+def _toeplitz(n: int) -> np.ndarray:
+    """Index (2n, n) into a length-(n + 1) vector (its last entry zero): entry [d, i]
+    picks element (i − d) mod 2n where that lies in [0, n), else the zero."""
+    d = np.arange(2 * n)[:, None]
+    i = np.arange(n)[None, :]
+    src = (i - d) % (2 * n)
+    return np.where(src < n, src, n).astype(np.int32)
+
+
+def convolve_separable(across, along, kernel):
+    """The convolution of :func:`convolve_kernels` for a separable source
+    S[p, a, l] = across[p, a]·along[l]: (P, A) and (L,) with kernels (J, 2A, 2L) whose
+    offsets are stored modulo (2A, 2L) → (P, J, A, L). Two matrix products with
+    Toeplitz matrices of the factors: along l for all kernels at once (no pattern), then
+    along a per pattern."""
+    n_across, n_along = across.shape[-1], along.shape[0]
+    zero = jnp.zeros((1,), along.dtype)
+    v = jnp.concatenate([along, zero])[_toeplitz(n_along)]  # (2L, L)
+    m = jnp.einsum("jad,dl->jal", kernel, v)  # (J, 2A, L)
+    zeros = jnp.zeros(across.shape[:-1] + (1,), across.dtype)
+    u = jnp.concatenate([across, zeros], axis=-1)[:, _toeplitz(n_across)]  # (P, 2A, A)
+    return jnp.einsum("pea,jel->pjal", u, m)
 
 
 def convolve_kernels(source, kernel):

@@ -29,10 +29,11 @@ from jaxtyping import Array, Float
 
 from lightfield_jax.forward.base import AbstractRenderer, FirstOrders, _count_trace
 from lightfield_jax.forward.first_scatter import (
-    convolve_first_scatter,
     convolve_kernels,
+    convolve_separable,
     first_scatter_kernel,
     kernel_nodes,
+    separable_source,
 )
 from lightfield_jax.forward.kernels import bin_pair_offsets
 from lightfield_jax.forward.transport import direction_groups, transport, transport_tables
@@ -106,6 +107,13 @@ class PlaneRenderer(AbstractRenderer):
     node_angle: Float[Array, " nodes"]
     tables: dict
     circulant: Array
+    # Where the unscattered fluence factors as u_p(across)·f(along) (see
+    # :func:`~lightfield_jax.forward.first_scatter.separable_source`): the axis f varies
+    # along ("x" or "y", else None), u, and the pattern and row (column) where f is read
+    # off the fluence (the largest u).
+    separable: str | None = eqx.field(static=True)
+    across: Array | None
+    along_at: tuple[int, int] | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -127,6 +135,14 @@ class PlaneRenderer(AbstractRenderer):
         self.tables = transport_tables(_groups(grid.n_theta))
         j = np.arange(grid.n_theta)
         self.circulant = jnp.asarray((j[:, None] - j[None, :]) % grid.n_theta, dtype=jnp.int32)
+        split = separable_source(self.coverage, self.mean_depth, self.var_depth)
+        self.separable = None if split is None else split[0]
+        self.across = None if split is None else jnp.asarray(split[1])
+        self.along_at = (
+            None
+            if split is None
+            else tuple(int(i) for i in np.unravel_index(np.argmax(split[1]), split[1].shape))
+        )
 
     @property
     def direct_depth(self) -> float:
@@ -145,6 +161,20 @@ class PlaneRenderer(AbstractRenderer):
     def integrate(self, field):
         return field
 
+    def _convolve(self, source, kernels):
+        """source (P, H, W) ⊛ kernels (J, 2H, 2W) → (P, J, H, W): by two matrix products
+        where the source is separable (:func:`convolve_separable`; f read off the
+        source where u is largest), else by FFTs."""
+        if self.separable is None:
+            return convolve_kernels(source, kernels)
+        p, a = self.along_at
+        across = self.across.astype(source.dtype)
+        if self.separable == "x":
+            return convolve_separable(across, source[p, a, :] / across[p, a], kernels)
+        along = source[p, :, a] / across[p, a]
+        out = convolve_separable(across, along, jnp.swapaxes(kernels, -1, -2))
+        return jnp.swapaxes(out, -1, -2)
+
     def _step(self, sigma_t, sigma_s, mixing) -> BounceStep:
         return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta)
 
@@ -156,7 +186,9 @@ class PlaneRenderer(AbstractRenderer):
         kernel = first_scatter_kernel(
             self.nodes, node_p, sigma_t, self.n_theta, self.height, self.width
         )
-        l1 = sigma_s * convolve_first_scatter(source, kernel)
+        # Clipped at 0: FFT round-off leaves values about 1e-7 of the maximum below it,
+        # which would break logarithms and 1/model weights downstream.
+        l1 = sigma_s * jnp.maximum(self._convolve(source, kernel), 0.0)
         step = self._step(sigma_t, sigma_s, mixing)
         q2, i2 = step.scatter(l1)
         return FirstOrders(image, step, i2, l1, q2)
@@ -208,7 +240,7 @@ class PlaneRenderer(AbstractRenderer):
             kernels = jax.vmap(
                 lambda p: first_scatter_kernel(self.nodes, p, sigma_t, n, self.height, self.width)
             )(jnp.stack([node_p, dnode_p]))
-            both = sigma_s * convolve_kernels(source, kernels.reshape((-1,) + kernels.shape[2:]))
+            both = sigma_s * self._convolve(source, kernels.reshape((-1,) + kernels.shape[2:]))
             # (2·patterns, n, H, W): the primal's patterns, then the tangent's (the
             # primal clipped at 0 as in a render, the tangent as jax.jvp gives it).
             l1 = both[:, :n]
