@@ -153,3 +153,25 @@ def test_every_shipped_experiment_config_is_valid_in_full_and_reduced():
                 script._check(raw)
             checked += 1
     assert checked >= 2 * 10
+
+
+@pytest.mark.parametrize("name", ["../../tmp/evil", "/tmp/evil", "_inverse", ["a", "b"]])
+def test_a_config_names_only_a_shipped_experiment(tmp_path, name):
+    """A config is data: it never names a file to run (a path, a helper, a list), and
+    a refused config leaves no output folder behind."""
+    (tmp_path / "evil.py").write_text("raise SystemExit('ran')\n")
+    config = tmp_path / "bad.yaml"
+    config.write_text(yaml.safe_dump({"experiment": name}))
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=r"bad\.yaml: experiment: unknown experiment"):
+        _experiment.run_experiment(config, out)
+    assert not out.exists()
+
+
+def test_a_config_the_script_refuses_is_named_and_leaves_no_folder(tmp_path):
+    config = tmp_path / "typo.yaml"
+    config.write_text(yaml.safe_dump({"experiment": "inverse_speed_accuracy", "widht": 32}))
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=r"typo\.yaml: .*widht"):
+        _experiment.run_experiment(config, out)
+    assert not out.exists()

@@ -290,11 +290,12 @@ def load_helper(name: str):
     return _exec_module(name, path)
 
 
-def _load_script(name: str):
+def _load_script(name):
+    # Only the shipped experiments: a config is data and never names a file to run.
+    known = sorted(p.stem for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
+    if not isinstance(name, str) or name not in known:
+        raise ValueError(f"experiment: unknown experiment {name!r} (known: {', '.join(known)})")
     script = EXPERIMENTS_DIR / f"{name}.py"
-    if not script.is_file():
-        known = sorted(p.stem for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
-        raise ValueError(f"experiment: no script {script} (known: {', '.join(known)})")
     module = _exec_module(name, script)
     if not hasattr(module, "run"):
         raise ValueError(f"experiment: {script} defines no run(config, out, ctx)")
@@ -310,13 +311,22 @@ def run_experiment(
 ) -> dict:
     """Run one experiment; returns its summary (also written to ``out/summary.json``)."""
     config = load_experiment_config(config_path, reduced)
-    name = str(config["experiment"])
+    try:
+        module = _load_script(config["experiment"])
+    except ValueError as e:
+        raise ValueError(f"{config_path}: {e}") from None
+    name = config["experiment"]
     out = Path(out) if out is not None else Path("results") / name
+    existed = out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    module = _load_script(name)
     started = datetime.datetime.now(datetime.UTC)
     ctx = Context(out=out, progress=progress, reduced=reduced)
-    summary = module.run(config, out, ctx)
+    try:
+        summary = module.run(config, out, ctx)
+    except ValueError as e:  # a config the script refuses: named with its file
+        if not existed and not any(out.iterdir()):
+            out.rmdir()  # no empty output folder left behind
+        raise ValueError(f"{config_path}: {e}") from None
     record = {
         "experiment": name,
         "config_file": str(config_path),
