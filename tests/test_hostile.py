@@ -636,7 +636,14 @@ def test_fit_options_refuse_out_of_range_values():
 
 
 @pytest.mark.parametrize(
-    "fit", [{"n_theta": 2**30}, {"n_theta": 2**16}, {"refine": 8, "n_theta": 4096}]
+    "fit",
+    [
+        {"n_theta": 2**30},
+        {"n_theta": 2**16},
+        {"refine": 8, "n_theta": 4096},
+        {"bounces": 100000},  # before: an out-of-memory traceback after the scan
+        {"max_bounces": 10**7, "tail": None},
+    ],
 )
 def test_fixed_model_sizes_count_in_the_fits_memory_estimate(capture, capsys, tmp_path, fit):
     """θ bins and a refinement the capture fixes are not lowered to max_cells: before,

@@ -173,7 +173,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from lightfield_jax.app.memory import check_memory, correction_bytes, fit_bytes
+    from lightfield_jax.app.memory import check_memory, correction_bytes, fit_bytes, series_bytes
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
@@ -197,9 +197,15 @@ def _fit(args: argparse.Namespace) -> int | None:
         fixed = h * w * (defaults.n_theta or FIT_N_THETA) * (defaults.refine or 1) ** 2
     cells = max(min(h * w * FIT_N_THETA, defaults.max_cells), fixed)
     rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells), fixed)
+    # A fixed bounce count keeps every bounce's field, as does a march capped by a
+    # max_bounces raised above its default (the default cap is within the estimates).
+    fixed_series = defaults.bounces if isinstance(defaults.bounces, int) else 0
+    if defaults.max_bounces > FitOptions().max_bounces:
+        fixed_series = max(fixed_series, defaults.max_bounces)
     check_memory(
         max(
-            fit_bytes(capture.images.size, capture.n_images, cells),
+            fit_bytes(capture.images.size, capture.n_images, cells)
+            + series_bytes(capture.n_images, cells, fixed_series),
             correction_bytes(capture.images.size, capture.n_images, rendered),
         ),
         f"{capture.source}: the fit",

@@ -171,6 +171,13 @@ def fit_bytes(samples: int, n_images: int, cells: int) -> int:
     return capture_bytes(samples) + FIT_FIELDS * n_images * cells * 4
 
 
+def series_bytes(n_images: int, cells: int, bounces: int) -> int:
+    """A bounce series of a fixed ``bounces`` (a fit's ``bounces: K``): the field of
+    every bounce and its two tangents, which a linearised march keeps, per image of
+    ``cells`` (measured: 1.6 MB per bounce for six 32×24 images at 32 θ bins)."""
+    return 3 * n_images * cells * 4 * bounces
+
+
 def correction_bytes(samples: int, n_images: int, cells: int) -> int:
     """A fit's primal renders (its defect correction and error term) of ``cells``
     (W·H·n_theta·refine², at most twice the fit's ``max_render_cells``) per image, with
@@ -192,4 +199,5 @@ __all__ = [
     "parse_size",
     "render_bytes",
     "scene_render_bytes",
+    "series_bytes",
 ]
