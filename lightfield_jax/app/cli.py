@@ -156,6 +156,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
+    except Exception as e:  # XLA's allocation failure past the memory estimate
+        if args.debug or "RESOURCE_EXHAUSTED" not in str(e):
+            raise
+        print(f"{PROG}: error: {_describe_limit(MemoryError())}", file=sys.stderr)
+        return 2
     return 0 if status is None else int(status)
 
 
