@@ -853,3 +853,22 @@ def test_slabs_beyond_any_real_tank_are_refused(capture, capsys, geometry, match
     """Before: a 1e12 px deep tank was accepted and an index of 1e9 rendered NaN."""
     _edit(capture, geometry=geometry)
     _refused(capsys, "fit", capture / "capture.yaml", match=match)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"black_frame": "dark.exr"}, "black_frame: dark.exr is also dark_frame"),
+        ({"black_frame": "shift_03.exr"}, "black_frame: shift_03.exr is also images[3]"),
+        ({"dark_frame": "shift_00.exr"}, "dark_frame: shift_00.exr is also images[0]"),
+        ({"dark_frame": "./shift_00.exr"}, "dark_frame: ./shift_00.exr is also images[0]"),
+    ],
+)
+def test_one_file_in_two_roles_is_refused(capture, capsys, tmp_path, change, match):
+    """Before: the same file as the dark and the black frame measured a black level of 0
+    and the fit said converged with σs +47 %; a stripe image as a calibration frame ran a
+    whole fit to an unrelated reason."""
+    _edit(capture, **change)
+    out = tmp_path / "r.json"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match=match)
+    assert not out.exists()

@@ -3,6 +3,7 @@ calibration, and the masks of non-finite and saturated pixels."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,6 +22,7 @@ from lightfield_jax.capture.io import (
     read_image,
     read_npy_stack,
 )
+from lightfield_jax.capture.keys import _AUX_FRAMES
 
 
 def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
@@ -50,7 +52,30 @@ def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
     return base / value
 
 
+def _distinct_files(top: _Section, base: Path) -> None:
+    """Refuse one file given in two roles (two stripe images, or a stripe image and a
+    calibration frame, or two calibration frames): a user's slip that would otherwise
+    run a whole fit on a wrong capture (the paths as given, resolved; a missing file is
+    left to the reader's error)."""
+    roles: list[tuple[str, Any]] = []
+    images = top.get("images", None)
+    if isinstance(images, list):
+        roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
+    roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
+    seen: dict[Path, str] = {}
+    for key, value in roles:
+        if not isinstance(value, str) or not value:
+            continue
+        path = base / value
+        with contextlib.suppress(OSError):
+            path = path.resolve()
+        if path in seen:
+            top.fail(key, f"{value} is also {seen[path]}: one file cannot be both")
+        seen[path] = key
+
+
 def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
+    _distinct_files(top, base)
     value = top.get("images")
     if isinstance(value, str):
         file = _file(top, "images", value, base)
