@@ -202,6 +202,11 @@ def test_each_reason_not_to_trust_a_solution():
     vague = error_budget(np.eye(3), np.zeros(3), ["sigma_t", "sigma_s", "g"], 9e-4)
     (reason,) = untrustworthy(ok, vague, 100.0)
     assert reason.startswith("sigma_s is not identifiable") and "60 %" in reason
+    # The noise determines g, the model does not (its error term ± 0.8): not trusted.
+    names = ["sigma_t", "sigma_s", "g"]
+    loose = error_budget(np.eye(3), np.zeros(3), names, 1e-6, np.array([0.0, 0.0, 0.8]))
+    (reason,) = untrustworthy(ok, loose, 100.0)
+    assert reason.startswith("g is not identifiable") and "total 1σ" in reason, reason
     assert "g = -0.968" in untrustworthy({**ok, "g": -0.968}, budget, 100.0)[0]
     assert "albedo" in untrustworthy({**ok, "sigma_s": 0.2 * 0.9999}, budget, 100.0)[0]
     assert "albedo" in untrustworthy({**ok, "sigma_s": 1e-5}, budget, 100.0)[0]

@@ -379,20 +379,26 @@ IDENTIFIED = 0.5
 
 
 def unidentified(values: dict, budget: Uncertainty) -> list[str]:
-    """The parameters whose statistical 1σ (the capture's noise alone) exceeds
-    :data:`IDENTIFIED` (relative for σt and σs, absolute for g): the capture does not
-    determine them (empty: it determines all; NaN where the noise was not measured)."""
+    """The parameters whose 1σ exceeds :data:`IDENTIFIED` (relative for σt and σs,
+    absolute for g): the statistical one (the capture's noise alone: the capture does
+    not determine them), else the total one (noise ⊕ the model's error: the model does
+    not, e.g. the parts of the capture disagree by more than that). Empty: all are
+    determined (NaN where not measured)."""
     reasons = []
     for name in _PHYSICAL:
-        sd = budget.statistical.get(name, math.nan)
         relative = name != "g"
         scale = abs(values[name]) if relative else 1.0
-        if math.isfinite(sd) and sd > IDENTIFIED * scale:
-            spread = f"{100 * sd / scale:.0f} %" if relative else f"{sd:.2f}"
-            reasons.append(
-                f"{name} is not identifiable from this capture: its statistical 1σ (the "
-                f"capture's noise alone) is ± {spread}"
-            )
+        for part, what in (
+            ("statistical", "statistical 1σ (the capture's noise alone)"),
+            ("total", "total 1σ (the noise and the model's error)"),
+        ):
+            sd = getattr(budget, part).get(name, math.nan)
+            if math.isfinite(sd) and sd > IDENTIFIED * scale:
+                spread = f"{100 * sd / scale:.0f} %" if relative else f"{sd:.2f}"
+                reasons.append(
+                    f"{name} is not identifiable from this capture: its {what} is ± {spread}"
+                )
+                break
     return reasons
 
 
