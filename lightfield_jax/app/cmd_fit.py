@@ -111,8 +111,8 @@ def _label_two_step(method: str, result: dict) -> dict:
     if method in TWO_STEP_METHODS:
         result["uncertainty_kind"] = "statistical only (separation bias not included)"
         result["caveat"] = TWO_STEP_CAVEAT
-    else:
-        result["uncertainty_kind"] = "statistical"
+    else:  # joint: the noise ⊕ the model's error (uncertainty_statistical, _model)
+        result["uncertainty_kind"] = "total (statistical and the model's error)"
     return result
 
 
