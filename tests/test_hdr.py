@@ -251,3 +251,28 @@ def test_fit_recovers_the_medium_from_brackets(radiance, tmp_path, gamma, respon
     assert abs(fit.sigma_t / MEDIUM["sigma_t"] - 1) < tolerance[0]
     assert abs(fit.sigma_s / MEDIUM["sigma_s"] - 1) < tolerance[1]
     assert abs(fit.g - MEDIUM["g"]) < tolerance[2]
+
+
+@pytest.mark.parametrize("signal", [0.0, 2e-4, 1e-3, 1e-2])
+def test_dim_pixels_merge_without_bias(signal):
+    """Whether a sample is too dim to merge is judged on the light the pixel's longest
+    unclipped exposure measured, not on the sample itself: keeping the dim samples
+    that read noise lifted biased the merge up (a tank's far end 17-1500× too bright,
+    light outside the tank where there was none)."""
+    rng = np.random.default_rng(1)
+    times = np.array([0.001, 0.008, 0.064])
+    n, pedestal, read = 20000, 0.02, 0.0005
+    rate = signal / times[-1]  # the longest exposure sees `signal` above the pedestal
+
+    def expose(e, shape):
+        x = rng.poisson(e * 20000.0, size=shape) / 20000.0 + pedestal
+        x = x + rng.normal(0.0, read, size=shape)
+        return np.rint(np.clip(x, 0.0, 1.0) * 65535) / 65535
+
+    z = np.stack([expose(rate * t, (1, n, 1)) for t in times])
+    dark = np.full((len(times), 1, n, 1), pedestal)
+    m = merge_bracket(z, times, linear_response(), levels=65536, dark=dark)
+    merged = m.radiance[0, :, 0] * times[-1]  # in units of the longest exposure
+    # The merged mean is the truth within 4 standard errors of the longest exposure.
+    sem = np.sqrt(signal / 20000.0 + read**2 + 1 / 12 / 65535**2) / np.sqrt(n)
+    assert abs(merged.mean() - signal) < 4 * sem, (merged.mean(), signal, sem)

@@ -40,13 +40,16 @@ valid (neither clipped nor near black),
 
 with d_j the dark frame's sample at the same exposure (a camera's black pedestal does
 not scale with t, so it is subtracted before merging, never after). A sample is
-**clipped** when z ≥ ``clip`` (default 0.98: sensors knee below their top code) and
-**near black** when one code exceeds 5 % of the signal it holds,
-f⁻¹(z + Δz) − f⁻¹(z) > 0.05·(x_j − d_j) with Δz one code (without a dark frame, for
-8-bit γ 2.2 that is z < 0.17; a pedestal raises it: the signal above the dark frame is
-what must be resolved), or z < 0.005 (read noise). A pixel without a valid sample takes
-its longest unclipped exposure (it is dark: the best there is) and, when every exposure
-is clipped, its shortest one, flagged ``clipped`` (the capture masks it). T goes to the joint fit's
+**clipped** when z ≥ ``clip`` (default 0.98: sensors knee below their top code). Every
+pixel merges its longest unclipped exposure (none: its shortest, flagged ``clipped``;
+the capture masks it), and each shorter unclipped one unless it is **near black**:
+judged on the signal that longest exposure predicts for it, s_j = (x_J − d_J)·t_j/t_J,
+never on the sample itself (keeping the dim samples that read noise happened to lift
+would bias a tank's far end and its black surround up, measured 17-1500× on a 16-bit
+bracket): one code exceeds 5 % of that signal, f⁻¹(z + Δz) − f⁻¹(z) > 0.05·s_j at its
+code z = f(s_j + d_j) (without a dark frame, for 8-bit γ 2.2 that is z < 0.17), or z <
+0.005 (read noise). A pixel whose longest unclipped exposure is itself near black is
+merged from that one sample (it is dark: the best there is). T goes to the joint fit's
 weights (w ∝ √(T / (E + floor)) instead of 1/√(E + floor)).
 
 OpenCV is imported inside :func:`calibrate_response`, so ``import lightfield_jax``
@@ -99,6 +102,18 @@ class Response:
         for c in range(z.shape[-1]):
             column = self.curve[:, min(c, self.curve.shape[1] - 1)]
             out[..., c] = np.interp(z[..., c], self.codes, column)
+        return out
+
+    def encode(self, x: np.ndarray) -> np.ndarray:
+        """z = f(x), the code of linear exposures x (…, C) (the inverse of
+        :meth:`linearize`, clipped to [0, 1])."""
+        x = np.asarray(x, np.float64)
+        if self.kind == "linear":
+            return np.clip(x, 0.0, 1.0)
+        out = np.empty_like(x)
+        for c in range(x.shape[-1]):
+            column = self.curve[:, min(c, self.curve.shape[1] - 1)]
+            out[..., c] = np.interp(x[..., c], column, self.codes)
         return out
 
     def step(self, z: np.ndarray, levels: int | None) -> np.ndarray:
@@ -264,29 +279,43 @@ def merge_bracket(
     t = np.asarray(times, np.float64).reshape(-1, 1, 1, 1)
     z = np.where(np.isfinite(z), z, 0.0)
     x = response.linearize(z)
+    d = np.zeros_like(x)
     if dark is not None:
-        d = np.asarray(dark, np.float64)
-        x = x - response.linearize(np.broadcast_to(np.where(np.isfinite(d), d, 0.0), z.shape))
+        dz = np.asarray(dark, np.float64)
+        d = response.linearize(np.broadcast_to(np.where(np.isfinite(dz), dz, 0.0), z.shape))
+        x = x - d
     clipped = ~(z < clip)
-    # Near black: one code is more than 5 % of the signal left after the dark frame.
-    black = ~clipped & ((z < _NEAR_BLACK) | ~(response.step(z, levels) <= _MAX_QUANTISATION * x))
-    valid = ~clipped & ~black
+    unclipped = ~clipped
+    # The reference of each pixel: its longest unclipped exposure (none: the shortest,
+    # flagged clipped). It is always merged; the light it measured predicts each other
+    # sample's signal, and a sample joins where that prediction resolves it.
+    by_time = np.broadcast_to(t, z.shape)
+    ref = np.argmax(np.where(unclipped, by_time, -np.inf), axis=0)
+    none_ok = ~unclipped.any(axis=0)
+    ref = np.where(none_ok, np.argmin(t[:, 0, 0, 0]), ref)
+    ref_x = np.take_along_axis(x, ref[None], axis=0)[0]
+    ref_t = t[:, 0, 0, 0][ref]
+    # Near black, judged on the prediction (the sample's own value would select on its
+    # noise: keeping only the dim samples that noise lifted biases the merge up): one
+    # code more than 5 % of the predicted signal left after the dark frame, or a
+    # predicted code below the read-noise floor.
+    predicted = np.maximum(ref_x, 0.0)[None] * (t / ref_t[None])
+    z_pred = response.encode(predicted + d)
+    black = unclipped & (
+        (z_pred < _NEAR_BLACK) | ~(response.step(z_pred, levels) <= _MAX_QUANTISATION * predicted)
+    )
+    is_ref = np.arange(len(t)).reshape(-1, 1, 1, 1) == ref[None]
+    valid = (unclipped & ~black) | (is_ref & unclipped)
     total = np.sum(np.where(valid, t, 0.0), axis=0)
     merged = np.sum(np.where(valid, x, 0.0), axis=0)
-    # Without a valid sample: the longest unclipped exposure, else the shortest one.
-    unclipped = ~clipped
-    longest = len(t) - 1 - np.argmax(unclipped[::-1], axis=0)
-    none_ok = ~unclipped.any(axis=0)
-    fallback = np.where(none_ok, 0, longest)
-    pick_x = np.take_along_axis(x, fallback[None], axis=0)[0]
-    pick_t = t[:, 0, 0, 0][fallback]
-    empty = total == 0
-    radiance = np.where(empty, pick_x / pick_t, merged / np.where(empty, 1.0, total))
+    empty = total == 0  # every exposure clipped: the shortest one's value
+    radiance = np.where(empty, ref_x / ref_t, merged / np.where(empty, 1.0, total))
+    ref_black = np.take_along_axis(black, ref[None], axis=0)[0]
     return Merged(
         radiance=radiance,
-        exposure=np.where(empty, pick_t, total),
+        exposure=np.where(empty, ref_t, total),
         clipped=none_ok,
-        dark=empty & ~none_ok,
+        dark=ref_black & (total == ref_t) & ~none_ok,
         clipped_samples=clipped,
         near_black_samples=black,
     )
@@ -333,8 +362,9 @@ class Brackets:
         return (
             f"HDR: {len(self.files)} brackets of {j} exposures merged, "
             f"{self.response.kind} response; samples dropped as clipped (>= {self.clip:g}) / "
-            "near black (< "
-            f"{', '.join(f'{v:.3g}' for v in self.near_black)}): {clipped}; "
+            "near black (one code over 5 % of the signal the longest unclipped exposure "
+            f"predicts; without a dark frame z < {', '.join(f'{v:.3g}' for v in self.near_black)}"
+            f"): {clipped}; "
             f"{int(self.clipped.sum())} pixel value(s) clipped in every exposure (masked), "
             f"{self.dark_pixels} merged from one dark sample"
         )
