@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import yaml
 
+import lightfield_jax as lfj
 from lightfield_jax.app.cli import XLA_CACHE_ENV, main
 from lightfield_jax.app.memory import MAX_MEMORY_ENV
 from lightfield_jax.capture.io import read_image, write_exr
@@ -872,3 +873,25 @@ def test_one_file_in_two_roles_is_refused(capture, capsys, tmp_path, change, mat
     out = tmp_path / "r.json"
     _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match=match)
     assert not out.exists()
+
+
+def test_api_arguments_are_checked_before_any_work():
+    """Before: boolean images ran a 26 s nonsense fit, a mask of another shape ended in
+    numpy's broadcast message, a negative saturation in 'sigma_t is not identifiable',
+    a string σt was accepted, phases past the period were taken, and load_capture(5)
+    raised a bare TypeError."""
+    images = np.random.default_rng(0).random((6, 24, 32)).astype(np.float32)
+    pattern = lfj.Stripes()
+    for kwargs, given, match in [
+        ({}, images > 0.1, "images: must be real numbers, got dtype bool"),
+        ({"mask": np.ones((3, 3), bool)}, images, r"mask: must have the images' \(height"),
+        ({"saturation": -1.0}, images, "saturation: must be a positive number"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.fit_images(given, pattern, **kwargs)
+    with pytest.raises(ValueError, match="medium.sigma_t: must be a number"):
+        lfj.Medium(sigma_t="0.2", sigma_s=0.05, g=0.4)
+    with pytest.raises(ValueError, match=r"phase must lie in \[0, period = 6\), got 7"):
+        lfj.Stripes(period=6, lit=3, phases=(0, 7))
+    with pytest.raises(ValueError, match="load_capture: expected a capture file's path"):
+        lfj.load_capture(5)

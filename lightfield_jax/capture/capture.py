@@ -274,6 +274,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         CaptureError: anything else that makes the capture unusable; the message
             starts with the capture file and names the key, value or image.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise CaptureError(f"load_capture: expected a capture file's path, got {path!r}")
     path = Path(path)
     if not path.exists():
         raise CaptureFileNotFoundError(f"{path}: file not found")

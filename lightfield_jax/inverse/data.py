@@ -88,7 +88,7 @@ def prepare_data(
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     given = np.asarray(images)
-    if given.dtype.kind not in "biuf":  # complex, strings, objects: not intensities
+    if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
     images = given.astype(jnp.result_type(float))
     if images.ndim != 3 or images.shape[0] != pattern.n_patterns or min(images.shape[1:]) < 2:
@@ -105,6 +105,17 @@ def prepare_data(
             f"light's decay and the noise's 4th differences)"
         )
     finite = np.all(np.isfinite(images), axis=0)
+    if mask is not None and np.shape(mask) != finite.shape:
+        raise ValueError(
+            f"mask: must have the images' (height, width) {finite.shape}, got {np.shape(mask)}"
+        )
+    if saturation is not None and not (
+        isinstance(saturation, (int, float, np.number))
+        and not isinstance(saturation, bool)
+        and np.isfinite(saturation)
+        and saturation > 0
+    ):
+        raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
     mask = finite if mask is None else (np.asarray(mask, bool) & finite)
     images = np.where(mask[None], images, 0.0)
     if split is None:

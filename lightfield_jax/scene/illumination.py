@@ -139,6 +139,11 @@ class Stripes:
         for p in phases:
             if not isinstance(p, (int, np.integer)) or isinstance(p, bool):
                 raise ValueError(f"illumination.phases: phases must be integers, got {p!r}")
+            if not 0 <= p < self.period:
+                raise ValueError(
+                    f"illumination.phases: each phase must lie in [0, period = {self.period}), "
+                    f"got {p!r}"
+                )
         object.__setattr__(self, "phases", tuple(int(p) for p in phases))
         _check_entry(self.entry)
         object.__setattr__(self, "direction_deg", _direction_for(self.entry, self.direction_deg))

@@ -80,6 +80,9 @@ class Medium(eqx.Module):
         # Concrete values are checked on the host (NumPy): eager JAX operations would
         # each compile a small program the first time (a few hundred ms per process).
         given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
+        for name, value in given.items():
+            if isinstance(value, (str, bytes, bool)) or value is None:
+                raise ValueError(f"medium.{name}: must be a number, got {value!r}")
         concrete = {
             name: np.asarray(value, dtype=np.float64)
             for name, value in given.items()
