@@ -690,10 +690,12 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
     """A results file as lightfield-jax fit writes it (the keys render reads)."""
     model = {"width": W, "height": H, "n_theta": 16, "refine": 1, "bounces": 4}
     model.update(changes.pop("model", {}))
+    crop = changes.pop("crop", [0, 0, W, H])
+    capture_file = changes.pop("capture_file", capture / "capture.yaml")
     data = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "gain": 400.0, "phase": "paper"}
     data.update(changes)
-    data["model"] = {**model, "crop": [0, 0, W, H], "geometry": {"kind": "plane"}}
-    data["capture"] = str(capture / "capture.yaml")
+    data["model"] = {**model, "crop": crop, "geometry": {"kind": "plane"}}
+    data["capture"] = str(capture_file)
     path = tmp_path / "results.json"
     path.write_text(json.dumps(data))
     return path
@@ -712,6 +714,9 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"gain": 1e39}, "channel Y: gain: must be a number in (0, 1e+30], got 1e+39"),
         ({"gain": True}, "channel Y: gain: must be a number in (0, 1e+30], got True"),
         ({"gain": "400"}, "channel Y: no usable gain"),
+        ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        ({"capture_file": "/nonexistent/capture.yaml"}, "capture: /nonexistent/capture.yaml"),
     ],
 )
 def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, changes, match):

@@ -100,6 +100,18 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
             raise ValueError(
                 f"{source}: channel {name}: no usable {', '.join(missing)} (a failed fit?)"
             )
+        crop = model["crop"]
+        if not (
+            isinstance(crop, list)
+            and len(crop) == 4
+            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in crop)
+            and crop[0] < crop[2]
+            and crop[1] < crop[3]
+        ):
+            raise ValueError(
+                f"{source}: channel {name}: model.crop: must be [x0, y0, x1, y1] with "
+                f"0 <= x0 < x1 and 0 <= y0 < y1, got {crop!r}"
+            )
     return {str(k): v for k, v in channels.items()}
 
 
@@ -124,7 +136,10 @@ def render_results(
     candidates = [named, source.parent / named, source.parent / named.name]
     capture_path = next((c for c in candidates if c.exists()), named)
     stage("load the capture")
-    capture = load_capture(capture_path)
+    try:
+        capture = load_capture(capture_path)
+    except FileNotFoundError as e:
+        raise ValueError(f"{source}: capture: {e}") from None
     light = full_light(capture.pattern)
     files, notes = {}, []
     for name, fit in channels.items():
