@@ -186,7 +186,7 @@ def test_missing_unreadable_and_empty_images(tmp_path):
     (tmp_path / "junk.exr").write_bytes(b"not an image")
     _error(tmp_path, r"images\[2\]: .*junk\.exr: cannot read", images=[*names[:2], "junk.exr"])
     (tmp_path / "x.gif").write_bytes(b"GIF89a")
-    _error(tmp_path, r"images\[0\]: .*unsupported image extension", images=["x.gif"] * 3)
+    _error(tmp_path, r"images\[0\]: .*unsupported image extension", images=["x.gif", *names[1:3]])
     _error(tmp_path, r"images: the list is empty", images=[])
     _error(tmp_path, r"images\[1\]: must be a file path, got 3", text=f"images: [{names[0]}, 3]\n")
     _error(tmp_path, r"images: required key is missing", text="pattern: {period: 6}\n")
@@ -390,3 +390,19 @@ def test_clipped_8bit_frames_warn_and_mask(tmp_path):
     # An explicit saturation replaces the default threshold.
     with pytest.warns(CaptureWarning, match="at or above saturation 0.5"):
         _capture(tmp_path, images=names, saturation=0.5)
+
+
+@pytest.mark.parametrize("value", [1e30, -1e6])
+def test_corrupt_pixel_values_are_masked_with_a_warning(tmp_path, value):
+    """Before: one pixel of 1e30 ended the fit in 'the basin scan found no valid model'
+    without naming it, one of −1e6 in an unidentifiable σt."""
+    names = _images(tmp_path)
+    bad = np.full((H, W), 0.3)
+    bad[2, 3] = value
+    write_exr(tmp_path / names[1], {"Y": bad})
+    with pytest.warns(CaptureWarning) as caught:
+        capture = _capture(tmp_path, images=names)
+    said = [str(w.message) for w in caught]
+    assert any(re.search(r"1 pixel value\(s\) beyond 10000 times .* s1\.exr", m) for m in said)
+    assert capture.n_masked["nonfinite"] == 1 and not capture.mask[2, 3, 0]
+    assert np.abs(capture.images).max() < 1

@@ -151,6 +151,7 @@ from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry
 from lightfield_jax.capture.frames import (
     _aux_frame,
     _calibrate,
+    _corrupt_to_nan,
     _flat,
     _frames,
     _nonfinite,
@@ -312,7 +313,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     geometry = _geometry(top)
     truth = _truth(top)
 
-    raw = np.stack([f.pixels for f in frames])
+    names = [f.path.name for f in frames]
+    if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
+        names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
+    raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay, and cameras usually "
@@ -346,9 +350,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
             )
         roi = detected.roi if roi == AUTO else roi
     pattern = _stripes(top, spec, detected)
-    names = [f.path.name for f in frames]
-    if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
-        names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
 
     calibration_frames = {k: v.pixels for k, v in aux.items() if v is not None}
     full_roi, full_pattern = roi, pattern

@@ -171,6 +171,31 @@ def _calibrate(a: np.ndarray, dark: np.ndarray | None, flat: np.ndarray | None) 
     return a if flat is None else a / flat
 
 
+# A pixel value beyond this many times the images' 99th percentile of |value| is taken
+# for corrupt and masked as a NaN is (the brightest light of a tank, at its entry wall,
+# is within a few tens of times that percentile).
+OUTLIER = 1e4
+
+
+def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> np.ndarray:
+    """``raw`` (P, H, W, C) with values beyond :data:`OUTLIER` times the images' 99th
+    percentile of |value| set to NaN (then masked as such); notes where."""
+    finite = np.abs(raw[np.isfinite(raw)])
+    if not finite.size:
+        return raw
+    limit = OUTLIER * float(np.percentile(finite, 99))
+    with np.errstate(invalid="ignore"):
+        wild = np.isfinite(raw) & (np.abs(raw) > limit)
+    if limit <= 0 or not wild.any():
+        return raw
+    where = [n for n, w in zip(names, wild.any(axis=(1, 2, 3)), strict=True) if w]
+    notes.append(
+        f"{int(wild.sum())} pixel value(s) beyond {OUTLIER:g} times the images' 99th "
+        f"percentile, in {', '.join(where)} (corrupt?): taken as NaN"
+    )
+    return np.where(wild, np.nan, raw).astype(raw.dtype)
+
+
 def _nonfinite(
     raw: np.ndarray,
     frames: Sequence[tuple[ImageData, np.ndarray]],
