@@ -20,6 +20,7 @@ from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
     atomic_directory,
+    read_image,
     write_exr,
     write_png,
 )
@@ -406,3 +407,22 @@ def test_corrupt_pixel_values_are_masked_with_a_warning(tmp_path, value):
     assert any(re.search(r"1 pixel value\(s\) beyond 10000 times .* s1\.exr", m) for m in said)
     assert capture.n_masked["nonfinite"] == 1 and not capture.mask[2, 3, 0]
     assert np.abs(capture.images).max() < 1
+
+
+def test_clipped_float_images_are_masked_with_a_warning(tmp_path):
+    """Float files carry no top code: a clip shows as many values equal to the largest
+    (before: not seen, and the fit ran on the clipped values)."""
+    names = _images(tmp_path)
+    for name in names:
+        pixels = read_image(tmp_path / name).pixels[..., 0]
+        write_exr(tmp_path / name, {"Y": np.minimum(pixels, 0.3)})
+    with pytest.warns(CaptureWarning, match=r"float pixel values equal the images' largest, 0\.3"):
+        capture = _capture(tmp_path, images=names)
+    assert capture.n_masked["saturated"] > 0
+    clipped = np.any([read_image(tmp_path / n).pixels[..., 0] >= 0.3 for n in names], axis=0)
+    assert np.array_equal(~capture.mask[..., 0], clipped)
+    # A noiseless render ties only a few pixels at its peak: nothing is masked.
+    plain = _images(tmp_path, prefix="p")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CaptureWarning)
+        assert _capture(tmp_path, images=plain).mask.all()

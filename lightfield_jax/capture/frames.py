@@ -222,6 +222,13 @@ def _nonfinite(
     return out
 
 
+# Float frames are taken for clipped where at least this share of their values, and at
+# least CLIPPED_MIN of them, equal their largest exactly (a noiseless render ties a few
+# pixels at its peak, far fewer).
+CLIPPED_SHARE = 0.01
+CLIPPED_MIN = 16
+
+
 def _saturated(
     raw: np.ndarray,
     frames: Sequence[ImageData],
@@ -239,6 +246,17 @@ def _saturated(
         else:
             integer = np.array([f.is_integer for f in frames])[:, None, None, None]
             hit = integer & (raw >= (1.0 if sensor is None else sensor[0]))
+    plateau = None
+    if saturation is None:  # float frames: a clip shows as many values equal to the top
+        floating = np.array([not f.is_integer for f in frames])
+        values = raw[floating]
+        top = np.nanmax(values) if values.size and np.isfinite(values).any() else None
+        if top is not None and top > 0:
+            at_top = floating[:, None, None, None] & (raw == top)
+            count = at_top.sum()
+            if count >= max(CLIPPED_MIN, CLIPPED_SHARE * np.isfinite(values).sum()):
+                plateau = (float(top), at_top)
+                hit = hit | at_top
     per_frame = hit.sum(axis=(1, 2, 3))
     finite = np.isfinite(raw).sum(axis=(1, 2, 3))
     full = [n for n, h, f in zip(names, per_frame, finite, strict=True) if f and h == f]
@@ -250,6 +268,12 @@ def _saturated(
         notes.append(
             f"pixel values at or above saturation {saturation:g} ({listed}); "
             f"{int(out.sum())} pixel(s) masked"
+        )
+    elif listed and plateau is not None:
+        notes.append(
+            f"{int(plateau[1].sum())} float pixel values equal the images' largest, "
+            f"{plateau[0]:g} ({listed}): clipped; {int(out.sum())} pixel(s) masked (set "
+            "saturation: to give the threshold)"
         )
     elif listed:
         bits = sorted({f.bit_depth for f, h in zip(frames, per_frame, strict=True) if h})
