@@ -900,3 +900,15 @@ def test_api_arguments_are_checked_before_any_work():
         lfj.Stripes(period=6, lit=3, phases=(0, 7))
     with pytest.raises(ValueError, match="load_capture: expected a capture file's path"):
         lfj.load_capture(5)
+
+
+def test_an_impossible_black_frame_is_refused(capture, capsys, tmp_path):
+    """Before: a black frame three times brighter than the stripe images gave a black
+    level clipped to 0 and a fit with σs +47 % that said it converged."""
+    shifts = [read_image(f).pixels[..., 0] for f in sorted(capture.glob("shift_*.exr"))]
+    write_exr(capture / "black.exr", {"Y": 3 * np.mean(shifts, axis=0)})
+    _edit(capture, black_level="auto", black_frame="black.exr")
+    out = tmp_path / "r.json"
+    argv = ("fit", capture / "capture.yaml", "--out", out)
+    _refused(capsys, *argv, match="black_frame: the all-black frame against the mean")
+    assert not out.exists()

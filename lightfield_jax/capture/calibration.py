@@ -262,6 +262,13 @@ def estimate_black_level(
             errors.append(dq)
         b, db = _combine(values, errors)
         against = "the all-white frame" if white is not None else "the mean of the shifts"
+        margin = 3.0 * (db if math.isfinite(db) else 0.0) + 0.01
+        if not -margin < b < 1.0:  # a projector's black is a fraction of its white
+            raise ValueError(
+                f"black_frame: the all-black frame against {against} gives a black level "
+                f"of {b:.3g}, outside [0, 1): not the projector's black frame (check "
+                "black_frame and white_frame)"
+            )
         return BlackLevel(
             value=min(max(b, 0.0), 0.99),
             stderr=db,
