@@ -912,3 +912,17 @@ def test_an_impossible_black_frame_is_refused(capture, capsys, tmp_path):
     argv = ("fit", capture / "capture.yaml", "--out", out)
     _refused(capsys, *argv, match="black_frame: the all-black frame against the mean")
     assert not out.exists()
+
+
+def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):
+    """Before: 'embedded null byte' and 'an input is nested too deeply', neither naming
+    the file or the key."""
+    images = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    _edit(capture, images=["shift_00\0.exr", *images[1:]])
+    line = _refused(
+        capsys, "fit", capture / "capture.yaml", "--out", tmp_path / "r.json", match="images[0]"
+    )
+    assert "must be a file path" in line
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    _refused(capsys, "render", deep, "--out", tmp_path / "v", match=f"{deep}: nested too deeply")

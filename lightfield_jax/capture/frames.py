@@ -47,7 +47,7 @@ def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
 
 
 def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
-    if not isinstance(value, str) or not value:
+    if not isinstance(value, str) or not value or "\0" in value:
         top.fail(key, f"must be a file path, got {brief(value)}")
     return base / value
 
@@ -64,8 +64,8 @@ def _distinct_files(top: _Section, base: Path) -> None:
     roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
     seen: dict[Path, str] = {}
     for key, value in roles:
-        if not isinstance(value, str) or not value:
-            continue
+        if not isinstance(value, str) or not value or "\0" in value:
+            continue  # not a path: _file names its key
         path = base / value
         with contextlib.suppress(OSError):
             path = path.resolve()

@@ -128,6 +128,8 @@ def render_results(
         data = json.loads(source.read_text())
     except json.JSONDecodeError as e:
         raise ValueError(f"{source}: not JSON ({e})") from None
+    except RecursionError:
+        raise ValueError(f"{source}: nested too deeply to be a results file") from None
     channels = _channel_results(data, source)
     if "capture" not in data:
         raise ValueError(f"{source}: names no capture (key 'capture'), whose geometry is needed")
