@@ -95,6 +95,13 @@ def plot_fit(
     sep = separate(images, lit_fraction=pattern.lit_fraction, black_level=b)
     d, m = np.asarray(sep.direct), np.asarray(sep.multiple)
     model_stripes, model_full = fitted_images(result, pattern, (h, w))
+    # The fitted model's stripe images put through the same separation: what the
+    # separated D and M should be (the separation is biased on stripes: its M is not
+    # Σ_{k≥2} I_k, nor its D I_1).
+    sep_model = separate(
+        model_stripes.sum(axis=1), lit_fraction=pattern.lit_fraction, black_level=b
+    )
+    d_model, m_model = np.asarray(sep_model.direct), np.asarray(sep_model.multiple)
     true_full = None
     if truth and all(k in truth for k in ("sigma_t", "sigma_s", "g")):
         true_full = fitted_images(_truth_result(result, truth), pattern, (h, w))[1]
@@ -113,6 +120,9 @@ def plot_fit(
     ax = axes[0]
     ax.semilogy(centres, _profile(d, s, used, bins), "k.", label="measured D (separated)")
     ax.semilogy(centres, _profile(model_full[0], s, used, bins), "C0-", label="fitted $I_1$")
+    ax.semilogy(
+        centres, _profile(d_model, s, used, bins), "C3-.", lw=1.0, label="fitted, separated alike"
+    )
     if true_full is not None:
         ax.semilogy(centres, _profile(true_full[0], s, used, bins), "C2:", label="truth $I_1$")
     _data_limits(ax, d, used)
@@ -132,6 +142,9 @@ def plot_fit(
         _profile(model_full[1:].sum(0), s, used, bins),
         "C1-",
         label=r"fitted $\sum_{k\geq2} I_k$",
+    )
+    ax.semilogy(
+        centres, _profile(m_model, s, used, bins), "C3-.", lw=1.0, label="fitted, separated alike"
     )
     for k in range(1, min(model_full.shape[0], 6)):
         ax.semilogy(
