@@ -426,3 +426,23 @@ def test_clipped_float_images_are_masked_with_a_warning(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", CaptureWarning)
         assert _capture(tmp_path, images=plain).mask.all()
+
+
+def test_truth_per_channel(tmp_path):
+    """An RGB capture's media differ by channel: truth takes a list, one per channel."""
+    names = _images(tmp_path)
+    truth = {"sigma_t": [0.2], "sigma_s": [0.05], "g": 0.4}
+    capture = _capture(tmp_path, images=names, truth=truth)
+    assert capture.truth["sigma_t"] == [0.2] and capture.truth["g"] == 0.4
+    _error(
+        tmp_path,
+        r"truth\.sigma_t: a list gives one value per channel: 1 here, got 3",
+        images=names,
+        truth={**truth, "sigma_t": [0.2, 0.3, 0.4]},
+    )
+    _error(
+        tmp_path,
+        r"truth\.sigma_s: must satisfy 0 <= sigma_s <= sigma_t",
+        images=names,
+        truth={**truth, "sigma_s": [0.5]},
+    )

@@ -50,6 +50,28 @@ def _fit_summary(fit) -> str:
     return "\n".join(lines)
 
 
+def _against_truth(capture, fit) -> list[dict]:
+    """Per fitted channel, each parameter the capture's truth gives: the error (σt, σs
+    in %, g absolute) and in units of the reported total 1σ."""
+    from lightfield_jax.capture.keys import truth_for
+
+    out = []
+    for name, r in zip(fit.channels, fit.results, strict=True):
+        truth = truth_for(capture.truth, capture.channel_names.index(name)) or {}
+        e = {}
+        for k in ("sigma_t", "sigma_s", "g"):
+            if k not in truth:
+                continue
+            value, true, sd = getattr(r, k), truth[k], r.uncertainty.get(k, float("nan"))
+            diff = value - true
+            e[k] = {
+                "error": diff if k == "g" else 100 * diff / true,
+                "sigmas": diff / sd if sd and sd == sd else float("nan"),
+            }
+        out.append(e)
+    return out
+
+
 def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
     """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
     if len(channels) == 1:
@@ -61,6 +83,7 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
     """FIG.png: the profiles and residuals of the fit; with several channels, FIG.png
     holds σt, σs, g per channel and FIG_<channel>.png each channel's profiles. Each
     figure is written to ``write(target)`` (a staged temporary)."""
+    from lightfield_jax.capture.keys import truth_for
     from lightfield_jax.viz import plot_channels, plot_fit
 
     if len(fit.channels) == 1:
@@ -73,7 +96,10 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
             **_shown(capture, i),
         )
         return
-    plot_channels(fit, write(figures[0]), pixel_size_mm=capture.pixel_size_mm)
+    truth = None
+    if capture.truth:
+        truth = [truth_for(capture.truth, capture.channel_names.index(n)) for n in fit.channels]
+    plot_channels(fit, write(figures[0]), pixel_size_mm=capture.pixel_size_mm, truth=truth)
     for name, result, target in zip(fit.channels, fit.results, figures[1:], strict=True):
         i = capture.channel_names.index(name)
         plot_fit(
@@ -83,7 +109,9 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
 
 def _shown(capture, i: int) -> dict:
     """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
-    return {"mask": capture.mask[..., i], "truth": capture.truth}
+    from lightfield_jax.capture.keys import truth_for
+
+    return {"mask": capture.mask[..., i], "truth": truth_for(capture.truth, i)}
 
 
 # Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
@@ -225,6 +253,8 @@ def _fit(args: argparse.Namespace) -> int | None:
         result["capture"] = str(capture.source)
         if capture.truth:
             result["truth"] = capture.truth
+            compared = _against_truth(capture, fit)
+            result["truth_error"] = compared[0] if len(compared) == 1 else compared
         result["medium_roi"] = _roi_record(capture)
         with staged_files() as write:
             if figures:
@@ -234,6 +264,16 @@ def _fit(args: argparse.Namespace) -> int | None:
     for note in capture.notes:
         _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
+    if capture.truth:
+        for name, e in zip(fit.channels, _against_truth(capture, fit), strict=True):
+            _say(
+                args,
+                f"[{name}] against the truth: "
+                + ", ".join(
+                    f"{k} {v['error']:+.3g}{' %' if k != 'g' else ''} ({v['sigmas']:+.1f} sigma)"
+                    for k, v in e.items()
+                ),
+            )
     if args.method in TWO_STEP_METHODS:
         _say(args, f"note: {TWO_STEP_CAVEAT}")
     _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")

@@ -311,7 +311,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     pixel_size = _positive(top, "pixel_size_mm")
     saturation = _positive(top, "saturation") if merged is None else None
     geometry = _geometry(top)
-    truth = _truth(top)
+    truth = _truth(top, n_channels)
 
     names = [f.path.name for f in frames]
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:

@@ -252,12 +252,42 @@ def _fit_options(top: _Section) -> dict[str, Any]:
     return out
 
 
-def _truth(top: _Section) -> dict[str, Any] | None:
+def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
+    """The ``truth`` section: each number, or a list of one per channel (an RGB
+    capture's media differ by channel), checked in its range."""
     if "truth" not in top.data:
         return None
     s = top.section("truth", _TRUTH_KEYS)
-    truth: dict[str, Any] = {k: s.float(k) for k in _TRUTH_FLOATS if k in s.data}
-    # The ranges of a medium (a report compares the fit with these).
+    truth: dict[str, Any] = {}
+    for k in _TRUTH_FLOATS:
+        if k not in s.data:
+            continue
+        value = s.data[k]
+        if isinstance(value, list):
+            if len(value) != n_channels:
+                s.fail(
+                    s.key(k),
+                    f"a list gives one value per channel: {n_channels} here, got {len(value)}",
+                )
+            truth[k] = [_as_float(s, f"{s.key(k)}[{i}]", v) for i, v in enumerate(value)]
+        else:
+            truth[k] = s.float(k)
+    for c in range(n_channels):
+        _check_truth(s, truth_for(truth, c))
+    if "phase" in s.data:
+        truth["phase"] = s.choice("phase", PHASE_CONVENTIONS)
+    return truth
+
+
+def truth_for(truth: dict[str, Any] | None, channel: int) -> dict[str, Any] | None:
+    """Channel ``channel``'s truth: per-channel lists picked, numbers as they are."""
+    if truth is None:
+        return None
+    return {k: v[channel] if isinstance(v, list) else v for k, v in truth.items()}
+
+
+def _check_truth(s: _Section, truth: dict[str, Any]) -> None:
+    """The ranges of a medium (a report compares the fit with these)."""
     t, v = truth.get("sigma_t"), truth.get("sigma_s")
     if t is not None and t <= 0:
         s.fail(s.key("sigma_t"), f"must be > 0 (per pixel), got {t!r}")
@@ -270,6 +300,3 @@ def _truth(top: _Section) -> dict[str, Any] | None:
         s.fail(s.key("gain"), f"must be > 0, got {truth['gain']!r}")
     if "black_level" in truth and not 0 <= truth["black_level"] < 1:
         s.fail(s.key("black_level"), f"must lie in [0, 1), got {truth['black_level']!r}")
-    if "phase" in s.data:
-        truth["phase"] = s.choice("phase", PHASE_CONVENTIONS)
-    return truth
