@@ -300,3 +300,36 @@ def test_images_and_g_slope_match_the_render_and_its_jvp(illum, bounces, refine,
     h = 1e-6
     fd = (renderer(st, ss, g + h, 1.7)[0] - renderer(st, ss, g - h, 1.7)[0]) / (2 * h)
     np.testing.assert_allclose(slope, fd, rtol=0, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize(
+    ("illumination", "axis"),
+    [
+        (lfj.Stripes(), "x"),
+        (lfj.Stripes(entry="top"), "y"),
+        (lfj.Stripes(entry="right"), "x"),
+        (lfj.Stripes(direction_deg=20.0), None),
+    ],
+)
+def test_separable_first_scatter_equals_the_fft(monkeypatch, illumination, axis):
+    """Light entering a wall along its normal: L_1's convolution as two matrix products
+    gives the FFT's images and slopes (to float32 rounding); oblique light keeps the
+    FFT."""
+    import lightfield_jax.forward.plane as plane
+
+    grid = lfj.Grid(40, 30, 32, 1)
+    fast = plane.PlaneRenderer(grid, illumination, 5)
+    monkeypatch.setattr(plane, "separable_source", lambda *a: None)
+    slow = plane.PlaneRenderer(grid, illumination, 5)
+    assert fast.separable == axis and slow.separable is None
+    values = (jnp.float32(0.2), jnp.float32(0.1), jnp.float32(0.6))
+
+    def images(renderer):
+        def f(st, g):
+            return renderer(st, values[1], g)[0]
+
+        return jax.jvp(f, (values[0], values[2]), (jnp.float32(1.0), jnp.float32(0.5)))
+
+    (a, da), (b, db) = images(fast), images(slow)
+    assert float(jnp.max(jnp.abs(a - b))) < 1e-6 * float(jnp.max(b))
+    assert float(jnp.max(jnp.abs(da - db))) < 1e-6 * float(jnp.max(jnp.abs(db)))
