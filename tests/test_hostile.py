@@ -873,7 +873,8 @@ def test_slabs_beyond_any_real_tank_are_refused(capture, capsys, geometry, match
 def test_one_file_in_two_roles_is_refused(capture, capsys, tmp_path, change, match):
     """Before: the same file as the dark and the black frame measured a black level of 0
     and the fit said converged with σs +47 %; a stripe image as a calibration frame ran a
-    whole fit to an unrelated reason."""
+    whole fit to an unrelated reason. (A stripe image listed twice is left to the
+    phases' checks.)"""
     _edit(capture, **change)
     out = tmp_path / "r.json"
     _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match=match)

@@ -53,8 +53,8 @@ def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
 
 
 def _distinct_files(top: _Section, base: Path) -> None:
-    """Refuse one file given in two roles (two stripe images, or a stripe image and a
-    calibration frame, or two calibration frames): a user's slip that would otherwise
+    """Refuse one file given in two roles (a stripe image and a calibration frame, or
+    two calibration frames): a user's slip that would otherwise
     run a whole fit on a wrong capture (the paths as given, resolved; a missing file is
     left to the reader's error)."""
     roles: list[tuple[str, Any]] = []
@@ -69,9 +69,11 @@ def _distinct_files(top: _Section, base: Path) -> None:
         path = base / value
         with contextlib.suppress(OSError):
             path = path.resolve()
-        if path in seen:
+        # A stripe image listed twice is left to the phases' checks.
+        both_images = key.startswith("images[") and seen.get(path, "").startswith("images[")
+        if path in seen and not both_images:
             top.fail(key, f"{value} is also {seen[path]}: one file cannot be both")
-        seen[path] = key
+        seen.setdefault(path, key)
 
 
 def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
@@ -222,9 +224,9 @@ def _nonfinite(
     return out
 
 
-# Float frames are taken for clipped where at least this share of their values, and at
-# least CLIPPED_MIN of them, equal their largest exactly (a noiseless render ties a few
-# pixels at its peak, far fewer).
+# Float frames of measured (mostly distinct) values are taken for clipped where at
+# least this share of their values, and at least CLIPPED_MIN of them, equal their
+# largest exactly (a noiseless render ties a few pixels at its peak, far fewer).
 CLIPPED_SHARE = 0.01
 CLIPPED_MIN = 16
 
@@ -253,8 +255,12 @@ def _saturated(
         top = np.nanmax(values) if values.size and np.isfinite(values).any() else None
         if top is not None and top > 0:
             at_top = floating[:, None, None, None] & (raw == top)
+            finite = values[np.isfinite(values)]
             count = at_top.sum()
-            if count >= max(CLIPPED_MIN, CLIPPED_SHARE * np.isfinite(values).sum()):
+            # Measured (noisy) values are nearly all distinct; a synthetic image of a
+            # few levels is not clipped where its brightest level is flat.
+            measured = np.unique(finite).size > 0.5 * finite.size
+            if measured and count >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
                 plateau = (float(top), at_top)
                 hit = hit | at_top
     per_frame = hit.sum(axis=(1, 2, 3))

@@ -31,7 +31,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.forward.kernels import fft_convolve, padded_spectrum, splat
+from lightfield_jax.forward.kernels import einsum, fft_convolve, padded_spectrum, splat
 
 # (outer radius, ring width): fine rings where T varies on the scale of the nodes'
 # spacing in θ, coarser where the integrand only varies with e^{−σt r}.
@@ -179,10 +179,10 @@ def convolve_separable(across, along, kernel):
     n_across, n_along = across.shape[-1], along.shape[0]
     zero = jnp.zeros((1,), along.dtype)
     v = jnp.concatenate([along, zero])[_toeplitz(n_along)]  # (2L, L)
-    m = jnp.einsum("jad,dl->jal", kernel, v)  # (J, 2A, L)
+    m = einsum("jad,dl->jal", kernel, v)  # (J, 2A, L)
     zeros = jnp.zeros(across.shape[:-1] + (1,), across.dtype)
     u = jnp.concatenate([across, zeros], axis=-1)[:, _toeplitz(n_across)]  # (P, 2A, A)
-    return jnp.einsum("pea,jel->pjal", u, m)
+    return einsum("pea,jel->pjal", u, m)
 
 
 def convolve_kernels(source, kernel):

@@ -6,6 +6,7 @@ grids, the zero-padded FFT convolution, and the bin-pair average of a phase func
 - :func:`fft_convolve`: the linear convolution of (H, W) sources with (2H, 2W) kernels,
   given as rfft2 spectra over the zero-padded (2H, 2W) domain (exact: no wrap-around
   for offsets |Δ| < (H, W)), cropped back to (H, W).
+- :func:`einsum`, :func:`matmul`: products at full float32 precision on every backend.
 - :func:`bin_pair_offsets`: the angles and weights of the triangle-weighted average
   c_m = (1/Δθ²)∫_{bin j}∫_{bin j'} f(θ − θ') dθ dθ' (m = j − j') of a function of the
   angle between two direction bins, sampled ``subsamples`` times per bin.
@@ -15,9 +16,25 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
+
+# float32 matrix products at full precision: on GPUs XLA's default rounds their inputs
+# to TF32 (10-bit mantissa), which a misfit that is a difference of large sums (the
+# basin scan's) and a fit to 1e-4 cannot take; on the CPU it changes nothing.
+HIGHEST = jax.lax.Precision.HIGHEST
+
+
+def einsum(subscripts: str, *operands):
+    """``jnp.einsum`` at full float32 precision (:data:`HIGHEST`)."""
+    return jnp.einsum(subscripts, *operands, precision=HIGHEST)
+
+
+def matmul(a, b):
+    """``a @ b`` at full float32 precision (:data:`HIGHEST`)."""
+    return jnp.matmul(a, b, precision=HIGHEST)
 
 
 def splat(index, weights, values, size: int) -> Float[Array, "kernels size"]:

@@ -35,7 +35,7 @@ from lightfield_jax.forward.first_scatter import (
     kernel_nodes,
     separable_source,
 )
-from lightfield_jax.forward.kernels import bin_pair_offsets
+from lightfield_jax.forward.kernels import bin_pair_offsets, einsum
 from lightfield_jax.forward.transport import direction_groups, transport, transport_tables
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination
@@ -84,7 +84,7 @@ class BounceStep(eqx.Module):
 
     def scatter(self, field):
         """(Q_next, image) of a light field: rows 0..n−1 and row n of the mixing matmul."""
-        out = jnp.einsum("ij,pjhw->pihw", self.mixing, field)
+        out = einsum("ij,pjhw->pihw", self.mixing, field)
         return self.sigma_s * out[:, : self.n_theta], self.sigma_s * out[:, self.n_theta]
 
     def step(self, q):
@@ -250,10 +250,8 @@ class PlaneRenderer(AbstractRenderer):
 
             def scatter(field):
                 fl, dfl = field[:n_pat], field[n_pat:]
-                out = jnp.einsum("ij,pjhw->pihw", mixing, fl)
-                dout = jnp.einsum(
-                    "ij,pjhw->pihw", tangent_mixing, jnp.concatenate([fl, dfl], axis=1)
-                )
+                out = einsum("ij,pjhw->pihw", mixing, fl)
+                dout = einsum("ij,pjhw->pihw", tangent_mixing, jnp.concatenate([fl, dfl], axis=1))
                 both = sigma_s * jnp.concatenate([out, dout], axis=0)
                 return both[:, :n], both[:, n]
 

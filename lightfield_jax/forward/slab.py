@@ -57,7 +57,13 @@ from jaxtyping import Array, Float
 
 from lightfield_jax.forward.base import AbstractRenderer, FirstOrders
 from lightfield_jax.forward.first_scatter import kernel_nodes
-from lightfield_jax.forward.kernels import bin_pair_offsets, fft_convolve, padded_spectrum, splat
+from lightfield_jax.forward.kernels import (
+    bin_pair_offsets,
+    einsum,
+    fft_convolve,
+    padded_spectrum,
+    splat,
+)
 from lightfield_jax.forward.slab_layers import (
     PAIRS,
     TERMS,
@@ -211,7 +217,7 @@ class SlabRenderer(AbstractRenderer):
         W); only the layer averages integrate to anything (∫φ_1 = 0)."""
         dz = self.thickness / self.n_z
         w_mu = self.w_mu.astype(field.dtype)
-        return 2.0 * dz * jnp.einsum("j,pljnhw->pnhw", w_mu, field[:, : self.n_z])
+        return 2.0 * dz * einsum("j,pljnhw->pnhw", w_mu, field[:, : self.n_z])
 
     # -- pieces -------------------------------------------------------------------
 

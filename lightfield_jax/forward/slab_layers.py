@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
 
-from lightfield_jax.forward.kernels import padded_spectrum
+from lightfield_jax.forward.kernels import einsum, padded_spectrum
 
 _GAUSS4 = tuple(tuple(float(v) for v in a) for a in np.polynomial.legendre.leggauss(4))
 
@@ -214,7 +214,7 @@ class SlabBounce(eqx.Module):
     def step(self, q):
         """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
         q_f = padded_spectrum(q)
-        image_f = jnp.einsum("plmnyx,lmnyx->pyx", q_f, self.camera_f)
+        image_f = einsum("plmnyx,lmnyx->pyx", q_f, self.camera_f)
         image = jnp.fft.irfft2(image_f, s=(2 * self.height, 2 * self.width))
         field = self._transport_f(q_f)
         return self.scatter(field), self._clipped(image[..., : self.height, : self.width]), field
@@ -264,10 +264,10 @@ class SlabBounce(eqx.Module):
             (self.mix_even, self.mix_odd) if mirror > 0 else (self.mix_odd, self.mix_even)
         )
         if n_z == 1:
-            return jnp.einsum("ab,plbyx->playx", 2.0 * even_m, flat).reshape(field.shape)
+            return einsum("ab,plbyx->playx", 2.0 * even_m, flat).reshape(field.shape)
         half = (n_z + 1) // 2
         rev = flat[:, ::-1]
-        even = jnp.einsum("ab,plbyx->playx", even_m, (flat + rev)[:, :half])
-        odd = jnp.einsum("ab,plbyx->playx", odd_m, (flat - rev)[:, :half])
+        even = einsum("ab,plbyx->playx", even_m, (flat + rev)[:, :half])
+        odd = einsum("ab,plbyx->playx", odd_m, (flat - rev)[:, :half])
         lower = (even - odd)[:, ::-1][:, n_z % 2 :]
         return jnp.concatenate([even + odd, lower], axis=1).reshape(field.shape)

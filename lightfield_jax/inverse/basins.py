@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.forward.kernels import matmul
 from lightfield_jax.inverse.joint import BLACK_RANGE
 from lightfield_jax.inverse.programs import jitted
 from lightfield_jax.scene.medium import phase_integral
@@ -143,7 +144,7 @@ def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_
         if k > 1
         else jnp.zeros((), sums.dtype)
     )
-    return basis @ basis.T, basis @ (weights * obs).reshape(-1), ref, ratio
+    return matmul(basis, basis.T), matmul(basis, (weights * obs).reshape(-1)), ref, ratio
 
 
 def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, albedos, black):
@@ -165,8 +166,9 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
                 v = v.at[-1].divide(jnp.where(ur < 1, 1 - ur, 1.0))
             z = jnp.zeros_like(v)
             va, vb = jnp.concatenate([v, z]), jnp.concatenate([z, v])
-            m = jnp.array([[va @ gram @ va, va @ gram @ vb], [vb @ gram @ va, vb @ gram @ vb]])
-            rhs = jnp.array([va @ proj, vb @ proj])
+            pair = jnp.stack([va, vb])  # (2, 2K)
+            m = matmul(matmul(pair, gram), pair.T)
+            rhs = matmul(pair, proj)
             # Two columns: c·(1 − b) and c·b; their least-squares values give b.
             c = jnp.linalg.solve(m + 1e-30 * jnp.eye(2, dtype=m.dtype), rhs)
             b_free = c[1] / (c[0] + c[1])
@@ -174,8 +176,8 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
             b = jnp.clip(b_free, lo, hi) if settings.fit_black else black
             # One column at that b: the gain's least-squares value and the misfit.
             col = jnp.array([1.0 - b, b])
-            norm = col @ m @ col
-            cost = (total - (col @ rhs) ** 2 / norm) / n
+            norm = jnp.sum(col * matmul(m, col))
+            cost = (total - jnp.sum(col * rhs) ** 2 / norm) / n
             if settings.extrapolate:
                 cost = jnp.where(ur < 1, cost, jnp.inf)
             return cost, b
@@ -290,7 +292,9 @@ def basins(
     if not minima:
         return ()
     best = cost[minima[0]]
-    kept = [p for p in minima if cost[p] <= best * (1.0 + tolerance)][:max_basins]
+    # Relative to |best|: a misfit is a difference of sums, which rounding can leave
+    # slightly negative on a noiseless capture.
+    kept = [p for p in minima if cost[p] <= best + tolerance * abs(best)][:max_basins]
     return tuple(
         Basin(
             g=float(gs[i]),
@@ -314,7 +318,7 @@ def worse_basin(scan: Scan, g: float, albedo: float, tolerance: float) -> Basin 
         return None
     home = basin_of(scan.misfit, *p)
     best = scan.basins[0]
-    if home == best.index or scan.misfit[home] <= best.misfit * (1.0 + tolerance):
+    if home == best.index or scan.misfit[home] <= best.misfit + tolerance * abs(best.misfit):
         return None
     return best
 

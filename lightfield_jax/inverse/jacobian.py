@@ -12,6 +12,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from lightfield_jax.forward.kernels import matmul
+
 
 def with_jacobian(value_and_jacobian):
     """``value_and_jacobian(x, *fixed)`` → ``(value, jacobian)`` (a pytree of values and
@@ -28,7 +30,7 @@ def with_jacobian(value_and_jacobian):
     def _jvp(primals, tangents):
         x, *fixed = primals
         out, jac = value_and_jacobian(x, *fixed)
-        tangent = jax.tree.map(lambda j: j @ tangents[0], jac)
+        tangent = jax.tree.map(lambda j: matmul(j, tangents[0]), jac)
         return (out, jac), (tangent, jax.tree.map(jnp.zeros_like, jac))
 
     return wrapped

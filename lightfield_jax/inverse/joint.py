@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from lightfield_jax.forward.kernels import einsum, matmul
 from lightfield_jax.inverse.jacobian import with_forward_jacobian
 from lightfield_jax.inverse.programs import jitted
 
@@ -115,11 +116,11 @@ def unit_model(bounces, lit: int, u, black, extrapolate: bool = False):
         r = jnp.sum(images[:, -1]) / jnp.sum(images[:, -2])
         gap = jnp.maximum(1.0 - u * r, _MIN_GAP)
         powers = powers.at[-1].divide(gap)
-    r = jnp.einsum("k,pkhw->phw", powers, images)
+    r = einsum("k,pkhw->phw", powers, images)
     r_full = (
         jnp.sum(r, axis=0) / lit
         if full_images is None
-        else jnp.einsum("k,khw->hw", powers, full_images)
+        else einsum("k,khw->hw", powers, full_images)
     )
     return (1.0 - black) * r + black * r_full[None]
 
@@ -189,7 +190,7 @@ def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y,
 
     def model(theta):
         dx, u = step(theta)
-        lin = jax.tree.map(lambda v, j: v + j @ dx, orders, slopes)
+        lin = jax.tree.map(lambda v, j: v + matmul(j, dx), orders, slopes)
         black = theta[3] if settings.fit_black else b
         return unit_model(lin, settings.lit, u, black, settings.extrapolate)
 

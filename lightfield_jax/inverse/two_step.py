@@ -24,6 +24,7 @@ import numpy as np
 import optimistix as optx
 
 from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.kernels import einsum, matmul
 from lightfield_jax.inverse.basins import reference_sigma_s
 from lightfield_jax.inverse.data import FitData
 from lightfield_jax.inverse.jacobian import with_jacobian
@@ -54,8 +55,8 @@ def poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     dense the grid)."""
     a = masked_dot(d, i1, mask) / masked_dot(i1, i1, mask)
     kk = ik.shape[0]
-    gram = jnp.einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
-    mk = jnp.einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
+    gram = einsum("khw,lhw->kl", jnp.where(mask, ik, 0.0), ik)
+    mk = einsum("khw,hw->k", jnp.where(mask, ik, 0.0), m)
     mm = masked_dot(m, m, mask)
     # cost(u) = mm − 2a·Σ_k u^k mk_k + a²·Σ_kl u^k u^l G_kl = Σ_n c_n u^n, n = 0..2K: its
     # coefficients once, then values and derivatives of a polynomial (no autodiff of
@@ -72,7 +73,7 @@ def poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
         return jnp.where(e >= 0, u ** jnp.maximum(e, 0.0), 0.0)
 
     def cost(u):
-        return powers(u, 0) @ coef
+        return matmul(powers(u, 0), coef)
 
     d1_coef = coef * orders
     d2_coef = coef * orders * (orders - 1)
@@ -80,9 +81,9 @@ def poly_fit_sigma_s(d, m, i1, ik, mask, u_max, n_grid: int = 2001):
     costs = jax.vmap(cost)(grid)
     u = grid[jnp.argmin(costs)]
     for _ in range(6):
-        d1, d2 = powers(u, 1) @ d1_coef, powers(u, 2) @ d2_coef
+        d1, d2 = matmul(powers(u, 1), d1_coef), matmul(powers(u, 2), d2_coef)
         u = jnp.clip(u - d1 / jnp.where(d2 > 0, d2, jnp.inf), 0.0, u_max)
-    r = m - a * jnp.einsum("k,khw->hw", u ** degree.astype(ik.dtype), ik)
+    r = m - a * einsum("k,khw->hw", u ** degree.astype(ik.dtype), ik)
     return u, a, masked_dot(r, r, mask)
 
 
@@ -136,10 +137,10 @@ def two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str
     da_ref = (masked_dot(d, s1, mask) * n2 - 2 * n1 * masked_dot(i1, s1, mask)) / n2**2
     k = jnp.arange(1, images.shape[0], dtype=images.dtype)
     u = sigma_s / ref  # I_k(σs) = u^k I_k(σs_ref)
-    series = jnp.einsum("k,khw->hw", u**k, images[1:])
-    d_series_du = jnp.einsum("k,khw->hw", k * u ** (k - 1), images[1:])
+    series = einsum("k,khw->hw", u**k, images[1:])
+    d_series_du = einsum("k,khw->hw", k * u ** (k - 1), images[1:])
     # along g at fixed σs: the images change, and u with σs_ref
-    d_series_dg = jnp.einsum("k,khw->hw", u**k, slope[1:]) - d_series_du * u * dref / ref
+    d_series_dg = einsum("k,khw->hw", u**k, slope[1:]) - d_series_du * u * dref / ref
     jac = jnp.stack([a_ref * d_series_du / ref, da_ref * series + a_ref * d_series_dg], axis=-1)
     r = jnp.where(mask, (m - a_ref * series) / scale, 0.0).reshape(-1)
     jac = -jnp.where(mask[..., None], jac / scale, 0.0).reshape(-1, 2)
@@ -223,7 +224,7 @@ def _two_step_run(
 
     def residual_y(y):  # the residual and its Jacobian in y, as (r, J)
         r, jac, _a = residual(to_params(y, sigma_t, phase))
-        return r, jac @ jax.jacfwd(lambda y: to_params(y, sigma_t, phase))(y)
+        return r, matmul(jac, jax.jacfwd(lambda y: to_params(y, sigma_t, phase))(y))
 
     # The solver linearises a matrix product J·δy (the custom JVP), not the residual's
     # code: one copy of the renderer in the loop, a small program.
