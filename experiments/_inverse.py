@@ -35,6 +35,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
+from lightfield_jax.app.experiment import child_env
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -259,6 +260,7 @@ def fit_record_limited(
                 capture_output=True,
                 text=True,
                 timeout=timeout,
+                env=child_env(),
             )
         except subprocess.TimeoutExpired:
             return {

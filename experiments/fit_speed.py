@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import load_helper, machine, typed_config, versions
+from lightfield_jax.app.experiment import child_env, load_helper, machine, typed_config, versions
 from lightfield_jax.scene.geometry import parse_geometry
 
 _MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}
@@ -127,6 +127,7 @@ def _child_run(path: Path, request: dict, timeout: float) -> dict:
             capture_output=True,
             text=True,
             timeout=timeout,
+            env=child_env(),
         )
     except subprocess.TimeoutExpired:
         done = None

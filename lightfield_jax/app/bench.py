@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.app.experiment import child_env
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam
@@ -242,7 +243,7 @@ def bench_fits(
 
     sim = simulate_capture(parse_simulation_config(config, source="bench config"))
     truth = sim.truth()
-    env = dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false", LIGHTFIELD_JAX_XLA_CACHE="off")
+    env = dict(child_env(), JAX_ENABLE_COMPILATION_CACHE="false", LIGHTFIELD_JAX_XLA_CACHE="off")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         write_simulation(sim, Path(tmp))

@@ -35,6 +35,7 @@ import hashlib
 import importlib.util
 import itertools
 import json
+import os
 import platform
 import sys
 import types
@@ -274,6 +275,14 @@ def _exec_module(name: str, path: Path):
         del sys.modules[spec.name]
         raise
     return module
+
+
+def child_env() -> dict[str, str]:
+    """The environment of an experiment's child process: the parent's, with JAX's GPU
+    memory preallocation off unless set (parent and children share one accelerator;
+    each would otherwise take 75 % of its memory at its first array, and a child ran
+    out of memory on an H200)."""
+    return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **os.environ}
 
 
 def load_helper(name: str):
