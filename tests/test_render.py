@@ -307,7 +307,6 @@ def test_images_and_g_slope_match_the_render_and_its_jvp(illum, bounces, refine,
     [
         (lfj.Stripes(), "x"),
         (lfj.Stripes(entry="top"), "y"),
-        (lfj.Stripes(entry="right"), "x"),
         (lfj.Stripes(direction_deg=20.0), None),
     ],
 )
@@ -317,10 +316,10 @@ def test_separable_first_scatter_equals_the_fft(monkeypatch, illumination, axis)
     FFT."""
     import lightfield_jax.forward.plane as plane
 
-    grid = lfj.Grid(40, 30, 32, 1)
-    fast = plane.PlaneRenderer(grid, illumination, 5)
+    grid = lfj.Grid(24, 18, 16, 1)
+    fast = plane.PlaneRenderer(grid, illumination, 4)
     monkeypatch.setattr(plane, "separable_source", lambda *a: None)
-    slow = plane.PlaneRenderer(grid, illumination, 5)
+    slow = plane.PlaneRenderer(grid, illumination, 4)
     assert fast.separable == axis and slow.separable is None
     values = (jnp.float32(0.2), jnp.float32(0.1), jnp.float32(0.6))
 
