@@ -251,9 +251,9 @@ def _fit(args: argparse.Namespace) -> int | None:
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
         result = _label_two_step(args.method, fit.to_dict())
         result["capture"] = str(capture.source)
+        compared = _against_truth(capture, fit) if capture.truth else []
         if capture.truth:
             result["truth"] = capture.truth
-            compared = _against_truth(capture, fit)
             result["truth_error"] = compared[0] if len(compared) == 1 else compared
         result["medium_roi"] = _roi_record(capture)
         with staged_files() as write:
@@ -264,8 +264,8 @@ def _fit(args: argparse.Namespace) -> int | None:
     for note in capture.notes:
         _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
-    if capture.truth:
-        for name, e in zip(fit.channels, _against_truth(capture, fit), strict=True):
+    if compared:
+        for name, e in zip(fit.channels, compared, strict=True):
             _say(
                 args,
                 f"[{name}] against the truth: "
