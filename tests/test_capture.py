@@ -62,7 +62,7 @@ def test_round_trip_simulate_then_load(simulated):
     assert capture.dark_frame == folder / "dark.exr"
     assert capture.image_paths == tuple(folder / f"shift_{i:02d}.exr" for i in range(6))
     assert capture.mask.shape == (16, 24, 1) and capture.mask.all()
-    assert capture.n_masked == {"nonfinite": 0, "saturated": 0, "total": 0}
+    assert capture.n_masked == {"nonfinite": 0, "saturated": 0, "total": 0, "values": 0}
     assert capture.warnings == () and capture.roi is None
     assert capture.geometry == {"kind": "plane"}
     assert capture.truth == {
@@ -341,8 +341,11 @@ def test_nonfinite_pixels_are_masked_with_a_warning(tmp_path):
         match=r"3 pixel value\(s\) are NaN or Inf \(s1\.exr: 2, dark\.exr: 1\); 3 pixel",
     ):
         capture = _capture(tmp_path, images=names, dark_frame="dark.exr")
-    assert capture.n_masked == {"nonfinite": 3, "saturated": 0, "total": 3}
+    # Per value: the two in s1 only; the dark frame's NaN in every image (3 of them).
+    assert capture.n_masked == {"nonfinite": 3, "saturated": 0, "total": 3, "values": 5}
     assert not capture.mask[1, 2, 0] and not capture.mask[3, 4, 0] and not capture.mask[5, 5, 0]
+    assert not capture.sample_mask[1, 1, 2, 0] and capture.sample_mask[0, 1, 2, 0]
+    assert not capture.sample_mask[:, 5, 5, 0].any()
     assert np.isfinite(capture.images).all() and capture.images[1, 1, 2, 0] == 0
     assert len(capture.warnings) == 1
 
@@ -388,6 +391,13 @@ def test_clipped_8bit_frames_warn_and_mask(tmp_path):
         capture = _capture(tmp_path, images=names)
     assert capture.n_masked["saturated"] == (~capture.mask).sum() == H * 3
     assert not capture.mask[:, :3].any() and capture.mask[:, 3:].all()
+    # Per value, only the lit shifts of those pixels are masked: their dark shifts stay
+    # (the joint fit uses them).
+    for i in range(P):
+        lit = (np.arange(H) + 2 * i) % 6 < 3
+        assert not capture.sample_mask[i, lit, :3].any()
+        assert capture.sample_mask[i, ~lit].all() and capture.sample_mask[i, :, 3:].all()
+    assert capture.n_masked["values"] == (~capture.sample_mask).sum() == P * H * 3 // 2
     # An explicit saturation replaces the default threshold.
     with pytest.warns(CaptureWarning, match="at or above saturation 0.5"):
         _capture(tmp_path, images=names, saturation=0.5)

@@ -514,6 +514,29 @@ def test_a_misfit_far_above_the_noise_is_not_trusted():
     assert any("misfit far above" in r for r in result.reasons), result.reasons
 
 
+def test_values_at_the_saturation_are_masked_one_shift_at_a_time():
+    """A capture clipped at 10 % of its peak: the lit stripes near the entry wall are
+    clipped in their lit shifts only. ``saturation`` masks those values (the same
+    pixels' dark shifts still count in the joint fit), and the truth is recovered; fitted
+    as they are, the clipped values cannot be, and the fit says so."""
+    images = _stripe_images("milk", SMALL)
+    clip = 0.1 * images.max()
+    clipped = np.minimum(images, clip)
+    kwargs = {"black_level": 0.0, "n_theta": 16, "refine": 1, "max_cells": 48 * 32 * 16}
+    result = lfj.fit_images(clipped, lfj.Stripes(), saturation=clip, **kwargs)
+    err = _errors(result, "milk")
+    assert result.converged, result.message
+    assert abs(err["sigma_t"]) < 0.005 and abs(err["sigma_s"]) < 0.005, err
+    assert abs(err["g"]) < 0.005, err
+    # The same with the clip given as a per-value mask.
+    samples = lfj.fit_images(clipped, lfj.Stripes(), mask=clipped < clip, **kwargs)
+    assert samples.sigma_s == pytest.approx(result.sigma_s, rel=1e-4)
+    with pytest.raises(ValueError, match=r"mask: must have the images' \(height, width\)"):
+        lfj.fit_images(clipped, lfj.Stripes(), mask=clipped[:2] < clip, **kwargs)
+    unmasked = lfj.fit_images(clipped, lfj.Stripes(), max_basins=1, max_steps=20, **kwargs)
+    assert not unmasked.converged
+
+
 def test_an_error_the_model_cannot_show_is_seen_by_the_parts_of_the_capture():
     """Light the model has no term for near the entry wall (up to +10 %, fading over 4
     pixels), with shot noise: the fit is biased (σt +2.7 %) with a misfit only 1.6×

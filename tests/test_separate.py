@@ -120,6 +120,7 @@ def test_new_lit_fraction_and_black_level_never_recompile(scene):
         ((3, 4, 4), {"dark_frame": np.zeros((5, 4))}, "dark_frame: shape"),
         ((3, 4, 4), {"dark_frame": np.zeros((2, 4, 4))}, "dark_frame: shape"),
         ((3, 4, 4), {"method": "nayar"}, "unknown method 'nayar'"),
+        ((3, 4, 4), {"dark_frame": np.full((4, 4), np.nan)}, "no pixel is finite in every"),
         ((3, 4, 4), {"method": "paper", "lit_fraction": 1 / 3}, "'paper'.*use method='general'"),
         ((3, 4, 4), {"method": "paper", "black_level": 0.1}, "'paper'.*use method='general'"),
     ],

@@ -200,6 +200,8 @@ class Capture:
         pattern: the stripes of each image, phases counted in the cropped frame.
         mask: bool [H, W, C], True where a pixel is valid in every image (finite in the
             images and the dark frame, and not saturated).
+        sample_mask: bool [P, H, W, C], True where one image's value is valid: the joint
+            fit uses every valid value, also those of a pixel clipped in other shifts.
         black_level: b, or ``None`` when unknown.
         roi: (x0, y0, x1, y1) of the medium in the full frame, or ``None``.
         pixel_size_mm: pixel pitch, or ``None``.
@@ -208,7 +210,8 @@ class Capture:
         image_paths: the image files (one ``.npy`` stack repeated for a stack).
         dark_frame: the dark frame's file, or ``None``.
         n_masked: masked [H, W, C] entries: ``nonfinite``, ``saturated`` (finite but
-            saturated or clipped) and ``total``.
+            saturated or clipped in some image) and ``total``; ``values``: masked
+            [P, H, W, C] values.
         geometry: the geometry mapping (``{"kind": "plane"}``).
         truth: the true parameters of a simulated capture, or ``None``.
         warnings: the messages of the :class:`CaptureWarning` s issued while loading.
@@ -232,6 +235,7 @@ class Capture:
     channel_names: tuple[str, ...]
     pattern: Stripes
     mask: np.ndarray
+    sample_mask: np.ndarray
     black_level: float | None
     roi: tuple[int, int, int, int] | None
     pixel_size_mm: float | None
@@ -376,10 +380,11 @@ def load_capture(path: str | os.PathLike) -> Capture:
     exposure = None
     if merged is not None:
         x0, y0, x1, y1 = roi or (0, 0, width, height)
-        saturated |= brackets.clipped[y0:y1, x0:x1] & ~nonfinite
+        saturated |= brackets.clipped_shifts[:, y0:y1, x0:x1] & ~nonfinite
         exposure = brackets.exposure[:, y0:y1, x0:x1]
         notes.append(brackets.summary())
-    mask = ~(nonfinite | saturated)
+    samples = ~(nonfinite | saturated)
+    mask = np.all(samples, axis=0)
     if not mask.any():  # an error, not warnings and then an error: the cause goes with it
         masked = issues[first_mask_issue:]
         cause = f" ({masked[0]})" if masked else ""
@@ -420,6 +425,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         channel_names=frames[0].channel_names,
         pattern=pattern,
         mask=mask,
+        sample_mask=samples,
         black_level=black_level,
         roi=roi,
         pixel_size_mm=pixel_size,
@@ -428,9 +434,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
         image_paths=tuple(f.path for f in frames),
         dark_frame=None if dark is None else dark.path,
         n_masked={
-            "nonfinite": int(nonfinite.sum()),
-            "saturated": int(saturated.sum()),
+            "nonfinite": int(nonfinite.any(axis=0).sum()),
+            "saturated": int((saturated.any(axis=0) & ~nonfinite.any(axis=0)).sum()),
             "total": int((~mask).sum()),
+            "values": int((~samples).sum()),
         },
         geometry=geometry,
         truth=truth,

@@ -204,12 +204,11 @@ def _nonfinite(
     names: Sequence[str],
     notes: list[str],
 ) -> np.ndarray:
-    """[H, W, C] True where an image or a calibration frame (dark, flat: each with its
-    cropped pixels; a flat field is NaN where not positive) is NaN or Inf; notes the
-    counts."""
-    bad = ~np.isfinite(raw)
-    counts = {n: int(c) for n, c in zip(names, bad.sum(axis=(1, 2, 3)), strict=True) if c}
-    out = bad.any(axis=0)
+    """[P, H, W, C] True where an image's value, or a calibration frame's (dark, flat:
+    each with its cropped pixels; a flat field is NaN where not positive: the pixel in
+    every image), is NaN or Inf; notes the counts."""
+    out = ~np.isfinite(raw)
+    counts = {n: int(c) for n, c in zip(names, out.sum(axis=(1, 2, 3)), strict=True) if c}
     for image, pixels in frames:
         frame_bad = ~np.isfinite(pixels)
         if frame_bad.any():
@@ -219,7 +218,7 @@ def _nonfinite(
         listed = ", ".join(f"{n}: {c}" for n, c in counts.items())
         notes.append(
             f"{sum(counts.values())} pixel value(s) are NaN or Inf ({listed}); "
-            f"{int(out.sum())} pixel(s) masked"
+            f"{int(out.any(axis=0).sum())} pixel(s) masked"
         )
     return out
 
@@ -239,9 +238,9 @@ def _saturated(
     sensor: tuple[float, int] | None,
     notes: list[str],
 ) -> np.ndarray:
-    """[H, W, C] True where a raw image is saturated (>= saturation) or clipped (at the
-    top code of an integer frame, or of the sensor's bits in a 16-bit file, when no
-    saturation is given); notes what was found."""
+    """[P, H, W, C] True where a raw image's value is saturated (>= saturation) or
+    clipped (at the top code of an integer frame, or of the sensor's bits in a 16-bit
+    file, when no saturation is given); notes what was found."""
     with np.errstate(invalid="ignore"):
         if saturation is not None:
             hit = raw >= saturation
@@ -269,7 +268,7 @@ def _saturated(
     if full:
         notes.append(f"every pixel is saturated in {', '.join(full)}")
     listed = ", ".join(f"{n}: {int(h)}" for n, h in zip(names, per_frame, strict=True) if h)
-    out = hit.any(axis=0)
+    out = hit.any(axis=0)  # for the notes' counts: pixels clipped in some image
     if listed and saturation is not None:
         notes.append(
             f"pixel values at or above saturation {saturation:g} ({listed}); "
@@ -290,4 +289,4 @@ def _saturated(
             f"integer frames clipped at their top code {codes} ({listed}); "
             f"{int(out.sum())} pixel(s) masked (set saturation: to change the threshold)"
         )
-    return out
+    return hit

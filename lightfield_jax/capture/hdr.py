@@ -333,6 +333,7 @@ class Brackets:
             without a dark frame (with one: where one code exceeds 5 % of the signal).
         exposure: T (P, H, W, C) of every merged shift (seconds), whole frame.
         clipped: (H, W, C) True where every exposure of some shift is clipped.
+        clipped_shifts: (P, H, W, C) the same per shift.
         clipped_fraction, near_black_fraction: (J, H, W): per exposure, the fraction of a
             pixel's samples (over shifts and channels) that were dropped as clipped or
             near black.
@@ -346,6 +347,7 @@ class Brackets:
     near_black: tuple[float, ...]
     exposure: np.ndarray
     clipped: np.ndarray
+    clipped_shifts: np.ndarray
     clipped_fraction: np.ndarray
     near_black_fraction: np.ndarray
     dark_pixels: int
@@ -404,6 +406,7 @@ def merge_capture(
         near_black=tuple(float(v) for v in response.near_black(levels)),
         exposure=np.stack([m.exposure for m in merged]).astype(np.float32),
         clipped=np.any([m.clipped for m in merged], axis=0),
+        clipped_shifts=np.stack([m.clipped for m in merged]),
         clipped_fraction=np.mean([m.clipped_samples for m in merged], axis=(0, 4)),
         near_black_fraction=np.mean([m.near_black_samples for m in merged], axis=(0, 4)),
         dark_pixels=int(sum(m.dark.sum() for m in merged)),

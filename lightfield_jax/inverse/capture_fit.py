@@ -110,9 +110,10 @@ def fit_capture(
             capture.pattern,
             opts,
             (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
-            mask=np.all(capture.mask[..., i : i + 1], axis=-1),
+            # Per value: a pixel clipped in some shifts keeps its others. The capture
+            # masked saturated values in raw units already (before the dark frame).
+            mask=_channel_mask(capture, i),
             black_level=capture.black_level,
-            saturation=capture.saturation,
             pixel_size_mm=capture.pixel_size_mm,
             exposure=_channel_exposure(capture, i),
             floor=floor,
@@ -125,6 +126,13 @@ def fit_capture(
             # serves every channel whose need it covers.
             floor = _at_least(floor, _model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
+
+
+def _channel_mask(capture, i: int) -> np.ndarray:
+    """Channel i's valid values, (P, H, W) (a capture without per-value masks: its
+    per-pixel mask, (H, W))."""
+    samples = getattr(capture, "sample_mask", None)
+    return capture.mask[..., i] if samples is None else samples[..., i]
 
 
 def _channel_exposure(capture, i: int):

@@ -31,7 +31,11 @@ class FitData:
 
     Attributes:
         images: the shifted images I_p, ``(P, h, w)``, dark-subtracted, 0 where masked.
-        mask: ``(h, w)``, true where a pixel is valid in every shift.
+        mask: ``(h, w)``, true where a pixel is valid in every shift (the separation,
+            the decay and the two-step methods use these pixels only).
+        samples: ``(P, h, w)``, true where one shift's value is valid (finite, below
+            the saturation): the joint fit uses every valid sample, also of a pixel
+            clipped in some shifts (``None``: ``mask`` in every shift).
         direct: the separated direct image D, ``(h, w)`` (or the given split's).
         multiple: the separated multiple-scattering image M, ``(h, w)``.
         sigma_t0: σt (per pixel) from the decay of D, and ``sigma_t0_err`` its 1σ.
@@ -52,6 +56,14 @@ class FitData:
     decay_converged: bool
     exposure: np.ndarray | None = None
     noise_floor: float | None = None
+    samples: np.ndarray | None = None
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(P, h, w)``: the samples the joint fit uses."""
+        if self.samples is not None:
+            return self.samples
+        return np.broadcast_to(self.mask[None], self.images.shape)
 
     def cropped(self, crop: tuple[int, int, int, int]) -> FitData:
         """The data inside ``crop`` = (x0, y0, x1, y1), every image cut alike."""
@@ -63,6 +75,7 @@ class FitData:
             direct=self.direct[y0:y1, x0:x1],
             multiple=self.multiple[y0:y1, x0:x1],
             exposure=None if self.exposure is None else self.exposure[:, y0:y1, x0:x1],
+            samples=None if self.samples is None else self.samples[:, y0:y1, x0:x1],
         )
 
     @property
@@ -104,10 +117,11 @@ def prepare_data(
             f"least {MIN_ALONG} px along the light ({'x' if along_x else 'y'}: the direct "
             f"light's decay and the noise's 4th differences)"
         )
-    finite = np.all(np.isfinite(images), axis=0)
-    if mask is not None and np.shape(mask) != finite.shape:
+    samples = np.isfinite(images)
+    if mask is not None and np.shape(mask) not in (samples.shape, samples.shape[1:]):
         raise ValueError(
-            f"mask: must have the images' (height, width) {finite.shape}, got {np.shape(mask)}"
+            f"mask: must have the images' (height, width) {samples.shape[1:]} (a pixel valid "
+            f"in every shift) or their shape {samples.shape} (per sample), got {np.shape(mask)}"
         )
     if saturation is not None and not (
         isinstance(saturation, (int, float, np.number))
@@ -116,8 +130,13 @@ def prepare_data(
         and saturation > 0
     ):
         raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
-    mask = finite if mask is None else (np.asarray(mask, bool) & finite)
-    images = np.where(mask[None], images, 0.0)
+    if mask is not None:
+        samples &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
+    if saturation is not None:
+        with np.errstate(invalid="ignore"):
+            samples &= images < saturation
+    mask = np.all(samples, axis=0)
+    images = np.where(samples, images, 0.0)
     if split is None:
         sep = separate(
             jnp.asarray(images),
@@ -151,6 +170,7 @@ def prepare_data(
         sigma_t0_err=float(decay.sigma_t_stderr),
         decay_converged=bool(decay.converged),
         exposure=None if exposure is None else np.asarray(exposure),
+        samples=None if np.array_equal(samples, np.broadcast_to(mask, samples.shape)) else samples,
     )
 
 

@@ -81,10 +81,15 @@ def fit_images(
         images: the shifted images, ``(shifts, height, width)``, dark frame already
             subtracted, cropped to the medium (its edges are the walls).
         pattern: the stripes that lit them (one phase per image).
-        mask: ``True`` where a pixel is valid (finite, unsaturated) in every shift.
+        mask: ``True`` where the data are valid (finite, unsaturated): per pixel,
+            ``(height, width)`` (valid in every shift), or per sample, like ``images``
+            (a pixel clipped in some shifts keeps its other shifts in the joint fit; the
+            separation, the decay and the two-step methods use only pixels valid in
+            every shift).
         black_level: the projector's dark-stripe level relative to a lit stripe, or
             ``None`` (unknown: ``joint`` estimates it, the two-step methods assume 0).
-        saturation: value at or above which pixels are clipped (excluded).
+        saturation: value at or above which a sample is clipped: masked like ``mask``'s
+            per-sample ``False``.
         pixel_size_mm: to report coefficients in mm⁻¹ as well.
         options: :class:`FitOptions`; keyword ``overrides`` replace its fields.
         progress: called with a short description of each stage.

@@ -465,7 +465,7 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
         data = dataclasses.replace(data, noise_floor=noise_floor(data.images, data.mask, pattern))
         if data.noise_floor is not None:
             say(f"  read noise seen: weights 1/sqrt(I + {data.noise_floor:.3g})")
-    weights = joint_weights(data.images, data.mask, data.exposure, data.noise_floor)
+    weights = joint_weights(data.images, data.valid, data.exposure, data.noise_floor)
     marched = (
         f"{coarse.bounces} bounces"
         if coarse.tail is None

@@ -85,14 +85,16 @@ def joint_weights(images, mask, exposure=None, floor=None):
     """Noise weights of the raw images, 1/√(I + floor): shot noise (variance ∝ I) and
     read noise (constant, ``floor`` in units of the shot noise's I: the capture's
     :func:`~lightfield_jax.inverse.trust.noise_floor`), the floor at least 1e-3 of the
-    peak; 0 outside ``mask``; times √(T/max T) for merged exposure brackets of effective
-    exposure T (their variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
-    least = 1e-3 * np.nanmax(np.where(mask[None], images, 0.0))
+    peak; 0 outside ``mask`` (per pixel, ``(h, w)``, or per sample, like ``images``);
+    times √(T/max T) for merged exposure brackets of effective exposure T (their
+    variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""
+    mask = np.broadcast_to(np.asarray(mask, bool), np.shape(images))
+    least = 1e-3 * np.nanmax(np.where(mask, images, 0.0))
     floor = least if floor is None else max(floor, least)
     w = 1.0 / np.sqrt(np.clip(images, 0.0, None) + floor)
     if exposure is not None:
         w = w * np.sqrt(exposure / np.max(exposure))
-    return np.where(mask[None], w, 0.0)
+    return np.where(mask, w, 0.0)
 
 
 @dataclasses.dataclass
@@ -196,7 +198,7 @@ def _joint_stage(data: _Data, pattern, model: _Model, options: FitOptions, black
 
 
 def _rms(residual: np.ndarray, data: _Data) -> float:
-    n = int(np.sum(data.mask)) * data.images.shape[0]
+    n = int(np.sum(data.valid))
     return float(np.sqrt(np.sum(residual**2) / max(n, 1)))
 
 
@@ -204,7 +206,7 @@ def _joint_reweighted(data: _Data, stage: _Stage):
     """Weights from the fitted model (gain × model) instead of the noisy data (weights
     from the data itself bias a weighted fit toward low values)."""
     return joint_weights(
-        stage.values["gain"] * stage.unit, data.mask, data.exposure, data.noise_floor
+        stage.values["gain"] * stage.unit, data.valid, data.exposure, data.noise_floor
     )
 
 

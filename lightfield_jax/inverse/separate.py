@@ -24,6 +24,7 @@ import math
 from typing import Literal
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -113,7 +114,8 @@ def separate(
             paper's D = Imax − Imin, M = 2·Imin, which requires a = ½ and b = 0).
 
     Returns:
-        A :class:`Separation` (D, M, Imax, Imin). NaN pixels stay NaN.
+        A :class:`Separation` (D, M, Imax, Imin). NaN pixels stay NaN; a stack with
+        no pixel finite in every image is refused.
 
     Jit-compiled once per input shape and dtype; new values of a and b do not
     recompile. Raises ``ValueError`` for malformed inputs, naming the problem.
@@ -151,6 +153,13 @@ def separate(
         raise ValueError(
             f"separate.dark_frame: shape {dark.shape} does not broadcast to the images' "
             f"shape {images.shape} (shifts, height, width[, channels])"
+        )
+    # Inside a traced loss there is no value to test.
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in (images, dark))
+    if concrete and not bool(jnp.all(jnp.isfinite(images - dark), axis=0).any()):
+        raise ValueError(
+            f"separate.images: no pixel is finite in every one of the {images.shape[0]} "
+            "images less the dark frame (NaN or Inf everywhere): nothing to separate"
         )
     dtype = jnp.result_type(images.dtype, dark.dtype)
     return _split(
