@@ -192,6 +192,16 @@ def test_model_term_is_the_least_squares_shift_of_the_finer_residual():
     assert [budget.statistical[k] for k in ("sigma_t", "sigma_s", "g")] == pytest.approx(expect)
     small = error_budget(jac, residual, ["sigma_t", "sigma_s", "g"], 1e-4, 1e-6 * shift)
     assert not small.model_limited
+    # Masked values (weight 0: rows of zeros) are no degrees of freedom.
+    masked = error_budget(
+        np.vstack([jac, np.zeros((100, 3))]),
+        np.concatenate([residual, np.zeros(100)]),
+        ["sigma_t", "sigma_s", "g"],
+        1e-4,
+        np.concatenate([shift, np.zeros(100)]),
+    )
+    assert masked.chi2_dof == pytest.approx(budget.chi2_dof)
+    assert masked.statistical == pytest.approx(budget.statistical)
 
 
 def test_each_reason_not_to_trust_a_solution():

@@ -338,7 +338,8 @@ def test_nonfinite_pixels_are_masked_with_a_warning(tmp_path):
     write_exr(tmp_path / "dark.exr", {"Y": dark})
     with pytest.warns(
         CaptureWarning,
-        match=r"3 pixel value\(s\) are NaN or Inf \(s1\.exr: 2, dark\.exr: 1\); 3 pixel",
+        match=r"3 pixel value\(s\) are NaN or Inf \(s1\.exr: 2, dark\.exr: 1\); 5 value\(s\) "
+        r"masked in 3 pixel",
     ):
         capture = _capture(tmp_path, images=names, dark_frame="dark.exr")
     # Per value: the two in s1 only; the dark frame's NaN in every image (3 of them).
@@ -366,7 +367,8 @@ def test_saturation_threshold_and_all_saturated_frame(tmp_path):
     hot[0, :4] = 0.99
     write_exr(tmp_path / names[2], {"Y": hot})
     with pytest.warns(
-        CaptureWarning, match=r"at or above saturation 0\.98 \(s2\.exr: 4\); 4 pixel"
+        CaptureWarning,
+        match=r"at or above saturation 0\.98 \(s2\.exr: 4\); 4 value\(s\) masked in 4 pixel",
     ):
         capture = _capture(tmp_path, images=names, saturation=0.98)
     assert capture.n_masked["saturated"] == 4 and not capture.mask[0, :4].any()

@@ -537,6 +537,82 @@ def test_values_at_the_saturation_are_masked_one_shift_at_a_time():
     assert not unmasked.converged
 
 
+def test_values_the_answer_puts_near_the_clip_are_masked_too(tmp_path):
+    """The clip keeps a value near it only when its noise went down: the kept values
+    there are biased low (censoring), and with them σt (−0.64 %, −3.2σ, before) and σs
+    (+2.4 %). The fit masks the values its answer puts within 3σ of the clip and solves
+    again."""
+    config = tmp_path / "sim.yaml"
+    config.write_text(
+        "grid: {width: 64, height: 48}\n"
+        "medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}\n"
+        "illumination: {kind: stripes, period: 6, lit: 3, shifts: 6, direction_deg: 0.0, "
+        "entry: left}\n"
+        "bounces: auto\ngain: 400\nnoise: {photons: 20000, read: 0.0005, seed: 0}\n"
+    )
+    images = np.asarray(lfj.simulate_capture(config).images)
+    clip = float(0.05 * images.max())
+    result = lfj.fit_images(
+        np.minimum(images, clip), lfj.Stripes(), black_level=0.0, saturation=clip
+    )
+    assert result.converged, result.message
+    assert result.model["censored_near_clip"] > 0
+    for key, value in zip(("sigma_t", "sigma_s"), MEDIA["milk"][:2], strict=False):
+        z = (getattr(result, key) - value) / result.uncertainty[key]
+        assert abs(z) < 2, (key, z)
+    assert abs(result.g - 0.4) < 0.02
+
+
+def test_near_the_clip_judges_the_fitted_light_not_the_values():
+    from lightfield_jax.inverse.data import FitData
+    from lightfield_jax.inverse.joint_fit import CLIP_SIGMAS, near_the_clip
+
+    fitted = np.linspace(0.0, 2.0, 41).reshape(1, 1, 41)  # the answer's light
+    clipped = fitted >= 1.0  # the values the capture clipped
+    data = FitData(
+        images=np.where(clipped, 0.0, fitted),
+        mask=np.ones((1, 41), bool),
+        direct=np.zeros((1, 41)),
+        multiple=np.zeros((1, 41)),
+        sigma_t0=0.2,
+        sigma_t0_err=0.0,
+        decay_converged=True,
+        samples=~clipped,
+        clipped=clipped,
+    )
+    sigma = np.full(fitted.shape, 0.04)
+    risk = near_the_clip(data, fitted, sigma)
+    # The clip level is the clipped values' fitted light (its 1st percentile, 1.0005
+    # here): the valid values within 3σ = 0.12 of it (0.9 and 0.95), no clipped one.
+    expected = ~clipped & (fitted > 1.0 - CLIP_SIGMAS * 0.04)
+    np.testing.assert_array_equal(risk, expected)
+    assert near_the_clip(dataclasses.replace(data, clipped=None), fitted, sigma) is None
+    assert near_the_clip(data, fitted, np.full(fitted.shape, 1e-4)) is None
+
+
+def test_geometry_auto_takes_a_mask_per_value():
+    """The plane-or-slab choice measures its misfit on pixels valid in every shift, from
+    a mask per value or the saturation (it broadcast a per-pixel mask only)."""
+    clean = _stripe_images("milk", SMALL)
+    photons = 1e5 / clean.max()
+    images = np.random.default_rng(0).poisson(clean * photons) / photons
+    clip = 0.1 * images.max()
+    clipped = np.minimum(images, clip)
+    result = lfj.fit_images(
+        clipped,
+        lfj.Stripes(),
+        black_level=0.0,
+        n_theta=16,
+        refine=1,
+        max_cells=48 * 32 * 16,
+        saturation=clip,
+        geometry=lfj.AutoGeometry(lfj.Slab(6.4)),
+    )
+    assert result.model["geometry_choice"]["chosen"] == "plane"
+    assert result.converged, result.message
+    assert abs(result.g - MEDIA["milk"][2]) < 0.01
+
+
 def test_an_error_the_model_cannot_show_is_seen_by_the_parts_of_the_capture():
     """Light the model has no term for near the entry wall (up to +10 %, fading over 4
     pixels), with shot noise: the fit is biased (σt +2.7 %) with a misfit only 1.6×

@@ -115,7 +115,7 @@ def test_fit_writes_results_and_plot_and_masks_nonfinite_pixels(simulated, tmp_p
     # The non-finite pixels are counted in one warning line, masked, and the fit runs.
     assert _lines(err) == [
         f"lightfield-jax: warning: {folder / 'capture.yaml'}: 3 pixel value(s) are NaN or Inf "
-        "(shift_02.exr: 3); 3 pixel(s) masked"
+        "(shift_02.exr: 3); 3 value(s) masked in 3 pixel(s)"
     ]
     assert "[Y] gradient: sigma_t" in stdout
     assert "wrote" in stdout and str(out) in stdout and str(plot) in stdout
@@ -216,6 +216,7 @@ def test_clipped_8bit_frames_are_masked_and_fitted(simulated, tmp_path, capsys):
     )
     frames = np.clip(images / (0.6 * images.max()), 0.0, 1.0)
     clipped = int(np.sum(frames.max(axis=0) >= 1.0))
+    values = int(np.sum(frames >= 1.0))
     assert 0 < clipped < H * W // 4
     names = []
     for i, frame in enumerate(frames):
@@ -230,7 +231,7 @@ def test_clipped_8bit_frames_are_masked_and_fitted(simulated, tmp_path, capsys):
     (line,) = _lines(err)
     assert line.startswith("lightfield-jax: warning: ")
     assert "integer frames clipped at their top code 255 (8-bit)" in line
-    assert f"{clipped} pixel(s) masked" in line
+    assert f"{values} value(s) masked in {clipped} pixel(s)" in line
     result = json.loads(out.read_text())
     assert result["converged"] is True and math.isfinite(result["sigma_t"])
 

@@ -202,6 +202,8 @@ class Capture:
             images and the dark frame, and not saturated).
         sample_mask: bool [P, H, W, C], True where one image's value is valid: the joint
             fit uses every valid value, also those of a pixel clipped in other shifts.
+        clipped: bool [P, H, W, C], True where a value was masked as saturated or clipped
+            (finite): the joint fit treats these as censored from above.
         black_level: b, or ``None`` when unknown.
         roi: (x0, y0, x1, y1) of the medium in the full frame, or ``None``.
         pixel_size_mm: pixel pitch, or ``None``.
@@ -236,6 +238,7 @@ class Capture:
     pattern: Stripes
     mask: np.ndarray
     sample_mask: np.ndarray
+    clipped: np.ndarray
     black_level: float | None
     roi: tuple[int, int, int, int] | None
     pixel_size_mm: float | None
@@ -426,6 +429,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         pattern=pattern,
         mask=mask,
         sample_mask=samples,
+        clipped=saturated,
         black_level=black_level,
         roi=roi,
         pixel_size_mm=pixel_size,

@@ -217,10 +217,15 @@ def _nonfinite(
     if counts:
         listed = ", ".join(f"{n}: {c}" for n, c in counts.items())
         notes.append(
-            f"{sum(counts.values())} pixel value(s) are NaN or Inf ({listed}); "
-            f"{int(out.any(axis=0).sum())} pixel(s) masked"
+            f"{sum(counts.values())} pixel value(s) are NaN or Inf ({listed}); {_masked(out)}"
         )
     return out
+
+
+def _masked(values: np.ndarray) -> str:
+    """How much a [P, H, W, C] mask of bad values masks, for a note."""
+    pixels = int(values.any(axis=0).sum())
+    return f"{int(values.sum())} value(s) masked in {pixels} pixel(s)"
 
 
 # Float frames of measured (mostly distinct) values are taken for clipped where at
@@ -268,16 +273,14 @@ def _saturated(
     if full:
         notes.append(f"every pixel is saturated in {', '.join(full)}")
     listed = ", ".join(f"{n}: {int(h)}" for n, h in zip(names, per_frame, strict=True) if h)
-    out = hit.any(axis=0)  # for the notes' counts: pixels clipped in some image
     if listed and saturation is not None:
         notes.append(
-            f"pixel values at or above saturation {saturation:g} ({listed}); "
-            f"{int(out.sum())} pixel(s) masked"
+            f"pixel values at or above saturation {saturation:g} ({listed}); {_masked(hit)}"
         )
     elif listed and plateau is not None:
         notes.append(
             f"{int(plateau[1].sum())} float pixel values equal the images' largest, "
-            f"{plateau[0]:g} ({listed}): clipped; {int(out.sum())} pixel(s) masked (set "
+            f"{plateau[0]:g} ({listed}): clipped; {_masked(hit)} (set "
             "saturation: to give the threshold)"
         )
     elif listed:
@@ -287,6 +290,6 @@ def _saturated(
             codes = f"{(1 << sensor[1]) - 1} ({sensor[1]}-bit data in 16-bit files)"
         notes.append(
             f"integer frames clipped at their top code {codes} ({listed}); "
-            f"{int(out.sum())} pixel(s) masked (set saturation: to change the threshold)"
+            f"{_masked(hit)} (set saturation: to change the threshold)"
         )
     return hit

@@ -367,7 +367,8 @@ class Brackets:
             "near black (one code over 5 % of the signal the longest unclipped exposure "
             f"predicts; without a dark frame z < {', '.join(f'{v:.3g}' for v in self.near_black)}"
             f"): {clipped}; "
-            f"{int(self.clipped.sum())} pixel value(s) clipped in every exposure (masked), "
+            f"{int(self.clipped_shifts.sum())} value(s) clipped in every exposure (masked; "
+            f"{int(self.clipped.sum())} pixel(s)), "
             f"{self.dark_pixels} merged from one dark sample"
         )
 
@@ -380,6 +381,7 @@ class Brackets:
             "clipped_fraction": [float(c.mean()) for c in self.clipped_fraction],
             "near_black_fraction": [float(b.mean()) for b in self.near_black_fraction],
             "clipped_pixels": int(self.clipped.sum()),
+            "clipped_values": int(self.clipped_shifts.sum()),
             "dark_pixels": self.dark_pixels,
         }
 

@@ -105,8 +105,9 @@ class Inspection:
             + (f" ({c.black_level_estimate.method})" if c.black_level_estimate else "")
         )
         lines.append(
-            f"masked: {c.n_masked['saturated']} saturated, {c.n_masked['nonfinite']} non-finite "
-            f"of {h * w * n} pixel values"
+            f"masked: {c.n_masked['values']} of {p * h * w * n} values (pixels "
+            f"saturated in some image: {c.n_masked['saturated']}, non-finite: "
+            f"{c.n_masked['nonfinite']}, of {h * w * n})"
         )
         for i, name in enumerate(c.channel_names):
             peak, ratio, snr0 = self._wall(i)

@@ -113,6 +113,7 @@ def fit_capture(
             # Per value: a pixel clipped in some shifts keeps its others. The capture
             # masked saturated values in raw units already (before the dark frame).
             mask=_channel_mask(capture, i),
+            clipped=None if getattr(capture, "clipped", None) is None else capture.clipped[..., i],
             black_level=capture.black_level,
             pixel_size_mm=capture.pixel_size_mm,
             exposure=_channel_exposure(capture, i),

@@ -36,6 +36,9 @@ class FitData:
         samples: ``(P, h, w)``, true where one shift's value is valid (finite, below
             the saturation): the joint fit uses every valid sample, also of a pixel
             clipped in some shifts (``None``: ``mask`` in every shift).
+        clipped: ``(P, h, w)``, true where a value was masked as saturated or clipped
+            (censored from above: the joint fit also masks the values its answer puts
+            within the noise of the clip), or ``None``.
         direct: the separated direct image D, ``(h, w)`` (or the given split's).
         multiple: the separated multiple-scattering image M, ``(h, w)``.
         sigma_t0: σt (per pixel) from the decay of D, and ``sigma_t0_err`` its 1σ.
@@ -57,6 +60,7 @@ class FitData:
     exposure: np.ndarray | None = None
     noise_floor: float | None = None
     samples: np.ndarray | None = None
+    clipped: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -76,6 +80,7 @@ class FitData:
             multiple=self.multiple[y0:y1, x0:x1],
             exposure=None if self.exposure is None else self.exposure[:, y0:y1, x0:x1],
             samples=None if self.samples is None else self.samples[:, y0:y1, x0:x1],
+            clipped=None if self.clipped is None else self.clipped[:, y0:y1, x0:x1],
         )
 
     @property
@@ -94,10 +99,12 @@ def prepare_data(
     saturation: float | None = None,
     split=None,
     exposure=None,
+    clipped=None,
 ) -> FitData:
     """One channel's :class:`FitData` over the whole image (see :func:`fit_images` for
     the arguments). Raises ``ValueError`` for images of the wrong shape, a ``split`` of
-    another shape, or a decay that gives no usable σt."""
+    another shape, or a decay that gives no usable σt. ``clipped``: values (like
+    ``images``) a capture masked as saturated, besides those at ``saturation``."""
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     given = np.asarray(images)
@@ -132,9 +139,11 @@ def prepare_data(
         raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
     if mask is not None:
         samples &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
+    censored = np.zeros(images.shape, bool) if clipped is None else np.asarray(clipped, bool)
     if saturation is not None:
         with np.errstate(invalid="ignore"):
-            samples &= images < saturation
+            censored = censored | (images >= saturation)
+    samples &= ~censored
     mask = np.all(samples, axis=0)
     images = np.where(samples, images, 0.0)
     if split is None:
@@ -171,6 +180,7 @@ def prepare_data(
         decay_converged=bool(decay.converged),
         exposure=None if exposure is None else np.asarray(exposure),
         samples=None if np.array_equal(samples, np.broadcast_to(mask, samples.shape)) else samples,
+        clipped=censored if censored.any() else None,
     )
 
 

@@ -127,9 +127,11 @@ def _fit_one(
     split=None,
     exposure=None,
     floor: _Model | None = None,
+    clipped=None,
 ) -> FitResult:
     """:func:`fit_images` with a ``floor``: the smallest model to use (its crop, θ bins,
-    refinement, bounces), so that the channels of a capture share compiled programs."""
+    refinement, bounces), so that the channels of a capture share compiled programs;
+    ``clipped``: the values a capture masked as saturated (:func:`prepare_data`)."""
     if as_geometry(options.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,
@@ -142,6 +144,7 @@ def _fit_one(
             pixel_size_mm=pixel_size_mm,
             split=split,
             exposure=exposure,
+            clipped=clipped,
         )
     # The plane is None from here on; the slab's 3-D Henyey–Greenstein is normalised on
     # the sphere (ρ = ω): its phase convention is "normalized".
@@ -165,6 +168,7 @@ def _fit_one(
         saturation=saturation,
         split=split,
         exposure=exposure,
+        clipped=clipped,
     )
     # A first model. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ) sizes the bounces (with
     # margin: the separation biases M low).
@@ -249,7 +253,7 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
 
     def fit_with(geometry) -> FitResult:
         opts = dataclasses.replace(options, geometry=geometry)
-        return fit_images(images, pattern, options=opts, progress=progress, **kwargs)
+        return _fit_one(images, pattern, opts, progress, **kwargs)
 
     def chose(result: FitResult, choice: dict) -> FitResult:
         return dataclasses.replace(result, model={**result.model, "geometry_choice": choice})
@@ -263,10 +267,16 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     say("geometry auto: fitting the plane model")
     plane = fit_with(None)
     data = np.asarray(images, np.float64)
-    mask = kwargs.get("mask")
-    keep = np.all(np.isfinite(data), axis=0)
-    if mask is not None:
-        keep &= np.asarray(mask, bool)
+    # Pixels valid in every shift (a mask per pixel or per value, the saturation).
+    valid = np.isfinite(data)
+    if kwargs.get("mask") is not None:
+        valid &= np.asarray(kwargs["mask"], bool)
+    if kwargs.get("saturation") is not None:
+        with np.errstate(invalid="ignore"):
+            valid &= data < kwargs["saturation"]
+    if kwargs.get("clipped") is not None:
+        valid &= ~np.asarray(kwargs["clipped"], bool)
+    keep = np.all(valid, axis=0)
     model, _ = fitted_images(plane, pattern, data.shape[-2:])
     x0, y0, x1, y1 = plane.model["crop"]
     region = np.zeros_like(keep)

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from lightfield_jax.inverse.data import FitProblem, FitSolution
-from lightfield_jax.inverse.joint_fit import _joint_fit
+from lightfield_jax.inverse.joint_fit import joint_fit
 from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
 from lightfield_jax.inverse.model_size import _at_least, size_model
 from lightfield_jax.inverse.two_step import TwoStepSettings, full_for, solve_two_step
@@ -132,17 +132,7 @@ class Joint(FitMethod):
         options = _with_solver(options, self.solver)
         if self.start is not None:
             options = dataclasses.replace(options, start=self.start)
-        model, seconds, values = _joint_fit(
-            problem.data,
-            problem.pattern,
-            options,
-            problem.black_level,
-            problem.images,
-            problem.model.crop,
-            problem.rho0,
-            problem.floor,
-            say,
-        )
+        model, seconds, values = joint_fit(problem, options, say)
         return FitSolution(model=model, seconds=seconds, values=values)
 
 

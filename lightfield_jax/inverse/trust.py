@@ -305,7 +305,9 @@ def error_budget(
     split of ``groups``, :func:`split_groups`; where the noise is known), the larger."""
     jac = np.asarray(jac, np.float64)
     residual = np.asarray(residual, np.float64)
-    n, p = jac.shape
+    # Masked values (weight 0) are rows of zeros: no degrees of freedom.
+    n = int(np.sum(np.any(jac != 0, axis=1) | (residual.reshape(-1) != 0)))
+    p = jac.shape[1]
     jtj = jac.T @ jac
     nan = {k: math.nan for k in names}
     try:
