@@ -487,6 +487,22 @@ def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, c
     )
 
 
+def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(capture, capsys):
+    """Before: every capture clipped near its entry wall (common: the wall is where the
+    light is brightest) was called unusable, 'no direct light at the entry wall', exit
+    1, while its fit converged. The wall's statistics now come from the nearest valid
+    pixels, said so."""
+    shifts = sorted(capture.glob("shift_*.exr"))
+    images = [read_image(f).pixels[..., 0] for f in shifts]
+    top = 0.3 * max(float(np.max(i)) for i in images)
+    for f, image in zip(shifts, images, strict=True):
+        write_exr(f, {"Y": np.minimum(image, top)})
+    _edit(capture, saturation=float(top))
+    status, out, _ = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status == 0, out
+    assert "the wall's pixels are masked" in out and "no direct light" not in out
+
+
 # ---------------------------------------------------------- 9. non-regular inputs
 
 
@@ -892,6 +908,11 @@ def test_api_arguments_are_checked_before_any_work():
         ({}, images > 0.1, "images: must be real numbers, got dtype bool"),
         ({"mask": np.ones((3, 3), bool)}, images, r"mask: must have the images' \(height"),
         ({"saturation": -1.0}, images, "saturation: must be a positive number"),
+        # No pixel valid in every shift: named with its cause (it was 'fit_decay: sigma_t
+        # is not identifiable: 0 usable pixels').
+        ({"mask": np.zeros((24, 32), bool)}, images, r"no pixel is valid .* by mask"),
+        ({"saturation": 1e-9}, images, r"no pixel is valid .* at or above saturation"),
+        ({}, np.where(np.arange(6)[:, None, None] == 2, np.nan, images), "masked: 768 non-finite"),
     ]:
         with pytest.raises(ValueError, match=match):
             lfj.fit_images(given, pattern, **kwargs)

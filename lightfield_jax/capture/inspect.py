@@ -110,10 +110,13 @@ class Inspection:
             f"{c.n_masked['nonfinite']}, of {h * w * n})"
         )
         for i, name in enumerate(c.channel_names):
-            peak, ratio, snr0 = self._wall(i)
+            peak, ratio, snr0, start = self._wall(i)
+            wall = "at the entry wall"
+            if start >= _MASKED_WALL_PX:
+                wall = f"from s = {start:.0f} px (the wall's pixels are masked: clipped?)"
             lines.append(
-                f"[{name}] D peak {peak:.4g}, M/D at the entry wall {ratio:.3f}; SNR of D "
-                f"{snr0:.0f} at the wall, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "
+                f"[{name}] D peak {peak:.4g}, M/D {wall} {ratio:.3f}; SNR of D "
+                f"{snr0:.0f} there, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "
                 f"of {float(self.distance.max()):.0f}"
             )
         for note in c.notes:
@@ -122,27 +125,31 @@ class Inspection:
             lines.append(f"warning: {warning}")
         return "\n".join(lines)
 
-    def _wall(self, i: int) -> tuple[float, float, float]:
-        """Channel i's direct peak, M/D and SNR of D at the entry wall (NaN: undefined)."""
+    def _wall(self, i: int) -> tuple[float, float, float, float]:
+        """Channel i's direct peak, M/D and SNR of D at the entry wall (NaN: undefined),
+        and the distance s (px) from which they are measured: the wall's, or where its
+        pixels are masked (a capture clipped near the wall) the nearest valid ones'."""
         c = self.capture
         d, m, valid = self.direct[..., i], self.multiple[..., i], c.mask[..., i]
-        near = valid & (self.distance < 3.0) & (d > 0)
+        start = float(self.distance[valid].min()) if valid.any() else math.nan
+        near = valid & (self.distance < start + 3.0) & (d > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = float(np.median(m[near] / d[near])) if near.any() else math.nan
         peak = float(np.max(d[valid])) if valid.any() else math.nan
         snr = self.snr_direct[i][np.isfinite(self.snr_direct[i])]
-        return peak, ratio, float(snr[0]) if snr.size else math.nan
+        return peak, ratio, float(snr[0]) if snr.size else math.nan, start
 
     def problems(self) -> list[str]:
         """What makes a channel unusable for a fit (its statistics undefined), one line
         each; empty for a usable capture."""
         found = []
         for i, name in enumerate(self.capture.channel_names):
-            peak, ratio, snr0 = self._wall(i)
+            peak, ratio, snr0, _ = self._wall(i)
             if not peak > 0 or math.isnan(ratio):
                 found.append(
                     f"[{name}] no direct light at the entry wall (the separated direct "
-                    "image is not positive there): check the pattern and medium_roi"
+                    "image is not positive on the valid pixels nearest it): check the "
+                    "pattern and medium_roi"
                 )
             elif self.reach[i] <= 0:
                 found.append(
@@ -150,6 +157,10 @@ class Inspection:
                     f"(at the wall: {snr0:.3g}): too dark or too noisy to fit"
                 )
         return found
+
+
+# The wall counts as masked where its nearest valid lit pixel is this far (px) from it.
+_MASKED_WALL_PX = 2.0
 
 
 def _snr(

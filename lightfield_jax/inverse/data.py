@@ -124,7 +124,8 @@ def prepare_data(
             f"least {MIN_ALONG} px along the light ({'x' if along_x else 'y'}: the direct "
             f"light's decay and the noise's 4th differences)"
         )
-    samples = np.isfinite(images)
+    finite = np.isfinite(images)
+    samples = finite.copy()
     if mask is not None and np.shape(mask) not in (samples.shape, samples.shape[1:]):
         raise ValueError(
             f"mask: must have the images' (height, width) {samples.shape[1:]} (a pixel valid "
@@ -137,14 +138,26 @@ def prepare_data(
         and saturation > 0
     ):
         raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
-    if mask is not None:
-        samples &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
+    given_mask = None if mask is None else np.asarray(mask, bool)
+    if given_mask is not None:
+        samples &= given_mask  # (h, w) broadcasts over the shifts
     censored = np.zeros(images.shape, bool) if clipped is None else np.asarray(clipped, bool)
     if saturation is not None:
         with np.errstate(invalid="ignore"):
             censored = censored | (images >= saturation)
     samples &= ~censored
     mask = np.all(samples, axis=0)
+    if not mask.any():
+        causes = [f"{int((~finite).sum())} non-finite"]
+        if given_mask is not None:
+            causes.append(f"{int((~np.broadcast_to(given_mask, finite.shape)).sum())} by mask")
+        if censored.any():
+            causes.append(f"{int(censored.sum())} at or above saturation (clipped)")
+        raise ValueError(
+            f"images: no pixel is valid in every one of the {images.shape[0]} shifts (values "
+            f"masked: {', '.join(causes)} of {images.size}): the separation and the decay "
+            "fit need pixels valid in every shift"
+        )
     images = np.where(samples, images, 0.0)
     if split is None:
         sep = separate(
