@@ -171,6 +171,33 @@ def test_model_size_reduced(tmp_path):
         assert abs(errors["sigma_s"]) < 0.02 and abs(errors["g"]) < 0.02
 
 
+@pytest.mark.slow  # half a minute on 2 cores (two cold fits); run with -m slow
+def test_clipped_captures_reduced(tmp_path):
+    summary = run_experiment(CONFIGS / "clipped_captures.yaml", tmp_path, reduced=True)["summary"]
+    _files(tmp_path, summary)
+    rows = {r["mask"]: r for r in summary["rows"]}
+    assert set(rows) == {"pixel", "value"}
+    for row in rows.values():
+        assert row["converged"] == row["fits"] == 1
+        assert row["values_clipped"] > row["pixels_clipped"] > 0
+    # Per value: the clipped pixels' dark shifts fitted too, the truth inside 2σ.
+    assert rows["value"]["inside_2sigma"] == 1.0
+
+
+def test_clipped_captures_config():
+    script = load_helper("clipped_captures")
+    raw = load_experiment_config(CONFIGS / "clipped_captures.yaml")
+    typed_config(script.Config, raw)
+    for bad, match in (
+        ({"clips": [0.0]}, r"clips: fractions in \(0, 1\]"),
+        ({"seeds": []}, "seeds: at least one"),
+        ({"medium": {"sigma_t": 0.2}}, "medium: missing keys"),
+        ({"width": 4}, "width, height"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            typed_config(script.Config, {**raw, **bad})
+
+
 def test_load_helper_shares_one_module():
     inv = load_helper("_inverse")
     assert load_helper("_inverse") is inv and inv.__name__ == "lightfield_jax_experiments._inverse"
