@@ -94,7 +94,7 @@ def _fit(images: np.ndarray, level: float, mask: str, cfg: Config, truth: dict) 
         "sigmas": sigmas,
         "converged": bool(res.converged),
         "reasons": list(res.reasons),
-        "censored_near_clip": res.model.get("censored_near_clip"),
+        "censoring": res.model.get("censoring"),
         "seconds": time.perf_counter() - t,
         "values_clipped": int(hit.sum()),
         "pixels_clipped": int(hit.any(axis=0).sum()),

@@ -556,7 +556,8 @@ def test_values_the_answer_puts_near_the_clip_are_masked_too(tmp_path):
         np.minimum(images, clip), lfj.Stripes(), black_level=0.0, saturation=clip
     )
     assert result.converged, result.message
-    assert result.model["censored_near_clip"] > 0
+    censoring = result.model["censoring"]
+    assert censoring["values_near_clip"] > 0 and censoring["refit"] == "kept"
     for key, value in zip(("sigma_t", "sigma_s"), MEDIA["milk"][:2], strict=False):
         z = (getattr(result, key) - value) / result.uncertainty[key]
         assert abs(z) < 2, (key, z)
@@ -564,30 +565,29 @@ def test_values_the_answer_puts_near_the_clip_are_masked_too(tmp_path):
 
 
 def test_near_the_clip_judges_the_fitted_light_not_the_values():
-    from lightfield_jax.inverse.data import FitData
+    from lightfield_jax.inverse.data import prepare_data
     from lightfield_jax.inverse.joint_fit import CLIP_SIGMAS, near_the_clip
 
-    fitted = np.linspace(0.0, 2.0, 41).reshape(1, 1, 41)  # the answer's light
-    clipped = fitted >= 1.0  # the values the capture clipped
-    data = FitData(
-        images=np.where(clipped, 0.0, fitted),
-        mask=np.ones((1, 41), bool),
-        direct=np.zeros((1, 41)),
-        multiple=np.zeros((1, 41)),
-        sigma_t0=0.2,
-        sigma_t0_err=0.0,
-        decay_converged=True,
-        samples=~clipped,
-        clipped=clipped,
-    )
-    sigma = np.full(fitted.shape, 0.04)
-    risk = near_the_clip(data, fitted, sigma)
-    # The clip level is the clipped values' fitted light (its 1st percentile, 1.0005
-    # here): the valid values within 3σ = 0.12 of it (0.9 and 0.95), no clipped one.
-    expected = ~clipped & (fitted > 1.0 - CLIP_SIGMAS * 0.04)
+    images = _stripe_images("milk", SMALL)
+    level = 0.3 * images.max()
+    data = prepare_data(np.minimum(images, level), lfj.Stripes(), saturation=level)
+    np.testing.assert_array_equal(data.clip_level, level)
+    sigma = np.full(images.shape, 0.05 * level)
+    risk = near_the_clip(data, images, sigma)  # the truth's light as the answer's
+    # The valid values whose light is within 3σ below the clip; never a clipped one.
+    expected = (images < level) & (images + CLIP_SIGMAS * sigma >= level)
+    assert expected.any()
     np.testing.assert_array_equal(risk, expected)
-    assert near_the_clip(dataclasses.replace(data, clipped=None), fitted, sigma) is None
-    assert near_the_clip(data, fitted, np.full(fitted.shape, 1e-4)) is None
+    assert near_the_clip(data, images, np.full(images.shape, 1e-9 * level)) is None
+    # Without a saturation the level is the clipped value of each pixel (one stuck
+    # pixel at a higher code does not move it elsewhere), else their median.
+    clipped = np.minimum(images, level)
+    clipped[:, 5, 40] = 2 * level  # a hot pixel, far from the wall
+    data = prepare_data(clipped, lfj.Stripes(), clipped=clipped >= level)
+    assert np.all(data.clip_level[:, 5, 40] == 2 * level)
+    np.testing.assert_array_equal(np.delete(data.clip_level.reshape(6, -1), 5 * 48 + 40, 1), level)
+    unclipped = prepare_data(images, lfj.Stripes())
+    assert unclipped.clipped is None and near_the_clip(unclipped, images, sigma) is None
 
 
 def test_geometry_auto_takes_a_mask_per_value():

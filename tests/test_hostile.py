@@ -487,7 +487,9 @@ def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, c
     )
 
 
-def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(capture, capsys):
+def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(
+    capture, capsys, monkeypatch
+):
     """Before: every capture clipped near its entry wall (common: the wall is where the
     light is brightest) was called unusable, 'no direct light at the entry wall', exit
     1, while its fit converged. The wall's statistics now come from the nearest valid
@@ -501,6 +503,23 @@ def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(capture
     status, out, _ = _run(capsys, "inspect", capture / "capture.yaml")
     assert status == 0, out
     assert "the wall's pixels are masked" in out and "no direct light" not in out
+    # The fit masks those values one shift at a time; the capture's clip flags and
+    # levels (after the dark frame) reach the joint fit's censoring check.
+    import lightfield_jax.inverse.joint_fit as joint_fit
+
+    seen, check = [], joint_fit.near_the_clip
+
+    def spy(data, fitted, sigma):
+        seen.append((int(data.clipped.sum()), float(np.min(data.clip_level))))
+        return check(data, fitted, sigma)
+
+    monkeypatch.setattr(joint_fit, "near_the_clip", spy)
+    out = capture / "r.json"
+    status, _, err = _run(capsys, "fit", capture / "capture.yaml", "--out", out)
+    assert status == 0, err
+    (clipped, level), *_ = seen
+    assert clipped > 0 and 0.9 * top < level < top  # the top less the dark frame's 0.01
+    assert abs(json.loads(out.read_text())["truth_error"]["sigma_t"]["sigmas"]) < 3
 
 
 # ---------------------------------------------------------- 9. non-regular inputs

@@ -116,7 +116,7 @@ class Inspection:
                 wall = f"from s = {start:.0f} px (the wall's pixels are masked: clipped?)"
             lines.append(
                 f"[{name}] D peak {peak:.4g}, M/D {wall} {ratio:.3f}; SNR of D "
-                f"{snr0:.0f} there, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "
+                f"{snr0:.0f} nearest the wall, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "
                 f"of {float(self.distance.max()):.0f}"
             )
         for note in c.notes:
@@ -159,7 +159,7 @@ class Inspection:
         return found
 
 
-# The wall counts as masked where its nearest valid lit pixel is this far (px) from it.
+# The wall counts as masked where its nearest valid pixel is this far (px) from it.
 _MASKED_WALL_PX = 2.0
 
 

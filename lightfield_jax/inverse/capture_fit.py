@@ -162,12 +162,12 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
     if options.crop:
         crops = []
         for i in channels:
-            keep = np.all(capture.mask[..., i : i + 1], axis=-1) & np.all(
-                np.isfinite(images[..., i]), axis=0
-            )
+            # The values the fit keeps (per value, as fit_images crops them).
+            keep = np.broadcast_to(_channel_mask(capture, i), images[..., i].shape)
+            keep = keep & np.isfinite(images[..., i])
             crops.append(
                 _signal_crop(
-                    np.where(keep[None], images[..., i], 0.0),
+                    np.where(keep, images[..., i], 0.0),
                     capture.pattern,
                     options.crop_fraction,
                 )

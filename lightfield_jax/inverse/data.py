@@ -39,6 +39,10 @@ class FitData:
         clipped: ``(P, h, w)``, true where a value was masked as saturated or clipped
             (censored from above: the joint fit also masks the values its answer puts
             within the noise of the clip), or ``None``.
+        clip_level: ``(P, h, w)``, the value at which the clip sits there: the
+            ``saturation`` given, or else a pixel's clipped value itself (after the dark
+            frame and the flat field: one level per pixel) and the median clipped value
+            for pixels never clipped; ``None`` where nothing was clipped.
         direct: the separated direct image D, ``(h, w)`` (or the given split's).
         multiple: the separated multiple-scattering image M, ``(h, w)``.
         sigma_t0: σt (per pixel) from the decay of D, and ``sigma_t0_err`` its 1σ.
@@ -61,6 +65,7 @@ class FitData:
     noise_floor: float | None = None
     samples: np.ndarray | None = None
     clipped: np.ndarray | None = None
+    clip_level: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -81,6 +86,7 @@ class FitData:
             exposure=None if self.exposure is None else self.exposure[:, y0:y1, x0:x1],
             samples=None if self.samples is None else self.samples[:, y0:y1, x0:x1],
             clipped=None if self.clipped is None else self.clipped[:, y0:y1, x0:x1],
+            clip_level=None if self.clip_level is None else self.clip_level[:, y0:y1, x0:x1],
         )
 
     @property
@@ -146,6 +152,7 @@ def prepare_data(
         with np.errstate(invalid="ignore"):
             censored = censored | (images >= saturation)
     samples &= ~censored
+    level = _clip_level(images, censored & finite, saturation)
     mask = np.all(samples, axis=0)
     if not mask.any():
         causes = [f"{int((~finite).sum())} non-finite"]
@@ -194,7 +201,20 @@ def prepare_data(
         exposure=None if exposure is None else np.asarray(exposure),
         samples=None if np.array_equal(samples, np.broadcast_to(mask, samples.shape)) else samples,
         clipped=censored if censored.any() else None,
+        clip_level=level,
     )
+
+
+def _clip_level(images: np.ndarray, clipped: np.ndarray, saturation) -> np.ndarray | None:
+    """:attr:`FitData.clip_level` of ``images`` whose ``clipped`` values the clip took."""
+    if not clipped.any():
+        return None
+    if saturation is not None:
+        return np.full(images.shape, float(saturation))
+    values = np.where(clipped, images, -np.inf)
+    own = np.max(values, axis=0)  # a pixel's clipped value (its shifts share its level)
+    typical = float(np.median(images[clipped]))
+    return np.broadcast_to(np.where(np.isfinite(own), own, typical), images.shape).copy()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -450,10 +450,13 @@ def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tu
     return shift, fine, fine_tail, timing
 
 
-def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say):
+def _joint_fit(
+    data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say, start=None
+):
     """The joint fit with its global start (:mod:`lightfield_jax.inverse.basins`): scan, solve
-    every basin kept (or the given start), keep the best; then the error budget and the
-    verdict. Returns the :func:`_finish` keywords and the seconds."""
+    every basin kept (or the given start: ``start`` = (σt, σs, g, b), else
+    ``options.start`` = (σs, g)), keep the best; then the error budget and the verdict.
+    Returns the model, the seconds, the :func:`_finish` keywords and the last stage."""
     seconds = {"compile": 0.0, "run": 0.0}
 
     def count(t):
@@ -478,7 +481,9 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
     the_scan = _run_scan(data, pattern, coarse, options, black, weights, data.sigma_t0)
     count(the_scan.seconds)
     st0 = data.sigma_t0
-    if options.start is not None:
+    if start is not None:
+        starts = [("given", tuple(start) if black is None else (*start[:3], black))]
+    elif options.start is not None:
         ss, g = options.start
         starts = [("given", (st0, ss, g, 0.0 if black is None else black))]
     else:
@@ -657,63 +662,99 @@ def _joint_fit(data: _Data, pattern, options: FitOptions, black, images, crop, r
             basins=scan_dict,
             reasons=tuple(reasons),
             model_dict=model_dict,
-            # For the clip's censoring (methods.Joint): the fitted light and the 1σ of
-            # the noise of every value, in image units.
-            fitted=last.values["gain"] * last.unit,
-            value_sigma=np.sqrt(budget.noise) / np.where(last.weights > 0, last.weights, np.nan),
         ),
+        last,
     )
 
 
 # Values whose fitted light lies within this many noise σ below the clip are masked too:
 # the clip dropped the upward fluctuations of those values and kept the downward ones
-# (censoring), which biases the fit low there (σt −0.6 %, 3σ, at a 5 % clip).
+# (censoring), which biases the fit low there (σt −0.64 %, −3.2σ, at a 5 % clip).
 CLIP_SIGMAS = 3.0
+# The censoring refit is not made where it would mask more than this share of the
+# values left (the clip's level cannot be where most of the capture's light is).
+CENSOR_MOST = 0.25
 
 
 def near_the_clip(data: _Data, fitted: np.ndarray, sigma: np.ndarray) -> np.ndarray | None:
     """The valid values of ``data`` whose ``fitted`` light plus ``CLIP_SIGMAS`` times
-    their noise ``sigma`` reaches the clip (the 1st percentile of the fitted light of the
-    values masked as clipped: no threshold needs to be known in the images' units), or
-    ``None`` where none does or nothing was clipped."""
-    clipped = data.clipped
-    if clipped is None or not clipped.any() or np.shape(fitted) != clipped.shape:
+    their noise ``sigma`` reaches the clip's level there (``data.clip_level``, per
+    value), or ``None`` where none does, nothing was clipped or the noise is unknown."""
+    if data.clipped is None or data.clip_level is None or not data.clipped.any():
         return None
-    level = float(np.quantile(fitted[clipped], 0.01))
+    if np.shape(fitted) != data.clipped.shape:
+        raise ValueError(f"near_the_clip: fitted {np.shape(fitted)} against {data.clipped.shape}")
     with np.errstate(invalid="ignore"):
-        risk = data.valid & (fitted + CLIP_SIGMAS * sigma >= level)
+        risk = data.valid & (fitted + CLIP_SIGMAS * sigma >= data.clip_level)
     return risk if risk.any() else None
 
 
-def joint_fit(problem, options: FitOptions, say):
-    """The joint fit of a :class:`~lightfield_jax.inverse.data.FitProblem` (the
-    :func:`_finish` keywords' model, seconds and values). Where values were clipped,
-    the values the answer puts within ``CLIP_SIGMAS`` of the clip are masked and the fit
-    is solved again from its answer (once)."""
+def _stage_sigma(stage, noise: float) -> np.ndarray:
+    """The 1σ of each value's noise at ``stage`` (α/w², the weights' variance model),
+    NaN where it is masked or the noise is unknown."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(noise) / np.where(stage.weights > 0, stage.weights, np.nan)
 
-    def run(data, opts):
+
+def joint_fit(problem, options: FitOptions, say):
+    """The joint fit of a :class:`~lightfield_jax.inverse.data.FitProblem` (the model,
+    seconds and :func:`_finish` keywords). Where values were clipped, the values the
+    answer puts within ``CLIP_SIGMAS`` of the clip are masked and the fit solved once
+    more from its answer; the first answer is kept where that one fails or is not
+    trusted (``model.censoring`` in the result says what was done)."""
+
+    def run(data, start=None):
         return _joint_fit(
             data,
             problem.pattern,
-            opts,
+            options,
             problem.black_level,
             problem.images,
             problem.model.crop,
             problem.rho0,
             problem.floor,
             say,
+            start,
         )
 
-    model, seconds, values = run(problem.data, options)
-    fitted, sigma = values.pop("fitted"), values.pop("value_sigma")
-    risk = near_the_clip(problem.data, fitted, sigma)
+    model, seconds, values, last = run(problem.data)
+    noise = values["budget"].noise
+    risk = None
+    if math.isfinite(noise):
+        risk = near_the_clip(
+            problem.data, last.values["gain"] * last.unit, _stage_sigma(last, noise)
+        )
     if risk is None:
         return model, seconds, values
-    n = int(risk.sum())
+    data = problem.data
+    n, left = int(risk.sum()), int(data.valid.sum())
+    record = {"values_near_clip": n, "sigmas": CLIP_SIGMAS}
+    if n > CENSOR_MOST * left:
+        say(f"  {n} of {left} values near the clip: not masked (more than {CENSOR_MOST:.0%})")
+        values["model_dict"]["censoring"] = {**record, "refit": "skipped: too many"}
+        return model, seconds, values
     say(f"  {n} value(s) within {CLIP_SIGMAS:g} sigma of the clip (censored): masked, solved again")
-    data = dataclasses.replace(problem.data, samples=problem.data.valid & ~risk)
-    again = dataclasses.replace(options, start=(values["sigma_s"], values["g"]))
-    model, more, values = run(data, again)
-    values.pop("fitted"), values.pop("value_sigma")
-    values["model_dict"]["censored_near_clip"] = n
-    return model, {k: seconds[k] + more[k] for k in seconds}, values
+    valid = data.valid & ~risk
+    censored = dataclasses.replace(
+        data, images=np.where(valid, data.images, 0.0), mask=np.all(valid, axis=0), samples=valid
+    )
+    v = last.values
+    first = {k: float(v[k]) for k in ("sigma_t", "sigma_s", "g")}
+    try:
+        model2, more, values2, _ = run(
+            censored, (v["sigma_t"], v["sigma_s"], v["g"], v["black_level"])
+        )
+    except ValueError as e:
+        failed = f"failed ({e})"
+    else:
+        seconds = {k: seconds[k] + more[k] for k in seconds}
+        numbers = [values2[k] for k in ("sigma_t", "sigma_s", "g", "gain")]
+        if values2["converged"] or not values["converged"]:
+            if all(math.isfinite(float(x)) for x in numbers):
+                values2["iterations"] += values["iterations"]
+                values2["model_dict"]["censoring"] = {**record, "refit": "kept", "first": first}
+                return model2, seconds, values2
+        failed = f"not kept ({values2['message']})"
+    say(f"  the refit without the values near the clip {failed}: the first answer kept")
+    values["model_dict"]["censoring"] = {**record, "refit": failed, "first": first}
+    return model, seconds, values

@@ -96,8 +96,9 @@ def plot_inspect(inspection: Inspection, path=None):
     shown = np.where(masked, 1.0, 0.0)
     ax.imshow(shown, cmap="Reds", vmin=0, vmax=1.2)
     ax.set_title(
-        f"masked pixels: {int(masked.sum())} (saturated {c.n_masked['saturated']}, "
-        f"non-finite {c.n_masked['nonfinite']} values)",
+        f"pixels masked in some image: {int(masked.sum())} (saturated "
+        f"{c.n_masked['saturated']}, non-finite {c.n_masked['nonfinite']}; "
+        f"{c.n_masked.get('values', 0)} values)",
         fontsize=9,
     )
     ax.set_xlabel("x (px)")
