@@ -151,3 +151,12 @@ def test_fit_plot_shows_masked_pixels_the_crop_and_the_truth(rendered):
     assert "truth 0.12 px$^{-1}$" in direct.get_title()
     assert "truth $I_1$" in [t.get_text() for t in direct.get_legend().get_texts()]
     assert "truth 0.05 px$^{-1}$, g 0.300" in multiple.get_title()
+    # A mask per value: a pixel masked in one shift keeps its residual over the others;
+    # only pixels masked in every shift are grey.
+    values = np.ones(images.shape, bool)
+    values[0, 5:8, 3:6] = False  # clipped in one shift
+    values[:, 12, 12] = False  # in every shift
+    figure = viz.plot_fit(images, pattern, _fit_result((0, 0, 24, 24)), mask=values)
+    shown = figure.axes[2].images[0].get_array()
+    assert not shown.mask[5:8, 3:6].any() and shown.mask[12, 12]
+    assert "grey: masked (1 px)" in figure.axes[2].get_title()

@@ -111,7 +111,9 @@ def _shown(capture, i: int) -> dict:
     """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
     from lightfield_jax.capture.keys import truth_for
 
-    return {"mask": capture.mask[..., i], "truth": truth_for(capture.truth, i)}
+    samples = getattr(capture, "sample_mask", None)
+    mask = capture.mask[..., i] if samples is None else samples[..., i]
+    return {"mask": mask, "truth": truth_for(capture.truth, i)}
 
 
 # Direction bins assumed for a fit's memory estimate: the fewest the fit chooses

@@ -81,14 +81,18 @@ def plot_fit(
         result: the fit.
         path: the PNG to write (atomically), or ``None`` to return the figure.
         title: the figure's title (default: the fit's values and model).
-        mask: ``(H, W)`` True where a pixel was used (the capture's mask).
+        mask: True where a value was used: per pixel, ``(H, W)``, or per value, like
+            ``images`` (the capture's ``sample_mask``); the separated profiles use the
+            pixels valid in every shift, the residual each pixel's valid shifts.
         truth: the true parameters, to overlay.
     """
     from matplotlib.patches import Rectangle
 
     images = np.asarray(images, dtype=np.float64)
     p, h, w = images.shape
-    valid = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    given = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    values = np.broadcast_to(given, images.shape)  # per value: (H, W) or (P, H, W)
+    valid = np.all(values, axis=0)  # the separation's pixels: valid in every shift
     # A fitted black level can come out slightly negative (noise); the separation takes
     # only physical values.
     b = min(max(result.black_level or 0.0, 0.0), 0.99)
@@ -174,8 +178,12 @@ def plot_fit(
 
     ax = axes[2]
     model_total = model_stripes.sum(axis=1)
-    scale = np.nanmax(np.abs(np.where(valid[None], images, 0.0))) or 1.0
-    resid = np.where(used, (model_total - images).mean(axis=0) / scale, np.nan)
+    scale = np.nanmax(np.abs(np.where(values, images, 0.0))) or 1.0
+    # The mean over each pixel's valid shifts (a pixel clipped in some keeps the others).
+    kept = values & inside[None]
+    count = kept.sum(axis=0)
+    total = np.where(kept, model_total - images, 0.0).sum(axis=0)
+    resid = np.where(count > 0, total / np.maximum(count, 1) / scale, np.nan)
     lim = np.nanmax(np.abs(resid)) if np.isfinite(resid).any() else 1.0
     from matplotlib import colormaps
 
@@ -197,7 +205,7 @@ def plot_fit(
     ax.set_ylim(h, 0)
     ax.set_xlabel("x (px)")
     ax.set_ylabel("y (px)")
-    n_masked = int((~valid & inside).sum())
+    n_masked = int(((count == 0) & inside).sum())
     cropped = (x0, y0, x1, y1) != (0, 0, w, h)
     ax.set_title(
         "residual of the raw images; grey: masked "
