@@ -433,8 +433,20 @@ def test_clipped_float_images_are_masked_with_a_warning(tmp_path):
     assert capture.n_masked["saturated"] > 0
     clipped = np.any([read_image(tmp_path / n).pixels[..., 0] >= 0.45 for n in names], axis=0)
     assert np.array_equal(~capture.mask[..., 0], clipped)
-    # Unclipped measured values: nothing is masked.
+    # RGB, each channel's own clip (a white balance scales them): G clipped at 0.45
+    # while R, brighter and unclipped, reaches 0.9 (before: G's clip went unseen).
     plain = _images(tmp_path, prefix="p")
+    rgb = []
+    for i, (name, free) in enumerate(zip(names, plain, strict=True)):
+        g = read_image(tmp_path / name).pixels[..., 0]
+        y = read_image(tmp_path / free).pixels[..., 0]
+        rgb.append(f"rgb{i}.exr")
+        write_exr(tmp_path / rgb[-1], {"R": 2 * y, "G": g, "B": 0.5 * y})
+    with pytest.warns(CaptureWarning, match=r"equal their channel's largest \(G 0\.45\)"):
+        capture = _capture(tmp_path, images=rgb)
+    assert np.array_equal(~capture.mask[..., 1], clipped)
+    assert capture.mask[..., 0].all() and capture.mask[..., 2].all()
+    # Unclipped measured values: nothing is masked.
     with warnings.catch_warnings():
         warnings.simplefilter("error", CaptureWarning)
         assert _capture(tmp_path, images=plain).mask.all()

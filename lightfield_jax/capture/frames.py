@@ -222,6 +222,12 @@ def _nonfinite(
     return out
 
 
+def names_of_channel(frames: Sequence[ImageData], c: int) -> str:
+    """Channel ``c``'s name in the frames (its index where they have none)."""
+    names = frames[0].channel_names
+    return names[c] if c < len(names) else str(c)
+
+
 def _masked(values: np.ndarray) -> str:
     """How much a [P, H, W, C] mask of bad values masks, for a note."""
     pixels = int(values.any(axis=0).sum())
@@ -255,18 +261,23 @@ def _saturated(
     plateau = None
     if saturation is None:  # float frames: a clip shows as many values equal to the top
         floating = np.array([not f.is_integer for f in frames])
-        values = raw[floating]
-        top = np.nanmax(values) if values.size and np.isfinite(values).any() else None
-        if top is not None and top > 0:
-            at_top = floating[:, None, None, None] & (raw == top)
+        tops, at_top = {}, np.zeros(raw.shape, bool)
+        for c in range(raw.shape[-1]):  # per channel: a white balance scales each clip
+            values = raw[floating][..., c]
             finite = values[np.isfinite(values)]
-            count = at_top.sum()
+            top = float(np.max(finite)) if finite.size else 0.0
+            if top <= 0:
+                continue
+            here = floating[:, None, None] & (raw[..., c] == top)
             # Measured (noisy) values are nearly all distinct; a synthetic image of a
             # few levels is not clipped where its brightest level is flat.
             measured = np.unique(finite).size > 0.5 * finite.size
-            if measured and count >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
-                plateau = (float(top), at_top)
-                hit = hit | at_top
+            if measured and here.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
+                tops[names_of_channel(frames, c)] = top
+                at_top[..., c] = here
+        if tops:
+            plateau = (tops, at_top)
+            hit = hit | at_top
     per_frame = hit.sum(axis=(1, 2, 3))
     finite = np.isfinite(raw).sum(axis=(1, 2, 3))
     full = [n for n, h, f in zip(names, per_frame, finite, strict=True) if f and h == f]
@@ -278,10 +289,17 @@ def _saturated(
             f"pixel values at or above saturation {saturation:g} ({listed}); {_masked(hit)}"
         )
     elif listed and plateau is not None:
+        tops = plateau[0]
+        largest = (
+            f"the images' largest, {next(iter(tops.values())):g}"
+            if len(tops) == 1 and raw.shape[-1] == 1
+            else "their channel's largest ("
+            + ", ".join(f"{c} {t:g}" for c, t in tops.items())
+            + ")"
+        )
         notes.append(
-            f"{int(plateau[1].sum())} float pixel values equal the images' largest, "
-            f"{plateau[0]:g} ({listed}): clipped; {_masked(hit)} (set "
-            "saturation: to give the threshold)"
+            f"{int(plateau[1].sum())} float pixel values equal {largest} ({listed}): clipped; "
+            f"{_masked(hit)} (set saturation: to give the threshold)"
         )
     elif listed:
         bits = sorted({f.bit_depth for f, h in zip(frames, per_frame, strict=True) if h})
