@@ -110,10 +110,9 @@ def _fit_figures(capture, fit, figures: list[Path], write) -> None:
 def _shown(capture, i: int) -> dict:
     """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
     from lightfield_jax.capture.keys import truth_for
+    from lightfield_jax.inverse.capture_fit import _channel_mask
 
-    samples = getattr(capture, "sample_mask", None)
-    mask = capture.mask[..., i] if samples is None else samples[..., i]
-    return {"mask": mask, "truth": truth_for(capture.truth, i)}
+    return {"mask": _channel_mask(capture, i), "truth": truth_for(capture.truth, i)}
 
 
 # Direction bins assumed for a fit's memory estimate: the fewest the fit chooses

@@ -222,7 +222,7 @@ def _nonfinite(
     return out
 
 
-def names_of_channel(frames: Sequence[ImageData], c: int) -> str:
+def _channel_name(frames: Sequence[ImageData], c: int) -> str:
     """Channel ``c``'s name in the frames (its index where they have none)."""
     names = frames[0].channel_names
     return names[c] if c < len(names) else str(c)
@@ -273,7 +273,7 @@ def _saturated(
             # few levels is not clipped where its brightest level is flat.
             measured = np.unique(finite).size > 0.5 * finite.size
             if measured and here.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
-                tops[names_of_channel(frames, c)] = top
+                tops[_channel_name(frames, c)] = top
                 at_top[..., c] = here
         if tops:
             plateau = (tops, at_top)

@@ -113,10 +113,10 @@ def fit_capture(
             # Per value: a pixel clipped in some shifts keeps its others. The capture
             # masked saturated values in raw units already (before the dark frame).
             mask=_channel_mask(capture, i),
-            clipped=None if getattr(capture, "clipped", None) is None else capture.clipped[..., i],
+            clipped=_channel(capture, "clipped", i),
             black_level=capture.black_level,
             pixel_size_mm=capture.pixel_size_mm,
-            exposure=_channel_exposure(capture, i),
+            exposure=_channel(capture, "exposure", i),
             floor=floor,
         )
         results.append(result)
@@ -136,10 +136,11 @@ def _channel_mask(capture, i: int) -> np.ndarray:
     return capture.mask[..., i] if samples is None else samples[..., i]
 
 
-def _channel_exposure(capture, i: int):
-    """Channel i of a capture's merged-bracket exposure T, or ``None``."""
-    exposure = getattr(capture, "exposure", None)
-    return None if exposure is None else exposure[..., i]
+def _channel(capture, name: str, i: int):
+    """Channel i of a capture's per-value array ``name`` (the merged brackets'
+    ``exposure`` T, the ``clipped`` flags), or ``None`` where it has none."""
+    values = getattr(capture, name, None)
+    return None if values is None else values[..., i]
 
 
 def _one_line(result: FitResult) -> str:

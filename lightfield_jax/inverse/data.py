@@ -131,11 +131,10 @@ def prepare_data(
             f"light's decay and the noise's 4th differences)"
         )
     finite = np.isfinite(images)
-    samples = finite.copy()
-    if mask is not None and np.shape(mask) not in (samples.shape, samples.shape[1:]):
+    if mask is not None and np.shape(mask) not in (images.shape, images.shape[1:]):
         raise ValueError(
-            f"mask: must have the images' (height, width) {samples.shape[1:]} (a pixel valid "
-            f"in every shift) or their shape {samples.shape} (per sample), got {np.shape(mask)}"
+            f"mask: must have the images' (height, width) {images.shape[1:]} (a pixel valid "
+            f"in every shift) or their shape {images.shape} (per sample), got {np.shape(mask)}"
         )
     if saturation is not None and not (
         isinstance(saturation, (int, float, np.number))
@@ -144,20 +143,14 @@ def prepare_data(
         and saturation > 0
     ):
         raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
-    given_mask = None if mask is None else np.asarray(mask, bool)
-    if given_mask is not None:
-        samples &= given_mask  # (h, w) broadcasts over the shifts
-    censored = np.zeros(images.shape, bool) if clipped is None else np.asarray(clipped, bool)
-    if saturation is not None:
-        with np.errstate(invalid="ignore"):
-            censored = censored | (images >= saturation)
-    samples &= ~censored
+    samples, censored = valid_values(images, mask, saturation, clipped)
     level = _clip_level(images, censored & finite, saturation)
-    mask = np.all(samples, axis=0)
-    if not mask.any():
+    pixels = np.all(samples, axis=0)  # valid in every shift
+    if not pixels.any():
         causes = [f"{int((~finite).sum())} non-finite"]
-        if given_mask is not None:
-            causes.append(f"{int((~np.broadcast_to(given_mask, finite.shape)).sum())} by mask")
+        if mask is not None:
+            masked = ~np.broadcast_to(np.asarray(mask, bool), finite.shape)
+            causes.append(f"{int(masked.sum())} by mask")
         if censored.any():
             causes.append(f"{int(censored.sum())} at or above saturation (clipped)")
         raise ValueError(
@@ -184,7 +177,7 @@ def prepare_data(
         direct,
         direction_deg=pattern.direction_deg,
         entry=pattern.entry,
-        mask=jnp.asarray(mask),
+        mask=jnp.asarray(pixels),
         saturation=saturation,
     )
     sigma_t0 = float(decay.sigma_t)
@@ -192,17 +185,33 @@ def prepare_data(
         raise ValueError(f"the direct image's decay gives no usable sigma_t ({sigma_t0!r})")
     return FitData(
         images=images,
-        mask=mask,
+        mask=pixels,
         direct=direct,
         multiple=multiple,
         sigma_t0=sigma_t0,
         sigma_t0_err=float(decay.sigma_t_stderr),
         decay_converged=bool(decay.converged),
         exposure=None if exposure is None else np.asarray(exposure),
-        samples=None if np.array_equal(samples, np.broadcast_to(mask, samples.shape)) else samples,
+        samples=None
+        if np.array_equal(samples, np.broadcast_to(pixels, samples.shape))
+        else samples,
         clipped=censored if censored.any() else None,
         clip_level=level,
     )
+
+
+def valid_values(images: np.ndarray, mask=None, saturation=None, clipped=None):
+    """``(valid, censored)``, like ``images``: the values a fit may use (finite, inside
+    ``mask``, per pixel or per value, and not censored), and the censored ones (flagged
+    ``clipped``, or at or above ``saturation``)."""
+    valid = np.isfinite(images)
+    if mask is not None:
+        valid &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
+    censored = np.zeros(images.shape, bool) if clipped is None else np.asarray(clipped, bool)
+    if saturation is not None:
+        with np.errstate(invalid="ignore"):
+            censored = censored | (images >= saturation)
+    return valid & ~censored, censored
 
 
 def _clip_level(images: np.ndarray, clipped: np.ndarray, saturation) -> np.ndarray | None:
@@ -252,4 +261,4 @@ class FitSolution:
     values: dict
 
 
-__all__ = ["FitData", "FitProblem", "FitSolution", "prepare_data"]
+__all__ = ["FitData", "FitProblem", "FitSolution", "prepare_data", "valid_values"]

@@ -47,7 +47,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lightfield_jax.inverse.data import FitProblem, prepare_data
+from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
@@ -267,15 +267,10 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     say("geometry auto: fitting the plane model")
     plane = fit_with(None)
     data = np.asarray(images, np.float64)
-    # Pixels valid in every shift (a mask per pixel or per value, the saturation).
-    valid = np.isfinite(data)
-    if kwargs.get("mask") is not None:
-        valid &= np.asarray(kwargs["mask"], bool)
-    if kwargs.get("saturation") is not None:
-        with np.errstate(invalid="ignore"):
-            valid &= data < kwargs["saturation"]
-    if kwargs.get("clipped") is not None:
-        valid &= ~np.asarray(kwargs["clipped"], bool)
+    # Pixels valid in every shift, as the fit's own data has them.
+    valid, _ = valid_values(
+        data, kwargs.get("mask"), kwargs.get("saturation"), kwargs.get("clipped")
+    )
     keep = np.all(valid, axis=0)
     model, _ = fitted_images(plane, pattern, data.shape[-2:])
     x0, y0, x1, y1 = plane.model["crop"]

@@ -680,10 +680,12 @@ def near_the_clip(data: _Data, fitted: np.ndarray, sigma: np.ndarray) -> np.ndar
     """The valid values of ``data`` whose ``fitted`` light plus ``CLIP_SIGMAS`` times
     their noise ``sigma`` reaches the clip's level there (``data.clip_level``, per
     value), or ``None`` where none does, nothing was clipped or the noise is unknown."""
-    if data.clipped is None or data.clip_level is None or not data.clipped.any():
+    if data.clip_level is None:  # nothing was clipped
         return None
-    if np.shape(fitted) != data.clipped.shape:
-        raise ValueError(f"near_the_clip: fitted {np.shape(fitted)} against {data.clipped.shape}")
+    if np.shape(fitted) != data.clip_level.shape:
+        raise ValueError(
+            f"near_the_clip: fitted {np.shape(fitted)} against {data.clip_level.shape}"
+        )
     with np.errstate(invalid="ignore"):
         risk = data.valid & (fitted + CLIP_SIGMAS * sigma >= data.clip_level)
     return risk if risk.any() else None
