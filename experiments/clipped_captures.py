@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import load_helper, machine, typed_config, versions
+from lightfield_jax.app.experiment import load_helper, provenance, typed_config
 
 MASKS = ("pixel", "value")
 PARAMS = ("sigma_t", "sigma_s", "g")
@@ -147,9 +147,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "truth": truth,
         "rows": rows,
         "records": records,
-        "versions": versions(),
-        "machine": machine(),
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **provenance(),
     }
     ctx.write_json("clipped_captures.json", inv.jsonable(data))
     for r in rows:

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import child_env, load_helper, machine, typed_config, versions
+from lightfield_jax.app.experiment import child_env, load_helper, provenance, typed_config
 from lightfield_jax.scene.geometry import parse_geometry
 
 _MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}
@@ -216,9 +216,7 @@ def _write(ctx, cfg: Config, rows: list, records: dict) -> None:
         "fit": cfg.fit,
         "rows": rows,
         "records": records,
-        "versions": versions(),
-        "machine": machine(),
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **provenance(),
     }
     ctx.write_json("fit_speed.json", inv.jsonable(data))
 

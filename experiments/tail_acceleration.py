@@ -42,7 +42,7 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, machine, pyplot, save_figure, versions
+from lightfield_jax.app.experiment import check_config, provenance, pyplot, save_figure
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.scene.medium import bounces_for_tolerance
@@ -289,9 +289,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "target": cfg["target"],
         "dtype": "float32",
         "load_average_1min": os.getloadavg()[0],
-        "versions": versions(),
-        "machine": machine(),
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        **provenance(),
         "rows": rows,
     }
     ctx.write_json("tail_acceleration.json", data)

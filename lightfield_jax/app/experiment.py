@@ -38,6 +38,7 @@ import json
 import os
 import platform
 import sys
+import time
 import types
 import typing
 from collections.abc import Callable, Iterable, Sequence
@@ -88,6 +89,16 @@ def machine() -> dict[str, Any]:
         "processor": platform.processor() or platform.machine(),
         "cpu_count": os.cpu_count(),
         "devices": [str(d) for d in jax.devices()],
+    }
+
+
+def provenance() -> dict[str, Any]:
+    """What a measurement's JSON records besides its numbers: the software's versions,
+    the machine and the date (UTC)."""
+    return {
+        "versions": versions(),
+        "machine": machine(),
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 
 
