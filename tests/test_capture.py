@@ -405,6 +405,40 @@ def test_clipped_8bit_frames_warn_and_mask(tmp_path):
         _capture(tmp_path, images=names, saturation=0.5)
 
 
+def test_16bit_frames_clamped_at_0_are_censored_from_below(tmp_path):
+    """A camera's black subtraction or a 16-bit file clamps the dark values' read noise
+    at code 0: the capture notes the pile-up (Capture.floored, found in raw codes, so a
+    dark frame does not hide it) and the fit masks those values as censored from below
+    at their calibrated level, where the capture shows read noise."""
+    from lightfield_jax.inverse.data import prepare_data
+
+    h, w = 24, 48
+    rng = np.random.default_rng(2)
+    pattern = Stripes(period=6, lit=3, phases=tuple(range(6)))
+    names = []
+    for i in range(6):
+        lit = (np.arange(h)[:, None] + i) % 6 < 3
+        light = np.where(lit, 0.5, 0.05) * np.exp(-0.15 * np.arange(w))[None]
+        frame = light + rng.normal(0, 5e-3, (h, w))
+        names.append(f"d{i}.png")
+        write_png(tmp_path / names[-1], np.clip(frame, 0, 1), bits=16)
+    write_png(tmp_path / "dark.png", np.full((h, w), 1e-3), bits=16)
+    capture = _capture(tmp_path, images=names, dark_frame="dark.png", pattern=pattern)
+    assert any(re.search(r"sit at their channel's lowest \(Y 0; ", n) for n in capture.notes)
+    raw = np.stack([read_image(tmp_path / n).pixels[..., 0] for n in names])
+    np.testing.assert_array_equal(capture.floored[..., 0], raw == 0)
+    assert capture.sample_mask.all()  # the fit decides
+    data = prepare_data(
+        capture.images[..., 0],
+        capture.pattern,
+        mask=capture.sample_mask[..., 0],
+        floored=capture.floored[..., 0],
+    )
+    np.testing.assert_array_equal(data.valid, raw > 0)
+    dark = read_image(tmp_path / "dark.png").pixels[..., 0]
+    np.testing.assert_allclose(data.floor_level, np.broadcast_to(-dark, raw.shape), atol=1e-7)
+
+
 @pytest.mark.parametrize("value", [1e30, -1e6])
 def test_corrupt_pixel_values_are_masked_with_a_warning(tmp_path, value):
     """Before: one pixel of 1e30 ended the fit in 'the basin scan found no valid model'

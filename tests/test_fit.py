@@ -590,6 +590,76 @@ def test_near_the_clip_judges_the_fitted_light_not_the_values():
     assert unclipped.clipped is None and near_the_clip(unclipped, images, sigma) is None
 
 
+def test_dark_values_clamped_at_zero_are_censored_from_below(tmp_path):
+    """A 16-bit file or a camera's black subtraction clamps the read noise of dark values
+    at 0: those values are censored from below, and the values near 0 that are left
+    are biased up. Fitted as they were, the near/far split disagreed (chi2 93, p ~ 1e-19)
+    and sigma_s came out 'not identifiable' (exit 1) on a capture whose unclamped fit is
+    exact. The fit finds the pile-up at 0, masks it and the values its answer puts
+    within 3 sigma of it, and solves again."""
+    config = tmp_path / "sim.yaml"
+    config.write_text(
+        "grid: {width: 48, height: 36}\n"
+        "medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}\n"
+        "illumination: {kind: stripes, period: 6, lit: 3, shifts: 6, direction_deg: 0.0, "
+        "entry: left}\n"
+        "bounces: auto\ngain: 1\nblack_level: 0.01\n"
+    )
+    clean = np.asarray(lfj.simulate_capture(config).images, np.float64)
+    clean = 0.7 * clean / clean.max()
+    rng = np.random.default_rng(6)
+    photons = 2e4
+    noisy = rng.poisson(clean * photons) / photons + rng.normal(0.0, 5e-4, clean.shape)
+    clamped = np.clip(noisy, 0.0, None)
+    assert 0.05 < np.mean(clamped == 0) < 0.3  # the far end is mostly dark
+    result = lfj.fit_images(clamped, lfj.Stripes(), black_level=0.01)
+    assert result.converged, result.message
+    censoring = result.model["censoring"]
+    assert censoring["values_near_floor"] > 0 and censoring["refit"] == "kept", censoring
+    for key, value in zip(("sigma_t", "sigma_s", "g"), MEDIA["milk"], strict=True):
+        z = (getattr(result, key) - value) / result.uncertainty[key]
+        assert abs(z) < 3, (key, z)
+    assert all(split["p"] > 1e-3 for split in result.consistency.values()), result.consistency
+
+
+def test_a_floor_is_a_pile_up_at_the_lowest_value_not_a_tail():
+    from lightfield_jax.inverse.data import FLOOR_MIN, floor_pileup, prepare_data
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(0.0, 1.0, (6, 20, 30)) + np.linspace(0, 40, 30)
+    assert not floor_pileup(values).any()  # measured values: all distinct
+    clamped = np.clip(values, 0.0, None)
+    np.testing.assert_array_equal(floor_pileup(clamped), clamped == 0)
+    # Only among the values asked about: zeros outside a mask are no floor.
+    outside = np.zeros(values.shape, bool)
+    outside[:, :, :3] = True
+    zeroed = np.where(outside, 0.0, values + 5.0)
+    assert not floor_pileup(zeroed, ~outside).any()
+    # Integer codes with an offset: the lowest code is the noise's tail, fewer than the
+    # next code up; a pile-up at a level far from dark is no floor either.
+    codes = np.rint(values + 4.0)
+    assert not floor_pileup(codes).any()
+    assert not floor_pileup(np.maximum(values, 30.0)).any()
+    few = np.where(values == values.min(), 0.0, values + 1.0)
+    assert np.sum(few == 0) < FLOOR_MIN and not floor_pileup(few).any()
+    # prepare_data masks them and records their level where the capture shows read
+    # noise; a given ``floored`` overrides. Zeros of shot noise alone are measured, not
+    # cut (nothing falls below 0 without an additive noise): they stay.
+    clean = _stripe_images("milk", SMALL)
+    clean = clean / clean.max()
+    rng = np.random.default_rng(3)
+    shot = rng.poisson(clean * 2e4) / 2e4
+    assert np.mean(shot == 0) > 0.03
+    data = prepare_data(shot, lfj.Stripes())
+    assert data.floor_level is None and data.samples is None
+    dark = np.clip(shot + rng.normal(0.0, 5e-4, shot.shape), 0.0, None)
+    data = prepare_data(dark, lfj.Stripes())
+    np.testing.assert_array_equal(data.valid, dark > 0)
+    np.testing.assert_array_equal(data.floor_level, 0.0)
+    none = prepare_data(dark, lfj.Stripes(), floored=np.zeros(dark.shape, bool))
+    assert none.floor_level is None and none.samples is None
+
+
 def test_geometry_auto_takes_a_mask_per_value():
     """The plane-or-slab choice measures its misfit on pixels valid in every shift, from
     a mask per value or the saturation (it broadcast a per-pixel mask only)."""

@@ -135,6 +135,73 @@ def test_outputs_that_are_not_regular_files_are_refused(capture, capsys, tmp_pat
     _refused(capsys, "bench", "--out", fifo, match="not a regular file")
 
 
+def test_a_read_only_output_is_not_replaced(capture, capsys, tmp_path):
+    """Before: replaced through its folder's permissions (os.replace ignores the file's
+    own mode), exit 0."""
+    out = tmp_path / "r.json"
+    out.write_text("{}")
+    out.chmod(0o444)
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match="is read-only")
+    assert out.read_text() == "{}"
+
+
+def test_a_hard_link_is_one_file_in_two_roles(capture, capsys):
+    """Before: a symbolic link was refused, a hard link to the same frame was not."""
+    os.link(capture / "dark.exr", capture / "black.exr")
+    _edit(capture, black_frame="black.exr")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="is also dark_frame")
+
+
+def test_a_pixel_size_outside_any_camera_is_refused(capture, capsys):
+    """Before: 5e-324 mm gave null coefficients per mm, 1e-300 mm sigma_t 2e299 mm^-1."""
+    _edit(capture, pixel_size_mm=5e-324)
+    _refused(capsys, "inspect", capture / "capture.yaml", match="pixel_size_mm: must lie in")
+    with pytest.raises(ValueError, match=r"pixel_size_mm: must lie in \[1e-06, 1000\] mm"):
+        lfj.fit_images(np.ones((6, 8, 8)), lfj.Stripes(), pixel_size_mm=1e-300)
+
+
+def test_an_experiment_config_is_read_by_the_configs_loader(capsys, tmp_path):
+    """Before: plain yaml.safe_load: duplicate keys taken silently (the last one won),
+    and aliases expanded without a limit (an alias bomb ran the machine out of memory)."""
+    dup = tmp_path / "dup.yaml"
+    dup.write_text("experiment: fit_speed\nheight: 96\nheight: -5\n")
+    _refused(capsys, "experiment", dup, "--out", tmp_path / "o", match="duplicate key")
+    bomb = tmp_path / "bomb.yaml"
+    levels = ["a0: &l0 [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]"]
+    levels += [f"a{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 9)]
+    bomb.write_text("experiment: fit_speed\n" + "\n".join(levels) + "\nn_theta: *l8\n")
+    _refused(capsys, "experiment", bomb, "--out", tmp_path / "o", match="alias")
+
+
+def test_pattern_does_not_replace_a_capture_file(capsys, tmp_path):
+    """Before: ``pattern --out DIR`` replaced DIR's capture.yaml (a hand-edited capture
+    file) by its template, exit 0."""
+    folder = tmp_path / "cap"
+    status, _, _ = _run(capsys, "pattern", "--width", 12, "--height", 12, "--out", folder)
+    assert status == 0
+    (folder / "capture.yaml").write_text("images: [mine.tif]\n")
+    _refused(
+        capsys, "pattern", "--width", 12, "--height", 12, "--out", folder, match="capture.yaml"
+    )
+    assert (folder / "capture.yaml").read_text() == "images: [mine.tif]\n"
+
+
+def test_a_dark_channel_is_named_before_any_fit(capture, capsys, monkeypatch):
+    """Before: R and G were fitted, then B (all 0) stopped the command with 'fit_decay:
+    sigma_t is not identifiable: 0 usable pixels', naming no channel."""
+    from lightfield_jax.inverse import capture_fit
+
+    for f in [*sorted(capture.glob("shift_*.exr")), capture / "dark.exr"]:
+        y = read_image(f).pixels[..., 0]
+        write_exr(f, {"R": y, "G": 0.5 * y, "B": np.zeros_like(y)})
+
+    def no_fit(*_args, **_kwargs):
+        raise AssertionError("a channel was fitted before the dark one was refused")
+
+    monkeypatch.setattr(capture_fit, "_fit_one", no_fit)
+    _refused(capsys, "fit", capture / "capture.yaml", match="channel B: no light")
+
+
 def test_unwritable_output_locations_are_refused_before_the_work(capture, capsys, tmp_path):
     # /proc refuses new files even to the superuser (a read-only folder does not).
     line = _refused(
@@ -509,9 +576,9 @@ def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(
 
     seen, check = [], joint_fit.near_the_clip
 
-    def spy(data, fitted, sigma):
+    def spy(data, fitted, sigma, floor=None):
         seen.append((int(data.clipped.sum()), float(np.min(data.clip_level))))
-        return check(data, fitted, sigma)
+        return check(data, fitted, sigma, floor)
 
     monkeypatch.setattr(joint_fit, "near_the_clip", spy)
     out = capture / "r.json"

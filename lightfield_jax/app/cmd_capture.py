@@ -33,7 +33,13 @@ from lightfield_jax.app.cli import (
         default="rows",
         help="stripes along projector rows or columns (%(default)s)",
     ),
-    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--out",
+        metavar="DIR",
+        required=True,
+        help="output folder (created; its stripe, white and black images replaced; one "
+        "holding a capture.yaml is refused)",
+    ),
 )
 def _pattern(args: argparse.Namespace) -> None:
     """Write into DIR the images to project, 8-bit PNG of WIDTHxHEIGHT:
@@ -50,6 +56,7 @@ def _pattern(args: argparse.Namespace) -> None:
 
     Nothing is written unless the whole command succeeds."""
     from lightfield_jax.app.memory import check_memory
+    from lightfield_jax.app.outputs import OutputError
     from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.pattern import (
         check_size,
@@ -60,6 +67,12 @@ def _pattern(args: argparse.Namespace) -> None:
 
     _outputs(folders=[args.out])
     out = Path(args.out)
+    if (out / "capture.yaml").exists():
+        # A capture file is edited by hand (its image names, keys): never a template's.
+        raise OutputError(
+            f"{out / 'capture.yaml'}: exists (a capture file, maybe edited); choose another "
+            "folder, or move it away to write the template"
+        )
     check_size(args.width, args.height, args.period)
     phases = pattern_phases(args.period, args.lit, args.shifts)
     check_memory(

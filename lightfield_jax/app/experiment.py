@@ -45,6 +45,7 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from lightfield_jax.app.config import load_yaml
 from lightfield_jax.capture.io import atomic_path, atomic_write_json
 
 _HERE = Path(__file__).resolve().parent.parent  # the package folder
@@ -248,8 +249,6 @@ def save_figure(fig, path: Path, dpi: int = 110) -> Path:
 
 def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     """Read an experiment config; ``reduced`` applies its ``reduced:`` overrides."""
-    import yaml
-
     path = Path(path)
     shipped = CONFIGS_DIR / f"{path.stem}.yaml"
     if not path.is_file() and path.parent == Path(".") and shipped.is_file():
@@ -257,11 +256,9 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     if not path.is_file():
         known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
         raise FileNotFoundError(f"{path}: no such experiment config (shipped: {', '.join(known)})")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not valid YAML: {e}") from None
-    if not isinstance(data, dict) or "experiment" not in data:
+    # The configs' own loader: duplicate keys, alias bombs and oversized files refused.
+    data = load_yaml(path, ValueError)
+    if "experiment" not in data:
         raise ValueError(f"{path}: an experiment config needs the key 'experiment: NAME'")
     small = data.pop("reduced", None) or {}
     if not isinstance(small, dict):

@@ -115,6 +115,12 @@ def _check_kind(path: Path, folder: bool) -> None:
             f"{path}: exists and is not a regular file (a device, FIFO or socket); "
             "choose a new file name or a regular file to replace"
         )
+    if not folder and not mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH):
+        # Replacing it would go through its folder's permissions, not its own.
+        raise OutputError(
+            f"{path}: exists and is read-only (mode {stat.S_IMODE(mode):04o}); make it "
+            "writable to replace it, or choose another output"
+        )
 
 
 def _check_writable(path: Path, given: str) -> None:

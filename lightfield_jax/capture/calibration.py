@@ -140,7 +140,8 @@ def mosaic_score(image: np.ndarray) -> tuple[float, float]:
     if h < 8 or w < 8:
         return 0.0, math.inf
     pad = np.pad(a, 1, mode="edge")
-    box = sum(pad[i : i + h, j : j + w] for i in range(3) for j in range(3)) / 9.0
+    with np.errstate(invalid="ignore", over="ignore"):  # +Inf beside -Inf: NaN, not good
+        box = sum(pad[i : i + h, j : j + w] for i in range(3) for j in range(3)) / 9.0
     lo = np.minimum.reduce([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)])
     top = float(np.percentile(a, 99))
     # Pixels whose whole neighbourhood is well lit: away from edges and the noise floor.

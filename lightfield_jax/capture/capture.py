@@ -153,6 +153,7 @@ from lightfield_jax.capture.frames import (
     _calibrate,
     _corrupt_to_nan,
     _flat,
+    _floored,
     _frames,
     _nonfinite,
     _saturated,
@@ -173,6 +174,7 @@ from lightfield_jax.capture.keys import (
     _roi,
     _stripes,
     _truth,
+    check_pixel_size,
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
@@ -204,6 +206,9 @@ class Capture:
             fit uses every valid value, also those of a pixel clipped in other shifts.
         clipped: bool [P, H, W, C], True where a value was masked as saturated or clipped
             (finite): the joint fit treats these as censored from above.
+        floored: bool [P, H, W, C], True where a value sits at a floor it may have been
+            clamped at (a pile-up at a channel's lowest raw value): the fit masks these
+            as censored from below where the capture shows read noise; or ``None``.
         black_level: b, or ``None`` when unknown.
         roi: (x0, y0, x1, y1) of the medium in the full frame, or ``None``.
         pixel_size_mm: pixel pitch, or ``None``.
@@ -260,6 +265,7 @@ class Capture:
     brackets: Brackets | None = None
     exposure: np.ndarray | None = None
     fit_options: dict[str, Any] = dataclasses.field(default_factory=dict)
+    floored: np.ndarray | None = None
 
     @property
     def n_images(self) -> int:
@@ -316,6 +322,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     roi = _roi(top, width, height)
     black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
+    try:
+        check_pixel_size(pixel_size)
+    except ValueError as e:
+        top.fail("pixel_size_mm", str(e).split(": ", 1)[1])
     saturation = _positive(top, "saturation") if merged is None else None
     geometry = _geometry(top)
     truth = _truth(top, n_channels)
@@ -387,6 +397,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         exposure = brackets.exposure[:, y0:y1, x0:x1]
         notes.append(brackets.summary())
     samples = ~(nonfinite | saturated)
+    floored = _floored(raw, samples, frames, names, notes)
     mask = np.all(samples, axis=0)
     if not mask.any():  # an error, not warnings and then an error: the cause goes with it
         masked = issues[first_mask_issue:]
@@ -430,6 +441,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         mask=mask,
         sample_mask=samples,
         clipped=saturated,
+        floored=floored,
         black_level=black_level,
         roi=roi,
         pixel_size_mm=pixel_size,

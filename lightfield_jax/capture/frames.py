@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from lightfield_jax.capture.io import (
     read_npy_stack,
 )
 from lightfield_jax.capture.keys import _AUX_FRAMES
+from lightfield_jax.inverse.data import floor_pileup
 
 
 def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
@@ -62,18 +64,22 @@ def _distinct_files(top: _Section, base: Path) -> None:
     if isinstance(images, list):
         roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
     roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
-    seen: dict[Path, str] = {}
+    seen: dict[Any, str] = {}
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
             continue  # not a path: _file names its key
         path = base / value
         with contextlib.suppress(OSError):
             path = path.resolve()
+        ident: Any = path
+        with contextlib.suppress(OSError):  # one file under two names (a hard link)
+            st = os.stat(path)
+            ident = (st.st_dev, st.st_ino)
         # A stripe image listed twice is left to the phases' checks.
-        both_images = key.startswith("images[") and seen.get(path, "").startswith("images[")
-        if path in seen and not both_images:
-            top.fail(key, f"{value} is also {seen[path]}: one file cannot be both")
-        seen.setdefault(path, key)
+        both_images = key.startswith("images[") and seen.get(ident, "").startswith("images[")
+        if ident in seen and not both_images:
+            top.fail(key, f"{value} is also {seen[ident]}: one file cannot be both")
+        seen.setdefault(ident, key)
 
 
 def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
@@ -311,3 +317,33 @@ def _saturated(
             f"{_masked(hit)} (set saturation: to change the threshold)"
         )
     return hit
+
+
+def _floored(
+    raw: np.ndarray,
+    usable: np.ndarray,
+    frames: Sequence[ImageData],
+    names: Sequence[str],
+    notes: list[str],
+) -> np.ndarray:
+    """[P, H, W, C] True where a raw value (among the ``usable`` ones) sits at a floor it
+    was clamped at (:func:`~lightfield_jax.inverse.data.floor_pileup`, per channel: a
+    16-bit file or a camera's black subtraction cut the dark values' noise at 0);
+    notes what was found."""
+    out = np.zeros(raw.shape, bool)
+    levels = {}
+    for c in range(raw.shape[-1]):
+        here = floor_pileup(raw[..., c], usable[..., c])
+        if here.any():
+            out[..., c] = here
+            levels[_channel_name(frames, c)] = float(raw[..., c][here][0])
+    if levels:
+        per = out.sum(axis=(1, 2, 3))
+        listed = ", ".join(f"{n}: {int(k)}" for n, k in zip(names, per, strict=True) if k)
+        at = ", ".join(f"{c} {v:g}" for c, v in levels.items())
+        notes.append(
+            f"{int(out.sum())} pixel value(s) sit at their channel's lowest ({at}; {listed}): "
+            "a floor they were clamped at where the capture shows read noise (the fit then "
+            "masks them, and the values its answer puts within 3 sigma of it)"
+        )
+    return out

@@ -9,6 +9,8 @@ import dataclasses
 import math
 from typing import Any
 
+import numpy as np
+
 from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _at_most, _Section, brief
 from lightfield_jax.capture.detect import Geometry
 from lightfield_jax.capture.io import CaptureError
@@ -196,6 +198,22 @@ def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | 
             f"{width}, 0 <= y0, y0 + 2 <= y1 <= {height} (x1, y1 exclusive)",
         )
     return (x0, y0, x1, y1)
+
+
+# A pixel's pitch in mm, from 1 nm to 1 m: outside it, a slip (a value in m or µm
+# given as mm) or a value that overflows the per-mm coefficients.
+PIXEL_SIZE_MM = (1e-6, 1e3)
+
+
+def check_pixel_size(value, key: str = "pixel_size_mm") -> None:
+    """Refuse a pixel pitch outside :data:`PIXEL_SIZE_MM` (``None``: none given)."""
+    lo, hi = PIXEL_SIZE_MM
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+        raise ValueError(f"{key}: must be a number of mm, got {value!r}")
+    if not lo <= value <= hi:
+        raise ValueError(f"{key}: must lie in [{lo:g}, {hi:g}] mm, got {value!r}")
 
 
 def _positive(top: _Section, key: str) -> float | None:

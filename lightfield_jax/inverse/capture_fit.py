@@ -7,8 +7,9 @@ gathered in a :class:`CaptureFit`.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -102,23 +103,39 @@ def fit_capture(
     if opts.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
         opts = dataclasses.replace(opts, geometry=geometry)
+    for c in chosen:  # a dark channel, before any fit runs
+        i = names.index(c)
+        images = np.asarray(capture.images[..., i])
+        valid = np.broadcast_to(_channel_mask(capture, i), images.shape) & np.isfinite(images)
+        if not np.any(images[valid] > 0):
+            raise ValueError(
+                f"channel {c}: no light (no valid value above 0)"
+                + (
+                    f"; fit the others alone (channel: in the capture file, --channel on "
+                    f"the command line): {', '.join(x for x in chosen if x != c)}"
+                    if len(chosen) > 1
+                    else ""
+                )
+            )
     floor = _capture_floor(capture, [names.index(c) for c in chosen], opts)
     for c in chosen:
         i = names.index(c)
-        result = _fit_one(
-            capture.images[..., i],
-            capture.pattern,
-            opts,
-            (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
-            # Per value: a pixel clipped in some shifts keeps its others. The capture
-            # masked saturated values in raw units already (before the dark frame).
-            mask=_channel_mask(capture, i),
-            clipped=_channel(capture, "clipped", i),
-            black_level=capture.black_level,
-            pixel_size_mm=capture.pixel_size_mm,
-            exposure=_channel(capture, "exposure", i),
-            floor=floor,
-        )
+        with _naming(c, chosen):
+            result = _fit_one(
+                capture.images[..., i],
+                capture.pattern,
+                opts,
+                (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
+                # Per value: a pixel clipped in some shifts keeps its others. The capture
+                # masked saturated values in raw units already (before the dark frame).
+                mask=_channel_mask(capture, i),
+                clipped=_channel(capture, "clipped", i),
+                floored=_channel(capture, "floored", i),
+                black_level=capture.black_level,
+                pixel_size_mm=capture.pixel_size_mm,
+                exposure=_channel(capture, "exposure", i),
+                floor=floor,
+            )
         results.append(result)
         if len(chosen) > 1:
             say(f"[{c}] {_one_line(result)}")
@@ -127,6 +144,26 @@ def fit_capture(
             # serves every channel whose need it covers.
             floor = _at_least(floor, _model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
+
+
+@contextlib.contextmanager
+def _naming(channel: str, chosen) -> Iterator[None]:
+    """A channel's error names the channel (the others may fit alone)."""
+    try:
+        yield
+    except ValueError as e:
+        if len(chosen) < 2:
+            raise
+        others = ", ".join(c for c in chosen if c != channel)
+        message = (
+            f"channel {channel}: {e} (the other channels, {others}, can be fitted alone: "
+            "channel: in the capture file, --channel on the command line)"
+        )
+        try:
+            named = type(e)(message)
+        except TypeError:  # an error type with other arguments
+            named = ValueError(message)
+        raise named from e
 
 
 def _channel_mask(capture, i: int) -> np.ndarray:

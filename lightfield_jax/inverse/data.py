@@ -18,7 +18,7 @@ import numpy as np
 
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
-from lightfield_jax.inverse.trust import MIN_ALONG
+from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:
@@ -43,6 +43,8 @@ class FitData:
             ``saturation`` given, or else a pixel's clipped value itself (after the dark
             frame and the flat field: one level per pixel) and the median clipped value
             for pixels never clipped; ``None`` where nothing was clipped.
+        floor_level: ``(P, h, w)``, the same for values clamped at a floor (censored
+            from below: :func:`floor_pileup`), or ``None`` where none was.
         direct: the separated direct image D, ``(h, w)`` (or the given split's).
         multiple: the separated multiple-scattering image M, ``(h, w)``.
         sigma_t0: σt (per pixel) from the decay of D, and ``sigma_t0_err`` its 1σ.
@@ -66,6 +68,7 @@ class FitData:
     samples: np.ndarray | None = None
     clipped: np.ndarray | None = None
     clip_level: np.ndarray | None = None
+    floor_level: np.ndarray | None = None
 
     @property
     def valid(self) -> np.ndarray:
@@ -87,6 +90,7 @@ class FitData:
             samples=None if self.samples is None else self.samples[:, y0:y1, x0:x1],
             clipped=None if self.clipped is None else self.clipped[:, y0:y1, x0:x1],
             clip_level=None if self.clip_level is None else self.clip_level[:, y0:y1, x0:x1],
+            floor_level=None if self.floor_level is None else self.floor_level[:, y0:y1, x0:x1],
         )
 
     @property
@@ -106,11 +110,14 @@ def prepare_data(
     split=None,
     exposure=None,
     clipped=None,
+    floored=None,
 ) -> FitData:
     """One channel's :class:`FitData` over the whole image (see :func:`fit_images` for
     the arguments). Raises ``ValueError`` for images of the wrong shape, a ``split`` of
     another shape, or a decay that gives no usable σt. ``clipped``: values (like
-    ``images``) a capture masked as saturated, besides those at ``saturation``."""
+    ``images``) a capture masked as saturated, besides those at ``saturation``;
+    ``floored``: values a capture found clamped at a floor (``None``: found here, by
+    :func:`floor_pileup`)."""
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     given = np.asarray(images)
@@ -143,16 +150,20 @@ def prepare_data(
         and saturation > 0
     ):
         raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
-    samples, censored = valid_values(images, mask, saturation, clipped)
-    level = _clip_level(images, censored & finite, saturation)
+    samples, censored, floored = valid_values(images, pattern, mask, saturation, clipped, floored)
+    top = censored & ~floored & finite
+    level = _clip_level(images, top, saturation)
+    floor_level = _clip_level(images, floored & finite, None, low=True)
     pixels = np.all(samples, axis=0)  # valid in every shift
     if not pixels.any():
         causes = [f"{int((~finite).sum())} non-finite"]
         if mask is not None:
             masked = ~np.broadcast_to(np.asarray(mask, bool), finite.shape)
             causes.append(f"{int(masked.sum())} by mask")
-        if censored.any():
-            causes.append(f"{int(censored.sum())} at or above saturation (clipped)")
+        if (censored & ~floored).any():
+            causes.append(f"{int((censored & ~floored).sum())} at or above saturation (clipped)")
+        if floored.any():
+            causes.append(f"{int(floored.sum())} clamped at the floor {images[floored].min():g}")
         raise ValueError(
             f"images: no pixel is valid in every one of the {images.shape[0]} shifts (values "
             f"masked: {', '.join(causes)} of {images.size}): the separation and the decay "
@@ -197,13 +208,23 @@ def prepare_data(
         else samples,
         clipped=censored if censored.any() else None,
         clip_level=level,
+        floor_level=floor_level,
     )
 
 
-def valid_values(images: np.ndarray, mask=None, saturation=None, clipped=None):
-    """``(valid, censored)``, like ``images``: the values a fit may use (finite, inside
-    ``mask``, per pixel or per value, and not censored), and the censored ones (flagged
-    ``clipped``, or at or above ``saturation``)."""
+def valid_values(
+    images: np.ndarray,
+    pattern: Stripes,
+    mask=None,
+    saturation=None,
+    clipped=None,
+    floored=None,
+):
+    """``(valid, censored, floored)``, like ``images``: the values a fit may use (finite,
+    inside ``mask``, per pixel or per value, and not censored), the censored ones
+    (flagged ``clipped``, at or above ``saturation``, or clamped at a floor) and those
+    clamped at a floor: ``floored`` (``None``: found by :func:`floor_pileup`), where
+    an additive noise could have taken them below it (:func:`_cut`)."""
     valid = np.isfinite(images)
     if mask is not None:
         valid &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
@@ -211,17 +232,71 @@ def valid_values(images: np.ndarray, mask=None, saturation=None, clipped=None):
     if saturation is not None:
         with np.errstate(invalid="ignore"):
             censored = censored | (images >= saturation)
-    return valid & ~censored, censored
+    usable = valid & ~censored
+    if floored is None:
+        floored = floor_pileup(images, usable)
+    floored = np.asarray(floored, bool) & usable
+    if floored.any() and not _cut(images, usable & ~floored, usable, pattern):
+        floored = np.zeros(images.shape, bool)
+    censored = censored | floored
+    return valid & ~censored, censored, floored
 
 
-def _clip_level(images: np.ndarray, clipped: np.ndarray, saturation) -> np.ndarray | None:
-    """:attr:`FitData.clip_level` of ``images`` whose ``clipped`` values the clip took."""
+def _cut(images, above: np.ndarray, usable: np.ndarray, pattern: Stripes) -> bool:
+    """Whether values at a floor were cut there: the capture shows an additive noise that
+    could take values below it, as values above the floor that vary continuously (its
+    200 lowest nearly all distinct) or as read noise (:func:`~lightfield_jax.inverse.
+    trust.noise_floor`). Counts of shot noise alone (a lattice of values) cannot fall
+    below 0: their zeros are measured, not cut."""
+    lowest = np.sort(images[above])[:200]
+    if lowest.size and np.unique(lowest).size > 0.9 * lowest.size:
+        return True
+    return noise_floor(images, np.all(usable, axis=0), pattern) is not None
+
+
+# Values clamped at a floor: a 16-bit file, or a camera's black subtraction, cut the
+# read noise of dark values at 0, which keeps the values its noise pushed up and sets
+# the others to the floor (censored from below: the same bias as a clip's, upward). Found
+# as a pile-up: at least FLOOR_MIN and FLOOR_SHARE of the finite values equal their
+# lowest exactly, more than equal the next value up (the tail of a quantised noise has
+# fewer at its lowest code), and that lowest is dark (at most FLOOR_DARK of the largest).
+FLOOR_MIN = 16
+FLOOR_SHARE = 0.01
+FLOOR_DARK = 0.02
+
+
+def floor_pileup(values: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """True where a value of ``values`` sits at a floor it was clamped at (see above),
+    judged among the finite values where ``among`` is true (all where ``None``)."""
+    values = np.asarray(values)
+    use = np.isfinite(values) if among is None else np.isfinite(values) & among
+    finite = values[use]
+    none = np.zeros(values.shape, bool)
+    if finite.size == 0:
+        return none
+    low, high = float(finite.min()), float(finite.max())
+    at = use & (values == low)
+    n = int(at.sum())
+    if n < max(FLOOR_MIN, FLOOR_SHARE * finite.size) or low > FLOOR_DARK * max(high, 0.0):
+        return none
+    above = finite[finite > low]
+    if above.size and int(np.sum(above == above.min())) >= n:
+        return none
+    return at
+
+
+def _clip_level(
+    images: np.ndarray, clipped: np.ndarray, saturation, low: bool = False
+) -> np.ndarray | None:
+    """:attr:`FitData.clip_level` of ``images`` whose ``clipped`` values the clip took
+    (``low``: :attr:`FitData.floor_level` of those clamped at a floor)."""
     if not clipped.any():
         return None
     if saturation is not None:
         return np.full(images.shape, float(saturation))
-    values = np.where(clipped, images, -np.inf)
-    own = np.max(values, axis=0)  # a pixel's clipped value (its shifts share its level)
+    values = np.where(clipped, images, np.inf if low else -np.inf)
+    # a pixel's clipped value (its shifts share its level)
+    own = np.min(values, axis=0) if low else np.max(values, axis=0)
     typical = float(np.median(images[clipped]))
     return np.broadcast_to(np.where(np.isfinite(own), own, typical), images.shape).copy()
 

@@ -47,6 +47,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
@@ -100,6 +101,7 @@ def fit_images(
             ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
+    check_pixel_size(pixel_size_mm)
     return _fit_one(
         images,
         pattern,
@@ -128,10 +130,12 @@ def _fit_one(
     exposure=None,
     floor: _Model | None = None,
     clipped=None,
+    floored=None,
 ) -> FitResult:
     """:func:`fit_images` with a ``floor``: the smallest model to use (its crop, θ bins,
     refinement, bounces), so that the channels of a capture share compiled programs;
-    ``clipped``: the values a capture masked as saturated (:func:`prepare_data`)."""
+    ``clipped`` and ``floored``: the values a capture masked as saturated and as clamped
+    at a floor (:func:`prepare_data`)."""
     if as_geometry(options.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,
@@ -145,6 +149,7 @@ def _fit_one(
             split=split,
             exposure=exposure,
             clipped=clipped,
+            floored=floored,
         )
     # The plane is None from here on; the slab's 3-D Henyey–Greenstein is normalised on
     # the sphere (ρ = ω): its phase convention is "normalized".
@@ -169,6 +174,7 @@ def _fit_one(
         split=split,
         exposure=exposure,
         clipped=clipped,
+        floored=floored,
     )
     # A first model. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ) sizes the bounces (with
     # margin: the separation biases M low).
@@ -268,8 +274,13 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     plane = fit_with(None)
     data = np.asarray(images, np.float64)
     # Pixels valid in every shift, as the fit's own data has them.
-    valid, _ = valid_values(
-        data, kwargs.get("mask"), kwargs.get("saturation"), kwargs.get("clipped")
+    valid, _, _ = valid_values(
+        data,
+        pattern,
+        kwargs.get("mask"),
+        kwargs.get("saturation"),
+        kwargs.get("clipped"),
+        kwargs.get("floored"),
     )
     keep = np.all(valid, axis=0)
     model, _ = fitted_images(plane, pattern, data.shape[-2:])

@@ -676,18 +676,25 @@ CLIP_SIGMAS = 3.0
 CENSOR_MOST = 0.25
 
 
-def near_the_clip(data: _Data, fitted: np.ndarray, sigma: np.ndarray) -> np.ndarray | None:
+def near_the_clip(
+    data: _Data, fitted: np.ndarray, sigma: np.ndarray, floor: bool | None = None
+) -> np.ndarray | None:
     """The valid values of ``data`` whose ``fitted`` light plus ``CLIP_SIGMAS`` times
     their noise ``sigma`` reaches the clip's level there (``data.clip_level``, per
-    value), or ``None`` where none does, nothing was clipped or the noise is unknown."""
-    if data.clip_level is None:  # nothing was clipped
-        return None
-    if np.shape(fitted) != data.clip_level.shape:
-        raise ValueError(
-            f"near_the_clip: fitted {np.shape(fitted)} against {data.clip_level.shape}"
-        )
-    with np.errstate(invalid="ignore"):
-        risk = data.valid & (fitted + CLIP_SIGMAS * sigma >= data.clip_level)
+    value), or minus that reaches the floor's (``data.floor_level``: values clamped
+    from below), or ``None`` where none does, nothing was clipped or the noise is
+    unknown. ``floor``: only the floor's (``True``) or only the clip's (``False``)."""
+    risk = np.zeros(data.valid.shape, bool)
+    for level, low in ((data.clip_level, False), (data.floor_level, True)):
+        if level is None or floor is (not low):  # nothing was clipped there, or not asked
+            continue
+        if np.shape(fitted) != level.shape:
+            raise ValueError(f"near_the_clip: fitted {np.shape(fitted)} against {level.shape}")
+        with np.errstate(invalid="ignore"):
+            if low:
+                risk |= data.valid & (fitted - CLIP_SIGMAS * sigma <= level)
+            else:
+                risk |= data.valid & (fitted + CLIP_SIGMAS * sigma >= level)
     return risk if risk.any() else None
 
 
@@ -721,21 +728,31 @@ def joint_fit(problem, options: FitOptions, say):
 
     model, seconds, values, last = run(problem.data)
     noise = values["budget"].noise
-    risk = None
-    if math.isfinite(noise):
-        risk = near_the_clip(
-            problem.data, last.values["gain"] * last.unit, _stage_sigma(last, noise)
-        )
-    if risk is None:
+    if not math.isfinite(noise):
         return model, seconds, values
     data = problem.data
-    n, left = int(risk.sum()), int(data.valid.sum())
-    record = {"values_near_clip": n, "sigmas": CLIP_SIGMAS}
-    if n > CENSOR_MOST * left:
-        say(f"  {n} of {left} values near the clip: not masked (more than {CENSOR_MOST:.0%})")
+    fitted, sigma = last.values["gain"] * last.unit, _stage_sigma(last, noise)
+    top = near_the_clip(data, fitted, sigma, floor=False)
+    low = near_the_clip(data, fitted, sigma, floor=True)
+    if top is None and low is None:
+        return model, seconds, values
+    left = int(data.valid.sum())
+    n_top = 0 if top is None else int(top.sum())
+    n_low = 0 if low is None else int(low.sum())
+    record = {"values_near_clip": n_top, "values_near_floor": n_low, "sigmas": CLIP_SIGMAS}
+    if n_top > CENSOR_MOST * left:
+        say(f"  {n_top} of {left} values near the clip: not masked (more than {CENSOR_MOST:.0%})")
         values["model_dict"]["censoring"] = {**record, "refit": "skipped: too many"}
         return model, seconds, values
-    say(f"  {n} value(s) within {CLIP_SIGMAS:g} sigma of the clip (censored): masked, solved again")
+    risk = np.zeros(data.valid.shape, bool)
+    for part in (top, low):
+        if part is not None:
+            risk |= part
+    n = int(risk.sum())
+    say(
+        f"  {n} value(s) within {CLIP_SIGMAS:g} sigma of the clip or the floor (censored): "
+        "masked, solved again"
+    )
     valid = data.valid & ~risk
     censored = dataclasses.replace(
         data, images=np.where(valid, data.images, 0.0), mask=np.all(valid, axis=0), samples=valid

@@ -52,10 +52,15 @@ def _solver(options: FitOptions, dtype):
 
 
 def _result_message(result) -> tuple[bool, str]:
+    """(converged, what the solver said): its message's first sentence, on one line
+    (optimistix's run to several lines of advice for its own users)."""
     ok = bool(result == optx.RESULTS.successful)
     if ok:
         return True, "converged"
-    return False, str(optx.RESULTS[result]) if hasattr(optx.RESULTS, "__getitem__") else "failed"
+    if not hasattr(optx.RESULTS, "__getitem__"):
+        return False, "failed"
+    text = " ".join(str(optx.RESULTS[result]).split())
+    return False, text.split(". ")[0].rstrip(".") or "failed"
 
 
 def _renderer(model: _Model, illumination, phase: str):
