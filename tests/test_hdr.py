@@ -276,3 +276,15 @@ def test_dim_pixels_merge_without_bias(signal):
     # The merged mean is the truth within 4 standard errors of the longest exposure.
     sem = np.sqrt(signal / 20000.0 + read**2 + 1 / 12 / 65535**2) / np.sqrt(n)
     assert abs(merged.mean() - signal) < 4 * sem, (merged.mean(), signal, sem)
+
+
+def test_a_shift_clipped_in_every_exposure_is_named(radiance, tmp_path):
+    """Before: 'no usable pixel: every pixel is non-finite or saturated in some image',
+    naming neither the shift nor its files."""
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=False)
+    for j in range(len(TIMES)):  # every exposure of the third shift clips
+        write_png(tmp_path / f"shift2_{j}.png", np.ones(radiance.shape[1:]), bits=8)
+    with pytest.raises(
+        CaptureError, match=r"every pixel is clipped in every exposure of images\[2\] \(shift2_"
+    ):
+        load_capture(path)

@@ -202,6 +202,24 @@ def test_a_dark_channel_is_named_before_any_fit(capture, capsys, monkeypatch):
     _refused(capsys, "fit", capture / "capture.yaml", match="channel B: no light")
 
 
+@pytest.mark.parametrize(
+    ("pattern", "match"),
+    [
+        ({"period": 8}, "pattern.period: 8 contradicts the images, whose stripes repeat every 6"),
+        ({"period": 3, "lit": 1}, "pattern.period: 3 contradicts"),
+        ({"direction_deg": -30.0}, "pattern.direction_deg: -30 contradicts the images"),
+    ],
+)
+def test_a_pattern_the_images_contradict_is_refused(capture, capsys, pattern, match):
+    """Before: a wrong period (phases given) or direction passed inspect; the fit ran for
+    minutes (3.5 for the direction) and ended 'not converged' without naming it."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    spec = {**data["pattern"], **pattern}
+    spec["phases"] = [p % spec["period"] for p in range(6)]
+    _edit(capture, pattern=spec)
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
 def test_unwritable_output_locations_are_refused_before_the_work(capture, capsys, tmp_path):
     # /proc refuses new files even to the superuser (a read-only folder does not).
     line = _refused(

@@ -401,6 +401,13 @@ def test_mixed_bit_depths_are_refused(tmp_path):
         load_capture(tmp_path / "capture.yaml")
     (tmp_path / "capture.yaml").write_text(f"images: [a.png, a.png]\ndark_frame: c.exr\n{STRIPES}")
     load_capture(tmp_path / "capture.yaml")
+    # Float images with an integer dark frame: [0, 1]-scaled codes against the images'
+    # own units (before: taken). A flat field's units do not matter: taken.
+    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c.exr]\ndark_frame: a.png\n{STRIPES}")
+    with pytest.raises(CaptureError, match=r"dark_frame: a\.png is 16-bit integer .* 32-bit float"):
+        load_capture(tmp_path / "capture.yaml")
+    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c.exr]\nflat_field: a.png\n{STRIPES}")
+    load_capture(tmp_path / "capture.yaml")
 
 
 def test_12_bit_data_in_16_bit_files_is_clipped_at_4095(tmp_path):

@@ -94,6 +94,7 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
     def amplitude(period):
         return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
+    _check_period(top, pattern, stack, amplitude)
     stripes = amplitude(pattern.period)
     with np.errstate(divide="ignore", invalid="ignore"):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
@@ -108,6 +109,8 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
                 f"{r:.2g} times the other images'): a white or black frame listed as a "
                 "stripe image? (give it as white_frame or black_frame)",
             )
+    if len(names) >= 2:
+        _check_direction_seen(top, pattern, images, (x0, y0, x1, y1), dark)
     if phases_from == "auto" or len(names) < 2:
         return None
     try:
@@ -133,6 +136,69 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
     if phases_from == "default":
         return f"pattern.phases (absent: the default) {message}"
     top.fail("pattern.phases", message)
+
+
+# A given period contradicts the images where their stripes' strongest period differs
+# from it by more than PERIOD_OFF and the given one's stripe amplitude is below
+# PERIOD_WEAK of that one's (a stripe pattern's harmonics are weaker than its
+# fundamental: a half or a double period has little amplitude; a small capture cannot
+# tell 6 from 8 px apart better than 0.47, measured on 24 rows).
+PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
+# A given direction contradicts the images where the stripes' measured heading differs
+# from it by more than DIRECTION_OFF degrees and DIRECTION_SIGMAS standard errors,
+# measured with confidence at least DIRECTION_SURE (and their period found within 2 %:
+# a capture whose stripes are not seen got a heading of 71 deg ± 0.01 with 0.62).
+DIRECTION_OFF, DIRECTION_SIGMAS, DIRECTION_SURE = 5.0, 5.0, 0.5
+
+
+def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
+    """Refuse a ``pattern.period`` the images' stripes do not have, where they show
+    clear stripes of another period (between 2 px and a third of the wall)."""
+    n = stack.shape[-2]
+    longest = n / 3.0
+    if longest <= 2.0:
+        return
+    periods = 1.0 / np.linspace(1.0 / longest, 0.5, 400)
+    power = [float(np.median(amplitude(p))) for p in periods]
+    best = float(periods[int(np.argmax(power))])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        seen = np.median(amplitude(best) / amplitude(1.5 * best)) >= _STRIPED
+        weak = np.median(amplitude(pattern.period)) < PERIOD_WEAK * max(power)
+    if seen and weak and abs(best / pattern.period - 1.0) > PERIOD_OFF:
+        top.fail(
+            "pattern.period",
+            f"{pattern.period} contradicts the images, whose stripes repeat every "
+            f"{best:.2f} px across the {pattern.entry} wall (measured); correct it",
+        )
+
+
+def _check_direction_seen(top, pattern: Stripes, images, roi, dark) -> None:
+    """Refuse a ``pattern.direction_deg`` the stripes in the images do not run along,
+    where the stripe detector measures their heading with confidence."""
+    try:
+        found = detect_geometry(
+            images,
+            period=pattern.period,
+            lit=pattern.lit,
+            floor=None if dark is None else 0.0,
+            roi=roi,
+            entry=pattern.entry,
+        )
+    except ValueError:
+        return  # stripes too faint to measure: nothing to compare
+    off = abs((found.direction_deg - pattern.direction_deg + 180.0) % 360.0 - 180.0)
+    # Sure of the heading, and of stripes of the period (noise can fit a heading too).
+    sure = (
+        found.parts.get("direction", 0.0) >= DIRECTION_SURE
+        and found.parts.get("period", 0.0) >= _SURE_PHASES
+    )
+    if sure and off > max(DIRECTION_OFF, DIRECTION_SIGMAS * found.direction_stderr_deg):
+        top.fail(
+            "pattern.direction_deg",
+            f"{pattern.direction_deg:g} contradicts the images, whose stripes run at "
+            f"{found.direction_deg:.1f} ± {found.direction_stderr_deg:.1f} deg (measured by "
+            "the stripe detector); correct it, or set it to auto",
+        )
 
 
 def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:

@@ -60,7 +60,8 @@ _MOSAIC_LOG_RATIO = math.log(1.1)
 
 def check_sample_formats(frames: Sequence[tuple[str, ImageData]], aux) -> None:
     """Every image has the first image's sample format; an integer calibration frame
-    (dark, black, white, flat) has it too (a float one is taken as given).
+    (dark, black, white) has it too (a float one is taken as given; a flat field's
+    units do not matter).
 
     ``frames`` and ``aux`` are (key, image) pairs; raises :class:`CaptureError` whose
     message names the keys, files and formats (without the capture file)."""
@@ -78,11 +79,14 @@ def check_sample_formats(frames: Sequence[tuple[str, ImageData]], aux) -> None:
                 "images would not share units: write every image in one format"
             )
     for key, image in aux:
-        if image.is_integer and first.is_integer and image.bit_depth != first.bit_depth:
+        # A flat field is divided by its own median: its units never matter.
+        other = not first.is_integer or image.bit_depth != first.bit_depth
+        if image.is_integer and other and key != "flat_field":
             raise CaptureError(
                 f"{key}: {image.path.name} is {fmt(image)} but the images are {fmt(first)}; "
                 "a calibration frame must share the images' format (or be float, in the "
-                "images' units after scaling to [0, 1])"
+                "images' units after scaling to [0, 1]): integer samples are scaled by "
+                "their type's maximum, float ones are taken as they are"
             )
 
 

@@ -57,7 +57,8 @@ Keys:
   by its median, and every image is divided by it. Pixels where it is not positive
   are masked.
   Calibration frames (dark, black, white, flat) have the images' size and one channel
-  or as many as the images, and an integer one the images' bit depth.
+  or as many as the images; an integer dark, black or white frame has the images'
+  integer format (with float images: a float frame).
 - ``black_level``: b in [0, 1): a dark stripe emits b times a lit one (docs/model.md
   section 5). Absent: unknown (a joint fit may estimate it).
 - ``medium_roi``: [x0, y0, x1, y1] in pixels, x1 and y1 exclusive: the medium's
@@ -393,7 +394,15 @@ def load_capture(path: str | os.PathLike) -> Capture:
     exposure = None
     if merged is not None:
         x0, y0, x1, y1 = roi or (0, 0, width, height)
-        saturated |= brackets.clipped_shifts[:, y0:y1, x0:x1] & ~nonfinite
+        clipped = brackets.clipped_shifts[:, y0:y1, x0:x1] & ~nonfinite
+        saturated |= clipped
+        whole = [i for i in range(len(frames)) if np.all(clipped[i] | nonfinite[i])]
+        if whole:
+            issues.append(
+                "every pixel is clipped in every exposure of "
+                + ", ".join(f"images[{i}] ({names[i]})" for i in whole)
+                + ": take shorter exposures"
+            )
         exposure = brackets.exposure[:, y0:y1, x0:x1]
         notes.append(brackets.summary())
     samples = ~(nonfinite | saturated)

@@ -114,6 +114,9 @@ class Inspection:
             wall = "at the entry wall"
             if start >= _MASKED_WALL_PX:
                 wall = f"from s = {start:.0f} px (the wall's pixels are masked: clipped?)"
+            if not peak > 0:  # nothing to measure (problems() says why)
+                lines.append(f"[{name}] no direct light (D peak {peak:.4g})")
+                continue
             lines.append(
                 f"[{name}] D peak {peak:.4g}, M/D {wall} {ratio:.3f}; SNR of D "
                 f"{snr0:.0f} nearest the wall, >= {SNR_USABLE:g} up to s = {self.reach[i]:.0f} px "

@@ -277,7 +277,9 @@ def floor_pileup(values: np.ndarray, among: np.ndarray | None = None) -> np.ndar
     low, high = float(finite.min()), float(finite.max())
     at = use & (values == low)
     n = int(at.sum())
-    if n < max(FLOOR_MIN, FLOOR_SHARE * finite.size) or low > FLOOR_DARK * max(high, 0.0):
+    if n < max(FLOOR_MIN, FLOOR_SHARE * finite.size) or not low <= FLOOR_DARK * high:
+        return none  # too few, or no light above the floor (high <= 0: a dark channel)
+    if not high > low:
         return none
     above = finite[finite > low]
     if above.size and int(np.sum(above == above.min())) >= n:
