@@ -176,7 +176,7 @@ def test_clipped_captures_reduced(tmp_path):
     summary = run_experiment(CONFIGS / "clipped_captures.yaml", tmp_path, reduced=True)["summary"]
     _files(tmp_path, summary)
     rows = {r["mask"]: r for r in summary["rows"]}
-    assert set(rows) == {"pixel", "value"}
+    assert set(rows) == {"pixel", "value", "floor"}
     for row in rows.values():
         assert row["converged"] == row["fits"] == 1
         assert row["values_clipped"] > row["pixels_clipped"] > 0

@@ -12,6 +12,7 @@ and written as 16-bit TIFF (through the template of ``lightfield-jax pattern``) 
 import dataclasses
 import json
 import math
+import re
 import subprocess
 import sys
 import warnings
@@ -375,6 +376,18 @@ def test_flat_field_divides_the_images_and_masks_bad_pixels(tmp_path):
     write_exr(tmp_path / "flat.exr", {"Y": np.zeros((16, 20))})
     with pytest.raises(CaptureError, match=r"flat_field: flat\.exr is not positive in 100%"):
         load_capture(tmp_path / "capture.yaml")
+    # A flat field clipped at its top code measures no vignetting there (before: taken,
+    # and those pixels divided by a wrong flat, without a word).
+    bright = np.minimum(1.05 * vignette, 1.0)
+    write_png(tmp_path / "flat.png", bright, bits=16)
+    (tmp_path / "capture.yaml").write_text(
+        f"images: {names}\nflat_field: flat.png\npattern: {{phases: [0, 2, 4]}}\n"
+    )
+    with pytest.warns(CaptureWarning) as caught:
+        c = load_capture(tmp_path / "capture.yaml")
+    said = " ".join(str(w.message) for w in caught)
+    assert re.search(r"flat_field: \d+ pixel value\(s\) of flat\.png sit at its top code", said)
+    np.testing.assert_array_equal(c.mask[..., 0], bright < 1.0)
 
 
 # -------------------------------------------------------------------------- raw files

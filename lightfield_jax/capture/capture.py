@@ -343,7 +343,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     sensor = None if saturation is not None else sensor_top_code(raw, frames)
     dark = aux["dark_frame"]
     dark_pixels = None if dark is None else dark.pixels
-    flat_pixels = _flat(top, aux["flat_field"], dark_pixels)
+    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues)
 
     overview = _calibrate(np.mean(raw, axis=0), dark_pixels, flat_pixels)
     calibrated = _calibrate(raw, dark_pixels, flat_pixels)

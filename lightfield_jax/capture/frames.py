@@ -156,12 +156,30 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
     return frame
 
 
-def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None):
+def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None, issues: list[str]):
     """The flat field, dark frame subtracted, divided by its median: NaN where it is
-    not positive (those pixels are masked)."""
+    not positive or where it was clipped (its top code, or many float values equal to
+    its largest: the vignetting there is not measured; those pixels are masked)."""
     if flat is None:
         return None
-    f = flat.pixels if dark is None else flat.pixels - dark
+    raw = flat.pixels
+    finite = raw[np.isfinite(raw)]
+    clipped = np.zeros(raw.shape, bool)
+    if finite.size:
+        largest = float(finite.max())
+        at_top = raw == largest
+        if flat.is_integer and largest >= 1.0:
+            clipped = at_top
+        elif not flat.is_integer and at_top.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
+            clipped = at_top
+    if clipped.any():
+        issues.append(
+            f"flat_field: {int(clipped.sum())} pixel value(s) of {flat.path.name} sit at its "
+            f"{'top code' if flat.is_integer else 'largest value'} (clipped: the vignetting "
+            "there is not measured); those pixels are masked"
+        )
+    f = raw if dark is None else raw - dark
+    f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
         top.fail(
