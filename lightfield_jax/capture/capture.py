@@ -390,7 +390,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         checked.append((aux["flat_field"], flat_pixels))
     first_mask_issue = len(issues)
     nonfinite = _nonfinite(raw, checked, names, issues)
-    saturated = _saturated(raw, frames, names, saturation, sensor, issues) & ~nonfinite
+    saturated = _saturated(raw, frames, names, saturation, sensor, issues, merged is None)
+    saturated &= ~nonfinite
     exposure = None
     if merged is not None:
         x0, y0, x1, y1 = roi or (0, 0, width, height)

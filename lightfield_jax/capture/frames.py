@@ -272,10 +272,13 @@ def _saturated(
     saturation: float | None,
     sensor: tuple[float, int] | None,
     notes: list[str],
+    find_plateau: bool = True,
 ) -> np.ndarray:
     """[P, H, W, C] True where a raw image's value is saturated (>= saturation) or
     clipped (at the top code of an integer frame, or of the sensor's bits in a 16-bit
-    file, when no saturation is given); notes what was found."""
+    file, when no saturation is given; with ``find_plateau``, a float frame's many values
+    equal to its largest); notes what was found. Merged exposure brackets flag their
+    own clipped samples (no plateau: their merged values are radiances)."""
     with np.errstate(invalid="ignore"):
         if saturation is not None:
             hit = raw >= saturation
@@ -283,7 +286,7 @@ def _saturated(
             integer = np.array([f.is_integer for f in frames])[:, None, None, None]
             hit = integer & (raw >= (1.0 if sensor is None else sensor[0]))
     plateau = None
-    if saturation is None:  # float frames: a clip shows as many values equal to the top
+    if saturation is None and find_plateau:  # float frames: a clip shows as many values at the top
         floating = np.array([not f.is_integer for f in frames])
         tops, at_top = {}, np.zeros(raw.shape, bool)
         for c in range(raw.shape[-1]):  # per channel: a white balance scales each clip
