@@ -623,7 +623,7 @@ def test_dark_values_clamped_at_zero_are_censored_from_below(tmp_path):
 
 
 def test_a_floor_is_a_pile_up_at_the_lowest_value_not_a_tail():
-    from lightfield_jax.inverse.data import FLOOR_MIN, floor_pileup, prepare_data
+    from lightfield_jax.inverse.data import FLOOR_MIN, floor_pileup, prepare_data, valid_values
 
     rng = np.random.default_rng(0)
     values = rng.normal(0.0, 1.0, (6, 20, 30)) + np.linspace(0, 40, 30)
@@ -642,6 +642,12 @@ def test_a_floor_is_a_pile_up_at_the_lowest_value_not_a_tail():
     assert not floor_pileup(np.maximum(values, 30.0)).any()
     few = np.where(values == values.min(), 0.0, values + 1.0)
     assert np.sum(few == 0) < FLOOR_MIN and not floor_pileup(few).any()
+    # A noiseless render's decay flushed to 0 below float32's smallest normal number is
+    # a pile-up, but nothing was cut there: no floor.
+    decay = np.exp(-np.linspace(0.0, 95.0, 48)) * (1 + 1e-3 * rng.random((6, 32, 48)))
+    flushed = np.where(decay < np.finfo(np.float32).tiny, 0.0, decay)
+    assert floor_pileup(flushed).sum() >= FLOOR_MIN
+    assert not valid_values(flushed, lfj.Stripes())[2].any()
     # prepare_data masks them and records their level where the capture shows read
     # noise; a given ``floored`` overrides. Zeros of shot noise alone are measured, not
     # cut (nothing falls below 0 without an additive noise): they stay.

@@ -249,8 +249,14 @@ def _cut(images, above: np.ndarray, usable: np.ndarray, pattern: Stripes) -> boo
     trust.noise_floor`). Counts of shot noise alone (a lattice of values) cannot fall
     below 0: their zeros are measured, not cut."""
     lowest = np.sort(images[above])[:200]
-    if lowest.size and np.unique(lowest).size > 0.9 * lowest.size:
-        return True
+    if lowest.size >= 20 and np.unique(lowest).size > 0.9 * lowest.size:
+        # Continuous, and spread like a noise above the floor (over a few of its σ,
+        # linearly), not over decades like a noiseless render's decay, nor within
+        # float underflow (a render's zeros flushed from 1e-38: the same light).
+        low, high = np.percentile(lowest - lowest[0], [10, 90])
+        peak = float(np.max(images[usable]))
+        if 1e-9 * peak <= high <= 100 * max(low, np.finfo(np.float64).tiny):
+            return True
     return noise_floor(images, np.all(usable, axis=0), pattern) is not None
 
 
