@@ -113,17 +113,8 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
         _check_direction_seen(top, pattern, images, (x0, y0, x1, y1), dark)
     if phases_from == "auto" or len(names) < 2:
         return None
-    try:
-        found = detect_geometry(
-            images,
-            period=pattern.period,
-            lit=pattern.lit,
-            floor=None if dark is None else 0.0,
-            roi=(x0, y0, x1, y1),
-            entry=pattern.entry,
-            direction_deg=pattern.direction_deg,
-        )
-    except ValueError:
+    found = _measured(images, pattern, (x0, y0, x1, y1), dark, pattern.direction_deg)
+    if found is None:
         return None  # stripes too faint to measure: nothing to compare
     sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
     if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
@@ -172,19 +163,29 @@ def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
         )
 
 
-def _check_direction_seen(top, pattern: Stripes, images, roi, dark) -> None:
-    """Refuse a ``pattern.direction_deg`` the stripes in the images do not run along,
-    where the stripe detector measures their heading with confidence."""
+def _measured(images, pattern: Stripes, roi, dark, direction_deg) -> Geometry | None:
+    """What the stripe detector measures in the full-frame ``images`` inside ``roi``,
+    for the pattern's period, lit rows and entry wall (``direction_deg`` given, or
+    ``None``: measured); ``None`` where the stripes are too faint to measure."""
     try:
-        found = detect_geometry(
+        return detect_geometry(
             images,
             period=pattern.period,
             lit=pattern.lit,
             floor=None if dark is None else 0.0,
             roi=roi,
             entry=pattern.entry,
+            direction_deg=direction_deg,
         )
     except ValueError:
+        return None
+
+
+def _check_direction_seen(top, pattern: Stripes, images, roi, dark) -> None:
+    """Refuse a ``pattern.direction_deg`` the stripes in the images do not run along,
+    where the stripe detector measures their heading with confidence."""
+    found = _measured(images, pattern, roi, dark, None)
+    if found is None:
         return  # stripes too faint to measure: nothing to compare
     off = abs((found.direction_deg - pattern.direction_deg + 180.0) % 360.0 - 180.0)
     # Sure of the heading, and of stripes of the period (noise can fit a heading too).
