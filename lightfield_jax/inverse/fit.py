@@ -90,7 +90,11 @@ def fit_images(
         black_level: the projector's dark-stripe level relative to a lit stripe, or
             ``None`` (unknown: ``joint`` estimates it, the two-step methods assume 0).
         saturation: value at or above which a sample is clipped: masked like ``mask``'s
-            per-sample ``False``.
+            per-sample ``False``. Values clamped at a floor (a pile-up at the images'
+            lowest value where a noise could have cut there: a 16-bit file, a camera's
+            black subtraction) are found and masked alike; near a clip or a floor the
+            joint fit also masks the values its answer puts within 3σ of it and solves
+            again (``model["censoring"]``; docs/model.md §6).
         pixel_size_mm: to report coefficients in mm⁻¹ as well.
         options: :class:`FitOptions`; keyword ``overrides`` replace its fields.
         progress: called with a short description of each stage.
