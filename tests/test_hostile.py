@@ -722,7 +722,11 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
         ({"start_grid": 0}, "fit: start_grid: must be at least 3, got 0"),
         ({"tolerance": 0.0}, "fit: tolerance: must lie in (0, 1), got 0.0"),
         ({"crop_fraction": 5.0}, "fit: crop_fraction: must lie in [0, 1)"),
-        ({"rtol": -1.0}, "fit: rtol: must be a finite number >= 0 or None, got -1.0"),
+        ({"rtol": -1.0}, "fit: rtol: must lie in [0, 0.01] or be None, got -1.0"),
+        # Looser tolerances stopped the solver at its start: the scan's start point was
+        # reported as a converged answer, sigma_t 38 sigma off.
+        ({"atol": 0.1}, "fit: atol: must lie in [0, 0.01] or be None, got 0.1"),
+        ({"bounces": 10**9}, "fit: bounces: at most 10000 bounces are marched"),
         ({"max_chi2": 0.0}, "fit: max_chi2: must be > 0, got 0.0"),
         (
             {"bounces": 20, "tail": "gmres"},
@@ -751,6 +755,14 @@ def test_fit_options_refuse_out_of_range_values():
         {"n_theta": 12},
         {"refine": 9},
         {"max_chi2": float("nan")},
+        # Before: accepted, then a deep TypeError at fit time, or the process aborted
+        # inside XLA (a static extent overflowing int64).
+        {"g_grid": 3.5},
+        {"max_basins": "x"},
+        {"basin_tolerance": "x"},
+        {"tail_bounces": 10**9},
+        {"start": 0.03},
+        {"start": (float("inf"), 0.4)},
     ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             FitOptions(**bad)
@@ -1052,3 +1064,38 @@ def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, cap
     deep = tmp_path / "deep.json"
     deep.write_text("[" * 100_000 + "]" * 100_000)
     _refused(capsys, "render", deep, "--out", tmp_path / "v", match=f"{deep}: nested too deeply")
+
+
+def test_api_values_that_broke_deep_inside_are_refused_by_name():
+    """Before: a Medium stored g = 0.99999999 as 1.0 in float32 (NaN renders), 1e39 as
+    inf; render took gain NaN or -1 silently; fit_images(exposure=) of another shape
+    raised an IndexError inside the fit, and negative times were fitted."""
+    import jax
+
+    with jax.enable_x64(False):  # the package's default float32 (the tests run x64)
+        with pytest.raises(ValueError, match="medium.g: 0.99999999 rounds to"):
+            lfj.Medium(0.2, 0.01, 0.99999999)
+        with pytest.raises(ValueError, match="medium.sigma_t: 1e[+]39 overflows"):
+            lfj.Medium(1e39, 0.1, 0.3)
+        with pytest.raises(ValueError, match="medium.sigma_t: 1e-300 underflows"):
+            lfj.Medium(1e-300, 0.0, 0.3)
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 16, 8, 1)
+    for gain in (float("nan"), -1.0, "2", np.ones(3)):
+        with pytest.raises(ValueError, match="render: gain: must"):
+            lfj.render(medium, grid, lfj.Stripes(), 4, gain=gain)
+    images = np.ones((6, 8, 16))
+    for exposure in (np.ones(3), -np.ones(images.shape)):
+        with pytest.raises(ValueError, match="exposure: must"):
+            lfj.fit_images(images, lfj.Stripes(), exposure=exposure)
+
+
+def test_a_wrong_entry_wall_is_refused_before_the_fit():
+    """Before: Stripes(entry='right') on a capture lit from the left ran for minutes (a
+    start at sigma_s 1e-7, g 0.9, then the model g 0.9 needs) and did not finish."""
+    images = np.asarray(
+        lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(48, 24, 8, 1), lfj.Stripes(), 6).total
+    )
+    with pytest.raises(
+        ValueError, match="pattern.entry: the direct light grows away from the right"
+    ):
+        lfj.fit_images(images, lfj.Stripes(entry="right"))

@@ -15,6 +15,7 @@ import math
 import warnings
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -209,6 +210,10 @@ def render(
     stops before its tolerance gives ``tail_converged=False`` and a
     :class:`~lightfield_jax.forward.tail.TailNotConvergedWarning`.
     """
+    if isinstance(gain, (bool, str, bytes)) or np.ndim(gain) != 0:
+        raise ValueError(f"render: gain: must be a positive number, got {gain!r}")
+    if not isinstance(gain, jax.core.Tracer) and not 0.0 < float(gain) <= 1e30:
+        raise ValueError(f"render: gain: must lie in (0, 1e30], got {gain!r}")
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     converges = bool(rho < 1.0)

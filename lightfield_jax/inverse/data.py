@@ -11,6 +11,7 @@ alike (never in place).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
@@ -138,6 +139,15 @@ def prepare_data(
             f"light's decay and the noise's 4th differences)"
         )
     finite = np.isfinite(images)
+    if exposure is not None:
+        t = np.asarray(exposure)
+        if t.dtype.kind not in "iuf" or t.shape != images.shape:
+            raise ValueError(
+                f"exposure: must be real numbers of the images' shape {images.shape}, got "
+                f"{t.dtype} of shape {t.shape}"
+            )
+        if not np.all(np.isfinite(t) & (t > 0)):
+            raise ValueError("exposure: must be finite and > 0 (seconds) everywhere")
     if mask is not None and np.shape(mask) not in (images.shape, images.shape[1:]):
         raise ValueError(
             f"mask: must have the images' (height, width) {images.shape[1:]} (a pixel valid "
@@ -184,6 +194,7 @@ def prepare_data(
                 f"split: direct and multiple must have the images' shape {images.shape[1:]}, "
                 f"got {direct.shape} and {multiple.shape}"
             )
+    _check_entry(direct, pixels, pattern)
     decay = fit_decay(
         direct,
         direction_deg=pattern.direction_deg,
@@ -210,6 +221,32 @@ def prepare_data(
         clip_level=level,
         floor_level=floor_level,
     )
+
+
+# The direct light decays from the entry wall: where the third of the medium farthest
+# from the given wall holds more than ENTRY_GROWTH times the direct light of the third
+# nearest it, the light entered through another wall.
+ENTRY_GROWTH = 2.0
+
+
+def _check_entry(direct: np.ndarray, pixels: np.ndarray, pattern: Stripes) -> None:
+    """Refuse a ``pattern.entry`` the direct image grows away from (a wrong wall: the
+    fit would run for minutes on light it cannot model)."""
+    d = np.where(pixels, direct, np.nan)
+    profile = d if pattern.along_x else d.T  # (across, along)
+    if pattern.entry in ("right", "bottom"):
+        profile = profile[:, ::-1]
+    third = max(profile.shape[1] // 3, 1)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # an all-masked third: no test
+        near = np.nanmean(profile[:, :third])
+        far = np.nanmean(profile[:, -third:])
+    if np.isfinite(near) and np.isfinite(far) and far > ENTRY_GROWTH * max(near, 0.0):
+        raise ValueError(
+            f"pattern.entry: the direct light grows away from the {pattern.entry} wall "
+            f"(mean {near:.3g} in the third of the medium nearest it, {far:.3g} in the "
+            "farthest): the light enters through another wall"
+        )
 
 
 def valid_values(

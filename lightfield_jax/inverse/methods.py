@@ -53,7 +53,13 @@ def check_solver(solver, key: str = "solver") -> None:
 
 def check_start(start, key: str = "start") -> None:
     """Refuse a joint start that is not (σs > 0, |g| < 1)."""
-    if start is not None and not (len(start) == 2 and start[0] > 0 and abs(start[1]) < 1):
+    if start is None:
+        return
+    try:
+        ss, g = (float(v) for v in start)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {start!r}") from None
+    if not (0 < ss < math.inf and abs(g) < 1):
         raise ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {start!r}")
 
 

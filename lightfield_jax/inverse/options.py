@@ -23,6 +23,12 @@ from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
 
+# The most bounces a fit marches (each bounce's images are kept: memory), and the
+# loosest solver tolerance (looser ones stop the solve where it starts).
+MAX_BOUNCES = 10_000
+MAX_TOLERANCE = 0.01
+
+
 @dataclasses.dataclass(frozen=True)
 class FitOptions:
     """Settings of a fit (all optional).
@@ -147,11 +153,16 @@ class FitOptions:
             raise ValueError(
                 f"tail_max_steps: must be an integer >= 1, got {self.tail_max_steps!r}"
             )
-        if self.g_grid < 3:
-            raise ValueError(f"g_grid: must be at least 3, got {self.g_grid!r}")
-        if self.max_basins < 1:
-            raise ValueError(f"max_basins: must be at least 1, got {self.max_basins!r}")
-        if not self.basin_tolerance >= 0:
+        for name, least in (("g_grid", 3), ("max_basins", 1)):
+            value = getattr(self, name)
+            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+            if not (integer and value >= least):
+                raise ValueError(f"{name}: must be an integer >= {least}, got {value!r}")
+        if not (
+            isinstance(self.basin_tolerance, (int, float, np.number))
+            and not isinstance(self.basin_tolerance, bool)
+            and self.basin_tolerance >= 0
+        ):
             raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
         if not isinstance(self.correction_renders, int) or self.correction_renders < 1:
             raise ValueError(
@@ -183,6 +194,14 @@ class FitOptions:
             )
         if self.bounces != "auto" and not (is_int(self.bounces) and self.bounces >= 1):
             raise ValueError(f"bounces: must be an integer >= 1 or 'auto', got {self.bounces!r}")
+        for name in ("bounces", "tail_bounces", "max_bounces"):
+            value = getattr(self, name)
+            if is_int(value) and value > MAX_BOUNCES:
+                raise ValueError(
+                    f"{name}: at most {MAX_BOUNCES} bounces are marched (every image of each "
+                    f"is kept; a longer series gets the tail: bounces: auto), got {value!r}"
+                )
+
         if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
             raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")
         check_n_theta(self.n_theta, "n_theta")
@@ -200,8 +219,12 @@ class FitOptions:
             )
         for name in ("rtol", "atol"):
             value = getattr(self, name)
-            if value is not None and not (is_number(value) and 0.0 <= value < math.inf):
-                raise ValueError(f"{name}: must be a finite number >= 0 or None, got {value!r}")
+            if value is not None and not (is_number(value) and 0.0 <= value <= MAX_TOLERANCE):
+                # Looser, Levenberg-Marquardt stops at its start (measured: rtol = atol =
+                # 0.1 returned the scan's start point, sigma_t 38 sigma off, "converged").
+                raise ValueError(
+                    f"{name}: must lie in [0, {MAX_TOLERANCE:g}] or be None, got {value!r}"
+                )
         if not (is_number(self.max_chi2) and self.max_chi2 > 0):
             raise ValueError(f"max_chi2: must be > 0, got {self.max_chi2!r}")
 

@@ -102,6 +102,22 @@ class Medium(eqx.Module):
                 )
         if "g" in concrete and np.any(np.abs(concrete["g"]) >= 1.0):
             raise ValueError(f"medium.g: must satisfy -1 < g < 1, got {g!r}")
+        # The values are stored in JAX's float dtype (float32 unless x64 is on): checked
+        # there too (g = 0.99999999 became 1.0, sigma_t = 1e39 inf, 1e-300 zero: NaN
+        # renders or errors deep inside).
+        work = np.dtype(jnp.result_type(float))
+        with np.errstate(over="ignore"):
+            stored = {name: value.astype(work) for name, value in concrete.items()}
+        for name, value in stored.items():
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"medium.{name}: {given[name]!r} overflows {work}")
+        if "sigma_t" in stored and float(np.min(stored["sigma_t"])) < np.finfo(work).tiny:
+            raise ValueError(
+                f"medium.sigma_t: {sigma_t!r} underflows {work} (at least "
+                f"{np.finfo(work).tiny:.3g} per pixel)"
+            )
+        if "g" in stored and np.any(np.abs(stored["g"]) >= 1.0):
+            raise ValueError(f"medium.g: {g!r} rounds to +-1 in {work}; must satisfy -1 < g < 1")
         self.sigma_t = jnp.asarray(sigma_t, dtype=jnp.result_type(float))
         self.sigma_s = jnp.asarray(sigma_s, dtype=jnp.result_type(float))
         self.g = jnp.asarray(g, dtype=jnp.result_type(float))
