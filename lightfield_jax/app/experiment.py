@@ -263,6 +263,8 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     small = data.pop("reduced", None) or {}
     if not isinstance(small, dict):
         raise ValueError(f"{path}: reduced: must be a mapping of overrides")
+    if reduced and not small:  # else a full run would be recorded as a reduced one
+        raise ValueError(f"{path}: --reduced: this config has no reduced: section to apply")
     if reduced:
         unknown = sorted(set(small) - set(data))
         if unknown:
