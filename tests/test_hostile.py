@@ -1099,3 +1099,30 @@ def test_a_wrong_entry_wall_is_refused_before_the_fit():
         ValueError, match="pattern.entry: the direct light grows away from the right"
     ):
         lfj.fit_images(images, lfj.Stripes(entry="right"))
+
+
+def test_simulate_publishes_nothing_when_its_figures_fail(capsys, tmp_path, monkeypatch):
+    """Before: --out was published, then the figures failed (light at 87 deg: no pixel
+    on its path, a numpy error), exit 2 with the output left behind. The figures of that
+    scene are now drawn; a failure in them publishes neither folder."""
+    cfg = tmp_path / "obl.yaml"
+    cfg.write_text(
+        "grid: {width: 24, height: 16}\nmedium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}\n"
+        "illumination: {kind: full, direction_deg: 87}\n"
+    )
+    status, _, err = _run(
+        capsys, "simulate", cfg, "--out", tmp_path / "o", "--plot", tmp_path / "f"
+    )
+    assert status == 0, err
+    assert (tmp_path / "f" / "bounce_profiles.png").is_file()
+    from lightfield_jax.capture import views
+
+    def broken(*_args, **_kwargs):
+        raise ValueError("a figure failed")
+
+    monkeypatch.setattr(views, "plot_simulation", broken)
+    status, _, _ = _run(
+        capsys, "simulate", cfg, "--out", tmp_path / "o2", "--plot", tmp_path / "f2"
+    )
+    assert status != 0
+    assert not (tmp_path / "o2").exists() and not (tmp_path / "f2").exists()

@@ -84,13 +84,15 @@ def _simulate(args: argparse.Namespace) -> None:
     with _progress(args, "simulate") as stage:
         sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
         stage("write files")
+        # The figures are drawn inside the output's staging: a failure publishes neither.
         with atomic_directory(out) as staging:
             files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
-        if plot is not None:
-            from lightfield_jax.capture.views import plot_simulation
+            if plot is not None:
+                from lightfield_jax.capture.views import plot_simulation
 
-            with atomic_directory(plot) as staging:
-                figures, notes = plot_simulation(sim, staging, stage=stage)
+                with atomic_directory(plot) as figures_staging:
+                    figures, notes = plot_simulation(sim, figures_staging, stage=stage)
+        if plot is not None:
             for note in notes:
                 _warn(args, note)
             _say(args, f"wrote {', '.join(figures)} to {plot}")

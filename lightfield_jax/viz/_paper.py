@@ -125,6 +125,8 @@ def light_path_coordinates(
 def _profile(image: np.ndarray, s: np.ndarray, mask: np.ndarray, bin_width: float):
     """(bin centres, mean of image over the masked pixels in each bin of s)."""
     sv, iv = s[mask], image[mask]
+    if sv.size == 0:  # no pixel on the path (light nearly along the wall): nothing to draw
+        return np.zeros(0), np.zeros(0)
     edges = np.arange(np.floor(sv.min()), sv.max() + bin_width, bin_width)
     idx = np.clip(np.digitize(sv, edges) - 1, 0, len(edges) - 2)
     total = np.bincount(idx, iv, minlength=len(edges) - 1)
@@ -306,12 +308,17 @@ def plot_bounce_profiles(
     ax_abs.set_ylabel(f"mean intensity ({_UNITS}, log scale)")
     ax_abs.set_title("bounce profiles (mean over the pixels on the light's path)", fontsize=10)
     ax_abs.grid(True, which="both", alpha=0.3)
-    ax_abs.legend(fontsize=8, ncol=2)
     ax_norm.set_xlabel("distance along the light s (px)")
     ax_norm.set_ylabel("intensity / its peak")
     ax_norm.set_title("each normalised to its peak (dotted: peak position)", fontsize=10)
     ax_norm.grid(True, alpha=0.3)
-    ax_norm.legend(fontsize=8)
+    if sel.any():
+        ax_abs.legend(fontsize=8, ncol=2)
+        ax_norm.legend(fontsize=8)
+    else:  # light nearly along the wall: no pixel is wholly lit through it
+        ax_abs.text(
+            0.5, 0.5, "no pixel on the light's path", transform=ax_abs.transAxes, ha="center"
+        )
     fig.suptitle(title or f"Decay of each bounce along the light {where}", fontsize=11)
     return _finish(fig, path)
 
