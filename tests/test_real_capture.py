@@ -388,6 +388,12 @@ def test_flat_field_divides_the_images_and_masks_bad_pixels(tmp_path):
     said = " ".join(str(w.message) for w in caught)
     assert re.search(r"flat_field: \d+ pixel value\(s\) of flat\.png sit at its top code", said)
     np.testing.assert_array_equal(c.mask[..., 0], bright < 1.0)
+    # A perfectly flat float flat field is no clip: its one level is taken.
+    write_exr(tmp_path / "flat.exr", {"Y": np.ones((16, 20))})
+    (tmp_path / "capture.yaml").write_text(
+        f"images: {names}\nflat_field: flat.exr\npattern: {{phases: [0, 2, 4]}}\n"
+    )
+    assert load_capture(tmp_path / "capture.yaml").mask.all()
 
 
 # -------------------------------------------------------------------------- raw files

@@ -163,15 +163,11 @@ def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None, issues
     if flat is None:
         return None
     raw = flat.pixels
-    finite = raw[np.isfinite(raw)]
-    clipped = np.zeros(raw.shape, bool)
-    if finite.size:
-        largest = float(finite.max())
-        at_top = raw == largest
-        if flat.is_integer and largest >= 1.0:
-            clipped = at_top
-        elif not flat.is_integer and at_top.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
-            clipped = at_top
+    if flat.is_integer:
+        clipped = raw >= 1.0  # its top code
+    else:
+        clipped = _float_clip(raw)
+        clipped = np.zeros(raw.shape, bool) if clipped is None else clipped
     if clipped.any():
         issues.append(
             f"flat_field: {int(clipped.sum())} pixel value(s) of {flat.path.name} sit at its "
@@ -265,6 +261,22 @@ CLIPPED_SHARE = 0.01
 CLIPPED_MIN = 16
 
 
+def _float_clip(values: np.ndarray) -> np.ndarray | None:
+    """Where float ``values`` equal their largest, positive value, where that is a clip:
+    at least ``CLIPPED_MIN`` and ``CLIPPED_SHARE`` of them equal it exactly, among
+    measured (noisy, nearly all distinct) values; ``None`` where it is not (a synthetic
+    image of a few levels, or a perfectly flat frame, is not clipped at its top)."""
+    finite = values[np.isfinite(values)]
+    top = float(np.max(finite)) if finite.size else 0.0
+    if top <= 0:
+        return None
+    here = values == top
+    measured = np.unique(finite).size > 0.5 * finite.size
+    if measured and here.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
+        return here
+    return None
+
+
 def _saturated(
     raw: np.ndarray,
     frames: Sequence[ImageData],
@@ -291,17 +303,10 @@ def _saturated(
         tops, at_top = {}, np.zeros(raw.shape, bool)
         for c in range(raw.shape[-1]):  # per channel: a white balance scales each clip
             values = raw[floating][..., c]
-            finite = values[np.isfinite(values)]
-            top = float(np.max(finite)) if finite.size else 0.0
-            if top <= 0:
-                continue
-            here = floating[:, None, None] & (raw[..., c] == top)
-            # Measured (noisy) values are nearly all distinct; a synthetic image of a
-            # few levels is not clipped where its brightest level is flat.
-            measured = np.unique(finite).size > 0.5 * finite.size
-            if measured and here.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
-                tops[_channel_name(frames, c)] = top
-                at_top[..., c] = here
+            here = _float_clip(values)
+            if here is not None:
+                tops[_channel_name(frames, c)] = float(values[here][0])
+                at_top[floating, :, :, c] = here
         if tops:
             plateau = (tops, at_top)
             hit = hit | at_top
