@@ -108,15 +108,8 @@ def fit_capture(
         images = np.asarray(capture.images[..., i])
         valid = np.broadcast_to(_channel_mask(capture, i), images.shape) & np.isfinite(images)
         if not np.any(images[valid] > 0):
-            raise ValueError(
-                f"channel {c}: no light (no valid value above 0)"
-                + (
-                    f"; fit the others alone (channel: in the capture file, --channel on "
-                    f"the command line): {', '.join(x for x in chosen if x != c)}"
-                    if len(chosen) > 1
-                    else ""
-                )
-            )
+            with _naming(c, chosen):
+                raise ValueError(f"channel {c}: no light (no valid value above 0)")
     floor = _capture_floor(capture, [names.index(c) for c in chosen], opts)
     for c in chosen:
         i = names.index(c)
@@ -155,9 +148,12 @@ def _naming(channel: str, chosen) -> Iterator[None]:
         if len(chosen) < 2:
             raise
         others = ", ".join(c for c in chosen if c != channel)
+        said = str(e)
+        if not said.startswith(f"channel {channel}: "):
+            said = f"channel {channel}: {said}"
         message = (
-            f"channel {channel}: {e} (the other channels, {others}, can be fitted alone: "
-            "channel: in the capture file, --channel on the command line)"
+            f"{said} (the other channels, {others}, can be fitted alone: channel: in the "
+            "capture file, --channel on the command line)"
         )
         try:
             named = type(e)(message)

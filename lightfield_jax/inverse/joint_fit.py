@@ -744,10 +744,7 @@ def joint_fit(problem, options: FitOptions, say):
         say(f"  {n_top} of {left} values near the clip: not masked (more than {CENSOR_MOST:.0%})")
         values["model_dict"]["censoring"] = {**record, "refit": "skipped: too many"}
         return model, seconds, values
-    risk = np.zeros(data.valid.shape, bool)
-    for part in (top, low):
-        if part is not None:
-            risk |= part
+    risk = near_the_clip(data, fitted, sigma)  # both: the clip's and the floor's
     n = int(risk.sum())
     say(
         f"  {n} value(s) within {CLIP_SIGMAS:g} sigma of the clip or the floor (censored): "
