@@ -175,7 +175,7 @@ from lightfield_jax.capture.keys import (
     _roi,
     _stripes,
     _truth,
-    check_pixel_size,
+    pixel_size_problem,
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
@@ -323,10 +323,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
     roi = _roi(top, width, height)
     black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
-    try:
-        check_pixel_size(pixel_size)
-    except ValueError as e:
-        top.fail("pixel_size_mm", str(e).split(": ", 1)[1])
+    if (problem := pixel_size_problem(pixel_size)) is not None:
+        top.fail("pixel_size_mm", problem)
     saturation = _positive(top, "saturation") if merged is None else None
     geometry = _geometry(top)
     truth = _truth(top, n_channels)

@@ -205,15 +205,23 @@ def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | 
 PIXEL_SIZE_MM = (1e-6, 1e3)
 
 
-def check_pixel_size(value, key: str = "pixel_size_mm") -> None:
-    """Refuse a pixel pitch outside :data:`PIXEL_SIZE_MM` (``None``: none given)."""
+def pixel_size_problem(value) -> str | None:
+    """What is wrong with a pixel pitch (``None``: nothing, or none given)."""
     lo, hi = PIXEL_SIZE_MM
     if value is None:
-        return
+        return None
     if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-        raise ValueError(f"{key}: must be a number of mm, got {value!r}")
+        return f"must be a number of mm, got {value!r}"
     if not lo <= value <= hi:
-        raise ValueError(f"{key}: must lie in [{lo:g}, {hi:g}] mm, got {value!r}")
+        return f"must lie in [{lo:g}, {hi:g}] mm, got {value!r}"
+    return None
+
+
+def check_pixel_size(value, key: str = "pixel_size_mm") -> None:
+    """Refuse a pixel pitch outside :data:`PIXEL_SIZE_MM` (``None``: none given)."""
+    problem = pixel_size_problem(value)
+    if problem is not None:
+        raise ValueError(f"{key}: {problem}")
 
 
 def _positive(top: _Section, key: str) -> float | None:
