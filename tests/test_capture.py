@@ -504,3 +504,108 @@ def test_truth_per_channel(tmp_path):
         images=names,
         truth={**truth, "sigma_s": [0.5]},
     )
+
+
+def _srgb_capture(folder, response=None, flat=None):
+    """Three 16-bit PNGs written through the sRGB curve (with a dark frame and, where
+    given, a flat field's vignetting) and their capture file; returns the linear light."""
+    from lightfield_jax.capture.hdr import srgb_response
+
+    encode = srgb_response().encode
+    rng = np.random.default_rng(3)
+    light = rng.uniform(0.002, 0.8, (P, 16, 24))
+    dark = 0.004
+    vignetting = np.ones((16, 24)) if flat is None else flat
+    names = [f"s{i}.png" for i in range(P)]
+    for name, x in zip(names, light, strict=True):
+        write_png(folder / name, encode(x * vignetting + dark), bits=16)
+    write_png(folder / "dark.png", encode(np.full((16, 24), dark)), bits=16)
+    text = f"images: {names}\ndark_frame: dark.png\npattern: {{phases: [0, 2, 4]}}\n"
+    if flat is not None:
+        write_png(folder / "flat.png", encode(0.7 * vignetting + dark), bits=16)
+        text += "flat_field: flat.png\n"
+    if response is not None:
+        text += f"response: {response}\n"
+    return light, text
+
+
+def test_srgb_encoded_single_exposures_are_linearised(tmp_path):
+    """Phones and most cameras write sRGB-encoded files: `response: srgb` linearises the
+    codes of the images and the calibration frames before the dark frame and the flat
+    field; read as linear (the default) the same files are not the light."""
+    vignetting = np.linspace(0.8, 1.0, 24)[None, :] * np.ones((16, 1))
+    light, text = _srgb_capture(tmp_path, "srgb", flat=vignetting)
+    capture = _capture(tmp_path, text=text)
+    assert capture.response.kind == "srgb"
+    assert any(n.startswith("response: srgb: ") for n in capture.notes)
+    expected = light * np.median(vignetting)
+    np.testing.assert_allclose(capture.images[..., 0], expected, rtol=2e-3, atol=2e-5)
+    plain = _capture(tmp_path, text=text.replace("response: srgb\n", ""))
+    assert plain.response.kind == "linear"
+    assert np.max(np.abs(plain.images[..., 0] / expected - 1)) > 0.5
+
+
+def test_a_response_table_linearises_single_exposures(tmp_path):
+    from lightfield_jax.capture.hdr import srgb_response, write_response
+
+    light, text = _srgb_capture(tmp_path, "curve.csv")
+    write_response(tmp_path / "curve.csv", srgb_response(), ["Y"])
+    capture = _capture(tmp_path, text=text)
+    assert capture.response.kind == "file"
+    np.testing.assert_allclose(capture.images[..., 0], light, rtol=2e-3, atol=2e-5)
+
+
+def test_single_exposure_response_errors(tmp_path):
+    _, text = _srgb_capture(tmp_path, "auto")
+    with pytest.raises(CaptureError, match=r"response: auto recovers .* from exposure brackets"):
+        _capture(tmp_path, text=text)
+    with pytest.raises(CaptureError, match=r"response: must be linear or srgb or auto or a file"):
+        _capture(tmp_path, text=text.replace("response: auto", "response: 2.2"))
+    names = _images(tmp_path, fill=1.5, prefix="bright")
+    text = f"images: {names}\npattern: {{phases: [0, 2, 4]}}\nresponse: srgb\n"
+    with pytest.raises(CaptureError) as info:
+        _capture(tmp_path, text=text)
+    message = str(info.value)
+    assert "\n" not in message
+    assert re.search(
+        r"response: srgb maps codes in \[0, 1\], but images\[0\] \(bright0.exr\)", message
+    )
+
+
+@pytest.mark.slow
+def test_fit_of_an_srgb_encoded_8bit_capture(tmp_path):
+    """A noisy capture of the paper's milk written as 8-bit sRGB PNGs (a phone's files):
+    with `response: srgb` the fit recovers the medium; read as linear the same files are
+    reported not trustworthy, never a converged wrong answer."""
+    from lightfield_jax.capture.hdr import srgb_response
+
+    truth = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}
+    config = {
+        "grid": {"width": 48, "height": 36},
+        "medium": truth,
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+    }
+    peak = float(simulate_capture(parse_simulation_config(config)).images.max())
+    config |= {"gain": 0.9 / peak, "noise": {"photons": 2e4, "read": 5e-4, "seed": 1}}
+    images = np.asarray(simulate_capture(parse_simulation_config(config)).images)
+    names = [f"s{i}.png" for i in range(6)]
+    for name, image in zip(names, images, strict=True):
+        write_png(tmp_path / name, srgb_response().encode(np.clip(image, 0, 1)), bits=8)
+    text = f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5]}}\n"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CaptureWarning)
+        fit = capture_fit.fit_capture(_capture(tmp_path, text=text + "response: srgb\n"))
+        plain = capture_fit.fit_capture(_capture(tmp_path, text=text))
+    result = fit.results[0]
+    assert result.converged, result.reasons
+    assert abs(result.sigma_t / truth["sigma_t"] - 1) < 0.005
+    assert abs(result.sigma_s / truth["sigma_s"] - 1) < 0.02
+    assert abs(result.g - truth["g"]) < 0.01
+    assert not plain.results[0].converged
+
+
+def test_fit_capture_takes_a_path_and_refuses_other_things(tmp_path):
+    with pytest.raises(CaptureFileNotFoundError, match="missing.yaml: file not found"):
+        capture_fit.fit_capture(tmp_path / "missing.yaml")
+    with pytest.raises(TypeError, match=r"^fit_capture: expected a capture .* got int$"):
+        capture_fit.fit_capture(42)

@@ -35,9 +35,10 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     value = top.get("images")
     rows = [isinstance(v, list) for v in value] if isinstance(value, list) else []
     if not any(rows):
-        for key in ("exposure_times", "response"):
-            if key in top.data:
-                top.fail(key, "applies to bracketed images only (a list of exposures per shift)")
+        if "exposure_times" in top.data:
+            top.fail(
+                "exposure_times", "applies to bracketed images only (a list of exposures per shift)"
+            )
         return None
     if not all(rows):
         top.fail(
@@ -106,7 +107,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         levels = 1 << sensor[1]
         notes.append(f"{sensor[1]}-bit data in 16-bit files: samples divided by its top code")
     images = images / full
-    response = _response(top, base, images, times, first.pixels.shape[-1])
+    response = read_response(top, base, first.pixels.shape[-1], images, times)
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
     dark = None if dark is None else dark / full
@@ -148,17 +149,29 @@ def _exposure_times(top: _Section) -> list[float]:
     return [float(t) for t in value]
 
 
-def _response(top: _Section, base: Path, images: np.ndarray, times, n_channels: int):
-    """The inverse response: ``linear`` (default), ``auto`` (from the brackets) or a
-    table file (:func:`~lightfield_jax.capture.hdr.load_response`)."""
-    from lightfield_jax.capture.hdr import calibrate_response, load_response
+def read_response(
+    top: _Section, base: Path, n_channels: int, images: np.ndarray | None = None, times=None
+):
+    """The inverse response of the ``response`` key: ``linear`` (default), ``srgb``, a
+    table file (:func:`~lightfield_jax.capture.hdr.load_response`) or, for exposure
+    brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto``."""
+    from lightfield_jax.capture.hdr import calibrate_response, load_response, srgb_response
 
     value = top.get("response", "linear")
     if not isinstance(value, str) or not value:
         top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {value!r}")
+    if value == "auto" and images is None:
+        top.fail(
+            "response",
+            "auto recovers the camera's response from exposure brackets; with one exposure "
+            "per shift give linear, srgb or a response file (lightfield-jax inspect "
+            "--response writes one from a bracketed capture)",
+        )
     try:
         if value == "linear":
             return linear_response()
+        if value == "srgb":
+            return srgb_response()
         if value == "auto":
             p, j, h, w, c = images.shape
             pooled = np.moveaxis(images, 1, 0).reshape(j, p * h * w, c)

@@ -41,6 +41,12 @@ Keys:
   subtracted from every exposure before the merge. ``saturation`` is then the sample
   value at which a sample counts as clipped (default 0.98). The merged noise goes to the
   joint fit (``Capture.exposure``); ``Capture.brackets`` says what the merge did.
+- ``response`` with one exposure per shift: ``linear`` (default; a raw converter's
+  output), ``srgb`` (the sRGB curve of most 8-bit camera and phone files) or a table
+  file (:func:`~lightfield_jax.capture.hdr.load_response`, as ``lightfield-jax inspect
+  --response`` writes it from brackets): integer codes (and float values in [0, 1]) of
+  the images and calibration frames are mapped to linear values before the dark frame
+  and the flat field are applied; saturation and clipping are judged on the codes.
 - ``pattern``: the projected stripes (docs/model.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
@@ -140,7 +146,7 @@ from lightfield_jax.capture.auto import (
     _detect,
     _estimate_black_level,
 )
-from lightfield_jax.capture.brackets import _brackets
+from lightfield_jax.capture.brackets import _brackets, read_response
 from lightfield_jax.capture.calibration import (
     BlackLevel,
     check_not_mosaic,
@@ -159,7 +165,7 @@ from lightfield_jax.capture.frames import (
     _nonfinite,
     _saturated,
 )
-from lightfield_jax.capture.hdr import RESPONSES, Brackets
+from lightfield_jax.capture.hdr import RESPONSES, Brackets, Response
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.keys import (
     _AUX_FRAMES,
@@ -207,9 +213,11 @@ class Capture:
             fit uses every valid value, also those of a pixel clipped in other shifts.
         clipped: bool [P, H, W, C], True where a value was masked as saturated or clipped
             (finite): the joint fit treats these as censored from above.
-        floored: bool [P, H, W, C], True where a value sits at a floor it may have been
-            clamped at (a pile-up at a channel's lowest raw value): the fit masks these
-            as censored from below where the capture shows read noise; or ``None``.
+        floored: bool [P, H, W, C], True where a value sits at a floor it was clamped at
+            (a pile-up at a channel's lowest raw value: an integer file's lowest code, or
+            a float frame's lowest value where the images show an additive noise that
+            could have taken values below it): the fit masks these as censored from below;
+            or ``None``.
         black_level: b, or ``None`` when unknown.
         roi: (x0, y0, x1, y1) of the medium in the full frame, or ``None``.
         pixel_size_mm: pixel pitch, or ``None``.
@@ -233,6 +241,8 @@ class Capture:
         black_frame, white_frame, flat_field: the files given for these keys, or ``None``.
         brackets: what merging exposure brackets did (:mod:`lightfield_jax.capture.hdr`), or
             ``None`` for single exposures.
+        response: a single exposure's inverse response (``response`` key: ``linear``,
+            ``srgb`` or a table file), ``None`` for brackets (``brackets.response``).
         exposure: the merged images' effective exposure T (seconds) [P, H, W, C] after
             the ROI crop (their noise: Var ∝ image / T), or ``None``.
         fit_options: the file's ``fit:`` settings (:class:`~lightfield_jax.FitOptions`
@@ -267,6 +277,7 @@ class Capture:
     exposure: np.ndarray | None = None
     fit_options: dict[str, Any] = dataclasses.field(default_factory=dict)
     floored: np.ndarray | None = None
+    response: Response | None = None
 
     @property
     def n_images(self) -> int:
@@ -333,18 +344,30 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
+    response = None if merged is not None else read_response(top, base, n_channels)
+    linear = _linearizer(top, response, raw, names)
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
-            "8-bit images: 256 levels quantise the light's decay, and cameras usually "
-            "write 8-bit files gamma-encoded (not linear); prefer 16-bit linear output"
+            "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
+            + (
+                " (cameras usually write 8-bit files sRGB-encoded: give response: srgb if "
+                "these are)"
+                if linear is None and merged is None
+                else ""
+            )
+        )
+    if linear is not None:
+        notes.append(
+            f"response: {top.get('response')}: the images and calibration frames were "
+            "linearised with it before the dark frame was subtracted"
         )
     sensor = None if saturation is not None else sensor_top_code(raw, frames)
     dark = aux["dark_frame"]
     dark_pixels = None if dark is None else dark.pixels
-    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues)
+    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, linear)
 
-    overview = _calibrate(np.mean(raw, axis=0), dark_pixels, flat_pixels)
-    calibrated = _calibrate(raw, dark_pixels, flat_pixels)
+    calibrated = _calibrate(raw, dark_pixels, flat_pixels, linear)
+    overview = np.mean(calibrated, axis=0)
     _check_light(top, calibrated, dark)
     detected = None
     if AUTO in (roi, spec["phases"], spec["entry"], spec["direction_deg"]):
@@ -354,7 +377,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             spec,
             roi,
             calibrated,
-            None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels),
+            None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels, linear),
             dark_subtracted=dark is not None or bool(merged and "dark_frame" in top.data),
         )
         notes.append("detected: " + detected.summary().replace("\n", "; "))
@@ -405,7 +428,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
         exposure = brackets.exposure[:, y0:y1, x0:x1]
         notes.append(brackets.summary())
     samples = ~(nonfinite | saturated)
-    floored = _floored(raw, samples, frames, names, notes)
     mask = np.all(samples, axis=0)
     if not mask.any():  # an error, not warnings and then an error: the cause goes with it
         masked = issues[first_mask_issue:]
@@ -423,13 +445,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if contradiction:
         notes.append(contradiction)
     del calibrated
-    images = _calibrate(raw, dark_pixels, flat_pixels)
+    images = _calibrate(raw, dark_pixels, flat_pixels, linear)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)
+    floored = _floored(raw, samples, frames, names, notes, images, pattern)
 
     estimate = None
     if black_level == AUTO:
         frames_used = {
-            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels)
+            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels, linear)
             for k in ("black_frame", "white_frame")
             if k in calibration_frames
         }
@@ -476,7 +499,32 @@ def load_capture(path: str | os.PathLike) -> Capture:
         flat_field=None if aux["flat_field"] is None else aux["flat_field"].path,
         brackets=None if merged is None else brackets,
         exposure=exposure,
+        response=response,
     )
+
+
+def _linearizer(top, response, raw: np.ndarray, names):
+    """``raw`` codes (or a calibration frame's) to linear values by a single exposure's
+    ``response``; ``None`` for a linear one. Codes must lie in [0, 1] (a float image's
+    too: the curve is not defined beyond)."""
+    if response is None or response.kind == "linear":
+        return None
+    for i, image in enumerate(raw):
+        finite = image[np.isfinite(image)]
+        if finite.size and (finite.min() < 0 or finite.max() > 1):
+            top.fail(
+                "response",
+                f"{top.get('response')} maps codes in [0, 1], but images[{i}] ({names[i]}) "
+                f"has values in [{finite.min():g}, {finite.max():g}]: not codes of a curve "
+                "(give response: linear for linear images)",
+            )
+    n_channels = raw.shape[-1]
+
+    def linear(a: np.ndarray) -> np.ndarray:
+        a = np.broadcast_to(a, (*a.shape[:-1], n_channels))
+        return response.linearize(a).astype(raw.dtype, copy=False)
+
+    return linear
 
 
 def capture_files(path: str | os.PathLike) -> list[Path]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,7 @@ from lightfield_jax.capture.io import (
     read_npy_stack,
 )
 from lightfield_jax.capture.keys import _AUX_FRAMES
-from lightfield_jax.inverse.data import floor_pileup
+from lightfield_jax.inverse.data import floor_is_cut, floor_pileup
 
 
 def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
@@ -156,10 +156,17 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
     return frame
 
 
-def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None, issues: list[str]):
+def _flat(
+    top: _Section,
+    flat: ImageData | None,
+    dark: np.ndarray | None,
+    issues: list[str],
+    linear: Callable[[np.ndarray], np.ndarray] | None = None,
+):
     """The flat field, dark frame subtracted, divided by its median: NaN where it is
     not positive or where it was clipped (its top code, or many float values equal to
-    its largest: the vignetting there is not measured; those pixels are masked)."""
+    its largest: the vignetting there is not measured; those pixels are masked).
+    ``linear`` maps codes to linear values (a single exposure's ``response``)."""
     if flat is None:
         return None
     raw = flat.pixels
@@ -174,7 +181,7 @@ def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None, issues
             f"{'top code' if flat.is_integer else 'largest value'} (clipped: the vignetting "
             "there is not measured); those pixels are masked"
         )
-    f = raw if dark is None else raw - dark
+    f = _calibrate(raw, dark, None, linear)
     f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
@@ -186,8 +193,17 @@ def _flat(top: _Section, flat: ImageData | None, dark: np.ndarray | None, issues
     return np.where(good, f / np.median(f[good]), np.nan)
 
 
-def _calibrate(a: np.ndarray, dark: np.ndarray | None, flat: np.ndarray | None) -> np.ndarray:
-    """(a − dark) / flat: the images (or a calibration frame) in linear units."""
+def _calibrate(
+    a: np.ndarray,
+    dark: np.ndarray | None,
+    flat: np.ndarray | None,
+    linear: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> np.ndarray:
+    """(a − dark) / flat: the images (or a calibration frame) in linear units; codes
+    first mapped by ``linear`` (a single exposure's ``response``) where given."""
+    if linear is not None:
+        a = linear(a)
+        dark = None if dark is None else linear(dark)
     if dark is not None:
         a = a - dark
     return a if flat is None else a / flat
@@ -351,25 +367,36 @@ def _floored(
     frames: Sequence[ImageData],
     names: Sequence[str],
     notes: list[str],
+    images: np.ndarray,
+    pattern,
 ) -> np.ndarray:
     """[P, H, W, C] True where a raw value (among the ``usable`` ones) sits at a floor it
     was clamped at (:func:`~lightfield_jax.inverse.data.floor_pileup`, per channel: a
     16-bit file or a camera's black subtraction cut the dark values' noise at 0);
-    notes what was found."""
+    notes what was found. Integer codes were cut there by the file or the camera (their
+    lowest code holds every value the noise or the quantisation put below it); float
+    frames only where the calibrated ``images`` show an additive noise that could have
+    taken values below it (:func:`~lightfield_jax.inverse.data.floor_is_cut`)."""
     out = np.zeros(raw.shape, bool)
-    levels = {}
+    integer = all(f.is_integer for f in frames)
     for c in range(raw.shape[-1]):
         here = floor_pileup(raw[..., c], usable[..., c])
-        if here.any():
+        if here.any() and (
+            integer or floor_is_cut(images[..., c], usable[..., c] & ~here, usable[..., c], pattern)
+        ):
             out[..., c] = here
-            levels[_channel_name(frames, c)] = float(raw[..., c][here][0])
+    levels = {
+        _channel_name(frames, c): float(raw[..., c][out[..., c]][0])
+        for c in range(raw.shape[-1])
+        if out[..., c].any()
+    }
     if levels:
         per = out.sum(axis=(1, 2, 3))
         listed = ", ".join(f"{n}: {int(k)}" for n, k in zip(names, per, strict=True) if k)
         at = ", ".join(f"{c} {v:g}" for c, v in levels.items())
         notes.append(
             f"{int(out.sum())} pixel value(s) sit at their channel's lowest ({at}; {listed}): "
-            "a floor they were clamped at where the capture shows read noise (the fit then "
-            "masks them, and the values its answer puts within 3 sigma of it)"
+            "a floor they were clamped at (the fit masks them, and the values its answer "
+            "puts within 3 sigma of it)"
         )
     return out

@@ -8,7 +8,8 @@ times t_j (seconds); :func:`merge_bracket` turns a bracket into one linear image
 **Response.** A sample value z ∈ [0, 1] (integer codes scaled by their type's maximum)
 is mapped to a linear exposure x = f⁻¹(z) (relative units) by the camera's inverse
 response, per channel (:class:`Response`): ``linear`` (x = z, a raw converter's
-linear output), a table from a file (:func:`load_response`), or ``auto``, recovered
+linear output), ``srgb`` (the sRGB curve of most 8-bit camera files,
+:func:`srgb_response`), a table from a file (:func:`load_response`), or ``auto``, recovered
 from the brackets themselves (:func:`calibrate_response`) with OpenCV's Debevec–Malik
 calibration (``cv2.createCalibrateDebevec``: the smooth g = ln f⁻¹ that makes
 g(z_ij) − ln t_j agree between the exposures of every sample pixel, a linear least-
@@ -68,7 +69,7 @@ import numpy as np
 
 from lightfield_jax.capture.io import CaptureError, atomic_write_text
 
-RESPONSES = ("linear", "auto")
+RESPONSES = ("linear", "srgb", "auto")
 CLIP = 0.98
 AUTO_CLIP = 0.9
 _SMOOTHNESS = 50.0
@@ -82,7 +83,7 @@ class Response:
     """The camera's inverse response x = f⁻¹(z), per channel.
 
     Attributes:
-        kind: ``linear``, ``auto`` (recovered from the brackets) or ``file``.
+        kind: ``linear``, ``srgb``, ``auto`` (recovered from the brackets) or ``file``.
         codes: z at the table's nodes, increasing over [0, 1], shape (N,).
         curve: x at the nodes, shape (N, C) (C = 1: every channel alike), increasing.
         source: the file a ``file`` curve came from, else ``None``.
@@ -98,6 +99,8 @@ class Response:
         z = np.asarray(z, np.float64)
         if self.kind == "linear":
             return z
+        if self.kind == "srgb":
+            return _srgb_decode(z)
         out = np.empty_like(z)
         for c in range(z.shape[-1]):
             column = self.curve[:, min(c, self.curve.shape[1] - 1)]
@@ -110,6 +113,8 @@ class Response:
         x = np.asarray(x, np.float64)
         if self.kind == "linear":
             return np.clip(x, 0.0, 1.0)
+        if self.kind == "srgb":
+            return _srgb_encode(np.clip(x, 0.0, 1.0))
         out = np.empty_like(x)
         for c in range(x.shape[-1]):
             column = self.curve[:, min(c, self.curve.shape[1] - 1)]
@@ -148,6 +153,26 @@ class Response:
 
 def linear_response() -> Response:
     return Response("linear", np.array([0.0, 1.0]), np.array([[0.0], [1.0]]))
+
+
+def _srgb_decode(z: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.where(z <= 0.04045, z / 12.92, ((np.maximum(z, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return np.where(
+            x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055
+        )
+
+
+def srgb_response() -> Response:
+    """The sRGB transfer curve (IEC 61966-2-1), which cameras, phones and image editors
+    write into 8-bit files: x = z/12.92 for z ≤ 0.04045, else ((z + 0.055)/1.055)^2.4
+    (evaluated exactly; the table, 1025 nodes, is what ``to_dict`` records)."""
+    z = np.linspace(0.0, 1.0, 1025)
+    return Response("srgb", z, _srgb_decode(z)[:, None])
 
 
 def load_response(path: str | os.PathLike, n_channels: int) -> Response:
@@ -426,6 +451,7 @@ __all__ = [
     "Response",
     "calibrate_response",
     "linear_response",
+    "srgb_response",
     "load_response",
     "merge_bracket",
     "merge_capture",

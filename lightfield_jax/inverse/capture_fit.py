@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -80,7 +81,8 @@ def fit_capture(
     """Fit a loaded capture (:func:`~lightfield_jax.load_capture`), channel by channel.
 
     Args:
-        capture: the capture (images dark-subtracted and cropped to the medium).
+        capture: the capture (images dark-subtracted and cropped to the medium), or
+            its capture file's path (loaded with :func:`~lightfield_jax.load_capture`).
         method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
             (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
             :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
@@ -90,6 +92,15 @@ def fit_capture(
             file's ``fit:`` settings, :attr:`Capture.fit_options`).
         progress: called with a description of each stage.
     """
+    if isinstance(capture, (str, os.PathLike)):
+        from lightfield_jax.capture.capture import load_capture
+
+        capture = load_capture(capture)
+    elif not hasattr(capture, "channel_names"):
+        raise TypeError(
+            f"fit_capture: expected a capture (lightfield_jax.load_capture) or a capture "
+            f"file's path, got {type(capture).__name__}"
+        )
     names = tuple(capture.channel_names)
     chosen = names if channels is None else tuple(channels)
     for c in chosen:

@@ -260,8 +260,9 @@ def valid_values(
     """``(valid, censored, floored)``, like ``images``: the values a fit may use (finite,
     inside ``mask``, per pixel or per value, and not censored), the censored ones
     (flagged ``clipped``, at or above ``saturation``, or clamped at a floor) and those
-    clamped at a floor: ``floored`` (``None``: found by :func:`floor_pileup`), where
-    an additive noise could have taken them below it (:func:`_cut`)."""
+    clamped at a floor: ``floored`` as a capture found them, or (``None``) found here by
+    :func:`floor_pileup` where an additive noise could have taken them below it
+    (:func:`floor_is_cut`)."""
     valid = np.isfinite(images)
     if mask is not None:
         valid &= np.asarray(mask, bool)  # (h, w) broadcasts over the shifts
@@ -272,14 +273,14 @@ def valid_values(
     usable = valid & ~censored
     if floored is None:
         floored = floor_pileup(images, usable)
+        if floored.any() and not floor_is_cut(images, usable & ~floored, usable, pattern):
+            floored = np.zeros(images.shape, bool)
     floored = np.asarray(floored, bool) & usable
-    if floored.any() and not _cut(images, usable & ~floored, usable, pattern):
-        floored = np.zeros(images.shape, bool)
     censored = censored | floored
     return valid & ~censored, censored, floored
 
 
-def _cut(images, above: np.ndarray, usable: np.ndarray, pattern: Stripes) -> bool:
+def floor_is_cut(images, above: np.ndarray, usable: np.ndarray, pattern: Stripes) -> bool:
     """Whether values at a floor were cut there: the capture shows an additive noise that
     could take values below it, as values above the floor that vary continuously (its
     200 lowest nearly all distinct) or as read noise (:func:`~lightfield_jax.inverse.
