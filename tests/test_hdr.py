@@ -210,7 +210,7 @@ def _capture_file(tmp_path, **changes):
         ({"images": [["a0.png", "a1.png"], "a0.png"]}, "images: mixes files and brackets"),
         ({"dark_frame": "a0.png"}, "dark_frame: with bracketed images give one file per"),
         ({"response": "gamma"}, "response: .*gamma: file not found"),
-        ({"response": 2.2}, "response: must be linear or auto or a file"),
+        ({"response": 2.2}, "response: must be linear or srgb or auto or a file"),
     ],
 )
 def test_bracket_errors_name_the_key(tmp_path, changes, message):
@@ -221,8 +221,11 @@ def test_bracket_errors_name_the_key(tmp_path, changes, message):
 def test_exposure_keys_need_brackets(tmp_path):
     write_png(tmp_path / "a.png", np.full((8, 8), 0.5), bits=8)
     path = tmp_path / "capture.yaml"
+    path.write_text(yaml.safe_dump({"images": ["a.png"] * 6, "exposure_times": [0.1, 0.2]}))
+    with pytest.raises(CaptureError, match="exposure_times: applies to bracketed images only"):
+        load_capture(path)
     path.write_text(yaml.safe_dump({"images": ["a.png"] * 6, "response": "auto"}))
-    with pytest.raises(CaptureError, match="response: applies to bracketed images only"):
+    with pytest.raises(CaptureError, match="response: auto recovers .* from exposure brackets"):
         load_capture(path)
 
 
