@@ -32,12 +32,22 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
     frame subtracted per exposure before merging (so the calibration frames hold no
     dark frame any more); ``None`` when the images are not brackets (lists)."""
+    response = top.get("response", "linear")
+    if not isinstance(response, str) or not response:
+        top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {response!r}")
     value = top.get("images")
     rows = [isinstance(v, list) for v in value] if isinstance(value, list) else []
     if not any(rows):
         if "exposure_times" in top.data:
             top.fail(
                 "exposure_times", "applies to bracketed images only (a list of exposures per shift)"
+            )
+        if response == "auto":
+            top.fail(
+                "response",
+                "auto recovers the camera's response from exposure brackets; with one "
+                "exposure per shift give linear, srgb or a response file (lightfield-jax "
+                "inspect --response writes one from a bracketed capture)",
             )
         return None
     if not all(rows):
@@ -154,19 +164,11 @@ def read_response(
 ):
     """The inverse response of the ``response`` key: ``linear`` (default), ``srgb``, a
     table file (:func:`~lightfield_jax.capture.hdr.load_response`) or, for exposure
-    brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto``."""
+    brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto`` (refused
+    without brackets by :func:`_brackets`)."""
     from lightfield_jax.capture.hdr import calibrate_response, load_response, srgb_response
 
-    value = top.get("response", "linear")
-    if not isinstance(value, str) or not value:
-        top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {value!r}")
-    if value == "auto" and images is None:
-        top.fail(
-            "response",
-            "auto recovers the camera's response from exposure brackets; with one exposure "
-            "per shift give linear, srgb or a response file (lightfield-jax inspect "
-            "--response writes one from a bracketed capture)",
-        )
+    value = top.get("response", "linear")  # a string: checked by _brackets
     try:
         if value == "linear":
             return linear_response()
