@@ -121,9 +121,15 @@ def read_image(
     ext = path.suffix.lower()
     require_regular_file(path, "an image file")
     if ext not in IMAGE_EXTENSIONS:
+        why = (
+            " (JPEG's lossy 8x8-block compression distorts the faint scattered light the "
+            "fit measures: save the camera's raw files as 16-bit TIFF or PNG)"
+            if ext in (".jpg", ".jpeg", ".jfif")
+            else ""
+        )
         raise CaptureError(
             f"{path}: unsupported image extension {path.suffix!r}; "
-            f"supported: {', '.join(IMAGE_EXTENSIONS)}"
+            f"supported: {', '.join(IMAGE_EXTENSIONS)}{why}"
         )
     image = _read_npy(path) if ext == ".npy" else _read_oiio(path)
     if channel is not None:
