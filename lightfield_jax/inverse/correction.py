@@ -30,6 +30,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lightfield_jax.inverse.trust import gram_inverse, scaled_lstsq
+
 # A step below this (relative on σt and σs, absolute on g and b), or below
 # NOISE_FRACTION of the parameter's statistical 1σ, ends the iteration.
 STEP_TOLERANCE = 2e-4
@@ -95,7 +97,7 @@ def _step_size(step: dict, v: dict, jac, names, noise: float) -> float:
     tol = {"sigma_t": v["sigma_t"], "sigma_s": v["sigma_s"], "g": 1.0, "black_level": 1.0}
     tol = {k: tol[k] * STEP_TOLERANCE for k in names}
     if noise > 0:
-        sigma = np.sqrt(noise * np.clip(np.diag(np.linalg.pinv(jac.T @ jac)), 0, None))
+        sigma = np.sqrt(noise * np.clip(np.diag(gram_inverse(jac, pseudo=True)), 0, None))
         for k, s in zip(names, np.delete(sigma, 3), strict=True):
             tol[k] = max(tol[k], NOISE_FRACTION * s)
     return max(abs(step[k]) / tol[k] for k in names) * STEP_TOLERANCE
@@ -110,7 +112,7 @@ def gauss_newton_step(jac, residual, names, v: dict, noise: float) -> tuple[dict
     """The Gauss–Newton step of the weighted residual with ``jac`` (columns σt, σs, g,
     gain[, b]: :func:`design`) as ``{name: step}`` (the gain's dropped: projected) and
     its size against the tolerance (:func:`_step_size`)."""
-    delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+    delta = scaled_lstsq(jac, -residual)
     step = {k: float(d) for k, d in zip(names, np.delete(delta, 3), strict=True)}
     return step, _step_size(step, v, jac, names, noise)
 

@@ -54,6 +54,7 @@ from lightfield_jax.inverse.trust import (
     error_budget,
     noise_floor,
     noise_scale,
+    scaled_lstsq,
     split_groups,
     tail_unconverged,
     untrustworthy,
@@ -159,7 +160,7 @@ def _cannot_win(data, pattern, first: _Stage, target: _Model, options, best) -> 
     if rendered is None:
         return None
     _, r_fine = projected(w, rendered[0], data.images)
-    delta, *_ = np.linalg.lstsq(first.jac, -r_fine, rcond=None)
+    delta = scaled_lstsq(first.jac, -r_fine)
     moved = r_fine + first.jac @ delta
     predicted = float(moved @ moved)
     _, r_best = projected(w, best_last.unit, data.images)

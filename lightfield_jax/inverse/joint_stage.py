@@ -32,7 +32,7 @@ from lightfield_jax.inverse.data import FitData as _Data
 from lightfield_jax.inverse.joint import BLACK_RANGE, JointSettings, model_at, pack, unpack
 from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, _Model, _phase_integral
-from lightfield_jax.inverse.trust import noise_scale
+from lightfield_jax.inverse.trust import noise_scale, scaled_lstsq
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.scene.illumination import Stripes
 
@@ -244,7 +244,7 @@ def _linear_refit(data: _Data, stage: _Stage, weights, black) -> _Stage | None:
         unit = stage.unit + jac_unit @ shift
         gain, residual = projected(weights, unit, data.images)
         jac = design(weights, unit, gain, jac_unit)
-        delta, *_ = np.linalg.lstsq(jac, -residual, rcond=None)
+        delta = scaled_lstsq(jac, -residual)
         delta = np.delete(delta, 3)  # the gain's column: projected
         shift += delta
         if np.max(np.abs(delta) / scale) < 1e-9:
