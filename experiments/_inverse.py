@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -124,6 +125,30 @@ def capture_config(
     if black_level is not None:
         cfg["black_level"] = black_level
     return cfg
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MediumSpec:
+    """A config's medium (``Annotated[dict, MediumSpec]``): σt, σs per pixel, g, phase;
+    their ranges are checked by :func:`check_simulation_config`."""
+
+    sigma_t: float
+    sigma_s: float
+    g: float
+    phase: str = "paper"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class NamedMedium(MediumSpec):
+    """A medium with a ``name``."""
+
+    name: str
+
+
+def check_simulation_config(cfg: dict, where: str) -> None:
+    """A :func:`capture_config` checked as ``simulate`` checks its config (the medium,
+    the grid, the bounces, a geometry), before any render; errors name ``where``."""
+    parse_simulation_config(cfg, source=where)
 
 
 def simulate(cfg: dict) -> lfj.SimulatedCapture:
