@@ -20,6 +20,10 @@ or K0 and the tail's method and Krylov steps), the verdict and its reasons. The 
 forward medium's and the refractive slab's cold times are also given as multiples of
 the milk's in the same run (the issue's target: at most 3×). The machine may be shared:
 compare rows of one run, and read each record's 1-minute load average.
+
+Each medium's record is one cached unit (a stopped run resumes). A child process that
+fails (its fit raises) fails the experiment with the child's last line; a fit past
+``timeout`` is recorded as a timeout.
 """
 
 from __future__ import annotations

@@ -117,6 +117,18 @@ def test_a_sweep_resumes_from_its_cache(tmp_path):
     assert again == rows and len(calls) == 6  # every point from the cache
 
 
+def test_an_unreadable_cache_entry_is_computed_again(tmp_path):
+    """Before: a truncated cache file stopped the run with a JSON error blamed on the
+    config (a ValueError)."""
+    ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=True)
+    assert ctx.cached("unit", lambda: 1) == 1
+    (entry,) = (tmp_path / "cache").iterdir()
+    for text in ('{"key": "unit", "val', "[1, 2]", '{"key": "unit"}'):
+        entry.write_text(text)
+        assert ctx.cached("unit", lambda: 2) == 2
+    assert ctx.cached("unit", lambda: 3) == 2  # stored again
+
+
 def test_write_csv_is_one_table(tmp_path):
     import csv
 

@@ -19,11 +19,17 @@ The scripts and configs ship inside the wheel (``lightfield_jax/_experiments``,
 path, or the name of a shipped one (``lightfield-jax experiment forward_accuracy``).
 In a source checkout the tree's ``experiments/`` and ``configs/`` are used.
 
+Every script defines its config as a frozen dataclass ``Config`` (field types with
+:class:`Range` bounds, ``Literal`` choices, nested mappings as dataclass schemas); the
+runner checks the whole config against it (:func:`typed_config`), and the grid's memory,
+before any work, so that a bad config is one line naming the file and the key. The
+outputs go to a staging folder, published into ``out`` only when the run succeeds.
+
 Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
-as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing;
-``ctx.sweep(axes, key, compute)`` runs a Cartesian sweep that way. The other pieces
-the scripts share are written here once: typed, frozen configs (:func:`typed_config`),
-CSV tables (:func:`write_csv`) and figures (:func:`pyplot`, :func:`save_figure`).
+as ``out/cache/KEY.json`` (kept when a run fails) and returns it on a rerun instead of
+recomputing; ``ctx.sweep(axes, key, compute)`` runs a Cartesian sweep that way. The
+other pieces the scripts share are written here once: CSV tables (:func:`write_csv`)
+and figures (:func:`pyplot`, :func:`save_figure`).
 """
 
 from __future__ import annotations
@@ -126,10 +132,12 @@ class Context:
         """``compute()``'s JSON-ready result, stored once under ``keep/cache``."""
         safe = hashlib.sha1(key.encode()).hexdigest()[:16]
         path = self.kept("cache") / f"{safe}.json"
-        if path.exists():
+        try:  # an entry that cannot be read (truncated, edited) is computed again
             stored = json.loads(path.read_text())
-            if stored.get("key") == key:
-                return stored["value"]
+        except (OSError, ValueError):
+            stored = None
+        if isinstance(stored, dict) and stored.get("key") == key and "value" in stored:
+            return stored["value"]
         value = compute()
         atomic_write_json(path, {"key": key, "value": value})
         return value
