@@ -36,7 +36,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
-from lightfield_jax.app.experiment import child_env
+from lightfield_jax.app.experiment import child_env, child_failed
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -298,8 +298,8 @@ def fit_record_limited(
                 "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
                 "load_avg": load,
             }
-        if done.returncode != 0:
-            raise RuntimeError(f"fit child process failed:\n{done.stderr[-3000:]}")
+        if done.returncode != 0:  # a fit that raises is recorded: this is a crash
+            raise child_failed("a fit's child process", done.returncode, done.stderr)
         rec = json.loads((tmp / "record.json").read_text())
     rec["load_avg"] = load
     return rec

@@ -46,6 +46,7 @@ from lightfield_jax.app.experiment import (
     Pixels,
     Range,
     child_env,
+    child_failed,
     fit_keywords,
     load_helper,
     provenance,
@@ -156,7 +157,7 @@ def _child_run(path: Path, request: dict, timeout: float) -> dict:
         done = None
     path = path.with_suffix(".out.json")
     if done is not None and done.returncode != 0:  # a failed fit is no measurement
-        raise ExperimentError(f"the fit's child process failed: {_last_line(done.stderr)}")
+        raise child_failed("the fit's child process", done.returncode, done.stderr)
     if not path.exists():
         if done is not None:
             raise ExperimentError("the fit's child process exited without a result")
@@ -166,12 +167,6 @@ def _child_run(path: Path, request: dict, timeout: float) -> dict:
         rec["warm_timeout"] = timeout
     rec["process_seconds"] = time.perf_counter() - t
     return rec
-
-
-def _last_line(stderr: str) -> str:
-    """A child's error: the last line of its stderr (its exception), shortened."""
-    lines = [line.strip() for line in stderr.splitlines() if line.strip()]
-    return (lines[-1] if lines else "no message")[:300]
 
 
 def _child(request_path: str) -> None:

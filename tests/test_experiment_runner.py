@@ -439,3 +439,25 @@ def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, ca
     assert "\n" not in err and "Traceback" not in err, err
     assert "fit_speed: media milk: the fit's child process failed: TypeError" in err, err
     assert not out.exists() or sorted(p.name for p in out.iterdir()) == []
+
+
+def test_a_crashed_fit_child_is_one_line():
+    """stability_maps and model_size fit in child processes: one that crashes (not a
+    fit that fails, which is recorded) stopped the run with a RuntimeError carrying the
+    child's whole traceback; now an ExperimentError of one line (exit 1)."""
+    import lightfield_jax as lfj
+
+    inv = _experiment.load_helper("_inverse")
+    truth = {"sigma_t": 0.2, "sigma_s": 0.04, "g": 0.4}
+    with pytest.raises(_experiment.ExperimentError) as info:
+        inv.fit_record_limited(
+            np.ones((6, 8, 8)),
+            lfj.Stripes(),
+            truth,
+            timeout=300,
+            dtype="float16",
+            xla_cache_dir=None,
+        )
+    assert str(info.value) == (
+        "a fit's child process failed: ValueError: dtype: must be float32 or float64, got 'float16'"
+    )

@@ -446,6 +446,14 @@ class ExperimentError(RuntimeError):
     """An experiment that failed while it ran (e.g. a child process's fit): one line."""
 
 
+def child_failed(what: str, returncode: int, stderr: str) -> ExperimentError:
+    """The error of a child process that failed: ``what`` and its last line of stderr
+    (its exception), or its exit status (a child killed by a signal says nothing)."""
+    lines = [line.strip() for line in (stderr or "").splitlines() if line.strip()]
+    reason = lines[-1][:300] if lines else f"exit status {returncode}"
+    return ExperimentError(f"{what} failed: {reason}")
+
+
 def check_experiment_config(module, config: dict) -> Any:
     """The script's typed ``Config`` of ``config`` (every experiment script defines one),
     and the memory its smallest render of ``width`` × ``height`` needs (checked against
