@@ -207,6 +207,8 @@ class Config:
 
     def __post_init__(self):
         check_choices("stability_maps", "methods", self.methods, METHODS)
+        if not self.methods:
+            raise ValueError("stability_maps: methods: at least one")
         for name in ROWS:
             spec = getattr(self, name)
             if spec is not None:

@@ -80,6 +80,8 @@ class SlabRows:
     rho: tuple[Rho, ...]
 
     def __post_init__(self):
+        if not (self.sigma_t and self.boundaries and self.rho):
+            raise ValueError("tail_acceleration: slab: sigma_t, boundaries, rho: at least one each")
         try:  # the grid and tanks as run() builds them: their own checks
             lfj.Grid(self.width, self.height, self.n_theta, 1)
             lfj.Slab(self.thickness, "absorbing", n_mu=self.n_mu, n_z=self.n_z)
@@ -111,6 +113,9 @@ class Config:
     slab: Annotated[dict, SlabRows]
 
     def __post_init__(self):
+        lists = ("sigma_t", "rho", "phases", "methods")
+        if not all(getattr(self, k) for k in lists):
+            raise ValueError(f"tail_acceleration: {', '.join(lists)}: at least one each")
         try:
             lfj.Grid(self.width, self.height, self.n_theta, self.refine)
         except ValueError as e:

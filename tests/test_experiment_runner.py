@@ -297,6 +297,11 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
         ),
         ("paper_figures", {"width": 100_000}, r"width: must be in \[8, 2048\], got 100000$"),
         ("paper_figures", {"oblique": {"y": 4.5, "direction_deg": 30, "show": 3}}, "oblique.show"),
+        (
+            "paper_figures",
+            {"oblique": {3: 1, "y": 4.5, "direction_deg": 30, "show_bounces": 3}},
+            r"unknown config keys \['oblique.3'\]$",  # before: a TypeError
+        ),
         ("paper_figures", {"beam_y": -3.0}, r"beam_y: must be in \(0, height=96\)"),
         ("forward_accuracy", {"seed": -5}, r"seed: must be in \[0, 4294967295\], got -5$"),
         ("forward_accuracy", {"n_theta": [12]}, "grid.n_theta: must be a multiple of 8"),
@@ -310,6 +315,7 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
         ("slab_recovery", {"n_z": 1.5}, "n_z: expected int or null, got 1.5"),
         ("tail_acceleration", {"rho": [0.9, 1.0]}, r"rho\[1\]: must be in \(0, 1\), got 1.0$"),
         ("tail_acceleration", {"methods": ["cg"]}, r"methods\[0\]: must be one of series_auto"),
+        ("tail_acceleration", {"methods": []}, "methods: at least one each"),  # max() of []
         (
             "stability_maps",
             {"albedo_g": {"sigma_t": "x", "albedo": [0.5], "g": [0]}},
@@ -363,6 +369,7 @@ def test_a_bad_value_is_named_before_any_work(tmp_path, no_work, name, change, m
         ("- experiment\n- paper_figures\n", "the top level must be a mapping"),
         ("experiment: paper_figures\nreduced: [1]\n", "reduced: must be a mapping"),
         ("experiment: 3\n", "unknown experiment 3"),
+        ("experiment: paper_figures\n2: 3\nwidth: 32\n", r"unknown config keys \['2'\]"),
     ],
 )
 def test_a_config_of_the_wrong_shape_is_one_line(tmp_path, text, message):
@@ -371,6 +378,13 @@ def test_a_config_of_the_wrong_shape_is_one_line(tmp_path, text, message):
     with pytest.raises(ValueError, match=message):
         _experiment.run_experiment(path, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def test_reduced_cannot_name_another_experiment(tmp_path, no_work):
+    """Before: ``reduced: {experiment: OTHER}`` ran another script with --reduced."""
+    path = _write(tmp_path, {**_shipped("paper_figures", False), "reduced": {"experiment": "x"}})
+    with pytest.raises(ValueError, match=r"reduced: overrides unknown keys \['experiment'\]"):
+        _experiment.run_experiment(path, tmp_path / "out", reduced=True)
 
 
 def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):

@@ -288,9 +288,9 @@ def _build(cls, config: dict, prefix: str = ""):
     """``cls(**config)`` with every key checked (see :func:`typed_config`); the keys
     named with ``prefix`` (``"oblique."``, ``"media[0]."``)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(config) - set(fields) - ({"experiment"} if not prefix else set()))
-    if unknown:
-        raise _Invalid(f"unknown config keys {[prefix + k for k in unknown]}")
+    unknown = set(config) - set(fields) - ({"experiment"} if not prefix else set())
+    if unknown:  # (YAML keys may be numbers or booleans too)
+        raise _Invalid(f"unknown config keys {sorted(f'{prefix}{k}' for k in unknown)}")
     hints = typing.get_type_hints(cls, include_extras=True)
     values = {}
     for key, field in fields.items():
@@ -387,8 +387,8 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     if reduced and not small:  # else a full run would be recorded as a reduced one
         raise ValueError(f"{path}: --reduced: this config has no reduced: section to apply")
     if reduced:
-        unknown = sorted(set(small) - set(data))
-        if unknown:
+        unknown = sorted(map(str, set(small) - set(data) | ({"experiment"} & set(small))))
+        if unknown:  # (not the experiment: the reduced run is the same experiment)
             raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
         data.update(small)
     return data
