@@ -499,7 +499,8 @@ def run_experiment(
             try:
                 summary = module.run(config, staging, ctx)
             except ValueError as e:  # a config the script refuses late
-                raise ValueError(f"{config_path}: {e}") from None
+                e.args = (f"{config_path}: {e}",)
+                raise
             record = {
                 "experiment": name,
                 "config_file": str(config_path),
