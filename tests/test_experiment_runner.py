@@ -475,3 +475,16 @@ def test_a_crashed_fit_child_is_one_line():
     assert str(info.value) == (
         "a fit's child process failed: ValueError: dtype: must be float32 or float64, got 'float16'"
     )
+
+
+def test_an_experiment_does_not_replace_its_own_config(tmp_path, no_work, capsys):
+    """A config inside --out named like an output (summary.json): before, replaced by
+    the run's summary."""
+    from lightfield_jax.app.cli import main
+
+    config = tmp_path / "summary.json"
+    config.write_text(yaml.safe_dump(_shipped("paper_figures", reduced=False)))
+    before = config.read_text()
+    assert main(["experiment", str(config), "--out", str(tmp_path)]) == 2
+    assert "holds an input of this command" in capsys.readouterr().err
+    assert config.read_text() == before

@@ -82,7 +82,12 @@ def _experiment(args: argparse.Namespace) -> None:
     from lightfield_jax.app.cli import PROG, _one_line
     from lightfield_jax.app.experiment import ExperimentError, run_experiment
 
-    _outputs(folders=[args.out])
+    config = Path(args.config)  # a config inside DIR named like an output is kept
+    _outputs(
+        folders=[args.out],
+        inputs=[config] if config.is_file() else [],
+        folder_names=("*.json", "*.csv", "*.png", "*.npz"),
+    )
     try:
         with _progress(args, "experiment") as stage:
             record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
