@@ -387,6 +387,14 @@ def test_reduced_cannot_name_another_experiment(tmp_path, no_work):
         _experiment.run_experiment(path, tmp_path / "out", reduced=True)
 
 
+def test_a_typo_in_reduced_is_refused_in_a_full_run_too(tmp_path, no_work):
+    """Before: found only by a --reduced run (the test suite's), after the full run."""
+    path = _write(tmp_path, {**_shipped("paper_figures", False), "reduced": {"widht": 32}})
+    with pytest.raises(ValueError, match=r"reduced: overrides unknown keys \['widht'\]"):
+        _experiment.run_experiment(path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):
     from lightfield_jax.app.memory import MemoryLimitError, memory_limit
 

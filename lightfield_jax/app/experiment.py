@@ -386,10 +386,12 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
         raise ValueError(f"{path}: reduced: must be a mapping of overrides")
     if reduced and not small:  # else a full run would be recorded as a reduced one
         raise ValueError(f"{path}: --reduced: this config has no reduced: section to apply")
+    # Checked in a full run too (a typo there would surface only in the test suite);
+    # not the experiment: the reduced run is the same experiment.
+    unknown = sorted(map(str, set(small) - set(data) | ({"experiment"} & set(small))))
+    if unknown:
+        raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
     if reduced:
-        unknown = sorted(map(str, set(small) - set(data) | ({"experiment"} & set(small))))
-        if unknown:  # (not the experiment: the reduced run is the same experiment)
-            raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
         data.update(small)
     return data
 
