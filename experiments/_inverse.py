@@ -22,6 +22,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -35,7 +36,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
-from lightfield_jax.app.experiment import child_env
+from lightfield_jax.app.experiment import child_env, child_failed
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -124,6 +125,30 @@ def capture_config(
     if black_level is not None:
         cfg["black_level"] = black_level
     return cfg
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class MediumSpec:
+    """A config's medium (``Annotated[dict, MediumSpec]``): σt, σs per pixel, g, phase;
+    their ranges are checked by :func:`check_simulation_config`."""
+
+    sigma_t: float
+    sigma_s: float
+    g: float
+    phase: str = "paper"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class NamedMedium(MediumSpec):
+    """A medium with a ``name``."""
+
+    name: str
+
+
+def check_simulation_config(cfg: dict, where: str) -> None:
+    """A :func:`capture_config` checked as ``simulate`` checks its config (the medium,
+    the grid, the bounces, a geometry), before any render; errors name ``where``."""
+    parse_simulation_config(cfg, source=where)
 
 
 def simulate(cfg: dict) -> lfj.SimulatedCapture:
@@ -273,8 +298,8 @@ def fit_record_limited(
                 "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
                 "load_avg": load,
             }
-        if done.returncode != 0:
-            raise RuntimeError(f"fit child process failed:\n{done.stderr[-3000:]}")
+        if done.returncode != 0:  # a fit that raises is recorded: this is a crash
+            raise child_failed("a fit's child process", done.returncode, done.stderr)
         rec = json.loads((tmp / "record.json").read_text())
     rec["load_avg"] = load
     return rec

@@ -31,11 +31,22 @@ import dataclasses
 import math
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import load_helper, provenance, typed_config
+from lightfield_jax.app.experiment import (
+    Pixels,
+    Positive,
+    Range,
+    Seed,
+    load_helper,
+    provenance,
+    typed_config,
+)
+
+inv = load_helper("_inverse")
 
 MASKS = ("pixel", "value")
 PARAMS = ("sigma_t", "sigma_s", "g")
@@ -47,31 +58,24 @@ class Config:
     capture's size (pixels), its noise (photons at the peak, read σ), the clip levels
     (fractions of the peak) and the noise seeds."""
 
-    medium: dict
-    width: int
-    height: int
-    photons: float
-    read: float
-    clips: tuple[float, ...]
-    seeds: tuple[int, ...]
+    medium: Annotated[dict, inv.MediumSpec]
+    width: Pixels
+    height: Pixels
+    photons: Positive
+    read: Annotated[float, Range(0)]
+    clips: tuple[Annotated[float, Range(0, 1, open_low=True)], ...]
+    seeds: tuple[Seed, ...]
     clamp_zero: bool = False
 
     def __post_init__(self):
-        missing = sorted({"sigma_t", "sigma_s", "g"} - set(self.medium))
-        if missing:
-            raise ValueError(f"clipped_captures: medium: missing keys {missing}")
-        if not self.clips or not all(0 < c <= 1 for c in self.clips):
-            raise ValueError(f"clipped_captures: clips: fractions in (0, 1], got {self.clips}")
+        if not self.clips:
+            raise ValueError("clipped_captures: clips: at least one")
         if not self.seeds:
             raise ValueError("clipped_captures: seeds: at least one")
-        if self.width < 16 or self.height < 8:
-            raise ValueError(
-                f"clipped_captures: width, height: at least 16x8, got {self.width}x{self.height}"
-            )
-        if not (self.photons > 0 and self.read >= 0):
-            raise ValueError(
-                f"clipped_captures: photons > 0 and read >= 0, got {self.photons}, {self.read}"
-            )
+        if self.width < 16:
+            raise ValueError(f"clipped_captures: width: at least 16, got {self.width}")
+        capture = inv.capture_config(self.medium, self.width, self.height)
+        inv.check_simulation_config(capture, "clipped_captures")  # the medium's ranges
 
 
 def _fit(images: np.ndarray, level: float, mask: str, cfg: Config, truth: dict) -> dict:
@@ -127,7 +131,6 @@ def _summary(fits: list[dict]) -> dict:
 
 def run(config: dict, out: Path, ctx) -> dict:
     cfg = typed_config(Config, config)
-    inv = load_helper("_inverse")
     truth = inv.truth_of(cfg.medium)
     sim = inv.simulate(inv.capture_config(cfg.medium, cfg.width, cfg.height))
     clean = np.asarray(sim.images, np.float64)

@@ -20,6 +20,10 @@ or K0 and the tail's method and Krylov steps), the verdict and its reasons. The 
 forward medium's and the refractive slab's cold times are also given as multiples of
 the milk's in the same run (the issue's target: at most 3×). The machine may be shared:
 compare rows of one run, and read each record's 1-minute load average.
+
+Each medium's record is one cached unit (a stopped run resumes). A child process that
+fails (its fit raises) fails the experiment with the child's last line; a fit past
+``timeout`` is recorded as a timeout.
 """
 
 from __future__ import annotations
@@ -32,61 +36,81 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import child_env, load_helper, provenance, typed_config
+from lightfield_jax.app.experiment import (
+    ExperimentError,
+    Pixels,
+    Range,
+    child_env,
+    child_failed,
+    fit_keywords,
+    load_helper,
+    provenance,
+    typed_config,
+)
 from lightfield_jax.scene.geometry import parse_geometry
 
-_MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g", "phase", "geometry", "bounces"}
+
+@dataclasses.dataclass(frozen=True)
+class MediumSpec:
+    """One medium: its name, σt, σs (per pixel), g; optional phase, geometry (a slab) and
+    the truth's bounces (default: auto)."""
+
+    name: str
+    sigma_t: float
+    sigma_s: float
+    g: float
+    phase: str = "paper"
+    geometry: dict | None = None
+    bounces: int | str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
     """configs/fit_speed.yaml: the captures' size (pixels), the media (each: name,
     sigma_t, sigma_s, g; optional phase, geometry, the truth's bounces), extra
-    :func:`~lightfield_jax.fit_images` keywords and the time limit (s) of each medium's
-    child process."""
+    :func:`~lightfield_jax.fit_images` keywords (a capture file's ``fit:`` keys) and the
+    time limit (s) of each medium's child process."""
 
-    width: int
-    height: int
-    media: tuple[dict, ...]
+    width: Pixels
+    height: Pixels
+    media: tuple[Annotated[dict, MediumSpec], ...]
     fit: dict = dataclasses.field(default_factory=dict)
-    timeout: float = 1800.0
+    timeout: Annotated[float, Range(0, 86_400, open_low=True)] = 1800.0
 
     def __post_init__(self):
         if not self.media:
             raise ValueError("fit_speed: media: must list at least one medium")
-        for i, m in enumerate(self.media):
-            unknown = sorted(set(m) - _MEDIUM_KEYS)
-            if unknown:
-                raise ValueError(f"fit_speed: media[{i}]: unknown keys {unknown}")
-            for key in ("name", "sigma_t", "sigma_s", "g"):
-                if key not in m:
-                    raise ValueError(f"fit_speed: media[{i}]: missing key {key!r}")
-            if m.get("geometry"):
-                parse_geometry(m["geometry"], f"fit_speed: media[{i}].geometry")
-        if self.width < 8 or self.height < 8:
-            raise ValueError(
-                f"fit_speed: width, height: at least 8, got {self.width}x{self.height}"
-            )
-        if not self.timeout > 0:
-            raise ValueError(f"fit_speed: timeout: must be positive, got {self.timeout!r}")
+        names = [m["name"] for m in self.media]
+        if len(set(names)) < len(names):
+            raise ValueError(f"fit_speed: media: names must differ, got {names}")
+        inv = load_helper("_inverse")
+        for i, m in enumerate(self.media):  # each capture's config, as simulate checks it
+            inv.check_simulation_config(_capture_config(self, m), f"fit_speed: media[{i}]")
+        # The fit's keywords, as a capture file's fit: section (FitOptions' own checks).
+        fit_keywords("fit_speed", "fit", self.fit)
 
 
-def _capture(cfg: Config, medium: dict) -> np.ndarray:
+def _capture_config(cfg: Config, medium: dict) -> dict:
     inv = load_helper("_inverse")
     sim_cfg = inv.capture_config(
         {"phase": "paper", **medium},
         cfg.width,
         cfg.height,
         black_level=0.0,
-        bounces=medium.get("bounces", "auto"),
+        bounces="auto" if medium.get("bounces") is None else medium["bounces"],
     )
     if medium.get("geometry"):
         sim_cfg["geometry"] = dict(medium["geometry"])
-    return np.asarray(inv.simulate(sim_cfg).images)
+    return sim_cfg
+
+
+def _capture(cfg: Config, medium: dict) -> np.ndarray:
+    return np.asarray(load_helper("_inverse").simulate(_capture_config(cfg, medium)).images)
 
 
 def _fit_kwargs(cfg: Config, medium: dict) -> dict:
@@ -132,9 +156,11 @@ def _child_run(path: Path, request: dict, timeout: float) -> dict:
     except subprocess.TimeoutExpired:
         done = None
     path = path.with_suffix(".out.json")
-    if done is not None and done.returncode != 0:
-        return {"error_message": f"child process failed: {done.stderr[-2000:]}"}
-    if not path.exists():  # the cold fit did not finish either
+    if done is not None and done.returncode != 0:  # a failed fit is no measurement
+        raise child_failed("the fit's child process", done.returncode, done.stderr)
+    if not path.exists():
+        if done is not None:
+            raise ExperimentError("the fit's child process exited without a result")
         return {"error_message": f"timeout: no result within {timeout:g} s"}
     rec = json.loads(path.read_text())
     if done is None:
@@ -227,15 +253,28 @@ def run(config: dict, out: Path, ctx) -> dict:
     records, rows = {}, []
     for medium in cfg.media:
         name = medium["name"]
-        ctx.progress(f"{name}: capture")
-        images = _capture(cfg, medium)
-        truth = inv.truth_of(medium)
-        ctx.progress(f"{name}: fits in a fresh process")
-        rec = _in_fresh_process(images, truth, _fit_kwargs(cfg, medium), cfg.timeout)
+
+        def measure(medium=medium, name=name):
+            ctx.progress(f"{name}: capture")
+            images = _capture(cfg, medium)
+            ctx.progress(f"{name}: fits in a fresh process")
+            kwargs = _fit_kwargs(cfg, medium)
+            try:
+                return _in_fresh_process(images, inv.truth_of(medium), kwargs, cfg.timeout)
+            except ExperimentError as e:
+                raise ExperimentError(f"fit_speed: media {name}: {e}") from None
+
+        # Each medium's record kept as it is measured: a failed or stopped run resumes.
+        key = (
+            f"fit_speed|lib{inv.library_fingerprint()}|{cfg.width}x{cfg.height}|"
+            f"{json.dumps(medium, sort_keys=True)}|{json.dumps(cfg.fit, sort_keys=True)}|"
+            f"timeout{cfg.timeout}"
+        )
+        rec = ctx.cached(key, measure)
         records[name] = {"medium": medium, **rec}
         rows.append(_summary_row(name, rec))
         ctx.progress(f"{name}: {json.dumps(inv.jsonable(rows[-1]))}")
-        _write(ctx, cfg, rows, records)  # after every medium: a long run keeps its rows
+    _write(ctx, cfg, rows, records)
     return {"rows": inv.jsonable(rows)}
 
 

@@ -48,14 +48,22 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import pyplot, save_figure, typed_config, write_csv
+from lightfield_jax.app.experiment import (
+    Pixels,
+    Range,
+    Seed,
+    pyplot,
+    save_figure,
+    typed_config,
+    write_csv,
+)
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.internal import monte_carlo_render, renderer_for
 
@@ -100,6 +108,29 @@ def _scene(spec: dict) -> Scene:
 
 
 @dataclasses.dataclass(frozen=True)
+class BeamSpec:
+    """A scene's beam (pixels, degrees): entering at (x, y), heading, width."""
+
+    y: float
+    x: float = 0.0
+    direction_deg: Annotated[float, Range(-89, 89)] = 0.0
+    width: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneSpec:
+    """A scene: its name and label, σt, σs (per pixel), g, phase and beam."""
+
+    name: str
+    sigma_t: float
+    sigma_s: float
+    g: float
+    beam: Annotated[dict, BeamSpec]
+    phase: str = "paper"
+    label: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """configs/forward_accuracy.yaml: the grid (pixels, multiples of ``bin``: the error
     metric's block size), the Monte Carlo oracle (photons in total, run as ``mc_splits``
@@ -107,24 +138,39 @@ class Config:
     with per-bounce errors, the refinements of the space self-convergence, the timing
     repeats, the auto bounces' tail bound and the scenes."""
 
-    width: int
-    height: int
-    photons: int
-    mc_splits: int
-    seed: int
+    width: Pixels
+    height: Pixels
+    photons: Annotated[int, Range(1, 10**10)]
+    mc_splits: Annotated[int, Range(1, 1000)]
+    seed: Seed
     n_theta: tuple[int, ...]
     refine: tuple[int, ...]
-    bounces: int
+    bounces: Annotated[int, Range(1, 100)]
     convergence_refine: tuple[int, ...]
-    repeats: int
-    tolerance: float
-    scenes: tuple[dict, ...]
-    bin: int = 4
+    repeats: Annotated[int, Range(1, 1000)]
+    tolerance: Annotated[float, Range(0, 0.1, open_low=True)]
+    scenes: tuple[Annotated[dict, SceneSpec], ...]
+    bin: Annotated[int, Range(1, 64)] = 4
 
     def __post_init__(self):
         b = self.bin
         if self.width % b or self.height % b:
             raise ValueError(f"forward_accuracy: width and height must be multiples of bin = {b}")
+        if not (self.scenes and self.n_theta and self.refine):
+            raise ValueError("forward_accuracy: scenes, n_theta, refine: at least one each")
+        if self.photons < self.mc_splits or self.seed + self.mc_splits > 2**32:
+            raise ValueError(
+                "forward_accuracy: photons, seed: at least one photon per split, and seeds "
+                f"seed + mc_splits below 2**32, got {self.photons}, {self.seed}"
+            )
+        try:  # the grids and scenes as run() builds them: their own checks
+            for n_theta in self.n_theta:
+                for refine in {*self.refine, *self.convergence_refine}:
+                    lfj.Grid(self.width, self.height, n_theta, refine)
+            for spec in self.scenes:
+                _scene(spec)
+        except ValueError as e:
+            raise ValueError(f"forward_accuracy: {e}") from None
 
 
 # ----------------------------------------------------------------------------- metrics

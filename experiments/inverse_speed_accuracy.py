@@ -57,6 +57,7 @@ import os
 import time
 import warnings
 from pathlib import Path
+from typing import Annotated
 
 import jax
 import numpy as np
@@ -64,6 +65,11 @@ import numpy as np
 import lightfield_jax as lfj
 from lightfield_jax import internal as lfi
 from lightfield_jax.app.experiment import (
+    Count,
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
     check_choices,
     load_helper,
     pyplot,
@@ -80,6 +86,7 @@ CAPTURES = ("noiseless", "noisy", "perfect_split")
 # wall time of the same fit again in the same process (compiled programs reused).
 _PARTS = ("total", "run", "warm")
 METHODS = ("grid", "gradient", "joint", "jaxopt_lm", "jaxopt_gn")
+GridSize = Annotated[int, Range(2, 100_000)]  # g values of a grid search
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,29 +97,42 @@ class Config:
     ``dense_repeats`` times, default ``repeats``), the solvers' coarse start and step
     limit, and the matched-accuracy slack and target errors."""
 
-    dtype: str
-    width: int
-    height: int
-    medium: dict
-    period: int
-    lit: int
-    gain: float
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
+    medium: Annotated[dict, inv.MediumSpec]
+    period: Annotated[int, Range(2, 1000)]
+    lit: Count
+    gain: Positive
     noise: dict
     captures: tuple[str, ...]
-    g_grids: tuple[int, ...]
+    g_grids: tuple[GridSize, ...]
     methods: tuple[str, ...]
-    repeats: int
-    start_grid: int
-    max_steps: int
-    match_slack: float
-    match_errors: tuple[float, ...]
-    dense_g_grids: tuple[int, ...] = ()
-    dense_repeats: int | None = None
+    repeats: Annotated[int, Range(1, 1000)]
+    start_grid: GridSize
+    max_steps: Annotated[int, Range(1, 100_000)]
+    match_slack: Annotated[float, Range(0)]
+    match_errors: tuple[Annotated[float, Range(0, 1, open_low=True)], ...]
+    dense_g_grids: tuple[GridSize, ...] = ()
+    dense_repeats: Annotated[int, Range(1, 1000)] | None = None
 
     def __post_init__(self):
         name = "inverse_speed_accuracy"
         check_choices(name, "captures", self.captures, CAPTURES)
         check_choices(name, "methods", self.methods, METHODS)
+        if not (self.captures and self.methods and self.g_grids):
+            raise ValueError(f"{name}: captures, methods, g_grids: at least one each")
+        # The captures as simulate checks them (the medium, stripes, gain, the noise).
+        capture = inv.capture_config(
+            self.medium,
+            self.width,
+            self.height,
+            period=self.period,
+            lit=self.lit,
+            noise=self.noise,
+            gain=self.gain,
+        )
+        inv.check_simulation_config(capture, name)
 
 
 def _repeats(config: Config, capture: str, label: str) -> int:

@@ -28,12 +28,19 @@ import dataclasses
 import math
 import re
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import (
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
+    Seed,
     check_choices,
+    fit_keywords,
     load_helper,
     pyplot,
     save_figure,
@@ -47,6 +54,24 @@ MODELS = ("auto", "large")
 
 
 @dataclasses.dataclass(frozen=True)
+class TruthSpec:
+    """The truth's finer model: its fewest θ bins, tail tolerance and bounce cap."""
+
+    n_theta_min: Annotated[int, Range(8, 1024)]
+    tolerance: Annotated[float, Range(0, 0.1, open_low=True)]
+    max_bounces: Annotated[int, Range(1, 10_000)]
+
+
+@dataclasses.dataclass(frozen=True)
+class SafeSpec:
+    """The largest accuracy ``auto`` may lose: σt, σs relative, g absolute."""
+
+    sigma_t: Positive
+    sigma_s: Positive
+    g: Positive
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """configs/model_size.yaml: the captures (pixels; the joint fit's ``noise`` =
     (photons at the peak, read noise / peak) and ``seed``), the large model's
@@ -54,20 +79,28 @@ class Config:
     methods and scenes compared, the accuracy ``auto`` may lose (``safe``) and the
     joint fit's time limit (s)."""
 
-    dtype: str
-    width: int
-    height: int
-    noise: tuple[float, ...]
-    seed: int
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
+    noise: tuple[Annotated[float, Range(0)], ...]
+    seed: Seed
     large: dict
-    truth: dict
+    truth: Annotated[dict, TruthSpec]
     methods: tuple[str, ...]
-    scenes: tuple[dict, ...]
-    safe: dict
-    joint_timeout: float
+    scenes: tuple[Annotated[dict, inv.NamedMedium], ...]
+    safe: Annotated[dict, SafeSpec]
+    joint_timeout: Annotated[float, Range(0, 86_400, open_low=True)]
 
     def __post_init__(self):
         check_choices("model_size", "methods", self.methods, METHODS)
+        if len(self.noise) != 2 or not self.noise[0] > 0:
+            raise ValueError(f"model_size: noise: [photons > 0, read >= 0], got {list(self.noise)}")
+        if not (self.methods and self.scenes):
+            raise ValueError("model_size: methods, scenes: at least one each")
+        fit_keywords("model_size", "large", self.large)
+        for i, scene in enumerate(self.scenes):  # each truth's capture, as simulate checks it
+            capture = inv.capture_config(scene, self.width, self.height)
+            inv.check_simulation_config(capture, f"model_size: scenes[{i}]")
 
 
 def _truth(scene: dict, config: Config) -> lfj.SimulatedCapture:

@@ -24,12 +24,30 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import viz
-from lightfield_jax.app.experiment import typed_config
+from lightfield_jax.app.experiment import Count, Pixels, Positive, Range, typed_config
+
+
+@dataclasses.dataclass(frozen=True)
+class StripesSpec:
+    period: Annotated[int, Range(2, 1000)]
+    lit: Count
+
+    def __post_init__(self):
+        if not self.lit < self.period:
+            raise ValueError(f"paper_figures: stripes.lit: must be < period, got {self.lit}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ObliqueSpec:
+    y: float
+    direction_deg: Annotated[float, Range(-89, 89)]
+    show_bounces: Annotated[int, Range(1, 20)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,16 +58,27 @@ class Config:
     Fig. 13 and the oblique beam of Fig. 14 (``y``, ``direction_deg``,
     ``show_bounces``)."""
 
-    width: int
-    height: int
-    sigma_t: float
-    sigma_s: float
-    g: float
-    tolerance: float
-    stripes: dict
+    width: Pixels
+    height: Pixels
+    sigma_t: Positive
+    sigma_s: Annotated[float, Range(0)]
+    g: Annotated[float, Range(-0.99, 0.99)]
+    tolerance: Annotated[float, Range(1e-12, 0.1)]
+    stripes: Annotated[dict, StripesSpec]
     beam_y: float
-    lightfield_bounces: int
-    oblique: dict
+    lightfield_bounces: Annotated[int, Range(1, 20)]
+    oblique: Annotated[dict, ObliqueSpec]
+
+    def __post_init__(self):
+        if not self.sigma_s < self.sigma_t:
+            raise ValueError(
+                f"paper_figures: sigma_s: must be < sigma_t = {self.sigma_t:g}, got {self.sigma_s}"
+            )
+        for key, y in (("beam_y", self.beam_y), ("oblique.y", self.oblique["y"])):
+            if not 0 < y < self.height:
+                raise ValueError(
+                    f"paper_figures: {key}: must be in (0, height={self.height}), got {y}"
+                )
 
 
 def run(raw: dict, out: Path, ctx) -> dict:

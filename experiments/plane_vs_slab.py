@@ -21,11 +21,16 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import (
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
     check_choices,
     load_helper,
     pyplot,
@@ -42,19 +47,28 @@ class Config:
     """configs/plane_vs_slab.yaml: the slab scenes (σt per pixel; σt·h, albedo, g and the
     faces swept), the noise levels drawn, the joint fit's step limit."""
 
-    dtype: str
-    width: int
-    height: int
-    sigma_t: float
-    optical_thickness: tuple[float, ...]
-    albedo: tuple[float, ...]
-    g: tuple[float, ...]
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
+    sigma_t: Positive
+    optical_thickness: tuple[Annotated[float, Range(0, 1000, open_low=True)], ...]
+    albedo: tuple[Annotated[float, Range(0, 1, open_low=True, open_high=True)], ...]
+    g: tuple[Annotated[float, Range(-0.99, 0.99)], ...]
     boundary: tuple[str, ...]
-    noise_levels: tuple[float, ...]
-    max_steps: int
+    noise_levels: tuple[Positive, ...]
+    max_steps: Annotated[int, Range(1, 100_000)]
 
     def __post_init__(self):
         check_choices("plane_vs_slab", "boundary", self.boundary, BOUNDARIES)
+        if not (self.optical_thickness and self.albedo and self.g and self.boundary):
+            raise ValueError(
+                "plane_vs_slab: optical_thickness, albedo, g, boundary: at least one each"
+            )
+        try:  # the tanks as the cells build them (depth h = σt·h / σt)
+            for tau in self.optical_thickness:
+                lfj.Slab(tau / self.sigma_t, "absorbing")
+        except ValueError as e:
+            raise ValueError(f"plane_vs_slab: {e}") from None
 
 
 def _cell(config: Config, tau: float, albedo: float, g: float, boundary: str) -> dict:

@@ -22,12 +22,18 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import internal as lfi
 from lightfield_jax.app.experiment import (
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
+    Seed,
     check_choices,
     load_helper,
     pyplot,
@@ -46,20 +52,20 @@ class Config:
     swept; the albedos rescaled), the orders compared one by one, the bounces summed,
     and the Monte Carlo oracle's photons, camera sampling and seed."""
 
-    dtype: str
-    width: int
-    height: int
-    thickness: float
-    optical_thickness: tuple[float, ...]
-    g: tuple[float, ...]
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
+    thickness: Positive
+    optical_thickness: tuple[Annotated[float, Range(0, 1000, open_low=True)], ...]
+    g: tuple[Annotated[float, Range(-0.99, 0.99)], ...]
     albedo: tuple[float, ...]
     boundary: tuple[str, ...]
     n: float
     orders: int
-    bounces: int
-    photons: int
-    camera_sampling: float
-    seed: int
+    bounces: Annotated[int, Range(1, 10_000)]
+    photons: Annotated[int, Range(1, 10**10)]
+    camera_sampling: Annotated[float, Range(0, 1)]
+    seed: Seed
 
     def __post_init__(self):
         name = "slab_depth_accuracy"
@@ -70,6 +76,12 @@ class Config:
             raise ValueError(
                 f"{name}: orders: must be in [1, bounces={self.bounces}], got {self.orders}"
             )
+        if not (self.optical_thickness and self.g and self.albedo and self.boundary):
+            raise ValueError(f"{name}: optical_thickness, g, albedo, boundary: at least one each")
+        try:  # the tank as the scenes build it
+            lfj.Slab(self.thickness, "refractive", n=self.n)
+        except ValueError as e:
+            raise ValueError(f"{name}: {e}") from None
 
 
 def _timed_render(grid, slab, bounces, values) -> tuple[np.ndarray, float, float]:

@@ -19,50 +19,76 @@ errors against the bounds of the issue (σt 1 %, σs 3 %, g 0.02) with its error
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, load_helper
+from lightfield_jax.app.experiment import (
+    Count,
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
+    Seed,
+    load_helper,
+    typed_config,
+)
 
 inv = load_helper("_inverse")
 
-_KEYS = {
-    "experiment",
-    "dtype",
-    "width",
-    "height",
-    "thickness",
-    "n",
-    "sigma_t",
-    "media",
-    "period",
-    "lit",
-    "bounces",
-    "photons",
-    "batches",
-    "camera_sampling",
-    "seed",
-    "n_z",
-    "fit",
-    "model_error",
-}
 BOUNDS = {"sigma_t": 0.01, "sigma_s": 0.03, "g": 0.02}  # relative, relative, absolute
 
 
-def _check(config: dict) -> None:
-    check_config("slab_recovery", config, _KEYS)
-    for m in config["media"]:
-        if set(m) != {"albedo", "g"} or not (0 < m["albedo"] < 1 and -1 < m["g"] < 1):
+@dataclasses.dataclass(frozen=True)
+class MediumSpec:
+    albedo: Annotated[float, Range(0, 1, open_low=True, open_high=True)]
+    g: Annotated[float, Range(-0.99, 0.99)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/slab_recovery.yaml: the captures (pixels), the tank (depth h in pixels,
+    refractive index), σt, the media (albedo, g), the stripes, the Monte Carlo oracle
+    (orders, photons in total over ``batches`` runs from ``seed``, camera sampling) and
+    the fit (depth layers, null: the fit's choice; its model-error term)."""
+
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
+    thickness: Positive
+    n: float
+    sigma_t: Positive
+    media: tuple[Annotated[dict, MediumSpec], ...]
+    period: Annotated[int, Range(2, 1000)]
+    lit: Count
+    bounces: Annotated[int, Range(1, 10_000)]
+    photons: Annotated[int, Range(1, 10**10)]
+    batches: Annotated[int, Range(2, 10_000)]
+    camera_sampling: Annotated[float, Range(0, 1)]
+    seed: Seed
+    n_z: int | None
+    fit: bool
+    model_error: bool
+
+    def __post_init__(self):
+        if not self.media:
+            raise ValueError("slab_recovery: media: must list at least one medium")
+        if not self.lit < self.period:
+            raise ValueError(f"slab_recovery: lit: must be < period, got {self.lit}")
+        if self.seed + self.batches > 2**32:
             raise ValueError(
-                f"slab_recovery: media: each must be {{albedo: (0, 1), g: (-1, 1)}}, got {m}"
+                f"slab_recovery: seed: seed + batches must be < 2**32, got {self.seed}"
             )
-    if not (isinstance(config["batches"], int) and config["batches"] >= 2):
-        raise ValueError(
-            f"slab_recovery: batches: must be an integer >= 2, got {config['batches']}"
-        )
+        if self.photons < self.batches:
+            raise ValueError(f"slab_recovery: photons: at least one per batch, got {self.photons}")
+        try:  # the tank as the fit builds it: its thickness, n and n_z checked
+            lfj.Slab(self.thickness, "refractive", n=self.n, n_z=self.n_z)
+        except ValueError as e:
+            raise ValueError(f"slab_recovery: {e}") from None
 
 
 def name(medium: dict) -> str:
@@ -155,7 +181,7 @@ def _fit_row(config: dict, medium: dict, images, variance, ctx) -> dict:
 
 
 def run(config: dict, out: Path, ctx) -> dict:
-    _check(config)
+    typed_config(Config, config)  # every key checked before any work
     rows = []
     with inv.precision(config["dtype"]):
         for medium in config["media"]:

@@ -52,11 +52,16 @@ import math
 import textwrap
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import (
+    Dtype,
+    Pixels,
+    Positive,
+    Range,
     check_choices,
     load_helper,
     pyplot,
@@ -73,11 +78,102 @@ batch = load_helper("_batch")
 SWEEPS = ("noise", "period", "shifts", "black_level")
 # Rows with their own captures (phase, geometry), methods, truth cap and time limit.
 ROWS = ("high_albedo", "refractive_slab")
-_ROW_KEYS = {
-    "high_albedo": {"sigma_t", "albedo", "g", "methods", "max_truth_bounces", "joint_timeout"},
-    "refractive_slab": {"geometry", "media", "methods", "max_truth_bounces", "joint_timeout"},
-}
-_MEDIUM_KEYS = {"name", "sigma_t", "sigma_s", "g"}
+Albedo = Annotated[float, Range(0, 1, open_low=True, open_high=True)]
+G = Annotated[float, Range(-0.99, 0.99)]
+Bounces = Annotated[int, Range(1, 100_000)]
+Timeout = Annotated[float, Range(0, 86_400, open_low=True)]  # seconds
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Coefficients:
+    """A medium: σt, σs per pixel (σs ≤ σt), g."""
+
+    sigma_t: Positive
+    sigma_s: Annotated[float, Range(0)]
+    g: G
+
+    def __post_init__(self):
+        if self.sigma_s > self.sigma_t:
+            raise ValueError(f"stability_maps: sigma_s {self.sigma_s} > sigma_t {self.sigma_t}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class NamedCoefficients(Coefficients):
+    name: str
+
+
+@dataclasses.dataclass(frozen=True)
+class AlbedoG:
+    sigma_t: Positive
+    albedo: tuple[Albedo, ...]
+    g: tuple[G, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class NoiseSweep:
+    """``levels``: [photons at the peak (null: none), read noise / peak] pairs."""
+
+    levels: tuple[tuple[float | None, ...], ...]
+
+    def __post_init__(self):
+        for level in self.levels:
+            photons, read = level if len(level) == 2 else (-1, -1)
+            if not ((photons is None or photons > 0) and read is not None and read >= 0):
+                raise ValueError(
+                    f"stability_maps: noise.levels: [photons > 0 or null, read >= 0], got {level}"
+                )
+
+
+@dataclasses.dataclass(frozen=True)
+class PeriodSweep:
+    sigma_t: tuple[Positive, ...]
+    period: tuple[Annotated[int, Range(2, 1000)], ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class ShiftsSweep:
+    phases: tuple[tuple[Annotated[int, Range(0, 5)], ...], ...]  # of period 6
+
+
+@dataclasses.dataclass(frozen=True)
+class BlackLevelSweep:
+    levels: tuple[Annotated[float, Range(0, 1)], ...]
+    known: tuple[bool, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class StartMap:
+    media: tuple[Annotated[dict, NamedCoefficients], ...]
+    sigma_s_factor: tuple[Positive, ...]
+    g_offset: tuple[float, ...]
+    sigma_t_factor: tuple[Positive, ...]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RowSettings:
+    """A row's own methods, truth cap and joint time limit (default: the top level's)."""
+
+    methods: tuple[str, ...] | None = None
+    max_truth_bounces: Bounces | None = None
+    joint_timeout: Timeout | None = None
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class HighAlbedo(RowSettings):
+    sigma_t: Positive
+    albedo: tuple[Albedo, ...]
+    g: tuple[G, ...]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RefractiveSlab(RowSettings):
+    geometry: dict
+    media: tuple[Annotated[dict, NamedCoefficients], ...]
+
+    def __post_init__(self):
+        where = "stability_maps: refractive_slab.geometry"
+        if not isinstance(parse_geometry(self.geometry, where), lfj.Slab):
+            raise ValueError(f"{where}: must be a slab")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,52 +184,36 @@ class Config:
     (``noise``, ``period``, ``shifts``, ``black_level``), ``start`` and rows
     (``high_albedo``, ``refractive_slab``) (null or absent: skipped)."""
 
-    dtype: str
-    width: int
-    height: int
+    dtype: Dtype
+    width: Pixels
+    height: Pixels
     methods: tuple[str, ...]
-    base: dict
+    base: Annotated[dict, Coefficients]
     xla_cache: bool
-    bias_threshold: float
-    ill_conditioned: float
-    divergent_bounces: int
-    max_truth_bounces: int
-    tolerance: float
-    joint_timeout: float
-    albedo_g: dict | None = None
-    noise: dict | None = None
-    period: dict | None = None
-    shifts: dict | None = None
-    black_level: dict | None = None
-    start: dict | None = None
-    high_albedo: dict | None = None
-    refractive_slab: dict | None = None
+    bias_threshold: Positive
+    ill_conditioned: Positive
+    divergent_bounces: Bounces
+    max_truth_bounces: Bounces
+    tolerance: Annotated[float, Range(0, 0.1, open_low=True)]
+    joint_timeout: Timeout
+    albedo_g: Annotated[dict, AlbedoG] | None = None
+    noise: Annotated[dict, NoiseSweep] | None = None
+    period: Annotated[dict, PeriodSweep] | None = None
+    shifts: Annotated[dict, ShiftsSweep] | None = None
+    black_level: Annotated[dict, BlackLevelSweep] | None = None
+    start: Annotated[dict, StartMap] | None = None
+    high_albedo: Annotated[dict, HighAlbedo] | None = None
+    refractive_slab: Annotated[dict, RefractiveSlab] | None = None
 
     def __post_init__(self):
         check_choices("stability_maps", "methods", self.methods, METHODS)
+        if not self.methods:
+            raise ValueError("stability_maps: methods: at least one")
         for name in ROWS:
             spec = getattr(self, name)
-            if spec is None:
-                continue
-            if not isinstance(spec, dict):
-                raise ValueError(f"stability_maps: {name}: must be a mapping or null")
-            unknown = sorted(set(spec) - _ROW_KEYS[name])
-            if unknown:
-                raise ValueError(f"stability_maps: {name}: unknown keys {unknown}")
-            check_choices("stability_maps", f"{name}.methods", spec.get("methods", ()), METHODS)
-        if self.refractive_slab is not None:
-            spec = self.refractive_slab
-            if not isinstance(
-                parse_geometry(spec.get("geometry"), "stability_maps: refractive_slab.geometry"),
-                lfj.Slab,
-            ):
-                raise ValueError("stability_maps: refractive_slab.geometry: must be a slab")
-            for i, m in enumerate(spec.get("media") or ()):
-                if not isinstance(m, dict) or set(m) != _MEDIUM_KEYS:
-                    raise ValueError(
-                        f"stability_maps: refractive_slab.media[{i}]: must have the keys "
-                        f"{sorted(_MEDIUM_KEYS)}, got {m!r}"
-                    )
+            if spec is not None:
+                methods = spec.get("methods") or ()
+                check_choices("stability_maps", f"{name}.methods", methods, METHODS)
 
 
 def _row(config: Config, name: str) -> dict:
@@ -333,7 +413,7 @@ def _run_cells(
     ``cap`` (truth bounces) default to the config's; ``truth_extra(i)``: more about
     cell i's truth for its record (called after ``images_of(i)``)."""
     rows = []
-    xla_dir = ctx.out / "xla_cache" if config.xla_cache else None
+    xla_dir = ctx.kept("xla_cache") if config.xla_cache else None
     timeout = config.joint_timeout if timeout is None else timeout
     for i, cell in enumerate(cells):
         for method in methods or config.methods:
@@ -575,7 +655,7 @@ def _starts(config: Config, ctx) -> list[dict]:
 
 def run(raw: dict, out: Path, ctx) -> dict:
     config = typed_config(Config, raw)
-    cache = out / "xla_cache" if config.xla_cache else None
+    cache = ctx.kept("xla_cache") if config.xla_cache else None
     results = {}
     with inv.precision(config.dtype), inv.xla_cache(cache):
         if config.albedo_g:

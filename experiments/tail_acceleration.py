@@ -33,84 +33,93 @@ solve iterates the slab's bounce step through the same base-class loop as the pl
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
 from pathlib import Path
+from typing import Annotated, Literal
 
 import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import check_config, provenance, pyplot, save_figure
+from lightfield_jax.app.experiment import (
+    Pixels,
+    Positive,
+    Range,
+    provenance,
+    pyplot,
+    save_figure,
+    typed_config,
+)
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.scene.medium import bounces_for_tolerance
 
-_KEYS = {
-    "experiment",
-    "width",
-    "height",
-    "n_theta",
-    "refine",
-    "sigma_t",
-    "g",
-    "rho",
-    "phases",
-    "methods",
-    "explicit_bounces",
-    "tail_tol",
-    "target",
-    "reference_tol",
-    "max_auto_bounces",
-    "repeats",
-    "slab",
-}
-_SLAB_KEYS = {
-    "width",
-    "height",
-    "n_theta",
-    "thickness",
-    "n_mu",
-    "n_z",
-    "sigma_t",
-    "g",
-    "boundaries",
-    "rho",
-}
 _METHODS = ("series_auto", "series_needed", "gmres", "bicgstab")
 _LONG_CALL_S = 10.0
+Rho = Annotated[float, Range(0, 1, open_low=True, open_high=True)]
+Boundary = Literal["absorbing", "refractive"]
 
 
-def _check(config: dict) -> dict:
-    check_config(
-        "tail_acceleration",
-        config,
-        _KEYS,
-        {"methods": _METHODS, "phases": ("normalized", "paper")},
-    )
-    missing = sorted(_KEYS - set(config))
-    if missing:
-        raise ValueError(f"tail_acceleration: missing config keys {missing}")
-    for sigma_t in config["sigma_t"]:
-        if not float(sigma_t) > 0.0:
-            raise ValueError(f"tail_acceleration: sigma_t: each must be > 0, got {sigma_t!r}")
-    slab = config["slab"]
-    if not isinstance(slab, dict):
-        raise ValueError(f"tail_acceleration: slab: must be a mapping, got {slab!r}")
-    check_config(
-        "tail_acceleration: slab", slab, _SLAB_KEYS, {"boundaries": ("absorbing", "refractive")}
-    )
-    missing = sorted(_SLAB_KEYS - set(slab))
-    if missing:
-        raise ValueError(f"tail_acceleration: slab: missing keys {missing}")
-    for sigma_t in slab["sigma_t"]:
-        if not float(sigma_t) > 0.0:
-            raise ValueError(f"tail_acceleration: slab.sigma_t: each must be > 0, got {sigma_t!r}")
-    for rho in [*config["rho"], *slab["rho"]]:
-        if not 0.0 < float(rho) < 1.0:
-            raise ValueError(f"tail_acceleration: rho: each must be in (0, 1), got {rho!r}")
-    return dict(config)
+@dataclasses.dataclass(frozen=True)
+class SlabRows:
+    """The slab rows: their grid, tank (depth in pixels, elevations, layers), σt per
+    pixel, g, faces and ρ = albedo."""
+
+    width: Pixels
+    height: Pixels
+    n_theta: int
+    thickness: Positive
+    n_mu: int
+    n_z: int
+    sigma_t: tuple[Positive, ...]
+    g: Annotated[float, Range(-0.99, 0.99)]
+    boundaries: tuple[Boundary, ...]
+    rho: tuple[Rho, ...]
+
+    def __post_init__(self):
+        if not (self.sigma_t and self.boundaries and self.rho):
+            raise ValueError("tail_acceleration: slab: sigma_t, boundaries, rho: at least one each")
+        try:  # the grid and tanks as run() builds them: their own checks
+            lfj.Grid(self.width, self.height, self.n_theta, 1)
+            lfj.Slab(self.thickness, "absorbing", n_mu=self.n_mu, n_z=self.n_z)
+        except ValueError as e:
+            raise ValueError(f"tail_acceleration: slab: {e}") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """configs/tail_acceleration.yaml: the grid, σt (per pixel), g, ρ, phases and
+    methods, K0, the tolerances, the auto bounce count's limit, the timing repeats and
+    the slab rows (see the module's doc)."""
+
+    width: Pixels
+    height: Pixels
+    n_theta: int
+    refine: int
+    sigma_t: tuple[Positive, ...]
+    g: Annotated[float, Range(-0.99, 0.99)]
+    rho: tuple[Rho, ...]
+    phases: tuple[Literal["normalized", "paper"], ...]
+    methods: tuple[Literal[_METHODS], ...]
+    explicit_bounces: Annotated[int, Range(1, 1000)]
+    tail_tol: Annotated[float, Range(0, 0.1, open_low=True)]
+    target: Annotated[float, Range(0, 0.1, open_low=True)]
+    reference_tol: Annotated[float, Range(0, 0.1, open_low=True)]
+    max_auto_bounces: Annotated[int, Range(1, 100_000)]
+    repeats: Annotated[int, Range(1, 1000)]
+    slab: Annotated[dict, SlabRows]
+
+    def __post_init__(self):
+        lists = ("sigma_t", "rho", "phases", "methods")
+        if not all(getattr(self, k) for k in lists):
+            raise ValueError(f"tail_acceleration: {', '.join(lists)}: at least one each")
+        try:
+            lfj.Grid(self.width, self.height, self.n_theta, self.refine)
+        except ValueError as e:
+            raise ValueError(f"tail_acceleration: {e}") from None
 
 
 def _medium(cfg: dict, sigma_t: float, rho: float, phase: str) -> lfj.Medium:
@@ -245,7 +254,8 @@ def _case(
 
 
 def run(config: dict, out: Path, ctx) -> dict:
-    cfg = _check(config)
+    typed_config(Config, config)  # every key checked before any work
+    cfg = dict(config)
     grid = lfj.Grid(cfg["width"], cfg["height"], cfg["n_theta"], cfg["refine"])
     rows = []
     shared = {k: v for k, v in cfg.items() if k not in ("sigma_t", "rho", "phases", "slab")}

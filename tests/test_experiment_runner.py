@@ -1,9 +1,13 @@
 """The experiment runner works from an installed package, not only from the source tree."""
 
 import dataclasses
+import json
+import re
 import tomllib
+import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -46,7 +50,7 @@ def _plane_vs_slab_config():
     [
         ({"widht": 32}, r"plane_vs_slab: unknown config keys \['widht'\]"),
         ({"width": "32"}, "plane_vs_slab: width: expected int, got '32'"),
-        ({"albedo": [0.5, "high"]}, "plane_vs_slab: albedo: expected"),
+        ({"albedo": [0.5, "high"]}, r"plane_vs_slab: albedo\[1\]: expected float, got .high."),
         ({"max_steps": True}, "plane_vs_slab: max_steps: expected int"),
         ({"boundary": ["mirror"]}, "plane_vs_slab: boundary: unknown 'mirror'"),
     ],
@@ -113,6 +117,18 @@ def test_a_sweep_resumes_from_its_cache(tmp_path):
     assert again == rows and len(calls) == 6  # every point from the cache
 
 
+def test_an_unreadable_cache_entry_is_computed_again(tmp_path):
+    """Before: a truncated cache file stopped the run with a JSON error blamed on the
+    config (a ValueError)."""
+    ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=True)
+    assert ctx.cached("unit", lambda: 1) == 1
+    (entry,) = (tmp_path / "cache").iterdir()
+    for text in ('{"key": "unit", "val', "[1, 2]", '{"key": "unit"}'):
+        entry.write_text(text)
+        assert ctx.cached("unit", lambda: 2) == 2
+    assert ctx.cached("unit", lambda: 3) == 2  # stored again
+
+
 def test_write_csv_is_one_table(tmp_path):
     import csv
 
@@ -136,8 +152,8 @@ def test_every_experiment_script_loads_and_every_config_names_one():
 
 def test_every_shipped_experiment_config_is_valid_in_full_and_reduced():
     """Each experiment config (and its ``reduced:`` form) passes its script's own
-    checks: its typed ``Config``, or its ``_check``; a typo in a config fails here, not
-    after hours of a run."""
+    checks, its typed ``Config``; a typo in a config fails here, not after hours of a
+    run."""
     configs = _experiment.EXPERIMENTS_DIR.parent / "configs"
     checked = 0
     for path in sorted(configs.glob("*.yaml")):
@@ -148,10 +164,7 @@ def test_every_shipped_experiment_config_is_valid_in_full_and_reduced():
         script = _experiment._load_script(name)
         for reduced in (False, True) if data.get("reduced") else (False,):
             raw = _experiment.load_experiment_config(path, reduced)
-            if hasattr(script, "Config"):
-                _experiment.typed_config(script.Config, raw)
-            else:
-                script._check(raw)
+            _experiment.check_experiment_config(script, raw)  # every script has a Config
             checked += 1
     assert checked >= 2 * 10 - 1
 
@@ -184,3 +197,302 @@ def test_reduced_needs_a_reduced_section(tmp_path):
     config.write_text("experiment: clipped_captures\nwidth: 16\n")
     with pytest.raises(ValueError, match="--reduced: this config has no reduced: section"):
         _experiment.load_experiment_config(config, reduced=True)
+
+
+# --------------------------------------------------------------------------- hostile configs
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """A script's run() fails the test: a bad config must be refused before it starts."""
+    load = _experiment._load_script
+
+    def guarded(name):
+        module = load(name)
+
+        def run(*_args, **_kwargs):
+            raise AssertionError(f"{name}: run() reached with a bad config")
+
+        module.run = run
+        return module
+
+    monkeypatch.setattr(_experiment, "_load_script", guarded)
+
+
+def _shipped(name: str, reduced: bool = True) -> dict:
+    return _experiment.load_experiment_config(ROOT / "configs" / f"{name}.yaml", reduced)
+
+
+def _write(tmp_path, data, name="bad.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _refused(tmp_path, data, message):
+    """``data`` run as a config: one-line ValueError naming its file, no output folder."""
+    path, out = _write(tmp_path, data), tmp_path / "out"
+    with pytest.raises(ValueError) as info:
+        _experiment.run_experiment(path, out)
+    text = str(info.value)
+    assert text.startswith(f"{path}: ") and "\n" not in text, text
+    assert re.search(message, text), text
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "name, key",
+    [
+        ("slab_recovery", "thickness"),  # before: KeyError traceback after the folder was made
+        ("paper_figures", "oblique.y"),  # before: KeyError after figures 11-13 were drawn
+        ("forward_accuracy", "scenes[0].beam.y"),  # before: TypeError in Beam()
+        ("tail_acceleration", "slab.rho"),
+        ("stability_maps", "start.media[0].g"),
+        ("model_size", "truth.tolerance"),
+        ("inverse_speed_accuracy", "medium.g"),
+    ],
+)
+def test_a_missing_key_is_named_with_its_path_before_any_work(tmp_path, no_work, name, key):
+    data = {**_shipped(name, reduced=False)}
+    data = json.loads(json.dumps(data))  # a deep copy
+    *parents, last = re.split(r"\.|(?=\[)", key)
+    node = data
+    for part in parents:
+        node = node[int(part[1:-1])] if part.startswith("[") else node[part]
+    del node[last]
+    _refused(tmp_path, data, rf"{name}: missing config key {re.escape(repr(key))}$")
+
+
+def test_every_required_key_of_every_experiment_is_checked(tmp_path):
+    """Each top-level key of each shipped config left out: refused with its name, or
+    (a key with a default) accepted."""
+    for path in sorted((ROOT / "configs").glob("*.yaml")):
+        raw = yaml.safe_load(path.read_text())
+        if "experiment" not in raw:
+            continue
+        raw.pop("reduced", None)
+        script = _experiment._load_script(raw["experiment"])
+        fields = {f.name: f for f in dataclasses.fields(script.Config)}
+        for key in set(raw) - {"experiment"}:
+            partial = {k: v for k, v in raw.items() if k != key}
+            field = fields[key]
+            if (
+                field.default is dataclasses.MISSING
+                and field.default_factory is dataclasses.MISSING
+            ):
+                with pytest.raises(ValueError, match=rf"missing config key '{key}'$"):
+                    _experiment.check_experiment_config(script, partial)
+            else:
+                _experiment.check_experiment_config(script, partial)
+
+
+@pytest.mark.parametrize(
+    "name, change, message",
+    [
+        ("paper_figures", {"width": "128"}, r"paper_figures: width: expected int, got '128'$"),
+        (
+            "paper_figures",
+            {"lightfield_bounces": True},
+            "lightfield_bounces: expected int, got True",
+        ),
+        ("paper_figures", {"width": 100_000}, r"width: must be in \[8, 2048\], got 100000$"),
+        ("paper_figures", {"oblique": {"y": 4.5, "direction_deg": 30, "show": 3}}, "oblique.show"),
+        (
+            "paper_figures",
+            {"oblique": {3: 1, "y": 4.5, "direction_deg": 30, "show_bounces": 3}},
+            r"unknown config keys \['oblique.3'\]$",  # before: a TypeError
+        ),
+        ("paper_figures", {"beam_y": -3.0}, r"beam_y: must be in \(0, height=96\)"),
+        ("forward_accuracy", {"seed": -5}, r"seed: must be in \[0, 4294967295\], got -5$"),
+        ("forward_accuracy", {"n_theta": [12]}, "grid.n_theta: must be a multiple of 8"),
+        ("slab_recovery", {"photons": float("nan")}, "photons: expected int, got nan"),
+        ("slab_recovery", {"sigma_t": float("inf")}, "sigma_t: must be a finite number"),
+        (
+            "slab_recovery",
+            {"media": [{"albedo": 0.9, "g": 0.8, "colour": 1}]},
+            r"media\[0\].colour",
+        ),
+        ("slab_recovery", {"n_z": 1.5}, "n_z: expected int or null, got 1.5"),
+        ("tail_acceleration", {"rho": [0.9, 1.0]}, r"rho\[1\]: must be in \(0, 1\), got 1.0$"),
+        ("tail_acceleration", {"methods": ["cg"]}, r"methods\[0\]: must be one of series_auto"),
+        ("tail_acceleration", {"methods": []}, "methods: at least one each"),  # max() of []
+        (
+            "stability_maps",
+            {"albedo_g": {"sigma_t": "x", "albedo": [0.5], "g": [0]}},
+            r"albedo_g.sigma_t: expected float",
+        ),
+        (
+            "stability_maps",
+            {"high_albedo": {"sigma_t": 0.2, "albedo": [0.9], "g": [0.5], "joint_timeout": -1}},
+            r"high_albedo.joint_timeout: must be in \(0, 86400\]",
+        ),
+        ("stability_maps", {"noise": {"levels": [[1000.0]]}}, "noise.levels"),
+        (
+            "fit_speed",
+            {"fit": {"tial": None}},
+            r"fit_speed: fit.tial: unknown key \(did you mean 'tail'\?\)",
+        ),
+        ("fit_speed", {"fit": {"max_steps": "many"}}, "fit.max_steps: must be an integer"),
+        (
+            "fit_speed",
+            {"media": [{"name": "m", "sigma_t": -1, "sigma_s": 0.1, "g": 0.4}]},
+            r"media\[0\]: medium.sigma_t: must be > 0",
+        ),
+        ("model_size", {"large": {"n_thetaa": 64}}, "large.n_thetaa: unknown key"),
+        ("clipped_captures", {"seeds": [0, -1]}, r"seeds\[1\]: must be in \[0, "),
+        ("inverse_speed_accuracy", {"noise": {"photon": 5}}, "noise.photon: unknown key"),
+        (
+            "plane_vs_slab",
+            {"optical_thickness": [1e9]},
+            r"optical_thickness\[0\]: must be in \(0, 1000\]",
+        ),
+        ("slab_depth_accuracy", {"n": 0.5}, r"geometry.n: must lie in \[1, 4\]"),
+    ],
+)
+def test_a_bad_value_is_named_before_any_work(tmp_path, no_work, name, change, message):
+    """Strings and bools for numbers, out-of-range, non-finite and unknown nested
+    values: before, run into the script (a traceback, a hang, or a silent answer)."""
+    data = {**_shipped(name, reduced=False), **change}
+    path, out = _write(tmp_path, data), tmp_path / "out"
+    with pytest.raises(ValueError) as info:
+        _experiment.run_experiment(path, out)
+    text = str(info.value)
+    assert text.startswith(f"{path}: {name}: ") and "\n" not in text, text
+    assert re.search(message, text), text
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "the top level must be a mapping"),
+        ("- experiment\n- paper_figures\n", "the top level must be a mapping"),
+        ("experiment: paper_figures\nreduced: [1]\n", "reduced: must be a mapping"),
+        ("experiment: 3\n", "unknown experiment 3"),
+        ("experiment: paper_figures\n2: 3\nwidth: 32\n", r"unknown config keys \['2'\]"),
+    ],
+)
+def test_a_config_of_the_wrong_shape_is_one_line(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message):
+        _experiment.run_experiment(path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_reduced_cannot_name_another_experiment(tmp_path, no_work):
+    """Before: ``reduced: {experiment: OTHER}`` ran another script with --reduced."""
+    path = _write(tmp_path, {**_shipped("paper_figures", False), "reduced": {"experiment": "x"}})
+    with pytest.raises(ValueError, match=r"reduced: overrides unknown keys \['experiment'\]"):
+        _experiment.run_experiment(path, tmp_path / "out", reduced=True)
+
+
+def test_a_typo_in_reduced_is_refused_in_a_full_run_too(tmp_path, no_work):
+    """Before: found only by a --reduced run (the test suite's), after the full run."""
+    path = _write(tmp_path, {**_shipped("paper_figures", False), "reduced": {"widht": 32}})
+    with pytest.raises(ValueError, match=r"reduced: overrides unknown keys \['widht'\]"):
+        _experiment.run_experiment(path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):
+    from lightfield_jax.app.memory import MemoryLimitError, memory_limit
+
+    path = _write(tmp_path, {**_shipped("paper_figures"), "width": 2048, "height": 2048})
+    with memory_limit(1 << 30), pytest.raises(MemoryLimitError, match="2048x2048 pixels needs"):
+        _experiment.run_experiment(path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_run_publishes_nothing_but_its_cache(tmp_path, monkeypatch):
+    """Before: the script wrote into OUT directly: a run failing after its first figures
+    left them there (and a stale summary.json of an earlier run beside them)."""
+    calls = []
+
+    def run(config, out, ctx):
+        value = ctx.cached("unit", lambda: calls.append(1) or 42)
+        (out / "figure.png").write_text("half")
+        if len(calls) == 1:
+            raise RuntimeError("failed after its first figure")
+        return {"value": value}
+
+    script = types.SimpleNamespace(Config=_experiment._load_script("paper_figures").Config, run=run)
+    monkeypatch.setattr(_experiment, "_load_script", lambda _name: script)
+    path, out = _write(tmp_path, _shipped("paper_figures")), tmp_path / "out"
+    with pytest.raises(RuntimeError, match="first figure"):
+        _experiment.run_experiment(path, out)
+    assert sorted(p.name for p in out.iterdir()) == ["cache"]  # only the finished unit
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    calls.append(1)  # the rerun succeeds: it resumes from the cache, then publishes
+    record = _experiment.run_experiment(path, out)
+    assert record["summary"] == {"value": 42} and len(calls) == 2
+    assert sorted(p.name for p in out.iterdir()) == ["cache", "figure.png", "summary.json"]
+
+
+def test_an_unknown_fit_key_of_fit_speed_exits_2_in_one_line(tmp_path, no_work, capsys):
+    """Before: exit 0, each medium's fit 'recorded' as a child process's traceback."""
+    from lightfield_jax.app.cli import main
+
+    path = _write(tmp_path, {**_shipped("fit_speed", reduced=False), "fit": {"tial": None}})
+    assert main(["experiment", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert err.startswith(f"lightfield-jax: error: {path}: fit_speed: fit.tial: unknown key")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, capsys):
+    """A child process whose fit raises: before, recorded as the medium's result (its
+    traceback as 'error_message') and exit 0; now exit 1 with its last line."""
+    from lightfield_jax.app.cli import main
+
+    load = _experiment._load_script
+
+    def broken(name):
+        module = load(name)
+        module._capture = lambda cfg, medium: np.ones((6, 8, 8), np.float32)
+        module._fit_kwargs = lambda cfg, medium: {"no_such_option": 1}
+        return module
+
+    monkeypatch.setattr(_experiment, "_load_script", broken)
+    path, out = _write(tmp_path, _shipped("fit_speed")), tmp_path / "out"
+    assert main(["experiment", str(path), "--out", str(out), "-q"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert "fit_speed: media milk: the fit's child process failed: TypeError" in err, err
+    assert not out.exists() or sorted(p.name for p in out.iterdir()) == []
+
+
+def test_a_crashed_fit_child_is_one_line():
+    """stability_maps and model_size fit in child processes: one that crashes (not a
+    fit that fails, which is recorded) stopped the run with a RuntimeError carrying the
+    child's whole traceback; now an ExperimentError of one line (exit 1)."""
+    import lightfield_jax as lfj
+
+    inv = _experiment.load_helper("_inverse")
+    truth = {"sigma_t": 0.2, "sigma_s": 0.04, "g": 0.4}
+    with pytest.raises(_experiment.ExperimentError) as info:
+        inv.fit_record_limited(
+            np.ones((6, 8, 8)),
+            lfj.Stripes(),
+            truth,
+            timeout=300,
+            dtype="float16",
+            xla_cache_dir=None,
+        )
+    assert str(info.value) == (
+        "a fit's child process failed: ValueError: dtype: must be float32 or float64, got 'float16'"
+    )
+
+
+def test_an_experiment_does_not_replace_its_own_config(tmp_path, no_work, capsys):
+    """A config inside --out named like an output (summary.json): before, replaced by
+    the run's summary."""
+    from lightfield_jax.app.cli import main
+
+    config = tmp_path / "summary.json"
+    config.write_text(yaml.safe_dump(_shipped("paper_figures", reduced=False)))
+    before = config.read_text()
+    assert main(["experiment", str(config), "--out", str(tmp_path)]) == 2
+    assert "holds an input of this command" in capsys.readouterr().err
+    assert config.read_text() == before

@@ -152,7 +152,7 @@ def test_stability_maps_rows_config():
     tail0, ratio0 = script._measured_tail(np.r_[0.8 ** np.arange(10), 0.0, 0.0])
     assert (tail0, ratio0) == pytest.approx((tail, ratio))
     for bad, match in (
-        ({"high_albedo": {**raw["high_albedo"], "albedos": [0.9]}}, "unknown keys"),
+        ({"high_albedo": {**raw["high_albedo"], "albedos": [0.9]}}, "unknown config keys"),
         ({"refractive_slab": {**raw["refractive_slab"], "geometry": {"kind": "plane"}}}, "slab"),
         ({"refractive_slab": {**raw["refractive_slab"], "methods": ["nope"]}}, "nope"),
     ):
@@ -189,10 +189,10 @@ def test_clipped_captures_config():
     raw = load_experiment_config(CONFIGS / "clipped_captures.yaml")
     typed_config(script.Config, raw)
     for bad, match in (
-        ({"clips": [0.0]}, r"clips: fractions in \(0, 1\]"),
+        ({"clips": [0.0]}, r"clips\[0\]: must be in \(0, 1\]"),
         ({"seeds": []}, "seeds: at least one"),
-        ({"medium": {"sigma_t": 0.2}}, "medium: missing keys"),
-        ({"width": 4}, "width, height"),
+        ({"medium": {"sigma_t": 0.2}}, "missing config key 'medium.sigma_s'"),
+        ({"width": 4}, r"width: must be in \[8, 2048\]"),
     ):
         with pytest.raises(ValueError, match=match):
             typed_config(script.Config, {**raw, **bad})

@@ -127,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit status (0 success, 2 bad input)."""
+    """Run the command line; returns the exit status (0 success, 1 a result that
+    cannot be trusted or an experiment that failed while it ran, 2 bad input)."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors

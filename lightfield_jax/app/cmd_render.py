@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from lightfield_jax.app.cli import (
@@ -74,12 +75,26 @@ def _render_command(args: argparse.Namespace) -> None:
 )
 def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
-    summary.json with the config, software versions, machine and date. A rerun into
-    the same DIR resumes from the work already stored in DIR/cache."""
-    from lightfield_jax.app.experiment import run_experiment
+    summary.json with the config, software versions, machine and date. The config is
+    checked whole before any work; a run that fails publishes nothing into DIR (exit
+    status 1 when the experiment itself fails, 2 for a bad config). A rerun into the
+    same DIR resumes from the work already stored in DIR/cache."""
+    from lightfield_jax.app.cli import PROG, _one_line
+    from lightfield_jax.app.experiment import ExperimentError, run_experiment
 
-    _outputs(folders=[args.out])
-    with _progress(args, "experiment") as stage:
-        record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
+    config = Path(args.config)  # a config inside DIR named like an output is kept
+    _outputs(
+        folders=[args.out],
+        inputs=[config] if config.is_file() else [],
+        folder_names=("*.json", "*.csv", "*.png", "*.npz"),
+    )
+    try:
+        with _progress(args, "experiment") as stage:
+            record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
+    except ExperimentError as e:
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {args.config}: {_one_line(str(e))}", file=sys.stderr)
+        return 1
     _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
     _say(args, f"experiment {record['experiment']} done in {record['seconds']:.1f} s")

@@ -19,11 +19,17 @@ The scripts and configs ship inside the wheel (``lightfield_jax/_experiments``,
 path, or the name of a shipped one (``lightfield-jax experiment forward_accuracy``).
 In a source checkout the tree's ``experiments/`` and ``configs/`` are used.
 
+Every script defines its config as a frozen dataclass ``Config`` (field types with
+:class:`Range` bounds, ``Literal`` choices, nested mappings as dataclass schemas); the
+runner checks the whole config against it (:func:`typed_config`), and the grid's memory,
+before any work, so that a bad config is one line naming the file and the key. The
+outputs go to a staging folder, published into ``out`` only when the run succeeds.
+
 Long experiments resume: ``ctx.cached(key, compute)`` stores each finished unit of work
-as ``out/cache/KEY.json`` and returns it on a rerun instead of recomputing;
-``ctx.sweep(axes, key, compute)`` runs a Cartesian sweep that way. The other pieces
-the scripts share are written here once: typed, frozen configs (:func:`typed_config`),
-CSV tables (:func:`write_csv`) and figures (:func:`pyplot`, :func:`save_figure`).
+as ``out/cache/KEY.json`` (kept when a run fails) and returns it on a rerun instead of
+recomputing; ``ctx.sweep(axes, key, compute)`` runs a Cartesian sweep that way. The
+other pieces the scripts share are written here once: CSV tables (:func:`write_csv`)
+and figures (:func:`pyplot`, :func:`save_figure`).
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ import hashlib
 import importlib.util
 import itertools
 import json
+import math
 import os
 import platform
 import sys
@@ -43,10 +50,10 @@ import types
 import typing
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 from lightfield_jax.app.config import load_yaml
-from lightfield_jax.capture.io import atomic_path, atomic_write_json
+from lightfield_jax.capture.io import atomic_directory, atomic_path, atomic_write_json
 
 _HERE = Path(__file__).resolve().parent.parent  # the package folder
 
@@ -105,20 +112,32 @@ def provenance() -> dict[str, Any]:
 
 @dataclasses.dataclass
 class Context:
-    """What an experiment gets besides its config: where to write, progress, resume."""
+    """What an experiment gets besides its config: where to write, progress, resume.
+
+    ``out`` is where this run's outputs go (under :func:`run_experiment`, a staging
+    folder published into the results folder only when the run succeeds); ``keep`` is
+    the results folder itself, for what outlives a failed run (:meth:`kept`): the
+    cache of finished units, a persistent XLA cache (default: ``out``)."""
 
     out: Path
     progress: Callable[[str], None]
     reduced: bool
+    keep: Path | None = None
+
+    def kept(self, name: str) -> Path:
+        """``keep/NAME``: a folder that a failed run leaves for the next one to reuse."""
+        return (self.keep or self.out) / name
 
     def cached(self, key: str, compute: Callable[[], Any]) -> Any:
-        """``compute()``'s JSON-ready result, stored once under ``out/cache``."""
+        """``compute()``'s JSON-ready result, stored once under ``keep/cache``."""
         safe = hashlib.sha1(key.encode()).hexdigest()[:16]
-        path = self.out / "cache" / f"{safe}.json"
-        if path.exists():
+        path = self.kept("cache") / f"{safe}.json"
+        try:  # an entry that cannot be read (truncated, edited) is computed again
             stored = json.loads(path.read_text())
-            if stored.get("key") == key:
-                return stored["value"]
+        except (OSError, ValueError):
+            stored = None
+        if isinstance(stored, dict) and stored.get("key") == key and "value" in stored:
+            return stored["value"]
         value = compute()
         atomic_write_json(path, {"key": key, "value": value})
         return value
@@ -149,16 +168,6 @@ class Context:
         return self.out / name
 
 
-def check_config(name: str, config: dict, allowed, choices: dict | None = None) -> None:
-    """Refuse an experiment config's unknown keys, and list values outside the known
-    ones: ``choices`` maps a key (whose value is a list) to its allowed values."""
-    unknown = sorted(set(config) - set(allowed))
-    if unknown:
-        raise ValueError(f"{name}: unknown config keys {unknown}")
-    for key, known in (choices or {}).items():
-        check_choices(name, key, config[key], known)
-
-
 def check_choices(name: str, key: str, values, known) -> None:
     """Refuse a value of the list ``values`` (config key ``key``) outside ``known``."""
     for value in values:
@@ -168,54 +177,166 @@ def check_choices(name: str, key: str, values, known) -> None:
             )
 
 
-def _type_ok(value, annotation) -> bool:
-    """Whether a YAML value fits a config field's annotation (int for float allowed;
-    lists for tuples; bool is not an int)."""
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The interval a config number must lie in, written into its field's annotation:
+    ``width: Annotated[int, Range(8, 2048)]``; ``open_low`` and ``open_high`` exclude
+    the ends themselves."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    open_low: bool = False
+    open_high: bool = False
+
+    def __contains__(self, x) -> bool:
+        above = self.low < x if self.open_low else self.low <= x
+        below = x < self.high if self.open_high else x <= self.high
+        return above and below
+
+    def __str__(self) -> str:
+        low, high = _number(self.low), _number(self.high)
+        if self.high == math.inf:
+            return f"{'>' if self.open_low else '>='} {low}"
+        return f"in {'(' if self.open_low else '['}{low}, {high}{')' if self.open_high else ']'}"
+
+
+def _number(x: float) -> str:
+    """``x`` as a config would write it: integers in full, else ``%g``."""
+    return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
+
+
+# The ranges the experiments share: an image side, a count of things, a seed (numpy's
+# generators take 0 .. 2**32 - 1 as 32-bit seeds), a positive number, a precision.
+Pixels = Annotated[int, Range(8, 2048)]
+Count = Annotated[int, Range(1, 100_000)]
+Seed = Annotated[int, Range(0, 2**32 - 1)]
+Positive = Annotated[float, Range(0, open_low=True)]
+Dtype = Literal["float32", "float64"]
+
+
+class _Invalid(ValueError):
+    """A config value that does not fit its field: ``key``, the reason."""
+
+
+class _WrongType(_Invalid):
+    """A value of the wrong kind at ``key`` itself (not inside it)."""
+
+    def __init__(self, key: str, annotation, value):
+        super().__init__(f"{key}: expected {_type_name(annotation)}, got {value!r}")
+        self.key = key
+
+
+def _check_value(value, annotation, key: str):
+    """``value`` (YAML) checked against a field's annotation, returned as the config
+    holds it (lists become tuples); a misfit raises :class:`_Invalid`. int is accepted
+    for float, bool is not a number, floats are finite; ``Annotated[dict, Schema]``
+    checks a mapping against the dataclass ``Schema`` (kept as the mapping)."""
     origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        base, *extras = typing.get_args(annotation)
+        schemas = [e for e in extras if isinstance(e, type) and dataclasses.is_dataclass(e)]
+        if schemas:
+            if not isinstance(value, dict):
+                raise _WrongType(key, dict, value)
+            _build(schemas[0], value, f"{key}.")
+            return value
+        value = _check_value(value, base, key)
+        for r in (e for e in extras if isinstance(e, Range)):
+            if value not in r:
+                raise _Invalid(f"{key}: must be {r}, got {value!r}")
+        return value
+    if origin is Literal:
+        known = typing.get_args(annotation)
+        if isinstance(value, bool) or value not in known:
+            raise _Invalid(f"{key}: must be one of {', '.join(map(str, known))}, got {value!r}")
+        return value
     if origin in (typing.Union, types.UnionType):
-        return any(_type_ok(value, a) for a in typing.get_args(annotation))
-    if annotation is type(None):
-        return value is None
+        errors = []
+        for option in typing.get_args(annotation):
+            try:
+                return _check_value(value, option, key)
+            except _Invalid as e:
+                errors.append(e)
+        # An option of the value's kind: its reason (a range, a key inside); else the
+        # types expected.
+        fitting = [e for e in errors if not (isinstance(e, _WrongType) and e.key == key)]
+        raise fitting[0] if fitting else _WrongType(key, annotation, value)
     if annotation is Any:
-        return True
+        return value
     if origin in (tuple, list):
         args = typing.get_args(annotation)
         inner = args[0] if args else Any
-        return isinstance(value, (list, tuple)) and all(_type_ok(v, inner) for v in value)
-    if origin is dict or annotation is dict:
-        return isinstance(value, dict)
+        if not isinstance(value, (list, tuple)):
+            raise _WrongType(key, annotation, value)
+        return tuple(_check_value(v, inner, f"{key}[{i}]") for i, v in enumerate(value))
     if annotation is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if annotation is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, annotation)
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok and not math.isfinite(value):
+            raise _Invalid(f"{key}: must be a finite number, got {value!r}")
+    elif annotation is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif annotation is type(None):
+        ok = value is None
+    else:
+        ok = isinstance(value, origin or annotation)
+    if not ok:
+        raise _WrongType(key, annotation, value)
+    return value
+
+
+def _build(cls, config: dict, prefix: str = ""):
+    """``cls(**config)`` with every key checked (see :func:`typed_config`); the keys
+    named with ``prefix`` (``"oblique."``, ``"media[0]."``)."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(config) - set(fields) - ({"experiment"} if not prefix else set())
+    if unknown:  # (YAML keys may be numbers or booleans too)
+        raise _Invalid(f"unknown config keys {sorted(f'{prefix}{k}' for k in unknown)}")
+    hints = typing.get_type_hints(cls, include_extras=True)
+    values = {}
+    for key, field in fields.items():
+        if key in config:
+            values[key] = _check_value(config[key], hints[key], prefix + key)
+        elif field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING:
+            raise _Invalid(f"missing config key {prefix + key!r}")
+    return cls(**values)
 
 
 def typed_config(cls, config: dict):
     """The frozen dataclass ``cls`` built from an experiment config (its ``experiment``
-    key aside): an unknown key, a missing one or a value of the wrong type is a
-    one-line ``ValueError`` naming the experiment and the key. Lists become tuples."""
+    key aside). An unknown key (a typo), a missing one, a value of the wrong type (a
+    string or a bool for a number), a number outside its field's :class:`Range`, or a
+    mapping (``Annotated[dict, Schema]``) that does not fit its schema is a one-line
+    ``ValueError`` naming the experiment and the key's path (``oblique.y``,
+    ``media[1].g``), as are the checks of ``cls.__post_init__``. Lists become tuples."""
     name = config.get("experiment", cls.__name__)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(config) - set(fields) - {"experiment"})
-    if unknown:
-        raise ValueError(f"{name}: unknown config keys {unknown}")
-    hints = typing.get_type_hints(cls)
-    values = {}
-    for key, field in fields.items():
-        if key not in config:
-            no_default = field.default is dataclasses.MISSING
-            if no_default and field.default_factory is dataclasses.MISSING:
-                raise ValueError(f"{name}: missing config key {key!r}")
-            continue
-        value = config[key]
-        if not _type_ok(value, hints[key]):
-            raise ValueError(f"{name}: {key}: expected {_type_name(hints[key])}, got {value!r}")
-        values[key] = tuple(value) if isinstance(value, list) else value
-    return cls(**values)
+    try:
+        return _build(cls, config)
+    except _Invalid as e:
+        raise ValueError(f"{name}: {e}") from None
+
+
+def fit_keywords(where: str, key: str, value) -> dict:
+    """``value``, extra :func:`~lightfield_jax.fit_images` keywords of a config's ``key``,
+    checked as a capture file's ``fit:`` section is (the FitOptions fields, their types,
+    then FitOptions' own checks): one-line errors naming ``where`` and ``key.FIELD``."""
+    from lightfield_jax.app.config import _Section
+    from lightfield_jax.capture.keys import _fit_options
+
+    return _fit_options(_Section(where, "", {key: value}, None), key)
 
 
 def _type_name(annotation) -> str:
+    origin = typing.get_origin(annotation)
+    if origin is Annotated:
+        return _type_name(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_type_name(a) for a in typing.get_args(annotation))
+    if annotation is type(None):
+        return "null"
+    if origin in (tuple, list):
+        return "a list"
+    if annotation is dict:
+        return "a mapping"
     return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
 
 
@@ -265,10 +386,12 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
         raise ValueError(f"{path}: reduced: must be a mapping of overrides")
     if reduced and not small:  # else a full run would be recorded as a reduced one
         raise ValueError(f"{path}: --reduced: this config has no reduced: section to apply")
+    # Checked in a full run too (a typo there would surface only in the test suite);
+    # not the experiment: the reduced run is the same experiment.
+    unknown = sorted(map(str, set(small) - set(data) | ({"experiment"} & set(small))))
+    if unknown:
+        raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
     if reduced:
-        unknown = sorted(set(small) - set(data))
-        if unknown:
-            raise ValueError(f"{path}: reduced: overrides unknown keys {unknown}")
         data.update(small)
     return data
 
@@ -321,6 +444,33 @@ def _load_script(name):
     return module
 
 
+class ExperimentError(RuntimeError):
+    """An experiment that failed while it ran (e.g. a child process's fit): one line."""
+
+
+def child_failed(what: str, returncode: int, stderr: str) -> ExperimentError:
+    """The error of a child process that failed: ``what`` and its last line of stderr
+    (its exception), or its exit status (a child killed by a signal says nothing)."""
+    lines = [line.strip() for line in (stderr or "").splitlines() if line.strip()]
+    reason = lines[-1][:300] if lines else f"exit status {returncode}"
+    return ExperimentError(f"{what} failed: {reason}")
+
+
+def check_experiment_config(module, config: dict) -> Any:
+    """The script's typed ``Config`` of ``config`` (every experiment script defines one),
+    and the memory its smallest render of ``width`` × ``height`` needs (checked against
+    the machine's, see :mod:`lightfield_jax.app.memory`): a bad config is refused in a
+    second, before any work."""
+    from lightfield_jax.app.memory import check_memory, render_bytes
+
+    typed = typed_config(module.Config, config)
+    w, h = getattr(typed, "width", None), getattr(typed, "height", None)
+    if isinstance(w, int) and isinstance(h, int):
+        # A lower bound: one image at 16 direction bins (the experiments render more).
+        check_memory(render_bytes(1, h, w, 16), f"{config['experiment']}: {w}x{h} pixels")
+    return typed
+
+
 def run_experiment(
     config_path: str | Path,
     out: str | Path | None = None,
@@ -328,34 +478,45 @@ def run_experiment(
     reduced: bool = False,
     progress: Callable[[str], None] = lambda _m: None,
 ) -> dict:
-    """Run one experiment; returns its summary (also written to ``out/summary.json``)."""
+    """Run one experiment; returns its summary (also written to ``out/summary.json``).
+
+    The config is checked whole before any work (:func:`check_experiment_config`). The
+    outputs are written into a staging folder beside ``out`` and published into ``out``
+    (with ``summary.json``) only when the run succeeds: a failed run leaves no partial
+    result, only ``out/cache`` (the finished units a rerun resumes from)."""
     config = load_experiment_config(config_path, reduced)
     try:
         module = _load_script(config["experiment"])
-    except ValueError as e:
-        raise ValueError(f"{config_path}: {e}") from None
+        check_experiment_config(module, config)
+    except ValueError as e:  # a config the script refuses: named with its file
+        e.args = (f"{config_path}: {e}",)  # (its kind kept: a MemoryLimitError)
+        raise
     name = config["experiment"]
     out = Path(out) if out is not None else Path("results") / name
     existed = out.exists()
-    out.mkdir(parents=True, exist_ok=True)
     started = datetime.datetime.now(datetime.UTC)
-    ctx = Context(out=out, progress=progress, reduced=reduced)
     try:
-        summary = module.run(config, out, ctx)
-    except ValueError as e:  # a config the script refuses: named with its file
-        if not existed and not any(out.iterdir()):
+        with atomic_directory(out) as staging:
+            ctx = Context(out=staging, progress=progress, reduced=reduced, keep=out)
+            try:
+                summary = module.run(config, staging, ctx)
+            except ValueError as e:  # a config the script refuses late
+                e.args = (f"{config_path}: {e}",)
+                raise
+            record = {
+                "experiment": name,
+                "config_file": str(config_path),
+                "config": config,
+                "reduced": reduced,
+                "started_utc": started.isoformat(timespec="seconds"),
+                "seconds": (datetime.datetime.now(datetime.UTC) - started).total_seconds(),
+                "versions": versions(),
+                "machine": machine(),
+                "summary": summary,
+            }
+            atomic_write_json(staging / "summary.json", record)
+    except BaseException:
+        if not existed and out.is_dir() and not any(out.iterdir()):
             out.rmdir()  # no empty output folder left behind
-        raise ValueError(f"{config_path}: {e}") from None
-    record = {
-        "experiment": name,
-        "config_file": str(config_path),
-        "config": config,
-        "reduced": reduced,
-        "started_utc": started.isoformat(timespec="seconds"),
-        "seconds": (datetime.datetime.now(datetime.UTC) - started).total_seconds(),
-        "versions": versions(),
-        "machine": machine(),
-        "summary": summary,
-    }
-    atomic_write_json(out / "summary.json", record)
+        raise
     return record

@@ -243,15 +243,16 @@ def _geometry(top: _Section) -> dict[str, Any]:
         raise top.error(f"{top.source}: {err}") from None
 
 
-def _fit_options(top: _Section) -> dict[str, Any]:
-    """The ``fit:`` mapping: FitOptions fields (:data:`FIT_KEYS`), each checked for its
-    type, then together by FitOptions itself (ranges), before any image is read."""
+def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
+    """The ``fit:`` mapping (at ``key``): FitOptions fields (:data:`FIT_KEYS`), each
+    checked for its type, then together by FitOptions itself (ranges), before any image
+    is read."""
     from lightfield_jax.forward.tail import TAIL_METHODS
     from lightfield_jax.inverse.options import FitOptions
 
-    if "fit" not in top.data or top.data["fit"] is None:
+    if key not in top.data or top.data[key] is None:
         return {}
-    s = top.section("fit", FIT_KEYS)
+    s = top.section(key, FIT_KEYS)
     out: dict[str, Any] = {}
     for k in s.data:
         value = s.data[k]
@@ -274,7 +275,7 @@ def _fit_options(top: _Section) -> dict[str, Any]:
     try:
         FitOptions(**out)
     except ValueError as err:
-        s.fail("fit", str(err))
+        s.fail(key, str(err))
     return out
 
 
