@@ -198,6 +198,35 @@ def test_clipped_captures_config():
             typed_config(script.Config, {**raw, **bad})
 
 
+@pytest.mark.slow  # 20 s on 2 cores (one cold fit); run with -m slow
+def test_coverage_reduced(tmp_path):
+    summary = run_experiment(CONFIGS / "coverage.yaml", tmp_path, reduced=True)["summary"]
+    _files(tmp_path, summary)
+    (row,) = summary["rows"]
+    assert row["medium"] == "milk" and row["converged"] == row["fits"] == 2
+    assert set(row["rms_z"]) == {"sigma_t", "sigma_s", "g"} and row["mean_m2"] > 0
+    data = json.loads((tmp_path / "coverage.json").read_text())
+    for fit in data["records"]["milk"]:
+        z = np.array([fit["z"][k] for k in ("sigma_t", "sigma_s", "g")])
+        assert np.all(np.isfinite(z)) and fit["m2"] >= 0
+
+
+def test_coverage_config():
+    script = load_helper("coverage")
+    raw = load_experiment_config(CONFIGS / "coverage.yaml")
+    typed_config(script.Config, raw)
+    milk = raw["media"][0]
+    for bad, match in (
+        ({"media": []}, "media: at least one"),
+        ({"media": [milk, milk]}, "names must differ"),
+        ({"media": [{**milk, "g": 1.5}]}, "g"),
+        ({"seeds": 0}, r"seeds: must be in \[1, 100000\]"),
+        ({"photons": -1}, "photons: must be > 0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            typed_config(script.Config, {**raw, **bad})
+
+
 def test_load_helper_shares_one_module():
     inv = load_helper("_inverse")
     assert load_helper("_inverse") is inv and inv.__name__ == "lightfield_jax_experiments._inverse"
