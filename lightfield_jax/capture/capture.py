@@ -358,8 +358,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         )
     if linear is not None:
         notes.append(
-            f"response: {top.get('response')}: the images and calibration frames were "
-            "linearised with it before the dark frame was subtracted"
+            f"response: {top.get('response')}: the codes of the images and calibration "
+            "frames linearised with it (before a dark frame or flat field is applied)"
         )
     sensor = None if saturation is not None else sensor_top_code(raw, frames)
     dark = aux["dark_frame"]
