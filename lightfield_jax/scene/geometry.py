@@ -21,6 +21,7 @@ from typing import Literal
 
 import numpy as np
 
+from lightfield_jax.checks import check_number
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.grid import Grid
@@ -39,11 +40,8 @@ DIM_ALBEDO = 0.3
 
 
 def _positive_finite(value, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what}: must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
+    v = check_number(value, what)
+    if v <= 0:
         raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
     return v
 
@@ -147,8 +145,6 @@ class Slab:
     kind: Literal["slab"] = "slab"
 
     def __post_init__(self):
-        if isinstance(self.thickness, (bool, str)):
-            raise ValueError(f"geometry.thickness: must be a number, got {self.thickness!r}")
         thickness = _positive_finite(self.thickness, "geometry.thickness")
         if thickness > MAX_THICKNESS:
             raise ValueError(

@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from lightfield_jax.checks import check_number
+
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
 
@@ -79,18 +81,14 @@ class Medium(eqx.Module):
             )
         # Concrete values are checked on the host (NumPy): eager JAX operations would
         # each compile a small program the first time (a few hundred ms per process).
+        # A single real number each (True, "0.2", 0.2j, [0.2] or None are refused):
+        # lightfield_jax.checks, as every constructor of the API.
         given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
+        concrete = {}
         for name, value in given.items():
-            if isinstance(value, (str, bytes, bool)) or value is None:
-                raise ValueError(f"medium.{name}: must be a number, got {value!r}")
-        concrete = {
-            name: np.asarray(value, dtype=np.float64)
-            for name, value in given.items()
-            if _is_concrete(value)
-        }
-        for name, value in concrete.items():
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"medium.{name}: must be finite, got {given[name]!r}")
+            if _is_concrete(value):
+                check_number(value, f"medium.{name}")
+                concrete[name] = np.asarray(value, dtype=np.float64)
         if "sigma_t" in concrete and float(np.min(concrete["sigma_t"])) <= 0.0:
             raise ValueError(f"medium.sigma_t: must be > 0 (per pixel), got {sigma_t!r}")
         if "sigma_s" in concrete and "sigma_t" in concrete:
@@ -114,6 +112,16 @@ class Medium(eqx.Module):
         if "sigma_t" in stored and float(np.min(stored["sigma_t"])) < np.finfo(work).tiny:
             raise ValueError(
                 f"medium.sigma_t: {sigma_t!r} underflows {work} (at least "
+                f"{np.finfo(work).tiny:.3g} per pixel)"
+            )
+        if (
+            "sigma_s" in stored
+            and 0.0 < float(concrete["sigma_s"])
+            and not (float(stored["sigma_s"]) >= np.finfo(work).tiny)
+        ):
+            # A subnormal σs is flushed to zero on the devices: all-zero images.
+            raise ValueError(
+                f"medium.sigma_s: {sigma_s!r} underflows {work} (0, or at least "
                 f"{np.finfo(work).tiny:.3g} per pixel)"
             )
         if "g" in stored and np.any(np.abs(stored["g"]) >= 1.0):

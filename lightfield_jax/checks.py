@@ -1,0 +1,127 @@
+"""One-line checks of the numbers the Python API takes (medium, grid, geometry,
+illumination, fit options, figures).
+
+A number is a Python ``int`` or ``float``, a NumPy integer or floating scalar, or a
+0-d real array (NumPy or JAX); ``True``, strings, ``None``, complex values and arrays
+of more than one value are not (``True`` is an ``int`` to Python and ``"0.2"`` a
+number to ``float()``: both were taken silently). :func:`number_problem` says what is
+wrong with a value (``None``: nothing), :func:`check_number` raises it as
+``ValueError("KEY: PROBLEM")`` naming the argument, the value and the allowed range.
+JAX tracers (values under ``jit`` or ``grad``) are not numbers to check here: callers
+that take them skip the check (see :class:`~lightfield_jax.Medium`).
+"""
+
+from __future__ import annotations
+
+import math
+import reprlib
+
+import numpy as np
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
+
+
+def shown(value) -> str:
+    """``repr(value)`` bounded in size, for an error message (a rejected value may be
+    a huge array or string)."""
+    text = _REPR.repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _range(kind: str, low, high, low_open: bool, high_open: bool, unit: str) -> str:
+    """``"must be a number in [0, 1)"``, ``"must be an integer >= 2"``, ..."""
+    if low is not None and high is not None:
+        left, right = "(" if low_open else "[", ")" if high_open else "]"
+        return f"must be {kind} in {left}{low:g}, {high:g}{right}{unit}"
+    if low is not None:
+        return f"must be {kind} {'>' if low_open else '>='} {low:g}{unit}"
+    return f"must be {kind} {'<' if high_open else '<='} {high:g}{unit}"
+
+
+def number_problem(
+    value,
+    *,
+    integer: bool = False,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    allow_inf: bool = False,
+    unit: str = "",
+) -> str | None:
+    """What is wrong with ``value`` as a number (``None``: nothing).
+
+    ``integer``: an ``int`` or NumPy integer only. ``low``/``high``: the allowed range
+    (closed unless ``low_open``/``high_open``); ``allow_inf``: ±inf is a value (NaN
+    never is). ``unit`` follows the range in the message (e.g. ``" px"``).
+    """
+    kind = "an integer" if integer else "a number"
+    if isinstance(value, (bool, np.bool_, str, bytes, np.str_)) or value is None:
+        return f"must be {kind}, got {shown(value)}"
+    if isinstance(value, (int, np.integer)):
+        v = value
+    elif integer:
+        if isinstance(value, (float, np.floating)) or np.ndim(value) == 0:
+            return f"must be {kind}, got {shown(value)}"
+        return f"must be {kind}, got {_array_words(value)}"
+    elif isinstance(value, (float, np.floating)):
+        v = float(value)
+    else:
+        dtype = getattr(value, "dtype", None)
+        if dtype is None or getattr(value, "shape", None) is None:
+            if isinstance(value, complex):
+                return f"must be a real number, got {shown(value)}"
+            if isinstance(value, (list, tuple)):
+                return f"must be a single number, got {shown(value)}"
+            return f"must be {kind}, got {shown(value)} ({type(value).__name__})"
+        if np.ndim(value) != 0:
+            return f"must be a single number, got {_array_words(value)}"
+        dtype = np.dtype(dtype)
+        if dtype.kind not in "iuf":
+            what = "a real number" if dtype.kind == "c" else kind
+            return f"must be {what}, got {shown(value)} (dtype {dtype})"
+        v = float(value)
+    if isinstance(v, float) or not integer:
+        f = float(v)
+        if math.isnan(f):
+            return f"must be {kind}, got nan"
+        if math.isinf(f) and not allow_inf:
+            return f"must be finite, got {shown(value)}"
+    if (low is not None and (v < low or (low_open and v == low))) or (
+        high is not None and (v > high or (high_open and v == high))
+    ):
+        return f"{_range(kind, low, high, low_open, high_open, unit)}, got {shown(value)}"
+    return None
+
+
+def _array_words(value) -> str:
+    shape = getattr(value, "shape", None)
+    if shape is None:
+        return shown(value)
+    return f"an array of shape {tuple(shape)}"
+
+
+def check_number(value, key: str, **limits) -> float:
+    """``value`` as a float, or ``ValueError("KEY: ...")`` (see :func:`number_problem`)."""
+    problem = number_problem(value, **limits)
+    if problem is not None:
+        raise ValueError(f"{key}: {problem}")
+    return float(value)
+
+
+def check_int(value, key: str, **limits) -> int:
+    """``value`` as an int, or ``ValueError("KEY: ...")`` (an ``int`` or NumPy integer
+    only: see :func:`number_problem`)."""
+    problem = number_problem(value, integer=True, **limits)
+    if problem is not None:
+        raise ValueError(f"{key}: {problem}")
+    return int(value)
+
+
+def check_flag(value, key: str) -> bool:
+    """``value`` if it is a ``bool`` (or NumPy bool), else ``ValueError("KEY: ...")``:
+    ``"no"`` or ``0`` for a switch is a slip (``"no"`` is true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{key}: must be True or False, got {shown(value)}")
+    return bool(value)
