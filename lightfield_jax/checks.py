@@ -125,3 +125,47 @@ def check_flag(value, key: str) -> bool:
     if not isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{key}: must be True or False, got {shown(value)}")
     return bool(value)
+
+
+# The gain (image units per unit source irradiance) a render takes: images are float32,
+# whose normal numbers span 1.2e-38 to 3.4e38. A larger gain overflows the brightest
+# images, a smaller one underflows every image to zero (gain 1e-40 rendered all-zero
+# images, silently): per unit irradiance the single scatter is at most about 1.
+GAIN_RANGE = (1e-30, 1e30)
+
+
+def gain_problem(value) -> str | None:
+    """What is wrong with a render's gain (``None``: nothing); see :data:`GAIN_RANGE`."""
+    low, high = GAIN_RANGE
+    if number_problem(value, low=low, high=high) is None:
+        return None
+    return f"must be a number in [{low:g}, {high:g}] (images are float32), got {shown(value)}"
+
+
+def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str = "all"):
+    """``value`` as a float64 NumPy array, or ``ValueError("KEY: ...")``: real numbers
+    (not bool, strings or objects such as a result of another kind), ``ndim``
+    dimensions, none of them empty, and finite: every value (``finite="all"``), at
+    least one (``"some"``: masked pixels may be NaN) or not checked (``"any"``).
+    ``what`` names the expected array in the message (e.g. ``"(K, height, width)"``)."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be an array {what}, got {type(value).__name__}") from None
+    if a.dtype == object or a.dtype.kind not in "iuf":
+        got = type(value).__name__ if a.dtype == object else f"dtype {a.dtype}"
+        raise ValueError(f"{key}: must be an array of real numbers {what}, got {got}")
+    if a.ndim not in ndim:
+        dims = " or ".join(map(str, ndim))
+        raise ValueError(f"{key}: must have {dims} dimensions {what}, got shape {a.shape}")
+    if a.size == 0:
+        raise ValueError(f"{key}: must not be empty {what}, got shape {a.shape}")
+    a = a.astype(np.float64)
+    ok = np.isfinite(a)
+    if finite == "all" and not ok.all():
+        raise ValueError(
+            f"{key}: must be finite, got {a.size - int(ok.sum())} of {a.size} values NaN or inf"
+        )
+    if finite == "some" and not ok.any():
+        raise ValueError(f"{key}: has no finite value (all {a.size} NaN or inf)")
+    return a

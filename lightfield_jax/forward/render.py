@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from lightfield_jax.checks import gain_problem
 from lightfield_jax.forward.base import AbstractRenderer, trace_count
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution
@@ -210,10 +211,11 @@ def render(
     stops before its tolerance gives ``tail_converged=False`` and a
     :class:`~lightfield_jax.forward.tail.TailNotConvergedWarning`.
     """
-    if isinstance(gain, (bool, str, bytes)) or np.ndim(gain) != 0:
-        raise ValueError(f"render: gain: must be a positive number, got {gain!r}")
-    if not isinstance(gain, jax.core.Tracer) and not 0.0 < float(gain) <= 1e30:
-        raise ValueError(f"render: gain: must lie in (0, 1e30], got {gain!r}")
+    if isinstance(gain, jax.core.Tracer):  # under jit or grad: its shape only
+        if np.ndim(gain) != 0:
+            raise ValueError(f"render: gain: must be a single number, got shape {gain.shape}")
+    elif (problem := gain_problem(gain)) is not None:
+        raise ValueError(f"render: gain: {problem}")
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     converges = bool(rho < 1.0)
