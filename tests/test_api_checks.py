@@ -2,6 +2,7 @@
 argument, the value and the allowed range, before any work; never a silent wrong
 answer). Each case was accepted before (or failed deep inside), as its comment says."""
 
+import dataclasses
 import math
 
 import jax
@@ -137,3 +138,231 @@ def test_number_problem_names_what_is_wrong():
     assert number_problem(np.zeros((1000, 1000))) == (
         "must be a single number, got an array of shape (1000, 1000)"
     )
+
+
+def test_a_gain_that_underflows_the_images_is_refused():
+    """Before: render(gain=1e-40) and a simulation with gain 1e-40 gave all-zero images
+    (float32 flushes them to zero), silently; a SimulationConfig made in code took a
+    black level of 5 (negative images) and a string gain."""
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    with pytest.raises(ValueError, match=r"render: gain: must be a number in \[1e-30, 1e\+30\]"):
+        lfj.render(medium, grid, lfj.Stripes(), 2, gain=1e-40)
+    assert np.asarray(lfj.render(medium, grid, lfj.Full(), 2, gain=1e-30).images).max() > 0
+    config = {
+        "grid": {"width": 16, "height": 12, "n_theta": 8, "refine": 1},
+        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3},
+        "bounces": 2,
+    }
+    from lightfield_jax.app.config import ConfigError, MediumConfig, parse_simulation_config
+
+    with pytest.raises(ConfigError, match=r"gain: must be a number in \[1e-30, 1e\+30\]"):
+        parse_simulation_config({**config, "gain": 1e-40})
+    good = parse_simulation_config(config)
+    for change, match in [
+        ({"gain": 1e-40}, r"gain: must be a number in \[1e-30"),
+        ({"gain": "2"}, r"gain: must be a number in \[1e-30"),
+        ({"black_level": 5.0}, r"black_level: must be a number in \[0, 1\), got 5.0"),
+        ({"dark_level": -1.0}, r"dark_level: must be a number in \[0, 1e\+30\]"),
+        ({"bounces": True}, "bounces: must be an integer, got True"),
+        ({"tolerance": 0.0}, r"tolerance: must be a number in \(0, 1\)"),
+        ({"grid": (16, 12)}, "grid: must be a Grid"),
+        ({"medium": lfj.Medium(0.2, 0.1, 0.3)}, "medium: must be a MediumConfig"),
+        ({"illumination": "stripes"}, "illumination: must be a Beam or Stripes or Full"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.simulate_capture(dataclasses.replace(good, **change))
+        _one_line(err)
+    with pytest.raises(ValueError, match="medium.sigma_t: must be a number, got '0.2'"):
+        MediumConfig("0.2", 0.1, 0.3)
+
+
+# ------------------------------------------------------------------------- figures
+
+
+@pytest.fixture(scope="module")
+def small():
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    return lfj.render(medium, grid, lfj.Full(), 3, lightfield=True)
+
+
+def _viz_cases(small, tmp_path):
+    import lightfield_jax.viz as viz
+
+    images = np.asarray(small.images)
+    fields = np.asarray(small.lightfields)
+    fit = lfj.fit_decay(images[0])
+    nan = images.copy()
+    nan[1, 2, 3] = np.nan
+    return [
+        # Before: 7.7e8 glyphs (minutes, then memory).
+        (
+            lambda: viz.plot_lightfield(small, spacing=1e-3),
+            r"plot_lightfield.spacing: must be a number in \[1, 16\] px",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, spacing=math.nan),
+            "plot_lightfield.spacing: must be a number, got nan",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, glyph_radius=-1.0),
+            "plot_lightfield.glyph_radius: must be a number in",
+        ),
+        # points off the panel wrapped round to the other side (negative indices)
+        (
+            lambda: viz.plot_lightfield(small, points=[(-5.0, -5.0)]),
+            "plot_lightfield.points: must lie on the 16x12 panel",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, points=[(math.nan, 1.0)]),
+            "plot_lightfield.points: must be finite",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, points=np.ones((5000, 2))),
+            "plot_lightfield.points: must be at most 1024",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, show=-1),
+            "plot_lightfield.show: must be an integer >= 0, got -1",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, columns=0),
+            r"plot_lightfield.columns: must be an integer in \[1, 48\]",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, labels="abcde"),
+            "plot_lightfield.labels: must be a list of 5 titles",
+        ),
+        (lambda: viz.plot_lightfield(np.ones((100, 12, 16, 8))), "plot_lightfield: 100 panels"),
+        (
+            lambda: viz.plot_lightfield(fields[:, :0]),
+            "plot_lightfield.lightfield: must not be empty",
+        ),
+        (
+            lambda: viz.plot_lightfield(fields > 0),
+            "plot_lightfield.lightfield: must be an array of real numbers",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, dynamic_range=0.0),
+            "plot_lightfield.dynamic_range: must be a number > 1",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, glyph_scale=None),
+            "plot_lightfield.glyph_scale: must be 'local' or 'global'",
+        ),
+        # show=-1 silently dropped the last bounce, show=0 drew the sum alone
+        (
+            lambda: viz.plot_bounce_images(small, show=-1),
+            "plot_bounce_images.show: must be an integer >= 1",
+        ),
+        (
+            lambda: viz.plot_bounce_images(small, show=True),
+            "plot_bounce_images.show: must be an integer, got True",
+        ),
+        (
+            lambda: viz.plot_bounce_images(nan),
+            "plot_bounce_images.images: must be finite, got 1 of 576",
+        ),
+        (lambda: viz.plot_bounce_images(np.ones((100, 12, 16))), "plot_bounce_images: 101 panels"),
+        (
+            lambda: viz.plot_bounce_images(images, total="no"),
+            "plot_bounce_images.total: must be True or False",
+        ),
+        (
+            lambda: viz.plot_bounce_images(fit),
+            "plot_bounce_images.images: must be an array of real numbers .* got DecayFit",
+        ),
+        (
+            lambda: viz.plot_bounce_images(images, illumination="full"),
+            "plot_bounce_images.illumination: must be a Beam",
+        ),
+        # bin_width 1e-9: a profile of 1e10 bins (memory); the NaN range drew nothing
+        (
+            lambda: viz.plot_bounce_profiles(small, bin_width=1e-9),
+            "plot_bounce_profiles.bin_width: must be a number >= 0.01 px",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(small, dynamic_range=math.nan),
+            "plot_bounce_profiles.dynamic_range: must be a number, got nan",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(images[0]),
+            r"plot_bounce_profiles.images: must have 3 dimensions",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(images, mask=np.ones((12, 16))),
+            "mask: must be a boolean array",
+        ),
+        # a KeyError, a numpy broadcast error, an AttributeError before
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, entry="west"),
+            "plot_direct_decay.entry: must be one of",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, unseparated=images[0, :5]),
+            r"plot_direct_decay.unseparated: must have the direct image's shape \(12, 16\)",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], small),
+            "plot_direct_decay.fit: must be a DecayFit",
+        ),
+        (
+            lambda: viz.plot_direct_decay(np.full((12, 16), np.nan), fit),
+            "plot_direct_decay.direct: has no finite value",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, direction_deg=90.0),
+            "plot_direct_decay.direction_deg: 90.0 degrees does not point into",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, true_sigma_t="0.2"),
+            "plot_direct_decay.true_sigma_t: must be a number",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, path=5),
+            "plot_direct_decay.path: must be a file path or None, got 5",
+        ),
+        (
+            lambda: viz.plot_transport(images, tmp_path),
+            "plot_transport.result: must be a RenderResult",
+        ),
+        (
+            lambda: viz.plot_transport(small, tmp_path / "missing"),
+            "plot_transport.folder: must be an existing folder",
+        ),
+        (lambda: viz.plot_channels(small), "plot_channels.fit: must be a CaptureFit"),
+        (lambda: viz.plot_inspect(str(tmp_path)), "plot_inspect.inspection: must be a Inspection"),
+        (
+            lambda: viz.plot_fit(images, lfj.Stripes(), small),
+            "plot_fit.result: must be a FitResult",
+        ),
+        (lambda: viz.plot_fit(images, "stripes", small), "plot_fit.pattern: must be a Stripes"),
+        (
+            lambda: viz.light_path_coordinates((12,)),
+            r"light_path_coordinates.shape: must be \(height, width\)",
+        ),
+    ]
+
+
+def test_figures_check_their_arguments_before_drawing(small, tmp_path):
+    import time
+
+    for make, match in _viz_cases(small, tmp_path):
+        start = time.perf_counter()
+        with pytest.raises(ValueError, match=match) as err:
+            make()
+        _one_line(err)
+        assert time.perf_counter() - start < 2.0, match
+
+
+def test_figures_still_draw_valid_arguments(small, tmp_path):
+    import lightfield_jax.viz as viz
+
+    figure = viz.plot_lightfield(small, spacing=2, glyph_radius=1.0, points=None, show=0)
+    assert len([ax for ax in figure.axes if ax.get_title()]) == 2
+    figure = viz.plot_lightfield(np.asarray(small.lightfields)[1], points=np.array([[1.0, 2.0]]))
+    assert figure.axes
+    assert viz.plot_bounce_images(small, show=10, columns=np.int64(2)).axes
+    assert viz.plot_bounce_profiles(np.asarray(small.images), bin_width=np.float32(0.5)).axes
+    files = viz.plot_transport(small, str(tmp_path), illumination=lfj.Full())
+    assert len(files) == 3
