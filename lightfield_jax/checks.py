@@ -84,9 +84,7 @@ def number_problem(
         v = float(value)
     if isinstance(v, float) or not integer:
         f = float(v)
-        if math.isnan(f):
-            return f"must be {kind}, got nan"
-        if math.isinf(f) and not allow_inf:
+        if math.isnan(f) or (math.isinf(f) and not allow_inf):
             return f"must be finite, got {shown(value)}"
     if (low is not None and (v < low or (low_open and v == low))) or (
         high is not None and (v > high or (high_open and v == high))

@@ -130,7 +130,7 @@ def test_number_problem_names_what_is_wrong():
     assert number_problem(2, integer=True, low=1, high=3) is None
     assert number_problem(math.inf, allow_inf=True) is None
     assert number_problem(math.inf) == "must be finite, got inf"
-    assert number_problem(math.nan, allow_inf=True) == "must be a number, got nan"
+    assert number_problem(math.nan, allow_inf=True) == "must be finite, got nan"
     assert number_problem(0.0, low=0, low_open=True, unit=" px") == (
         "must be a number > 0 px, got 0.0"
     )
@@ -202,7 +202,7 @@ def _viz_cases(small, tmp_path):
         ),
         (
             lambda: viz.plot_lightfield(small, spacing=math.nan),
-            "plot_lightfield.spacing: must be a number, got nan",
+            "plot_lightfield.spacing: must be finite, got nan",
         ),
         (
             lambda: viz.plot_lightfield(small, glyph_radius=-1.0),
@@ -283,7 +283,7 @@ def _viz_cases(small, tmp_path):
         ),
         (
             lambda: viz.plot_bounce_profiles(small, dynamic_range=math.nan),
-            "plot_bounce_profiles.dynamic_range: must be a number, got nan",
+            "plot_bounce_profiles.dynamic_range: must be finite, got nan",
         ),
         (
             lambda: viz.plot_bounce_profiles(images[0]),
@@ -366,3 +366,70 @@ def test_figures_still_draw_valid_arguments(small, tmp_path):
     assert viz.plot_bounce_profiles(np.asarray(small.images), bin_width=np.float32(0.5)).axes
     files = viz.plot_transport(small, str(tmp_path), illumination=lfj.Full())
     assert len(files) == 3
+
+
+def test_render_refuses_sizes_from_a_typo_before_the_work(monkeypatch):
+    """Before: Grid(32000, 24000) went on to build the renderer's tables (a MemoryError
+    or the OOM killer, minutes later), bounces=10**6 marched for many minutes and a
+    string illumination failed deep inside."""
+    import time
+
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
+    medium = lfj.Medium(0.2, 0.1, 0.3)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=r"render: the 32000x24000 grid .* needs about 5.7 TiB"):
+        lfj.render(medium, lfj.Grid(32000, 24000, 16, 1), lfj.Stripes(), 3)
+    with pytest.raises(ValueError, match="bounces: at most 10000 bounces are marched"):
+        lfj.render(medium, lfj.Grid(16, 12, 8, 1), lfj.Full(), 10**6)
+    with pytest.raises(ValueError, match="render: illumination: must be a Beam, Stripes or Full"):
+        lfj.render(medium, lfj.Grid(16, 12, 8, 1), "full", 3)
+    assert time.perf_counter() - start < 5.0
+
+
+def test_render_and_its_helpers_name_arguments_of_the_wrong_kind():
+    """Before: a FitResult or a tuple as the medium/grid failed deep inside (an
+    AttributeError), lightfield="no" rendered light fields (a truthy string), a string
+    tolerance or a NaN rho a bare TypeError/ValueError of Python, a NumPy tail_tol was
+    refused, single_scatter_closed_form(width=True) drew one column and
+    default_n_theta("0.5") took the string."""
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    for kwargs, match in [
+        ({"medium": (0.2, 0.1, 0.3)}, "render: medium: must be a Medium, got tuple"),
+        ({"grid": (16, 12)}, "render: grid: must be a Grid, got tuple"),
+        ({"lightfield": "no"}, "render: lightfield: must be True or False, got 'no'"),
+        ({"tolerance": "1e-4"}, r"render: tolerance: must be a number, got '1e-4'"),
+        ({"tail": "gmress"}, "tail: must be None or one of gmres, bicgstab"),
+        ({"tail": "gmres", "tail_tol": math.nan}, r"tail_tol: must be a number in \(0, 1\)"),
+    ]:
+        args = {"medium": medium, "grid": grid, "illumination": lfj.Full(), "bounces": 2}
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.render(**{**args, **kwargs})
+        _one_line(err)
+    result = lfj.render(
+        medium,
+        grid,
+        lfj.Full(),
+        2,
+        tail="gmres",
+        tail_tol=np.float32(1e-4),
+        tail_max_steps=np.int64(50),
+    )
+    assert result.tail is not None
+    for call, match in [
+        (lambda: lfj.single_scatter_closed_form(0.2, 0.1, 0.3, True), "width: must be an integer"),
+        (
+            lambda: lfj.single_scatter_closed_form(0.2, 0.3, 0.3, 8),
+            r"sigma_s: must be a number in \[0, 0.2\]",
+        ),
+        (lambda: lfj.default_n_theta("0.5"), "g: must be a number, got '0.5'"),
+        (lambda: lfj.default_refine(1.5), r"g: must be a number in \(-1, 1\), got 1.5"),
+        (lambda: lfj.bounces_for_tolerance(math.nan), "rho: must be finite, got nan"),
+        (lambda: lfj.bounces_for_tolerance(0.5, "0.1"), r"bounce tolerance must be in \(0, 1\)"),
+        (lambda: lfj.Medium(0.2, 0.1, 0.3, phase=np.array(["paper"])), "medium.phase: unknown"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            call()
+        _one_line(err)
+    assert lfj.single_scatter_closed_form(np.float32(0.2), 0.1, 0, np.int64(8)).shape == (8,)

@@ -13,6 +13,7 @@ import math
 import optimistix as optx
 
 from lightfield_jax.checks import check_flag, check_int, check_number, number_problem
+from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
 from lightfield_jax.inverse.model_size import _phase_integral
@@ -23,9 +24,8 @@ from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
 
-# The most bounces a fit marches (each bounce's images are kept: memory), and the
-# loosest solver tolerance (looser ones stop the solve where it starts).
-MAX_BOUNCES = 10_000
+# The loosest solver tolerance (looser ones stop the solve where it starts). The most
+# bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
 MAX_TOLERANCE = 0.01
 
 
@@ -199,10 +199,7 @@ class FitOptions:
         for name in ("bounces", "tail_bounces", "max_bounces"):
             value = getattr(self, name)
             if is_int(value) and value > MAX_BOUNCES:
-                raise ValueError(
-                    f"{name}: at most {MAX_BOUNCES} bounces are marched (every image of each "
-                    f"is kept; a longer series gets the tail: bounces: auto), got {value!r}"
-                )
+                raise ValueError(too_many_bounces(name, value))
 
         if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
             raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from lightfield_jax.checks import check_number
+from lightfield_jax.checks import check_number, number_problem
 
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
@@ -74,7 +74,7 @@ class Medium(eqx.Module):
     phase: str = eqx.field(static=True, default="paper")
 
     def __init__(self, sigma_t, sigma_s, g, phase: PhaseConvention = "paper"):
-        if phase not in PHASE_CONVENTIONS:
+        if not isinstance(phase, str) or phase not in PHASE_CONVENTIONS:
             raise ValueError(
                 f"medium.phase: unknown phase convention {phase!r}; "
                 f"expected one of {', '.join(PHASE_CONVENTIONS)}"
@@ -156,8 +156,8 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
     when ρ ≥ 1 (the series does not converge: there is no such K).
     """
-    rho = float(rho)
-    if not 0.0 < tolerance < 1.0:
+    rho = check_number(rho, "rho", allow_inf=True)
+    if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
     if rho >= 1.0:
         raise ValueError(
