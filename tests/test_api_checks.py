@@ -48,6 +48,9 @@ def _one_line(err: pytest.ExceptionInfo) -> str:
         (lambda: lfj.Slab(np.array([5.0])), "geometry.thickness: must be a single number"),
         (lambda: lfj.Grid(32, 24.0), r"grid.height: must be an integer >= 2, got 24.0"),
         (lambda: lfj.Grid(32, True), r"grid.height: must be an integer >= 2, got True"),
+        # an AutoGeometry took any slab and threshold
+        (lambda: lfj.AutoGeometry("slab"), "geometry.slab: must be a Slab"),
+        (lambda: lfj.AutoGeometry(lfj.Slab(5.0), threshold=True), "geometry.threshold: must be a"),
     ],
 )
 def test_constructors_refuse_values_that_are_not_numbers(make, match):
@@ -331,7 +334,7 @@ def _viz_cases(small, tmp_path):
             "plot_transport.folder: must be an existing folder",
         ),
         (lambda: viz.plot_channels(small), "plot_channels.fit: must be a CaptureFit"),
-        (lambda: viz.plot_inspect(str(tmp_path)), "plot_inspect.inspection: must be a Inspection"),
+        (lambda: viz.plot_inspect(str(tmp_path)), "plot_inspect.inspection: must be an Inspection"),
         (
             lambda: viz.plot_fit(images, lfj.Stripes(), small),
             "plot_fit.result: must be a FitResult",

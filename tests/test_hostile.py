@@ -838,7 +838,7 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
-        ({"model": {"bounces": 10**9}}, "channel Y: the render needs about"),
+        ({"model": {"bounces": 10**9}}, "channel Y: bounces: at most 10000 bounces"),
         ({"model": {"width": 10**7}}, "channel Y: the render needs about"),
         ({"sigma_t": -1.0}, "channel Y: medium.sigma_t: must be > 0"),
         ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),

@@ -318,6 +318,16 @@ class AutoGeometry:
     threshold: float = 1.0
     kind: Literal["auto"] = "auto"
 
+    def __post_init__(self):
+        if not isinstance(self.slab, Slab):
+            raise ValueError(
+                f"geometry.slab: must be a Slab (the model where the plane's misfit is too "
+                f"large), got {self.slab!r}"
+            )
+        object.__setattr__(
+            self, "threshold", _positive_finite(self.threshold, "geometry.threshold")
+        )
+
     def as_dict(self) -> dict:
         d = {**self.slab.as_dict(), "kind": "auto"}
         if self.threshold != 1.0:

@@ -30,7 +30,8 @@ def _kind(value, kind: type, key: str, made_by: str) -> None:
     Inspection) is named, not an AttributeError deep in the figure."""
     if not isinstance(value, kind):
         raise ValueError(
-            f"{key}: must be a {kind.__name__} ({made_by}), got {type(value).__name__}"
+            f"{key}: must be {'an' if kind.__name__[0] in 'AEIOU' else 'a'} {kind.__name__} "
+            f"({made_by}), got {type(value).__name__}"
         )
 
 
