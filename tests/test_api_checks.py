@@ -178,6 +178,16 @@ def test_a_gain_that_underflows_the_images_is_refused():
         _one_line(err)
     with pytest.raises(ValueError, match="medium.sigma_t: must be a number, got '0.2'"):
         MediumConfig("0.2", 0.1, 0.3)
+    # Before: a bare TypeError of os.fspath, light fields for lightfield="no", a
+    # TypeError at the first stage.
+    for kwargs, match in [
+        ({"config": 5}, "simulate_capture: config: must be a SimulationConfig or the path"),
+        ({"lightfield": "no"}, "simulate_capture: lightfield: must be True or False"),
+        ({"stage": 3}, "simulate_capture: stage: must be callable, got int"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.simulate_capture(**{"config": good, **kwargs})
+        _one_line(err)
 
 
 # ------------------------------------------------------------------------- figures
