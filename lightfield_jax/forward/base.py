@@ -30,9 +30,9 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
+from lightfield_jax.checks import number_problem
 from lightfield_jax.forward.tail import TailSolution, check_tail, solve_tail
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
@@ -85,7 +85,7 @@ MAX_BOUNCES = 10_000
 
 def check_bounces(bounces) -> int:
     """A bounce count as an int >= 1 (a one-line error naming the value otherwise)."""
-    if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+    if number_problem(bounces, integer=True, low=1) is not None:
         raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
     if bounces > MAX_BOUNCES:
         raise ValueError(too_many_bounces("bounces", bounces))

@@ -21,7 +21,13 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from lightfield_jax.app.memory import check_memory, scene_render_bytes
-from lightfield_jax.checks import check_flag, check_int, check_number, gain_problem
+from lightfield_jax.checks import (
+    check_flag,
+    check_int,
+    check_number,
+    gain_problem,
+    number_problem,
+)
 from lightfield_jax.forward.base import AbstractRenderer, check_bounces, trace_count
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
@@ -163,7 +169,7 @@ def resolve_bounces(
                 return EXPLICIT_WITH_TAIL  # refused by the caller with the reason
             return min(bounces_for_tolerance(float(rho), tolerance, math.inf), EXPLICIT_WITH_TAIL)
         return bounces_for_tolerance(float(rho), tolerance)
-    if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+    if number_problem(bounces, integer=True, low=1) is not None:
         raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
     return check_bounces(bounces)
 

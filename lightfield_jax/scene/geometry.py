@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax.checks import check_number
+from lightfield_jax.checks import check_number, number_problem
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.grid import Grid
@@ -163,22 +163,14 @@ class Slab:
                 f"relative to outside: water 1.33, glass about 1.5), got {n!r}"
             )
         object.__setattr__(self, "n", n)
-        if self.n_mu is not None and (
-            not isinstance(self.n_mu, (int, np.integer))
-            or isinstance(self.n_mu, bool)
-            or not 1 <= self.n_mu <= 64
-        ):
+        if self.n_mu is not None and number_problem(self.n_mu, integer=True, low=1, high=64):
             raise ValueError(f"geometry.n_mu: must be an integer in [1, 64], got {self.n_mu!r}")
         if self.n_mu is not None and self.boundary == "refractive" and self.n_mu < 4:
             raise ValueError(
                 f"geometry.n_mu: refractive faces need at least 4 elevation nodes (2 on each "
                 f"side of the critical angle), got {self.n_mu!r}"
             )
-        if self.n_z is not None and (
-            not isinstance(self.n_z, (int, np.integer))
-            or isinstance(self.n_z, bool)
-            or not 1 <= self.n_z <= MAX_LAYERS
-        ):
+        if self.n_z is not None and number_problem(self.n_z, integer=True, low=1, high=MAX_LAYERS):
             raise ValueError(
                 f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
             )
