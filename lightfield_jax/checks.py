@@ -22,11 +22,11 @@ _REPR = reprlib.Repr()
 _REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
 
 
-def shown(value) -> str:
-    """``repr(value)`` bounded in size, for an error message (a rejected value may be
-    a huge array or string)."""
+def shown(value, limit: int = 80) -> str:
+    """``repr(value)`` bounded in size (and in the work to build it), for an error
+    message: a rejected value may be a huge array, list or string."""
     text = _REPR.repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _range(kind: str, low, high, low_open: bool, high_open: bool, unit: str) -> str:

@@ -50,7 +50,6 @@ import difflib
 import math
 import os
 import re
-import reprlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -59,7 +58,7 @@ import numpy as np
 import yaml
 
 from lightfield_jax.capture.io import require_regular_file
-from lightfield_jax.checks import check_int, check_number, gain_problem
+from lightfield_jax.checks import check_int, check_number, gain_problem, shown
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import WALLS, Beam, Full, Illumination, Stripes
@@ -267,15 +266,10 @@ class _Section:
         return value
 
 
-_REPR = reprlib.Repr()
-_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
-
-
 def brief(value: Any, limit: int = 80) -> str:
     """``repr(value)`` bounded in size (and in the work to build it) for an error
-    message: a rejected value may be huge."""
-    text = _REPR.repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    message: a rejected value may be huge (:func:`lightfield_jax.checks.shown`)."""
+    return shown(value, limit)
 
 
 def _show(value: Any) -> str:
