@@ -48,6 +48,15 @@ def _one_line(err: pytest.ExceptionInfo) -> str:
         (lambda: lfj.Slab(np.array([5.0])), "geometry.thickness: must be a single number"),
         (lambda: lfj.Grid(32, 24.0), r"grid.height: must be an integer >= 2, got 24.0"),
         (lambda: lfj.Grid(32, True), r"grid.height: must be an integer >= 2, got True"),
+        # separate took "0.5" as 0.5 and False as a black level of 0
+        (
+            lambda: lfj.separate(np.ones((3, 4, 4)), lit_fraction="0.5"),
+            "separate.lit_fraction: must be a number, got '0.5'",
+        ),
+        (
+            lambda: lfj.separate(np.ones((3, 4, 4)), black_level=False),
+            "separate.black_level: must be a number, got False",
+        ),
         # an AutoGeometry took any slab and threshold
         (lambda: lfj.AutoGeometry("slab"), "geometry.slab: must be a Slab"),
         (lambda: lfj.AutoGeometry(lfj.Slab(5.0), threshold=True), "geometry.threshold: must be a"),
