@@ -78,8 +78,9 @@ class Beam:
     Attributes:
         x, y: entry point on a wall of the medium (pixels; x = 0 is the left wall,
             x = width the right wall, y = 0 the top wall, y = height the bottom wall).
-        direction_deg: heading θ0 in degrees from +x toward +y.
-        width: transverse width w in pixels (uniform unit irradiance across it).
+        direction_deg: heading θ0 in degrees from +x toward +y, in [−360, 360].
+        width: transverse width w in pixels (uniform unit irradiance across it), in
+            (0, :data:`MAX_BEAM_WIDTH`]: a wider light is :class:`Full` illumination.
     """
 
     x: float
