@@ -50,7 +50,6 @@ import difflib
 import math
 import os
 import re
-import reprlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
@@ -59,6 +58,7 @@ import numpy as np
 import yaml
 
 from lightfield_jax.capture.io import require_regular_file
+from lightfield_jax.checks import check_int, check_number, gain_problem, shown
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import WALLS, Beam, Full, Illumination, Stripes
@@ -266,15 +266,10 @@ class _Section:
         return value
 
 
-_REPR = reprlib.Repr()
-_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
-
-
 def brief(value: Any, limit: int = 80) -> str:
     """``repr(value)`` bounded in size (and in the work to build it) for an error
-    message: a rejected value may be huge."""
-    text = _REPR.repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    message: a rejected value may be huge (:func:`lightfield_jax.checks.shown`)."""
+    return shown(value, limit)
 
 
 def _show(value: Any) -> str:
@@ -324,6 +319,8 @@ class MediumConfig:
     phase: Literal["paper", "normalized"] = "paper"
 
     def __post_init__(self):
+        for name in ("sigma_t", "sigma_s", "g"):
+            check_number(getattr(self, name), f"medium.{name}")
         if 0 < self.sigma_t < 1 / MAX_VALUE or self.sigma_t > MAX_VALUE:
             raise ValueError(
                 f"medium.sigma_t: must lie in [{1 / MAX_VALUE:g}, {MAX_VALUE:g}] per pixel "
@@ -349,6 +346,12 @@ class NoiseConfig:
     photons: float | None = None
     read: float = 0.0
     seed: int = 0
+
+    def __post_init__(self):
+        if self.photons is not None:
+            check_number(self.photons, "noise.photons", low=0.0, low_open=True, high=MAX_PHOTONS)
+        check_number(self.read, "noise.read", low=0.0, high=MAX_VALUE)
+        check_int(self.seed, "noise.seed", low=0)
 
     def apply(self, image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """``image`` (image units, ≥ 0) with shot and read noise drawn from ``rng``."""
@@ -394,6 +397,38 @@ class SimulationConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "geometry", as_geometry(self.geometry))  # None: the plane
+        # The Python API's checks of what parse_simulation_config checks in a file (a
+        # config made in code went unchecked: black_level 5 rendered negative images,
+        # gain 1e-40 zero ones).
+        for key, value, kind in (
+            ("grid", self.grid, Grid),
+            ("medium", self.medium, MediumConfig),
+            ("illumination", self.illumination, (Beam, Stripes, Full)),
+            ("noise", self.noise, (NoiseConfig, type(None))),
+        ):
+            if not isinstance(value, kind):
+                names = (
+                    kind.__name__
+                    if isinstance(kind, type)
+                    else " or ".join(k.__name__ for k in kind if k is not type(None))
+                )
+                raise ValueError(f"{key}: must be a {names}, got {brief(value)}")
+        if isinstance(self.bounces, str):
+            if self.bounces != "auto":
+                raise ValueError(
+                    f"bounces: must be a positive integer or 'auto', got {brief(self.bounces)}"
+                )
+        else:
+            check_int(self.bounces, "bounces", low=1)
+        check_number(self.tolerance, "tolerance", low=0.0, high=1.0, low_open=True, high_open=True)
+        if gain_problem(self.gain) is not None:
+            raise ValueError(f"gain: {gain_problem(self.gain)}")
+        if self.dark_level is not None:
+            check_number(self.dark_level, "dark_level", low=0.0, high=MAX_VALUE)
+        if self.black_level is not None:
+            if not isinstance(self.illumination, Stripes):
+                raise ValueError("black_level: applies only to illumination kind stripes")
+            check_number(self.black_level, "black_level", low=0.0, high=1.0, high_open=True)
 
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
@@ -520,6 +555,8 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
     if gain <= 0:
         top.fail("gain", f"must be > 0, got {gain!r}")
     _at_most(top, "gain", gain)
+    if gain_problem(gain) is not None:
+        top.fail("gain", gain_problem(gain))
     dark_level = top.float("dark_level", None)
     if dark_level is not None and dark_level < 0:
         top.fail("dark_level", f"must be >= 0 (image units), got {dark_level!r}")

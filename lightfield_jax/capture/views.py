@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.app.config import MAX_VALUE
+from lightfield_jax.checks import gain_problem
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
 from lightfield_jax.scene.geometry import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
@@ -150,12 +150,8 @@ def render_results(
         where = f"{source}: channel {name}"
         geometry = parse_fitted_geometry(m.get("geometry"), f"{source}: model.geometry")
         gain = fit.get("gain")
-        if (
-            isinstance(gain, bool)
-            or not isinstance(gain, (int, float))
-            or not 0 < gain <= MAX_VALUE
-        ):
-            raise ValueError(f"{where}: gain: must be a number in (0, {MAX_VALUE:g}], got {gain!r}")
+        if (problem := gain_problem(gain)) is not None:
+            raise ValueError(f"{where}: gain: {problem}")
         try:
             medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
             grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])

@@ -30,9 +30,9 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
+from lightfield_jax.checks import number_problem
 from lightfield_jax.forward.tail import TailSolution, check_tail, solve_tail
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
@@ -77,11 +77,27 @@ def _log_sinhc(x):
     return jnp.where(small, x2 / 6.0 - x2 * x2 / 180.0 + x2 * x2 * x2 / 2835.0, large)
 
 
+# The most bounces a render or a fit marches: each is a transport step whose images
+# are kept (a typo of 10**6 bounces ran for many minutes); a longer series is summed
+# by a tail solve.
+MAX_BOUNCES = 10_000
+
+
 def check_bounces(bounces) -> int:
     """A bounce count as an int >= 1 (a one-line error naming the value otherwise)."""
-    if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+    if number_problem(bounces, integer=True, low=1) is not None:
         raise ValueError(f"bounces: must be an integer >= 1, got {bounces!r}")
+    if bounces > MAX_BOUNCES:
+        raise ValueError(too_many_bounces("bounces", bounces))
     return int(bounces)
+
+
+def too_many_bounces(key: str, value) -> str:
+    """The message refusing a bounce count above :data:`MAX_BOUNCES`."""
+    return (
+        f"{key}: at most {MAX_BOUNCES} bounces are marched (every image of each is kept; a "
+        f"longer series gets the tail: bounces: auto), got {value!r}"
+    )
 
 
 class FirstOrders(eqx.Module):

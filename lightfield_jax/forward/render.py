@@ -20,12 +20,20 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.forward.base import AbstractRenderer, trace_count
+from lightfield_jax.app.memory import check_memory, scene_render_bytes
+from lightfield_jax.checks import (
+    check_flag,
+    check_int,
+    check_number,
+    gain_problem,
+    number_problem,
+)
+from lightfield_jax.forward.base import AbstractRenderer, check_bounces, trace_count
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer
-from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution
+from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Illumination, Stripes
+from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes
 from lightfield_jax.scene.medium import (
     Medium,
     bounces_for_tolerance,
@@ -161,9 +169,9 @@ def resolve_bounces(
                 return EXPLICIT_WITH_TAIL  # refused by the caller with the reason
             return min(bounces_for_tolerance(float(rho), tolerance, math.inf), EXPLICIT_WITH_TAIL)
         return bounces_for_tolerance(float(rho), tolerance)
-    if not isinstance(bounces, (int, np.integer)) or isinstance(bounces, bool) or bounces < 1:
+    if number_problem(bounces, integer=True, low=1) is not None:
         raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
-    return int(bounces)
+    return check_bounces(bounces)
 
 
 def render(
@@ -210,10 +218,19 @@ def render(
     stops before its tolerance gives ``tail_converged=False`` and a
     :class:`~lightfield_jax.forward.tail.TailNotConvergedWarning`.
     """
-    if isinstance(gain, (bool, str, bytes)) or np.ndim(gain) != 0:
-        raise ValueError(f"render: gain: must be a positive number, got {gain!r}")
-    if not isinstance(gain, jax.core.Tracer) and not 0.0 < float(gain) <= 1e30:
-        raise ValueError(f"render: gain: must lie in (0, 1e30], got {gain!r}")
+    for key, value, kind in (("medium", medium, Medium), ("grid", grid, Grid)):
+        if not isinstance(value, kind):
+            raise ValueError(
+                f"render: {key}: must be a {kind.__name__}, got {type(value).__name__}"
+            )
+    check_flag(lightfield, "render: lightfield")
+    check_number(tolerance, "render: tolerance", low=0.0, high=1.0, low_open=True, high_open=True)
+    check_tail(tail, tail_tol, tail_max_steps)
+    if isinstance(gain, jax.core.Tracer):  # under jit or grad: its shape only
+        if np.ndim(gain) != 0:
+            raise ValueError(f"render: gain: must be a single number, got shape {gain.shape}")
+    elif (problem := gain_problem(gain)) is not None:
+        raise ValueError(f"render: gain: {problem}")
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     converges = bool(rho < 1.0)
@@ -230,6 +247,19 @@ def render(
             DivergentSeriesWarning,
             stacklevel=2,
         )
+    if not isinstance(illumination, (Beam, Stripes, Full)):
+        raise ValueError(
+            f"render: illumination: must be a Beam, Stripes or Full, got "
+            f"{type(illumination).__name__}"
+        )
+    # Before the renderer's tables: a typo in the grid (Grid(32000, 24000)) or the
+    # bounces asked for terabytes, found by a MemoryError or the OOM killer minutes later.
+    check_memory(
+        scene_render_bytes(illumination.n_patterns, grid, geometry, medium, k, lightfield),
+        f"render: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, refine "
+        f"{grid.refine}, {k} bounces, {illumination.n_patterns} patterns"
+        f"{', light fields' if lightfield else ''})",
+    )
     renderer = renderer_for(
         grid, illumination, k, medium.phase, geometry, tail, tail_tol, tail_max_steps
     )
@@ -283,7 +313,10 @@ def single_scatter_closed_form(
 ) -> Float[np.ndarray, " W"]:
     """I_1 along a unit beam heading +x from the left wall, pixel-averaged per column
     (docs/model.md §4): σs p(π/2) e^{−σt c} (1 − e^{−σt})/σt."""
-    c = np.arange(width)
+    check_number(sigma_t, "sigma_t", low=0.0, low_open=True)
+    check_number(sigma_s, "sigma_s", low=0.0, high=float(sigma_t))
+    check_number(g, "g", low=-1.0, high=1.0, low_open=True, high_open=True)
+    c = np.arange(check_int(width, "width", low=1))
     p90 = float(phase_function(math.pi / 2, g))
     return sigma_s * p90 * np.exp(-sigma_t * c) * (-np.expm1(-sigma_t)) / sigma_t
 

@@ -29,6 +29,7 @@ from lightfield_jax.app.config import SimulationConfig, load_simulation_config
 from lightfield_jax.app.memory import check_memory, scene_render_bytes
 from lightfield_jax.app.progress import Stage, quiet
 from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.checks import check_flag
 from lightfield_jax.forward.render import RenderResult, render
 from lightfield_jax.scene.illumination import Full, Stripes
 
@@ -196,6 +197,14 @@ def simulate_capture(
     of the ``paper`` convention diverges (an explicit bounce count is then a reported
     truncation, ``converges`` is ``False``).
     """
+    if not isinstance(config, (SimulationConfig, str, os.PathLike)):
+        raise ValueError(
+            f"simulate_capture: config: must be a SimulationConfig or the path of a simulate "
+            f"YAML file, got {type(config).__name__}"
+        )
+    check_flag(lightfield, "simulate_capture: lightfield")
+    if not callable(stage):
+        raise ValueError(f"simulate_capture: stage: must be callable, got {type(stage).__name__}")
     if not isinstance(config, SimulationConfig):
         config = load_simulation_config(config)
     illum = config.illumination

@@ -53,6 +53,8 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Bool, Float, Int
 
+from lightfield_jax.checks import number_problem
+
 TAIL_METHODS: tuple[str, ...] = ("gmres", "bicgstab")
 # Krylov vectors kept by GMRES between restarts (memory: this many copies of Q).
 _GMRES_RESTART = 10
@@ -83,11 +85,11 @@ class TailSolution(eqx.Module):
 
 def check_tail(tail, tol, max_steps) -> None:
     """Validate the tail settings of a renderer (a one-line error naming the value)."""
-    if tail is not None and tail not in TAIL_METHODS:
+    if tail is not None and not (isinstance(tail, str) and tail in TAIL_METHODS):
         raise ValueError(f"tail: must be None or one of {', '.join(TAIL_METHODS)}, got {tail!r}")
-    if not isinstance(tol, float | int) or isinstance(tol, bool) or not 0.0 < tol < 1.0:
+    if number_problem(tol, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"tail_tol: must be a number in (0, 1), got {tol!r}")
-    if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
+    if number_problem(max_steps, integer=True, low=1) is not None:
         raise ValueError(f"tail_max_steps: must be an integer >= 1, got {max_steps!r}")
 
 

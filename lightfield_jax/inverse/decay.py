@@ -44,12 +44,13 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from lightfield_jax.checks import check_number, number_problem
 from lightfield_jax.scene.illumination import (
     _INWARD_DEG,
     WALLS,
     Wall,
     _check_direction,
-    _finite,
+    _direction,
     along_x,
 )
 from lightfield_jax.scene.medium import _is_concrete
@@ -271,11 +272,11 @@ def fit_decay(
         ValueError: for malformed arguments, or (on concrete data) when fewer than two
             usable pixels lie on any one line of propagation, so σt is not identifiable.
     """
-    if entry not in WALLS:
+    if not isinstance(entry, str) or entry not in WALLS:
         raise ValueError(f"fit_decay.entry: must be one of {', '.join(WALLS)}, got {entry!r}")
     if direction_deg is None:
         direction_deg = _INWARD_DEG[entry]
-    direction_deg = _finite(direction_deg, "fit_decay.direction_deg")
+    direction_deg = _direction(direction_deg, "fit_decay.direction_deg")
     _check_direction(entry, direction_deg, "fit_decay")
     direct = jnp.asarray(direct)
     # The fit runs in the wider of the image's and JAX's default float dtype: integer
@@ -296,11 +297,13 @@ def fit_decay(
                 f"fit_decay.mask: must be a boolean array of the image's shape {direct.shape}, "
                 f"got {mask.dtype} of shape {mask.shape}"
             )
-    saturation = math.inf if saturation is None else _finite(saturation, "fit_decay.saturation")
-    min_fraction = _finite(min_fraction, "fit_decay.min_fraction")
+    saturation = (
+        math.inf if saturation is None else check_number(saturation, "fit_decay.saturation")
+    )
+    min_fraction = check_number(min_fraction, "fit_decay.min_fraction")
     if not 0.0 < min_fraction < 1.0:
         raise ValueError(f"fit_decay.min_fraction: must be in (0, 1), got {min_fraction!r}")
-    if not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1:
+    if number_problem(max_steps, integer=True, low=1) is not None:
         raise ValueError(f"fit_decay.max_steps: must be a positive integer, got {max_steps!r}")
 
     height, width = direct.shape

@@ -10,22 +10,22 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import numpy as np
 import optimistix as optx
 
+from lightfield_jax.checks import check_flag, check_int, check_number, number_problem
+from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
 from lightfield_jax.inverse.model_size import _phase_integral
-from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab
+from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
 
-# The most bounces a fit marches (each bounce's images are kept: memory), and the
-# loosest solver tolerance (looser ones stop the solve where it starts).
-MAX_BOUNCES = 10_000
+# The loosest solver tolerance (looser ones stop the solve where it starts). The most
+# bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
 MAX_TOLERANCE = 0.01
 
 
@@ -135,11 +135,13 @@ class FitOptions:
 
     def __post_init__(self):
         method_for(self.method)  # a known name or a FitMethod
-        if self.tail is not None and self.tail != "auto" and self.tail not in TAIL_METHODS:
+        if self.tail is not None and not (
+            isinstance(self.tail, str) and (self.tail == "auto" or self.tail in TAIL_METHODS)
+        ):
             raise ValueError(
                 f"tail: must be auto, None or one of {', '.join(TAIL_METHODS)}, got {self.tail!r}"
             )
-        if isinstance(self.bounces, int) and self.tail in TAIL_METHODS:
+        if number_problem(self.bounces, integer=True) is None and self.tail in TAIL_METHODS:
             # A named tail keeps tail_bounces explicit bounces: a count given as
             # ``bounces`` as well would be silently replaced.
             raise ValueError(
@@ -147,27 +149,23 @@ class FitOptions:
                 f"{self.tail} keeps tail_bounces ({self.tail_bounces}) explicit bounces "
                 "before its solve: give tail_bounces instead (or tail: null to march)"
             )
-        if not isinstance(self.tail_bounces, int) or self.tail_bounces < 2:
-            raise ValueError(f"tail_bounces: must be an integer >= 2, got {self.tail_bounces!r}")
-        if not isinstance(self.tail_max_steps, int) or self.tail_max_steps < 1:
-            raise ValueError(
-                f"tail_max_steps: must be an integer >= 1, got {self.tail_max_steps!r}"
-            )
-        for name, least in (("g_grid", 3), ("max_basins", 1)):
-            value = getattr(self, name)
-            integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-            if not (integer and value >= least):
-                raise ValueError(f"{name}: must be an integer >= {least}, got {value!r}")
-        if not (
-            isinstance(self.basin_tolerance, (int, float, np.number))
-            and not isinstance(self.basin_tolerance, bool)
-            and self.basin_tolerance >= 0
+        # Every number is one (True, "8", 8.5 or None refused: lightfield_jax.checks);
+        # every switch a bool ("no" is true).
+        for name, least in (
+            ("tail_bounces", 2),
+            ("tail_max_steps", 1),
+            ("g_grid", 3),
+            ("max_basins", 1),
+            ("correction_renders", 1),
+            ("max_cells", 1),
+            ("max_render_cells", 1),
         ):
-            raise ValueError(f"basin_tolerance: must be >= 0, got {self.basin_tolerance!r}")
-        if not isinstance(self.correction_renders, int) or self.correction_renders < 1:
-            raise ValueError(
-                f"correction_renders: must be an integer >= 1, got {self.correction_renders!r}"
-            )
+            check_int(getattr(self, name), name, low=least)
+        check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
+        for name in ("crop", "basin_search", "model_error", "correct"):
+            check_flag(getattr(self, name), name)
+        if self.geometry is not None:
+            as_geometry(self.geometry)
         if not self.max_render_cells >= self.max_cells:
             raise ValueError(
                 f"max_render_cells: must be at least max_cells ({self.max_cells}), got "
@@ -183,24 +181,25 @@ class FitOptions:
         negative tolerance)."""
 
         def is_int(v) -> bool:
-            return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+            return number_problem(v, integer=True) is None
 
         def is_number(v) -> bool:
-            return isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
+            return number_problem(v, allow_inf=True) is None
 
-        if self.phase not in PHASE_CONVENTIONS:
+        if not isinstance(self.phase, str) or self.phase not in PHASE_CONVENTIONS:
             raise ValueError(
                 f"phase: must be one of {', '.join(PHASE_CONVENTIONS)}, got {self.phase!r}"
             )
-        if self.bounces != "auto" and not (is_int(self.bounces) and self.bounces >= 1):
+        if (
+            self.bounces != "auto"
+            if isinstance(self.bounces, str)
+            else not (is_int(self.bounces) and self.bounces >= 1)
+        ):
             raise ValueError(f"bounces: must be an integer >= 1 or 'auto', got {self.bounces!r}")
         for name in ("bounces", "tail_bounces", "max_bounces"):
             value = getattr(self, name)
             if is_int(value) and value > MAX_BOUNCES:
-                raise ValueError(
-                    f"{name}: at most {MAX_BOUNCES} bounces are marched (every image of each "
-                    f"is kept; a longer series gets the tail: bounces: auto), got {value!r}"
-                )
+                raise ValueError(too_many_bounces(name, value))
 
         if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
             raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")

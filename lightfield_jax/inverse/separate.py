@@ -29,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from lightfield_jax.checks import number_problem
+
 SeparationMethod = Literal["general", "paper"]
 SEPARATION_METHODS: tuple[str, ...] = ("general", "paper")
 
@@ -77,10 +79,11 @@ def _as_float(x: ArrayLike) -> Float[Array, "..."]:
 
 
 def _fraction(value, name: str, *, closed_low: bool) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"separate.{name}: must be a number, got {value!r}") from None
+    # True and "0.5" are not fractions; NaN and inf are out of the range below.
+    problem = number_problem(value)
+    if problem is not None and not problem.startswith("must be finite"):
+        raise ValueError(f"separate.{name}: {problem}")
+    v = float(value)
     low_ok = v >= 0.0 if closed_low else v > 0.0
     if not (math.isfinite(v) and low_ok and v < 1.0):
         interval = "[0, 1)" if closed_low else "(0, 1)"

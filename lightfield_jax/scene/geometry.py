@@ -21,6 +21,7 @@ from typing import Literal
 
 import numpy as np
 
+from lightfield_jax.checks import check_number, number_problem
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.grid import Grid
@@ -39,11 +40,8 @@ DIM_ALBEDO = 0.3
 
 
 def _positive_finite(value, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what}: must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
+    v = check_number(value, what)
+    if v <= 0:
         raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
     return v
 
@@ -147,8 +145,6 @@ class Slab:
     kind: Literal["slab"] = "slab"
 
     def __post_init__(self):
-        if isinstance(self.thickness, (bool, str)):
-            raise ValueError(f"geometry.thickness: must be a number, got {self.thickness!r}")
         thickness = _positive_finite(self.thickness, "geometry.thickness")
         if thickness > MAX_THICKNESS:
             raise ValueError(
@@ -167,22 +163,14 @@ class Slab:
                 f"relative to outside: water 1.33, glass about 1.5), got {n!r}"
             )
         object.__setattr__(self, "n", n)
-        if self.n_mu is not None and (
-            not isinstance(self.n_mu, (int, np.integer))
-            or isinstance(self.n_mu, bool)
-            or not 1 <= self.n_mu <= 64
-        ):
+        if self.n_mu is not None and number_problem(self.n_mu, integer=True, low=1, high=64):
             raise ValueError(f"geometry.n_mu: must be an integer in [1, 64], got {self.n_mu!r}")
         if self.n_mu is not None and self.boundary == "refractive" and self.n_mu < 4:
             raise ValueError(
                 f"geometry.n_mu: refractive faces need at least 4 elevation nodes (2 on each "
                 f"side of the critical angle), got {self.n_mu!r}"
             )
-        if self.n_z is not None and (
-            not isinstance(self.n_z, (int, np.integer))
-            or isinstance(self.n_z, bool)
-            or not 1 <= self.n_z <= MAX_LAYERS
-        ):
+        if self.n_z is not None and number_problem(self.n_z, integer=True, low=1, high=MAX_LAYERS):
             raise ValueError(
                 f"geometry.n_z: must be an integer in [1, {MAX_LAYERS}], got {self.n_z!r}"
             )
@@ -321,6 +309,16 @@ class AutoGeometry:
     slab: Slab
     threshold: float = 1.0
     kind: Literal["auto"] = "auto"
+
+    def __post_init__(self):
+        if not isinstance(self.slab, Slab):
+            raise ValueError(
+                f"geometry.slab: must be a Slab (the model where the plane's misfit is too "
+                f"large), got {self.slab!r}"
+            )
+        object.__setattr__(
+            self, "threshold", _positive_finite(self.threshold, "geometry.threshold")
+        )
 
     def as_dict(self) -> dict:
         d = {**self.slab.as_dict(), "kind": "auto"}

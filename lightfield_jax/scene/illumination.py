@@ -26,6 +26,8 @@ from typing import Literal
 
 import numpy as np
 
+from lightfield_jax.checks import check_int, check_number, number_problem, shown
+
 Wall = Literal["left", "right", "top", "bottom"]
 WALLS: tuple[str, ...] = ("left", "right", "top", "bottom")
 # Inward normal direction (degrees) of each wall: the default heading of light entering it.
@@ -54,14 +56,19 @@ def _check_direction(entry: str, direction_deg: float, what: str) -> None:
         )
 
 
-def _finite(value, what: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what}: must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{what}: must be finite, got {value!r}")
-    return v
+# The widest beam (pixels) and the largest heading (degrees, either sign) taken: a beam
+# wider than any medium is full illumination (Full), and the lit length of a wall cell,
+# a difference of coordinates offset by half the width, cancels to 0 in float64 for
+# widths near 1e16 (Beam(width=1e20) rendered all-zero images); a heading past a turn
+# is a slip (1e20 degrees has no direction left in float64).
+MAX_BEAM_WIDTH = 1e5
+MAX_DIRECTION_DEG = 360.0
+
+
+def _direction(value, what: str) -> float:
+    return check_number(
+        value, what, low=-MAX_DIRECTION_DEG, high=MAX_DIRECTION_DEG, unit=" degrees"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,8 +78,9 @@ class Beam:
     Attributes:
         x, y: entry point on a wall of the medium (pixels; x = 0 is the left wall,
             x = width the right wall, y = 0 the top wall, y = height the bottom wall).
-        direction_deg: heading θ0 in degrees from +x toward +y.
-        width: transverse width w in pixels (uniform unit irradiance across it).
+        direction_deg: heading θ0 in degrees from +x toward +y, in [−360, 360].
+        width: transverse width w in pixels (uniform unit irradiance across it), in
+            (0, :data:`MAX_BEAM_WIDTH`]: a wider light is :class:`Full` illumination.
     """
 
     x: float
@@ -81,10 +89,21 @@ class Beam:
     width: float = 1.0
 
     def __post_init__(self):
-        for name in ("x", "y", "direction_deg", "width"):
-            object.__setattr__(self, name, _finite(getattr(self, name), f"illumination.{name}"))
-        if self.width <= 0:
+        for name in ("x", "y"):
+            object.__setattr__(
+                self, name, check_number(getattr(self, name), f"illumination.{name}")
+            )
+        direction = _direction(self.direction_deg, "illumination.direction_deg")
+        object.__setattr__(self, "direction_deg", direction)
+        width = check_number(self.width, "illumination.width")
+        if width <= 0:
             raise ValueError(f"illumination.width: must be > 0 pixels, got {self.width!r}")
+        if width > MAX_BEAM_WIDTH:
+            raise ValueError(
+                f"illumination.width: must be at most {MAX_BEAM_WIDTH:g} pixels (a beam; a "
+                f"wider light is Full illumination), got {self.width!r}"
+            )
+        object.__setattr__(self, "width", width)
 
     n_patterns = 1
 
@@ -122,18 +141,24 @@ class Stripes:
     entry: Wall = "left"
 
     def __post_init__(self):
-        if not isinstance(self.period, int) or isinstance(self.period, bool) or self.period < 2:
-            raise ValueError(f"illumination.period: must be an integer >= 2, got {self.period!r}")
-        if (
-            not isinstance(self.lit, int)
-            or isinstance(self.lit, bool)
-            or not (1 <= self.lit < self.period)
-        ):
+        object.__setattr__(self, "period", check_int(self.period, "illumination.period", low=2))
+        if number_problem(self.lit, integer=True, low=1, high=self.period - 1) is not None:
             raise ValueError(
                 f"illumination.lit: must be an integer in [1, period-1] = [1, {self.period - 1}], "
-                f"got {self.lit!r}"
+                f"got {shown(self.lit)}"
             )
-        phases = tuple(self.phases)
+        object.__setattr__(self, "lit", int(self.lit))
+        if isinstance(self.phases, (str, bytes)) or not isinstance(
+            self.phases, (tuple, list, range, np.ndarray)
+        ):
+            raise ValueError(
+                f"illumination.phases: must be a sequence of integers, got {shown(self.phases)}"
+            )
+        phases = (
+            tuple(np.asarray(self.phases).ravel())
+            if isinstance(self.phases, np.ndarray)
+            else tuple(self.phases)
+        )
         if not phases:
             raise ValueError("illumination.phases: must list at least one phase")
         for p in phases:
@@ -152,8 +177,15 @@ class Stripes:
     def shifted(cls, period: int = 6, lit: int = 3, shifts: int | None = None, **kw) -> Stripes:
         """Stripes with phases 0..shifts−1 (default: one per row of the period)."""
         n = period if shifts is None else shifts
-        if not isinstance(n, int) or n < 1:
-            raise ValueError(f"illumination.shifts: must be a positive integer, got {shifts!r}")
+        if number_problem(n, integer=True, low=1) is not None:
+            raise ValueError(
+                f"illumination.shifts: must be a positive integer, got {shown(shifts)}"
+            )
+        if number_problem(period, integer=True) is None and n > period:
+            raise ValueError(
+                f"illumination.shifts: must be an integer in [1, period] = [1, {period}] (one "
+                f"image per row of the period), got {shown(shifts)}"
+            )
         return cls(period=period, lit=lit, phases=tuple(range(n)), **kw)
 
     @property
@@ -223,14 +255,14 @@ def scaled(illum: Illumination, factor: int) -> Illumination:
 
 
 def _check_entry(entry) -> None:
-    if entry not in WALLS:
+    if not isinstance(entry, str) or entry not in WALLS:
         raise ValueError(f"illumination.entry: must be one of {', '.join(WALLS)}, got {entry!r}")
 
 
 def _direction_for(entry: str, direction_deg) -> float:
     if direction_deg is None:
         return _INWARD_DEG[entry]
-    d = _finite(direction_deg, "illumination.direction_deg")
+    d = _direction(direction_deg, "illumination.direction_deg")
     _check_direction(entry, d, "illumination")
     return d
 

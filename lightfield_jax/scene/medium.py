@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from lightfield_jax.checks import check_number, number_problem
+
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
 
@@ -72,25 +74,21 @@ class Medium(eqx.Module):
     phase: str = eqx.field(static=True, default="paper")
 
     def __init__(self, sigma_t, sigma_s, g, phase: PhaseConvention = "paper"):
-        if phase not in PHASE_CONVENTIONS:
+        if not isinstance(phase, str) or phase not in PHASE_CONVENTIONS:
             raise ValueError(
                 f"medium.phase: unknown phase convention {phase!r}; "
                 f"expected one of {', '.join(PHASE_CONVENTIONS)}"
             )
         # Concrete values are checked on the host (NumPy): eager JAX operations would
         # each compile a small program the first time (a few hundred ms per process).
+        # A single real number each (True, "0.2", 0.2j, [0.2] or None are refused):
+        # lightfield_jax.checks, as every constructor of the API.
         given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
+        concrete = {}
         for name, value in given.items():
-            if isinstance(value, (str, bytes, bool)) or value is None:
-                raise ValueError(f"medium.{name}: must be a number, got {value!r}")
-        concrete = {
-            name: np.asarray(value, dtype=np.float64)
-            for name, value in given.items()
-            if _is_concrete(value)
-        }
-        for name, value in concrete.items():
-            if not np.all(np.isfinite(value)):
-                raise ValueError(f"medium.{name}: must be finite, got {given[name]!r}")
+            if _is_concrete(value):
+                check_number(value, f"medium.{name}")
+                concrete[name] = np.asarray(value, dtype=np.float64)
         if "sigma_t" in concrete and float(np.min(concrete["sigma_t"])) <= 0.0:
             raise ValueError(f"medium.sigma_t: must be > 0 (per pixel), got {sigma_t!r}")
         if "sigma_s" in concrete and "sigma_t" in concrete:
@@ -114,6 +112,16 @@ class Medium(eqx.Module):
         if "sigma_t" in stored and float(np.min(stored["sigma_t"])) < np.finfo(work).tiny:
             raise ValueError(
                 f"medium.sigma_t: {sigma_t!r} underflows {work} (at least "
+                f"{np.finfo(work).tiny:.3g} per pixel)"
+            )
+        if (
+            "sigma_s" in stored
+            and 0.0 < float(concrete["sigma_s"])
+            and not (float(stored["sigma_s"]) >= np.finfo(work).tiny)
+        ):
+            # A subnormal σs is flushed to zero on the devices: all-zero images.
+            raise ValueError(
+                f"medium.sigma_s: {sigma_s!r} underflows {work} (0, or at least "
                 f"{np.finfo(work).tiny:.3g} per pixel)"
             )
         if "g" in stored and np.any(np.abs(stored["g"]) >= 1.0):
@@ -148,8 +156,8 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
     when ρ ≥ 1 (the series does not converge: there is no such K).
     """
-    rho = float(rho)
-    if not 0.0 < tolerance < 1.0:
+    rho = check_number(rho, "rho", allow_inf=True)
+    if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
     if rho >= 1.0:
         raise ValueError(

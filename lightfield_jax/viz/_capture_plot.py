@@ -13,12 +13,26 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from lightfield_jax.capture.inspect import SNR_USABLE, Inspection
+from lightfield_jax.capture.keys import check_pixel_size
+from lightfield_jax.checks import check_number
+from lightfield_jax.checks import shown as brief
 from lightfield_jax.inverse.capture_fit import CaptureFit
 
 from ._common import finish as _finish
 from ._common import new_figure as _figure
+from ._paper import _check_common
 
 _CHANNEL_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
+
+
+def _kind(value, kind: type, key: str, made_by: str) -> None:
+    """A result of another kind (a FitResult for a CaptureFit, a path for an
+    Inspection) is named, not an AttributeError deep in the figure."""
+    if not isinstance(value, kind):
+        raise ValueError(
+            f"{key}: must be {'an' if kind.__name__[0] in 'AEIOU' else 'a'} {kind.__name__} "
+            f"({made_by}), got {type(value).__name__}"
+        )
 
 
 def _colour(name: str, i: int) -> str:
@@ -56,6 +70,8 @@ def plot_inspect(inspection: Inspection, path=None):
     exposures clipped at each pixel (:func:`_plot_brackets`)."""
     from matplotlib.patches import Rectangle
 
+    _kind(inspection, Inspection, "plot_inspect.inspection", "lightfield_jax.inspect_capture")
+    _check_common("plot_inspect", path)
     c = inspection.capture
     p, h, w, n = c.images.shape
     rows = 2 if c.brackets is None else 3
@@ -193,7 +209,28 @@ def plot_channels(
 ):
     """σt, σs and g of every fitted channel with their 1σ error bars (per pixel, or per
     mm with ``pixel_size_mm``); ``truth`` adds one mapping of true values per channel."""
+    fn = "plot_channels"
+    _kind(fit, CaptureFit, f"{fn}.fit", "lightfield_jax.fit_capture")
+    _check_common(fn, path)
+    # None: per pixel; 0 was taken as None, a negative pitch drew negative coefficients.
+    check_pixel_size(pixel_size_mm, f"{fn}.pixel_size_mm")
     names = list(fit.channels)
+    if truth is not None:
+        if (
+            isinstance(truth, Mapping)
+            or not isinstance(truth, Sequence)
+            or len(truth) != len(names)
+        ):
+            raise ValueError(
+                f"{fn}.truth: must be a list of {len(names)} mappings (one per channel "
+                f"{', '.join(names)}), got {brief(truth)}"
+            )
+        for i, values in enumerate(truth):
+            if not isinstance(values, Mapping):
+                raise ValueError(f"{fn}.truth[{i}]: must be a mapping, got {brief(values)}")
+            for key in ("sigma_t", "sigma_s", "g"):
+                if key in values:
+                    check_number(values[key], f"{fn}.truth[{i}].{key}")
     scale = 1.0 / pixel_size_mm if pixel_size_mm else 1.0
     unit = "mm$^{-1}$" if pixel_size_mm else "px$^{-1}$"
     fig = _figure(12, 3.8)

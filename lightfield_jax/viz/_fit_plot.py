@@ -6,6 +6,8 @@ import dataclasses
 
 import numpy as np
 
+from lightfield_jax.checks import check_number, real_array
+from lightfield_jax.checks import shown as brief
 from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.fit import fitted_images
 from lightfield_jax.inverse.options import FitResult
@@ -14,6 +16,7 @@ from lightfield_jax.scene.geometry import describe_geometry
 from lightfield_jax.scene.illumination import Stripes
 
 from ._common import finish, new_figure
+from ._paper import _check_common
 
 
 def _profile(image, s, mask, bins):
@@ -88,9 +91,45 @@ def plot_fit(
     """
     from matplotlib.patches import Rectangle
 
-    images = np.asarray(images, dtype=np.float64)
+    fn = "plot_fit"
+    _check_common(fn, path, title=title)
+    if not isinstance(pattern, Stripes):
+        raise ValueError(f"{fn}.pattern: must be a Stripes, got {type(pattern).__name__}")
+    if not isinstance(result, FitResult):
+        raise ValueError(
+            f"{fn}.result: must be a FitResult (lightfield_jax.fit_images), got "
+            f"{type(result).__name__}"
+        )
+    # Masked values may be NaN (a capture's non-finite pixels).
+    images = real_array(images, f"{fn}.images", (3,), "(shifts, height, width)", finite="some")
     p, h, w = images.shape
-    given = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    if p != pattern.n_patterns:
+        raise ValueError(
+            f"{fn}.images: {p} shifted images for a pattern of {pattern.n_patterns} phases"
+        )
+    given = np.ones((h, w), bool) if mask is None else np.asarray(mask)
+    if given.dtype != bool or given.shape not in ((h, w), images.shape):
+        raise ValueError(
+            f"{fn}.mask: must be a boolean array of shape {(h, w)} or {images.shape}, got "
+            f"{given.dtype} of shape {given.shape}"
+        )
+    crop = result.model.get("crop") if isinstance(result.model, dict) else None
+    if not (
+        isinstance(crop, (list, tuple))
+        and len(crop) == 4
+        and 0 <= crop[0] < crop[2] <= w
+        and 0 <= crop[1] < crop[3] <= h
+    ):
+        raise ValueError(
+            f"{fn}.result: its model crop {brief(crop)} does not fit the {w}x{h} images "
+            "(a fit of other images?)"
+        )
+    if truth is not None:
+        if not isinstance(truth, dict):
+            raise ValueError(f"{fn}.truth: must be a mapping or None, got {brief(truth)}")
+        for key in ("sigma_t", "sigma_s", "g", "gain"):
+            if key in truth:
+                check_number(truth[key], f"{fn}.truth.{key}")
     values = np.broadcast_to(given, images.shape)  # per value: (H, W) or (P, H, W)
     valid = np.all(values, axis=0)  # the separation's pixels: valid in every shift
     # A fitted black level can come out slightly negative (noise); the separation takes

@@ -24,10 +24,13 @@ row lit ``lit`` times: ``lit`` × full illumination).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
 
 import numpy as np
 
+from lightfield_jax.checks import check_flag, check_int, check_number, real_array
+from lightfield_jax.checks import shown as brief
 from lightfield_jax.forward.render import RenderResult
 from lightfield_jax.inverse.decay import DecayFit, entry_coordinates
 from lightfield_jax.scene.illumination import (
@@ -36,6 +39,8 @@ from lightfield_jax.scene.illumination import (
     Full,
     Illumination,
     Stripes,
+    _check_direction,
+    _direction,
     along_x,
 )
 
@@ -48,20 +53,51 @@ _UNITS = "source units"
 # ---------------------------------------------------------------------------- helpers
 
 
-def _array(a, ndim: tuple[int, ...], name: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.ndim not in ndim:
+# The most panels a figure draws and glyphs a light-field panel draws: beyond them a
+# figure takes minutes (plot_lightfield(spacing=1e-3) asked for 7.7e8 glyphs).
+MAX_PANELS = 48
+MAX_GLYPHS = 1024
+# The finest profile bin along the light (pixels).
+MIN_BIN_WIDTH = 0.01
+
+
+def _array(a, ndim: tuple[int, ...], name: str, what: str, finite: str = "all") -> np.ndarray:
+    return real_array(a, name, ndim, what, finite=finite)
+
+
+def _check_common(fn: str, path, *, bin_width=None, dynamic_range=None, title=None) -> None:
+    """The arguments most figures share, checked before any work."""
+    if path is not None and not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{fn}.path: must be a file path or None, got {brief(path)}")
+    if bin_width is not None:
+        check_number(bin_width, f"{fn}.bin_width", low=MIN_BIN_WIDTH, unit=" px")
+    if dynamic_range is not None:
+        check_number(dynamic_range, f"{fn}.dynamic_range", low=1.0, low_open=True)
+    if title is not None and not isinstance(title, str):
+        raise ValueError(f"{fn}.title: must be a string or None, got {brief(title)}")
+
+
+def _illumination(illumination, fn: str) -> None:
+    if illumination is not None and not isinstance(illumination, (Beam, Stripes, Full)):
         raise ValueError(
-            f"{name}: expected {' or '.join(map(str, ndim))} dimensions, got shape {a.shape}"
+            f"{fn}.illumination: must be a Beam, Stripes, Full or None, got "
+            f"{type(illumination).__name__}"
         )
-    return a
 
 
-def _bounce_images(images) -> np.ndarray:
+def _panels(n: int, fn: str, what: str) -> None:
+    if n > MAX_PANELS:
+        raise ValueError(
+            f"{fn}: {n} panels ({what}) are more than the {MAX_PANELS} a figure draws; "
+            "select some (e.g. show=6, or a slice of the array)"
+        )
+
+
+def _bounce_images(images, name: str) -> np.ndarray:
     """(K, H, W) per-bounce images from an array or a RenderResult (stripes summed)."""
     if not isinstance(images, RenderResult):
-        return images
-    a = np.asarray(images.images, np.float64)
+        return _array(images, (3,), name, "(K, height, width) or a RenderResult")
+    a = _array(images.images, (3, 4), f"{name}.images", "of a RenderResult")
     return a.sum(axis=0) if a.ndim == 4 else a
 
 
@@ -71,10 +107,10 @@ def _render_fields(result: RenderResult, show: int) -> tuple[np.ndarray, list[st
         raise ValueError(
             "plot_lightfield: the RenderResult holds no light fields; render with lightfield=True"
         )
-    fields = np.asarray(result.lightfields, np.float64)
+    fields = _array(result.lightfields, (4, 5), "plot_lightfield.lightfields", "of a RenderResult")
     if fields.ndim == 5:
         fields = fields.sum(axis=0)
-    n = min(show, fields.shape[0] - 1)
+    n = min(check_int(show, "plot_lightfield.show", low=0), fields.shape[0] - 1)
     labels = [f"$L_{{{k}}}$" for k in range(n + 1)]
     labels.append(rf"$\Sigma_{{k=0}}^{{{fields.shape[0] - 1}}} L_k$")
     return np.concatenate([fields[: n + 1], fields.sum(axis=0)[None]]), labels
@@ -98,7 +134,11 @@ def light_path_coordinates(
         ``(s, mask)``: s (pixels, float64, (height, width)) for every pixel centre and
         the boolean mask of pixels on the light's path.
     """
-    height, width = shape
+    if not isinstance(shape, (tuple, list)) or len(shape) != 2:
+        raise ValueError(
+            f"light_path_coordinates.shape: must be (height, width), got {brief(shape)}"
+        )
+    height, width = (check_int(v, "light_path_coordinates.shape", low=1) for v in shape)
     illumination = Full() if illumination is None else illumination
     if isinstance(illumination, Beam):
         t0 = math.radians(illumination.direction_deg)
@@ -109,10 +149,7 @@ def light_path_coordinates(
         across = -dx * s0 + dy * c
         mask = (np.abs(across) <= max(0.5 * illumination.width, 0.5)) & (along >= 0)
         return along, mask
-    if not isinstance(illumination, (Stripes, Full)):
-        raise TypeError(
-            f"illumination: expected Beam, Stripes or Full, got {type(illumination).__name__}"
-        )
+    _illumination(illumination, "light_path_coordinates")
     entry, direction = illumination.entry, illumination.direction_deg
     s, u = entry_coordinates(height, width, entry, direction)
     across = along_x(entry)
@@ -150,7 +187,9 @@ def _visible(y: np.ndarray, dynamic_range: float) -> np.ndarray:
 def _mask(mask, default: np.ndarray) -> np.ndarray:
     if mask is None:
         return default
-    mask = np.asarray(mask, dtype=bool)
+    mask = np.asarray(mask)
+    if mask.dtype != bool:
+        raise ValueError(f"mask: must be a boolean array, got dtype {mask.dtype}")
     if mask.shape != default.shape:
         raise ValueError(f"mask: must have the image's shape {default.shape}, got {mask.shape}")
     return mask & default
@@ -204,8 +243,23 @@ def plot_direct_decay(
         dynamic_range: profile points below the peak / dynamic_range are not drawn.
         title: figure title (default: the fitted values).
     """
-    direct = _array(direct, (2,), "plot_direct_decay.direct")
-    direction_deg = _INWARD_DEG[entry] if direction_deg is None else float(direction_deg)
+    fn = "plot_direct_decay"
+    _check_common(fn, path, bin_width=bin_width, dynamic_range=dynamic_range, title=title)
+    direct = _array(direct, (2,), f"{fn}.direct", "(height, width)", finite="some")
+    for key, value in (("fit", fit), ("unseparated_fit", unseparated_fit)):
+        if not isinstance(value, DecayFit) and (key == "fit" or value is not None):
+            raise ValueError(
+                f"{fn}.{key}: must be a DecayFit (lightfield_jax.fit_decay), got "
+                f"{type(value).__name__}"
+            )
+    if true_sigma_t is not None:
+        check_number(true_sigma_t, f"{fn}.true_sigma_t", low=0.0, low_open=True, unit=" per px")
+    if not isinstance(entry, str) or entry not in _INWARD_DEG:
+        raise ValueError(f"{fn}.entry: must be one of {', '.join(_INWARD_DEG)}, got {brief(entry)}")
+    if direction_deg is None:
+        direction_deg = _INWARD_DEG[entry]
+    direction_deg = _direction(direction_deg, f"{fn}.direction_deg")
+    _check_direction(entry, direction_deg, fn)
     light = Full(direction_deg=direction_deg, entry=entry)
     s, on_path = light_path_coordinates(direct.shape, light)
     sel = _mask(mask, on_path)
@@ -213,7 +267,12 @@ def plot_direct_decay(
     ax = fig.add_subplot()
     series = [("direct D (separated)", direct, fit, "C0", "o")]
     if unseparated is not None:
-        unseparated = _array(unseparated, (2,), "plot_direct_decay.unseparated")
+        unseparated = _array(unseparated, (2,), f"{fn}.unseparated", "(height, width)", "some")
+        if unseparated.shape != direct.shape:
+            raise ValueError(
+                f"{fn}.unseparated: must have the direct image's shape {direct.shape}, got "
+                f"{unseparated.shape}"
+            )
         series.append((unseparated_label, unseparated, unseparated_fit, "C3", "s"))
     for label, image, f, colour, marker in series:
         x, y = _profile(image, s, sel, bin_width)
@@ -277,7 +336,11 @@ def plot_bounce_profiles(
         dynamic_range: each profile is drawn down to its peak / dynamic_range.
         title: figure title.
     """
-    images = _array(_bounce_images(images), (3,), "plot_bounce_profiles.images")
+    fn = "plot_bounce_profiles"
+    _check_common(fn, path, bin_width=bin_width, dynamic_range=dynamic_range, title=title)
+    _illumination(illumination, fn)
+    check_flag(total, f"{fn}.total")
+    images = _bounce_images(images, f"{fn}.images")
     s, on_path = light_path_coordinates(images.shape[1:], illumination)
     sel = _mask(mask, on_path)
     fig = _figure(12.0, 4.6)
@@ -382,28 +445,51 @@ def plot_lightfield(
     """
     from matplotlib.colors import LogNorm, Normalize
 
+    fn = "plot_lightfield"
+    _check_common(fn, path, dynamic_range=dynamic_range, title=title)
+    check_flag(log, f"{fn}.log")
+    if not isinstance(glyph_scale, str) or glyph_scale not in ("local", "global"):
+        raise ValueError(f"{fn}.glyph_scale: must be 'local' or 'global', got {brief(glyph_scale)}")
+    check_int(columns, f"{fn}.columns", low=1, high=MAX_PANELS)
     if isinstance(lightfield, RenderResult):
         lightfield, rendered = _render_fields(lightfield, show)
         labels = rendered if labels is None else labels
-    fields = _array(lightfield, (3, 4), "plot_lightfield.lightfield")
+    what = "(height, width, n_theta) or (panels, height, width, n_theta), or a RenderResult"
+    fields = _array(lightfield, (3, 4), f"{fn}.lightfield", what)
     single = fields.ndim == 3
     if single:
         fields = fields[None]
-    if glyph_scale not in ("local", "global"):
-        raise ValueError(f"plot_lightfield.glyph_scale: 'local' or 'global', got {glyph_scale!r}")
     n_panels, height, width, n_theta = fields.shape
+    _panels(n_panels, fn, "light fields")
     if labels is None:
         labels = ["L"] if single else [f"$L_{{{i + 1}}}$" for i in range(n_panels)]
+    if isinstance(labels, (str, bytes)) or not isinstance(labels, Sequence):
+        raise ValueError(f"{fn}.labels: must be a list of {n_panels} titles, got {brief(labels)}")
     if len(labels) != n_panels:
-        raise ValueError(f"plot_lightfield.labels: need {n_panels} labels, got {len(labels)}")
+        raise ValueError(f"{fn}.labels: need {n_panels} labels, got {len(labels)}")
     dtheta = 2 * math.pi / n_theta
     theta = np.arange(n_theta + 1) * dtheta  # closed curve
-    spacing = spacing or max(height, width) / 8
-    radius = glyph_radius or 0.45 * spacing
+    side = max(height, width)
+    if spacing is None:
+        spacing = side / 8
+    else:
+        # At least 1 px and at most MAX_GLYPHS glyphs over the panel (1e-3 px asked for
+        # 7.7e8 glyphs: minutes, then memory).
+        least = max(1.0, math.sqrt(height * width / MAX_GLYPHS))
+        unit = f" px (at most about {MAX_GLYPHS} glyphs on the {width}x{height} panel)"
+        spacing = check_number(spacing, f"{fn}.spacing", low=least, high=side, unit=unit)
+    if glyph_radius is None:
+        radius = 0.45 * spacing
+    else:
+        radius = check_number(
+            glyph_radius, f"{fn}.glyph_radius", low=0.0, low_open=True, high=side, unit=" px"
+        )
     if points is None:
         xs = np.arange(spacing / 2, width, spacing)
         ys = np.arange(spacing / 2, height, spacing)
         points = [(x, y) for y in ys for x in xs]
+    else:
+        points = _points(points, fn, height, width)
     ncols = min(columns, n_panels)
     nrows = math.ceil(n_panels / ncols)
     fig = _figure(5.2 * ncols, 0.5 + 4.6 * nrows * height / width * 1.15)
@@ -455,6 +541,23 @@ def plot_lightfield(
     return _finish(fig, path)
 
 
+def _points(points, fn: str, height: int, width: int) -> list[tuple[float, float]]:
+    """Glyph centres (x, y): at most MAX_GLYPHS, each on the panel."""
+    a = _array(points, (2,), f"{fn}.points", "of (x, y) pairs, shape (n, 2)")
+    if a.shape[1] != 2 or len(a) > MAX_GLYPHS:
+        raise ValueError(
+            f"{fn}.points: must be at most {MAX_GLYPHS} (x, y) pairs, shape (n, 2), got "
+            f"shape {a.shape}"
+        )
+    off = (a[:, 0] < 0) | (a[:, 0] > width) | (a[:, 1] < 0) | (a[:, 1] > height)
+    if off.any():
+        raise ValueError(
+            f"{fn}.points: must lie on the {width}x{height} panel (0 <= x <= {width}, "
+            f"0 <= y <= {height}), got {tuple(a[off][0])}"
+        )
+    return [(float(x), float(y)) for x, y in a]
+
+
 # -------------------------------------------------------- Fig. 14: per-bounce images
 
 
@@ -490,8 +593,17 @@ def plot_bounce_images(
     """
     from matplotlib.colors import LogNorm, Normalize
 
-    images = _array(_bounce_images(images), (3,), "plot_bounce_images.images")
+    fn = "plot_bounce_images"
+    _check_common(fn, path, dynamic_range=dynamic_range, title=title)
+    _illumination(illumination, fn)
+    check_flag(total, f"{fn}.total")
+    check_flag(log, f"{fn}.log")
+    check_int(columns, f"{fn}.columns", low=1, high=MAX_PANELS)
+    if show is not None:
+        check_int(show, f"{fn}.show", low=1)
+    images = _bounce_images(images, f"{fn}.images")
     shown = images if show is None else images[:show]
+    _panels(len(shown) + bool(total), fn, "bounce images")
     panels = [(f"$I_{{{k}}}$", im) for k, im in enumerate(shown, start=1)]
     if total:
         panels.append((rf"$\Sigma_{{k=1}}^{{{len(images)}}} I_k$", images.sum(axis=0)))

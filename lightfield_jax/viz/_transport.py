@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
+from lightfield_jax.checks import shown as brief
 from lightfield_jax.forward.render import RenderResult
 from lightfield_jax.scene.illumination import Illumination
 
-from ._paper import plot_bounce_images, plot_bounce_profiles, plot_lightfield
+from ._paper import (
+    _check_common,
+    _illumination,
+    plot_bounce_images,
+    plot_bounce_profiles,
+    plot_lightfield,
+)
 
 
 def plot_transport(
@@ -27,6 +35,15 @@ def plot_transport(
     ``illumination`` is the light the render used (sets the path coordinate of the
     profiles); ``title`` prefixes each figure's title (e.g. the medium's values).
     """
+    if not isinstance(result, RenderResult):
+        raise ValueError(
+            f"plot_transport.result: must be a RenderResult (lightfield_jax.render), got "
+            f"{type(result).__name__}"
+        )
+    if not isinstance(folder, (str, os.PathLike)) or not Path(folder).is_dir():
+        raise ValueError(f"plot_transport.folder: must be an existing folder, got {brief(folder)}")
+    _illumination(illumination, "plot_transport")
+    _check_common("plot_transport", None, title=title)
     folder = Path(folder)
     prefix = f"{title}: " if title else ""
     k = result.bounces

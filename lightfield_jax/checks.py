@@ -1,0 +1,169 @@
+"""One-line checks of the numbers the Python API takes (medium, grid, geometry,
+illumination, fit options, figures).
+
+A number is a Python ``int`` or ``float``, a NumPy integer or floating scalar, or a
+0-d real array (NumPy or JAX); ``True``, strings, ``None``, complex values and arrays
+of more than one value are not (``True`` is an ``int`` to Python and ``"0.2"`` a
+number to ``float()``: both were taken silently). :func:`number_problem` says what is
+wrong with a value (``None``: nothing), :func:`check_number` raises it as
+``ValueError("KEY: PROBLEM")`` naming the argument, the value and the allowed range.
+JAX tracers (values under ``jit`` or ``grad``) are not numbers to check here: callers
+that take them skip the check (see :class:`~lightfield_jax.Medium`).
+"""
+
+from __future__ import annotations
+
+import math
+import reprlib
+
+import numpy as np
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxdict, _REPR.maxlist, _REPR.maxstring, _REPR.maxother = 3, 6, 8, 60, 60
+
+
+def shown(value, limit: int = 80) -> str:
+    """``repr(value)`` bounded in size (and in the work to build it), for an error
+    message: a rejected value may be a huge array, list or string."""
+    text = _REPR.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _range(kind: str, low, high, low_open: bool, high_open: bool, unit: str) -> str:
+    """``"must be a number in [0, 1)"``, ``"must be an integer >= 2"``, ..."""
+    if low is not None and high is not None:
+        left, right = "(" if low_open else "[", ")" if high_open else "]"
+        return f"must be {kind} in {left}{low:g}, {high:g}{right}{unit}"
+    if low is not None:
+        return f"must be {kind} {'>' if low_open else '>='} {low:g}{unit}"
+    return f"must be {kind} {'<' if high_open else '<='} {high:g}{unit}"
+
+
+def number_problem(
+    value,
+    *,
+    integer: bool = False,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    allow_inf: bool = False,
+    unit: str = "",
+) -> str | None:
+    """What is wrong with ``value`` as a number (``None``: nothing).
+
+    ``integer``: an ``int`` or NumPy integer only. ``low``/``high``: the allowed range
+    (closed unless ``low_open``/``high_open``); ``allow_inf``: ±inf is a value (NaN
+    never is). ``unit`` follows the range in the message (e.g. ``" px"``).
+    """
+    kind = "an integer" if integer else "a number"
+    if isinstance(value, (bool, np.bool_, str, bytes, np.str_)) or value is None:
+        return f"must be {kind}, got {shown(value)}"
+    if isinstance(value, (int, np.integer)):
+        v = value
+    elif integer:
+        if isinstance(value, (float, np.floating)) or np.ndim(value) == 0:
+            return f"must be {kind}, got {shown(value)}"
+        return f"must be {kind}, got {_array_words(value)}"
+    elif isinstance(value, (float, np.floating)):
+        v = float(value)
+    else:
+        dtype = getattr(value, "dtype", None)
+        if dtype is None or getattr(value, "shape", None) is None:
+            if isinstance(value, complex):
+                return f"must be a real number, got {shown(value)}"
+            if isinstance(value, (list, tuple)):
+                return f"must be a single number, got {shown(value)}"
+            return f"must be {kind}, got {shown(value)} ({type(value).__name__})"
+        if np.ndim(value) != 0:
+            return f"must be a single number, got {_array_words(value)}"
+        dtype = np.dtype(dtype)
+        if dtype.kind not in "iuf":
+            what = "a real number" if dtype.kind == "c" else kind
+            return f"must be {what}, got {shown(value)} (dtype {dtype})"
+        v = float(value)
+    if isinstance(v, float) or not integer:
+        f = float(v)
+        if math.isnan(f) or (math.isinf(f) and not allow_inf):
+            return f"must be finite, got {shown(value)}"
+    if (low is not None and (v < low or (low_open and v == low))) or (
+        high is not None and (v > high or (high_open and v == high))
+    ):
+        return f"{_range(kind, low, high, low_open, high_open, unit)}, got {shown(value)}"
+    return None
+
+
+def _array_words(value) -> str:
+    shape = getattr(value, "shape", None)
+    if shape is None:
+        return shown(value)
+    return f"an array of shape {tuple(shape)}"
+
+
+def check_number(value, key: str, **limits) -> float:
+    """``value`` as a float, or ``ValueError("KEY: ...")`` (see :func:`number_problem`)."""
+    problem = number_problem(value, **limits)
+    if problem is not None:
+        raise ValueError(f"{key}: {problem}")
+    return float(value)
+
+
+def check_int(value, key: str, **limits) -> int:
+    """``value`` as an int, or ``ValueError("KEY: ...")`` (an ``int`` or NumPy integer
+    only: see :func:`number_problem`)."""
+    problem = number_problem(value, integer=True, **limits)
+    if problem is not None:
+        raise ValueError(f"{key}: {problem}")
+    return int(value)
+
+
+def check_flag(value, key: str) -> bool:
+    """``value`` if it is a ``bool`` (or NumPy bool), else ``ValueError("KEY: ...")``:
+    ``"no"`` or ``0`` for a switch is a slip (``"no"`` is true)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{key}: must be True or False, got {shown(value)}")
+    return bool(value)
+
+
+# The gain (image units per unit source irradiance) a render takes: images are float32,
+# whose normal numbers span 1.2e-38 to 3.4e38. A larger gain overflows the brightest
+# images, a smaller one underflows every image to zero (gain 1e-40 rendered all-zero
+# images, silently): per unit irradiance the single scatter is at most about 1.
+GAIN_RANGE = (1e-30, 1e30)
+
+
+def gain_problem(value) -> str | None:
+    """What is wrong with a render's gain (``None``: nothing); see :data:`GAIN_RANGE`."""
+    low, high = GAIN_RANGE
+    if number_problem(value, low=low, high=high) is None:
+        return None
+    return f"must be a number in [{low:g}, {high:g}] (images are float32), got {shown(value)}"
+
+
+def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str = "all"):
+    """``value`` as a float64 NumPy array, or ``ValueError("KEY: ...")``: real numbers
+    (not bool, strings or objects such as a result of another kind), ``ndim``
+    dimensions, none of them empty, and finite: every value (``finite="all"``), at
+    least one (``"some"``: masked pixels may be NaN) or not checked (``"any"``).
+    ``what`` names the expected array in the message (e.g. ``"(K, height, width)"``)."""
+    try:
+        a = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be an array {what}, got {type(value).__name__}") from None
+    if a.dtype == object or a.dtype.kind not in "iuf":
+        got = type(value).__name__ if a.dtype == object else f"dtype {a.dtype}"
+        raise ValueError(f"{key}: must be an array of real numbers {what}, got {got}")
+    if a.ndim not in ndim:
+        dims = " or ".join(map(str, ndim))
+        raise ValueError(f"{key}: must have {dims} dimensions {what}, got shape {a.shape}")
+    if a.size == 0:
+        raise ValueError(f"{key}: must not be empty {what}, got shape {a.shape}")
+    a = a.astype(np.float64)
+    ok = np.isfinite(a)
+    if finite == "all" and not ok.all():
+        raise ValueError(
+            f"{key}: must be finite, got {a.size - int(ok.sum())} of {a.size} values NaN or inf"
+        )
+    if finite == "some" and not ok.any():
+        raise ValueError(f"{key}: has no finite value (all {a.size} NaN or inf)")
+    return a

@@ -1,0 +1,457 @@
+"""Hostile values given to the Python API (issue: a clear one-line error naming the
+argument, the value and the allowed range, before any work; never a silent wrong
+answer). Each case was accepted before (or failed deep inside), as its comment says."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lightfield_jax as lfj
+from lightfield_jax.checks import number_problem
+
+
+def _one_line(err: pytest.ExceptionInfo) -> str:
+    text = str(err.value)
+    assert "\n" not in text, text
+    return text
+
+
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        # bool is an int to Python and "0" a number to float(): both were taken.
+        (lambda: lfj.Beam(True, 3.0), "illumination.x: must be a number, got True"),
+        (lambda: lfj.Beam("0", 3.0), "illumination.x: must be a number, got '0'"),
+        (lambda: lfj.Beam(np.str_("0"), 3.0), "illumination.x: must be a number"),
+        (lambda: lfj.Beam(0.0, 3.0, width=True), "illumination.width: must be a number"),
+        (lambda: lfj.Beam(0.0, 3.0, 1e20), r"direction_deg: must be a number in \[-360, 360\]"),
+        (lambda: lfj.Stripes(direction_deg=True), "illumination.direction_deg: must be a number"),
+        (lambda: lfj.Stripes(direction_deg="5"), "illumination.direction_deg: must be a number"),
+        (lambda: lfj.Full(direction_deg="0"), "illumination.direction_deg: must be a number"),
+        # a bare int or a string of digits as the phases: a TypeError, or '0' as a phase
+        (lambda: lfj.Stripes(phases=3), "illumination.phases: must be a sequence of integers"),
+        (lambda: lfj.Stripes(phases="012"), "illumination.phases: must be a sequence"),
+        # shifts=True made one shift; shifts past the period a phase error
+        (lambda: lfj.Stripes.shifted(shifts=True), "illumination.shifts: must be a positive"),
+        (lambda: lfj.Stripes.shifted(shifts=7), r"shifts: must be an integer in \[1, period\]"),
+        (lambda: lfj.Medium(0.2 + 0j, 0.1, 0.3), "medium.sigma_t: must be a real number"),
+        (lambda: lfj.Medium(np.ones(2) * 0.2, 0.1, 0.3), "medium.sigma_t: must be a single"),
+        (lambda: lfj.Medium([0.2], 0.1, 0.3), "medium.sigma_t: must be a single number"),
+        (lambda: lfj.Medium(0.2, 0.1, np.bool_(False)), "medium.g: must be a number"),
+        (lambda: lfj.Medium(0.2, None, 0.3), "medium.sigma_s: must be a number, got None"),
+        (lambda: lfj.Slab(5.0, n=True), "geometry.n: must be a number, got True"),
+        (lambda: lfj.Slab(5.0, n="1.3"), "geometry.n: must be a number, got '1.3'"),
+        (lambda: lfj.Slab(np.array([5.0])), "geometry.thickness: must be a single number"),
+        (lambda: lfj.Grid(32, 24.0), r"grid.height: must be an integer >= 2, got 24.0"),
+        (lambda: lfj.Grid(32, True), r"grid.height: must be an integer >= 2, got True"),
+        # separate took "0.5" as 0.5 and False as a black level of 0
+        (
+            lambda: lfj.separate(np.ones((3, 4, 4)), lit_fraction="0.5"),
+            "separate.lit_fraction: must be a number, got '0.5'",
+        ),
+        (
+            lambda: lfj.separate(np.ones((3, 4, 4)), black_level=False),
+            "separate.black_level: must be a number, got False",
+        ),
+        # an AutoGeometry took any slab and threshold
+        (lambda: lfj.AutoGeometry("slab"), "geometry.slab: must be a Slab"),
+        (lambda: lfj.AutoGeometry(lfj.Slab(5.0), threshold=True), "geometry.threshold: must be a"),
+    ],
+)
+def test_constructors_refuse_values_that_are_not_numbers(make, match):
+    with pytest.raises(ValueError, match=match) as err:
+        make()
+    _one_line(err)
+
+
+def test_a_beam_wider_than_any_medium_is_refused():
+    """Before: Beam(width=1e20) rendered all-zero images (the lit length of each wall
+    cell cancelled to 0 in float64)."""
+    with pytest.raises(ValueError, match=r"illumination.width: must be at most 100000 pixels"):
+        lfj.Beam(0.0, 8.0, width=1e20)
+    # The widest beam taken lights the whole wall, as full illumination does.
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    wide = lfj.render(medium, grid, lfj.Beam(0.0, 6.0, width=1e5), 2).images
+    full = lfj.render(medium, grid, lfj.Full(), 2).images
+    np.testing.assert_allclose(np.asarray(wide), np.asarray(full), rtol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [
+        # Before: True taken as 1, "no" as true, a float count or np.int64 refused or
+        # taken, a string compared with an int (a bare TypeError), 'slab' accepted.
+        ({"tail_max_steps": True}, "tail_max_steps: must be an integer, got True"),
+        ({"correction_renders": True}, "correction_renders: must be an integer, got True"),
+        ({"max_render_cells": "x"}, "max_render_cells: must be an integer, got 'x'"),
+        ({"max_render_cells": 1e7 + 0.5}, "max_render_cells: must be an integer"),
+        ({"crop": "no"}, "crop: must be True or False, got 'no'"),
+        ({"basin_search": "no"}, "basin_search: must be True or False"),
+        ({"model_error": 0}, "model_error: must be True or False"),
+        ({"geometry": "slab"}, "geometry: must be None, a Plane or a Slab"),
+        ({"bounces": np.ones(2)}, "bounces: must be an integer >= 1 or 'auto'"),
+        ({"tail": np.ones(2)}, "tail: must be auto, None or one of"),
+    ],
+)
+def test_fit_options_refuse_values_of_the_wrong_kind(bad, match):
+    with pytest.raises(ValueError, match=match) as err:
+        lfj.FitOptions(**bad)
+    _one_line(err)
+
+
+def test_numpy_scalars_and_ints_are_numbers():
+    """What worked keeps working; np.int64 counts were refused by Stripes and
+    FitOptions(tail_bounces=)."""
+    assert lfj.Medium(np.float32(0.2), np.float64(0.1), 0).sigma_s == pytest.approx(0.1)
+    assert lfj.Medium(jnp.asarray(0.2), np.asarray(0.1), 0.3).sigma_t == pytest.approx(0.2)
+    beam = lfj.Beam(np.int64(0), np.float32(3.5), width=np.int32(2))
+    assert (beam.x, beam.y, beam.width) == (0.0, 3.5, 2.0)
+    stripes = lfj.Stripes(np.int64(6), np.int64(3), np.arange(6))
+    assert stripes.as_dict()["period"] == 6 and type(stripes.period) is int
+    assert stripes.phases == (0, 1, 2, 3, 4, 5)
+    assert lfj.Stripes(direction_deg=-360.0 + 10.0).direction_deg == -350.0
+    assert lfj.Slab(np.float32(5.0), n=1).n == 1.0
+    assert lfj.FitOptions(tail_bounces=np.int64(8), max_steps=np.int64(5), rtol=np.float32(1e-4))
+    assert lfj.FitOptions(basin_tolerance=math.inf, max_chi2=math.inf, crop=np.bool_(False))
+
+
+def test_medium_values_still_differentiate_and_trace():
+    def f(st, ss, g):
+        return lfj.Medium(st, ss, g).rho
+
+    grads = jax.grad(f, argnums=(0, 1, 2))(0.2, 0.1, 0.3)
+    assert all(np.isfinite(float(v)) for v in grads)
+    assert np.isfinite(float(jax.jit(f)(0.2, 0.1, 0.3)))
+
+
+def test_a_sigma_s_that_underflows_float32_is_refused():
+    """Before: sigma_s = 1e-45 became a subnormal float32, flushed to zero on the
+    device: all-zero images from a medium that scatters."""
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match="medium.sigma_s: 1e-45 underflows float32"):
+            lfj.Medium(0.2, 1e-45, 0.3)
+        assert float(lfj.Medium(0.2, 0.0, 0.3).sigma_s) == 0.0
+
+
+def test_number_problem_names_what_is_wrong():
+    assert number_problem(np.float32(0.5), low=0, high=1) is None
+    assert number_problem(2, integer=True, low=1, high=3) is None
+    assert number_problem(math.inf, allow_inf=True) is None
+    assert number_problem(math.inf) == "must be finite, got inf"
+    assert number_problem(math.nan, allow_inf=True) == "must be finite, got nan"
+    assert number_problem(0.0, low=0, low_open=True, unit=" px") == (
+        "must be a number > 0 px, got 0.0"
+    )
+    assert number_problem(9, integer=True, low=1, high=8) == ("must be an integer in [1, 8], got 9")
+    assert number_problem(np.zeros((1000, 1000))) == (
+        "must be a single number, got an array of shape (1000, 1000)"
+    )
+
+
+def test_a_gain_that_underflows_the_images_is_refused():
+    """Before: render(gain=1e-40) and a simulation with gain 1e-40 gave all-zero images
+    (float32 flushes them to zero), silently; a SimulationConfig made in code took a
+    black level of 5 (negative images) and a string gain."""
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    with pytest.raises(ValueError, match=r"render: gain: must be a number in \[1e-30, 1e\+30\]"):
+        lfj.render(medium, grid, lfj.Stripes(), 2, gain=1e-40)
+    assert np.asarray(lfj.render(medium, grid, lfj.Full(), 2, gain=1e-30).images).max() > 0
+    config = {
+        "grid": {"width": 16, "height": 12, "n_theta": 8, "refine": 1},
+        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3},
+        "bounces": 2,
+    }
+    from lightfield_jax.app.config import ConfigError, MediumConfig, parse_simulation_config
+
+    with pytest.raises(ConfigError, match=r"gain: must be a number in \[1e-30, 1e\+30\]"):
+        parse_simulation_config({**config, "gain": 1e-40})
+    good = parse_simulation_config(config)
+    for change, match in [
+        ({"gain": 1e-40}, r"gain: must be a number in \[1e-30"),
+        ({"gain": "2"}, r"gain: must be a number in \[1e-30"),
+        ({"black_level": 5.0}, r"black_level: must be a number in \[0, 1\), got 5.0"),
+        ({"dark_level": -1.0}, r"dark_level: must be a number in \[0, 1e\+30\]"),
+        ({"bounces": True}, "bounces: must be an integer, got True"),
+        ({"tolerance": 0.0}, r"tolerance: must be a number in \(0, 1\)"),
+        ({"grid": (16, 12)}, "grid: must be a Grid"),
+        ({"medium": lfj.Medium(0.2, 0.1, 0.3)}, "medium: must be a MediumConfig"),
+        ({"illumination": "stripes"}, "illumination: must be a Beam or Stripes or Full"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.simulate_capture(dataclasses.replace(good, **change))
+        _one_line(err)
+    with pytest.raises(ValueError, match="medium.sigma_t: must be a number, got '0.2'"):
+        MediumConfig("0.2", 0.1, 0.3)
+    # Before: a bare TypeError of os.fspath, light fields for lightfield="no", a
+    # TypeError at the first stage.
+    for kwargs, match in [
+        ({"config": 5}, "simulate_capture: config: must be a SimulationConfig or the path"),
+        ({"lightfield": "no"}, "simulate_capture: lightfield: must be True or False"),
+        ({"stage": 3}, "simulate_capture: stage: must be callable, got int"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.simulate_capture(**{"config": good, **kwargs})
+        _one_line(err)
+
+
+# ------------------------------------------------------------------------- figures
+
+
+@pytest.fixture(scope="module")
+def small():
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    return lfj.render(medium, grid, lfj.Full(), 3, lightfield=True)
+
+
+def _viz_cases(small, tmp_path):
+    import lightfield_jax.viz as viz
+
+    images = np.asarray(small.images)
+    fields = np.asarray(small.lightfields)
+    fit = lfj.fit_decay(images[0])
+    nan = images.copy()
+    nan[1, 2, 3] = np.nan
+    return [
+        # Before: 7.7e8 glyphs (minutes, then memory).
+        (
+            lambda: viz.plot_lightfield(small, spacing=1e-3),
+            r"plot_lightfield.spacing: must be a number in \[1, 16\] px",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, spacing=math.nan),
+            "plot_lightfield.spacing: must be finite, got nan",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, glyph_radius=-1.0),
+            "plot_lightfield.glyph_radius: must be a number in",
+        ),
+        # points off the panel wrapped round to the other side (negative indices)
+        (
+            lambda: viz.plot_lightfield(small, points=[(-5.0, -5.0)]),
+            "plot_lightfield.points: must lie on the 16x12 panel",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, points=[(math.nan, 1.0)]),
+            "plot_lightfield.points: must be finite",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, points=np.ones((5000, 2))),
+            "plot_lightfield.points: must be at most 1024",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, show=-1),
+            "plot_lightfield.show: must be an integer >= 0, got -1",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, columns=0),
+            r"plot_lightfield.columns: must be an integer in \[1, 48\]",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, labels="abcde"),
+            "plot_lightfield.labels: must be a list of 5 titles",
+        ),
+        (lambda: viz.plot_lightfield(np.ones((100, 12, 16, 8))), "plot_lightfield: 100 panels"),
+        (
+            lambda: viz.plot_lightfield(fields[:, :0]),
+            "plot_lightfield.lightfield: must not be empty",
+        ),
+        (
+            lambda: viz.plot_lightfield(fields > 0),
+            "plot_lightfield.lightfield: must be an array of real numbers",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, dynamic_range=0.0),
+            "plot_lightfield.dynamic_range: must be a number > 1",
+        ),
+        (
+            lambda: viz.plot_lightfield(small, glyph_scale=None),
+            "plot_lightfield.glyph_scale: must be 'local' or 'global'",
+        ),
+        # show=-1 silently dropped the last bounce, show=0 drew the sum alone
+        (
+            lambda: viz.plot_bounce_images(small, show=-1),
+            "plot_bounce_images.show: must be an integer >= 1",
+        ),
+        (
+            lambda: viz.plot_bounce_images(small, show=True),
+            "plot_bounce_images.show: must be an integer, got True",
+        ),
+        (
+            lambda: viz.plot_bounce_images(nan),
+            "plot_bounce_images.images: must be finite, got 1 of 576",
+        ),
+        (lambda: viz.plot_bounce_images(np.ones((100, 12, 16))), "plot_bounce_images: 101 panels"),
+        (
+            lambda: viz.plot_bounce_images(images, total="no"),
+            "plot_bounce_images.total: must be True or False",
+        ),
+        (
+            lambda: viz.plot_bounce_images(fit),
+            "plot_bounce_images.images: must be an array of real numbers .* got DecayFit",
+        ),
+        (
+            lambda: viz.plot_bounce_images(images, illumination="full"),
+            "plot_bounce_images.illumination: must be a Beam",
+        ),
+        # bin_width 1e-9: a profile of 1e10 bins (memory); the NaN range drew nothing
+        (
+            lambda: viz.plot_bounce_profiles(small, bin_width=1e-9),
+            "plot_bounce_profiles.bin_width: must be a number >= 0.01 px",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(small, dynamic_range=math.nan),
+            "plot_bounce_profiles.dynamic_range: must be finite, got nan",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(images[0]),
+            r"plot_bounce_profiles.images: must have 3 dimensions",
+        ),
+        (
+            lambda: viz.plot_bounce_profiles(images, mask=np.ones((12, 16))),
+            "mask: must be a boolean array",
+        ),
+        # a KeyError, a numpy broadcast error, an AttributeError before
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, entry="west"),
+            "plot_direct_decay.entry: must be one of",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, unseparated=images[0, :5]),
+            r"plot_direct_decay.unseparated: must have the direct image's shape \(12, 16\)",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], small),
+            "plot_direct_decay.fit: must be a DecayFit",
+        ),
+        (
+            lambda: viz.plot_direct_decay(np.full((12, 16), np.nan), fit),
+            "plot_direct_decay.direct: has no finite value",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, direction_deg=90.0),
+            "plot_direct_decay.direction_deg: 90.0 degrees does not point into",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, true_sigma_t="0.2"),
+            "plot_direct_decay.true_sigma_t: must be a number",
+        ),
+        (
+            lambda: viz.plot_direct_decay(images[0], fit, path=5),
+            "plot_direct_decay.path: must be a file path or None, got 5",
+        ),
+        (
+            lambda: viz.plot_transport(images, tmp_path),
+            "plot_transport.result: must be a RenderResult",
+        ),
+        (
+            lambda: viz.plot_transport(small, tmp_path / "missing"),
+            "plot_transport.folder: must be an existing folder",
+        ),
+        (lambda: viz.plot_channels(small), "plot_channels.fit: must be a CaptureFit"),
+        (lambda: viz.plot_inspect(str(tmp_path)), "plot_inspect.inspection: must be an Inspection"),
+        (
+            lambda: viz.plot_fit(images, lfj.Stripes(), small),
+            "plot_fit.result: must be a FitResult",
+        ),
+        (lambda: viz.plot_fit(images, "stripes", small), "plot_fit.pattern: must be a Stripes"),
+        (
+            lambda: viz.light_path_coordinates((12,)),
+            r"light_path_coordinates.shape: must be \(height, width\)",
+        ),
+    ]
+
+
+def test_figures_check_their_arguments_before_drawing(small, tmp_path):
+    import time
+
+    for make, match in _viz_cases(small, tmp_path):
+        start = time.perf_counter()
+        with pytest.raises(ValueError, match=match) as err:
+            make()
+        _one_line(err)
+        assert time.perf_counter() - start < 2.0, match
+
+
+def test_figures_still_draw_valid_arguments(small, tmp_path):
+    import lightfield_jax.viz as viz
+
+    figure = viz.plot_lightfield(small, spacing=2, glyph_radius=1.0, points=None, show=0)
+    assert len([ax for ax in figure.axes if ax.get_title()]) == 2
+    figure = viz.plot_lightfield(np.asarray(small.lightfields)[1], points=np.array([[1.0, 2.0]]))
+    assert figure.axes
+    assert viz.plot_bounce_images(small, show=10, columns=np.int64(2)).axes
+    assert viz.plot_bounce_profiles(np.asarray(small.images), bin_width=np.float32(0.5)).axes
+    files = viz.plot_transport(small, str(tmp_path), illumination=lfj.Full())
+    assert len(files) == 3
+
+
+def test_render_refuses_sizes_from_a_typo_before_the_work(monkeypatch):
+    """Before: Grid(32000, 24000) went on to build the renderer's tables (a MemoryError
+    or the OOM killer, minutes later), bounces=10**6 marched for many minutes and a
+    string illumination failed deep inside."""
+    import time
+
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
+    medium = lfj.Medium(0.2, 0.1, 0.3)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match=r"render: the 32000x24000 grid .* needs about 5.7 TiB"):
+        lfj.render(medium, lfj.Grid(32000, 24000, 16, 1), lfj.Stripes(), 3)
+    with pytest.raises(ValueError, match="bounces: at most 10000 bounces are marched"):
+        lfj.render(medium, lfj.Grid(16, 12, 8, 1), lfj.Full(), 10**6)
+    with pytest.raises(ValueError, match="render: illumination: must be a Beam, Stripes or Full"):
+        lfj.render(medium, lfj.Grid(16, 12, 8, 1), "full", 3)
+    assert time.perf_counter() - start < 5.0
+
+
+def test_render_and_its_helpers_name_arguments_of_the_wrong_kind():
+    """Before: a FitResult or a tuple as the medium/grid failed deep inside (an
+    AttributeError), lightfield="no" rendered light fields (a truthy string), a string
+    tolerance or a NaN rho a bare TypeError/ValueError of Python, a NumPy tail_tol was
+    refused, single_scatter_closed_form(width=True) drew one column and
+    default_n_theta("0.5") took the string."""
+    medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
+    for kwargs, match in [
+        ({"medium": (0.2, 0.1, 0.3)}, "render: medium: must be a Medium, got tuple"),
+        ({"grid": (16, 12)}, "render: grid: must be a Grid, got tuple"),
+        ({"lightfield": "no"}, "render: lightfield: must be True or False, got 'no'"),
+        ({"tolerance": "1e-4"}, r"render: tolerance: must be a number, got '1e-4'"),
+        ({"tail": "gmress"}, "tail: must be None or one of gmres, bicgstab"),
+        ({"tail": "gmres", "tail_tol": math.nan}, r"tail_tol: must be a number in \(0, 1\)"),
+    ]:
+        args = {"medium": medium, "grid": grid, "illumination": lfj.Full(), "bounces": 2}
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.render(**{**args, **kwargs})
+        _one_line(err)
+    result = lfj.render(
+        medium,
+        grid,
+        lfj.Full(),
+        2,
+        tail="gmres",
+        tail_tol=np.float32(1e-4),
+        tail_max_steps=np.int64(50),
+    )
+    assert result.tail is not None
+    for call, match in [
+        (lambda: lfj.single_scatter_closed_form(0.2, 0.1, 0.3, True), "width: must be an integer"),
+        (
+            lambda: lfj.single_scatter_closed_form(0.2, 0.3, 0.3, 8),
+            r"sigma_s: must be a number in \[0, 0.2\]",
+        ),
+        (lambda: lfj.default_n_theta("0.5"), "g: must be a number, got '0.5'"),
+        (lambda: lfj.default_refine(1.5), r"g: must be a number in \(-1, 1\), got 1.5"),
+        (lambda: lfj.bounces_for_tolerance(math.nan), "rho: must be finite, got nan"),
+        (lambda: lfj.bounces_for_tolerance(0.5, "0.1"), r"bounce tolerance must be in \(0, 1\)"),
+        (lambda: lfj.Medium(0.2, 0.1, 0.3, phase=np.array(["paper"])), "medium.phase: unknown"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            call()
+        _one_line(err)
+    assert lfj.single_scatter_closed_form(np.float32(0.2), 0.1, 0, np.int64(8)).shape == (8,)
