@@ -409,7 +409,7 @@ def test_16bit_frames_clamped_at_0_are_censored_from_below(tmp_path):
     """A camera's black subtraction or a 16-bit file clamps the dark values' read noise
     at code 0: the capture notes the pile-up (Capture.floored, found in raw codes, so a
     dark frame does not hide it) and the fit masks those values as censored from below
-    at their calibrated level, where the capture shows read noise."""
+    at their calibrated level (an integer file's lowest code is always a cut)."""
     from lightfield_jax.inverse.data import prepare_data
 
     h, w = 24, 48
@@ -514,7 +514,7 @@ def _srgb_capture(folder, response=None, flat=None):
     encode = srgb_response().encode
     rng = np.random.default_rng(3)
     light = rng.uniform(0.002, 0.8, (P, 16, 24))
-    dark = 0.004
+    dark = 0.05
     vignetting = np.ones((16, 24)) if flat is None else flat
     names = [f"s{i}.png" for i in range(P)]
     for name, x in zip(names, light, strict=True):
@@ -536,7 +536,7 @@ def test_srgb_encoded_single_exposures_are_linearised(tmp_path):
     vignetting = np.linspace(0.8, 1.0, 24)[None, :] * np.ones((16, 1))
     light, text = _srgb_capture(tmp_path, "srgb", flat=vignetting)
     capture = _capture(tmp_path, text=text)
-    assert capture.response.kind == "srgb"
+    assert capture.response_record() == {"kind": "srgb", "source": None}
     assert any(n.startswith("response: srgb: ") for n in capture.notes)
     expected = light * np.median(vignetting)
     np.testing.assert_allclose(capture.images[..., 0], expected, rtol=2e-3, atol=2e-5)
@@ -561,6 +561,16 @@ def test_single_exposure_response_errors(tmp_path):
         _capture(tmp_path, text=text)
     with pytest.raises(CaptureError, match=r"response: must be linear or srgb or auto or a file"):
         _capture(tmp_path, text=text.replace("response: auto", "response: 2.2"))
+    with pytest.raises(CaptureError, match=r"response: write 'srgb' in lower case, got 'sRGB'"):
+        _capture(tmp_path, text=text.replace("response: auto", "response: sRGB"))
+    # A float flat field normalised to 1 is linear already: not codes of the curve.
+    write_exr(tmp_path / "flat.exr", {"Y": np.linspace(0.8, 1.2, 16 * 24).reshape(16, 24)})
+    flat = text.replace("response: auto", "response: srgb\nflat_field: flat.exr")
+    with pytest.raises(CaptureError, match=r"response: srgb maps codes .* flat_field \(flat.exr\)"):
+        _capture(tmp_path, text=flat)
+    (tmp_path / "flat.csv").write_text("0, 0.3\n1, 0.3\n")
+    with pytest.raises(CaptureError, match=r"response: .*flat.csv: x is constant"):
+        _capture(tmp_path, text=text.replace("response: auto", "response: flat.csv"))
     names = _images(tmp_path, fill=1.5, prefix="bright")
     text = f"images: {names}\npattern: {{phases: [0, 2, 4]}}\nresponse: srgb\n"
     with pytest.raises(CaptureError) as info:
@@ -609,3 +619,30 @@ def test_fit_capture_takes_a_path_and_refuses_other_things(tmp_path):
         capture_fit.fit_capture(tmp_path / "missing.yaml")
     with pytest.raises(TypeError, match=r"^fit_capture: expected a capture .* got int$"):
         capture_fit.fit_capture(42)
+    _, text = _srgb_capture(tmp_path, "srgb")
+    (tmp_path / "capture.yaml").write_text(text)
+    with pytest.raises(ValueError, match=r"channel: 'nope' is not in the capture \(it has Y\)"):
+        capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=["nope"])
+
+
+def test_a_float_floor_is_a_cut_only_where_the_images_show_read_noise(tmp_path):
+    """Float frames: zeros of shot noise alone are measured (nothing falls below 0
+    without an additive noise) and stay; read noise clamped at 0 is a floor. An
+    integer file's lowest code is always a cut (test_16bit_frames_clamped_at_0...)."""
+    h, w = 24, 48
+    rng = np.random.default_rng(4)
+    lit = (np.arange(h)[:, None, None] + np.arange(6)[None, None, :]) % 6 < 3
+    light = np.where(lit, 1.0, 0.05) * np.exp(-0.15 * np.arange(w))[None, :, None]
+    pattern = Stripes(period=6, lit=3, phases=tuple(range(6)))
+    shot = rng.poisson(light * 2e3) / 2e3
+    read = np.clip(light + rng.normal(0, 2e-3, light.shape), 0, None)
+    for name, frames in (("shot", shot), ("read", read)):
+        names = [f"{name}{i}.exr" for i in range(6)]
+        for i, n in enumerate(names):
+            write_exr(tmp_path / n, {"Y": frames[..., i].astype(np.float32)})
+        capture = _capture(tmp_path, images=names, pattern=pattern)
+        assert np.mean(frames == 0) > 0.03, name
+        if name == "shot":
+            assert not capture.floored.any()
+        else:
+            np.testing.assert_array_equal(capture.floored[..., 0], np.moveaxis(frames, -1, 0) == 0)

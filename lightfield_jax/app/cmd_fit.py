@@ -252,6 +252,7 @@ def _fit(args: argparse.Namespace) -> int | None:
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
         result = _label_two_step(args.method, fit.to_dict())
         result["capture"] = str(capture.source)
+        result["response"] = capture.response_record()
         compared = _against_truth(capture, fit) if capture.truth else []
         if capture.truth:
             result["truth"] = capture.truth

@@ -35,6 +35,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     response = top.get("response", "linear")
     if not isinstance(response, str) or not response:
         top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {response!r}")
+    if response != response.lower() and response.lower() in RESPONSES:
+        top.fail("response", f"write {response.lower()!r} in lower case, got {response!r}")
     value = top.get("images")
     rows = [isinstance(v, list) for v in value] if isinstance(value, list) else []
     if not any(rows):

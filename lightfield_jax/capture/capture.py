@@ -14,6 +14,7 @@ inverse pipeline reads it)::
     medium_roi: [x0, y0, x1, y1] # optional (or auto)
     pixel_size_mm: 0.05          # optional
     saturation: 0.98             # optional
+    response: srgb               # optional: linear (default), srgb or a table file
     channel: all                 # optional
     geometry: {kind: plane}      # optional
     fit: {max_render_cells: 4000000, n_theta: 64}   # optional: FitOptions fields
@@ -34,8 +35,8 @@ Keys:
   See :mod:`lightfield_jax.capture.calibration`.
 - ``images`` as exposure brackets, one list per shift (``[[s0_1ms.png, s0_8ms.png],
   [s1_1ms.png, s1_8ms.png], ...]``), with ``exposure_times`` (seconds, increasing, the
-  order of every list) and ``response`` (``linear``, default; ``auto``: recovered from
-  the brackets; or a table file): each bracket is merged to linear radiance
+  order of every list) and ``response`` (``linear``, default; ``srgb``; ``auto``:
+  recovered from the brackets; or a table file): each bracket is merged to linear radiance
   (:mod:`lightfield_jax.capture.hdr`), clipped and near-black samples dropped; a calibration
   frame is then a list of one file per exposure time too, and the dark frame is
   subtracted from every exposure before the merge. ``saturation`` is then the sample
@@ -54,7 +55,7 @@ Keys:
   of phase φ iff (r + φ) mod period < lit, counted in the full image frame; with a
   ``medium_roi`` the loaded pattern's phases are shifted to count from the ROI's edge.
 - ``dark_frame``: an image taken with the projector off, subtracted from every image
-  (and from the other calibration frames) first.
+  (and from the other calibration frames) first (after a ``response``'s linearisation).
 - ``black_frame``, ``white_frame``: the camera's images of the projector showing all
   black and all white. The black frame measures the black level (``black_level:
   auto``); the white frame, if given, is where the medium's ROI is found.
@@ -279,6 +280,14 @@ class Capture:
     floored: np.ndarray | None = None
     response: Response | None = None
 
+    def response_record(self) -> dict:
+        """The inverse response the codes were linearised with: ``kind`` (linear, srgb,
+        auto, file) and ``source`` (a table's file, else ``None``)."""
+        r = self.response if self.brackets is None else self.brackets.response
+        if r is None:
+            return {"kind": "linear", "source": None}
+        return {"kind": r.kind, "source": None if r.source is None else str(r.source)}
+
     @property
     def n_images(self) -> int:
         return self.images.shape[0]
@@ -345,14 +354,14 @@ def load_capture(path: str | os.PathLike) -> Capture:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
     response = None if merged is not None else read_response(top, base, n_channels)
-    linear = _linearizer(top, response, raw, names)
+    linear = _linearizer(top, response, raw, names, aux)
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
             + (
                 " (cameras usually write 8-bit files sRGB-encoded: give response: srgb if "
                 "these are)"
-                if linear is None and merged is None
+                if "response" not in top.data and merged is None
                 else ""
             )
         )
@@ -503,26 +512,35 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
 
 
-def _linearizer(top, response, raw: np.ndarray, names):
+def _linearizer(top, response, raw: np.ndarray, names, aux: dict):
     """``raw`` codes (or a calibration frame's) to linear values by a single exposure's
-    ``response``; ``None`` for a linear one. Codes must lie in [0, 1] (a float image's
-    too: the curve is not defined beyond)."""
+    ``response``; ``None`` for a linear one. Codes must lie in [0, 1]: a float image's
+    or calibration frame's values too (the curve is not defined beyond; a float flat
+    field normalised to 1 is linear already)."""
     if response is None or response.kind == "linear":
         return None
-    for i, image in enumerate(raw):
-        finite = image[np.isfinite(image)]
+    value = top.get("response")
+    frames = [(f"images[{i}]", names[i], image) for i, image in enumerate(raw)]
+    frames += [(key, f.path.name, f.pixels) for key, f in aux.items() if f is not None]
+    for key, name, pixels in frames:
+        finite = pixels[np.isfinite(pixels)]
         if finite.size and (finite.min() < 0 or finite.max() > 1):
             top.fail(
                 "response",
-                f"{top.get('response')} maps codes in [0, 1], but images[{i}] ({names[i]}) "
-                f"has values in [{finite.min():g}, {finite.max():g}]: not codes of a curve "
-                "(give response: linear for linear images)",
+                f"{value} maps codes in [0, 1], but {key} ({name}) has values in "
+                f"[{finite.min():g}, {finite.max():g}]: not codes of a curve (give "
+                "response: linear for linear files, or the codes the camera wrote)",
             )
     n_channels = raw.shape[-1]
 
     def linear(a: np.ndarray) -> np.ndarray:
         a = np.broadcast_to(a, (*a.shape[:-1], n_channels))
-        return response.linearize(a).astype(raw.dtype, copy=False)
+        if a.ndim < 4:
+            return response.linearize(a).astype(raw.dtype, copy=False)
+        out = np.empty(a.shape, raw.dtype)
+        for i, image in enumerate(a):  # one image at a time: float64 temporaries stay small
+            out[i] = response.linearize(image)
+        return out
 
     return linear
 

@@ -202,6 +202,8 @@ def load_response(path: str | os.PathLike, n_channels: int) -> Response:
         raise CaptureError(f"{path}: the first column (z) must run from 0 to 1, finite")
     if np.any(np.diff(codes) <= 0) or np.any(np.diff(curve, axis=0) < 0):
         raise CaptureError(f"{path}: z must increase and x must not decrease down the table")
+    if np.any(curve[-1] <= curve[0]):
+        raise CaptureError(f"{path}: x is constant down the table: not a response (x(1) > x(0))")
     return Response("file", codes, curve, path)
 
 

@@ -75,6 +75,7 @@ class Inspection:
             "notes": list(c.notes),
             "warnings": [*c.warnings, *self.problems()],
             "brackets": None if c.brackets is None else c.brackets.to_dict(),
+            "response": c.response_record(),
         }
 
     def summary(self) -> str:
