@@ -646,3 +646,17 @@ def test_a_float_floor_is_a_cut_only_where_the_images_show_read_noise(tmp_path):
             assert not capture.floored.any()
         else:
             np.testing.assert_array_equal(capture.floored[..., 0], np.moveaxis(frames, -1, 0) == 0)
+
+
+def test_black_level_auto_against_a_uniform_white_frame_is_refused(tmp_path):
+    names = _images(tmp_path)
+    (white,) = _images(tmp_path, n=1, fill=0.5, prefix="white")
+    (black,) = _images(tmp_path, n=1, fill=0.02, prefix="black")
+    _error(
+        tmp_path,
+        r"black_level: auto: the white_frame does not vary over the medium",
+        images=names,
+        white_frame=white,
+        black_frame=black,
+        black_level="auto",
+    )

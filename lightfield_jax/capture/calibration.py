@@ -259,6 +259,12 @@ def estimate_black_level(
             if use.sum() < 10:
                 raise ValueError("black_level: auto: fewer than 10 usable pixels")
             use &= x > 0.05 * np.percentile(x[use], 99)
+            if use.sum() < 10 or not np.ptp(x[use]) > 1e-6 * np.max(np.abs(x[use])):
+                which = "white_frame does" if white is not None else "images do"
+                raise ValueError(
+                    f"black_level: auto: the {which} not vary over the medium, so the "
+                    "black frame's slope against them is undetermined; give black_level"
+                )
             q, dq = _slope(x[use], y[use])
             if white is None:  # slope against the mean of the shifts
                 den = 1.0 - q * (1.0 - a)
