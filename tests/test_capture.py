@@ -660,3 +660,28 @@ def test_black_level_auto_against_a_uniform_white_frame_is_refused(tmp_path):
         black_frame=black,
         black_level="auto",
     )
+
+
+def test_a_table_of_every_channel_serves_one_chosen_channel(tmp_path):
+    """`inspect --response` on RGB brackets writes one column per channel, named in its
+    header; a capture that chooses one channel (`channel: G`) takes that column."""
+    from lightfield_jax.capture.hdr import Response, srgb_response, write_response
+
+    srgb = srgb_response()
+    codes = np.linspace(0, 1, 257)
+    gains = np.array([0.5, 2.0, 1.0])  # a different curve per channel
+    curves = srgb.linearize(codes[:, None]) * gains
+    write_response(tmp_path / "rgb.csv", Response("file", codes, curves), ["R", "G", "B"])
+    rng = np.random.default_rng(1)
+    z = rng.uniform(0.05, 0.95, (P, H, W, 3))
+    names = [f"c{i}.png" for i in range(P)]
+    for name, image in zip(names, z, strict=True):
+        write_png(tmp_path / name, image, bits=16)
+    text = f"images: {names}\npattern: {{phases: [0, 2, 4]}}\nresponse: rgb.csv\n"
+    green = _capture(tmp_path, text=text + "channel: G\n")
+    assert green.channel_names == ("G",)
+    coded = np.stack([read_image(tmp_path / n).pixels[..., 1] for n in names])
+    expected = np.interp(coded, codes, curves[:, 1])
+    np.testing.assert_allclose(green.images[..., 0], expected, rtol=1e-5)
+    every = _capture(tmp_path, text=text)
+    np.testing.assert_allclose(every.images[..., 1], expected, rtol=1e-5)

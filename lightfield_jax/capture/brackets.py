@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +120,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         levels = 1 << sensor[1]
         notes.append(f"{sensor[1]}-bit data in 16-bit files: samples divided by its top code")
     images = images / full
-    response = read_response(top, base, first.pixels.shape[-1], images, times)
+    response = read_response(top, base, first.channel_names, images, times)
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
     dark = None if dark is None else dark / full
@@ -162,7 +163,11 @@ def _exposure_times(top: _Section) -> list[float]:
 
 
 def read_response(
-    top: _Section, base: Path, n_channels: int, images: np.ndarray | None = None, times=None
+    top: _Section,
+    base: Path,
+    names: Sequence[str],
+    images: np.ndarray | None = None,
+    times=None,
 ):
     """The inverse response of the ``response`` key: ``linear`` (default), ``srgb``, a
     table file (:func:`~lightfield_jax.capture.hdr.load_response`) or, for exposure
@@ -180,6 +185,6 @@ def read_response(
             p, j, h, w, c = images.shape
             pooled = np.moveaxis(images, 1, 0).reshape(j, p * h * w, c)
             return calibrate_response(pooled, times)
-        return load_response(_file(top, "response", value, base), n_channels)
+        return load_response(_file(top, "response", value, base), len(names), names)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: response: {e}") from None

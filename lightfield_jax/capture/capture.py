@@ -45,7 +45,8 @@ Keys:
 - ``response`` with one exposure per shift: ``linear`` (default; a raw converter's
   output), ``srgb`` (the sRGB curve of most 8-bit camera and phone files) or a table
   file (:func:`~lightfield_jax.capture.hdr.load_response`, as ``lightfield-jax inspect
-  --response`` writes it from brackets): integer codes (and float values in [0, 1]) of
+  --response`` writes it from brackets; a table of every channel, named in its header,
+  also serves a ``channel:`` chosen from them): integer codes (and float values in [0, 1]) of
   the images and calibration frames are mapped to linear values before the dark frame
   and the flat field are applied; saturation and clipping are judged on the codes.
 - ``pattern``: the projected stripes (docs/model.md section 3): ``period`` (default 6),
@@ -353,7 +354,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
-    response = None if merged is not None else read_response(top, base, n_channels)
+    response = None if merged is not None else read_response(top, base, frames[0].channel_names)
     linear = _linearizer(top, response, raw, names, aux)
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(

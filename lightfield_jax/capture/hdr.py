@@ -175,23 +175,48 @@ def srgb_response() -> Response:
     return Response("srgb", z, _srgb_decode(z)[:, None])
 
 
-def load_response(path: str | os.PathLike, n_channels: int) -> Response:
+def _header_names(text: str) -> list[str]:
+    """The channel names of a table's ``# z, x_R, x_G, x_B`` header (:func:`write_response`)."""
+    for line in text.splitlines():
+        if line.lstrip().startswith("#"):
+            words = line.lstrip("# \t").replace(",", " ").split()
+            if words[:1] == ["z"] and all(w.startswith("x_") for w in words[1:]):
+                return [w[2:] for w in words[1:]]
+    return []
+
+
+def load_response(
+    path: str | os.PathLike, n_channels: int, names: Sequence[str] | None = None
+) -> Response:
     """A response table: a text file (CSV or whitespace, ``#`` comments) or ``.npy``
     array whose first column is z in [0, 1] (increasing, from 0 to 1) and whose other
     columns are x = f⁻¹(z), one column for every channel or one per channel,
-    increasing (as :func:`write_response` writes them)."""
+    increasing (as :func:`write_response` writes them). A table of more channels whose
+    header names them (``# z, x_R, x_G, x_B``) gives the columns of ``names``, the
+    capture's channels (one chosen with ``channel:``)."""
     path = Path(path)
     if not path.exists():
         raise CaptureError(f"{path}: file not found")
+    header: list[str] = []
     try:
         if path.suffix.lower() == ".npy":
             table = np.load(path, allow_pickle=False)
         else:
-            text = path.read_text().replace(",", " ")
-            table = np.loadtxt(text.splitlines(), ndmin=2)
+            text = path.read_text()
+            header = _header_names(text)
+            table = np.loadtxt(text.replace(",", " ").splitlines(), ndmin=2)
     except (OSError, ValueError) as e:
         raise CaptureError(f"{path}: cannot read a response table ({e})") from None
     table = np.asarray(table, np.float64)
+    wanted = list(names or ())
+    if (
+        table.ndim == 2
+        and table.shape[1] not in (2, n_channels + 1)
+        and len(header) == table.shape[1] - 1
+        and wanted
+        and set(wanted) <= set(header)
+    ):
+        table = table[:, [0] + [1 + header.index(n) for n in wanted]]
     if table.ndim != 2 or table.shape[1] not in (2, n_channels + 1) or table.shape[0] < 2:
         raise CaptureError(
             f"{path}: a response table has rows (z, x) or (z, x per channel: {n_channels}), "
