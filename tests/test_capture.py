@@ -685,3 +685,23 @@ def test_a_table_of_every_channel_serves_one_chosen_channel(tmp_path):
     np.testing.assert_allclose(green.images[..., 0], expected, rtol=1e-5)
     every = _capture(tmp_path, text=text)
     np.testing.assert_allclose(every.images[..., 1], expected, rtol=1e-5)
+
+
+def test_a_response_counts_12_bit_codes_to_their_top_code(tmp_path):
+    """12-bit data in 16-bit files: the response maps codes counted to 4095, as the
+    brackets' merge and the tables it writes count them."""
+    from lightfield_jax.capture.hdr import srgb_response
+
+    rng = np.random.default_rng(2)
+    codes = rng.integers(50, 4000, (P, H, W)).astype(np.uint16)
+    codes[:, 0, :2] = 4095  # clipped at the sensor's top code
+    names = [f"t{i}.png" for i in range(P)]
+    for name, c in zip(names, codes, strict=True):
+        write_png(tmp_path / name, c, bits=16)
+    text = f"images: {names}\npattern: {{phases: [0, 2, 4]}}\nresponse: srgb\n"
+    with pytest.warns(CaptureWarning, match="clipped at their top code 4095"):
+        capture = _capture(tmp_path, text=text)
+    expected = srgb_response().linearize(codes[..., None] / 4095.0)[..., 0]
+    keep = capture.sample_mask[..., 0]
+    np.testing.assert_allclose(capture.images[..., 0][keep], expected[keep], rtol=1e-5)
+    assert not keep[:, 0, :2].any()  # the top code is masked as clipped

@@ -355,7 +355,11 @@ def load_capture(path: str | os.PathLike) -> Capture:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
     response = None if merged is not None else read_response(top, base, frames[0].channel_names)
-    linear = _linearizer(top, response, raw, names, aux)
+    sensor = None if saturation is not None else sensor_top_code(raw, frames)
+    # 10-14-bit data in 16-bit files: codes counted to the sensor's top code, as the
+    # brackets' merge (and the response tables it writes) counts them.
+    top_code = 1.0 if sensor is None else sensor[0]
+    linear = _linearizer(top, response, raw, names, aux, top_code)
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
@@ -371,7 +375,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
             f"response: {top.get('response')}: the codes of the images and calibration "
             "frames linearised with it (before a dark frame or flat field is applied)"
         )
-    sensor = None if saturation is not None else sensor_top_code(raw, frames)
     dark = aux["dark_frame"]
     dark_pixels = None if dark is None else dark.pixels
     flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, linear)
@@ -513,18 +516,19 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
 
 
-def _linearizer(top, response, raw: np.ndarray, names, aux: dict):
+def _linearizer(top, response, raw: np.ndarray, names, aux: dict, top_code: float = 1.0):
     """``raw`` codes (or a calibration frame's) to linear values by a single exposure's
     ``response``; ``None`` for a linear one. Codes must lie in [0, 1]: a float image's
     or calibration frame's values too (the curve is not defined beyond; a float flat
-    field normalised to 1 is linear already)."""
+    field normalised to 1 is linear already), after dividing by ``top_code`` (the
+    sensor's top code of 10-14-bit data in 16-bit files)."""
     if response is None or response.kind == "linear":
         return None
     value = top.get("response")
     frames = [(f"images[{i}]", names[i], image) for i, image in enumerate(raw)]
     frames += [(key, f.path.name, f.pixels) for key, f in aux.items() if f is not None]
     for key, name, pixels in frames:
-        finite = pixels[np.isfinite(pixels)]
+        finite = pixels[np.isfinite(pixels)] / top_code
         if finite.size and (finite.min() < 0 or finite.max() > 1):
             top.fail(
                 "response",
@@ -537,10 +541,10 @@ def _linearizer(top, response, raw: np.ndarray, names, aux: dict):
     def linear(a: np.ndarray) -> np.ndarray:
         a = np.broadcast_to(a, (*a.shape[:-1], n_channels))
         if a.ndim < 4:
-            return response.linearize(a).astype(raw.dtype, copy=False)
+            return response.linearize(a / top_code).astype(raw.dtype, copy=False)
         out = np.empty(a.shape, raw.dtype)
         for i, image in enumerate(a):  # one image at a time: float64 temporaries stay small
-            out[i] = response.linearize(image)
+            out[i] = response.linearize(image / top_code)
         return out
 
     return linear
