@@ -123,10 +123,11 @@ def test_joint_recovers_the_truth(name, size):
 
 @pytest.mark.parametrize("size", SIZES)
 def test_forward_medium_reports_its_sigma_t_g_valley(size):
-    """At albedo 0.8 and g 0.7, σt and g trade off (docs/model.md §6): the fit's correlation
-    between them is strong, where for the milk and the backward medium it is not."""
+    """At albedo 0.8 and g 0.7, σt and g trade off (docs/model.md §6): the noise's
+    correlation between them is strong, where for the milk and the backward medium it
+    is not."""
     corr = {
-        name: abs(_fit(name, _grid_for(size, name), "joint").correlation["sigma_t,g"])
+        name: abs(_fit(name, _grid_for(size, name), "joint").correlation_statistical["sigma_t,g"])
         for name in MEDIA
     }
     assert corr["forward"] > 0.85, corr
@@ -954,3 +955,31 @@ def test_a_noisy_capture_in_large_units_gives_the_same_answer():
     for key in ("sigma_t", "sigma_s", "g"):
         a, b = (getattr(r, key) for r in results)
         assert abs(a - b) < 0.05 * results[0].uncertainty[key], key
+
+
+def test_the_correlations_go_with_the_total_uncertainty():
+    """``correlation`` is the total covariance's: the noise's plus the finer model's
+    signed shift (rank one) and any further model term (uncorrelated), so its diagonal
+    is the total 1σ²; ``correlation_statistical`` is the noise's alone."""
+    from lightfield_jax.inverse.trust import error_budget
+
+    rng = np.random.default_rng(1)
+    jac = rng.normal(size=(400, 3))
+    jac[:, 2] = jac[:, 0] + 0.3 * jac[:, 2]  # a valley: parameters 0 and 2 correlated
+    residual = rng.normal(size=400)
+    shift_r = 0.5 * (jac[:, 0] - 2 * jac[:, 2])  # a model error along the valley's side
+    names = ["sigma_t", "sigma_s", "g"]
+    b = error_budget(jac, residual, names, 1.0, shift_r)
+    stat = np.array([b.statistical[k] for k in names])
+    total = np.array([b.total[k] for k in names])
+    cov_stat = np.linalg.inv(jac.T @ jac) * max(1.0, b.chi2_dof)
+    shift = -np.linalg.solve(jac.T @ jac, jac.T @ shift_r)
+    np.testing.assert_allclose(stat, np.sqrt(np.diag(cov_stat)), rtol=1e-9)
+    np.testing.assert_allclose(total, np.hypot(stat, np.abs(shift)), rtol=1e-9)
+    cov = cov_stat + np.outer(shift, shift)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        key = f"{names[i]},{names[j]}"
+        assert b.correlation[key] == pytest.approx(cov[i, j] / (total[i] * total[j]))
+        assert b.correlation_statistical[key] == pytest.approx(cov_stat[i, j] / (stat[i] * stat[j]))
+    assert abs(b.correlation_statistical["sigma_t,g"]) > 0.9
+    assert abs(b.correlation["sigma_t,g"] - b.correlation_statistical["sigma_t,g"]) > 0.01

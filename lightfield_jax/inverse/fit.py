@@ -237,6 +237,7 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, *
         black_level=None if black is None else float(black),
         uncertainty=per_param(budget.total),
         correlation=budget.correlation,
+        correlation_statistical=budget.correlation_statistical,
         condition_number=budget.condition_number,
         uncertainty_statistical=per_param(budget.statistical),
         uncertainty_model=per_param(budget.model),

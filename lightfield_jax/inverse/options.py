@@ -237,7 +237,9 @@ class FitResult:
     part (``uncertainty_statistical``: the capture's noise, scaled up by √(χ²/dof)
     where that exceeds 1) ⊕ the model part (``uncertainty_model``: the shift a finer
     model's residual implies at the solution; the joint fit only). ``correlation`` holds
-    the correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``).
+    the correlation coefficients between fitted parameters (e.g. ``"sigma_t,g"``) of the
+    total's covariance (the noise's, plus the finer model's signed shift as a rank-one
+    term), which goes with ``uncertainty``; ``correlation_statistical`` the noise's.
     ``chi2_dof`` is the misfit against the capture's noise (``noise``: the variance of
     one weighted residual that noise alone gives), ``chi2_model`` against the noise ⊕
     the model's own error (what the verdict uses). ``consistency`` (joint) holds, per
@@ -270,6 +272,7 @@ class FitResult:
     condition_number: float = math.nan
     uncertainty_statistical: dict = dataclasses.field(default_factory=dict)
     uncertainty_model: dict = dataclasses.field(default_factory=dict)
+    correlation_statistical: dict = dataclasses.field(default_factory=dict)
     chi2_dof: float = math.nan
     chi2_model: float = math.nan
     noise: float = math.nan
@@ -313,6 +316,9 @@ class FitResult:
             "phase": self.phase,
             "uncertainty": {k: _json_float(v) for k, v in unc.items()},
             "correlation": {k: _json_float(v) for k, v in self.correlation.items()},
+            "correlation_statistical": {
+                k: _json_float(v) for k, v in self.correlation_statistical.items()
+            },
             "uncertainty_statistical": {
                 k: _json_float(v) for k, v in self.uncertainty_statistical.items()
             },
