@@ -45,10 +45,12 @@ Keys:
 - ``response`` with one exposure per shift: ``linear`` (default; a raw converter's
   output), ``srgb`` (the sRGB curve of most 8-bit camera and phone files) or a table
   file (:func:`~lightfield_jax.capture.hdr.load_response`, as ``lightfield-jax inspect
-  --response`` writes it from brackets; a table of every channel, named in its header,
-  also serves a ``channel:`` chosen from them): integer codes (and float values in [0, 1]) of
-  the images and calibration frames are mapped to linear values before the dark frame
-  and the flat field are applied; saturation and clipping are judged on the codes.
+  --response`` writes it from brackets; columns named in its header are taken by name,
+  also for one ``channel:`` chosen from them): the integer codes of the images and
+  calibration frames are mapped to linear values before the dark frame and the flat
+  field are applied; float calibration frames (an EXR flat field) are linear already,
+  and float images with a curve are refused; saturation and clipping are judged on the
+  codes.
 - ``pattern``: the projected stripes (docs/model.md section 3): ``period`` (default 6),
   ``lit`` (default 3), ``phases`` (one per image, default 0..P−1), ``direction_deg``
   (default: the entry wall's inward normal), ``entry`` (left, right, top, bottom;
@@ -359,7 +361,17 @@ def load_capture(path: str | os.PathLike) -> Capture:
     # 10-14-bit data in 16-bit files: codes counted to the sensor's top code, as the
     # brackets' merge (and the response tables it writes) counts them.
     top_code = 1.0 if sensor is None else sensor[0]
-    linear = _linearizer(top, response, raw, names, aux, top_code)
+    linear = _linearizer(top, response, frames, names, top_code)
+    # The calibration frames in linear values: integer codes mapped by the response;
+    # float frames (an EXR flat field normalised to 1, a float dark) are linear already.
+    aux_linear = {
+        k: None
+        if f is None
+        else f.pixels
+        if linear is None or not f.is_integer
+        else linear(f.pixels)
+        for k, f in aux.items()
+    }
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
@@ -376,8 +388,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
             "frames linearised with it (before a dark frame or flat field is applied)"
         )
     dark = aux["dark_frame"]
-    dark_pixels = None if dark is None else dark.pixels
-    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, linear)
+    dark_pixels = aux_linear["dark_frame"]
+    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, aux_linear["flat_field"])
 
     calibrated = _calibrate(raw, dark_pixels, flat_pixels, linear)
     overview = np.mean(calibrated, axis=0)
@@ -390,7 +402,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
             spec,
             roi,
             calibrated,
-            None if white is None else _calibrate(white.pixels, dark_pixels, flat_pixels, linear),
+            None
+            if white is None
+            else _calibrate(aux_linear["white_frame"], dark_pixels, flat_pixels),
             dark_subtracted=dark is not None or bool(merged and "dark_frame" in top.data),
         )
         notes.append("detected: " + detected.summary().replace("\n", "; "))
@@ -403,7 +417,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         roi = detected.roi if roi == AUTO else roi
     pattern = _stripes(top, spec, detected)
 
-    calibration_frames = {k: v.pixels for k, v in aux.items() if v is not None}
+    calibration_frames = {k: v for k, v in aux_linear.items() if v is not None}
     full_roi, full_pattern = roi, pattern
     if roi is not None:
         x0, y0, x1, y1 = roi
@@ -465,7 +479,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     estimate = None
     if black_level == AUTO:
         frames_used = {
-            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels, linear)
+            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels)
             for k in ("black_frame", "white_frame")
             if k in calibration_frames
         }
@@ -516,33 +530,29 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
 
 
-def _linearizer(top, response, raw: np.ndarray, names, aux: dict, top_code: float = 1.0):
-    """``raw`` codes (or a calibration frame's) to linear values by a single exposure's
-    ``response``; ``None`` for a linear one. Codes must lie in [0, 1]: a float image's
-    or calibration frame's values too (the curve is not defined beyond; a float flat
-    field normalised to 1 is linear already), after dividing by ``top_code`` (the
-    sensor's top code of 10-14-bit data in 16-bit files)."""
+def _linearizer(top, response, frames, names, top_code: float = 1.0):
+    """Integer codes to linear values by a single exposure's ``response`` (after dividing
+    by ``top_code``, the sensor's top code of 10-14-bit data in 16-bit files); ``None``
+    for a linear one. Float images hold linear values: a curve is refused for them."""
     if response is None or response.kind == "linear":
         return None
-    value = top.get("response")
-    frames = [(f"images[{i}]", names[i], image) for i, image in enumerate(raw)]
-    frames += [(key, f.path.name, f.pixels) for key, f in aux.items() if f is not None]
-    for key, name, pixels in frames:
-        finite = pixels[np.isfinite(pixels)] / top_code
-        if finite.size and (finite.min() < 0 or finite.max() > 1):
-            top.fail(
-                "response",
-                f"{value} maps codes in [0, 1], but {key} ({name}) has values in "
-                f"[{finite.min():g}, {finite.max():g}]: not codes of a curve (give "
-                "response: linear for linear files, or the codes the camera wrote)",
-            )
-    n_channels = raw.shape[-1]
+    floating = [i for i, f in enumerate(frames) if not f.is_integer]
+    if floating:
+        i = floating[0]
+        top.fail(
+            "response",
+            f"{top.get('response')} maps a camera's integer codes (8- or 16-bit files), "
+            f"but images[{i}] ({names[i]}) holds float values, which are linear: give "
+            "response: linear",
+        )
+    n_channels = frames[0].pixels.shape[-1]
+    dtype = np.float32
 
     def linear(a: np.ndarray) -> np.ndarray:
         a = np.broadcast_to(a, (*a.shape[:-1], n_channels))
         if a.ndim < 4:
-            return response.linearize(a / top_code).astype(raw.dtype, copy=False)
-        out = np.empty(a.shape, raw.dtype)
+            return response.linearize(a / top_code).astype(dtype, copy=False)
+        out = np.empty(a.shape, dtype)
         for i, image in enumerate(a):  # one image at a time: float64 temporaries stay small
             out[i] = response.linearize(image / top_code)
         return out

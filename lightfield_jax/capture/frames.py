@@ -161,12 +161,13 @@ def _flat(
     flat: ImageData | None,
     dark: np.ndarray | None,
     issues: list[str],
-    linear: Callable[[np.ndarray], np.ndarray] | None = None,
+    values: np.ndarray | None = None,
 ):
     """The flat field, dark frame subtracted, divided by its median: NaN where it is
     not positive or where it was clipped (its top code, or many float values equal to
     its largest: the vignetting there is not measured; those pixels are masked).
-    ``linear`` maps codes to linear values (a single exposure's ``response``)."""
+    ``values``: its linear values where a response mapped its codes (default: its
+    pixels); ``dark`` is linear too."""
     if flat is None:
         return None
     raw = flat.pixels
@@ -181,7 +182,7 @@ def _flat(
             f"{'top code' if flat.is_integer else 'largest value'} (clipped: the vignetting "
             "there is not measured); those pixels are masked"
         )
-    f = _calibrate(raw, dark, None, linear)
+    f = _calibrate(raw if values is None else values, dark, None)
     f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
@@ -199,11 +200,11 @@ def _calibrate(
     flat: np.ndarray | None,
     linear: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
-    """(a − dark) / flat: the images (or a calibration frame) in linear units; codes
-    first mapped by ``linear`` (a single exposure's ``response``) where given."""
+    """(a − dark) / flat: the images (or a calibration frame) in linear units; ``a``'s
+    codes first mapped by ``linear`` (a single exposure's ``response``) where given
+    (``dark`` and ``flat`` are linear already)."""
     if linear is not None:
         a = linear(a)
-        dark = None if dark is None else linear(dark)
     if dark is not None:
         a = a - dark
     return a if flat is None else a / flat

@@ -191,9 +191,9 @@ def load_response(
     """A response table: a text file (CSV or whitespace, ``#`` comments) or ``.npy``
     array whose first column is z in [0, 1] (increasing, from 0 to 1) and whose other
     columns are x = f⁻¹(z), one column for every channel or one per channel,
-    increasing (as :func:`write_response` writes them). A table of more channels whose
-    header names them (``# z, x_R, x_G, x_B``) gives the columns of ``names``, the
-    capture's channels (one chosen with ``channel:``)."""
+    increasing (as :func:`write_response` writes them). Columns named in a header
+    (``# z, x_R, x_G, x_B``) are taken by name: those of ``names``, the capture's
+    channels (also one chosen with ``channel:``), in their order."""
     path = Path(path)
     if not path.exists():
         raise CaptureError(f"{path}: file not found")
@@ -209,13 +209,13 @@ def load_response(
         raise CaptureError(f"{path}: cannot read a response table ({e})") from None
     table = np.asarray(table, np.float64)
     wanted = list(names or ())
-    if (
-        table.ndim == 2
-        and table.shape[1] not in (2, n_channels + 1)
-        and len(header) == table.shape[1] - 1
-        and wanted
-        and set(wanted) <= set(header)
-    ):
+    if wanted and table.ndim == 2 and len(header) == table.shape[1] - 1 > 1:
+        # Columns named in the header are taken by name, in the capture's order.
+        if not set(wanted) <= set(header):
+            raise CaptureError(
+                f"{path}: its header names the channels {', '.join(header)}, but the "
+                f"capture's are {', '.join(wanted)}"
+            )
         table = table[:, [0] + [1 + header.index(n) for n in wanted]]
     if table.ndim != 2 or table.shape[1] not in (2, n_channels + 1) or table.shape[0] < 2:
         raise CaptureError(
