@@ -241,11 +241,11 @@ def noise_floor(images: np.ndarray, mask: np.ndarray, pattern: Stripes) -> float
     level, var, sd = np.array(level), np.array(var), np.array(sd)
     peak = float(np.max(np.where(valid_px, a, -np.inf)))
     design = np.stack([level, np.ones_like(level)], axis=1)
-    (slope, intercept), *_ = np.linalg.lstsq(design, var, rcond=None)
+    slope, intercept = scaled_lstsq(design, var)  # the level's column: image units
     # Errors from the bins' scatter about the line or from their own noise, the larger.
     scatter = np.sum((var - design @ np.array([slope, intercept])) ** 2) / max(n_bins - 2, 1)
     noise = np.mean(sd**2)
-    cov = np.linalg.pinv(design.T @ design) * max(scatter, noise)
+    cov = gram_inverse(design, pseudo=True) * max(scatter, noise)
     err_slope, err_intercept = np.sqrt(np.diag(cov))
     # Each term only where the data show it (2σ): no read noise seen, the shot-noise
     # weights' own floor (None); no growth with the signal, uniform weights.
