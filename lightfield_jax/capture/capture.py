@@ -362,16 +362,15 @@ def load_capture(path: str | os.PathLike) -> Capture:
     # brackets' merge (and the response tables it writes) counts them.
     top_code = 1.0 if sensor is None else sensor[0]
     linear = _linearizer(top, response, frames, names, top_code)
-    # The calibration frames in linear values: integer codes mapped by the response;
-    # float frames (an EXR flat field normalised to 1, a float dark) are linear already.
-    aux_linear = {
-        k: None
-        if f is None
-        else f.pixels
-        if linear is None or not f.is_integer
-        else linear(f.pixels)
-        for k, f in aux.items()
-    }
+
+    def in_linear(frame):
+        """A calibration frame's values: integer codes mapped by the response; float
+        frames (an EXR flat field normalised to 1, a float dark) are linear already."""
+        if frame is None:
+            return None
+        return linear(frame.pixels) if linear is not None and frame.is_integer else frame.pixels
+
+    aux_linear = {k: in_linear(f) for k, f in aux.items()}
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"

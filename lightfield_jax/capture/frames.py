@@ -161,13 +161,13 @@ def _flat(
     flat: ImageData | None,
     dark: np.ndarray | None,
     issues: list[str],
-    values: np.ndarray | None = None,
+    values: np.ndarray | None,
 ):
     """The flat field, dark frame subtracted, divided by its median: NaN where it is
     not positive or where it was clipped (its top code, or many float values equal to
     its largest: the vignetting there is not measured; those pixels are masked).
-    ``values``: its linear values where a response mapped its codes (default: its
-    pixels); ``dark`` is linear too."""
+    ``values``: its linear values (its pixels, or its codes mapped by a response);
+    ``dark`` is linear too. The clip is judged on its pixels."""
     if flat is None:
         return None
     raw = flat.pixels
@@ -182,7 +182,7 @@ def _flat(
             f"{'top code' if flat.is_integer else 'largest value'} (clipped: the vignetting "
             "there is not measured); those pixels are masked"
         )
-    f = _calibrate(raw if values is None else values, dark, None)
+    f = _calibrate(values, dark, None)
     f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
