@@ -395,6 +395,16 @@ def test_a_typo_in_reduced_is_refused_in_a_full_run_too(tmp_path, no_work):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_reduced_run_checks_the_values_its_overrides_replace(tmp_path, no_work):
+    """Before: a bad top-level width under reduced: {width: 32} passed the --reduced
+    trial run and failed only the full run."""
+    full = _shipped("paper_figures", False)
+    path = _write(tmp_path, {**full, "width": -5, "reduced": {"width": 32}})
+    with pytest.raises(ValueError, match=r"bad\.yaml: .*width"):
+        _experiment.run_experiment(path, tmp_path / "out", reduced=True)
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):
     from lightfield_jax.app.memory import MemoryLimitError, memory_limit
 

@@ -488,6 +488,8 @@ def run_experiment(
     try:
         module = _load_script(config["experiment"])
         check_experiment_config(module, config)
+        if reduced:  # the values reduced: replaces too: a trial run vouches for the config
+            typed_config(module.Config, load_experiment_config(config_path))
     except ValueError as e:  # a config the script refuses: named with its file
         e.args = (f"{config_path}: {e}",)  # (its kind kept: a MemoryLimitError)
         raise
