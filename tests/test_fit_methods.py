@@ -5,6 +5,7 @@ the methods, a minimiser is refused, and the prepared data are frozen records.""
 import dataclasses
 import functools
 
+import equinox as eqx
 import numpy as np
 import optimistix as optx
 import pytest
@@ -57,6 +58,53 @@ def test_two_step_with_another_solver_gives_the_gradient_answer():
     assert dogleg.method == "gradient"
     np.testing.assert_allclose(_values(dogleg), _values(named), rtol=1e-6)
     assert abs(dogleg.g - 0.4) < 0.01 and abs(dogleg.sigma_s / 0.0366 - 1) < 0.01
+
+
+@pytest.mark.parametrize("max_steps", [2, 3, 100])
+def test_the_gradient_programs_residual_and_jacobian_are_those_at_its_answer(max_steps):
+    """The gradient program takes r and ∂r/∂(σs, g) at its answer from a Gauss-Newton
+    solver's last accepted evaluation (its auxiliary output) instead of a second copy
+    of the render: they must be a fresh evaluation's at the answer, also for a solve
+    stopped after two or three steps (where ``sol.aux`` is the point before)."""
+    import jax.numpy as jnp
+
+    from lightfield_jax.forward.render import renderer_for
+    from lightfield_jax.inverse.programs import jitted
+    from lightfield_jax.inverse.two_step import (
+        TwoStepSettings,
+        _two_step_run,
+        rendered_and_g_slope,
+        two_step_residual,
+    )
+
+    direct, multiple = _split()  # with 2 % noise: a residual well above rounding
+    noise = 1 + 0.02 * np.random.default_rng(0).standard_normal(multiple.shape)
+    d, m = jnp.asarray(direct), jnp.asarray(multiple * noise)
+    mask = jnp.ones(d.shape, bool)
+    renderer = renderer_for(GRID, lfj.Full(), 8, "paper")
+    st, scale = jnp.asarray(MILK.sigma_t), jnp.asarray(float(np.sqrt(np.mean(m**2))))
+    lm = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+    arrays, static = eqx.partition(lm, eqx.is_array)
+    s, g, _a, r, jac, _result, steps = jitted(_two_step_run, ("settings", "solver_static"))(
+        TwoStepSettings(True, "paper", max_steps),
+        static,
+        arrays,
+        renderer,
+        st,
+        d,
+        m,
+        mask,
+        jnp.linspace(-0.95, 0.95, 9),
+        scale,
+    )
+    assert int(steps) == max_steps or max_steps == 100
+    slope = rendered_and_g_slope(renderer, st, "paper")
+    fresh_r, fresh_jac, _ = two_step_residual(
+        slope, st, d, m, mask, scale, "paper", jnp.stack([s, g])
+    )
+    assert float(jnp.sum(fresh_r**2)) > 1e-6
+    np.testing.assert_allclose(r, fresh_r, rtol=0, atol=1e-9 * float(jnp.max(jnp.abs(fresh_r))))
+    np.testing.assert_allclose(jac, fresh_jac, rtol=1e-9, atol=1e-12)
 
 
 def _backend_compiles(fn) -> int:
