@@ -111,6 +111,37 @@ def test_an_output_that_is_an_input_is_refused(capture, capsys):
     assert _snapshot(capture) == before
 
 
+def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_path):
+    """Before: ``render --out DIR`` into simulate's folder replaced its bounces.npy
+    (exit 0), and simulate into render's folder its bounces.npy and bounces.exr."""
+    before = _snapshot(capture)
+    results = _results(capture, tmp_path)
+    line = _refused(
+        capsys, "render", results, "--out", capture, match="holds the outputs of lightfield-jax"
+    )
+    assert "simulate (metadata.json), whose bounces.npy this command would replace" in line
+    assert _snapshot(capture) == before
+    rendered = tmp_path / "rendered"
+    rendered.mkdir()
+    for name in ("bounces.npy", "bounces.exr", "render.json"):
+        (rendered / name).write_bytes(b"mine")
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    for argv in (
+        ["simulate", cfg, "--out", rendered],
+        ["simulate", cfg, "--out", tmp_path / "s", "--plot", rendered],
+        ["demo", "--out", rendered],
+    ):
+        _refused(capsys, *argv, match="holds the outputs of lightfield-jax render (render.json)")
+    assert all((rendered / n).read_bytes() == b"mine" for n in os.listdir(rendered))
+    assert not (tmp_path / "s").exists()
+    # An unrelated file of another command's folder is no conflict; nor is a rerun.
+    (tmp_path / "figs").mkdir()
+    (tmp_path / "figs" / "metadata.json").write_text("{}")
+    assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
+    assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(

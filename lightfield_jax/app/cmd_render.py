@@ -18,12 +18,20 @@ from lightfield_jax.app.cli import (
 
 # --------------------------------------------------------------------------- render
 
+# The names render writes into its folder (see its help).
+RENDER_FILES = ("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png")
+
 
 @command(
     "render",
     "render a fitted medium's per-bounce images and light fields in its capture's geometry",
     arg("results", metavar="RESULTS.json", help="a results file of lightfield-jax fit"),
-    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--out",
+        metavar="DIR",
+        required=True,
+        help="output folder (created; its files replaced; another command's folder refused)",
+    ),
     arg(
         "--plot",
         action="store_true",
@@ -53,7 +61,8 @@ def _render_command(args: argparse.Namespace) -> None:
     _outputs(
         folders=[args.out],
         inputs=[args.results],
-        folder_names=("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png"),
+        folder_names=RENDER_FILES,
+        marker="render.json",
     )
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
@@ -87,6 +96,7 @@ def _experiment(args: argparse.Namespace) -> None:
         folders=[args.out],
         inputs=[config] if config.is_file() else [],
         folder_names=("*.json", "*.csv", "*.png", "*.npz"),
+        marker="summary.json",
     )
     try:
         with _progress(args, "experiment") as stage:
