@@ -911,6 +911,28 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
 
 
+def test_render_of_a_fit_that_did_not_converge_warns_and_records_it(capture, capsys, tmp_path):
+    """Before: rendered without a word (render.json did not say either)."""
+    reasons = ["chi2/dof = 41 is far above the noise", "g = 0.981 is at its bound"]
+    results = _results(capture, tmp_path, converged=False, reasons=reasons, message="x")
+    status, _, err = _run(capsys, "render", results, "--out", tmp_path / "r", "-q")
+    assert status == 0
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {results}: channel Y: the fit did not converge "
+        f"({'; '.join(reasons)}); rendering its values all the same"
+    ]
+    about = json.loads((tmp_path / "r" / "render.json").read_text())
+    assert about["fit_converged"] is False and "; ".join(reasons) in about["fit_warning"]
+    assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
+    # Without reasons, the solver's message; a converged fit says nothing.
+    results = _results(capture, tmp_path, converged=False, message="max_steps reached")
+    _, _, err = _run(capsys, "render", results, "--out", tmp_path / "r", "-q")
+    assert "the fit did not converge (max_steps reached)" in err
+    results = _results(capture, tmp_path, converged=True, reasons=[])
+    assert _run(capsys, "render", results, "--out", tmp_path / "r", "-q")[2] == ""
+    assert json.loads((tmp_path / "r" / "render.json").read_text())["fit_converged"] is True
+
+
 # ------------------------------------------------------------------ smaller
 
 

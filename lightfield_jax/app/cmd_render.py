@@ -50,7 +50,9 @@ def _render_command(args: argparse.Namespace) -> None:
       bounces.exr     channels I1..IK
       lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
                       (left out, with a warning, above 5e7 floats)
-      render.json     the medium, model region, illumination
+      render.json     the medium, model region, illumination; fit_converged (false,
+                      with fit_warning, for a fit that did not converge: rendered
+                      all the same, with a warning)
       *.png           with --plot: the bounce images, each bounce's profile along
                       the light, the light fields with direction glyphs
 
@@ -66,7 +68,9 @@ def _render_command(args: argparse.Namespace) -> None:
     )
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
-        files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
+        files, notes = render_results(
+            args.results, staging, plot=args.plot, stage=stage, warn=lambda t: _warn(args, t)
+        )
     for note in notes:
         _warn(args, note)
     _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
