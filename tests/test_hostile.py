@@ -946,6 +946,49 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
     )
 
 
+def test_zeros_in_a_flat_field_are_named_as_zeros(capture, capsys):
+    """Before: 'N pixel value(s) are NaN or Inf (flat.exr: N)' for a flat field's zeros."""
+    flat = np.ones((H, W))
+    flat[3:5, 3:8] = 0.0
+    flat[9, 9] = -0.5
+    write_exr(capture / "flat.exr", {"Y": flat})
+    _edit(capture, flat_field="flat.exr")
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert status == 0, err
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {capture / 'capture.yaml'}: flat_field: 11 pixel value(s) "
+        "of flat.exr are not positive (10 zero, 1 negative): no vignetting is measured "
+        "there; those pixels are masked"
+    ]
+
+
+def test_infinite_pixels_are_masked_or_named_without_numpy_warnings(capture, capsys):
+    """Before: numpy's 'invalid value encountered in reduce' (+Inf and -Inf in one
+    pixel) or '... in scalar subtract' (Inf in the mosaic check's percentile) on the
+    terminal beside the capture's own line, and an image of nothing but Inf reported
+    as a detection failure (or as 'no usable pixel')."""
+    images = {i: read_image(capture / f"shift_0{i}.exr").pixels[..., 0] for i in (0, 1, 2)}
+    for i, value in ((1, np.inf), (2, -np.inf)):
+        images[i][4:8, 4:12] = value
+        write_exr(capture / f"shift_0{i}.exr", {"Y": images[i]})
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert status == 0, err
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {capture / 'capture.yaml'}: 64 pixel value(s) are NaN or "
+        "Inf (shift_01.exr: 32, shift_02.exr: 32); 64 value(s) masked in 32 pixel(s)"
+    ]
+    images[1][:, : W // 2] = np.inf
+    write_exr(capture / "shift_01.exr", {"Y": images[1]})
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert "encountered" not in err and "RuntimeWarning" not in err, err
+    write_exr(capture / "shift_00.exr", {"Y": np.full((H, W), np.inf)})
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="images: shift_00.exr: every pixel value is NaN or Inf",
+    )
+
+
 def test_a_period_below_2_is_named_before_the_phases(capture, capsys, tmp_path):
     """Before: 'pattern.phases: [0, 1, ...] outside [0, period) = [0, 0)' (and
     'illumination.shifts: must be an integer in [1, period] = [1, 0]')."""
