@@ -128,9 +128,9 @@ images show stripes of the period, an image without them (a white or black frame
 listed among the stripes) is refused, and given phases that the stripe detector
 contradicts with confidence (the period within 2 %, every phase within 0.1 row) are
 refused with both lists (absent phases, whose default is contradicted, get a note).
-Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field,
-not positive in the flat field,
-saturated or clipped) are masked, with a :class:`CaptureWarning` that counts them.
+Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field;
+zero or negative in the flat field; saturated or clipped) are masked, with a
+:class:`CaptureWarning` that counts them (an image of nothing but NaN or Inf is refused).
 """
 
 from __future__ import annotations
