@@ -455,3 +455,28 @@ def test_render_and_its_helpers_name_arguments_of_the_wrong_kind():
             call()
         _one_line(err)
     assert lfj.single_scatter_closed_form(np.float32(0.2), 0.1, 0, np.int64(8)).shape == (8,)
+
+
+def test_phase_function_refuses_g_outside_minus_one_to_one():
+    """Before: phase_function(θ, 1.0) gave 0 everywhere, g = 1.5 a negative p(θ), g =
+    True was taken as 1 (finite nonsense, no error)."""
+    for g, got in ((1.0, "1.0"), (-1.5, "-1.5"), (math.nan, "nan"), (jnp.asarray(2.0), "2.0")):
+        with pytest.raises(
+            ValueError, match=rf"phase_function: g: must satisfy -1 < g < 1, got {got}$"
+        ) as err:
+            lfj.phase_function(0.3, g)
+        _one_line(err)
+    with pytest.raises(ValueError, match="got 1 of 2 values outside, e.g. 1.2") as err:
+        lfj.phase_function(0.3, np.array([0.2, 1.2]))
+    _one_line(err)
+    with pytest.raises(ValueError, match="phase_function: g: must be a real number, got True"):
+        lfj.phase_function(0.3, True)
+    with pytest.raises(ValueError, match="phase_integral: g: must satisfy -1 < g < 1, got 1.0"):
+        lfj.phase_integral(1.0)
+    # Tracers pass unchecked: jit, grad and vmap still work (and concrete values inside).
+    assert float(jax.jit(lambda g: lfj.phase_function(0.3, g))(0.4)) == pytest.approx(
+        float(lfj.phase_function(0.3, 0.4))
+    )
+    assert math.isfinite(float(jax.grad(lambda g: lfj.phase_function(0.3, g))(0.4)))
+    assert math.isfinite(float(jax.grad(lfj.phase_integral)(0.4)))
+    assert jax.vmap(lambda g: lfj.phase_function(0.3, g))(jnp.array([0.1, -0.9])).shape == (2,)
