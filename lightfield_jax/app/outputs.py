@@ -117,8 +117,11 @@ def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: st
     others = [m for m in FOLDER_MARKERS if m != marker and (path / m).is_file()]
     if not others:
         return
-    with os.scandir(path) as entries:
-        names = sorted(e.name for e in entries)
+    try:
+        with os.scandir(path) as entries:
+            names = sorted(e.name for e in entries)
+    except OSError:
+        return  # an unreadable folder: _check_writable says what is wrong
     replaced = [n for n in names if any(fnmatch.fnmatch(n, p) for p in folder_names)]
     if replaced:
         more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
