@@ -455,3 +455,57 @@ def test_render_and_its_helpers_name_arguments_of_the_wrong_kind():
             call()
         _one_line(err)
     assert lfj.single_scatter_closed_form(np.float32(0.2), 0.1, 0, np.int64(8)).shape == (8,)
+
+
+def test_phase_function_refuses_g_outside_minus_one_to_one():
+    """Before: phase_function(θ, 1.0) gave 0 everywhere, g = 1.5 a negative p(θ), g =
+    True was taken as 1 (finite nonsense, no error)."""
+    for g, got in ((1.0, "1.0"), (-1.5, "-1.5"), (math.nan, "nan"), (jnp.asarray(2.0), "2.0")):
+        with pytest.raises(
+            ValueError, match=rf"phase_function: g: must satisfy -1 < g < 1, got {got}$"
+        ) as err:
+            lfj.phase_function(0.3, g)
+        _one_line(err)
+    with pytest.raises(ValueError, match="got 1 of 2 values outside, e.g. 1.2") as err:
+        lfj.phase_function(0.3, np.array([0.2, 1.2]))
+    _one_line(err)
+    with pytest.raises(ValueError, match="phase_function: g: must be a real number, got True"):
+        lfj.phase_function(0.3, True)
+    with pytest.raises(ValueError, match="phase_integral: g: must satisfy -1 < g < 1, got 1.0"):
+        lfj.phase_integral(1.0)
+    # Tracers pass unchecked: jit, grad and vmap still work.
+    p = (1 - 0.16) / (4 * math.pi * (1 + 0.16 - 0.8 * math.cos(0.3)) ** 1.5)
+    assert float(jax.jit(lambda g: lfj.phase_function(0.3, g))(0.4)) == pytest.approx(p)
+    slope = jax.jit(jax.grad(lambda g: lfj.phase_function(0.3, g)))(0.4)
+    assert math.isfinite(float(slope)) and float(slope) > 0
+    both = jax.jit(jax.vmap(lambda g: lfj.phase_function(0.3, g)))(jnp.array([0.4, -0.9]))
+    assert float(both[0]) == pytest.approx(p)
+
+
+def test_stripes_longer_than_the_grid_are_refused_by_the_api():
+    """Before: only a simulate config refused them; render drew all-zero images for the
+    shifts whose stripe missed the 16x12 grid, and a SimulationConfig made in code
+    simulated them."""
+    from lightfield_jax.app.config import SimulationConfig, parse_simulation_config
+
+    medium, grid = lfj.Medium(0.2, 0.03, 0.4), lfj.Grid(16, 12, 8, 1)
+    stripes = lfj.Stripes(period=40, lit=3, phases=(0, 10, 20, 30))
+    message = "40 rows is longer than the 16x12 grid: a stripe period is a few rows"
+    with pytest.raises(ValueError, match=f"^render: illumination.period: {message}$") as err:
+        lfj.render(medium, grid, stripes, 2)
+    _one_line(err)
+    config = parse_simulation_config(
+        {
+            "grid": {"width": 16, "height": 12},
+            "medium": {"sigma_t": 0.2, "sigma_s": 0.03, "g": 0.4},
+            "illumination": {"kind": "stripes", "period": 6},
+        }
+    )
+    assert isinstance(config, SimulationConfig)
+    with pytest.raises(ValueError, match=f"^illumination.period: {message}$"):
+        dataclasses.replace(config, illumination=stripes)
+    with pytest.raises(ValueError, match=f"illumination.period: {message}$"):
+        parse_simulation_config({**config.raw, "illumination": {"kind": "stripes", "period": 40}})
+    # A period as long as the grid's longer side still renders.
+    full = lfj.Stripes(period=16, lit=3, phases=(0,))
+    assert np.asarray(lfj.render(medium, grid, full, 1).images).shape == (1, 1, 12, 16)

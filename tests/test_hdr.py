@@ -185,6 +185,33 @@ def test_auto_response_needs_lit_unclipped_pixels():
         calibrate_response(dark, TIMES)
 
 
+def test_brackets_out_of_order_or_with_wrong_times_are_refused(radiance, tmp_path):
+    """Before: merged as given, and the fit ended not converged, sigma_t 22 % off."""
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True)
+    data = yaml.safe_load(path.read_text())
+    row = data["images"][3]
+    data["images"][3] = [row[1], row[0], row[2]]  # the two shorter exposures swapped
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: images[3]: shift3_0.png (listed for 0.008 s) is 0.12")
+    assert "as bright as shift3_1.png (listed for 0.001 s)" in message and "\n" not in message
+    assert "exposure_times make it 8 (more than 1.5x apart)" in message
+    assert "listed out of order" in message
+    # Times one stop short of the brackets' (two stops were taken: 8x apart, given 4x).
+    data["images"][3] = row
+    data["exposure_times"] = [0.001, 0.004, 0.016]
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(
+        CaptureError, match=r"images\[0\]: shift0_1.png \(listed for 0.004 s\) is 7.9\d times"
+    ):
+        load_capture(path)
+    data["exposure_times"] = [0.001, 0.009, 0.07]  # within the tolerance: a shutter's error
+    path.write_text(yaml.safe_dump(data))
+    assert load_capture(path).brackets.times == (0.001, 0.009, 0.07)
+
+
 def _capture_file(tmp_path, **changes):
     for j in range(2):
         write_png(tmp_path / f"a{j}.png", np.full((8, 8), 0.5), bits=8)

@@ -111,6 +111,37 @@ def test_an_output_that_is_an_input_is_refused(capture, capsys):
     assert _snapshot(capture) == before
 
 
+def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_path):
+    """Before: ``render --out DIR`` into simulate's folder replaced its bounces.npy
+    (exit 0), and simulate into render's folder its bounces.npy and bounces.exr."""
+    before = _snapshot(capture)
+    results = _results(capture, tmp_path)
+    line = _refused(
+        capsys, "render", results, "--out", capture, match="holds the outputs of lightfield-jax"
+    )
+    assert "simulate (metadata.json), whose bounces.npy this command would replace" in line
+    assert _snapshot(capture) == before
+    rendered = tmp_path / "rendered"
+    rendered.mkdir()
+    for name in ("bounces.npy", "bounces.exr", "render.json"):
+        (rendered / name).write_bytes(b"mine")
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    for argv in (
+        ["simulate", cfg, "--out", rendered],
+        ["simulate", cfg, "--out", tmp_path / "s", "--plot", rendered],
+        ["demo", "--out", rendered],
+    ):
+        _refused(capsys, *argv, match="holds the outputs of lightfield-jax render (render.json)")
+    assert all((rendered / n).read_bytes() == b"mine" for n in os.listdir(rendered))
+    assert not (tmp_path / "s").exists()
+    # An unrelated file of another command's folder is no conflict; nor is a rerun.
+    (tmp_path / "figs").mkdir()
+    (tmp_path / "figs" / "metadata.json").write_text("{}")
+    assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
+    assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(
@@ -880,6 +911,28 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
 
 
+def test_render_of_a_fit_that_did_not_converge_warns_and_records_it(capture, capsys, tmp_path):
+    """Before: rendered without a word (render.json did not say either)."""
+    reasons = ["chi2/dof = 41 is far above the noise", "g = 0.981 is at its bound"]
+    results = _results(capture, tmp_path, converged=False, reasons=reasons, message="x")
+    status, _, err = _run(capsys, "render", results, "--out", tmp_path / "r", "-q")
+    assert status == 0
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {results}: channel Y: the fit did not converge "
+        f"({'; '.join(reasons)}); rendering its values all the same"
+    ]
+    about = json.loads((tmp_path / "r" / "render.json").read_text())
+    assert about["fit_converged"] is False and "; ".join(reasons) in about["fit_warning"]
+    assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
+    # Without reasons, the solver's message; a converged fit says nothing.
+    results = _results(capture, tmp_path, converged=False, message="max_steps reached")
+    _, _, err = _run(capsys, "render", results, "--out", tmp_path / "r", "-q")
+    assert "the fit did not converge (max_steps reached)" in err
+    results = _results(capture, tmp_path, converged=True, reasons=[])
+    assert _run(capsys, "render", results, "--out", tmp_path / "r", "-q")[2] == ""
+    assert json.loads((tmp_path / "r" / "render.json").read_text())["fit_converged"] is True
+
+
 # ------------------------------------------------------------------ smaller
 
 
@@ -890,6 +943,49 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
         capsys,
         *("inspect", capture / "capture.yaml"),
         match="saturation: must be at most 1e+30 (images are float32), got 1e+300",
+    )
+
+
+def test_zeros_in_a_flat_field_are_named_as_zeros(capture, capsys):
+    """Before: 'N pixel value(s) are NaN or Inf (flat.exr: N)' for a flat field's zeros."""
+    flat = np.ones((H, W))
+    flat[3:5, 3:8] = 0.0
+    flat[9, 9] = -0.5
+    write_exr(capture / "flat.exr", {"Y": flat})
+    _edit(capture, flat_field="flat.exr")
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert status == 0, err
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {capture / 'capture.yaml'}: flat_field: 11 pixel value(s) "
+        "of flat.exr are not positive (10 zero, 1 negative): no vignetting is measured "
+        "there; those pixels are masked"
+    ]
+
+
+def test_infinite_pixels_are_masked_or_named_without_numpy_warnings(capture, capsys):
+    """Before: numpy's 'invalid value encountered in reduce' (+Inf and -Inf in one
+    pixel) or '... in scalar subtract' (Inf in the mosaic check's percentile) on the
+    terminal beside the capture's own line, and an image of nothing but Inf reported
+    as a detection failure (or as 'no usable pixel')."""
+    images = {i: read_image(capture / f"shift_0{i}.exr").pixels[..., 0] for i in (0, 1, 2)}
+    for i, value in ((1, np.inf), (2, -np.inf)):
+        images[i][4:8, 4:12] = value
+        write_exr(capture / f"shift_0{i}.exr", {"Y": images[i]})
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert status == 0, err
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {capture / 'capture.yaml'}: 64 pixel value(s) are NaN or "
+        "Inf (shift_01.exr: 32, shift_02.exr: 32); 64 value(s) masked in 32 pixel(s)"
+    ]
+    images[1][:, : W // 2] = np.inf
+    write_exr(capture / "shift_01.exr", {"Y": images[1]})
+    status, _, err = _run(capsys, "inspect", capture / "capture.yaml", "-q")
+    assert "encountered" not in err and "RuntimeWarning" not in err, err
+    write_exr(capture / "shift_00.exr", {"Y": np.full((H, W), np.inf)})
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="images: shift_00.exr: every pixel value is NaN or Inf",
     )
 
 

@@ -65,7 +65,10 @@ def _pattern(args: argparse.Namespace) -> None:
         write_patterns,
     )
 
-    _outputs(folders=[args.out])
+    _outputs(
+        folders=[args.out],
+        folder_names=("stripe_*.png", "white.png", "black.png", "capture.yaml"),
+    )
     out = Path(args.out)
     if (out / "capture.yaml").exists():
         # A capture file is edited by hand (its image names, keys): never a template's.

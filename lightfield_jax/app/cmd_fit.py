@@ -302,6 +302,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     capture, fit it with each method, print a table (truth, each method, error,
     time) and write DIR/results.json and
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
+    from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.config import parse_simulation_config
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_directory, atomic_write_json
@@ -314,7 +315,11 @@ def _demo(args: argparse.Namespace) -> int | None:
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
-    _outputs(folders=[args.out])
+    _outputs(
+        folders=[args.out],
+        folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),
+        marker="metadata.json",  # the demo's folder is a simulated capture
+    )
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")
     _use_xla_cache(args)

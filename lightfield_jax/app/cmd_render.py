@@ -18,12 +18,20 @@ from lightfield_jax.app.cli import (
 
 # --------------------------------------------------------------------------- render
 
+# The names render writes into its folder (see its help).
+RENDER_FILES = ("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png")
+
 
 @command(
     "render",
     "render a fitted medium's per-bounce images and light fields in its capture's geometry",
     arg("results", metavar="RESULTS.json", help="a results file of lightfield-jax fit"),
-    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--out",
+        metavar="DIR",
+        required=True,
+        help="output folder (created; its files replaced; another command's folder refused)",
+    ),
     arg(
         "--plot",
         action="store_true",
@@ -42,7 +50,9 @@ def _render_command(args: argparse.Namespace) -> None:
       bounces.exr     channels I1..IK
       lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
                       (left out, with a warning, above 5e7 floats)
-      render.json     the medium, model region, illumination
+      render.json     the medium, model region, illumination; fit_converged (false,
+                      with fit_warning, for a fit that did not converge: rendered
+                      all the same, with a warning)
       *.png           with --plot: the bounce images, each bounce's profile along
                       the light, the light fields with direction glyphs
 
@@ -53,11 +63,14 @@ def _render_command(args: argparse.Namespace) -> None:
     _outputs(
         folders=[args.out],
         inputs=[args.results],
-        folder_names=("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "*.png"),
+        folder_names=RENDER_FILES,
+        marker="render.json",
     )
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
-        files, notes = render_results(args.results, staging, plot=args.plot, stage=stage)
+        files, notes = render_results(
+            args.results, staging, plot=args.plot, stage=stage, warn=lambda t: _warn(args, t)
+        )
     for note in notes:
         _warn(args, note)
     _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
@@ -87,6 +100,7 @@ def _experiment(args: argparse.Namespace) -> None:
         folders=[args.out],
         inputs=[config] if config.is_file() else [],
         folder_names=("*.json", "*.csv", "*.png", "*.npz"),
+        marker="summary.json",
     )
     try:
         with _progress(args, "experiment") as stage:

@@ -36,7 +36,12 @@ SIMULATE_FILES = (
     "simulate",
     "render a config into per-bounce and captured images",
     arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax.app.config)"),
-    arg("--out", metavar="DIR", required=True, help="output folder (created; files replaced)"),
+    arg(
+        "--out",
+        metavar="DIR",
+        required=True,
+        help="output folder (created; its files replaced; another command's folder refused)",
+    ),
     arg(
         "--lightfield",
         action="store_true",
@@ -77,6 +82,7 @@ def _simulate(args: argparse.Namespace) -> None:
         folders=[args.out, args.plot],
         inputs=[args.config],
         folder_names=(*SIMULATE_FILES, "*.png"),
+        marker="metadata.json",
     )
     config = load_simulation_config(args.config)
     out = Path(args.out)

@@ -61,7 +61,14 @@ from lightfield_jax.capture.io import require_regular_file
 from lightfield_jax.checks import check_int, check_number, gain_problem, shown
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import WALLS, Beam, Full, Illumination, Stripes
+from lightfield_jax.scene.illumination import (
+    WALLS,
+    Beam,
+    Full,
+    Illumination,
+    Stripes,
+    period_problem,
+)
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
@@ -425,6 +432,9 @@ class SimulationConfig:
             raise ValueError(f"gain: {gain_problem(self.gain)}")
         if self.dark_level is not None:
             check_number(self.dark_level, "dark_level", low=0.0, high=MAX_VALUE)
+        problem = period_problem(self.illumination, self.grid.width, self.grid.height)
+        if problem is not None:
+            raise ValueError(f"illumination.period: {problem}")
         if self.black_level is not None:
             if not isinstance(self.illumination, Stripes):
                 raise ValueError("black_level: applies only to illumination kind stripes")
@@ -519,12 +529,8 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     period, lit = s.int("period", 6), s.int("lit", 3)
     if period < 2:  # before the shifts and phases, which count rows modulo it
         s.fail(s.key("period"), f"must be an integer >= 2, got {period}")
-    if period > max(grid.width, grid.height):
-        s.fail(
-            s.key("period"),
-            f"{period} rows is longer than the {grid.width}x{grid.height} grid: a stripe "
-            "period is a few rows",
-        )
+    if (problem := period_problem(period, grid.width, grid.height)) is not None:
+        s.fail(s.key("period"), problem)
     if "shifts" in s.data and "phases" in s.data:
         s.fail("illumination", "give either shifts or phases, not both")
     if "phases" in s.data:

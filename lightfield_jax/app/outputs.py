@@ -12,7 +12,11 @@ its inputs (the config or capture file and every file a capture lists) to
 - is in a folder that cannot be written (read-only, ``/proc``; a probe file is created
   and removed there, as permission bits do not bind the superuser), or under a path
   one of whose existing parents is not a folder,
-- is a figure in a format the plotting library cannot write.
+- is a figure in a format the plotting library cannot write,
+- is a folder another command wrote (it holds that command's marker file, one of
+  :data:`FOLDER_MARKERS`) holding a file this command would replace (``render --out``
+  into ``simulate``'s folder replaced its ``bounces.npy``). A folder holding the
+  command's own marker is its own: a rerun replaces its files, as before.
 
 :func:`staged_files` then writes the files of one command: each output is written to a
 temporary beside it, and all of them replace their targets only when the whole command
@@ -33,6 +37,16 @@ from lightfield_jax.capture.io import _fsync, _make_file, _reserve, forget_tempo
 
 class OutputError(ValueError):
     """An output path that the command must not or cannot write; names the path."""
+
+
+# The file each folder-writing command leaves in its output folder, and the command:
+# a folder holding one is that command's (demo's folder is a simulated capture: its
+# marker is simulate's).
+FOLDER_MARKERS = {
+    "metadata.json": "simulate",
+    "render.json": "render",
+    "summary.json": "experiment",
+}
 
 
 def plot_formats() -> tuple[str, ...]:
@@ -59,11 +73,14 @@ def check_outputs(
     folders: Sequence[str | os.PathLike] = (),
     inputs: Iterable[str | os.PathLike] = (),
     folder_names: Sequence[str] = (),
+    marker: str | None = None,
 ) -> None:
     """Check, before any work, that a command may write ``files`` (single files) and
     ``folders`` (output folders) without touching ``inputs`` (see the module docstring).
     ``folder_names``: the names (glob patterns) the command writes into its folders;
-    an input there with such a name would be replaced.
+    an input there with such a name would be replaced, and so would the outputs of
+    another command (a folder holding a marker of :data:`FOLDER_MARKERS` other than
+    ``marker``, the command's own).
 
     Raises:
         OutputError: the first output that cannot be written; the message names it.
@@ -83,11 +100,36 @@ def check_outputs(
                     f"{given}: {what} an input of this command ({source}), which it would "
                     "replace; choose another output"
                 )
+        if folder:
+            _check_owner(path, os.fspath(given), folder_names, marker)
         key = os.path.realpath(path)
         if key in seen:
             raise OutputError(f"{given}: names the same file as the output {seen[key]}")
         seen[key] = os.fspath(given)
         _check_writable(path, os.fspath(given))
+
+
+def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: str | None) -> None:
+    """Refuse a folder another command wrote (and this one did not) when this command
+    would replace a file in it."""
+    if not path.is_dir() or (marker is not None and (path / marker).is_file()):
+        return  # a rerun into the command's own folder
+    others = [m for m in FOLDER_MARKERS if m != marker and (path / m).is_file()]
+    if not others:
+        return
+    try:
+        with os.scandir(path) as entries:
+            names = sorted(e.name for e in entries)
+    except OSError:
+        return  # an unreadable folder: _check_writable says what is wrong
+    replaced = [n for n in names if any(fnmatch.fnmatch(n, p) for p in folder_names)]
+    if replaced:
+        more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
+        raise OutputError(
+            f"{given}: holds the outputs of lightfield-jax {FOLDER_MARKERS[others[0]]} "
+            f"({others[0]}), whose {replaced[0]}{more} this command would replace; choose "
+            "another output folder"
+        )
 
 
 def _same(a: Path, b: Path) -> bool:
@@ -170,4 +212,11 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
             forget_temporary(tmp)
 
 
-__all__ = ["OutputError", "check_outputs", "check_plot_format", "plot_formats", "staged_files"]
+__all__ = [
+    "FOLDER_MARKERS",
+    "OutputError",
+    "check_outputs",
+    "check_plot_format",
+    "plot_formats",
+    "staged_files",
+]

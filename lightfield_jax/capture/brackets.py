@@ -19,7 +19,9 @@ from lightfield_jax.capture.calibration import (
 from lightfield_jax.capture.frames import _aux_frame, _file, _read, _size
 from lightfield_jax.capture.hdr import (
     CLIP,
+    EXPOSURE_RATIO_TOLERANCE,
     RESPONSES,
+    exposure_ratio_problem,
     linear_response,
     merge_bracket,
     merge_capture,
@@ -124,6 +126,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
     dark = None if dark is None else dark / full
+    _check_exposure_ratios(top, images, times, response, levels, dark, clip, shifts, aux, full)
     radiance, record = merge_capture(
         images, times, response, levels=levels, dark=dark, clip=clip,
         files=[[f.path for f in row] for row in shifts],
@@ -138,6 +141,32 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     if dark is not None:
         notes.append("dark_frame: subtracted from every exposure before the merge")
     return frames, merged, record
+
+
+def _check_exposure_ratios(top, images, times, response, levels, dark, clip, shifts, aux, full):
+    """Refuse brackets whose exposures do not scale as ``exposure_times`` say (files
+    listed out of order, or wrong times), before the merge: merged, they give a capture
+    the fit cannot explain (it ended not converged, sigma_t 22 % off)."""
+    rows = [(f"images[{i}]", images[i], [f.path.name for f in row]) for i, row in enumerate(shifts)]
+    for key in ("white_frame", "flat_field"):
+        if aux[key] is not None:
+            stack = np.stack([f.pixels for f in aux[key]]) / full
+            rows.append((key, stack, [f.path.name for f in aux[key]]))
+    for key, bracket, names in rows:
+        found = exposure_ratio_problem(
+            bracket, times, response, levels=levels, dark=dark, clip=clip
+        )
+        if found is not None:
+            j, k, measured, stated = found
+            top.fail(
+                key,
+                f"{names[k]} (listed for {times[k]:g} s) is {measured:.3g} times as bright as "
+                f"{names[j]} (listed for {times[j]:g} s) where both are well exposed (median "
+                f"over the pixels), but exposure_times make it {stated:.3g} (more than "
+                f"{EXPOSURE_RATIO_TOLERANCE:g}x apart): are the files listed out of order "
+                "(each shift's in the order of exposure_times, shortest first), or are "
+                "exposure_times wrong?",
+            )
 
 
 def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:

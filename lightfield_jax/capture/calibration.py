@@ -147,7 +147,10 @@ def mosaic_score(image: np.ndarray) -> tuple[float, float]:
     with np.errstate(invalid="ignore", over="ignore"):  # +Inf beside -Inf: NaN, not good
         box = sum(pad[i : i + h, j : j + w] for i in range(3) for j in range(3)) / 9.0
     lo = np.minimum.reduce([pad[i : i + h, j : j + w] for i in range(3) for j in range(3)])
-    top = float(np.percentile(a, 99))
+    finite = a[np.isfinite(a)]  # NaN and Inf are masked later, not measured here
+    if finite.size < 20:
+        return 0.0, math.inf
+    top = float(np.percentile(finite, 99))
     # Pixels whose whole neighbourhood is well lit: away from edges and the noise floor.
     good = (lo > 0.05 * top) & np.isfinite(box)
     good[0], good[-1], good[:, 0], good[:, -1] = False, False, False, False
@@ -172,7 +175,8 @@ def check_not_mosaic(frames: Sequence[ImageData]) -> None:
     """Refuse 1-channel frames that look like an undemosaiced Bayer mosaic."""
     if frames[0].pixels.shape[-1] != 1:
         return
-    mean = np.mean(np.stack([f.pixels[..., 0] for f in frames]), axis=0)
+    with np.errstate(invalid="ignore", over="ignore"):  # +Inf and -Inf: NaN, left out
+        mean = np.mean(np.stack([f.pixels[..., 0] for f in frames]), axis=0)
     score, err = mosaic_score(mean)
     if score > max(_MOSAIC_LOG_RATIO, 6.0 * err):
         raise CaptureError(

@@ -128,8 +128,9 @@ images show stripes of the period, an image without them (a white or black frame
 listed among the stripes) is refused, and given phases that the stripe detector
 contradicts with confidence (the period within 2 %, every phase within 0.1 row) are
 refused with both lists (absent phases, whose default is contradicted, get a note).
-Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field,
-saturated or clipped) are masked, with a :class:`CaptureWarning` that counts them.
+Pixels that cannot be used (NaN or Inf in an image, the dark frame or the flat field;
+zero or negative in the flat field; saturated or clipped) are masked, with a
+:class:`CaptureWarning` that counts them (an image of nothing but NaN or Inf is refused).
 """
 
 from __future__ import annotations
@@ -166,6 +167,7 @@ from lightfield_jax.capture.frames import (
     _flat,
     _floored,
     _frames,
+    _inf_to_nan,
     _nonfinite,
     _saturated,
 )
@@ -355,7 +357,12 @@ def load_capture(path: str | os.PathLike) -> Capture:
     names = [f.path.name for f in frames]
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
-    raw = _corrupt_to_nan(np.stack([f.pixels for f in frames]), names, issues)
+    raw = np.stack([f.pixels for f in frames])
+    if merged is None:  # NaN and Inf first: an image of nothing else is no image
+        for i, name in enumerate(names):
+            if not np.isfinite(raw[i]).any():
+                top.fail("images", f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
+    raw = _inf_to_nan(_corrupt_to_nan(raw, names, issues))
     response = None if merged is not None else read_response(top, base, frames[0].channel_names)
     sensor = None if saturation is not None else sensor_top_code(raw, frames)
     # 10-14-bit data in 16-bit files: codes counted to the sensor's top code, as the
@@ -370,7 +377,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             return None
         return linear(frame.pixels) if linear is not None and frame.is_integer else frame.pixels
 
-    aux_linear = {k: in_linear(f) for k, f in aux.items()}
+    aux_linear = {k: _inf_to_nan(in_linear(f)) for k, f in aux.items()}
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
@@ -432,9 +439,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
             f"the medium is {raw.shape[2]}x{raw.shape[1]} px: at least {MIN_SIDE}x{MIN_SIDE} "
             f"px are needed (a fit: {MIN_ALONG} along the light)",
         )
-    checked = [(dark, dark_pixels)] if dark is not None else []
+    checked = [(dark, dark_pixels, dark_pixels)] if dark is not None else []
     if flat_pixels is not None:
-        checked.append((aux["flat_field"], flat_pixels))
+        checked.append((aux["flat_field"], flat_pixels, calibration_frames["flat_field"]))
     first_mask_issue = len(issues)
     nonfinite = _nonfinite(raw, checked, names, issues)
     saturated = _saturated(raw, frames, names, saturation, sensor, issues, merged is None)

@@ -191,6 +191,23 @@ def _flat(
             f"{flat.path.name} is not positive in {100 * (1 - good.mean()):.0f}% of its "
             "pixels (after the dark frame): not a flat field",
         )
+    bad = np.isfinite(f) & (f <= 0)
+    if bad.any():  # said as such: before, counted among the NaN or Inf values
+        zero, negative = bad & (values == 0), bad & (values < 0)
+        kinds = [
+            f"{int(k.sum())} {what}"
+            for k, what in (
+                (zero, "zero"),
+                (negative, "negative"),
+                (bad & ~zero & ~negative, "at or below the dark frame"),
+            )
+            if k.any()
+        ]
+        issues.append(
+            f"flat_field: {int(bad.sum())} pixel value(s) of {flat.path.name} are not "
+            f"positive ({', '.join(kinds)}): no vignetting is measured there; those pixels "
+            "are masked"
+        )
     return np.where(good, f / np.median(f[good]), np.nan)
 
 
@@ -235,21 +252,34 @@ def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> 
     return np.where(wild, np.nan, raw).astype(raw.dtype)
 
 
+def _inf_to_nan(values: np.ndarray | None) -> np.ndarray | None:
+    """``values`` with every Inf a NaN. Both are masked alike (:func:`_nonfinite` counts
+    them from the values as read); a NaN goes through the calibration's arithmetic and
+    statistics quietly, where +Inf beside -Inf (or an Inf dark frame under an Inf image)
+    made numpy warn "invalid value encountered" on the terminal."""
+    if values is None or not np.isinf(values).any():
+        return values
+    return np.where(np.isinf(values), np.nan, values).astype(values.dtype)
+
+
 def _nonfinite(
     raw: np.ndarray,
-    frames: Sequence[tuple[ImageData, np.ndarray]],
+    frames: Sequence[tuple[ImageData, np.ndarray, np.ndarray]],
     names: Sequence[str],
     notes: list[str],
 ) -> np.ndarray:
     """[P, H, W, C] True where an image's value, or a calibration frame's (dark, flat:
-    each with its cropped pixels; a flat field is NaN where not positive: the pixel in
-    every image), is NaN or Inf; notes the counts."""
+    each with its cropped pixels as used, unusable values NaN: the pixel in every
+    image, and its cropped values as read), is NaN or Inf; notes the counts of the
+    values that were NaN or Inf as read (a flat field's non-positive or clipped values
+    are masked too, and said by :func:`_flat`, not counted here as NaN or Inf)."""
     out = ~np.isfinite(raw)
     counts = {n: int(c) for n, c in zip(names, out.sum(axis=(1, 2, 3)), strict=True) if c}
-    for image, pixels in frames:
+    for image, pixels, values in frames:
         frame_bad = ~np.isfinite(pixels)
-        if frame_bad.any():
-            counts[image.path.name] = int(frame_bad.sum())
+        read_bad = ~np.isfinite(values)
+        if read_bad.any():
+            counts[image.path.name] = int(read_bad.sum())
         out = out | np.broadcast_to(frame_bad, out.shape)
     if counts:
         listed = ", ".join(f"{n}: {c}" for n, c in counts.items())

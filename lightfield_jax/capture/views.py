@@ -115,11 +115,31 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
     return {str(k): v for k, v in channels.items()}
 
 
+def unconverged_fit(fit: dict[str, Any]) -> str | None:
+    """Why a fit of a results file is not to be trusted (``converged: false``): its
+    ``reasons``, else its ``message``; ``None`` for a converged fit (or one that does
+    not say)."""
+    if "converged" not in fit or fit["converged"] is True:
+        return None
+    reasons = fit.get("reasons")
+    if isinstance(reasons, list) and reasons:
+        return "; ".join(str(r) for r in reasons)
+    message = fit.get("message")
+    return str(message) if message else "no reason recorded"
+
+
 def render_results(
-    results: str | os.PathLike, folder: Path, *, plot: bool, stage=lambda _s: None
+    results: str | os.PathLike,
+    folder: Path,
+    *,
+    plot: bool,
+    stage=lambda _s: None,
+    warn=lambda _t: None,
 ) -> tuple[dict[str, str], list[str]]:
     """Render the fitted medium of every channel of a results file into ``folder`` (one
-    subfolder per channel when there are several): the files written and notes."""
+    subfolder per channel when there are several): the files written and notes.
+    ``warn`` is told at once of a channel whose fit did not converge (rendered all
+    the same; its ``render.json`` says so)."""
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_write_json
 
@@ -152,6 +172,14 @@ def render_results(
         gain = fit.get("gain")
         if (problem := gain_problem(gain)) is not None:
             raise ValueError(f"{where}: gain: {problem}")
+        unconverged = unconverged_fit(fit)
+        fit_warning = None
+        if unconverged is not None:
+            fit_warning = (
+                f"{where}: the fit did not converge ({unconverged}); rendering its values "
+                "all the same"
+            )
+            warn(fit_warning)
         try:
             medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
             grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
@@ -182,7 +210,10 @@ def render_results(
             "bounces": result.bounces,
             "n_theta": result.n_theta,
             "notes": left_out,
+            "fit_converged": unconverged is None,
         }
+        if fit_warning is not None:
+            about["fit_warning"] = fit_warning
         atomic_write_json(target / "render.json", about)
         written["render.json"] = "what was rendered (medium, model region, illumination)"
         if plot:

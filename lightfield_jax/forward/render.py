@@ -33,7 +33,7 @@ from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes
+from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
 from lightfield_jax.scene.medium import (
     Medium,
     bounces_for_tolerance,
@@ -231,6 +231,13 @@ def render(
             raise ValueError(f"render: gain: must be a single number, got shape {gain.shape}")
     elif (problem := gain_problem(gain)) is not None:
         raise ValueError(f"render: gain: {problem}")
+    if not isinstance(illumination, (Beam, Stripes, Full)):
+        raise ValueError(
+            f"render: illumination: must be a Beam, Stripes or Full, got "
+            f"{type(illumination).__name__}"
+        )
+    if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
+        raise ValueError(f"render: illumination.period: {problem}")
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     converges = bool(rho < 1.0)
@@ -246,11 +253,6 @@ def render(
             "of a divergent series",
             DivergentSeriesWarning,
             stacklevel=2,
-        )
-    if not isinstance(illumination, (Beam, Stripes, Full)):
-        raise ValueError(
-            f"render: illumination: must be a Beam, Stripes or Full, got "
-            f"{type(illumination).__name__}"
         )
     # Before the renderer's tables: a typo in the grid (Grid(32000, 24000)) or the
     # bounces asked for terabytes, found by a MemoryError or the OOM killer minutes later.

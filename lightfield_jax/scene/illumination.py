@@ -340,3 +340,20 @@ def source_moments(
     if along_x(wall):  # (P, along=y, normal=x) is already (P, H, W)
         return cov, mean, var
     return (np.swapaxes(a, 1, 2) for a in (cov, mean, var))
+
+
+def period_problem(illumination, width: int, height: int) -> str | None:
+    """What is wrong with stripes whose period is longer than a ``width``x``height``
+    grid (``None``: nothing, or not stripes; ``illumination`` may be the period
+    itself). The rule of a simulate config's ``illumination.period``
+    (:mod:`lightfield_jax.app.config`), for the Python API too: such stripes light at
+    most one run of rows, and some of their shifts none at all (all-zero images)."""
+    if isinstance(illumination, Stripes):
+        period = illumination.period
+    elif isinstance(illumination, int):
+        period = illumination
+    else:
+        return None
+    if period <= max(width, height):
+        return None
+    return f"{period} rows is longer than the {width}x{height} grid: a stripe period is a few rows"

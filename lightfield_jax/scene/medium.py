@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from lightfield_jax.checks import check_number, number_problem
+from lightfield_jax.checks import check_number, number_problem, shown
 
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
@@ -31,7 +31,13 @@ def phase_function(theta: ArrayLike, g: ArrayLike) -> Float[Array, "..."]:
     p(θ) = (1/4π) (1 − g²) / (1 + g² − 2 g cos θ)^{3/2}.
 
     It is *not* normalised in the plane: see :func:`phase_integral`.
+
+    Raises:
+        ValueError: a concrete ``g`` (not a JAX tracer: under ``jit`` or ``grad`` it is
+            not checked) with a value outside (−1, 1) or NaN (|g| ≥ 1 gave finite
+            nonsense: p(θ) ≤ 0 everywhere, or 0/0).
     """
+    _check_asymmetry(g, "phase_function")
     theta = jnp.asarray(theta)
     g = jnp.asarray(g)
     return (1.0 - g**2) / (4.0 * jnp.pi * (1.0 + g**2 - 2.0 * g * jnp.cos(theta)) ** 1.5)
@@ -43,6 +49,7 @@ def phase_integral(g: ArrayLike) -> Float[Array, ""]:
     A(0) = 0.5, A(0.4) ≈ 0.619, A(0.8) ≈ 1.622; A(−g) = A(g). Computed with the
     periodic trapezoid rule (spectrally accurate, differentiable in g).
     """
+    _check_asymmetry(g, "phase_integral")
     theta = jnp.arange(_A_NODES) * (2.0 * jnp.pi / _A_NODES)
     g = jnp.asarray(g)
     return jnp.sum(phase_function(theta, g[..., None]), axis=-1) * (2.0 * jnp.pi / _A_NODES)
@@ -50,6 +57,31 @@ def phase_integral(g: ArrayLike) -> Float[Array, ""]:
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _check_asymmetry(g, where: str) -> None:
+    """Refuse a concrete ``g`` (a number or an array of them) with a value outside
+    (−1, 1) or NaN, as ``ValueError("WHERE: g: ...")``; a tracer passes unchecked."""
+    if not _is_concrete(g):
+        return
+    try:
+        a = np.asarray(g)
+    except (TypeError, ValueError):
+        return  # not numbers: jnp.asarray names it
+    if a.dtype.kind not in "iuf" or a.size == 0:
+        if a.dtype.kind in "bOUS" or a.dtype.kind == "c":
+            raise ValueError(f"{where}: g: must be a real number, got {shown(g)}")
+        return
+    bad = ~(np.abs(a) < 1.0)
+    if not bad.any():
+        return
+    first = float(a[bad].flat[0])
+    got = (
+        f"{first!r}"
+        if a.ndim == 0
+        else f"{int(bad.sum())} of {a.size} values outside, e.g. {first!r}"
+    )
+    raise ValueError(f"{where}: g: must satisfy -1 < g < 1, got {got}")
 
 
 class Medium(eqx.Module):
