@@ -60,7 +60,10 @@ def test_two_step_with_another_solver_gives_the_gradient_answer():
     assert abs(dogleg.g - 0.4) < 0.01 and abs(dogleg.sigma_s / 0.0366 - 1) < 0.01
 
 
-@pytest.mark.parametrize("max_steps", [2, 3, 100])
+@pytest.mark.parametrize(
+    "max_steps",
+    [2, pytest.param(3, marks=pytest.mark.slow), pytest.param(100, marks=pytest.mark.slow)],
+)
 def test_the_gradient_programs_residual_and_jacobian_are_those_at_its_answer(max_steps):
     """The gradient program takes r and ∂r/∂(σs, g) at its answer from a Gauss-Newton
     solver's last accepted evaluation (its auxiliary output) instead of a second copy
