@@ -441,6 +441,7 @@ def test_a_start_forced_into_the_wrong_basin_is_not_trusted():
     assert not _downhill_from(data, lfj.Stripes(), model, options, weights, start, answer)
 
 
+@pytest.mark.slow  # ~30 s (two noisy 64x48 fits); the line's own rule is tested above
 def test_basins_on_the_slope_of_an_answer_found_are_not_solved_again(monkeypatch):
     """Shot noise breaks the scan's flat σt–g valley into several grid minima; those
     whose line to the first answer rises all the way are not solved (the answer is the
