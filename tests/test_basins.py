@@ -333,3 +333,32 @@ def test_consistency_adds_a_model_term_only_where_the_parts_disagree():
     assert finer.model["g"] == pytest.approx(10 * 0.05, rel=1e-6)
     # Without a measured noise there is nothing to compare the disagreement with.
     assert error_budget(jac, residual, names, math.nan, groups={"halves": group}).consistency == {}
+
+
+@pytest.mark.parametrize("sigma_t", [3.0, 5.0])
+def test_an_opaque_medium_is_scanned_where_its_decay_estimate_runs_low(sigma_t):
+    """A mean free path below a pixel: the direct light's decay estimate runs low (σt 3
+    → 2.09, σt 5 → 2.88), and the scan at the estimate saw only a basin at g −0.45.
+    Its answers (σt 3.40, g −0.89; σt 3.53, g −0.64) were reported converged with the
+    truth 20-50 σ away. The fit now scans at larger σt too, and scans again at an
+    answer far from the scan's σt."""
+    config = {
+        "grid": {"width": 32, "height": 24},
+        "medium": {"sigma_t": sigma_t, "sigma_s": sigma_t / 2, "g": 0.4},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+        "bounces": "auto",
+        "gain": 400,
+        "black_level": 0.01,
+        "noise": {"photons": 20000, "read": 0.0005, "seed": 0},
+    }
+    from lightfield_jax.app.config import parse_simulation_config
+
+    images = np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+    result = lfj.fit_images(images, lfj.Stripes())
+    assert result.converged, result.message
+    assert abs(result.sigma_t / sigma_t - 1) < 0.02, result.sigma_t
+    assert abs(result.sigma_s / (sigma_t / 2) - 1) < 0.02, result.sigma_s
+    assert abs(result.g - 0.4) < 0.02, result.g
+    for key, truth in (("sigma_t", sigma_t), ("g", 0.4)):
+        assert abs(getattr(result, key) - truth) < 3 * result.uncertainty[key], key
+    assert len(result.basins["sigma_t_scanned"]) == 4
