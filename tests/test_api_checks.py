@@ -509,3 +509,23 @@ def test_stripes_longer_than_the_grid_are_refused_by_the_api():
     # A period as long as the grid's longer side still renders.
     full = lfj.Stripes(period=16, lit=3, phases=(0,))
     assert np.asarray(lfj.render(medium, grid, full, 1).images).shape == (1, 1, 12, 16)
+
+
+def test_the_albedo_error_of_a_fit_with_sigma_s_0_is_finite():
+    # to_dict() of a fit at sigma_s = 0 (e.g. a grid search of negated images) raised
+    # ZeroDivisionError in the albedo's error; at sigma_t = 0 it is NaN.
+    from lightfield_jax.inverse.options import FitResult
+
+    fit = FitResult(
+        method="grid", sigma_t=0.2, sigma_s=0.0, g=0.0, gain=1.0, black_level=0.0,
+        uncertainty={"sigma_t": 0.01, "sigma_s": 0.004}, correlation={}, converged=False,
+        message="", iterations=1, residual=0.0, seconds={"total": 0.0}, model={},
+    )  # fmt: skip
+    d = fit.to_dict()
+    assert d["albedo"] == 0.0
+    assert d["uncertainty"]["albedo"] == pytest.approx(0.004 / 0.2)
+    nothing = dataclasses.replace(fit, sigma_t=0.0)
+    assert math.isnan(nothing.albedo)
+    assert nothing.to_dict()["uncertainty"]["albedo"] is None or math.isnan(
+        nothing.to_dict()["uncertainty"]["albedo"]
+    )
