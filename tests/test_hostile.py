@@ -142,6 +142,34 @@ def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_pa
     assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
 
 
+def test_simulate_does_not_write_over_a_capture_of_the_users_own(capture, capsys, tmp_path):
+    """Before: ``simulate --out DIR`` into a folder holding the user's capture (no
+    simulate marker) silently replaced its capture.yaml and shift_*.exr (exit 0)."""
+    (capture / "metadata.json").unlink()  # the user's own capture: not simulate's
+    (capture / "capture.yaml").write_text("# mine, hand-edited\n" + SIMULATE)
+    before = _snapshot(capture)
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    for argv in (["simulate", cfg, "--out", capture], ["demo", "--out", capture]):
+        line = _refused(capsys, *argv, match="holds capture.yaml (and ")
+        assert "lightfield-jax simulate did not write (no metadata.json" in line
+    assert _snapshot(capture) == before
+    # A folder of images only, and pattern's folder (its capture.yaml template).
+    (capture / "capture.yaml").unlink()
+    _refused(capsys, "simulate", cfg, "--out", capture, match="holds bounces.npy (and ")
+    assert (
+        main(["pattern", "--width", "64", "--height", "48", "--out", str(tmp_path / "pat"), "-q"])
+        == 0
+    )
+    _refused(capsys, "simulate", cfg, "--out", tmp_path / "pat", match="holds capture.yaml")
+    # Simulate's own folder is rerun into, and a folder of unrelated files is written.
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    for folder in (tmp_path / "own", tmp_path / "own", tmp_path / "other"):
+        assert main(["simulate", str(cfg), "--out", str(folder), "-q"]) == 0
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(
