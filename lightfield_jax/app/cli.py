@@ -128,7 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 success, 1 a result that
-    cannot be trusted or an experiment that failed while it ran, 2 bad input)."""
+    cannot be trusted or an experiment that failed while it ran, 2 bad input or an
+    output that could not be written: a full disk)."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
@@ -153,6 +154,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"{PROG}: error: {_describe_limit(e)}", file=sys.stderr)
+        return 2
+    except OSError as e:  # writing an output failed: a full disk, an I/O error
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)

@@ -34,7 +34,14 @@ import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from lightfield_jax.capture.io import _fsync, _make_file, _reserve, forget_temporary
+from lightfield_jax.capture.io import (
+    _fsync,
+    _make_file,
+    _reserve,
+    _write_failure,
+    forget_temporary,
+    naming_output,
+)
 
 
 class OutputError(ValueError):
@@ -213,10 +220,20 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
         pending.append((tmp, target))
         return tmp
 
+    def writing() -> Path:  # the output being written: the last one staged
+        return pending[-1][1] if pending else Path(".")
+
     try:
-        yield stage
-        for tmp, _ in pending:
-            _fsync(tmp)
+        try:
+            yield stage
+        except OSError as e:  # a writer's failure names its output, not the temporary
+            failure = _write_failure(e, writing())
+            if failure is None:
+                raise
+            raise failure from e
+        for tmp, target in pending:
+            with naming_output(target):
+                _fsync(tmp)
         for tmp, target in pending:
             os.replace(tmp, target)
             forget_temporary(tmp)
