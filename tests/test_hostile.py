@@ -170,6 +170,27 @@ def test_simulate_does_not_write_over_a_capture_of_the_users_own(capture, capsys
     assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
 
 
+def test_an_empty_output_path_is_refused_by_its_option(capture, capsys, tmp_path):
+    """Before: ``--out ''`` gave "PosixPath('.') has an empty name" and ``fit --plot ''``
+    was taken as no figure (exit 0)."""
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    results = _results(capture, tmp_path)
+    for argv, option in (
+        (["simulate", cfg, "--out", ""], "--out"),
+        (["simulate", cfg, "--out", tmp_path / "s", "--plot", ""], "--plot"),
+        (["render", results, "--out", ""], "--out"),
+        (["pattern", "--width", 12, "--height", 12, "--out", ""], "--out"),
+        (["experiment", cfg, "--out", ""], "--out"),
+        (["fit", capture / "capture.yaml", "--out", ""], "--out"),
+        (["fit", capture / "capture.yaml", "--out", tmp_path / "r.json", "--plot", ""], "--plot"),
+        (["inspect", capture / "capture.yaml", "--json", ""], "--json"),
+    ):
+        line = _refused(capsys, *argv, match=f"{option}: an empty path")
+        assert "PosixPath" not in line
+    assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "sim.yaml"]
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(

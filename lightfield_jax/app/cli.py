@@ -144,6 +144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             stop_on_signals(PROG),
             memory_limit(args.max_memory),
         ):
+            _refuse_empty_paths(args)
             status = args.handler(args)
     except USER_ERRORS as e:
         if args.debug:
@@ -169,6 +170,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: error: {_describe_limit(MemoryError())}", file=sys.stderr)
         return 2
     return 0 if status is None else int(status)
+
+
+# The options naming an output path (each command has some of them).
+PATH_OPTIONS = ("out", "plot", "json")
+
+
+def _refuse_empty_paths(args: argparse.Namespace) -> None:
+    """An empty output path (``--out ''``) is a mistake, not "no output" nor ".": refuse
+    it by the option's name."""
+    for name in PATH_OPTIONS:
+        if getattr(args, name, None) == "":
+            raise ValueError(f"--{name}: an empty path")
 
 
 def _one_line(text: str) -> str:
