@@ -909,7 +909,7 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
     data = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "gain": 400.0, "phase": "paper"}
     data.update(changes)
     data["model"] = {**model, "crop": crop, "geometry": {"kind": "plane"}}
-    data["capture"] = str(capture_file)
+    data["capture"] = capture_file if capture_file in (5, None) else str(capture_file)
     path = tmp_path / "results.json"
     path.write_text(json.dumps(data))
     return path
@@ -919,7 +919,7 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
     ("changes", "match"),
     [
         ({"model": {"bounces": 10**9}}, "channel Y: bounces: at most 10000 bounces"),
-        ({"model": {"width": 10**7}}, "channel Y: the render needs about"),
+        ({"model": {"n_theta": 8 * 10**6}}, "channel Y: the render needs about"),
         ({"sigma_t": -1.0}, "channel Y: medium.sigma_t: must be > 0"),
         ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),
         ({"model": {"n_theta": 7}}, "channel Y: grid.n_theta: must be a multiple of 8"),
@@ -940,6 +940,19 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"capture_file": "/nonexistent/capture.yaml"}, "capture: /nonexistent/capture.yaml"),
+        # Before: a TypeError traceback (an edited "capture": 5 or null).
+        ({"capture_file": 5}, "capture: must be the capture file's path, got 5"),
+        ({"capture_file": None}, "capture: must be the capture file's path, got None"),
+        # Before: rendered (a crop outside the capture, or of another size than the model).
+        (
+            {"crop": [0, 0, 480, 360], "model": {"width": 480, "height": 360}},
+            f"model.crop: [0, 0, 480, 360] lies outside the capture's {W}x{H} images",
+        ),
+        (
+            {"crop": [0, 0, W // 2, H]},
+            f"model.crop: [0, 0, {W // 2}, {H}] is {W // 2}x{H} pixels, but model.width x "
+            f"height is {W}x{H}",
+        ),
     ],
 )
 def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, changes, match):
