@@ -167,3 +167,32 @@ def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str
     if finite == "some" and not ok.any():
         raise ValueError(f"{key}: has no finite value (all {a.size} NaN or inf)")
     return a
+
+
+def unmask(images, mask=None):
+    """``(images, mask)`` with a numpy masked array's mask honoured: its masked values
+    are excluded, combined with ``mask`` (``True`` where valid, per pixel ``(height,
+    width)`` or per value like ``images``) into a per-value mask. Anything else is
+    returned as given (``np.asarray`` would drop the mask silently)."""
+    if not isinstance(images, np.ma.MaskedArray):
+        return images, mask
+    data, valid = np.ma.getdata(images), ~np.ma.getmaskarray(images)
+    if valid.all():
+        return data, mask
+    if mask is None:
+        return data, valid
+    given = np.asarray(mask)
+    if given.dtype != bool or given.shape not in (data.shape, data.shape[-2:]):
+        return data, mask  # refused as it would be without the masked array
+    return data, given & valid
+
+
+def masked_to_nan(images):
+    """A numpy masked array as a float array with NaN at its masked values (for the
+    functions that skip NaN values); anything else as given."""
+    if not isinstance(images, np.ma.MaskedArray):
+        return images
+    data = np.ma.getdata(images)
+    if data.dtype.kind not in "f":
+        data = data.astype(np.float64)
+    return np.where(np.ma.getmaskarray(images), np.nan, data)

@@ -509,3 +509,58 @@ def test_stripes_longer_than_the_grid_are_refused_by_the_api():
     # A period as long as the grid's longer side still renders.
     full = lfj.Stripes(period=16, lit=3, phases=(0,))
     assert np.asarray(lfj.render(medium, grid, full, 1).images).shape == (1, 1, 12, 16)
+
+
+def test_the_albedo_error_of_a_fit_with_sigma_s_0_is_finite():
+    # to_dict() of a fit at sigma_s = 0 (e.g. a grid search of negated images) raised
+    # ZeroDivisionError in the albedo's error; at sigma_t = 0 it is NaN.
+    from lightfield_jax.inverse.options import FitResult
+
+    fit = FitResult(
+        method="grid", sigma_t=0.2, sigma_s=0.0, g=0.0, gain=1.0, black_level=0.0,
+        uncertainty={"sigma_t": 0.01, "sigma_s": 0.004}, correlation={}, converged=False,
+        message="", iterations=1, residual=0.0, seconds={"total": 0.0}, model={},
+    )  # fmt: skip
+    d = fit.to_dict()
+    assert d["albedo"] == 0.0
+    assert d["uncertainty"]["albedo"] == pytest.approx(0.004 / 0.2)
+    nothing = dataclasses.replace(fit, sigma_t=0.0)
+    assert math.isnan(nothing.albedo)
+    assert nothing.to_dict()["uncertainty"]["albedo"] is None or math.isnan(
+        nothing.to_dict()["uncertainty"]["albedo"]
+    )
+
+
+def test_a_masked_arrays_mask_is_honoured_by_fit_images(monkeypatch):
+    # Before: np.asarray dropped the mask, and the masked (hot) pixels entered the fit.
+    import lightfield_jax.inverse.fit as fit_module
+
+    seen = {}
+    monkeypatch.setattr(fit_module, "_fit_one", lambda images, *a, mask, **k: seen.update(
+        images=images, mask=mask))  # fmt: skip
+    images = np.ones((3, 4, 5))
+    bad = np.zeros(images.shape, bool)
+    bad[1, 2, 3] = True
+    pattern = lfj.Stripes(6, 3, (0, 2, 4))
+    lfj.fit_images(np.ma.masked_array(images, mask=bad), pattern)
+    assert type(seen["images"]) is np.ndarray and (seen["mask"] == ~bad).all()
+    pixels = np.ones((4, 5), bool)
+    pixels[0, 0] = False
+    lfj.fit_images(np.ma.masked_array(images, mask=bad), pattern, mask=pixels)
+    assert seen["mask"].shape == images.shape
+    assert (seen["mask"] == (~bad & pixels)).all()
+    lfj.fit_images(images, pattern, mask=pixels)  # a plain array: as given
+    assert seen["mask"] is pixels
+
+
+def test_separate_and_fit_decay_skip_a_masked_arrays_masked_values():
+    images = np.stack([np.full((4, 5), v) for v in (1.0, 3.0)])
+    bad = np.zeros(images.shape, bool)
+    bad[0, 1, 2] = True
+    images[0, 1, 2] = -100.0  # a dead pixel, masked
+    sep = lfj.separate(np.ma.masked_array(images, mask=bad))
+    direct = np.asarray(sep.direct)
+    assert np.isnan(direct[1, 2]) and np.isfinite(np.delete(direct.ravel(), 7)).all()
+    from lightfield_jax.checks import masked_to_nan
+
+    assert np.isnan(masked_to_nan(np.ma.masked_array(np.arange(3), mask=[0, 1, 0]))[1])

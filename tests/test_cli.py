@@ -1,5 +1,6 @@
 """The command line: simulate's files, bench, errors (exit 2, one line, no output)."""
 
+import errno
 import io
 import json
 import math
@@ -168,6 +169,42 @@ def test_failure_while_writing_leaves_no_folder(tmp_path, capsys, monkeypatch):
     status, _, err = _run(capsys, "simulate", _config(tmp_path, BEAM), "--out", str(out))
     assert status == 2 and err == "lightfield-jax: error: disk said no\n"
     assert not out.exists() and _no_staging_left(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("failure", "message"),
+    [
+        (OSError(errno.ENOSPC, "No space left on device"), "No space left on device"),
+        # numpy's tofile on a full disk, with no errno
+        (OSError("51840 requested and 16352 written"), "write failed (51840 requested"),
+    ],
+)
+def test_a_full_disk_is_one_line_naming_the_output(tmp_path, capsys, monkeypatch, failure, message):
+    """Before: a traceback (``OSError: 51840 requested and 16352 written``)."""
+
+    def write_then_fail(sim, folder, **_):
+        (Path(folder) / "bounces.npy").write_bytes(b"partial")
+        raise failure
+
+    monkeypatch.setattr(simulate_module, "write_simulation", write_then_fail)
+    out = tmp_path / "out"
+    status, _, err = _run(capsys, "simulate", _config(tmp_path, BEAM), "--out", str(out))
+    assert status == 2 and err.startswith(f"lightfield-jax: error: {out}: {message}"), err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists() and _no_staging_left(tmp_path)
+
+
+def test_a_full_disk_while_staging_files_names_the_file_and_keeps_the_old_one(tmp_path):
+    from lightfield_jax.app.outputs import staged_files
+
+    old = tmp_path / "r.json"
+    old.write_text("old")
+    with pytest.raises(OSError) as e, staged_files() as write:
+        write(tmp_path / "fig.png").write_bytes(b"fig")
+        write(old).write_bytes(b"part")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert e.value.filename == str(old) and e.value.errno == errno.ENOSPC
+    assert old.read_text() == "old" and sorted(os.listdir(tmp_path)) == ["r.json"]
 
 
 def test_out_is_a_file(tmp_path, capsys):

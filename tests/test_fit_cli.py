@@ -3,6 +3,7 @@ non-convergence (exit 1) and every bad input (exit 2, one line, nothing written)
 
 import json
 import math
+import os
 import re
 import shutil
 
@@ -441,3 +442,40 @@ def test_fit_stores_compiled_programs_unless_told_not_to(
     status, _, err = _run(capsys, *argv)
     assert status == 0, err
     assert any(cache.iterdir())  # the fit's programs, found by the next run
+
+
+def test_a_truth_with_sigma_s_0_gives_an_absolute_error_not_a_crash(simulated, tmp_path, capsys):
+    # simulate of a pure absorber writes truth sigma_s: 0; the comparison with it
+    # divided by zero (ZeroDivisionError traceback) for every method.
+    folder = _copy(simulated, tmp_path)
+    _edit_yaml(folder, truth={**MILK, "sigma_s": 0.0})
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", folder / "capture.yaml", "--max-steps", 1, "--out", out
+    )
+    assert status in (None, 0, 1), err
+    error = json.loads(out.read_text())["truth_error"]["sigma_s"]
+    assert error["absolute"] is True and math.isfinite(error["error"])
+    assert "per px (truth 0)" in stdout
+
+
+def test_a_full_disk_while_plotting_is_one_line_and_writes_nothing(
+    simulated, tmp_path, capsys, monkeypatch
+):
+    # Before: PIL's "OSError: [Errno 28] No space left on device" as a traceback.
+    import errno
+
+    import lightfield_jax.viz as viz
+
+    def full(*_, **__):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(viz, "plot_fit", full)
+    out, plot = tmp_path / "r.json", tmp_path / "fit.png"
+    status, _, err = _run(
+        capsys, "fit", simulated / "capture.yaml", "--max-steps", 1, "--out", out, "--plot", plot
+    )
+    assert status == 2 and _lines(err) == [
+        f"lightfield-jax: error: {plot}: No space left on device"
+    ]
+    assert os.listdir(tmp_path) == []

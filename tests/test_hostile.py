@@ -142,6 +142,55 @@ def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_pa
     assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
 
 
+def test_simulate_does_not_write_over_a_capture_of_the_users_own(capture, capsys, tmp_path):
+    """Before: ``simulate --out DIR`` into a folder holding the user's capture (no
+    simulate marker) silently replaced its capture.yaml and shift_*.exr (exit 0)."""
+    (capture / "metadata.json").unlink()  # the user's own capture: not simulate's
+    (capture / "capture.yaml").write_text("# mine, hand-edited\n" + SIMULATE)
+    before = _snapshot(capture)
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    for argv in (["simulate", cfg, "--out", capture], ["demo", "--out", capture]):
+        line = _refused(capsys, *argv, match="holds capture.yaml (and ")
+        assert "lightfield-jax simulate did not write (no metadata.json" in line
+    assert _snapshot(capture) == before
+    # A folder of images only, and pattern's folder (its capture.yaml template).
+    (capture / "capture.yaml").unlink()
+    _refused(capsys, "simulate", cfg, "--out", capture, match="holds bounces.npy (and ")
+    assert (
+        main(["pattern", "--width", "64", "--height", "48", "--out", str(tmp_path / "pat"), "-q"])
+        == 0
+    )
+    _refused(capsys, "simulate", cfg, "--out", tmp_path / "pat", match="holds capture.yaml")
+    # Simulate's own folder is rerun into, and a folder of unrelated files is written.
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    for folder in (tmp_path / "own", tmp_path / "own", tmp_path / "other"):
+        assert main(["simulate", str(cfg), "--out", str(folder), "-q"]) == 0
+    assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+
+
+def test_an_empty_output_path_is_refused_by_its_option(capture, capsys, tmp_path):
+    """Before: ``--out ''`` gave "PosixPath('.') has an empty name" and ``fit --plot ''``
+    was taken as no figure (exit 0)."""
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    results = _results(capture, tmp_path)
+    for argv, option in (
+        (["simulate", cfg, "--out", ""], "--out"),
+        (["simulate", cfg, "--out", tmp_path / "s", "--plot", ""], "--plot"),
+        (["render", results, "--out", ""], "--out"),
+        (["pattern", "--width", 12, "--height", 12, "--out", ""], "--out"),
+        (["experiment", cfg, "--out", ""], "--out"),
+        (["fit", capture / "capture.yaml", "--out", ""], "--out"),
+        (["fit", capture / "capture.yaml", "--out", tmp_path / "r.json", "--plot", ""], "--plot"),
+        (["inspect", capture / "capture.yaml", "--json", ""], "--json"),
+    ):
+        line = _refused(capsys, *argv, match=f"{option}: an empty path")
+        assert "PosixPath" not in line
+    assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "sim.yaml"]
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(
@@ -860,7 +909,7 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
     data = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "gain": 400.0, "phase": "paper"}
     data.update(changes)
     data["model"] = {**model, "crop": crop, "geometry": {"kind": "plane"}}
-    data["capture"] = str(capture_file)
+    data["capture"] = capture_file if capture_file in (5, None) else str(capture_file)
     path = tmp_path / "results.json"
     path.write_text(json.dumps(data))
     return path
@@ -870,7 +919,7 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
     ("changes", "match"),
     [
         ({"model": {"bounces": 10**9}}, "channel Y: bounces: at most 10000 bounces"),
-        ({"model": {"width": 10**7}}, "channel Y: the render needs about"),
+        ({"model": {"n_theta": 8 * 10**6}}, "channel Y: the render needs about"),
         ({"sigma_t": -1.0}, "channel Y: medium.sigma_t: must be > 0"),
         ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),
         ({"model": {"n_theta": 7}}, "channel Y: grid.n_theta: must be a multiple of 8"),
@@ -891,6 +940,19 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"capture_file": "/nonexistent/capture.yaml"}, "capture: /nonexistent/capture.yaml"),
+        # Before: a TypeError traceback (an edited "capture": 5 or null).
+        ({"capture_file": 5}, "capture: must be the capture file's path, got 5"),
+        ({"capture_file": None}, "capture: must be the capture file's path, got None"),
+        # Before: rendered (a crop outside the capture, or of another size than the model).
+        (
+            {"crop": [0, 0, 480, 360], "model": {"width": 480, "height": 360}},
+            f"model.crop: [0, 0, 480, 360] lies outside the capture's {W}x{H} images",
+        ),
+        (
+            {"crop": [0, 0, W // 2, H]},
+            f"model.crop: [0, 0, {W // 2}, {H}] is {W // 2}x{H} pixels, but model.width x "
+            f"height is {W}x{H}",
+        ),
     ],
 )
 def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, changes, match):

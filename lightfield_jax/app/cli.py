@@ -128,7 +128,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 success, 1 a result that
-    cannot be trusted or an experiment that failed while it ran, 2 bad input)."""
+    cannot be trusted or an experiment that failed while it ran, 2 bad input or an
+    output that could not be written: a full disk)."""
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
@@ -143,6 +144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             stop_on_signals(PROG),
             memory_limit(args.max_memory),
         ):
+            _refuse_empty_paths(args)
             status = args.handler(args)
     except USER_ERRORS as e:
         if args.debug:
@@ -154,6 +156,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"{PROG}: error: {_describe_limit(e)}", file=sys.stderr)
         return 2
+    except OSError as e:  # writing an output failed: a full disk, an I/O error
+        if args.debug:
+            raise
+        print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
@@ -163,6 +170,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: error: {_describe_limit(MemoryError())}", file=sys.stderr)
         return 2
     return 0 if status is None else int(status)
+
+
+# The options naming an output path (each command has some of them).
+PATH_OPTIONS = ("out", "plot", "json")
+
+
+def _refuse_empty_paths(args: argparse.Namespace) -> None:
+    """An empty output path (``--out ''``) is a mistake, not "no output" nor ".": refuse
+    it by the option's name."""
+    for name in PATH_OPTIONS:
+        if getattr(args, name, None) == "":
+            raise ValueError(f"--{name}: an empty path")
 
 
 def _one_line(text: str) -> str:

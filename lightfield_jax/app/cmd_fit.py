@@ -52,7 +52,8 @@ def _fit_summary(fit) -> str:
 
 def _against_truth(capture, fit) -> list[dict]:
     """Per fitted channel, each parameter the capture's truth gives: the error (σt, σs
-    in %, g absolute) and in units of the reported total 1σ."""
+    in %, g absolute) and in units of the reported total 1σ. A σt or σs whose truth is
+    0 (no relative error) gets its absolute error, marked ``"absolute": true``."""
     from lightfield_jax.capture.keys import truth_for
 
     out = []
@@ -64,12 +65,23 @@ def _against_truth(capture, fit) -> list[dict]:
                 continue
             value, true, sd = getattr(r, k), truth[k], r.uncertainty.get(k, float("nan"))
             diff = value - true
+            absolute = k == "g" or true == 0
             e[k] = {
-                "error": diff if k == "g" else 100 * diff / true,
+                "error": diff if absolute else 100 * diff / true,
                 "sigmas": diff / sd if sd and sd == sd else float("nan"),
             }
+            if absolute and k != "g":
+                e[k]["absolute"] = True
         out.append(e)
     return out
+
+
+def _error_unit(k: str, v: dict) -> str:
+    """The unit of an ``_against_truth`` error: % (relative), per px (absolute: the truth
+    is 0) or none (g)."""
+    if k == "g":
+        return ""
+    return " per px (truth 0)" if v.get("absolute") else " %"
 
 
 def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
@@ -272,7 +284,7 @@ def _fit(args: argparse.Namespace) -> int | None:
                 args,
                 f"[{name}] against the truth: "
                 + ", ".join(
-                    f"{k} {v['error']:+.3g}{' %' if k != 'g' else ''} ({v['sigmas']:+.1f} sigma)"
+                    f"{k} {v['error']:+.3g}{_error_unit(k, v)} ({v['sigmas']:+.1f} sigma)"
                     for k, v in e.items()
                 ),
             )

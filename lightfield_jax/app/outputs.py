@@ -16,7 +16,9 @@ its inputs (the config or capture file and every file a capture lists) to
 - is a folder another command wrote (it holds that command's marker file, one of
   :data:`FOLDER_MARKERS`) holding a file this command would replace (``render --out``
   into ``simulate``'s folder replaced its ``bounces.npy``). A folder holding the
-  command's own marker is its own: a rerun replaces its files, as before.
+  command's own marker is its own: a rerun replaces its files, as before. A command
+  writing a simulated capture (:data:`CAPTURE_MARKER`) also refuses a folder without
+  its marker holding a file it would replace (the user's own capture).
 
 :func:`staged_files` then writes the files of one command: each output is written to a
 temporary beside it, and all of them replace their targets only when the whole command
@@ -32,7 +34,14 @@ import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from lightfield_jax.capture.io import _fsync, _make_file, _reserve, forget_temporary
+from lightfield_jax.capture.io import (
+    _fsync,
+    _make_file,
+    _reserve,
+    _write_failure,
+    forget_temporary,
+    naming_output,
+)
 
 
 class OutputError(ValueError):
@@ -47,6 +56,10 @@ FOLDER_MARKERS = {
     "render.json": "render",
     "summary.json": "experiment",
 }
+# The marker of a folder that holds a simulated capture (simulate's and demo's): such a
+# command refuses to replace any file in a folder without it (a capture of the user's
+# own: capture.yaml, shift_*.exr, a pattern's template), not only another command's.
+CAPTURE_MARKER = "metadata.json"
 
 
 def plot_formats() -> tuple[str, ...]:
@@ -115,7 +128,8 @@ def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: st
     if not path.is_dir() or (marker is not None and (path / marker).is_file()):
         return  # a rerun into the command's own folder
     others = [m for m in FOLDER_MARKERS if m != marker and (path / m).is_file()]
-    if not others:
+    capture = marker == CAPTURE_MARKER and not others
+    if not others and not capture:
         return
     try:
         with os.scandir(path) as entries:
@@ -123,8 +137,16 @@ def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: st
     except OSError:
         return  # an unreadable folder: _check_writable says what is wrong
     replaced = [n for n in names if any(fnmatch.fnmatch(n, p) for p in folder_names)]
+    if "capture.yaml" in replaced:  # named first: the file the user cares most about
+        replaced.insert(0, replaced.pop(replaced.index("capture.yaml")))
+    more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
+    if replaced and capture:
+        raise OutputError(
+            f"{given}: holds {replaced[0]}{more} that lightfield-jax simulate did not write "
+            f"(no {CAPTURE_MARKER}; a capture of your own?), which this command would "
+            "replace; choose another output folder"
+        )
     if replaced:
-        more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
         raise OutputError(
             f"{given}: holds the outputs of lightfield-jax {FOLDER_MARKERS[others[0]]} "
             f"({others[0]}), whose {replaced[0]}{more} this command would replace; choose "
@@ -198,10 +220,20 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
         pending.append((tmp, target))
         return tmp
 
+    def writing() -> Path:  # the output being written: the last one staged
+        return pending[-1][1] if pending else Path(".")
+
     try:
-        yield stage
-        for tmp, _ in pending:
-            _fsync(tmp)
+        try:
+            yield stage
+        except OSError as e:  # a writer's failure names its output, not the temporary
+            failure = _write_failure(e, writing())
+            if failure is None:
+                raise
+            raise failure from e
+        for tmp, target in pending:
+            with naming_output(target):
+                _fsync(tmp)
         for tmp, target in pending:
             os.replace(tmp, target)
             forget_temporary(tmp)

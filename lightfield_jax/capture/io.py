@@ -538,6 +538,40 @@ def _fsync(p: Path) -> None:
         os.close(fd)
 
 
+def _write_failure(error: OSError, target: Path) -> OSError | None:
+    """The error of a writer that failed for want of space (or an I/O error), naming
+    ``target`` (the output the user named, not its temporary); ``None`` for any other
+    error. Writers that report no errno (numpy's "N requested and M written", an EXR
+    library's "write failed") are named too, as "no space left on device" when the
+    target's file system has no free space."""
+    if error.errno in _WRITE_ERRNOS:
+        return OSError(error.errno, error.strerror or os.strerror(error.errno), str(target))
+    if error.errno is not None or type(error) is not OSError:
+        return None
+    message = " ".join(str(error).split()) or "write failed"
+    with contextlib.suppress(OSError):
+        folder = next(p for p in (target, *target.parents) if p.exists())
+        if os.statvfs(folder).f_bavail == 0:
+            return OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)} ({message})", str(target))
+    return OSError(None, f"write failed ({message})", str(target))
+
+
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO}
+
+
+@contextlib.contextmanager
+def naming_output(target: str | os.PathLike) -> Iterator[None]:
+    """Re-raise a writer's failure for want of space as an ``OSError`` naming ``target``
+    (see :func:`_write_failure`); other errors pass unchanged."""
+    try:
+        yield
+    except OSError as e:
+        failure = _write_failure(e, Path(target))
+        if failure is None:
+            raise
+        raise failure from e
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success it replaces ``path``.
@@ -552,9 +586,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _reserve(path, _make_file)
     try:
-        yield tmp
-        _fsync(tmp)
-        os.replace(tmp, path)
+        with naming_output(path):
+            yield tmp
+            _fsync(tmp)
+            os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
@@ -618,8 +653,9 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     stage = _reserve(path, lambda p: os.mkdir(p, 0o777))
     try:
-        yield stage
-        _publish(stage, path)
+        with naming_output(path):
+            yield stage
+            _publish(stage, path)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         forget_temporary(stage)

@@ -112,6 +112,12 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
                 f"{source}: channel {name}: model.crop: must be [x0, y0, x1, y1] with "
                 f"0 <= x0 < x1 and 0 <= y0 < y1, got {crop!r}"
             )
+        size = (crop[2] - crop[0], crop[3] - crop[1])
+        if (model["width"], model["height"]) != size:
+            raise ValueError(
+                f"{source}: channel {name}: model.crop: {crop!r} is {size[0]}x{size[1]} "
+                f"pixels, but model.width x height is {model['width']!r}x{model['height']!r}"
+            )
     return {str(k): v for k, v in channels.items()}
 
 
@@ -153,6 +159,10 @@ def render_results(
     channels = _channel_results(data, source)
     if "capture" not in data:
         raise ValueError(f"{source}: names no capture (key 'capture'), whose geometry is needed")
+    if not isinstance(data["capture"], str) or not data["capture"]:
+        raise ValueError(
+            f"{source}: capture: must be the capture file's path, got {data['capture']!r}"
+        )
     # The fit wrote the capture's path as given; from elsewhere, try beside the results.
     named = Path(data["capture"])
     candidates = [named, source.parent / named, source.parent / named.name]
@@ -162,6 +172,14 @@ def render_results(
         capture = load_capture(capture_path)
     except FileNotFoundError as e:
         raise ValueError(f"{source}: capture: {e}") from None
+    height, width = capture.shape
+    for name, fit in channels.items():
+        crop = fit["model"]["crop"]
+        if crop[2] > width or crop[3] > height:
+            raise ValueError(
+                f"{source}: channel {name}: model.crop: {crop!r} lies outside the capture's "
+                f"{width}x{height} images (its medium ROI), [0, 0, {width}, {height}]"
+            )
     light = full_light(capture.pattern)
     files, notes = {}, []
     for name, fit in channels.items():

@@ -44,7 +44,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from lightfield_jax.checks import check_number, number_problem
+from lightfield_jax.checks import check_number, masked_to_nan, number_problem
 from lightfield_jax.scene.illumination import (
     _INWARD_DEG,
     WALLS,
@@ -258,7 +258,8 @@ def fit_decay(
             rows of a stripe image) and pixels modelled below it (the noise floor).
         max_steps: Levenberg–Marquardt step limit.
 
-    NaN and infinite pixels are not used. The fit runs in the wider of the image's
+    NaN and infinite pixels are not used, nor the masked values of a numpy masked
+    array. The fit runs in the wider of the image's
     dtype and JAX's default float dtype (float32, or float64 with x64 enabled);
     tolerances follow it (eps^(1/3)). The solve is jit-compiled once per image shape,
     dtype, entry-wall extent and ``max_steps``; new data, directions, thresholds and
@@ -278,7 +279,7 @@ def fit_decay(
         direction_deg = _INWARD_DEG[entry]
     direction_deg = _direction(direction_deg, "fit_decay.direction_deg")
     _check_direction(entry, direction_deg, "fit_decay")
-    direct = jnp.asarray(direct)
+    direct = jnp.asarray(masked_to_nan(direct))
     # The fit runs in the wider of the image's and JAX's default float dtype: integer
     # frames become floats, and float32 data with x64 enabled is widened because
     # optimistix's Levenberg–Marquardt fails on mixed float32/float64 state.

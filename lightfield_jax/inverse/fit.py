@@ -48,6 +48,7 @@ from collections.abc import Callable
 import numpy as np
 
 from lightfield_jax.capture.keys import check_pixel_size
+from lightfield_jax.checks import unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
@@ -86,7 +87,8 @@ def fit_images(
             ``(height, width)`` (valid in every shift), or per sample, like ``images``
             (a pixel clipped in some shifts keeps its other shifts in the joint fit; the
             separation, the decay and the two-step methods use only pixels valid in
-            every shift).
+            every shift). A numpy masked array for ``images`` is honoured: its masked
+            values are excluded too (combined with ``mask``).
         black_level: the projector's dark-stripe level relative to a lit stripe, or
             ``None`` (unknown: ``joint`` estimates it, the two-step methods assume 0).
         saturation: value at or above which a sample is clipped: masked like ``mask``'s
@@ -106,6 +108,7 @@ def fit_images(
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
     check_pixel_size(pixel_size_mm)
+    images, mask = unmask(images, mask)
     return _fit_one(
         images,
         pattern,

@@ -287,6 +287,8 @@ class FitResult:
 
     @property
     def albedo(self) -> float:
+        if not self.sigma_t:
+            return math.nan
         return self.sigma_s / self.sigma_t
 
     @property
@@ -387,7 +389,9 @@ def _albedo_error(res: FitResult, unc) -> float:
     if math.isnan(ut):
         ut = 0.0
     r = res.correlation.get("sigma_t,sigma_s", 0.0)
-    w = res.albedo
-    rel2 = (us / res.sigma_s) ** 2 + (ut / res.sigma_t) ** 2
-    rel2 -= 2 * r * (us / res.sigma_s) * (ut / res.sigma_t)
-    return w * math.sqrt(max(rel2, 0.0))
+    if not res.sigma_t or not math.isfinite(res.sigma_t):
+        return math.nan
+    # w = σs/σt: dw = dσs/σt - w dσt/σt, finite at σs = 0 (w = 0).
+    w = res.sigma_s / res.sigma_t
+    a, b = us / res.sigma_t, w * ut / res.sigma_t
+    return math.sqrt(max(a**2 + b**2 - 2 * r * a * b, 0.0))

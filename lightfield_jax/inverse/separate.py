@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from lightfield_jax.checks import number_problem
+from lightfield_jax.checks import masked_to_nan, number_problem
 
 SeparationMethod = Literal["general", "paper"]
 SEPARATION_METHODS: tuple[str, ...] = ("general", "paper")
@@ -106,7 +106,7 @@ def separate(
             ``(shifts, height, width, channels)``, in any linear camera units. Integer
             frames are converted to the default float dtype. Every pixel must be lit in
             at least one shift and dark in at least one (e.g. one shift per row of the
-            stripe period).
+            stripe period). A numpy masked array's masked values count as NaN.
         lit_fraction: a = lit rows / period of the stripes, in (0, 1).
         black_level: b, the projector's dark-stripe level relative to a lit stripe,
             in [0, 1).
@@ -136,7 +136,7 @@ def separate(
             f"and black_level 0, got lit_fraction={lit_fraction!r}, "
             f"black_level={black_level!r}; use method='general'"
         )
-    images = _as_float(images)
+    images = _as_float(masked_to_nan(images))
     if images.ndim not in (3, 4):
         raise ValueError(
             "separate.images: must have shape (shifts, height, width) or "
