@@ -89,9 +89,7 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark, aut
     with confidence. Default phases (``pattern.phases`` absent) that differ are
     returned as a note's text instead. ``images`` and ``roi``: the full frame's;
     ``phases_from``: ``given``, ``default`` or ``auto``; ``auto``: the pattern keys
-    measured (see :func:`_check_geometry_seen`, run first)."""
-    if len(names) >= 2:
-        _check_geometry_seen(top, pattern, images, roi, dark, auto)
+    measured (see :func:`_check_geometry_seen`, run after the period's check)."""
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
     stack = _across_first(crop, pattern.entry)
@@ -101,6 +99,8 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark, aut
         return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
     _check_period(top, pattern, stack, amplitude)
+    if len(names) >= 2:
+        _check_geometry_seen(top, pattern, images, roi, dark, auto)
     stripes = amplitude(pattern.period)
     with np.errstate(divide="ignore", invalid="ignore"):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
