@@ -51,6 +51,10 @@ finds them in the images themselves, in the image frame of docs/model.md section
 - **Period.** The transverse frequency whose Fourier power is largest near 1/T (a dense
   search between 1/(1.5T) and 1.5/T) gives the stripes' period in camera pixels: it
   must be T for the capture format to describe them.
+- **Lit width.** On the lines along the light next to the entry wall (the direct light
+  keeps the projector's sharp stripes there), the fraction of pixels above the midpoint
+  of their one-period neighbourhood's extremes, times T (``Geometry.lit_px``): it must
+  be ``lit`` (within 0.15 row on renders, oblique ones included).
 
 Measured on renders (48×36 px media embedded in a dark frame with shot and read noise,
 θ0 from −20° to 25°, three media, 54 captures): lit walls within 0 px, θ0 within 0.09°
