@@ -300,6 +300,70 @@ def test_a_pattern_the_images_contradict_is_refused(capture, capsys, pattern, ma
     _refused(capsys, "inspect", capture / "capture.yaml", match=match)
 
 
+@pytest.mark.parametrize("lit", [2, 4])
+def test_a_lit_width_the_images_contradict_is_refused(capture, capsys, monkeypatch, lit):
+    """Before: ``lit: 2`` for stripes lit 3 rows of 6 passed inspect and the fit ran for
+    many minutes (it looked hung); ``lit: 4`` ended 'not identifiable' after 30 s,
+    naming neither. Now both commands refuse it at load, naming pattern.lit."""
+    from lightfield_jax.inverse import capture_fit
+
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    _edit(capture, pattern={**data["pattern"], "lit": lit})
+    match = f"pattern.lit: {lit} contradicts the images, whose stripes are lit 3.0"
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+    def no_fit(*_args, **_kwargs):
+        raise AssertionError("fitted before the wrong lit width was refused")
+
+    monkeypatch.setattr(capture_fit, "_fit_one", no_fit)
+    _refused(capsys, "fit", capture / "capture.yaml", match=match)
+
+
+def _transform_images(folder: Path, how) -> None:
+    for f in [*sorted(folder.glob("shift_*.exr")), folder / "dark.exr"]:
+        if f.exists():
+            y = read_image(f).pixels[..., 0]
+            write_exr(f, {"Y": np.ascontiguousarray(how(y))})
+
+
+@pytest.mark.parametrize(
+    ("how", "pattern", "match"),
+    [
+        (np.rot90, {}, "pattern.entry: left contradicts the images, whose light enters "),
+        (np.rot90, {"entry": "right", "direction_deg": 180.0}, "through the bottom wall"),
+        (np.fliplr, {}, "pattern.entry: left contradicts the images, whose light enters "),
+        (None, {"direction_deg": 2.0}, "pattern.direction_deg: 2 contradicts the images"),
+        (None, {"direction_deg": -1.0}, "whose stripes run at 0.0"),
+    ],
+)
+def test_a_misdeclared_entry_or_direction_is_refused(capture, capsys, how, pattern, match):
+    """Before: a camera rotated 90 deg (light from the bottom, the file says left) or
+    stripes tilted 4 deg (the file says 0) passed inspect, and the fit ran 20-30 s to end
+    'not identifiable'; light from the right with the file saying left passed inspect
+    (only the fit refused it). The declared wall and heading are now compared with the
+    detector's, and ``auto`` is suggested."""
+    if how is not None:
+        _transform_images(capture, how)
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    _edit(capture, pattern={**data["pattern"], "entry": "left", "direction_deg": 0.0, **pattern})
+    line = _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+    assert "auto" in line
+
+
+def test_a_declared_geometry_the_images_agree_with_is_kept(capture, capsys):
+    """The measured wall, and a heading within the detector's tolerance (0.5 deg), pass;
+    a rotated capture declared ``auto`` passes too."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    _edit(capture, pattern={**data["pattern"], "entry": "left", "direction_deg": 0.3})
+    assert lfj.load_capture(capture / "capture.yaml").pattern.direction_deg == 0.3
+    _transform_images(capture, np.rot90)
+    _edit(capture, pattern={**data["pattern"], "entry": "bottom", "direction_deg": 270.0})
+    assert lfj.load_capture(capture / "capture.yaml").pattern.entry == "bottom"
+    _edit(capture, pattern={**data["pattern"], "entry": "auto", "direction_deg": "auto"})
+    found = lfj.load_capture(capture / "capture.yaml").pattern
+    assert found.entry == "bottom" and abs(found.direction_deg - 270.0) < 0.1
+
+
 def test_unwritable_output_locations_are_refused_before_the_work(capture, capsys, tmp_path):
     # /proc refuses new files even to the superuser (a read-only folder does not).
     line = _refused(

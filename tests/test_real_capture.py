@@ -236,16 +236,16 @@ def test_given_values_override_detection_png(rgb):
     assert abs(c.pattern.direction_deg - DIRECTION) < 0.2
     assert abs(c.black_level - BLACK) < 0.01
     assert "against the mean of the shifts" in c.black_level_estimate.method
-    # A given ROI (one pixel in from each side) and direction are kept; the phases are
-    # measured inside them.
+    # A given ROI (one pixel in from each side) and direction (within the detector's
+    # tolerance of the stripes' 10 deg) are kept; the phases are measured inside them.
     (png / "capture.yaml").write_text(
         base + f"medium_roi: [{X0 + 1}, {Y0 + 1}, {X0 + W - 1}, {Y0 + H - 1}]\n"
-        "pattern: {phases: auto, direction_deg: 9.0}\n"
+        "pattern: {phases: auto, direction_deg: 9.8}\n"
     )
     with pytest.warns(CaptureWarning):
         c = load_capture(png / "capture.yaml")
     assert c.roi == (X0 + 1, Y0 + 1, X0 + W - 1, Y0 + H - 1)
-    assert c.pattern.direction_deg == 9.0 and c.pattern.entry == "left"
+    assert c.pattern.direction_deg == 9.8 and c.pattern.entry == "left"
     assert c.pattern.phases == tuple((p + 1) % PERIOD for p in PHASES)
     assert set(c.detected.given) == {"roi", "entry", "direction"}
 

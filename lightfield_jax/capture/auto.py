@@ -3,11 +3,14 @@ black level), and the checks that the images agree with the capture file (light,
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lightfield_jax.app.config import _Section
 from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
 from lightfield_jax.capture.detect import (
+    LOW_CONFIDENCE,
     Geometry,
     _across_first,
     _coefficients,
@@ -79,13 +82,14 @@ _STRIPED, _UNSTRIPED = 2.5, 0.1
 _SURE_PHASES = 0.8
 
 
-def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> str | None:
+def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark, auto=()) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
     of the period in a capture that has them, or given phases that differ from those
     the stripe detector (:func:`~lightfield_jax.capture.detect.detect_geometry`) measures
     with confidence. Default phases (``pattern.phases`` absent) that differ are
     returned as a note's text instead. ``images`` and ``roi``: the full frame's;
-    ``phases_from``: ``given``, ``default`` or ``auto``."""
+    ``phases_from``: ``given``, ``default`` or ``auto``; ``auto``: the pattern keys
+    measured (see :func:`_check_geometry_seen`, run after the period's check)."""
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
     stack = _across_first(crop, pattern.entry)
@@ -95,6 +99,8 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
         return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
     _check_period(top, pattern, stack, amplitude)
+    if len(names) >= 2:
+        _check_geometry_seen(top, pattern, images, roi, dark, auto)
     stripes = amplitude(pattern.period)
     with np.errstate(divide="ignore", invalid="ignore"):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
@@ -109,8 +115,6 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
                 f"{r:.2g} times the other images'): a white or black frame listed as a "
                 "stripe image? (give it as white_frame or black_frame)",
             )
-    if len(names) >= 2:
-        _check_direction_seen(top, pattern, images, (x0, y0, x1, y1), dark)
     if phases_from == "auto" or len(names) < 2:
         return None
     found = _measured(images, pattern, (x0, y0, x1, y1), dark, pattern.direction_deg)
@@ -135,11 +139,29 @@ def _check_stripes(top, pattern, images, roi, names, phases_from: str, dark) -> 
 # fundamental: a half or a double period has little amplitude; a small capture cannot
 # tell 6 from 8 px apart better than 0.47, measured on 24 rows).
 PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
+# A given entry wall, direction or lit width is compared with what the stripe detector
+# measures (every part measured: the wall, the heading, the lit width next to the wall)
+# only where it is sure of the stripes (their period found within 2 %, _SURE_PHASES:
+# noise can fit a heading too; a capture whose stripes are not seen got a heading of
+# 71 deg ± 0.01 with confidence 0.62). A given entry wall contradicts the images where
+# the detector finds the light entering another wall with the entry and orientation
+# parts of its confidence at least GEOMETRY_SURE (the detector's own LOW_CONFIDENCE:
+# below it a detection deserves a look, not a verdict).
+GEOMETRY_SURE = LOW_CONFIDENCE
 # A given direction contradicts the images where the stripes' measured heading differs
-# from it by more than DIRECTION_OFF degrees and DIRECTION_SIGMAS standard errors,
-# measured with confidence at least DIRECTION_SURE (and their period found within 2 %:
-# a capture whose stripes are not seen got a heading of 71 deg ± 0.01 with 0.62).
-DIRECTION_OFF, DIRECTION_SIGMAS, DIRECTION_SURE = 5.0, 5.0, 0.5
+# from it by more than DIRECTION_OFF degrees and DIRECTION_SIGMAS standard errors, the
+# heading measured with a direction confidence of at least GEOMETRY_SURE. The detector
+# is accurate to 0.09 deg on renders (rms 0.04; its standard error, 0.005-0.05 deg, is
+# the statistical part only, and a dense oblique medium was measured 0.21 deg off):
+# 0.5 deg leaves that bias and a real capture's lens a few tenths of a degree, while a
+# stripe tilt of 1 deg and more, which the fit cannot absorb (4 deg: not identifiable
+# after 30 s), is refused.
+DIRECTION_OFF, DIRECTION_SIGMAS = 0.5, 5.0
+# A given lit width contradicts the images where the stripes' lit width measured next to
+# the entry wall (Geometry.lit_px: rows above the local midpoint, per period) differs
+# from it by more than LIT_OFF rows: another integer width differs by 1 or more, and a
+# renders' measure is within 0.15 row (partial pixels of oblique stripes).
+LIT_OFF = 0.6
 
 
 def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
@@ -163,10 +185,11 @@ def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
         )
 
 
-def _measured(images, pattern: Stripes, roi, dark, direction_deg) -> Geometry | None:
-    """What the stripe detector measures in the full-frame ``images`` inside ``roi``,
-    for the pattern's period, lit rows and entry wall (``direction_deg`` given, or
-    ``None``: measured); ``None`` where the stripes are too faint to measure."""
+def _measured(images, pattern: Stripes, roi, dark, direction_deg, entry=True) -> Geometry | None:
+    """What the stripe detector measures in the full-frame ``images`` inside ``roi``
+    (``None``: the lit region it finds), for the pattern's period, lit rows and entry
+    wall (``entry`` ``None``: measured) and ``direction_deg`` (given, or ``None``:
+    measured); ``None`` where the stripes are too faint to measure."""
     try:
         return detect_geometry(
             images,
@@ -174,31 +197,53 @@ def _measured(images, pattern: Stripes, roi, dark, direction_deg) -> Geometry | 
             lit=pattern.lit,
             floor=None if dark is None else 0.0,
             roi=roi,
-            entry=pattern.entry,
+            entry=pattern.entry if entry else None,
             direction_deg=direction_deg,
         )
     except ValueError:
         return None
 
 
-def _check_direction_seen(top, pattern: Stripes, images, roi, dark) -> None:
-    """Refuse a ``pattern.direction_deg`` the stripes in the images do not run along,
-    where the stripe detector measures their heading with confidence."""
-    found = _measured(images, pattern, roi, dark, None)
-    if found is None:
+def _sure(found: Geometry, *parts: str) -> bool:
+    return all(found.parts.get(p, 1.0) >= GEOMETRY_SURE for p in parts)
+
+
+def _check_geometry_seen(top, pattern: Stripes, images, roi, dark, auto) -> None:
+    """Refuse a ``pattern.entry``, ``pattern.direction_deg`` or ``pattern.lit`` the
+    stripes in the images contradict, where the stripe detector is sure of what it
+    measures (see GEOMETRY_SURE). ``roi``: the capture's (``None``: the whole frame,
+    where the detector looks for the lit region itself); ``auto``: the keys measured."""
+    found = _measured(images, pattern, roi, dark, None, entry=False)
+    if found is None or found.parts.get("period", 0.0) < _SURE_PHASES:
         return  # stripes too faint to measure: nothing to compare
+    if found.entry != pattern.entry:
+        if "entry" not in auto and _sure(found, "entry", "orientation", "roi"):
+            top.fail(
+                "pattern.entry",
+                f"{pattern.entry} contradicts the images, whose light enters through the "
+                f"{found.entry} wall heading {found.direction_deg:.1f} deg (measured by the "
+                f"stripe detector, confidence {found.confidence:.2f}); correct it (and "
+                "pattern.direction_deg), or set both to auto",
+            )
+        found = _measured(images, pattern, roi, dark, None)
+        if found is None or found.parts.get("period", 0.0) < _SURE_PHASES:
+            return
     off = abs((found.direction_deg - pattern.direction_deg + 180.0) % 360.0 - 180.0)
-    # Sure of the heading, and of stripes of the period (noise can fit a heading too).
-    sure = (
-        found.parts.get("direction", 0.0) >= DIRECTION_SURE
-        and found.parts.get("period", 0.0) >= _SURE_PHASES
-    )
-    if sure and off > max(DIRECTION_OFF, DIRECTION_SIGMAS * found.direction_stderr_deg):
+    tolerance = max(DIRECTION_OFF, DIRECTION_SIGMAS * found.direction_stderr_deg)
+    if "direction_deg" not in auto and _sure(found, "direction") and off > tolerance:
         top.fail(
             "pattern.direction_deg",
             f"{pattern.direction_deg:g} contradicts the images, whose stripes run at "
-            f"{found.direction_deg:.1f} ± {found.direction_stderr_deg:.1f} deg (measured by "
-            "the stripe detector); correct it, or set it to auto",
+            f"{found.direction_deg:.2f} ± {found.direction_stderr_deg:.2f} deg from the "
+            f"{pattern.entry} wall (measured by the stripe detector; {tolerance:.1f} deg "
+            "tolerated); correct it, or set it to auto",
+        )
+    if math.isfinite(found.lit_px) and abs(found.lit_px - pattern.lit) > LIT_OFF:
+        top.fail(
+            "pattern.lit",
+            f"{pattern.lit} contradicts the images, whose stripes are lit "
+            f"{found.lit_px:.2f} of every {pattern.period} rows at the {pattern.entry} "
+            "wall (measured by the stripe detector); correct it",
         )
 
 

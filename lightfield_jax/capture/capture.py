@@ -472,8 +472,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
+    auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
     contradiction = _check_stripes(
-        top, full_pattern, calibrated, full_roi, names, phases_from, dark
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark, auto
     )
     if contradiction:
         notes.append(contradiction)

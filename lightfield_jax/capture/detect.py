@@ -51,6 +51,10 @@ finds them in the images themselves, in the image frame of docs/model.md section
 - **Period.** The transverse frequency whose Fourier power is largest near 1/T (a dense
   search between 1/(1.5T) and 1.5/T) gives the stripes' period in camera pixels: it
   must be T for the capture format to describe them.
+- **Lit width.** On the lines along the light next to the entry wall (the direct light
+  keeps the projector's sharp stripes there), the fraction of pixels above the midpoint
+  of their one-period neighbourhood's extremes, times T (``Geometry.lit_px``): it must
+  be ``lit`` (within 0.15 row on renders, oblique ones included).
 
 Measured on renders (48×36 px media embedded in a dark frame with shot and read noise,
 θ0 from −20° to 25°, three media, 54 captures): lit walls within 0 px, θ0 within 0.09°
@@ -112,6 +116,8 @@ class Geometry:
             extending it, and why it stops there (``frame`` or ``lit``); else ``None``.
         floor: the signal's noise floor (image units) and ``noise`` its scatter;
             ``threshold`` the level above which a pixel counted as lit.
+        lit_px: the stripes' measured lit width along the wall (camera pixels per
+            period) next to the entry wall; NaN where the wall is too short to measure.
     """
 
     roi: tuple[int, int, int, int]
@@ -129,6 +135,7 @@ class Geometry:
     noise: float
     threshold: float
     faded: dict[str, Any] | None = None
+    lit_px: float = math.nan
 
     def summary(self) -> str:
         """One line per finding, for a report or the command line."""
@@ -456,6 +463,7 @@ def detect_geometry(
     parts["phases"] = _clip01(1.0 - 2.0 * offset)
     period_px = _measured_period(stack, u0, period)
     parts["period"] = _clip01(1.0 - abs(period_px / period - 1.0) / 0.1)
+    lit_px = _measured_lit(stack, entry, period)
     faded = None
     if "roi" not in given and edges[_OPPOSITE[entry]] == "faded":
         roi, faded = _extend_faded(s, roi, _OPPOSITE[entry], threshold)
@@ -475,7 +483,33 @@ def detect_geometry(
         noise=float(noise),
         threshold=float(threshold),
         faded=faded,
+        lit_px=lit_px,
     )
+
+
+def _measured_lit(stack: np.ndarray, entry: str, period: int) -> float:
+    """Lit width of the stripes along the wall (pixels per period), measured on the
+    lines along the light next to the entry wall, where the direct light keeps the
+    projector's sharp stripes: the fraction of pixels above the midpoint of the local
+    extremes over one period (a sliding window, so a slow variation along the wall
+    does not count), times the period. The line at the wall itself is skipped where
+    there are enough (it may be cut by the wall's edge)."""
+    if entry in ("right", "bottom"):
+        stack = stack[..., ::-1]
+    n = stack.shape[-1]
+    lines = stack[..., 1:4] if n >= 8 else stack[..., : max(1, n // 2)]
+    lines = np.moveaxis(lines, -2, -1)  # (P, lines, across)
+    if lines.shape[-1] < 2 * period + 1:
+        return math.nan
+    window = np.lib.stride_tricks.sliding_window_view(lines, period + 1, axis=-1)
+    middle = 0.5 * (window.max(axis=-1) + window.min(axis=-1))
+    h = period // 2
+    centre = lines[..., h : h + middle.shape[-1]]
+    spread = window.max(axis=-1) - window.min(axis=-1)
+    counted = spread > 0
+    if not counted.any():
+        return math.nan
+    return float(np.mean((centre > middle)[counted]) * period)
 
 
 def _extend_faded(s: np.ndarray, roi, side: str, threshold: float):
