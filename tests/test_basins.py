@@ -362,3 +362,34 @@ def test_an_opaque_medium_is_scanned_where_its_decay_estimate_runs_low(sigma_t):
     for key, truth in (("sigma_t", sigma_t), ("g", 0.4)):
         assert abs(getattr(result, key) - truth) < 3 * result.uncertainty[key], key
     assert len(result.basins["sigma_t_scanned"]) == 4
+
+
+def test_a_gain_that_is_not_positive_is_not_trusted():
+    budget = error_budget(1e3 * np.eye(4), np.zeros(4), ["sigma_t", "sigma_s", "g", "gain"], 1.0)
+    values = {"sigma_t": 0.2, "sigma_s": 0.04, "g": 0.4}
+    assert untrustworthy({**values, "gain": 3.0}, budget, 4.0) == []
+    (reason,) = untrustworthy({**values, "gain": -3.0}, budget, 4.0)
+    assert "gain is -3, not positive" in reason
+
+
+@pytest.mark.parametrize("method", ["grid", "gradient"])
+def test_two_step_answers_at_a_bound_or_undetermined_are_not_trusted(method):
+    """A pure absorber (σs = 0): only noise reaches the camera past the direct light.
+    The gradient fit said converged (σt 1e-6, g −0.95 ± 3e6) and the grid's crashed on
+    σs = 0; the joint fit's rules for trust now apply to them too."""
+    from lightfield_jax.app.config import parse_simulation_config
+
+    config = {
+        "grid": {"width": 32, "height": 24},
+        "medium": {"sigma_t": 0.2, "sigma_s": 0.0, "g": 0.0},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+        "bounces": "auto",
+        "gain": 400,
+        "black_level": 0.01,
+        "noise": {"photons": 20000, "read": 0.0005, "seed": 0},
+    }
+    images = np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+    result = lfj.fit_images(images, lfj.Stripes(), method=method, black_level=0.01)
+    assert not result.converged
+    assert any("at its bound" in r or "not identifiable" in r for r in result.reasons)
+    result.to_dict()  # the albedo's error at σs = 0: no ZeroDivisionError

@@ -456,6 +456,21 @@ def unidentified(values: dict, budget: Uncertainty) -> list[str]:
     return reasons
 
 
+def negative_gain(values: dict) -> list[str]:
+    """The reason a solution is not to be trusted when its gain (the images' scale
+    against the model's light) is not positive: the images are darker where the model
+    puts light (negated images, or a dark frame brighter than them). Empty: it is
+    positive (or not given)."""
+    gain = values.get("gain", math.nan)
+    if math.isfinite(gain) and gain <= 0:
+        return [
+            f"the gain is {gain:.4g}, not positive: the images are darker where the model "
+            "puts light (negated images, or a dark frame subtracted that is brighter than "
+            "them?)"
+        ]
+    return []
+
+
 def untrustworthy(
     values: dict,
     budget: Uncertainty,
@@ -463,10 +478,11 @@ def untrustworthy(
     black_range: tuple[float, float] | None = None,
 ) -> list[str]:
     """The reasons a solution is not to be trusted (empty: none): :func:`at_bound`, a
-    parameter the capture's noise does not determine (:func:`unidentified`), and a
-    misfit far above ``max_chi2`` judged by ``budget.chi2_model`` (noise ⊕ the model's
-    own error)."""
+    parameter the capture's noise does not determine (:func:`unidentified`), a gain
+    that is not positive (:func:`negative_gain`), and a misfit far above ``max_chi2``
+    judged by ``budget.chi2_model`` (noise ⊕ the model's own error)."""
     reasons = at_bound(values, black_range) + unidentified(values, budget)
+    reasons += negative_gain(values)
     if math.isfinite(budget.chi2_model) and budget.chi2_model > max_chi2:
         reasons.append(
             f"misfit far above the capture's noise and the model's own error: chi2/dof = "
@@ -492,6 +508,7 @@ __all__ = [
     "Uncertainty",
     "at_bound",
     "error_budget",
+    "negative_gain",
     "noise_scale",
     "split_groups",
     "tail_unconverged",
