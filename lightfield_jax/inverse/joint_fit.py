@@ -103,20 +103,21 @@ def _rescan(data, pattern, scan_model, options, black, weights, the_scan, stages
     say(f"basin scan again at the answer's sigma_t {found['sigma_t']:.4g}")
     rescan = _run_scan(data, pattern, scan_model, options, black, weights, found["sigma_t"])
     home = _home_basin(rescan, found)
-    starts = [
+    others = [(i, b) for i, b in enumerate(rescan.basins) if b.index != home]
+    return _starts_of("rescan basin", rescan, others, black), rescan
+
+
+def _starts_of(label: str, scan, found, black) -> list:
+    """The joint fit's starts ``(label i, (σt, σs, g, b))`` of ``scan``'s basins
+    ``found`` (pairs ``(i, basin)``): at the scan's σt, b the scan's where it is
+    fitted."""
+    return [
         (
-            f"rescan basin {i}",
-            (
-                rescan.sigma_t,
-                b.albedo * rescan.sigma_t,
-                b.g,
-                b.black_level if black is None else black,
-            ),
+            f"{label} {i}",
+            (scan.sigma_t, b.albedo * scan.sigma_t, b.g, b.black_level if black is None else black),
         )
-        for i, b in enumerate(rescan.basins)
-        if b.index != home
+        for i, b in found
     ]
-    return starts, rescan
 
 
 def _same_answer(a: dict, b: dict) -> bool:
@@ -564,18 +565,7 @@ def _joint_fit(
                 "the basin scan found no valid model for this capture (every albedo's "
                 "bounce series diverges or is truncated): give bounces or a start"
             )
-        starts = [
-            (
-                f"basin {i}",
-                (
-                    the_scan.sigma_t,
-                    b.albedo * the_scan.sigma_t,
-                    b.g,
-                    b.black_level if black is None else black,
-                ),
-            )
-            for i, b in enumerate(found)
-        ]
+        starts = _starts_of("basin", the_scan, enumerate(found), black)
     # One cheap model for every start: marched where the scan's measured ratio at each
     # start allows it (see _by_measured_ratio).
     ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
