@@ -182,9 +182,9 @@ def unmask(images, mask=None):
     if mask is None:
         return data, valid
     given = np.asarray(mask)
-    if given.dtype != bool or given.shape not in (data.shape, data.shape[-2:]):
+    if given.shape not in (data.shape, data.shape[-2:]):
         return data, mask  # refused as it would be without the masked array
-    return data, given & valid
+    return data, given.astype(bool) & valid  # as prepare_data takes a mask: truthiness
 
 
 def masked_to_nan(images):

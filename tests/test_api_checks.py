@@ -551,6 +551,9 @@ def test_a_masked_arrays_mask_is_honoured_by_fit_images(monkeypatch):
     assert (seen["mask"] == (~bad & pixels)).all()
     lfj.fit_images(images, pattern, mask=pixels)  # a plain array: as given
     assert seen["mask"] is pixels
+    # A 0/1 mask (not bool) is combined too: before, the masked array's mask was dropped.
+    lfj.fit_images(np.ma.masked_array(images, mask=bad), pattern, mask=pixels.astype(int))
+    assert (seen["mask"] == (~bad & pixels)).all()
 
 
 def test_separate_and_fit_decay_skip_a_masked_arrays_masked_values():

@@ -393,3 +393,13 @@ def test_two_step_answers_at_a_bound_or_undetermined_are_not_trusted(method):
     assert not result.converged
     assert any("at its bound" in r or "not identifiable" in r for r in result.reasons)
     result.to_dict()  # the albedo's error at σs = 0: no ZeroDivisionError
+
+
+def test_the_grid_end_in_float32_is_at_the_g_bound():
+    """The two-step grid's last g is float32's 0.95, 0.949999988: at its bound."""
+    from lightfield_jax.inverse.trust import at_bound
+
+    g = float(np.linspace(-0.95, 0.95, 39, dtype=np.float32)[-1])
+    assert g < 0.95
+    (reason,) = at_bound({"sigma_t": 0.2, "sigma_s": 0.05, "g": g})
+    assert "at its bound" in reason

@@ -168,6 +168,10 @@ def test_simulate_does_not_write_over_a_capture_of_the_users_own(capture, capsys
     for folder in (tmp_path / "own", tmp_path / "own", tmp_path / "other"):
         assert main(["simulate", str(cfg), "--out", str(folder), "-q"]) == 0
     assert (tmp_path / "other" / "notes.txt").read_text() == "mine"
+    # Its figures folder is rerun into too (its figures replaced: no capture there).
+    for _ in range(2):
+        argv = ["simulate", str(cfg), "--out", str(tmp_path / "own"), "-q"]
+        assert main([*argv, "--plot", str(tmp_path / "figs")]) == 0
 
 
 def test_an_empty_output_path_is_refused_by_its_option(capture, capsys, tmp_path):
@@ -301,22 +305,18 @@ def test_a_pattern_the_images_contradict_is_refused(capture, capsys, pattern, ma
 
 
 @pytest.mark.parametrize("lit", [2, 4])
-def test_a_lit_width_the_images_contradict_is_refused(capture, capsys, monkeypatch, lit):
-    """Before: ``lit: 2`` for stripes lit 3 rows of 6 passed inspect and the fit ran for
-    many minutes (it looked hung); ``lit: 4`` ended 'not identifiable' after 30 s,
-    naming neither. Now both commands refuse it at load, naming pattern.lit."""
-    from lightfield_jax.inverse import capture_fit
-
+def test_a_lit_width_the_images_seem_to_contradict_is_noted(capture, lit):
+    """Before: ``lit: 2`` for stripes lit 3 rows of 6 passed inspect without a word and
+    the fit ran for many minutes (it looked hung). The measured width moves by a row or
+    two with blur and the stripes' offset from the pixel grid, so it is a note naming
+    pattern.lit, not a refusal."""
     data = yaml.safe_load((capture / "capture.yaml").read_text())
     _edit(capture, pattern={**data["pattern"], "lit": lit})
-    match = f"pattern.lit: {lit} contradicts the images, whose stripes are lit 3.0"
-    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
-
-    def no_fit(*_args, **_kwargs):
-        raise AssertionError("fitted before the wrong lit width was refused")
-
-    monkeypatch.setattr(capture_fit, "_fit_one", no_fit)
-    _refused(capsys, "fit", capture / "capture.yaml", match=match)
+    notes = lfj.load_capture(capture / "capture.yaml").notes
+    assert any(f"pattern.lit: {lit}, but the stripes look lit 3.0" in n for n in notes), notes
+    _edit(capture, pattern={**data["pattern"], "lit": 3})
+    notes = lfj.load_capture(capture / "capture.yaml").notes
+    assert not any("pattern.lit" in n for n in notes), notes
 
 
 def _transform_images(folder: Path, how) -> None:
@@ -332,8 +332,8 @@ def _transform_images(folder: Path, how) -> None:
         (np.rot90, {}, "pattern.entry: left contradicts the images, whose light enters "),
         (np.rot90, {"entry": "right", "direction_deg": 180.0}, "through the bottom wall"),
         (np.fliplr, {}, "pattern.entry: left contradicts the images, whose light enters "),
-        (None, {"direction_deg": 2.0}, "pattern.direction_deg: 2 contradicts the images"),
-        (None, {"direction_deg": -1.0}, "whose stripes run at 0.0"),
+        (None, {"direction_deg": 4.0}, "pattern.direction_deg: 4 contradicts the images"),
+        (None, {"direction_deg": -3.0}, "whose stripes run at 0.0"),
     ],
 )
 def test_a_misdeclared_entry_or_direction_is_refused(capture, capsys, how, pattern, match):
@@ -354,8 +354,8 @@ def test_a_declared_geometry_the_images_agree_with_is_kept(capture, capsys):
     """The measured wall, and a heading within the detector's tolerance (0.5 deg), pass;
     a rotated capture declared ``auto`` passes too."""
     data = yaml.safe_load((capture / "capture.yaml").read_text())
-    _edit(capture, pattern={**data["pattern"], "entry": "left", "direction_deg": 0.3})
-    assert lfj.load_capture(capture / "capture.yaml").pattern.direction_deg == 0.3
+    _edit(capture, pattern={**data["pattern"], "entry": "left", "direction_deg": 1.0})
+    assert lfj.load_capture(capture / "capture.yaml").pattern.direction_deg == 1.0
     _transform_images(capture, np.rot90)
     _edit(capture, pattern={**data["pattern"], "entry": "bottom", "direction_deg": 270.0})
     assert lfj.load_capture(capture / "capture.yaml").pattern.entry == "bottom"

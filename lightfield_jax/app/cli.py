@@ -173,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 # The options naming an output path (each command has some of them).
-PATH_OPTIONS = ("out", "plot", "json")
+PATH_OPTIONS = ("out", "plot", "json", "response")
 
 
 def _refuse_empty_paths(args: argparse.Namespace) -> None:

@@ -79,11 +79,13 @@ def _simulate(args: argparse.Namespace) -> None:
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 
     _outputs(
-        folders=[args.out, args.plot],
+        folders=[args.out],
         inputs=[args.config],
         folder_names=(*SIMULATE_FILES, "*.png"),
         marker="metadata.json",
     )
+    if args.plot:  # a figures folder: its figures are replaced (no capture there)
+        _outputs(folders=[args.plot], inputs=[args.config], folder_names=("*.png",))
     config = load_simulation_config(args.config)
     out = Path(args.out)
     plot = Path(args.plot) if args.plot else None

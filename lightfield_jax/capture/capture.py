@@ -474,7 +474,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
     contradiction = _check_stripes(
-        top, full_pattern, calibrated, full_roi, names, phases_from, dark, auto
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark, auto, notes
     )
     if contradiction:
         notes.append(contradiction)

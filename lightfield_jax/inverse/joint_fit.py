@@ -104,6 +104,7 @@ def _rescan(data, pattern, scan_model, options, black, weights, the_scan, stages
     rescan = _run_scan(data, pattern, scan_model, options, black, weights, found["sigma_t"])
     home = _home_basin(rescan, found)
     others = [(i, b) for i, b in enumerate(rescan.basins) if b.index != home]
+    others = others[: max(options.max_basins - len(stages), 1)]
     return _starts_of("rescan basin", rescan, others, black), rescan
 
 
@@ -579,7 +580,7 @@ def _joint_fit(
     rescan = None
     pending = list(starts)
     while True:
-        if not pending and rescan is None and from_scan and stages:
+        if not pending and rescan is None and from_scan and options.basin_search and stages:
             pending, rescan = _rescan(
                 data, pattern, scan_model, options, black, weights, the_scan, stages, say
             )
@@ -727,7 +728,7 @@ def _joint_fit(
     scan_dict["tried"] = tried
     if len(scanned) > 1:
         scan_dict["sigma_t_scanned"] = scanned
-    if rescan is not None:  # the_scan is the rescan: the first one, at the decay's σt
+    if rescan is not None:  # the_scan is the rescan; the first one is the scan kept before
         scan_dict["first_scan"] = first_scan.as_dict()
     return (
         last.model,

@@ -36,7 +36,12 @@ from lightfield_jax.inverse.joint_fit import joint_fit
 from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
 from lightfield_jax.inverse.model_size import _at_least, size_model
 from lightfield_jax.inverse.trust import at_bound, negative_gain, unidentified
-from lightfield_jax.inverse.two_step import TwoStepSettings, full_for, solve_two_step
+from lightfield_jax.inverse.two_step import (
+    TwoStepSettings,
+    full_for,
+    sigma_s_max,
+    solve_two_step,
+)
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions
@@ -234,6 +239,12 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     # parameter the capture does not determine, a gain that is not positive.
     found = {"sigma_t": data.sigma_t0, "sigma_s": sol.sigma_s, "g": sol.g, "gain": sol.gain}
     reasons = at_bound(found) + unidentified(found, budget) + negative_gain(found)
+    cap = float(sigma_s_max(data.sigma_t0, sol.g, options.phase))
+    if math.isfinite(sol.g) and sol.sigma_s >= (1 - 1e-3) * cap:
+        reasons.append(
+            f"sigma_s = {sol.sigma_s:.4g} is at the two-step's bound {cap:.4g} (sigma_t, "
+            "or the sigma_s where the bounce series stops converging)"
+        )
     if reasons:
         ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" ({msg})"
     return FitSolution(
