@@ -123,7 +123,8 @@ def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_pa
     assert _snapshot(capture) == before
     rendered = tmp_path / "rendered"
     rendered.mkdir()
-    for name in ("bounces.npy", "bounces.exr", "render.json"):
+    # render --plot's figures too: simulate --plot would replace them.
+    for name in ("bounces.npy", "bounces.exr", "render.json", "bounce_images.png"):
         (rendered / name).write_bytes(b"mine")
     cfg = tmp_path / "sim.yaml"
     cfg.write_text(SIMULATE)
