@@ -335,6 +335,23 @@ def test_consistency_adds_a_model_term_only_where_the_parts_disagree():
     assert error_budget(jac, residual, names, math.nan, groups={"halves": group}).consistency == {}
 
 
+def _noisy_32x24(medium: dict) -> np.ndarray:
+    """A 32x24 six-shift stripe capture of ``medium`` (paper phase) as simulate makes
+    it: gain 400, black level 0.01, 2·10⁴ photons and read noise 5·10⁻⁴, seed 0."""
+    from lightfield_jax.app.config import parse_simulation_config
+
+    config = {
+        "grid": {"width": 32, "height": 24},
+        "medium": medium,
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+        "bounces": "auto",
+        "gain": 400,
+        "black_level": 0.01,
+        "noise": {"photons": 20000, "read": 0.0005, "seed": 0},
+    }
+    return np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+
+
 @pytest.mark.parametrize("sigma_t", [3.0, 5.0])
 def test_an_opaque_medium_is_scanned_where_its_decay_estimate_runs_low(sigma_t):
     """A mean free path below a pixel: the direct light's decay estimate runs low (σt 3
@@ -342,18 +359,7 @@ def test_an_opaque_medium_is_scanned_where_its_decay_estimate_runs_low(sigma_t):
     Its answers (σt 3.40, g −0.89; σt 3.53, g −0.64) were reported converged with the
     truth 20-50 σ away. The fit now scans at larger σt too, and scans again at an
     answer far from the scan's σt."""
-    config = {
-        "grid": {"width": 32, "height": 24},
-        "medium": {"sigma_t": sigma_t, "sigma_s": sigma_t / 2, "g": 0.4},
-        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
-        "bounces": "auto",
-        "gain": 400,
-        "black_level": 0.01,
-        "noise": {"photons": 20000, "read": 0.0005, "seed": 0},
-    }
-    from lightfield_jax.app.config import parse_simulation_config
-
-    images = np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+    images = _noisy_32x24({"sigma_t": sigma_t, "sigma_s": sigma_t / 2, "g": 0.4})
     result = lfj.fit_images(images, lfj.Stripes())
     assert result.converged, result.message
     assert abs(result.sigma_t / sigma_t - 1) < 0.02, result.sigma_t
@@ -377,18 +383,7 @@ def test_two_step_answers_at_a_bound_or_undetermined_are_not_trusted(method):
     """A pure absorber (σs = 0): only noise reaches the camera past the direct light.
     The gradient fit said converged (σt 1e-6, g −0.95 ± 3e6) and the grid's crashed on
     σs = 0; the joint fit's rules for trust now apply to them too."""
-    from lightfield_jax.app.config import parse_simulation_config
-
-    config = {
-        "grid": {"width": 32, "height": 24},
-        "medium": {"sigma_t": 0.2, "sigma_s": 0.0, "g": 0.0},
-        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
-        "bounces": "auto",
-        "gain": 400,
-        "black_level": 0.01,
-        "noise": {"photons": 20000, "read": 0.0005, "seed": 0},
-    }
-    images = np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+    images = _noisy_32x24({"sigma_t": 0.2, "sigma_s": 0.0, "g": 0.0})
     result = lfj.fit_images(images, lfj.Stripes(), method=method, black_level=0.01)
     assert not result.converged
     assert any("at its bound" in r or "not identifiable" in r for r in result.reasons)

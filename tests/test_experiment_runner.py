@@ -229,13 +229,14 @@ def _write(tmp_path, data, name="bad.yaml"):
     return path
 
 
-def _refused(tmp_path, data, message):
-    """``data`` run as a config: one-line ValueError naming its file, no output folder."""
+def _refused(tmp_path, data, message, prefix=""):
+    """``data`` run as a config: one-line ValueError naming its file (then ``prefix``),
+    no output folder."""
     path, out = _write(tmp_path, data), tmp_path / "out"
     with pytest.raises(ValueError) as info:
         _experiment.run_experiment(path, out)
     text = str(info.value)
-    assert text.startswith(f"{path}: ") and "\n" not in text, text
+    assert text.startswith(f"{path}: {prefix}") and "\n" not in text, text
     assert re.search(message, text), text
     assert not out.exists()
 
@@ -352,14 +353,7 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
 def test_a_bad_value_is_named_before_any_work(tmp_path, no_work, name, change, message):
     """Strings and bools for numbers, out-of-range, non-finite and unknown nested
     values: before, run into the script (a traceback, a hang, or a silent answer)."""
-    data = {**_shipped(name, reduced=False), **change}
-    path, out = _write(tmp_path, data), tmp_path / "out"
-    with pytest.raises(ValueError) as info:
-        _experiment.run_experiment(path, out)
-    text = str(info.value)
-    assert text.startswith(f"{path}: {name}: ") and "\n" not in text, text
-    assert re.search(message, text), text
-    assert not out.exists()
+    _refused(tmp_path, {**_shipped(name, reduced=False), **change}, message, f"{name}: ")
 
 
 @pytest.mark.parametrize(

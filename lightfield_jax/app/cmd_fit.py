@@ -316,6 +316,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.app.outputs import CAPTURE_MARKER
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_directory, atomic_write_json
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
@@ -330,7 +331,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     _outputs(
         folders=[args.out],
         folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),
-        marker="metadata.json",  # the demo's folder is a simulated capture
+        marker=CAPTURE_MARKER,  # the demo's folder is a simulated capture
     )
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")

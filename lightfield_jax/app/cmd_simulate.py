@@ -75,6 +75,7 @@ def _simulate(args: argparse.Namespace) -> None:
     command succeeds.
     """
     from lightfield_jax.app.config import load_simulation_config
+    from lightfield_jax.app.outputs import CAPTURE_MARKER
     from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 
@@ -82,7 +83,7 @@ def _simulate(args: argparse.Namespace) -> None:
         folders=[args.out],
         inputs=[args.config],
         folder_names=(*SIMULATE_FILES, "*.png"),
-        marker="metadata.json",
+        marker=CAPTURE_MARKER,
     )
     if args.plot:  # a figures folder: its figures are replaced (no capture there)
         _outputs(folders=[args.plot], inputs=[args.config], folder_names=("*.png",))

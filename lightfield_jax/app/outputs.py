@@ -245,6 +245,7 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
 
 
 __all__ = [
+    "CAPTURE_MARKER",
     "FOLDER_MARKERS",
     "OutputError",
     "check_outputs",

@@ -545,7 +545,7 @@ def _joint_fit(
         # A mean free path of a few pixels or less: the decay estimate runs low (below),
         # so the scan is made at larger σt too and the one with the best misfit kept.
         for factor in SIGMA_T_FACTORS:
-            other = _run_scan(data, pattern, coarse, options, black, weights, st0 * factor)
+            other = _run_scan(data, pattern, scan_model, options, black, weights, st0 * factor)
             count(other.seconds)
             scanned.append(st0 * factor)
             if other.basins and (

@@ -35,7 +35,7 @@ from lightfield_jax.inverse.data import FitProblem, FitSolution
 from lightfield_jax.inverse.joint_fit import joint_fit
 from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
 from lightfield_jax.inverse.model_size import _at_least, size_model
-from lightfield_jax.inverse.trust import at_bound, negative_gain, unidentified
+from lightfield_jax.inverse.trust import untrustworthy
 from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
     full_for,
@@ -235,10 +235,10 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         ok, msg = False, "the decay fit of sigma_t did not converge"
     stat = {"sigma_t": data.sigma_t0_err, **sol.budget.statistical}
     budget = dataclasses.replace(sol.budget, statistical=stat, total=stat)
-    # The joint fit's rules for an answer not to be trusted that apply here: a bound, a
-    # parameter the capture does not determine, a gain that is not positive.
+    # The joint fit's rules for an answer not to be trusted (a bound, a parameter the
+    # capture does not determine, a gain that is not positive); no misfit test here.
     found = {"sigma_t": data.sigma_t0, "sigma_s": sol.sigma_s, "g": sol.g, "gain": sol.gain}
-    reasons = at_bound(found) + unidentified(found, budget) + negative_gain(found)
+    reasons = untrustworthy(found, budget, math.inf)
     cap = float(sigma_s_max(data.sigma_t0, sol.g, options.phase))
     if math.isfinite(sol.g) and sol.sigma_s >= (1 - 1e-3) * cap:
         reasons.append(
