@@ -261,7 +261,7 @@ def test_an_extrapolated_scan_finds_a_high_albedo_basin():
     medium = lfj.Medium(st, ss, g, "normalized")
     images = np.asarray(lfj.render(medium, grid, lfj.Stripes(), "auto").total)
     weights = 1.0 / np.sqrt(images + 1e-3 * images.max())
-    cost, _black, gs, albedos, ratios, refs = scan(
+    cost, _black, gs, albedos, ratios, refs, _offset = scan(
         renderer_for(grid, lfj.Stripes(), 24, "normalized"),
         None,
         images,
@@ -398,3 +398,61 @@ def test_the_grid_end_in_float32_is_at_the_g_bound():
     assert g < 0.95
     (reason,) = at_bound({"sigma_t": 0.2, "sigma_s": 0.05, "g": g})
     assert "at its bound" in reason
+
+
+@pytest.mark.parametrize("black_level", [None, 0.0])
+def test_the_scan_measures_a_constant_offset_left_in_the_images(black_level):
+    """A camera pedestal left in the images (no dark frame): the scan's misfit with a
+    constant offset beside the model's columns is a small fraction of its misfit
+    without, at the pedestal's value; without a pedestal the offset explains little."""
+    from lightfield_jax.forward.render import renderer_for
+    from lightfield_jax.inverse.basins import scan
+    from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
+
+    st, ss, g = 0.2051, 0.0366, 0.4
+    grid = lfj.Grid(32, 24, 16, 1)
+    clean = np.asarray(lfj.render(lfj.Medium(st, ss, g), grid, lfj.Stripes(), 8).total)
+    rng = np.random.default_rng(0)
+    clean = clean / clean.max()
+    noisy = clean + 2e-3 * rng.standard_normal(clean.shape)
+    found = {}
+    for pedestal in (0.0, 0.03):
+        images = noisy + pedestal
+        weights = 1.0 / np.sqrt(np.abs(images) + 1e-2)
+        *_, offset = scan(
+            renderer_for(grid, lfj.Stripes(), 8, "paper"),
+            None,
+            images,
+            weights,
+            st,
+            phase="paper",
+            lit=3,
+            black_level=black_level,
+            rho_limit=lambda _g, a: np.asarray(a),
+        )
+        found[pedestal] = offset
+    assert found[0.03].fraction < 0.2 * OFFSET_EXPLAINS, found
+    assert found[0.03].value == pytest.approx(0.03, abs=0.003), found
+    assert found[0.0].fraction > OFFSET_EXPLAINS and abs(found[0.0].value) < 0.003, found
+
+
+def test_the_offset_linearised_at_an_answer_and_its_hint():
+    """constant_offset: the residual r = w·(model − images) of images holding a constant
+    d beyond what the parameters' columns absorb gives d back; the hint names it where it
+    leaves at most OFFSET_EXPLAINS of the misfit, and says nothing otherwise."""
+    from lightfield_jax.inverse.trust import constant_offset, offset_hint
+
+    rng = np.random.default_rng(1)
+    w = rng.uniform(0.5, 2.0, 400)
+    jac = rng.standard_normal((400, 3))
+    noise = 1e-3 * rng.standard_normal(400)
+    d, left = constant_offset(jac, jac @ [0.3, -1.0, 2.0] - w * 0.05 + noise, w)
+    assert d == pytest.approx(0.05, abs=1e-3) and left < 0.01
+    hint = offset_hint(d, left, "answer's", 1.0)
+    assert len(hint) == 1 and "+0.0499" in hint[0] and "camera pedestal" in hint[0], hint
+    d, left = constant_offset(jac, jac @ [0.3, -1.0, 2.0] + noise, w)
+    assert left > 0.9 and offset_hint(d, left, "answer's", 1.0) == []
+    assert constant_offset(jac, np.full(400, np.nan), w) == (
+        pytest.approx(np.nan, nan_ok=True),
+        1.0,
+    )

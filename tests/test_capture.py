@@ -735,3 +735,51 @@ def test_a_response_table_header_orders_its_columns(tmp_path):
     write_response(tmp_path / "xyz.csv", Response("file", codes, curves), ["X", "Y", "Z"])
     with pytest.raises(CaptureError, match=r"xyz.csv: its header names the channels X, Y, Z"):
         _capture(tmp_path, text=text.replace("bgr.csv", "xyz.csv"))
+
+
+def test_a_dark_level_is_subtracted_like_a_dark_frame_of_that_value(simulated, tmp_path):
+    """simulate's dark frame is its constant dark level (0.02): ``dark_level: 0.02``
+    instead of the frame gives the same images."""
+    _, folder = simulated
+    with_frame = load_capture(folder / "capture.yaml")
+    text = (folder / "capture.yaml").read_text().replace("dark_frame: dark.exr", "dark_level: 0.02")
+    assert "dark_level" in text
+    path = folder / "capture_level.yaml"
+    path.write_text(text)
+    capture = load_capture(path)
+    assert capture.dark_level == 0.02 and capture.dark_frame is None
+    np.testing.assert_allclose(capture.images, with_frame.images, atol=1e-7)
+    assert "dark_level: 0.02 subtracted from every image" in capture.notes
+    # Without it the pedestal stays in the images.
+    path.write_text(text.replace("dark_level: 0.02", ""))
+    assert load_capture(path).images.min() > 0.019
+
+
+def test_dark_level_refusals(tmp_path):
+    names = _images(tmp_path)
+    write_exr(tmp_path / "dark.exr", {"Y": np.zeros((H, W))})
+    base = f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 2, 4]}}\n"
+
+    def refused(extra, match):
+        (tmp_path / "capture.yaml").write_text(base + extra)
+        with pytest.raises(CaptureError, match=match) as info:
+            load_capture(tmp_path / "capture.yaml")
+        assert "\n" not in str(info.value)
+
+    refused("dark_level: 0.01\ndark_frame: dark.exr\n", "dark_level: give a dark_frame or a")
+    refused("dark_level: -0.01\n", r"dark_level: must be a finite value >= 0, got -0\.01")
+    refused("dark_level: 0.6\n", r"dark_level: 0\.6 is above the images")
+    # Integer files: a value in codes is named as such, with its image value.
+    for i, name in enumerate(names):
+        write_png(tmp_path / f"c{i}.png", read_image(tmp_path / name).pixels[..., 0], bits=16)
+    pngs = [f"c{i}.png" for i in range(P)]
+    base = f"images: {pngs}\npattern: {{period: 6, lit: 3, phases: [0, 2, 4]}}\n"
+    refused(
+        "dark_level: 2048\n",
+        r"dark_level: 2048 is not an image value of these 16-bit files .* dark_level: "
+        r"0\.0312505 \(2048/65535\)",
+    )
+    refused("dark_level: 0.01\nresponse: srgb\n", "dark_level: applies to linear images")
+    capture = _capture(tmp_path, text=base + "dark_level: 0.05\n")
+    raw = np.stack([read_image(tmp_path / p).pixels for p in pngs])
+    np.testing.assert_allclose(capture.images, raw - 0.05, atol=1e-6)

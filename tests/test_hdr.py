@@ -318,3 +318,23 @@ def test_a_shift_clipped_in_every_exposure_is_named(radiance, tmp_path):
         CaptureError, match=r"every pixel is clipped in every exposure of images\[2\] \(shift2_"
     ):
         load_capture(path)
+
+
+def test_a_dark_level_is_subtracted_from_every_exposure(radiance, tmp_path):
+    """Brackets with the camera's pedestal and no dark frames: ``dark_level`` (the
+    pedestal) merges them as the dark frames do."""
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True)
+    with_frames = load_capture(path)
+    capture = yaml.safe_load(path.read_text())
+    del capture["dark_frame"]
+    capture["dark_level"] = PEDESTAL
+    path.write_text(yaml.safe_dump(capture))
+    with_level = load_capture(path)
+    assert any("dark_level: 0.02: subtracted from every exposure" in n for n in with_level.notes)
+    lit = radiance > 1e-2 * radiance.max()
+    ratio = with_level.images[..., 0][lit] / with_frames.images[..., 0][lit]
+    assert np.percentile(np.abs(ratio - 1.0), 90) < 0.01
+    del capture["dark_level"]  # the pedestal left in: the dimmest light comes out brighter
+    path.write_text(yaml.safe_dump(capture))
+    ratio = load_capture(path).images[..., 0][lit] / with_frames.images[..., 0][lit]
+    assert np.percentile(ratio, 10) > 1.03

@@ -40,14 +40,27 @@ def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry
         raise CaptureError(f"{top.source}: {', '.join(asked)}: auto: {e}") from None
 
 
-def _check_light(top: _Section, images: np.ndarray, dark: ImageData | None) -> None:
+def _check_light(
+    top: _Section, images: np.ndarray, dark: ImageData | None, dark_level: float | None = None
+) -> None:
     """Refuse images without light: no value above zero (every value zero, or negative
-    images), or, with a dark frame, images darker than it (99 % of the values after
-    subtracting it below zero by more than 10⁻³ of the dark level: past quantisation)."""
+    images), or, with a dark frame (or ``dark_level``), images darker than it (99 % of
+    the values after subtracting it below zero by more than 10⁻³ of the dark level:
+    past quantisation)."""
     finite = images[np.isfinite(images)]
     if finite.size == 0:
         return  # every value non-finite: the mask's check says so
     brightest = float(finite.max())
+    if dark_level is not None:
+        level = float(np.percentile(finite, 99))
+        if level < -1e-3 * dark_level or brightest <= 0:
+            top.fail(
+                "dark_level",
+                f"{dark_level:.6g} is above the images (after subtracting it, 99% of the "
+                f"image values are <= {level:.3g}): the camera's pedestal lies below "
+                "every image value",
+            )
+        return
     if dark is not None:
         level = float(np.percentile(finite, 99))
         dark_level = float(np.nanmedian(np.abs(dark.pixels)))
@@ -83,7 +96,7 @@ _SURE_PHASES = 0.8
 
 
 def _check_stripes(
-    top, pattern, images, roi, names, phases_from: str, dark, auto=(), notes=None
+    top, pattern, images, roi, names, phases_from: str, dark_removed: bool, auto=(), notes=None
 ) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
     of the period in a capture that has them, or given phases that differ from those
@@ -102,7 +115,7 @@ def _check_stripes(
 
     _check_period(top, pattern, stack, amplitude)
     if len(names) >= 2:
-        _check_geometry_seen(top, pattern, images, roi, dark, auto, notes)
+        _check_geometry_seen(top, pattern, images, roi, dark_removed, auto, notes)
     stripes = amplitude(pattern.period)
     with np.errstate(divide="ignore", invalid="ignore"):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
@@ -119,7 +132,7 @@ def _check_stripes(
             )
     if phases_from == "auto" or len(names) < 2:
         return None
-    found = _measured(images, pattern, (x0, y0, x1, y1), dark, pattern.direction_deg)
+    found = _measured(images, pattern, (x0, y0, x1, y1), dark_removed, pattern.direction_deg)
     if found is None:
         return None  # stripes too faint to measure: nothing to compare
     sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
@@ -186,7 +199,9 @@ def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
         )
 
 
-def _measured(images, pattern: Stripes, roi, dark, direction_deg, entry=True) -> Geometry | None:
+def _measured(
+    images, pattern: Stripes, roi, dark_removed: bool, direction_deg, entry=True
+) -> Geometry | None:
     """What the stripe detector measures in the full-frame ``images`` inside ``roi``
     (``None``: the lit region it finds), for the pattern's period, lit rows and entry
     wall (``entry`` ``None``: measured) and ``direction_deg`` (given, or ``None``:
@@ -196,7 +211,7 @@ def _measured(images, pattern: Stripes, roi, dark, direction_deg, entry=True) ->
             images,
             period=pattern.period,
             lit=pattern.lit,
-            floor=None if dark is None else 0.0,
+            floor=0.0 if dark_removed else None,
             roi=roi,
             entry=pattern.entry if entry else None,
             direction_deg=direction_deg,
@@ -209,7 +224,9 @@ def _sure(found: Geometry, *parts: str) -> bool:
     return all(found.parts.get(p, 1.0) >= GEOMETRY_SURE for p in parts)
 
 
-def _check_geometry_seen(top, pattern: Stripes, images, roi, dark, auto, notes=None) -> None:
+def _check_geometry_seen(
+    top, pattern: Stripes, images, roi, dark_removed: bool, auto, notes=None
+) -> None:
     """Refuse a ``pattern.entry`` or ``pattern.direction_deg`` the stripes in the images
     contradict, where the stripe detector is sure of what it measures (see
     GEOMETRY_SURE); a ``pattern.lit`` they seem to contradict is a note (appended to
@@ -217,7 +234,7 @@ def _check_geometry_seen(top, pattern: Stripes, images, roi, dark, auto, notes=N
     the pixel grid and the camera's blur. ``roi``: the capture's (``None``: the whole
     frame, where the detector looks for the lit region itself); ``auto``: the keys
     measured."""
-    found = _measured(images, pattern, roi, dark, None, entry=False)
+    found = _measured(images, pattern, roi, dark_removed, None, entry=False)
     if found is None or found.parts.get("period", 0.0) < _SURE_PHASES:
         return  # stripes too faint to measure: nothing to compare
     if found.entry != pattern.entry:
@@ -229,7 +246,7 @@ def _check_geometry_seen(top, pattern: Stripes, images, roi, dark, auto, notes=N
                 f"stripe detector, confidence {found.confidence:.2f}); correct it (and "
                 "pattern.direction_deg), or set both to auto",
             )
-        found = _measured(images, pattern, roi, dark, None)
+        found = _measured(images, pattern, roi, dark_removed, None)
         if found is None or found.parts.get("period", 0.0) < _SURE_PHASES:
             return
     off = abs((found.direction_deg - pattern.direction_deg + 180.0) % 360.0 - 180.0)

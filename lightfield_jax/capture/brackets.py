@@ -27,7 +27,7 @@ from lightfield_jax.capture.hdr import (
     merge_capture,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import _AUX_FRAMES, _positive
+from lightfield_jax.capture.keys import _AUX_FRAMES, _dark_level, _positive
 
 
 def _brackets(top: _Section, base: Path, channel, notes: list[str]):
@@ -35,7 +35,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
     frame subtracted per exposure before merging (so the calibration frames hold no
     dark frame any more); ``None`` when the images are not brackets (lists)."""
-    response = top.get("response", "linear")
+    response = response_key = top.get("response", "linear")
     if not isinstance(response, str) or not response:
         top.fail("response", f"must be {' or '.join(RESPONSES)} or a file, got {response!r}")
     if response != response.lower() and response.lower() in RESPONSES:
@@ -125,6 +125,9 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     response = read_response(top, base, first.channel_names, images, times)
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
+    level = _dark_level(top, first.bit_depth if first.is_integer else None, str(response_key))
+    if level is not None:
+        dark = np.full((len(times), *first.pixels.shape), level, images.dtype)
     dark = None if dark is None else dark / full
     _check_exposure_ratios(top, images, times, response, levels, dark, clip, shifts, aux, full)
     radiance, record = merge_capture(
@@ -139,7 +142,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
             m = merge_bracket(stack, times, response, levels=levels, dark=dark, clip=clip)
             merged[key] = _merged_frame(m.radiance, aux[key][-1])
     if dark is not None:
-        notes.append("dark_frame: subtracted from every exposure before the merge")
+        what = "dark_frame" if level is None else f"dark_level: {level:.6g}"
+        notes.append(f"{what}: subtracted from every exposure before the merge")
     return frames, merged, record
 
 

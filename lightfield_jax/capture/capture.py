@@ -7,6 +7,7 @@ inverse pipeline reads it)::
     images: [shift_00.exr, shift_01.exr, shift_02.exr, shift_03.exr, shift_04.exr, shift_05.exr]
     pattern: {period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5], direction_deg: 0.0, entry: left}
     dark_frame: dark.exr         # optional
+    dark_level: 0.03125          # optional, instead of dark_frame: a camera's pedestal
     black_frame: black.tif       # optional
     white_frame: white.tif       # optional
     flat_field: flat.tif         # optional
@@ -59,6 +60,12 @@ Keys:
   ``medium_roi`` the loaded pattern's phases are shifted to count from the ROI's edge.
 - ``dark_frame``: an image taken with the projector off, subtracted from every image
   (and from the other calibration frames) first (after a ``response``'s linearisation).
+- ``dark_level``: instead of a dark frame, the camera's constant black offset (its
+  pedestal), in image values after integer scaling (as ``saturation``: a pedestal of
+  2048 codes in 16-bit files is 2048/65535 = 0.03125), subtracted like a dark frame of
+  that value; linear images only. A pedestal left in the images is light the model
+  does not have: the joint fit then ends far above the noise and says so, with the
+  offset it measures.
 - ``black_frame``, ``white_frame``: the camera's images of the projector showing all
   black and all white. The black frame measures the black level (``black_level:
   auto``); the white frame, if given, is where the medium's ROI is found.
@@ -180,6 +187,7 @@ from lightfield_jax.capture.keys import (
     _black_level,
     _channel,
     _crop_pattern,
+    _dark_level,
     _fit_options,
     _geometry,
     _pattern_spec,
@@ -231,6 +239,8 @@ class Capture:
         source: the capture file.
         image_paths: the image files (one ``.npy`` stack repeated for a stack).
         dark_frame: the dark frame's file, or ``None``.
+        dark_level: the constant dark level subtracted instead (``dark_level`` key), or
+            ``None``.
         n_masked: masked [H, W, C] entries: ``nonfinite``, ``saturated`` (finite but
             saturated or clipped in some image) and ``total``; ``values``: masked
             [P, H, W, C] values.
@@ -284,6 +294,7 @@ class Capture:
     fit_options: dict[str, Any] = dataclasses.field(default_factory=dict)
     floored: np.ndarray | None = None
     response: Response | None = None
+    dark_level: float | None = None
 
     def response_record(self) -> dict:
         """The inverse response the codes were linearised with: ``kind`` (linear, srgb,
@@ -395,11 +406,23 @@ def load_capture(path: str | os.PathLike) -> Capture:
         )
     dark = aux["dark_frame"]
     dark_pixels = aux_linear["dark_frame"]
+    dark_level = None
+    if merged is None:  # brackets: subtracted from every exposure by the merge
+        bits = frames[0].bit_depth if frames[0].is_integer else None
+        dark_level = _dark_level(top, bits, str(top.get("response", "linear")))
+    if dark_level is not None:
+        dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)
+        notes.append(f"dark_level: {dark_level:.6g} subtracted from every image")
+    dark_removed = (
+        dark is not None
+        or dark_level is not None
+        or bool(merged and ("dark_frame" in top.data or "dark_level" in top.data))
+    )
     flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, aux_linear["flat_field"])
 
     calibrated = _calibrate(raw, dark_pixels, flat_pixels, linear)
     overview = np.mean(calibrated, axis=0)
-    _check_light(top, calibrated, dark)
+    _check_light(top, calibrated, dark, dark_level)
     detected = None
     if AUTO in (roi, spec["phases"], spec["entry"], spec["direction_deg"]):
         white = aux["white_frame"]
@@ -411,7 +434,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             None
             if white is None
             else _calibrate(aux_linear["white_frame"], dark_pixels, flat_pixels),
-            dark_subtracted=dark is not None or bool(merged and "dark_frame" in top.data),
+            dark_subtracted=dark_removed,
         )
         notes.append("detected: " + detected.summary().replace("\n", "; "))
         if detected.confidence < LOW_CONFIDENCE:
@@ -429,7 +452,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         x0, y0, x1, y1 = roi
         raw = raw[:, y0:y1, x0:x1]
         calibration_frames = {k: v[y0:y1, x0:x1] for k, v in calibration_frames.items()}
-        dark_pixels = calibration_frames.get("dark_frame")
+        dark_pixels = None if dark_pixels is None else dark_pixels[y0:y1, x0:x1]
         if flat_pixels is not None:
             flat_pixels = flat_pixels[y0:y1, x0:x1]
         pattern = _crop_pattern(pattern, x0, y0)
@@ -474,7 +497,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
     contradiction = _check_stripes(
-        top, full_pattern, calibrated, full_roi, names, phases_from, dark, auto, notes
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark_removed, auto, notes
     )
     if contradiction:
         notes.append(contradiction)
@@ -514,6 +537,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         source=path,
         image_paths=tuple(f.path for f in frames),
         dark_frame=None if dark is None else dark.path,
+        dark_level=dark_level,
         n_masked={
             "nonfinite": int(nonfinite.any(axis=0).sum()),
             "saturated": int((saturated.any(axis=0) & ~nonfinite.any(axis=0)).sum()),

@@ -22,6 +22,7 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "images",
     "pattern",
     "dark_frame",
+    "dark_level",
     "black_level",
     "medium_roi",
     "pixel_size_mm",
@@ -174,6 +175,34 @@ def _black_level(top: _Section) -> float | str | None:
     value = top.float("black_level", None)
     if value is not None and not 0.0 <= value < 1.0:
         top.fail("black_level", f"must lie in [0, 1), got {brief(value)} (or 'auto': measured)")
+    return value
+
+
+def _dark_level(top: _Section, integer_bits: int | None, response: str) -> float | None:
+    """``dark_level``: the camera's constant black offset (a pedestal), in the images'
+    values after integer scaling (``integer_bits``: the files' bits, ``None`` for float
+    files), subtracted from every image like a dark frame of that value."""
+    value = top.float("dark_level", None)
+    if value is None:
+        return None
+    if "dark_frame" in top.data and top.get("dark_frame", None) is not None:
+        top.fail("dark_level", "give a dark_frame or a dark_level, not both")
+    if not math.isfinite(value) or value < 0:
+        top.fail("dark_level", f"must be a finite value >= 0, got {brief(value)}")
+    if integer_bits is not None and value >= 1:
+        top_code = (1 << integer_bits) - 1
+        top.fail(
+            "dark_level",
+            f"{value:g} is not an image value of these {integer_bits}-bit files (scaled "
+            f"to [0, 1]): a pedestal of {value:g} codes is dark_level: "
+            f"{value / top_code:.6g} ({value:g}/{top_code})",
+        )
+    if response != "linear":
+        top.fail(
+            "dark_level",
+            f"applies to linear images, not with response: {response} (a camera that "
+            "encodes its files subtracts its pedestal first; take a dark_frame otherwise)",
+        )
     return value
 
 

@@ -66,6 +66,29 @@ class ScanSettings:
 
 
 @dataclasses.dataclass(frozen=True)
+class ScanOffset:
+    """What a constant offset d in every image value (a camera pedestal left in the
+    images) would do to the scan: ``misfit`` the best misfit with it, ``value`` d there,
+    ``fraction`` that misfit over the best without (1: it explains nothing)."""
+
+    misfit: float
+    value: float
+    fraction: float
+
+    @classmethod
+    def of(cls, cost: np.ndarray, offset_cost: np.ndarray, offset: np.ndarray) -> ScanOffset:
+        if not np.isfinite(offset_cost).any() or not np.isfinite(cost).any():
+            return cls(math.nan, math.nan, 1.0)
+        at = np.unravel_index(np.argmin(offset_cost), offset_cost.shape)
+        best, with_offset = float(np.min(cost)), float(offset_cost[at])
+        fraction = max(with_offset, 0.0) / best if best > 0 else 1.0
+        return cls(with_offset, float(offset[at]), min(fraction, 1.0))
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass(frozen=True)
 class Basin:
     """A local minimum of the scan: its grid point and what it gives as a start.
 
@@ -103,6 +126,7 @@ class Scan:
     # (NaN: not measured), for :meth:`ratio_at`.
     ratios: np.ndarray | None = None
     sigma_s_ref: np.ndarray | None = None
+    offset: ScanOffset | None = None
 
     def ratio_at(self, g: float, albedo: float) -> float:
         """The per-bounce ratio of the scan's model at (g, albedo): I_k ∝ σs^k, so the
@@ -120,6 +144,7 @@ class Scan:
             "albedo": [float(self.albedos[0]), float(self.albedos[-1]), len(self.albedos)],
             "basins": [b.as_dict() for b in self.basins],
             "seconds": self.seconds,
+            **({} if self.offset is None else {"offset": self.offset.as_dict()}),
         }
 
 
@@ -144,7 +169,8 @@ def _weighted_grams(settings: ScanSettings, renderer, full, obs, weights, sigma_
         if k > 1
         else jnp.zeros((), sums.dtype)
     )
-    return matmul(basis, basis.T), matmul(basis, (weights * obs).reshape(-1)), ref, ratio
+    with_ones = matmul(basis, weights.reshape(-1))  # the basis against a constant offset
+    return matmul(basis, basis.T), matmul(basis, (weights * obs).reshape(-1)), with_ones, ref, ratio
 
 
 def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, albedos, black):
@@ -152,9 +178,11 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
     g the render's last per-bounce ratio and σs_ref."""
     total = jnp.sum((weights * obs) ** 2)
     n = jnp.sum(weights > 0)
+    ones2, ones_obs = jnp.sum(weights**2), jnp.sum(weights**2 * obs)
 
     def per_g(g):
-        gram, proj, ref, ratio = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
+        grams = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
+        gram, proj, with_ones, ref, ratio = grams
         k = gram.shape[0] // 2
         orders = jnp.arange(1, k + 1, dtype=gram.dtype)
 
@@ -178,12 +206,25 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
             col = jnp.array([1.0 - b, b])
             norm = jnp.sum(col * matmul(m, col))
             cost = (total - jnp.sum(col * rhs) ** 2 / norm) / n
+            # Diagnostic: the misfit with a constant offset d in every image value too
+            # (the model's columns free), and d.
+            model_cols = pair if settings.fit_black else matmul(col[None], pair)
+            k3 = model_cols.shape[0]
+            m3 = jnp.zeros((k3 + 1, k3 + 1), m.dtype)
+            m3 = m3.at[:k3, :k3].set(matmul(matmul(model_cols, gram), model_cols.T))
+            cross = matmul(model_cols, with_ones)
+            m3 = m3.at[:k3, k3].set(cross).at[k3, :k3].set(cross).at[k3, k3].set(ones2)
+            rhs3 = jnp.concatenate([matmul(model_cols, proj), ones_obs[None]])
+            scale = jnp.sqrt(jnp.maximum(jnp.diag(m3), jnp.finfo(m3.dtype).tiny))
+            c3 = jnp.linalg.solve(m3 / jnp.outer(scale, scale), rhs3 / scale) / scale
+            offset_cost = (total - jnp.sum(c3 * rhs3)) / n
             if settings.extrapolate:
                 cost = jnp.where(ur < 1, cost, jnp.inf)
-            return cost, b
+                offset_cost = jnp.where(ur < 1, offset_cost, jnp.inf)
+            return cost, b, offset_cost, c3[-1]
 
-        cost, b = jax.vmap(per_albedo)(albedos)
-        return cost, b, ratio, ref
+        cost, b, offset_cost, offset = jax.vmap(per_albedo)(albedos)
+        return cost, b, ratio, ref, offset_cost, offset
 
     return jax.lax.map(per_g, gs)
 
@@ -217,7 +258,7 @@ def scan(
     gs = np.linspace(-0.9, 0.9, n_g)
     albedos = np.linspace(0.02, 0.98, n_albedo)
     settings = ScanSettings(phase, black_level is None, lit, extrapolate)
-    cost, black, ratios, refs = jitted(_scan, ("settings",))(
+    cost, black, ratios, refs, offset_cost, offset = jitted(_scan, ("settings",))(
         settings,
         renderer,
         full,
@@ -229,15 +270,19 @@ def scan(
         jnp.asarray(0.0 if black_level is None else black_level, dtype),
     )
     cost, black = np.array(cost, np.float64), np.array(black, np.float64)  # writable
+    offset_cost = np.array(offset_cost, np.float64)
     k = renderer.bounces
     for i, g in enumerate(gs):
         rho = np.asarray(rho_limit(float(g), albedos), np.float64)
         with np.errstate(divide="ignore"):
             tail = np.where(rho < 1, rho**k / np.maximum(1 - rho, 1e-12), np.inf)
         cost[i, (rho >= 1) if extrapolate else (tail > 0.01)] = np.inf
-    cost[~np.isfinite(cost)] = np.inf
+    invalid = ~np.isfinite(cost)
+    cost[invalid] = np.inf
+    offset_cost[invalid | ~np.isfinite(offset_cost)] = np.inf
     ratios, refs = np.asarray(ratios, np.float64), np.asarray(refs, np.float64)
-    return cost, black, gs, albedos, ratios, refs
+    offset = ScanOffset.of(cost, offset_cost, np.asarray(offset, np.float64))
+    return cost, black, gs, albedos, ratios, refs, offset
 
 
 def _neighbours(i: int, j: int, shape) -> list[tuple[int, int]]:

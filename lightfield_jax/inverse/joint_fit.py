@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.inverse.basins import basin_of, nearest_point, worse_basin
+from lightfield_jax.inverse.basins import Scan, basin_of, nearest_point, worse_basin
 from lightfield_jax.inverse.correction import correct, projected
 from lightfield_jax.inverse.data import FitData as _Data
 from lightfield_jax.inverse.joint import BLACK_RANGE, pack
@@ -50,10 +50,13 @@ from lightfield_jax.inverse.model_size import (
     size_model,
 )
 from lightfield_jax.inverse.trust import (
+    OFFSET_EXPLAINS,
     at_bound,
+    constant_offset,
     error_budget,
     noise_floor,
     noise_scale,
+    offset_hint,
     scaled_lstsq,
     split_groups,
     tail_unconverged,
@@ -467,6 +470,17 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
 CUT_LIMIT = 0.01
 
 
+def _offset_reason(the_scan: Scan, last: _Stage, peak: float) -> list[str]:
+    """Where the misfit is far above the noise: the constant offset in every image value
+    that explains most of it (a camera pedestal left in the images), from the basin
+    scan, else linearised at the answer (:func:`offset_hint`)."""
+    found = the_scan.offset
+    if found is not None and found.fraction <= OFFSET_EXPLAINS:
+        return offset_hint(found.value, found.fraction, "basin scan's", peak)
+    d, left = constant_offset(last.jac, last.residual, last.weights)
+    return offset_hint(d, left, "answer's", peak)
+
+
 def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
@@ -678,6 +692,9 @@ def _joint_fit(
     budget = error_budget(last.jac, last.residual, names, noise, shift, groups)
     v = last.values
     reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
+    if math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2:
+        peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
+        reasons += _offset_reason(the_scan, last, peak)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
     reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
     reasons += _cut_series(last.model, the_scan, v)

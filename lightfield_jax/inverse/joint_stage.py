@@ -336,7 +336,7 @@ def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigm
     renderer, full = _joint_parts(pattern, model, options.phase)
     dtype = jnp.result_type(float)
     with stopwatch() as timing:
-        cost, black_map, gs, albedos, ratios, refs = scan(
+        cost, black_map, gs, albedos, ratios, refs, offset = scan(
             renderer,
             full,
             jnp.asarray(data.images, dtype),
@@ -359,6 +359,7 @@ def _run_scan(data: _Data, pattern, model: _Model, options, black, weights, sigm
         seconds={"compile": timing.compile, "run": timing.run},
         ratios=ratios if extrapolate else None,
         sigma_s_ref=refs,
+        offset=offset,
     )
 
 

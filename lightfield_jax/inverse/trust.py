@@ -492,6 +492,52 @@ def untrustworthy(
     return reasons
 
 
+# A misfit far above the noise that one constant added to every image value would take
+# to OFFSET_EXPLAINS of itself or less (linearised at the answer, beside the parameters'
+# columns) is reported with that constant: a camera's pedestal (black offset) left in
+# the images, or a dark frame that subtracts too much, is light the model does not have.
+OFFSET_EXPLAINS = 0.25
+
+
+def constant_offset(jac: np.ndarray, residual: np.ndarray, weights: np.ndarray):
+    """The constant d in every image value (images = model + d) that best explains the
+    weighted residual r = w·(model − images) beside the columns of ``jac`` (linearised
+    at the answer), and the misfit left with it as a fraction of the misfit without:
+    ``(d, fraction)`` (``(nan, 1.0)`` where it cannot be told)."""
+    r = np.asarray(residual, np.float64).reshape(-1)
+    w = np.asarray(weights, np.float64).reshape(-1)
+    j = np.asarray(jac, np.float64)
+    total = float(r @ r)
+    if not (np.all(np.isfinite(j)) and np.all(np.isfinite(r)) and total > 0):
+        return math.nan, 1.0
+    q, _ = np.linalg.qr(j / _column_norms(j))
+    r_left = r - q @ (q.T @ r)
+    column = -w - q @ (q.T @ -w)
+    norm2 = float(column @ column)
+    if not norm2 > 1e-12 * float(w @ w):
+        return math.nan, 1.0
+    d = float(column @ r_left) / norm2
+    left = float(r_left @ r_left)  # what the parameters' columns leave (at an answer: r)
+    return d, max(left - d * d * norm2, 0.0) / left if left > 0 else 1.0
+
+
+def offset_hint(d: float, left: float, where: str, peak: float) -> list[str]:
+    """A reason's hint where a constant offset ``d`` leaves at most
+    :data:`OFFSET_EXPLAINS` of a misfit (``left``: the fraction it leaves of ``where``'s
+    misfit), ``[]`` otherwise; ``peak``: the images' peak value."""
+    if not (math.isfinite(d) and left <= OFFSET_EXPLAINS):
+        return []
+    cause = (
+        "a camera pedestal (black offset) left in the images? give a dark_frame or its dark_level"
+        if d > 0
+        else "a dark frame or dark_level that subtracts too much?"
+    )
+    return [
+        f"a constant {d:+.4g} in every image value ({d / peak:+.1%} of the peak) would leave "
+        f"{left:.1%} of the {where} misfit: {cause}"
+    ]
+
+
 def tail_unconverged(tail: dict | None, max_steps: int, what: str) -> list[str]:
     """The reason a solution is not to be trusted when ``what``'s tail solve (``tail``:
     its ``steps``, ``converged`` and, where a tangent solve raised, ``error``; ``None``
