@@ -209,6 +209,34 @@ def test_fit_that_does_not_converge_writes_results_and_exits_1(simulated, tmp_pa
     assert result["message"] != "converged"
 
 
+def test_the_capture_notes_are_said_before_the_fit(simulated, tmp_path, capsys, monkeypatch):
+    # Before: a pattern.lit the stripes contradict ("a wrong lit makes the fit slow and
+    # wrong") was said only after the fit, minutes later.
+    import lightfield_jax.inverse.capture_fit as capture_fit
+
+    folder = _copy(simulated, tmp_path)
+    pattern = yaml.safe_load((folder / "capture.yaml").read_text())["pattern"]
+    _edit_yaml(folder, pattern={**pattern, "lit": 2})  # the stripes are lit 3 of 6
+    fit, said = capture_fit.fit_capture, []
+
+    def noting(*args, **kwargs):
+        said.append(capsys.readouterr().out)  # what was said when the fit began
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(capture_fit, "fit_capture", noting)
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", folder / "capture.yaml", "--method", "grid", "--max-steps", 1, "--out", out
+    )
+    assert status in (None, 0, 1), err
+    note = "note: pattern.lit: 2, but the stripes look lit 3.00 of every 6 rows"
+    assert len(said) == 1 and said[0].startswith(note)
+    assert note not in stdout  # not said twice
+    assert "[Y] grid: sigma_t" in stdout
+    status, stdout, _ = _run(capsys, "inspect", folder / "capture.yaml")
+    assert status in (None, 0) and note in stdout
+
+
 def test_clipped_8bit_frames_are_masked_and_fitted(simulated, tmp_path, capsys):
     """8-bit frames whose lit rows clip at 255 near the entry wall: a warning counts the
     clipped pixels, they are masked, and the fit runs on the rest."""

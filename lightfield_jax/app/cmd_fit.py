@@ -251,6 +251,10 @@ def _fit(args: argparse.Namespace) -> int | None:
         ),
         f"{capture.source}: the fit",
     )
+    # What loading measured or doubted (a pattern.lit the stripes contradict makes the
+    # fit slow and wrong): said before the fit's minutes, not after.
+    for note in capture.notes:
+        _say(args, f"note: {note}")
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         fit = fit_capture(
@@ -275,8 +279,6 @@ def _fit(args: argparse.Namespace) -> int | None:
                 stage("plot")
                 _fit_figures(capture, fit, figures, write)
             atomic_write_json(write(out), result)
-    for note in capture.notes:
-        _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
     if compared:
         for name, e in zip(fit.channels, compared, strict=True):
