@@ -433,6 +433,56 @@ def test_demo_with_the_gradient_method(tmp_path, capsys):
     assert "note: the two-step methods (grid, gradient) carry the separation bias" in stdout
 
 
+def _quick_demo(monkeypatch, sigma_t: float, draw) -> None:
+    """The demo on the 32x24 capture, its fits a stub answering ``sigma_t`` (with the
+    milk's sigma_s and g) and its figure drawn by ``draw``."""
+    import types
+
+    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.inverse.capture_fit as capture_fit
+    import lightfield_jax.viz as viz
+
+    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
+    values = {**MILK, "sigma_t": sigma_t}
+    fit = types.SimpleNamespace(
+        **values, converged=True, seconds={"total": 0.0}, to_dict=lambda: dict(values)
+    )
+    answer = types.SimpleNamespace(results=[fit])
+    monkeypatch.setattr(capture_fit, "fit_capture", lambda *_, **__: answer)
+    monkeypatch.setattr(viz, "plot_fit", draw)
+
+
+def test_demo_publishes_its_results_and_figure_together(tmp_path, capsys, monkeypatch):
+    # Before: results.json and demo_fit.png were written in place, one after the other:
+    # a failure while drawing left the new results.json beside the old figure.
+    import errno
+
+    out = tmp_path / "demo"
+
+    def draw(images, pattern, result, path):
+        path.write_bytes(b"figure of sigma_t %g" % result.sigma_t)
+
+    _quick_demo(monkeypatch, 0.2, draw)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status == 0, err
+    results, figure = (out / "results.json").read_bytes(), (out / "demo_fit.png").read_bytes()
+    assert json.loads(results)["fits"]["joint"]["sigma_t"] == 0.2
+    assert figure == b"figure of sigma_t 0.2"
+    assert not [n for n in os.listdir(out) if n.startswith(".")]  # no temporary left
+
+    def full(*_, **__):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    _quick_demo(monkeypatch, 0.3, full)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status == 2 and _lines(err) == [
+        f"lightfield-jax: error: {out / 'demo_fit.png'}: No space left on device"
+    ]
+    assert (out / "results.json").read_bytes() == results  # the previous run's, whole
+    assert (out / "demo_fit.png").read_bytes() == figure
+    assert not [n for n in os.listdir(out) if n.startswith(".")]
+
+
 # --------------------------------------------------------------- compilation cache
 
 
