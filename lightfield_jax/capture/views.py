@@ -134,6 +134,17 @@ def unconverged_fit(fit: dict[str, Any]) -> str | None:
     return str(message) if message else "no reason recorded"
 
 
+def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
+    """The per-channel subfolders of ``folder`` that :func:`render_results` writes for
+    ``results`` (none for one channel), for the output checks before the work; none
+    for a results file it cannot use either (:func:`render_results` says why)."""
+    try:
+        channels = _channel_results(json.loads(Path(results).read_text()), Path(results))
+    except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
+        return []
+    return [folder / name for name in channels] if len(channels) > 1 else []
+
+
 def render_results(
     results: str | os.PathLike,
     folder: Path,
