@@ -1066,6 +1066,25 @@ def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, cha
     assert not (tmp_path / "r").exists()
 
 
+def test_render_refuses_channel_names_that_leave_its_folder(capture, capsys, tmp_path):
+    """Before: an edited results file's channel ``../x`` or ``/abs/x`` was rendered
+    into that folder, outside --out (exit 0); a list for per_channel was numpy's
+    "dictionary update sequence element #0 has length 6" without the file."""
+    fit = json.loads(_results(capture, tmp_path).read_text())
+    results = tmp_path / "rgb.json"
+    for channels, match in (
+        ({"R": fit, "../x": fit}, "per_channel: '../x' is not a channel name"),
+        ({"R": fit, "/abs/x": fit}, "per_channel: '/abs/x' is not a channel name"),
+        ({"R": fit, "..": fit}, "per_channel: '..' is not a channel name"),
+        ([fit, fit], "per_channel: must map each channel's name to its fit, got [{"),
+        ({"R": 5}, "per_channel: must map each channel's name to its fit, got {'R': 5}"),
+    ):
+        results.write_text(json.dumps({"capture": fit["capture"], "per_channel": channels}))
+        line = _refused(capsys, "render", results, "--out", tmp_path / "out", match=match)
+        assert line.startswith(f"lightfield-jax: error: {results}: ")
+    assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "rgb.json"]
+
+
 def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     results = _results(capture, tmp_path)
     assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
