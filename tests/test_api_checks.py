@@ -567,3 +567,42 @@ def test_separate_and_fit_decay_skip_a_masked_arrays_masked_values():
     from lightfield_jax.checks import masked_to_nan
 
     assert np.isnan(masked_to_nan(np.ma.masked_array(np.arange(3), mask=[0, 1, 0]))[1])
+
+
+def _decaying_stripes(pattern, height=12, width=32) -> np.ndarray:
+    """Noise-free stripe images: a direct light decaying at σt 0.2 per px under the lit
+    rows, plus a smooth multiple light."""
+    x, y = np.arange(width) + 0.5, np.arange(height)[:, None]
+    lit = [((y - p) % pattern.period) < pattern.lit for p in pattern.phases]
+    return np.stack([np.exp(-0.2 * x) * on + 0.05 * np.exp(-0.1 * x) for on in lit])
+
+
+def test_masked_exposure_and_split_values_are_not_used():
+    # Before: np.asarray dropped their masks, and the fill values entered the fit (a
+    # masked T's fill as the exposure, a masked direct value as the direct light).
+    from lightfield_jax.internal import prepare_data
+
+    pattern = lfj.Stripes()
+    images = _decaying_stripes(pattern)
+    out = np.zeros(images.shape, bool)
+    out[2, 3, 4] = True
+    exposure = np.ma.masked_array(np.where(out, 50.0, 2.0), mask=out)
+    data = prepare_data(images, pattern, exposure=exposure)
+    assert not data.samples[2, 3, 4] and data.samples.sum() == images.size - 1
+    assert not data.mask[3, 4] and np.isfinite(data.exposure).all()
+    assert (data.exposure[~out] == 2.0).all()
+    with pytest.raises(ValueError, match="^exposure: must be finite and > 0 .* not masked$"):
+        prepare_data(images, pattern, exposure=np.ma.masked_array(-exposure.data, mask=out))
+    direct, multiple = data.direct, data.multiple
+    hot = np.zeros(direct.shape, bool)
+    hot[5, 6] = True
+    for split in (
+        (np.ma.masked_array(np.where(hot, 1e6, direct), mask=hot), multiple),
+        np.ma.masked_array(np.stack([direct, np.where(hot, -1e6, multiple)]), mask=[hot, hot]),
+    ):
+        given = prepare_data(images, pattern, split=split)
+        assert not given.mask[5, 6] and given.mask.sum() == hot.size - 1
+        assert given.direct[5, 6] == 0 and abs(given.direct).max() < 2
+        assert given.sigma_t0 == pytest.approx(0.2, rel=1e-3)
+    with pytest.raises(ValueError, match=r"^split: must be a pair \(direct, multiple\) .*"):
+        prepare_data(images, pattern, split=(direct,))

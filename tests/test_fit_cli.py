@@ -209,6 +209,34 @@ def test_fit_that_does_not_converge_writes_results_and_exits_1(simulated, tmp_pa
     assert result["message"] != "converged"
 
 
+def test_the_capture_notes_are_said_before_the_fit(simulated, tmp_path, capsys, monkeypatch):
+    # Before: a pattern.lit the stripes contradict ("a wrong lit makes the fit slow and
+    # wrong") was said only after the fit, minutes later.
+    import lightfield_jax.inverse.capture_fit as capture_fit
+
+    folder = _copy(simulated, tmp_path)
+    pattern = yaml.safe_load((folder / "capture.yaml").read_text())["pattern"]
+    _edit_yaml(folder, pattern={**pattern, "lit": 2})  # the stripes are lit 3 of 6
+    fit, said = capture_fit.fit_capture, []
+
+    def noting(*args, **kwargs):
+        said.append(capsys.readouterr().out)  # what was said when the fit began
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(capture_fit, "fit_capture", noting)
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", folder / "capture.yaml", "--method", "grid", "--max-steps", 1, "--out", out
+    )
+    assert status in (None, 0, 1), err
+    note = "note: pattern.lit: 2, but the stripes look lit 3.00 of every 6 rows"
+    assert len(said) == 1 and said[0].startswith(note)
+    assert note not in stdout  # not said twice
+    assert "[Y] grid: sigma_t" in stdout
+    status, stdout, _ = _run(capsys, "inspect", folder / "capture.yaml")
+    assert status in (None, 0) and note in stdout
+
+
 def test_clipped_8bit_frames_are_masked_and_fitted(simulated, tmp_path, capsys):
     """8-bit frames whose lit rows clip at 255 near the entry wall: a warning counts the
     clipped pixels, they are masked, and the fit runs on the rest."""
@@ -403,6 +431,56 @@ def test_demo_with_the_gradient_method(tmp_path, capsys):
     assert "separation bias" in fit["caveat"] and "joint" in fit["caveat"]
     assert fit["uncertainty_kind"].startswith("statistical only")
     assert "note: the two-step methods (grid, gradient) carry the separation bias" in stdout
+
+
+def _quick_demo(monkeypatch, sigma_t: float, draw) -> None:
+    """The demo on the 32x24 capture, its fits a stub answering ``sigma_t`` (with the
+    milk's sigma_s and g) and its figure drawn by ``draw``."""
+    import types
+
+    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.inverse.capture_fit as capture_fit
+    import lightfield_jax.viz as viz
+
+    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
+    values = {**MILK, "sigma_t": sigma_t}
+    fit = types.SimpleNamespace(
+        **values, converged=True, seconds={"total": 0.0}, to_dict=lambda: dict(values)
+    )
+    answer = types.SimpleNamespace(results=[fit])
+    monkeypatch.setattr(capture_fit, "fit_capture", lambda *_, **__: answer)
+    monkeypatch.setattr(viz, "plot_fit", draw)
+
+
+def test_demo_publishes_its_results_and_figure_together(tmp_path, capsys, monkeypatch):
+    # Before: results.json and demo_fit.png were written in place, one after the other:
+    # a failure while drawing left the new results.json beside the old figure.
+    import errno
+
+    out = tmp_path / "demo"
+
+    def draw(images, pattern, result, path):
+        path.write_bytes(b"figure of sigma_t %g" % result.sigma_t)
+
+    _quick_demo(monkeypatch, 0.2, draw)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status == 0, err
+    results, figure = (out / "results.json").read_bytes(), (out / "demo_fit.png").read_bytes()
+    assert json.loads(results)["fits"]["joint"]["sigma_t"] == 0.2
+    assert figure == b"figure of sigma_t 0.2"
+    assert not [n for n in os.listdir(out) if n.startswith(".")]  # no temporary left
+
+    def full(*_, **__):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    _quick_demo(monkeypatch, 0.3, full)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status == 2 and _lines(err) == [
+        f"lightfield-jax: error: {out / 'demo_fit.png'}: No space left on device"
+    ]
+    assert (out / "results.json").read_bytes() == results  # the previous run's, whole
+    assert (out / "demo_fit.png").read_bytes() == figure
+    assert not [n for n in os.listdir(out) if n.startswith(".")]
 
 
 # --------------------------------------------------------------- compilation cache

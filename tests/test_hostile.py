@@ -143,6 +143,40 @@ def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_pa
     assert main(["render", str(results), "--out", str(tmp_path / "figs"), "-q"]) == 0
 
 
+def test_a_channel_subfolder_of_another_command_is_not_written_over(
+    simulated, capture, capsys, tmp_path
+):
+    """Before: ``render --out DIR`` of an RGB result checked DIR only, and replaced the
+    bounces.npy of simulate's folder DIR/R (exit 0)."""
+    fit = json.loads(_results(capture, tmp_path).read_text())
+    results = tmp_path / "rgb.json"
+    results.write_text(json.dumps({"capture": fit["capture"], "per_channel": {"R": fit, "G": fit}}))
+    out = tmp_path / "out"
+    shutil.copytree(simulated, out / "R")  # simulate's folder, where render writes R
+    before = _snapshot(out / "R")
+    line = _refused(capsys, "render", results, "--out", out, match="holds the outputs of")
+    assert line.endswith(
+        f"{out / 'R'}: holds the outputs of lightfield-jax simulate (metadata.json), whose "
+        "bounces.npy this command would replace; choose another output folder"
+    )
+    assert _snapshot(out / "R") == before and sorted(os.listdir(out)) == ["R"]
+    # An experiment's figures where render --plot writes G's.
+    shutil.rmtree(out / "R")
+    (out / "G").mkdir()
+    (out / "G" / "summary.json").write_text("{}")
+    (out / "G" / "bounce_images.png").write_bytes(b"mine")
+    _refused(capsys, "render", results, "--out", out, "--plot", match="lightfield-jax experiment")
+    assert (out / "G" / "bounce_images.png").read_bytes() == b"mine"
+    # A subfolder that is a file is refused before the work, as DIR itself is.
+    (out / "R").write_text("mine")
+    _refused(capsys, "render", results, "--out", out, match=f"{out / 'R'}: exists and is not a")
+    # Render's own channel folders are rerun into.
+    (out / "R").unlink()
+    for _ in range(2):
+        assert main(["render", str(results), "--out", str(tmp_path / "own"), "-q"]) == 0
+    assert sorted(os.listdir(tmp_path / "own")) == ["G", "R"]
+
+
 def test_simulate_does_not_write_over_a_capture_of_the_users_own(capture, capsys, tmp_path):
     """Before: ``simulate --out DIR`` into a folder holding the user's capture (no
     simulate marker) silently replaced its capture.yaml and shift_*.exr (exit 0)."""
@@ -1030,6 +1064,25 @@ def test_impossible_results_are_refused_by_render(capture, capsys, tmp_path, cha
     )
     assert line.startswith(f"lightfield-jax: error: {results}: ")
     assert not (tmp_path / "r").exists()
+
+
+def test_render_refuses_channel_names_that_leave_its_folder(capture, capsys, tmp_path):
+    """Before: an edited results file's channel ``../x`` or ``/abs/x`` was rendered
+    into that folder, outside --out (exit 0); a list for per_channel was numpy's
+    "dictionary update sequence element #0 has length 6" without the file."""
+    fit = json.loads(_results(capture, tmp_path).read_text())
+    results = tmp_path / "rgb.json"
+    for channels, match in (
+        ({"R": fit, "../x": fit}, "per_channel: '../x' is not a channel name"),
+        ({"R": fit, "/abs/x": fit}, "per_channel: '/abs/x' is not a channel name"),
+        ({"R": fit, "..": fit}, "per_channel: '..' is not a channel name"),
+        ([fit, fit], "per_channel: must map each channel's name to its fit, got [{"),
+        ({"R": 5}, "per_channel: must map each channel's name to its fit, got {'R': 5}"),
+    ):
+        results.write_text(json.dumps({"capture": fit["capture"], "per_channel": channels}))
+        line = _refused(capsys, "render", results, "--out", tmp_path / "out", match=match)
+        assert line.startswith(f"lightfield-jax: error: {results}: ")
+    assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "rgb.json"]
 
 
 def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):

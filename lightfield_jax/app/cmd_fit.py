@@ -251,6 +251,10 @@ def _fit(args: argparse.Namespace) -> int | None:
         ),
         f"{capture.source}: the fit",
     )
+    # What loading measured or doubted (a pattern.lit the stripes contradict makes the
+    # fit slow and wrong): said before the fit's minutes, not after.
+    for note in capture.notes:
+        _say(args, f"note: {note}")
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         fit = fit_capture(
@@ -275,8 +279,6 @@ def _fit(args: argparse.Namespace) -> int | None:
                 stage("plot")
                 _fit_figures(capture, fit, figures, write)
             atomic_write_json(write(out), result)
-    for note in capture.notes:
-        _say(args, f"note: {note}")
     _say(args, _fit_summary(fit))
     if compared:
         for name, e in zip(fit.channels, compared, strict=True):
@@ -316,7 +318,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.config import parse_simulation_config
-    from lightfield_jax.app.outputs import CAPTURE_MARKER
+    from lightfield_jax.app.outputs import CAPTURE_MARKER, staged_files
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_directory, atomic_write_json
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
@@ -353,13 +355,17 @@ def _demo(args: argparse.Namespace) -> int | None:
             # another channel or the next capture of this size in one process.
             stage(f"fit again: {method}")
             again[method] = fit_capture(capture, method).results[0].seconds["total"]
-        atomic_write_json(out / "results.json", {"truth": truth, "fits": results})
-        if "joint" in results:
-            stage("plot")
-            from lightfield_jax.viz import plot_fit
+        # Published together, and only when both are written (as fit's outputs).
+        with staged_files() as write:
+            if "joint" in results:
+                stage("plot")
+                from lightfield_jax.viz import plot_fit
 
-            joint = dict(rows)["joint"]
-            plot_fit(capture.images[..., 0], capture.pattern, joint, out / "demo_fit.png")
+                joint = dict(rows)["joint"]
+                plot_fit(
+                    capture.images[..., 0], capture.pattern, joint, write(out / "demo_fit.png")
+                )
+            atomic_write_json(write(out / "results.json"), {"truth": truth, "fits": results})
     head = (
         f"{'method':<9} {'sigma_t':>9} {'err':>7} {'sigma_s':>9} {'err':>7} {'g':>7} "
         f"{'err':>7} {'time s':>7} {'again s':>7} {'conv':>5}"

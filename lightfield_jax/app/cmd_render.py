@@ -58,10 +58,12 @@ def _render_command(args: argparse.Namespace) -> None:
 
     Nothing is written unless the whole command succeeds."""
     from lightfield_jax.capture.io import atomic_directory
-    from lightfield_jax.capture.views import render_results
+    from lightfield_jax.capture.views import render_folders, render_results
 
+    # Each channel's subfolder is checked like DIR: another command's outputs there
+    # (simulate's bounces.npy beside its metadata.json) would be replaced.
     _outputs(
-        folders=[args.out],
+        folders=[args.out, *render_folders(args.results, Path(args.out))],
         inputs=[args.results],
         folder_names=RENDER_FILES,
         marker="render.json",

@@ -18,7 +18,9 @@ its inputs (the config or capture file and every file a capture lists) to
   into ``simulate``'s folder replaced its ``bounces.npy``). A folder holding the
   command's own marker is its own: a rerun replaces its files, as before. A command
   writing a simulated capture (:data:`CAPTURE_MARKER`) also refuses a folder without
-  its marker holding a file it would replace (the user's own capture).
+  its marker holding a file it would replace (the user's own capture). Every folder a
+  command writes into is named, each checked alike: ``render`` of several channels
+  names each channel's subfolder too.
 
 :func:`staged_files` then writes the files of one command: each output is written to a
 temporary beside it, and all of them replace their targets only when the whole command

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.checks import gain_problem
+from lightfield_jax.checks import gain_problem, shown
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
 from lightfield_jax.scene.geometry import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
@@ -83,14 +83,37 @@ _FIT_KEYS = ("sigma_t", "sigma_s", "g", "gain")
 _MODEL_KEYS = ("width", "height", "n_theta", "refine", "bounces", "crop")
 
 
+def _folder_name(name) -> bool:
+    """Whether ``name`` names one folder inside another: not empty, no separator, not
+    ``.`` or ``..`` (an edited results file's ``../x`` or ``/x`` would write elsewhere)."""
+    return (
+        isinstance(name, str)
+        and name not in ("", ".", "..")
+        and not any(c in name for c in "/\\\0")
+    )
+
+
 def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, Any]]:
     """Each channel's fit, checked: its values are numbers and its model is complete."""
     if not isinstance(data, dict) or ("model" not in data and "per_channel" not in data):
         raise ValueError(f"{source}: not a results file of lightfield-jax fit (no model)")
-    channels = (
-        dict(data["per_channel"]) if "per_channel" in data else {data.get("channel", "Y"): data}
-    )
+    per_channel = data.get("per_channel")
+    if "per_channel" in data and not (
+        isinstance(per_channel, dict)
+        and per_channel
+        and all(isinstance(f, dict) for f in per_channel.values())
+    ):
+        raise ValueError(
+            f"{source}: per_channel: must map each channel's name to its fit, got "
+            f"{shown(per_channel)}"
+        )
+    channels = dict(per_channel) if "per_channel" in data else {data.get("channel", "Y"): data}
     for name, fit in channels.items():
+        if len(channels) > 1 and not _folder_name(name):
+            raise ValueError(
+                f"{source}: per_channel: {shown(name)} is not a channel name render can use as "
+                "a subfolder of DIR (a name with no / or \\, not . or ..)"
+            )
         model = fit.get("model")
         missing = [k for k in _FIT_KEYS if not isinstance(fit.get(k), (int, float))]
         missing += [
@@ -132,6 +155,17 @@ def unconverged_fit(fit: dict[str, Any]) -> str | None:
         return "; ".join(str(r) for r in reasons)
     message = fit.get("message")
     return str(message) if message else "no reason recorded"
+
+
+def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
+    """The per-channel subfolders of ``folder`` that :func:`render_results` writes for
+    ``results`` (none for one channel), for the output checks before the work; none
+    for a results file it cannot use either (:func:`render_results` says why)."""
+    try:
+        channels = _channel_results(json.loads(Path(results).read_text()), Path(results))
+    except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
+        return []
+    return [folder / name for name in channels] if len(channels) > 1 else []
 
 
 def render_results(

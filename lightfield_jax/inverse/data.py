@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.checks import unmask
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
@@ -118,9 +119,13 @@ def prepare_data(
     another shape, or a decay that gives no usable σt. ``clipped``: values (like
     ``images``) a capture masked as saturated, besides those at ``saturation``;
     ``floored``: values a capture found clamped at a floor (``None``: found here, by
-    :func:`floor_pileup`)."""
+    :func:`floor_pileup`). Numpy masked arrays for ``images``, ``exposure`` or the
+    ``split``'s images are honoured: a masked value is not used (a masked exposure T
+    excludes that value, a masked direct or multiple value that pixel in every shift),
+    whatever its fill value."""
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
+    images, mask = unmask(images, mask)
     given = np.asarray(images)
     if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
@@ -139,20 +144,28 @@ def prepare_data(
             f"light's decay and the noise's 4th differences)"
         )
     finite = np.isfinite(images)
-    if exposure is not None:
-        t = np.asarray(exposure)
-        if t.dtype.kind not in "iuf" or t.shape != images.shape:
-            raise ValueError(
-                f"exposure: must be real numbers of the images' shape {images.shape}, got "
-                f"{t.dtype} of shape {t.shape}"
-            )
-        if not np.all(np.isfinite(t) & (t > 0)):
-            raise ValueError("exposure: must be finite and > 0 (seconds) everywhere")
     if mask is not None and np.shape(mask) not in (images.shape, images.shape[1:]):
         raise ValueError(
             f"mask: must have the images' (height, width) {images.shape[1:]} (a pixel valid "
             f"in every shift) or their shape {images.shape} (per sample), got {np.shape(mask)}"
         )
+    if exposure is not None:
+        t, unknown = _unmasked(exposure)
+        if t.dtype.kind not in "iuf" or t.shape != images.shape:
+            raise ValueError(
+                f"exposure: must be real numbers of the images' shape {images.shape}, got "
+                f"{t.dtype} of shape {t.shape}"
+            )
+        exposure = np.where(unknown, 1, t) if unknown.any() else t  # masked: not used
+        if not np.all(np.isfinite(exposure) & (exposure > 0)):
+            raise ValueError(
+                "exposure: must be finite and > 0 (seconds) everywhere"
+                + (" it is not masked" if unknown.any() else "")
+            )
+        mask = _excluding(mask, unknown)
+    if split is not None:
+        direct, multiple, unknown = _split_images(split, images.shape[1:], images.dtype)
+        mask = _excluding(mask, unknown)
     if saturation is not None and not (
         isinstance(saturation, (int, float, np.number))
         and not isinstance(saturation, bool)
@@ -187,13 +200,6 @@ def prepare_data(
             black_level=0.0 if black_level is None else float(black_level),
         )
         direct, multiple = np.asarray(sep.direct), np.asarray(sep.multiple)
-    else:
-        direct, multiple = (np.asarray(a, dtype=images.dtype) for a in split)
-        if direct.shape != images.shape[1:] or multiple.shape != images.shape[1:]:
-            raise ValueError(
-                f"split: direct and multiple must have the images' shape {images.shape[1:]}, "
-                f"got {direct.shape} and {multiple.shape}"
-            )
     _check_entry(direct, pixels, pattern)
     decay = fit_decay(
         direct,
@@ -213,7 +219,7 @@ def prepare_data(
         sigma_t0=sigma_t0,
         sigma_t0_err=float(decay.sigma_t_stderr),
         decay_converged=bool(decay.converged),
-        exposure=None if exposure is None else np.asarray(exposure),
+        exposure=exposure,
         samples=None
         if np.array_equal(samples, np.broadcast_to(pixels, samples.shape))
         else samples,
@@ -221,6 +227,47 @@ def prepare_data(
         clip_level=level,
         floor_level=floor_level,
     )
+
+
+def _unmasked(values) -> tuple[np.ndarray, np.ndarray]:
+    """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
+    for any other array), so that its fill values are never used as values."""
+    if isinstance(values, np.ma.MaskedArray):
+        return np.ma.getdata(values), np.ma.getmaskarray(values)
+    data = np.asarray(values)
+    return data, np.zeros(data.shape, bool)
+
+
+def _excluding(mask, unknown: np.ndarray):
+    """``mask`` (``None``, per pixel or per value) with the values ``unknown`` (per pixel
+    or per value) excluded; ``mask`` itself where nothing is."""
+    if not unknown.any():
+        return mask
+    keep = ~unknown
+    return keep if mask is None else np.asarray(mask, bool) & keep
+
+
+def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...]:
+    """A ``split=(direct, multiple)`` as ``(direct, multiple, unknown)``: the images, 0
+    where masked, and the pixels either one masks (numpy masked arrays)."""
+    try:
+        direct, multiple = split
+    except (TypeError, ValueError):
+        got = type(split).__name__
+        if hasattr(split, "__len__"):
+            got += f" of {len(split)} item(s)"
+        raise ValueError(
+            f"split: must be a pair (direct, multiple) of images of shape {shape}, got {got}"
+        ) from None
+    (direct, d_unknown), (multiple, m_unknown) = map(_unmasked, (direct, multiple))
+    if direct.shape != shape or multiple.shape != shape:
+        raise ValueError(
+            f"split: direct and multiple must have the images' shape {shape}, "
+            f"got {direct.shape} and {multiple.shape}"
+        )
+    unknown = d_unknown | m_unknown
+    direct, multiple = (np.where(unknown, 0.0, a).astype(dtype) for a in (direct, multiple))
+    return direct, multiple, unknown
 
 
 # The direct light decays from the entry wall: where the third of the medium farthest

@@ -103,8 +103,10 @@ def fit_images(
         split: ``(direct, multiple)`` images to use instead of separating the capture
             (e.g. a perfect split from a renderer: I_1 and Σ_{k≥2} I_k under full
             illumination). Used by the two-step methods and the joint fit's start.
+            Numpy masked arrays are honoured: a pixel masked in either is not used.
         exposure: the effective exposure T of merged exposure brackets, like
             ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
+            A numpy masked array is honoured: a value whose T is masked is not used.
     """
     options = dataclasses.replace(options or FitOptions(), **overrides)
     check_pixel_size(pixel_size_mm)
