@@ -864,6 +864,36 @@ def test_a_signal_stops_a_fit_at_once_and_leaves_no_output(simulated, tmp_path, 
     assert list(tmp_path.iterdir()) == []  # no output, no temporary
 
 
+def test_a_fit_past_its_time_limit_stops_at_once_and_leaves_no_output(simulated, tmp_path):
+    """``fit --time-limit``: a fit still compiling or solving when the limit passes ends
+    within moments, exit 124, one line naming the limit and the stage, nothing written."""
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), XLA_CACHE_ENV: "off"}
+    argv = ["fit", str(simulated / "capture.yaml"), "--out", str(out), "--plot", str(fig)]
+    done = subprocess.run(
+        [sys.executable, "-m", "lightfield_jax", *argv, "--time-limit", "1.5", "-q"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 124, done.stderr
+    assert len(lines) == 1 and "the fit ran past its time limit of 1.5 s" in lines[0], lines
+    assert lines[0].endswith(": stopped, nothing written")
+    assert list(tmp_path.iterdir()) == []  # no output, no temporary
+    for bad in ("0", "soon"):
+        refused = subprocess.run(
+            [sys.executable, "-m", "lightfield_jax", *argv, "--time-limit", bad],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        assert refused.returncode == 2 and "--time-limit" in refused.stderr, refused.stderr
+        assert "must be a positive number of seconds" in refused.stderr
+
+
 def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture, capsys):
     """The estimate covers the correction's and error term's renders (larger than the
     solve's fields): a limit between the two refuses the fit before it starts."""

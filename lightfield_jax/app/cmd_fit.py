@@ -9,9 +9,11 @@ from pathlib import Path
 from lightfield_jax.app.cli import (
     _XLA_CACHE_HELP,
     DEMO_CONFIG,
+    PROG,
     _about,
     _outputs,
     _positive_int,
+    _positive_seconds,
     _progress,
     _say,
     _use_xla_cache,
@@ -20,6 +22,7 @@ from lightfield_jax.app.cli import (
     command,
     xla_cache_folder,
 )
+from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
 
 # --------------------------------------------------------------------------- fit
 
@@ -207,6 +210,13 @@ def _roi_record(capture) -> dict:
         metavar="N",
         help="iteration limit of the solves (default: FitOptions.max_steps)",
     ),
+    arg(
+        "--time-limit",
+        type=_positive_seconds,
+        metavar="SECONDS",
+        help="stop the fit after this long (from its start, after loading), exit status "
+        f"{TIME_LIMIT_STATUS}, nothing written (default: no limit)",
+    ),
     arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
 )
 def _fit(args: argparse.Namespace) -> int | None:
@@ -257,14 +267,21 @@ def _fit(args: argparse.Namespace) -> int | None:
         _say(args, f"note: {note}")
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
-        fit = fit_capture(
-            capture,
-            args.method,
-            channels=args.channel,
-            progress=stage,
-            phase=args.phase,
-            **limits,
-        )
+        doing = [""]
+
+        def staged(message: str) -> None:
+            doing[0] = message.strip()
+            stage(message)
+
+        with stop_after(args.time_limit, PROG, "the fit", lambda: doing[0]):
+            fit = fit_capture(
+                capture,
+                args.method,
+                channels=args.channel,
+                progress=staged,
+                phase=args.phase,
+                **limits,
+            )
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
         result = _label_two_step(args.method, fit.to_dict())
         result["capture"] = str(capture.source)

@@ -70,4 +70,42 @@ def stop_on_signals(prog: str) -> Iterator[None]:
         os.close(read_fd)
 
 
-__all__ = ["EXIT_STATUS", "stop_on_signals"]
+# The exit status of a command stopped at its time limit (as timeout(1) reports one).
+TIME_LIMIT_STATUS = 124
+
+
+@contextlib.contextmanager
+def stop_after(seconds: float | None, prog: str, what: str, doing=lambda: "") -> Iterator[None]:
+    """Within the block, end the process once ``seconds`` have passed (``None``: no
+    limit), whatever it computes (as :func:`stop_on_signals` does: a timer thread removes
+    the unpublished temporaries, says so in one line naming ``what`` and ``doing()`` (the
+    stage it was in), and exits with :data:`TIME_LIMIT_STATUS`). Leaving the block in
+    time cancels it."""
+    if seconds is None:
+        yield
+        return
+
+    def stop() -> None:
+        remove_temporaries()
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            stage = doing()
+            print(
+                f"{prog}: {what} ran past its time limit of {seconds:g} s"
+                + (f" (in: {stage})" if stage else "")
+                + ": stopped, nothing written",
+                file=sys.stderr,
+            )
+            sys.stderr.flush()
+        os._exit(TIME_LIMIT_STATUS)
+
+    timer = threading.Timer(seconds, stop)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+__all__ = ["EXIT_STATUS", "TIME_LIMIT_STATUS", "stop_after", "stop_on_signals"]
