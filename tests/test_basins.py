@@ -456,3 +456,35 @@ def test_the_offset_linearised_at_an_answer_and_its_hint():
         pytest.approx(np.nan, nan_ok=True),
         1.0,
     )
+
+
+def test_the_offset_reason_takes_the_scans_constant_else_the_answers():
+    """_offset_reason: the scan's offset where it leaves at most OFFSET_EXPLAINS of the
+    scan's misfit; else the offset linearised at the answer (its Jacobian, residual and
+    weights); nothing where neither explains the misfit. ScanOffset.of picks the best
+    point of the offset's map and its share of the best misfit without it."""
+    import dataclasses
+    import types
+
+    from lightfield_jax.inverse.basins import ScanOffset
+    from lightfield_jax.inverse.joint_fit import _offset_reason
+
+    cost = _two_wells(depth_ratio=1.5)
+    with_offset = np.full_like(cost, np.inf)
+    with_offset[3, 5], with_offset[4, 5] = 0.02 * cost.min(), 0.5 * cost.min()
+    offsets = np.zeros_like(cost)
+    offsets[3, 5] = 0.031
+    found = ScanOffset.of(cost, with_offset, offsets)
+    assert found.value == 0.031 and found.fraction == pytest.approx(0.02)
+    rng = np.random.default_rng(2)
+    w = rng.uniform(0.5, 2.0, 300)
+    jac = rng.standard_normal((300, 4))
+    plain = types.SimpleNamespace(jac=jac, residual=1e-3 * rng.standard_normal(300), weights=w)
+    pedestal = types.SimpleNamespace(**{**vars(plain), "residual": plain.residual - 0.02 * w})
+    scanned = dataclasses.replace(_scan_of(cost), offset=found)
+    (reason,) = _offset_reason(scanned, plain, 1.0)
+    assert "+0.031" in reason and "basin scan's misfit" in reason, reason
+    unexplained = dataclasses.replace(scanned, offset=ScanOffset(1.0, 0.031, 0.9))
+    (reason,) = _offset_reason(unexplained, pedestal, 1.0)
+    assert "+0.02" in reason and "answer's misfit" in reason, reason
+    assert _offset_reason(unexplained, plain, 1.0) == []

@@ -768,7 +768,9 @@ def test_dark_level_refusals(tmp_path):
 
     refused("dark_level: 0.01\ndark_frame: dark.exr\n", "dark_level: give a dark_frame or a")
     refused("dark_level: -0.01\n", r"dark_level: must be a finite value >= 0, got -0\.01")
-    refused("dark_level: 0.6\n", r"dark_level: 0\.6 is above the images")
+    # Above the pedestal: values in [0.1, 0.5] less 0.3 (44 % below zero).
+    refused("dark_level: 0.3\n", r"dark_level: 0\.3 is above the camera's pedestal: .* 4\d% of")
+    assert _capture(tmp_path, text=base + "dark_level: 0\n").dark_level is None  # none
     # Integer files: a value in codes is named as such, with its image value.
     for i, name in enumerate(names):
         write_png(tmp_path / f"c{i}.png", read_image(tmp_path / name).pixels[..., 0], bits=16)

@@ -85,19 +85,25 @@ def stop_after(seconds: float | None, prog: str, what: str, doing=lambda: "") ->
         yield
         return
 
+    lock, done = threading.Lock(), []
+
     def stop() -> None:
-        remove_temporaries()
-        with contextlib.suppress(Exception):
-            sys.stdout.flush()
-            stage = doing()
-            print(
-                f"{prog}: {what} ran past its time limit of {seconds:g} s"
-                + (f" (in: {stage})" if stage else "")
-                + ": stopped, nothing written",
-                file=sys.stderr,
-            )
-            sys.stderr.flush()
-        os._exit(TIME_LIMIT_STATUS)
+        with lock:  # held until the exit: the block cannot end (and publish) meanwhile
+            if done:
+                return  # the block ended first: nothing to stop
+            remove_temporaries()
+            with contextlib.suppress(Exception):
+                sys.stdout.flush()
+                stage = doing()
+                print(
+                    ("\n" if sys.stderr.isatty() else "")  # past a progress bar's line
+                    + f"{prog}: {what} ran past its time limit of {seconds:g} s"
+                    + (f" (in: {stage})" if stage else "")
+                    + ": stopped, nothing written",
+                    file=sys.stderr,
+                )
+                sys.stderr.flush()
+            os._exit(TIME_LIMIT_STATUS)
 
     timer = threading.Timer(seconds, stop)
     timer.daemon = True
@@ -105,6 +111,8 @@ def stop_after(seconds: float | None, prog: str, what: str, doing=lambda: "") ->
     try:
         yield
     finally:
+        with lock:
+            done.append(True)
         timer.cancel()
 
 

@@ -40,25 +40,35 @@ def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry
         raise CaptureError(f"{top.source}: {', '.join(asked)}: auto: {e}") from None
 
 
+# A dark_level above the camera's pedestal pushes the dark values below zero by more
+# than their noise: refused where more than DARK_BELOW of the image values lie below
+# −DARK_DEPTH × the brightest values (their 99th percentile); a right level leaves only
+# the dark pixels' noise below zero.
+DARK_BELOW, DARK_DEPTH = 0.05, 0.05
+
+
 def _check_light(
     top: _Section, images: np.ndarray, dark: ImageData | None, dark_level: float | None = None
 ) -> None:
     """Refuse images without light: no value above zero (every value zero, or negative
-    images), or, with a dark frame (or ``dark_level``), images darker than it (99 % of
-    the values after subtracting it below zero by more than 10⁻³ of the dark level:
-    past quantisation)."""
+    images), or, with a dark frame, images darker than it (99 % of the values after
+    subtracting it below zero by more than 10⁻³ of the dark level: past quantisation),
+    or, with a ``dark_level``, one above the pedestal (see :data:`DARK_BELOW`)."""
     finite = images[np.isfinite(images)]
     if finite.size == 0:
         return  # every value non-finite: the mask's check says so
     brightest = float(finite.max())
-    if dark_level is not None:
-        level = float(np.percentile(finite, 99))
-        if level < -1e-3 * dark_level or brightest <= 0:
+    if dark_level:
+        bright = float(np.percentile(finite, 99))
+        below = float(np.mean(finite < -DARK_DEPTH * max(bright, 0.0)))
+        if bright <= 0 or below > DARK_BELOW:
             top.fail(
                 "dark_level",
-                f"{dark_level:.6g} is above the images (after subtracting it, 99% of the "
-                f"image values are <= {level:.3g}): the camera's pedestal lies below "
-                "every image value",
+                f"{dark_level:.6g} is above the camera's pedestal: after subtracting it, "
+                f"{below:.0%} of the image values lie below zero by more than "
+                f"{DARK_DEPTH:.0%} of the bright ones (their 99th percentile "
+                f"{bright:.3g}); give it in image values (a 16-bit file's pedestal of C "
+                "codes is C/65535), at or below the darkest pixels",
             )
         return
     if dark is not None:

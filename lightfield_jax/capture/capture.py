@@ -406,17 +406,18 @@ def load_capture(path: str | os.PathLike) -> Capture:
         )
     dark = aux["dark_frame"]
     dark_pixels = aux_linear["dark_frame"]
-    dark_level = None
-    if merged is None:  # brackets: subtracted from every exposure by the merge
+    if merged is None:
         bits = frames[0].bit_depth if frames[0].is_integer else None
         dark_level = _dark_level(top, bits, str(top.get("response", "linear")))
-    if dark_level is not None:
+    else:  # subtracted from every exposure by the merge (checked there)
+        dark_level = top.float("dark_level", None) or None
+    if dark_level is not None and merged is None:
         dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)
         notes.append(f"dark_level: {dark_level:.6g} subtracted from every image")
     dark_removed = (
         dark is not None
         or dark_level is not None
-        or bool(merged and ("dark_frame" in top.data or "dark_level" in top.data))
+        or bool(merged and top.get("dark_frame", None) is not None)
     )
     flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, aux_linear["flat_field"])
 

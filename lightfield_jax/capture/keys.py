@@ -189,6 +189,12 @@ def _dark_level(top: _Section, integer_bits: int | None, response: str) -> float
         top.fail("dark_level", "give a dark_frame or a dark_level, not both")
     if not math.isfinite(value) or value < 0:
         top.fail("dark_level", f"must be a finite value >= 0, got {brief(value)}")
+    if response != "linear":
+        top.fail(
+            "dark_level",
+            f"applies to linear images, not with response: {response} (a camera that "
+            "encodes its files subtracts its pedestal first; take a dark_frame otherwise)",
+        )
     if integer_bits is not None and value >= 1:
         top_code = (1 << integer_bits) - 1
         top.fail(
@@ -197,12 +203,8 @@ def _dark_level(top: _Section, integer_bits: int | None, response: str) -> float
             f"to [0, 1]): a pedestal of {value:g} codes is dark_level: "
             f"{value / top_code:.6g} ({value:g}/{top_code})",
         )
-    if response != "linear":
-        top.fail(
-            "dark_level",
-            f"applies to linear images, not with response: {response} (a camera that "
-            "encodes its files subtracts its pedestal first; take a dark_frame otherwise)",
-        )
+    if value == 0:
+        return None  # no pedestal: nothing to subtract
     return value
 
 

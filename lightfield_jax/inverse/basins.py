@@ -179,10 +179,13 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
     total = jnp.sum((weights * obs) ** 2)
     n = jnp.sum(weights > 0)
     ones2, ones_obs = jnp.sum(weights**2), jnp.sum(weights**2 * obs)
+    total_c = total - ones_obs**2 / ones2
 
     def per_g(g):
         grams = _weighted_grams(settings, renderer, full, obs, weights, sigma_t, g)
         gram, proj, with_ones, ref, ratio = grams
+        gram_c = gram - jnp.outer(with_ones, with_ones) / ones2
+        proj_c = proj - with_ones * (ones_obs / ones2)
         k = gram.shape[0] // 2
         orders = jnp.arange(1, k + 1, dtype=gram.dtype)
 
@@ -206,22 +209,28 @@ def _scan(settings: ScanSettings, renderer, full, obs, weights, sigma_t, gs, alb
             col = jnp.array([1.0 - b, b])
             norm = jnp.sum(col * matmul(m, col))
             cost = (total - jnp.sum(col * rhs) ** 2 / norm) / n
-            # Diagnostic: the misfit with a constant offset d in every image value too
-            # (the model's columns free), and d.
-            model_cols = pair if settings.fit_black else matmul(col[None], pair)
-            k3 = model_cols.shape[0]
-            m3 = jnp.zeros((k3 + 1, k3 + 1), m.dtype)
-            m3 = m3.at[:k3, :k3].set(matmul(matmul(model_cols, gram), model_cols.T))
-            cross = matmul(model_cols, with_ones)
-            m3 = m3.at[:k3, k3].set(cross).at[k3, :k3].set(cross).at[k3, k3].set(ones2)
-            rhs3 = jnp.concatenate([matmul(model_cols, proj), ones_obs[None]])
-            scale = jnp.sqrt(jnp.maximum(jnp.diag(m3), jnp.finfo(m3.dtype).tiny))
-            c3 = jnp.linalg.solve(m3 / jnp.outer(scale, scale), rhs3 / scale) / scale
-            offset_cost = (total - jnp.sum(c3 * rhs3)) / n
+            # Diagnostic: the misfit with a constant offset d in every image value too,
+            # the constant profiled out (the weighted basis and data less their
+            # projections on it: the centred Gram matrix), and d.
+            m_c = matmul(matmul(pair, gram_c), pair.T)
+            rhs_c = matmul(pair, proj_c)
+            if settings.fit_black:  # the 2×2 solve in closed form (no second LU)
+                det = m_c[0, 0] * m_c[1, 1] - m_c[0, 1] ** 2
+                c0 = m_c[1, 1] * rhs_c[0] - m_c[0, 1] * rhs_c[1]
+                c1 = m_c[0, 0] * rhs_c[1] - m_c[0, 1] * rhs_c[0]
+                b_c = jnp.clip(c1 / jnp.where(c0 + c1 != 0, c0 + c1, 1.0), lo, hi)
+                b_c = jnp.where(det > 0, b_c, b)
+            else:
+                b_c = black
+            col_c = jnp.array([1.0 - b_c, b_c])
+            fitted = jnp.sum(col_c * rhs_c)
+            norm_c = jnp.sum(col_c * matmul(m_c, col_c))
+            offset_cost = (total_c - fitted**2 / norm_c) / n
+            offset = (ones_obs - fitted / norm_c * jnp.sum(col_c * matmul(pair, with_ones))) / ones2
             if settings.extrapolate:
                 cost = jnp.where(ur < 1, cost, jnp.inf)
                 offset_cost = jnp.where(ur < 1, offset_cost, jnp.inf)
-            return cost, b, offset_cost, c3[-1]
+            return cost, b, offset_cost, offset
 
         cost, b, offset_cost, offset = jax.vmap(per_albedo)(albedos)
         return cost, b, ratio, ref, offset_cost, offset

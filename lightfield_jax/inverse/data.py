@@ -156,7 +156,11 @@ def prepare_data(
                 f"exposure: must be real numbers of the images' shape {images.shape}, got "
                 f"{t.dtype} of shape {t.shape}"
             )
-        exposure = np.where(unknown, 1, t) if unknown.any() else t  # masked: not used
+        if unknown.any():  # masked: not used (the largest known T: weights ∝ √(T/max T))
+            known = t[~unknown & np.isfinite(t)]
+            exposure = np.where(unknown, known.max() if known.size else 1, t)
+        else:
+            exposure = t
         if not np.all(np.isfinite(exposure) & (exposure > 0)):
             raise ValueError(
                 "exposure: must be finite and > 0 (seconds) everywhere"

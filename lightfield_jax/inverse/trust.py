@@ -528,13 +528,15 @@ def offset_hint(d: float, left: float, where: str, peak: float) -> list[str]:
     if not (math.isfinite(d) and left <= OFFSET_EXPLAINS):
         return []
     cause = (
-        "a camera pedestal (black offset) left in the images? give a dark_frame or its dark_level"
+        "a camera pedestal (black offset) left in the images? (a capture file removes it "
+        "with a dark_frame or dark_level)"
         if d > 0
         else "a dark frame or dark_level that subtracts too much?"
     )
+    share = f" ({d / peak:+.1%} of the peak)" if peak > 0 and math.isfinite(peak) else ""
     return [
-        f"a constant {d:+.4g} in every image value ({d / peak:+.1%} of the peak) would leave "
-        f"{left:.1%} of the {where} misfit: {cause}"
+        f"a constant {d:+.4g} in every image value{share} would leave {left:.1%} of the "
+        f"{where} misfit: {cause}"
     ]
 
 
