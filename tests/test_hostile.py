@@ -1243,6 +1243,10 @@ def test_memory_sizes_below_a_byte_and_empty_demo_methods_are_refused(capture, c
     status = main(["inspect", str(capture / "capture.yaml"), "--max-memory", "0.0001"])
     assert status == 2 and "memory size: expected a size" in capsys.readouterr().err
     _refused(capsys, "demo", "--out", tmp_path / "d", "--methods", " , ", match="names no method")
+    _refused(
+        capsys, "demo", "--out", tmp_path / "d", "--methods", "joint,grid,joint",
+        match="--methods: names joint more than once",
+    )  # fmt: skip
     assert not (tmp_path / "d").exists()
 
 

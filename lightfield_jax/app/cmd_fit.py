@@ -347,6 +347,9 @@ def _demo(args: argparse.Namespace) -> int | None:
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
+    twice = sorted({m for m in methods if methods.count(m) > 1})
+    if twice:  # before: fitted twice, the table's rows twice, results.json's once
+        raise ValueError(f"--methods: names {', '.join(twice)} more than once: {args.methods!r}")
     _outputs(
         folders=[args.out],
         folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),
