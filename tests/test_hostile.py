@@ -1447,3 +1447,21 @@ def test_simulate_publishes_nothing_when_its_figures_fail(capsys, tmp_path, monk
     )
     assert status != 0
     assert not (tmp_path / "o2").exists() and not (tmp_path / "f2").exists()
+
+
+@pytest.mark.parametrize("seconds", [1e10, 1e300])
+def test_a_time_limit_beyond_a_timers_range_is_no_limit_and_no_traceback(seconds):
+    """Before: ``--time-limit 1e300`` started a timer whose wait overflowed (a traceback
+    from its thread on stderr) and the fit ran unbounded anyway; now no timer."""
+    import threading
+
+    from lightfield_jax.app.signals import stop_after
+
+    failed = []
+    previous, threading.excepthook = threading.excepthook, failed.append
+    try:
+        with stop_after(seconds, "lightfield-jax", "the fit"):
+            time.sleep(0.2)
+    finally:
+        threading.excepthook = previous
+    assert failed == []
