@@ -712,6 +712,17 @@ def test_a_white_frame_listed_as_a_stripe_image_is_refused(capture, capsys):
     )
 
 
+def test_one_dropped_frame_of_one_value_is_refused(capture, capsys):
+    """Before: a shift all 0 (a dropped frame) among lit ones was fitted as a shift: not
+    converged (albedo at 1, chi2 569) without a word of the frame."""
+    write_exr(capture / "shift_03.exr", {"Y": np.zeros((H, W))})
+    for command in ("fit", "inspect"):
+        _refused(
+            capsys, command, capture / "capture.yaml",
+            match="images: shift_03.exr: every pixel value is 0, unlike the other images",
+        )  # fmt: skip
+
+
 def test_images_without_light_are_refused(capture, capsys):
     shifts = [capture / f"shift_{i:02d}.exr" for i in range(P)]
     images = [read_image(f).pixels[..., 0] for f in shifts]
