@@ -251,6 +251,8 @@ def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> 
     if not finite.size:
         return raw
     limit = OUTLIER * float(np.percentile(finite, 99))
+    if np.issubdtype(raw.dtype, np.floating) and limit > float(np.finfo(raw.dtype).max):
+        return raw  # nothing of its type lies beyond (compared, the limit overflowed a cast)
     with np.errstate(invalid="ignore"):
         wild = np.isfinite(raw) & (np.abs(raw) > limit)
     if limit <= 0 or not wild.any():
