@@ -562,3 +562,17 @@ def test_a_full_disk_while_plotting_is_one_line_and_writes_nothing(
         f"lightfield-jax: error: {plot}: No space left on device"
     ]
     assert os.listdir(tmp_path) == []
+
+
+def test_a_channel_name_with_a_separator_cannot_name_a_figure():
+    """Before: fit --plot of a capture whose EXR channels are named a/b and ../x ended
+    with pathlib's "Invalid name 'fit_a/b.png'" (naming neither the option nor the
+    channel); one channel at a time plots to FIG.png alone."""
+    from pathlib import Path
+
+    from lightfield_jax.app.cmd_fit import _figure_names
+
+    with pytest.raises(ValueError, match=r"^--plot: the images' channel 'a/b' cannot name"):
+        _figure_names(Path("out/fit.png"), ["R", "a/b"])
+    assert _figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
+    assert _figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")

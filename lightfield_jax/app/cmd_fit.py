@@ -91,6 +91,13 @@ def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
     """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
     if len(channels) == 1:
         return [plot]
+    for name in channels:  # before: pathlib's "Invalid name 'fit_a/b.png'", naming nothing
+        if any(c in name for c in "/\\\0"):
+            raise ValueError(
+                f"--plot: the images' channel {name!r} cannot name a figure "
+                f"{plot.stem}_<channel>{plot.suffix} (a path separator); fit without --plot, "
+                "or one channel (--channel) at a time"
+            )
     return [plot] + [plot.with_name(f"{plot.stem}_{name}{plot.suffix}") for name in channels]
 
 
