@@ -488,3 +488,19 @@ def test_the_offset_reason_takes_the_scans_constant_else_the_answers():
     (reason,) = _offset_reason(unexplained, pedestal, 1.0)
     assert "+0.02" in reason and "answer's misfit" in reason, reason
     assert _offset_reason(unexplained, plain, 1.0) == []
+
+
+def test_an_untrusted_fit_near_the_noise_still_looks_for_an_offset():
+    """A fit not trusted for another reason whose χ²/dof is OFFSET_HINT_CHI2 or more
+    looks for the constant offset too (a dark level 0.4 % of the peak too high: χ² 14,
+    σs 27 % off, before without a word of it); a trusted fit, one at the noise, or one
+    far above it (already looked) does not again."""
+    from lightfield_jax.inverse.joint_fit import OFFSET_HINT_CHI2, _offset_hint_below_far
+
+    bound = ["albedo = 0.0000 is at its bound"]
+    assert _offset_hint_below_far(False, bound, 13.9)
+    assert not _offset_hint_below_far(False, bound, 1.03)
+    assert not _offset_hint_below_far(False, [], 13.9)
+    assert not _offset_hint_below_far(True, bound, 419.0)
+    assert not _offset_hint_below_far(False, bound, math.nan)
+    assert OFFSET_HINT_CHI2 <= 13.9

@@ -630,6 +630,10 @@ def test_fit_capture_takes_a_path_and_refuses_other_things(tmp_path):
     (tmp_path / "capture.yaml").write_text(text)
     with pytest.raises(ValueError, match=r"channel: 'nope' is not in the capture \(it has Y\)"):
         capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=["nope"])
+    with pytest.raises(ValueError, match=r"channel: 'Y' chosen more than once"):
+        capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=["Y", "Y"])
+    with pytest.raises(ValueError, match=r"channel: no channel chosen"):
+        capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=[])
 
 
 def test_a_float_floor_is_a_cut_only_where_the_images_show_read_noise(tmp_path):

@@ -984,3 +984,31 @@ def test_the_correlations_go_with_the_total_uncertainty():
         assert b.correlation_statistical[key] == pytest.approx(cov_stat[i, j] / (stat[i] * stat[j]))
     assert abs(b.correlation_statistical["sigma_t,g"]) > 0.9
     assert abs(b.correlation["sigma_t,g"] - b.correlation_statistical["sigma_t,g"]) > 0.01
+
+
+def test_a_finer_model_that_is_not_finite_leaves_the_misfit_judged_against_the_noise():
+    """A finer model's render that is not finite (a solve at a bound) measures no model
+    error: chi2_model is the noise's χ² and the misfit rule still fires, instead of a
+    NaN that hid a misfit 400 times the noise (an over-subtracted dark frame)."""
+    from lightfield_jax.inverse.trust import error_budget, untrustworthy
+
+    rng = np.random.default_rng(2)
+    jac = rng.normal(size=(300, 3))
+    residual = 20.0 * rng.normal(size=300)
+    names = ["sigma_t", "sigma_s", "g"]
+    shift_r = np.full(300, np.nan)
+    b = error_budget(jac, residual, names, 1.0, shift_r)
+    assert b.chi2_model == pytest.approx(b.chi2_dof) and b.chi2_dof > 100
+    assert all(np.isfinite(v) for v in b.correlation.values())
+    values = {"sigma_t": 0.2, "sigma_s": 0.05, "g": 0.3, "gain": 1.0}
+    assert any("misfit far above" in r for r in untrustworthy(values, b, 100.0))
+
+
+@pytest.mark.parametrize("scale", [1e-30, 1e38])
+def test_images_beyond_the_float32_scale_are_refused_before_the_fit(scale):
+    """Before: the paper's milk times 1e-30 ended "converged" with g 0.30 ± 0.003 for 0.40
+    (its noise variances underflowed), times 1e38 "rho: must be finite, got nan"."""
+    rng = np.random.default_rng(0)
+    images = (scale * rng.uniform(0.1, 1.0, (6, 12, 16))).astype(np.float32)
+    with pytest.raises(ValueError, match=r"images: their values' 99th percentile is .* outside"):
+        lfj.fit_images(images, lfj.Stripes())

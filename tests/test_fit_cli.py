@@ -366,6 +366,7 @@ def test_all_saturated_frames_are_named_in_a_warning(simulated, tmp_path, capsys
     ("argv", "message"),
     [
         (["--channel", "Q"], "channel: 'Q' is not in the capture (it has Y)"),
+        (["--channel", "Y", "--channel", "Y"], "channel: 'Y' chosen more than once"),
         (["--max-steps", "0"], "argument --max-steps: must be a positive integer, got '0'"),
         (["--method", "newton"], "argument --method: invalid choice: 'newton'"),
     ],
@@ -561,3 +562,17 @@ def test_a_full_disk_while_plotting_is_one_line_and_writes_nothing(
         f"lightfield-jax: error: {plot}: No space left on device"
     ]
     assert os.listdir(tmp_path) == []
+
+
+def test_a_channel_name_with_a_separator_cannot_name_a_figure():
+    """Before: fit --plot of a capture whose EXR channels are named a/b and ../x ended
+    with pathlib's "Invalid name 'fit_a/b.png'" (naming neither the option nor the
+    channel); one channel at a time plots to FIG.png alone."""
+    from pathlib import Path
+
+    from lightfield_jax.app.cmd_fit import _figure_names
+
+    with pytest.raises(ValueError, match=r"^--plot: the images' channel 'a/b' cannot name"):
+        _figure_names(Path("out/fit.png"), ["R", "a/b"])
+    assert _figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
+    assert _figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")

@@ -342,3 +342,29 @@ def test_a_dark_level_is_subtracted_from_every_exposure(radiance, tmp_path):
     path.write_text(yaml.safe_dump(capture))
     ratio = load_capture(path).images[..., 0][lit] / with_frames.images[..., 0][lit]
     assert np.percentile(ratio, 10) > 1.03
+
+
+@pytest.mark.parametrize("level, said", [(None, "+0.05"), (0.08, "-0.03")])
+def test_a_bracket_off_by_a_pedestal_is_said_to_be(tmp_path, level, said):
+    """Exposures that scale as their times say but for one constant in every sample (a
+    pedestal left in, or a dark_level above it) name that constant, not the files'
+    order (before: "are the files listed out of order ...?" for either)."""
+    radiance = np.linspace(0.005, 0.1, 16 * 20).reshape(16, 20)
+    rows = []
+    for i in range(6):
+        for j, t in enumerate((1.0, 4.0)):
+            write_png(tmp_path / f"s{i}_{j}.png", np.clip(t * radiance + 0.05, 0, 1), bits=16)
+        rows.append([f"s{i}_0.png", f"s{i}_1.png"])
+    data = {"images": rows, "exposure_times": [0.01, 0.04], "pattern": {"period": 6, "lit": 3}}
+    if level is not None:
+        data["dark_level"] = level
+    path = tmp_path / "capture.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    message = str(info.value)
+    assert f"with a constant {said} in every image value" in message, message
+    assert "listed out of order" not in message and "\n" not in message
+    data["dark_level"] = 0.05
+    path.write_text(yaml.safe_dump(data))
+    load_capture(path)

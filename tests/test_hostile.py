@@ -712,6 +712,17 @@ def test_a_white_frame_listed_as_a_stripe_image_is_refused(capture, capsys):
     )
 
 
+def test_one_dropped_frame_of_one_value_is_refused(capture, capsys):
+    """Before: a shift all 0 (a dropped frame) among lit ones was fitted as a shift: not
+    converged (albedo at 1, chi2 569) without a word of the frame."""
+    write_exr(capture / "shift_03.exr", {"Y": np.zeros((H, W))})
+    for command in ("fit", "inspect"):
+        _refused(
+            capsys, command, capture / "capture.yaml",
+            match="images: shift_03.exr: every pixel value is 0, unlike the other images",
+        )  # fmt: skip
+
+
 def test_images_without_light_are_refused(capture, capsys):
     shifts = [capture / f"shift_{i:02d}.exr" for i in range(P)]
     images = [read_image(f).pixels[..., 0] for f in shifts]
@@ -1243,6 +1254,10 @@ def test_memory_sizes_below_a_byte_and_empty_demo_methods_are_refused(capture, c
     status = main(["inspect", str(capture / "capture.yaml"), "--max-memory", "0.0001"])
     assert status == 2 and "memory size: expected a size" in capsys.readouterr().err
     _refused(capsys, "demo", "--out", tmp_path / "d", "--methods", " , ", match="names no method")
+    _refused(
+        capsys, "demo", "--out", tmp_path / "d", "--methods", "joint,grid,joint",
+        match="--methods: names joint more than once",
+    )  # fmt: skip
     assert not (tmp_path / "d").exists()
 
 
@@ -1443,3 +1458,21 @@ def test_simulate_publishes_nothing_when_its_figures_fail(capsys, tmp_path, monk
     )
     assert status != 0
     assert not (tmp_path / "o2").exists() and not (tmp_path / "f2").exists()
+
+
+@pytest.mark.parametrize("seconds", [1e10, 1e300])
+def test_a_time_limit_beyond_a_timers_range_is_no_limit_and_no_traceback(seconds):
+    """Before: ``--time-limit 1e300`` started a timer whose wait overflowed (a traceback
+    from its thread on stderr) and the fit ran unbounded anyway; now no timer."""
+    import threading
+
+    from lightfield_jax.app.signals import stop_after
+
+    failed = []
+    previous, threading.excepthook = threading.excepthook, failed.append
+    try:
+        with stop_after(seconds, "lightfield-jax", "the fit"):
+            time.sleep(0.2)
+    finally:
+        threading.excepthook = previous
+    assert failed == []

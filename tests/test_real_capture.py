@@ -376,7 +376,9 @@ def test_flat_field_divides_the_images_and_masks_bad_pixels(tmp_path):
     median = float(np.median(0.8 * vignette))
     np.testing.assert_allclose(c.images[0][c.mask[..., 0]], 0.5 * median, rtol=2e-5)
     write_exr(tmp_path / "flat.exr", {"Y": np.zeros((16, 20))})
-    with pytest.raises(CaptureError, match=r"flat_field: flat\.exr is not positive in 100%"):
+    with pytest.raises(
+        CaptureError, match=r"flat_field: flat\.exr is not positive .* in 320 of its 320 pixel"
+    ):
         load_capture(tmp_path / "capture.yaml")
     # A flat field clipped at its top code measures no vignetting there (before: taken,
     # and those pixels divided by a wrong flat, without a word).
@@ -390,6 +392,16 @@ def test_flat_field_divides_the_images_and_masks_bad_pixels(tmp_path):
     said = " ".join(str(w.message) for w in caught)
     assert re.search(r"flat_field: \d+ pixel value\(s\) of flat\.png sit at its top code", said)
     np.testing.assert_array_equal(c.mask[..., 0], bright < 1.0)
+    # One overexposed at its top code nearly everywhere is said as such (before: "not
+    # positive in 100% of its pixels", of a flat whose pixels were all bright).
+    over = np.ones((16, 20))
+    over[0, :2] = 0.5
+    write_png(tmp_path / "flat.png", over, bits=16)
+    with pytest.raises(CaptureError) as refused:
+        load_capture(tmp_path / "capture.yaml")
+    assert "flat.png is clipped at its top code in 318 of its 320 pixel values" in str(
+        refused.value
+    )
     # A perfectly flat float flat field is no clip: its one level is taken.
     write_exr(tmp_path / "flat.exr", {"Y": np.ones((16, 20))})
     (tmp_path / "capture.yaml").write_text(

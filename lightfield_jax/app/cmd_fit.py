@@ -91,6 +91,13 @@ def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
     """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
     if len(channels) == 1:
         return [plot]
+    for name in channels:  # before: pathlib's "Invalid name 'fit_a/b.png'", naming nothing
+        if any(c in name for c in "/\\\0"):
+            raise ValueError(
+                f"--plot: the images' channel {name!r} cannot name a figure "
+                f"{plot.stem}_<channel>{plot.suffix} (a path separator); fit without --plot, "
+                "or one channel (--channel) at a time"
+            )
     return [plot] + [plot.with_name(f"{plot.stem}_{name}{plot.suffix}") for name in channels]
 
 
@@ -347,6 +354,9 @@ def _demo(args: argparse.Namespace) -> int | None:
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
+    twice = sorted({m for m in methods if methods.count(m) > 1})
+    if twice:  # before: fitted twice, the table's rows twice, results.json's once
+        raise ValueError(f"--methods: names {', '.join(twice)} more than once: {args.methods!r}")
     _outputs(
         folders=[args.out],
         folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),

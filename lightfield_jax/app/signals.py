@@ -74,6 +74,12 @@ def stop_on_signals(prog: str) -> Iterator[None]:
 TIME_LIMIT_STATUS = 124
 
 
+# A limit longer than this (about 31 years) is no limit: a timer thread's wait fails
+# beyond threading.TIMEOUT_MAX (9.2e9 s: "timestamp out of range", a traceback printed
+# from the thread and the fit then run unbounded), so none is started.
+LONGEST_LIMIT = 1e9
+
+
 @contextlib.contextmanager
 def stop_after(seconds: float | None, prog: str, what: str, doing=lambda: "") -> Iterator[None]:
     """Within the block, end the process once ``seconds`` have passed (``None``: no
@@ -81,7 +87,7 @@ def stop_after(seconds: float | None, prog: str, what: str, doing=lambda: "") ->
     the unpublished temporaries, says so in one line naming ``what`` and ``doing()`` (the
     stage it was in), and exits with :data:`TIME_LIMIT_STATUS`). Leaving the block in
     time cancels it."""
-    if seconds is None:
+    if seconds is None or seconds > LONGEST_LIMIT:
         yield
         return
 

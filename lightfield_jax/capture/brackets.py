@@ -21,6 +21,7 @@ from lightfield_jax.capture.hdr import (
     CLIP,
     EXPOSURE_RATIO_TOLERANCE,
     RESPONSES,
+    bracket_offset,
     exposure_ratio_problem,
     linear_response,
     merge_bracket,
@@ -162,14 +163,31 @@ def _check_exposure_ratios(top, images, times, response, levels, dark, clip, shi
         )
         if found is not None:
             j, k, measured, stated = found
+            # A pedestal left in (or a dark level above it) breaks the ratio too: said
+            # where one constant in every sample makes the pair scale as stated.
+            p = bracket_offset(
+                bracket, times, response, (j, k), levels=levels, dark=dark, clip=clip
+            )
+            cause = (
+                "are the files listed out of order (each shift's in the order of "
+                "exposure_times, shortest first), or are exposure_times wrong?"
+            )
+            if math.isfinite(p):
+                what = (
+                    "a camera pedestal left in the images (give dark_level or a dark_frame)"
+                    if p > 0
+                    else "a dark_level or dark_frame that subtracts too much"
+                )
+                cause = (
+                    f"they scale as exposure_times say with a constant {p * full:+.4g} in "
+                    f"every image value: {what}?"
+                )
             top.fail(
                 key,
                 f"{names[k]} (listed for {times[k]:g} s) is {measured:.3g} times as bright as "
                 f"{names[j]} (listed for {times[j]:g} s) where both are well exposed (median "
                 f"over the pixels), but exposure_times make it {stated:.3g} (more than "
-                f"{EXPOSURE_RATIO_TOLERANCE:g}x apart): are the files listed out of order "
-                "(each shift's in the order of exposure_times, shortest first), or are "
-                "exposure_times wrong?",
+                f"{EXPOSURE_RATIO_TOLERANCE:g}x apart): {cause}",
             )
 
 

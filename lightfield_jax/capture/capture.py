@@ -317,6 +317,12 @@ class Capture:
 # --------------------------------------------------------------------------- loading
 
 
+def _one_value(image: np.ndarray) -> float | None:
+    """The one value of an image whose finite pixel values are all equal, else ``None``."""
+    values = image[np.isfinite(image)]
+    return float(values[0]) if values.size and np.all(values == values[0]) else None
+
+
 def load_capture(path: str | os.PathLike) -> Capture:
     """Read and validate a capture file (see the module docstring).
 
@@ -373,6 +379,17 @@ def load_capture(path: str | os.PathLike) -> Capture:
         for i, name in enumerate(names):
             if not np.isfinite(raw[i]).any():
                 top.fail("images", f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
+        # A frame all 0 (or one negative value) among frames that vary: no stripes, no
+        # light (a dropped frame: before, fitted as a shift, not converged without a word
+        # of it). Every frame alike is said below with its cause.
+        flat = [_one_value(raw[i]) for i in range(len(names))]
+        for name, level in zip(names, flat, strict=True):
+            if level is not None and level <= 0 and None in flat:
+                top.fail(
+                    "images",
+                    f"{name}: every pixel value is {level:.6g}, unlike the other images (a "
+                    "dropped frame, or the projector or camera off?)",
+                )
     raw = _inf_to_nan(_corrupt_to_nan(raw, names, issues))
     response = None if merged is not None else read_response(top, base, frames[0].channel_names)
     sensor = None if saturation is not None else sensor_top_code(raw, frames)

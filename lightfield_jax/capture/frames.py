@@ -186,10 +186,21 @@ def _flat(
     f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
+        # A clipped pixel is said as such: an overexposed flat (its top code) is not one
+        # that is "not positive".
+        top_name = "top code" if flat.is_integer else "largest value"
+        parts = [
+            f"{what} in {int(k.sum())}"
+            for k, what in (
+                (clipped, f"clipped at its {top_name}"),
+                (~good & ~clipped, "not positive (after the dark frame) or not finite"),
+            )
+            if k.any()
+        ]
         top.fail(
             "flat_field",
-            f"{flat.path.name} is not positive in {100 * (1 - good.mean()):.0f}% of its "
-            "pixels (after the dark frame): not a flat field",
+            f"{flat.path.name} is {' and '.join(parts)} of its {good.size} pixel values: "
+            "not a flat field",
         )
     bad = np.isfinite(f) & (f <= 0)
     if bad.any():  # said as such: before, counted among the NaN or Inf values
@@ -240,6 +251,8 @@ def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> 
     if not finite.size:
         return raw
     limit = OUTLIER * float(np.percentile(finite, 99))
+    if np.issubdtype(raw.dtype, np.floating) and limit > float(np.finfo(raw.dtype).max):
+        return raw  # nothing of its type lies beyond (compared, the limit overflowed a cast)
     with np.errstate(invalid="ignore"):
         wild = np.isfinite(raw) & (np.abs(raw) > limit)
     if limit <= 0 or not wild.any():

@@ -409,17 +409,7 @@ def exposure_ratio_problem(
     floor), the median ratio of their linear, dark-subtracted values against
     t_k / t_j. Returns the first pair off by more than
     :data:`EXPOSURE_RATIO_TOLERANCE`, ``(j, k, measured, stated)``, else ``None``."""
-    z = np.asarray(samples, np.float64)
-    if response.kind == "auto":
-        clip = min(clip, AUTO_CLIP)
-    z = np.where(np.isfinite(z), z, np.nan)
-    with np.errstate(invalid="ignore"):
-        x = response.linearize(np.where(np.isfinite(z), z, 0.0))
-        if dark is not None:
-            dz = np.asarray(dark, np.float64)
-            x = x - response.linearize(np.broadcast_to(np.where(np.isfinite(dz), dz, 0.0), z.shape))
-        floor = np.maximum(response.near_black(levels), _WELL_EXPOSED)
-        well = (z >= floor) & (z < clip) & (x > 0)
+    x, well = _well_exposed(samples, response, levels, dark, clip)
     n = len(times)
     pairs = sorted(((j, k) for j in range(n) for k in range(j + 1, n)), key=lambda p: p[1] - p[0])
     for j, k in pairs:
@@ -431,6 +421,54 @@ def exposure_ratio_problem(
         if not 1.0 / EXPOSURE_RATIO_TOLERANCE <= measured / stated <= EXPOSURE_RATIO_TOLERANCE:
             return j, k, measured, stated
     return None
+
+
+def _well_exposed(samples, response: Response, levels, dark, clip):
+    """A bracket's linear, dark-subtracted values and where they are well exposed
+    (:func:`exposure_ratio_problem`)."""
+    z = np.asarray(samples, np.float64)
+    if response.kind == "auto":
+        clip = min(clip, AUTO_CLIP)
+    z = np.where(np.isfinite(z), z, np.nan)
+    with np.errstate(invalid="ignore"):
+        x = response.linearize(np.where(np.isfinite(z), z, 0.0))
+        if dark is not None:
+            dz = np.asarray(dark, np.float64)
+            x = x - response.linearize(np.broadcast_to(np.where(np.isfinite(dz), dz, 0.0), z.shape))
+        floor = np.maximum(response.near_black(levels), _WELL_EXPOSED)
+        well = (z >= floor) & (z < clip) & (x > 0)
+    return x, well
+
+
+def bracket_offset(
+    samples: np.ndarray,
+    times: Sequence[float],
+    response: Response,
+    pair: tuple[int, int],
+    *,
+    levels: int | None,
+    dark: np.ndarray | None = None,
+    clip: float = CLIP,
+) -> float:
+    """The constant p in every linear sample (x_j = t_j·L + p: a camera pedestal left
+    in, p > 0, or a dark level that subtracts too much, p < 0) with which the two
+    exposures of ``pair`` that :func:`exposure_ratio_problem` found off do scale as
+    their times say: the straight line x_k = a·x_j + p·(1 − a) through their
+    well-exposed samples has its slope a within 15 % of t_k/t_j. NaN where no such
+    constant explains them (a wrong order or wrong times)."""
+    x, well = _well_exposed(samples, response, levels, dark, clip)
+    j, k = pair
+    both = well[j] & well[k]
+    if both.sum() < _MIN_RATIO_SAMPLES:
+        return math.nan
+    xj, xk = x[j][both], x[k][both]
+    if not np.ptp(xj) > 0:
+        return math.nan
+    a, b = np.polyfit(xj, xk, 1)
+    stated = float(times[k]) / float(times[j])
+    if not (abs(a / stated - 1) <= 0.15 and abs(1 - a) > 1e-6):
+        return math.nan
+    return float(b / (1 - a))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

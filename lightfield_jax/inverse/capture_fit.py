@@ -106,6 +106,11 @@ def fit_capture(
     for c in chosen:
         if c not in names:
             raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
+    if not chosen:
+        raise ValueError("channel: no channel chosen (give at least one, or None for all)")
+    twice = sorted({c for c in chosen if chosen.count(c) > 1})
+    if twice:  # before: fitted twice, its results listed twice and kept once by name
+        raise ValueError(f"channel: {', '.join(map(repr, twice))} chosen more than once")
     results = []
     say = progress or (lambda _m: None)
     if options is None:  # the capture file's fit: settings, under the call's own

@@ -481,6 +481,20 @@ def _offset_reason(the_scan: Scan, last: _Stage, peak: float) -> list[str]:
     return offset_hint(d, left, "answer's", peak)
 
 
+# A fit not trusted for other reasons (a bound, an undetermined parameter) whose misfit
+# is this many times the noise or more, though not far above it, also names a constant
+# offset that explains it: a small pedestal, or a dark level 0.4 % of the peak too high,
+# ends such a fit at chi2 14 with sigma_s 27 % off, which before said nothing of it.
+OFFSET_HINT_CHI2 = 4.0
+
+
+def _offset_hint_below_far(far: bool, reasons: list[str], chi2_dof: float) -> bool:
+    """Whether a fit whose misfit is not far above the noise (``far``: the offset was
+    already looked for) still looks for a constant offset: it is not trusted for other
+    ``reasons`` and its χ²/dof is at least :data:`OFFSET_HINT_CHI2`."""
+    return (not far) and bool(reasons) and math.isfinite(chi2_dof) and chi2_dof >= OFFSET_HINT_CHI2
+
+
 def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
@@ -692,8 +706,9 @@ def _joint_fit(
     budget = error_budget(last.jac, last.residual, names, noise, shift, groups)
     v = last.values
     reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
-    if math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2:
-        peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
+    far = math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2
+    peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
+    if far:
         reasons += _offset_reason(the_scan, last, peak)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
     reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
@@ -704,6 +719,8 @@ def _joint_fit(
             f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
             f"{other.albedo:.2f}, scan misfit {other.misfit:.3g})"
         )
+    if _offset_hint_below_far(far, reasons, budget.chi2_dof):
+        reasons += _offset_reason(the_scan, last, peak)
     ok, msg = last.ok, last.message
     if reasons:
         ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" (solver: {msg})"

@@ -353,8 +353,11 @@ def error_budget(
     stat = {k: float(e) for k, e in zip(names, err, strict=True)}
     model = dict(nan)
     shift = np.zeros(p)
-    if residual_shift is not None:
-        dr = np.asarray(residual_shift, np.float64).reshape(-1)
+    dr = None if residual_shift is None else np.asarray(residual_shift, np.float64).reshape(-1)
+    # A finer model whose render is not finite (a solve at a bound: albedo 0, a huge gain)
+    # measures no model error: the misfit is then judged against the noise alone, not
+    # left unjudged (χ² NaN hid a misfit 400 times the noise and its offset hint).
+    if dr is not None and np.all(np.isfinite(dr)):
         shift = -inv @ (jac.T @ dr)
         model = {k: float(abs(v)) for k, v in zip(names, shift, strict=True)}
         floor = (noise if math.isfinite(noise) else 0.0) + float(dr @ dr) / max(n - p, 1)
