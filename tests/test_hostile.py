@@ -303,6 +303,11 @@ def test_pattern_does_not_replace_a_capture_file(capsys, tmp_path):
         capsys, "pattern", "--width", 12, "--height", 12, "--out", folder, match="capture.yaml"
     )
     assert (folder / "capture.yaml").read_text() == "images: [mine.tif]\n"
+    # A camera's white.png beside no capture.yaml is not a template's: kept too.
+    (folder / "capture.yaml").unlink()
+    (folder / "white.png").write_bytes(b"a camera's frame")
+    _refused(capsys, "pattern", "--width", 12, "--height", 12, "--out", folder, match="black.png")
+    assert (folder / "white.png").read_bytes() == b"a camera's frame"
 
 
 def test_a_dark_channel_is_named_before_any_fit(capture, capsys, monkeypatch):
