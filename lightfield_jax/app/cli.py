@@ -297,17 +297,20 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
 
 
-def _outputs(files=(), folders=(), inputs=(), plots=(), folder_names=(), marker=None) -> None:
+def _outputs(
+    files=(), folders=(), inputs=(), plots=(), folder_names=(), marker=None, writer=None
+) -> None:
     """Check every output of a command before its work (see
     :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
     ``files``, whose format is checked too; ``folder_names``: the names written into
-    ``folders``; ``marker``: the command's own file of
-    :data:`~lightfield_jax.app.outputs.FOLDER_MARKERS` (its folders are its own)."""
+    ``folders``; ``marker``: the command's own file (its folders are its own);
+    ``writer``: the command's name where a folder without ``marker`` is the user's."""
     from lightfield_jax.app.outputs import check_outputs, check_plot_format
 
     for plot in plots:
         check_plot_format(plot)
-    check_outputs([f for f in files if f], [d for d in folders if d], inputs, folder_names, marker)
+    files, folders = [f for f in files if f], [d for d in folders if d]
+    check_outputs(files, folders, inputs, folder_names, marker, writer)
 
 
 @contextlib.contextmanager

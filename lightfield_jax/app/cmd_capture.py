@@ -19,10 +19,6 @@ from lightfield_jax.app.cli import (
 # --------------------------------------------------------------------------- pattern
 
 
-# What ``pattern`` writes besides its capture.yaml template.
-PATTERN_FILES = ("stripe_*.png", "white.png", "black.png")
-
-
 @command(
     "pattern",
     "write the projector's stripe images and a capture.yaml template for them",
@@ -71,7 +67,9 @@ def _pattern(args: argparse.Namespace) -> None:
 
     _outputs(
         folders=[args.out],
-        folder_names=(*PATTERN_FILES, "capture.yaml"),
+        folder_names=("stripe_*.png", "white.png", "black.png", "capture.yaml"),
+        marker="capture.yaml",  # without its template, a folder's frames are a camera's
+        writer="pattern",
     )
     out = Path(args.out)
     if (out / "capture.yaml").exists():
@@ -80,17 +78,6 @@ def _pattern(args: argparse.Namespace) -> None:
             f"{out / 'capture.yaml'}: exists (a capture file, maybe edited); choose another "
             "folder, or move it away to write the template"
         )
-    if out.is_dir():  # without its capture.yaml not a template's folder: files of a user's
-        import fnmatch
-
-        names = sorted(p.name for p in out.iterdir())
-        held = [n for n in names if any(fnmatch.fnmatch(n, g) for g in PATTERN_FILES)]
-        if held:
-            more = f" (and {len(held) - 1} more)" if len(held) > 1 else ""
-            raise OutputError(
-                f"{out / held[0]}: exists{more} beside no capture.yaml (a camera's frame?), "
-                "which this command would replace; choose another folder"
-            )
     check_size(args.width, args.height, args.period)
     phases = pattern_phases(args.period, args.lit, args.shifts)
     check_memory(

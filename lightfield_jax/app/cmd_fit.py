@@ -361,6 +361,7 @@ def _demo(args: argparse.Namespace) -> int | None:
         folders=[args.out],
         folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),
         marker=CAPTURE_MARKER,  # the demo's folder is a simulated capture
+        writer="simulate",
     )
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")

@@ -84,6 +84,7 @@ def _simulate(args: argparse.Namespace) -> None:
         inputs=[args.config],
         folder_names=(*SIMULATE_FILES, "*.png"),
         marker=CAPTURE_MARKER,
+        writer="simulate",
     )
     if args.plot:  # a figures folder: its figures are replaced (no capture there)
         _outputs(folders=[args.plot], inputs=[args.config], folder_names=("*.png",))

@@ -17,8 +17,9 @@ its inputs (the config or capture file and every file a capture lists) to
   :data:`FOLDER_MARKERS`) holding a file this command would replace (``render --out``
   into ``simulate``'s folder replaced its ``bounces.npy``). A folder holding the
   command's own marker is its own: a rerun replaces its files, as before. A command
-  writing a simulated capture (:data:`CAPTURE_MARKER`) also refuses a folder without
-  its marker holding a file it would replace (the user's own capture). Every folder a
+  writing a simulated capture (:data:`CAPTURE_MARKER`) or a pattern's template
+  (``capture.yaml``) also refuses a folder without its marker holding a file it would
+  replace (the user's own capture or a camera's frames). Every folder a
   command writes into is named, each checked alike: ``render`` of several channels
   names each channel's subfolder too.
 
@@ -58,9 +59,10 @@ FOLDER_MARKERS = {
     "render.json": "render",
     "summary.json": "experiment",
 }
-# The marker of a folder that holds a simulated capture (simulate's and demo's): such a
-# command refuses to replace any file in a folder without it (a capture of the user's
-# own: capture.yaml, shift_*.exr, a pattern's template), not only another command's.
+# The marker of a folder that holds a simulated capture (simulate's and demo's): these
+# commands (``writer``) refuse to replace any file in a folder without it (a capture of
+# the user's own: capture.yaml, shift_*.exr, a pattern's template), not only another
+# command's.
 CAPTURE_MARKER = "metadata.json"
 
 
@@ -89,13 +91,16 @@ def check_outputs(
     inputs: Iterable[str | os.PathLike] = (),
     folder_names: Sequence[str] = (),
     marker: str | None = None,
+    writer: str | None = None,
 ) -> None:
     """Check, before any work, that a command may write ``files`` (single files) and
     ``folders`` (output folders) without touching ``inputs`` (see the module docstring).
     ``folder_names``: the names (glob patterns) the command writes into its folders;
     an input there with such a name would be replaced, and so would the outputs of
     another command (a folder holding a marker of :data:`FOLDER_MARKERS` other than
-    ``marker``, the command's own).
+    ``marker``, the command's own). ``writer``: the command (named in the message) whose
+    folders are its own only where they hold ``marker``: a file it would replace in a
+    folder without it is the user's (a capture of their own), refused too.
 
     Raises:
         OutputError: the first output that cannot be written; the message names it.
@@ -116,7 +121,7 @@ def check_outputs(
                     "replace; choose another output"
                 )
         if folder:
-            _check_owner(path, os.fspath(given), folder_names, marker)
+            _check_owner(path, os.fspath(given), folder_names, marker, writer)
         key = os.path.realpath(path)
         if key in seen:
             raise OutputError(f"{given}: names the same file as the output {seen[key]}")
@@ -124,14 +129,17 @@ def check_outputs(
         _check_writable(path, os.fspath(given))
 
 
-def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: str | None) -> None:
-    """Refuse a folder another command wrote (and this one did not) when this command
-    would replace a file in it."""
+def _check_owner(
+    path: Path, given: str, folder_names: Sequence[str], marker: str | None, writer: str | None
+) -> None:
+    """Refuse a folder another command wrote (and this one did not), or, with a
+    ``writer``, any folder without ``marker``, when this command would replace a file
+    in it."""
     if not path.is_dir() or (marker is not None and (path / marker).is_file()):
         return  # a rerun into the command's own folder
     others = [m for m in FOLDER_MARKERS if m != marker and (path / m).is_file()]
-    capture = marker == CAPTURE_MARKER and not others
-    if not others and not capture:
+    users = writer is not None and not others
+    if not others and not users:
         return
     try:
         with os.scandir(path) as entries:
@@ -142,11 +150,11 @@ def _check_owner(path: Path, given: str, folder_names: Sequence[str], marker: st
     if "capture.yaml" in replaced:  # named first: the file the user cares most about
         replaced.insert(0, replaced.pop(replaced.index("capture.yaml")))
     more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
-    if replaced and capture:
+    if replaced and users:
         raise OutputError(
-            f"{given}: holds {replaced[0]}{more} that lightfield-jax simulate did not write "
-            f"(no {CAPTURE_MARKER}; a capture of your own?), which this command would "
-            "replace; choose another output folder"
+            f"{given}: holds {replaced[0]}{more} that lightfield-jax {writer} did not write "
+            f"(no {marker}; a capture of your own?), which this command would replace; "
+            "choose another output folder"
         )
     if replaced:
         raise OutputError(
