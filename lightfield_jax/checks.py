@@ -169,6 +169,15 @@ def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str
     return a
 
 
+def unmasked(values) -> tuple[np.ndarray, np.ndarray]:
+    """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
+    for any other array), so that its fill values are never used as values."""
+    if isinstance(values, np.ma.MaskedArray):
+        return np.ma.getdata(values), np.ma.getmaskarray(values)
+    data = np.asarray(values)
+    return data, np.zeros(data.shape, bool)
+
+
 def unmask(images, mask=None):
     """``(images, mask)`` with a numpy masked array's mask honoured: its masked values
     are excluded, combined with ``mask`` (``True`` where valid, per pixel ``(height,
@@ -176,7 +185,8 @@ def unmask(images, mask=None):
     returned as given (``np.asarray`` would drop the mask silently)."""
     if not isinstance(images, np.ma.MaskedArray):
         return images, mask
-    data, valid = np.ma.getdata(images), ~np.ma.getmaskarray(images)
+    data, masked = unmasked(images)
+    valid = ~masked
     if valid.all():
         return data, mask
     if mask is None:
@@ -192,7 +202,19 @@ def masked_to_nan(images):
     functions that skip NaN values); anything else as given."""
     if not isinstance(images, np.ma.MaskedArray):
         return images
-    data = np.ma.getdata(images)
+    data, masked = unmasked(images)
     if data.dtype.kind not in "f":
         data = data.astype(np.float64)
-    return np.where(np.ma.getmaskarray(images), np.nan, data)
+    return np.where(masked, np.nan, data)
+
+
+def repeated(items) -> list:
+    """The items listed more than once, sorted (for a refusal that names them)."""
+    items = list(items)
+    return sorted({i for i in items if items.count(i) > 1})
+
+
+def one_path_part(name: str) -> bool:
+    """Whether ``name`` holds no path separator (nor NUL): it names one file or folder
+    inside another, not a path through or out of it."""
+    return not any(c in name for c in "/\\\0")

@@ -91,8 +91,10 @@ def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
     """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
     if len(channels) == 1:
         return [plot]
+    from lightfield_jax.checks import one_path_part
+
     for name in channels:  # before: pathlib's "Invalid name 'fit_a/b.png'", naming nothing
-        if any(c in name for c in "/\\\0"):
+        if not one_path_part(name):
             raise ValueError(
                 f"--plot: the images' channel {name!r} cannot name a figure "
                 f"{plot.stem}_<channel>{plot.suffix} (a path separator); fit without --plot, "
@@ -345,6 +347,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     from lightfield_jax.app.outputs import CAPTURE_MARKER, staged_files
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_directory, atomic_write_json
+    from lightfield_jax.checks import repeated
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
     from lightfield_jax.inverse.capture_fit import fit_capture
 
@@ -354,7 +357,7 @@ def _demo(args: argparse.Namespace) -> int | None:
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
-    twice = sorted({m for m in methods if methods.count(m) > 1})
+    twice = repeated(methods)
     if twice:  # before: fitted twice, the table's rows twice, results.json's once
         raise ValueError(f"--methods: names {', '.join(twice)} more than once: {args.methods!r}")
     _outputs(

@@ -423,12 +423,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
         )
     dark = aux["dark_frame"]
     dark_pixels = aux_linear["dark_frame"]
-    if merged is None:
-        bits = frames[0].bit_depth if frames[0].is_integer else None
-        dark_level = _dark_level(top, bits, str(top.get("response", "linear")))
-    else:  # subtracted from every exposure by the merge (checked there)
-        dark_level = top.float("dark_level", None) or None
-    if dark_level is not None and merged is None:
+    bits = frames[0].bit_depth if frames[0].is_integer else None  # a merged frame: float
+    dark_level = _dark_level(top, bits, str(top.get("response", "linear")))
+    if dark_level is not None and merged is None:  # brackets: the merge subtracted it
         dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)
         notes.append(f"dark_level: {dark_level:.6g} subtracted from every image")
     dark_removed = (

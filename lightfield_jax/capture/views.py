@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.checks import gain_problem, shown
+from lightfield_jax.checks import gain_problem, one_path_part, shown
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
 from lightfield_jax.scene.geometry import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
@@ -86,11 +86,7 @@ _MODEL_KEYS = ("width", "height", "n_theta", "refine", "bounces", "crop")
 def _folder_name(name) -> bool:
     """Whether ``name`` names one folder inside another: not empty, no separator, not
     ``.`` or ``..`` (an edited results file's ``../x`` or ``/x`` would write elsewhere)."""
-    return (
-        isinstance(name, str)
-        and name not in ("", ".", "..")
-        and not any(c in name for c in "/\\\0")
-    )
+    return isinstance(name, str) and name not in ("", ".", "..") and one_path_part(name)
 
 
 def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, Any]]:

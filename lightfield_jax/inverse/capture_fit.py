@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
+from lightfield_jax.checks import repeated
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
@@ -108,7 +109,7 @@ def fit_capture(
             raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
     if not chosen:
         raise ValueError("channel: no channel chosen (give at least one, or None for all)")
-    twice = sorted({c for c in chosen if chosen.count(c) > 1})
+    twice = repeated(chosen)
     if twice:  # before: fitted twice, its results listed twice and kept once by name
         raise ValueError(f"channel: {', '.join(map(repr, twice))} chosen more than once")
     results = []

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.checks import unmask
+from lightfield_jax.checks import unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
@@ -171,7 +171,7 @@ def prepare_data(
             f"in every shift) or their shape {images.shape} (per sample), got {np.shape(mask)}"
         )
     if exposure is not None:
-        t, unknown = _unmasked(exposure)
+        t, unknown = unmasked(exposure)
         if t.dtype.kind not in "iuf" or t.shape != images.shape:
             raise ValueError(
                 f"exposure: must be real numbers of the images' shape {images.shape}, got "
@@ -255,15 +255,6 @@ def prepare_data(
     )
 
 
-def _unmasked(values) -> tuple[np.ndarray, np.ndarray]:
-    """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
-    for any other array), so that its fill values are never used as values."""
-    if isinstance(values, np.ma.MaskedArray):
-        return np.ma.getdata(values), np.ma.getmaskarray(values)
-    data = np.asarray(values)
-    return data, np.zeros(data.shape, bool)
-
-
 def _excluding(mask, unknown: np.ndarray):
     """``mask`` (``None``, per pixel or per value) with the values ``unknown`` (per pixel
     or per value) excluded; ``mask`` itself where nothing is."""
@@ -285,7 +276,7 @@ def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...
         raise ValueError(
             f"split: must be a pair (direct, multiple) of images of shape {shape}, got {got}"
         ) from None
-    (direct, d_unknown), (multiple, m_unknown) = map(_unmasked, (direct, multiple))
+    (direct, d_unknown), (multiple, m_unknown) = map(unmasked, (direct, multiple))
     if direct.shape != shape or multiple.shape != shape:
         raise ValueError(
             f"split: direct and multiple must have the images' shape {shape}, "
