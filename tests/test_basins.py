@@ -504,3 +504,49 @@ def test_an_untrusted_fit_near_the_noise_still_looks_for_an_offset():
     assert not _offset_hint_below_far(True, bound, 419.0)
     assert not _offset_hint_below_far(False, bound, math.nan)
     assert OFFSET_HINT_CHI2 <= 13.9
+
+
+def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfit():
+    """A pedestal of 1 % of the peak left in a noisy milk capture: the scan's offset
+    leaves under offset_stop of its misfit, so the fit solves its best basin on the
+    cheap model only (no other basin, no final model, no finer model's render) and
+    says why, naming the constant: not trusted, never converged. Before, such fits ran
+    2-5 minutes chasing the pedestal toward g's bound and only then named it."""
+    st, ss, g = 0.2051, 0.0366, 0.4
+    clean = np.asarray(
+        lfj.render(lfj.Medium(st, ss, g), lfj.Grid(32, 24, 32, 1), lfj.Stripes(), 8).total
+    )
+    clean = clean / clean.max()
+    rng = np.random.default_rng(3)
+    images = (rng.poisson(clean * 2e4) / 2e4 + 0.01).astype(np.float32)
+    res = lfj.fit_images(images, lfj.Stripes(), black_level=0.0)
+    assert not res.converged
+    (reason,) = res.reasons
+    assert "stopped after the scan" in reason and "camera pedestal" in reason, reason
+    assert float(reason.split("a constant ")[1].split()[0]) == pytest.approx(0.01, rel=0.1)
+    assert res.basins["offset"]["fraction"] < lfj.FitOptions().offset_stop
+    assert "stopped" in res.basins and len(res.basins["tried"]) == 1
+    assert "finer_model" not in res.model and "correction" not in res.model
+
+
+def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
+    import dataclasses
+
+    from lightfield_jax.inverse.basins import ScanOffset
+    from lightfield_jax.inverse.joint_fit import _offset_stop
+
+    cost = _two_wells(depth_ratio=1.5)
+
+    def stop(fraction, value=0.02, **options):
+        scanned = dataclasses.replace(
+            _scan_of(cost), offset=ScanOffset(fraction * cost.min(), value, fraction)
+        )
+        return _offset_stop(scanned, lfj.FitOptions(**options), 1.0)
+
+    (reason,) = stop(0.01)
+    assert "+0.02 in every image value" in reason and "offset_stop: 0.05" in reason
+    assert "subtracts too much" in stop(0.01, value=-0.02)[0]
+    assert stop(0.06) == [] and stop(0.01, offset_stop=0.0) == [] and stop(0.0, offset_stop=0) == []
+    assert stop(0.2, offset_stop=0.25)
+    with pytest.raises(ValueError, match=r"offset_stop: must be a number in \[0, 0.25\]"):
+        lfj.FitOptions(offset_stop=0.5)

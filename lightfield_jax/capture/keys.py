@@ -53,7 +53,7 @@ _FIT_INTS = (
     "correction_renders",
 )
 _FIT_OPTIONAL_INTS = ("n_theta", "refine")
-_FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2")
+_FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2", "offset_stop")
 _FIT_OPTIONAL_FLOATS = ("rtol", "atol")
 _FIT_BOOLS = ("crop", "basin_search", "model_error", "correct")
 FIT_KEYS: tuple[str, ...] = (

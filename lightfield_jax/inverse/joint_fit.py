@@ -470,6 +470,24 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
 CUT_LIMIT = 0.01
 
 
+def _offset_stop(the_scan: Scan, options: FitOptions, peak: float) -> list[str]:
+    """The reason to stop after the basin scan (``[]``: go on): a constant offset in
+    every image value leaves less than ``options.offset_stop`` of the scan's best
+    misfit. The scan's misfit then is mostly that constant, many times the noise and the
+    cheap model's own error, and the full model's solves would chase it (g toward its
+    bound, the model growing with it) for minutes to end not trusted."""
+    found = the_scan.offset
+    if found is None or not found.fraction < options.offset_stop:
+        return []
+    hint = offset_hint(found.value, found.fraction, "basin scan's", peak)
+    if not hint:
+        return []
+    return [
+        f"{hint[0]}; the fit stopped after the scan and its best basin's cheap solve "
+        f"(offset_stop: {options.offset_stop:g})"
+    ]
+
+
 def _offset_reason(the_scan: Scan, last: _Stage, peak: float) -> list[str]:
     """Where the misfit is far above the noise: the constant offset in every image value
     that explains most of it (a camera pedestal left in the images), from the basin
@@ -535,6 +553,31 @@ def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tu
     return shift, fine, fine_tail, timing
 
 
+def _verdict(
+    the_scan: Scan, last: _Stage, budget, fine, fine_tail, options: FitOptions, peak, fit_black
+) -> list[str]:
+    """Why the answer ``last`` is not trustworthy (``[]``: it is): the budget's
+    (:func:`untrustworthy`), a constant offset that explains its misfit, a tail solve or
+    a march that did not converge, a worse basin than the scan's best."""
+    v = last.values
+    reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
+    far = math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2
+    if far:
+        reasons += _offset_reason(the_scan, last, peak)
+    reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
+    reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
+    reasons += _cut_series(last.model, the_scan, v)
+    other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
+    if other is not None:
+        reasons.append(
+            f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
+            f"{other.albedo:.2f}, scan misfit {other.misfit:.3g})"
+        )
+    if _offset_hint_below_far(far, reasons, budget.chi2_dof):
+        reasons += _offset_reason(the_scan, last, peak)
+    return reasons
+
+
 def _joint_fit(
     data: _Data, pattern, options: FitOptions, black, images, crop, rho0, floor, say, start=None
 ):
@@ -582,6 +625,10 @@ def _joint_fit(
                 the_scan = other
         values = ", ".join(f"{v:.3g}" for v in scanned)
         say(f"  scanned at sigma_t {values}: kept {the_scan.sigma_t:.3g}")
+    peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
+    stop = _offset_stop(the_scan, options, peak)
+    if stop:
+        say(f"  {stop[0]}")
     if start is not None:
         starts = [("given", tuple(start) if black is None else (*start[:3], black))]
     elif options.start is not None:
@@ -594,7 +641,7 @@ def _joint_fit(
                 "the basin scan found no valid model for this capture (every albedo's "
                 "bounce series diverges or is truncated): give bounces or a start"
             )
-        starts = _starts_of("basin", the_scan, enumerate(found), black)
+        starts = _starts_of("basin", the_scan, enumerate(found[: 1 if stop else None]), black)
     # One cheap model for every start: marched where the scan's measured ratio at each
     # start allows it (see _by_measured_ratio).
     ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
@@ -608,7 +655,14 @@ def _joint_fit(
     rescan = None
     pending = list(starts)
     while True:
-        if not pending and rescan is None and from_scan and options.basin_search and stages:
+        if (
+            not pending
+            and rescan is None
+            and from_scan
+            and options.basin_search
+            and stages
+            and not stop
+        ):
             pending, rescan = _rescan(
                 data, pattern, scan_model, options, black, weights, the_scan, stages, say
             )
@@ -654,8 +708,12 @@ def _joint_fit(
             say(f"  {label}: the same answer as {labels[same]}")
             continue
         best = min(stages, key=lambda pair: pair[1].rms, default=None)
-        last = _continuation(
-            data, pattern, first, options, black, images, floor, the_scan, say, best
+        last = (
+            first  # a pedestal's misfit: the final model's solves would chase it
+            if stop
+            else _continuation(
+                data, pattern, first, options, black, images, floor, the_scan, say, best
+            )
         )
         if last.unrefined is not None:  # worse than an answer found: not a candidate
             tried.append(
@@ -699,28 +757,16 @@ def _joint_fit(
     fit_black = black is None
     noise = noise_scale(data.images, last.weights, pattern, last.values["gain"] * last.unit)
     shift, fine, fine_tail = None, None, None
-    if options.model_error:
+    if options.model_error and not stop:
         shift, fine, fine_tail, t = _model_shift(data, pattern, last, options)
         count(t)
     groups = split_groups(data.images.shape, pattern)
     budget = error_budget(last.jac, last.residual, names, noise, shift, groups)
     v = last.values
-    reasons = untrustworthy(v, budget, options.max_chi2, BLACK_RANGE if fit_black else None)
-    far = math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2
-    peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
-    if far:
-        reasons += _offset_reason(the_scan, last, peak)
-    reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
-    reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
-    reasons += _cut_series(last.model, the_scan, v)
-    other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
-    if other is not None:
-        reasons.append(
-            f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
-            f"{other.albedo:.2f}, scan misfit {other.misfit:.3g})"
-        )
-    if _offset_hint_below_far(far, reasons, budget.chi2_dof):
-        reasons += _offset_reason(the_scan, last, peak)
+    if stop:  # the cheap answer's other reasons would be that constant's, not the medium's
+        reasons = list(stop)
+    else:
+        reasons = _verdict(the_scan, last, budget, fine, fine_tail, options, peak, fit_black)
     ok, msg = last.ok, last.message
     if reasons:
         ok, msg = False, "not trustworthy: " + "; ".join(reasons) + f" (solver: {msg})"
@@ -760,6 +806,8 @@ def _joint_fit(
         }
     scan_dict = the_scan.as_dict()
     scan_dict["tried"] = tried
+    if stop:
+        scan_dict["stopped"] = "a constant offset explains the scan's misfit (offset_stop)"
     if len(scanned) > 1:
         scan_dict["sigma_t_scanned"] = scanned
     if rescan is not None:  # the_scan is the rescan; the first one is the scan kept before

@@ -17,6 +17,7 @@ from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
 from lightfield_jax.inverse.model_size import _phase_integral
+from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
@@ -99,6 +100,12 @@ class FitOptions:
             steps, shrinking at their last rate, would not converge within them.
         max_chi2: χ²/dof against the capture's noise above which a joint fit is not
             trustworthy (its misfit is far above the noise).
+        offset_stop: (``joint``) where one constant added to every image value would
+            leave less than this share of the basin scan's best misfit (a camera
+            pedestal or a dark level that subtracts too much: light the model does not
+            have), the fit stops after the scan and one solve on the cheap model, not
+            trusted, and names the constant; ``0`` never stops there (the constant is
+            then named after the full fit). At most 0.25.
         solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
             ``rtol``, ``atol``).
     """
@@ -131,6 +138,7 @@ class FitOptions:
     max_render_cells: int = 8_000_000
     correction_renders: int = 16
     max_chi2: float = 100.0
+    offset_stop: float = 0.05
     solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
@@ -162,6 +170,7 @@ class FitOptions:
         ):
             check_int(getattr(self, name), name, low=least)
         check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
+        check_number(self.offset_stop, "offset_stop", low=0.0, high=OFFSET_EXPLAINS)
         for name in ("crop", "basin_search", "model_error", "correct"):
             check_flag(getattr(self, name), name)
         if self.geometry is not None:
