@@ -20,7 +20,7 @@ import yaml
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import XLA_CACHE_ENV, main
 from lightfield_jax.app.memory import MAX_MEMORY_ENV
-from lightfield_jax.capture.io import read_image, write_exr
+from lightfield_jax.capture.io import read_image, write_exr, write_png
 
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
@@ -1387,6 +1387,44 @@ def test_an_impossible_black_frame_is_refused(capture, capsys, tmp_path):
     argv = ("fit", capture / "capture.yaml", "--out", out)
     _refused(capsys, *argv, match="black_frame: the all-black frame against the mean")
     assert not out.exists()
+
+
+def test_a_saturated_black_frame_is_refused(capture, capsys, tmp_path):
+    """Before: a black frame clipped at its largest value (float) or at its top code
+    (16-bit) gave black_level: auto a level near 0 (0.0004, the truth 0.02), accepted."""
+    shifts = np.array([read_image(f).pixels[..., 0] for f in sorted(capture.glob("shift_*.exr"))])
+    noisy = 0.3 * shifts.mean(axis=0) + 0.05 + 1e-3 * np.random.default_rng(0).random((H, W))
+    write_exr(capture / "black.exr", {"Y": np.minimum(noisy, 0.06).astype(np.float32)})
+    path = _edit(capture, black_level="auto", black_frame="black.exr")
+    out = tmp_path / "r.json"
+    line = _refused(capsys, "fit", path, "--out", out, match="black_frame: black.exr: ")
+    assert "pixel values sit at its largest value (saturated" in line
+    assert not out.exists()
+    # 16-bit files: the black frame at the top code 65535
+    names = []
+    for i, image in enumerate(shifts):
+        names.append(f"s{i}.png")
+        write_png(capture / names[-1], 0.8 * image / shifts.max(), bits=16)
+    write_png(
+        capture / "black.png", np.where(np.arange(H)[:, None] < 3, 0.5, np.ones((H, W))), bits=16
+    )
+    data = yaml.safe_load(path.read_text())
+    del data["dark_frame"]
+    data.update(images=names, black_frame="black.png")
+    path.write_text(yaml.safe_dump(data))
+    line = _refused(capsys, "inspect", path, match="black_frame: black.png: ")
+    assert f"{(H - 3) * W} of {H * W} pixel values sit at its top code" in line
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5])
+def test_a_white_frame_of_one_value_is_refused_naming_it(capture, capsys, value):
+    """Before: an all-zero white frame was blamed on the images ('detect_geometry: no
+    lit medium found'); a constant one gave the whole frame as the medium."""
+    write_exr(capture / "white.exr", {"Y": np.full((H, W), value, np.float32)})
+    path = _edit(capture, white_frame="white.exr", medium_roi="auto")
+    _refused(
+        capsys, "inspect", path, match=f"white_frame: white.exr: every pixel value is {value:g}"
+    )
 
 
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):

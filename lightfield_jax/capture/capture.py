@@ -170,6 +170,7 @@ from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry
 from lightfield_jax.capture.frames import (
     _aux_frame,
     _calibrate,
+    _check_projector_frames,
     _corrupt_to_nan,
     _flat,
     _floored,
@@ -362,6 +363,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         check_not_mosaic(frames)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
+    _check_projector_frames(top, aux, merged is not None)
     roi = _roi(top, width, height)
     black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
