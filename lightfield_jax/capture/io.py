@@ -562,10 +562,14 @@ _WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO}
 @contextlib.contextmanager
 def naming_output(target: str | os.PathLike) -> Iterator[None]:
     """Re-raise a writer's failure for want of space as an ``OSError`` naming ``target``
-    (see :func:`_write_failure`); other errors pass unchanged."""
+    (see :func:`_write_failure`); other errors, and one that already names ``target``
+    or a file in it (an inner output's own name), pass unchanged."""
     try:
         yield
     except OSError as e:
+        named = e.filename
+        if isinstance(named, (str, bytes)) and Path(os.fsdecode(named)).is_relative_to(target):
+            raise
         failure = _write_failure(e, Path(target))
         if failure is None:
             raise
