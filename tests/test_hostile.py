@@ -566,6 +566,14 @@ def test_recursive_aliases_and_deep_nesting_are_one_line(tmp_path, capsys):
     _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="nested too deeply")
 
 
+@pytest.mark.parametrize("key", ["[a, b]", "{a: 1}"])
+def test_a_complex_yaml_key_is_one_line(capture, capsys, key):
+    """Before: '? [a, b]' in a capture file was a TypeError traceback (unhashable)."""
+    path = capture / "capture.yaml"
+    path.write_text(path.read_text() + f"? {key}\n: 2\n")
+    _refused(capsys, "inspect", path, match="invalid YAML: a key must be a string, got a")
+
+
 def test_huge_periods_are_refused(capture, capsys, tmp_path):
     pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
     _edit(capture, pattern={**pattern, "period": 10**21})
