@@ -1435,6 +1435,19 @@ def test_a_white_frame_of_one_value_is_refused_naming_it(capture, capsys, value)
     )
 
 
+def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(capture, capsys):
+    """Before: with phases: auto, shift_00.exr listed as images[0] and images[5] was
+    accepted without a word (one image fitted as two shifts, its noise counted twice)."""
+    names = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    path = _edit(capture, images=[*names[:5], names[0]])
+    data = yaml.safe_load(path.read_text())
+    data["pattern"]["phases"] = "auto"
+    path.write_text(yaml.safe_dump(data))
+    _, _, err = _run(capsys, "inspect", path)
+    assert "images[5] (shift_00.exr) is the file of images[0] listed again" in err, err
+    assert "Traceback" not in err
+
+
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):
     """Before: 'embedded null byte' and 'an input is nested too deeply', neither naming
     the file or the key."""

@@ -175,6 +175,7 @@ from lightfield_jax.capture.frames import (
     _flat,
     _floored,
     _frames,
+    _images_listed_twice,
     _inf_to_nan,
     _nonfinite,
     _saturated,
@@ -518,6 +519,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
     if contradiction:
         notes.append(contradiction)
+    # After the phases' checks, which refuse a repeated image where phases are given.
+    if merged is None and (again := _images_listed_twice(top, base)) is not None:
+        issues.append(again)
+        warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated
     images = _calibrate(raw, dark_pixels, flat_pixels, linear)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)

@@ -55,6 +55,44 @@ def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
     return base / value
 
 
+def _file_identity(base: Path, value: str) -> Any:
+    """A listed file's identity: its device and inode (one file under two names, a hard
+    link), else its resolved path."""
+    path = base / value
+    with contextlib.suppress(OSError):
+        path = path.resolve()
+    with contextlib.suppress(OSError):
+        st = os.stat(path)
+        return (st.st_dev, st.st_ino)
+    return path
+
+
+def _images_listed_twice(top: _Section, base: Path) -> str | None:
+    """What to say of stripe images listed again under ``images`` (refused by the
+    phases' checks where the phases are given and differ; with ``phases: auto``, a
+    warning: one image counted as two shifts, its noise twice), or ``None``."""
+    images = top.get("images", None)
+    if not isinstance(images, list):
+        return None
+    seen: dict[Any, int] = {}
+    again = []
+    for i, value in enumerate(images):
+        if not isinstance(value, str) or not value or "\0" in value:
+            continue
+        ident = _file_identity(base, value)
+        if ident in seen:
+            again.append((i, seen[ident]))
+        seen.setdefault(ident, i)
+    if not again:
+        return None
+    i, j = again[0]
+    more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    return (
+        f"images[{i}] ({images[i]}) is the file of images[{j}] listed again{more}: one "
+        "image counted as two shifts (a slip in the list?)"
+    )
+
+
 def _distinct_files(top: _Section, base: Path) -> None:
     """Refuse one file given in two roles (a stripe image and a calibration frame, or
     two calibration frames): a user's slip that would otherwise
@@ -69,13 +107,7 @@ def _distinct_files(top: _Section, base: Path) -> None:
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
             continue  # not a path: _file names its key
-        path = base / value
-        with contextlib.suppress(OSError):
-            path = path.resolve()
-        ident: Any = path
-        with contextlib.suppress(OSError):  # one file under two names (a hard link)
-            st = os.stat(path)
-            ident = (st.st_dev, st.st_ino)
+        ident = _file_identity(base, value)
         # A stripe image listed twice is left to the phases' checks.
         both_images = key.startswith("images[") and seen.get(ident, "").startswith("images[")
         if ident in seen and not both_images:
