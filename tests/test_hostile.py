@@ -961,6 +961,12 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
         ({"atol": 0.1}, "fit: atol: must lie in [0, 0.01] or be None, got 0.1"),
         ({"bounces": 10**9}, "fit: bounces: at most 10000 bounces are marched"),
         ({"max_chi2": 0.0}, "fit: max_chi2: must be > 0, got 0.0"),
+        # Before: a grid of a billion fits ran until killed; max_steps 10**12 ended after
+        # compiling in "a value in the input is too large (An overflow ...)".
+        ({"g_grid": 10**9}, "fit: g_grid: must be an integer in [3, 100000], got 1000000000"),
+        ({"start_grid": 10**9}, "fit: start_grid: must be an integer <= 100000"),
+        ({"max_steps": 10**12}, "fit: max_steps: must be an integer <= 1e+09"),
+        ({"tail_max_steps": 10**12}, "fit: tail_max_steps: must be an integer <= 1e+09"),
         (
             {"bounces": 20, "tail": "gmres"},
             "fit: bounces: 20 marches exactly that many bounces, but tail: gmres keeps "
