@@ -1454,6 +1454,15 @@ def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(ca
     assert "Traceback" not in err
 
 
+def test_a_terminal_escape_in_a_file_name_is_printed_escaped(capture, capsys):
+    """Before: a file name holding ESC [31m was printed raw into the error line (the
+    terminal recoloured; other sequences rewrite it)."""
+    names = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    path = _edit(capture, images=["\x1b[31mred.exr", *names[1:]])
+    line = _refused(capsys, "inspect", path, match="images[0]: ")
+    assert "\\x1b[31mred.exr: file not found" in line and "\x1b" not in line, line
+
+
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):
     """Before: 'embedded null byte' and 'an input is nested too deeply', neither naming
     the file or the key."""
