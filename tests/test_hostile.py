@@ -1463,6 +1463,24 @@ def test_a_terminal_escape_in_a_file_name_is_printed_escaped(capture, capsys):
     assert "\\x1b[31mred.exr: file not found" in line and "\x1b" not in line, line
 
 
+def test_a_folder_named_in_another_encoding_is_one_line(capture, capsys, tmp_path):
+    """Before: a capture in (or simulate --out into) a folder whose name is not UTF-8
+    was OpenImageIO's 'open(): incompatible function arguments' traceback."""
+    folder = tmp_path / os.fsdecode(b"caf\xe9")  # Latin-1, as Python holds it
+    shutil.copytree(capture, folder)
+    _refused(
+        capsys,
+        "inspect",
+        folder / "capture.yaml",
+        match="shift_00.exr: the path is not valid UTF-8",
+    )
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    out = folder / "out"
+    _refused(capsys, "simulate", cfg, "--out", out, match="out: the path is not valid UTF-8")
+    assert not out.exists()
+
+
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):
     """Before: 'embedded null byte' and 'an input is nested too deeply', neither naming
     the file or the key."""
