@@ -1186,6 +1186,17 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
     )
 
 
+def test_a_dark_level_beyond_float32_is_refused(capture, capsys):
+    """Before: dark_level 1e300 overflowed the images to -Inf: numpy's 'overflow
+    encountered in cast' and 'no direct light at the entry wall', exit 1."""
+    path = _edit(capture, dark_frame=None, dark_level=1.0e300)
+    _refused(
+        capsys,
+        *("inspect", path),
+        match="dark_level: must be at most 1e+30 (images are float32), got 1e+300",
+    )
+
+
 def test_zeros_in_a_flat_field_are_named_as_zeros(capture, capsys):
     """Before: 'N pixel value(s) are NaN or Inf (flat.exr: N)' for a flat field's zeros."""
     flat = np.ones((H, W))
