@@ -1492,6 +1492,18 @@ def test_a_folder_named_in_another_encoding_is_one_line(capture, capsys, tmp_pat
     assert not out.exists()
 
 
+def test_an_image_that_is_a_symlink_loop_is_one_line(capture, capsys):
+    """Before: pathlib's 'RuntimeError: Symlink loop from ...' traceback (the check of
+    one file in two roles resolved it)."""
+    (capture / "shift_01.exr").unlink()
+    (capture / "shift_01.exr").symlink_to(capture / "shift_01.exr")
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="images[1]: ",
+    )
+
+
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):
     """Before: 'embedded null byte' and 'an input is nested too deeply', neither naming
     the file or the key."""

@@ -59,7 +59,7 @@ def _file_identity(base: Path, value: str) -> Any:
     """A listed file's identity: its device and inode (one file under two names, a hard
     link), else its resolved path."""
     path = base / value
-    with contextlib.suppress(OSError):
+    with contextlib.suppress(OSError, RuntimeError):  # RuntimeError: a symlink loop
         path = path.resolve()
     with contextlib.suppress(OSError):
         st = os.stat(path)
