@@ -530,6 +530,24 @@ def test_a_demo_stopped_in_its_fit_leaves_no_capture_and_the_old_run_whole(
     assert not [n for n in os.listdir(out) if n.startswith(".")]
 
 
+def test_a_demo_rerun_without_joint_says_the_old_figure_is_not_its_own(
+    tmp_path, capsys, monkeypatch
+):
+    """Before: a rerun with --methods gradient left the earlier joint run's
+    demo_fit.png beside its new capture and results.json without a word."""
+    out = tmp_path / "demo"
+
+    def draw(images, pattern, result, path):
+        path.write_bytes(b"figure")
+
+    _quick_demo(monkeypatch, 0.2, draw)
+    assert _run(capsys, "demo", "--out", out, "--methods", "joint")[0] == 0
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "gradient")
+    assert status == 0, err
+    assert f"{out / 'demo_fit.png'} is an earlier run's figure" in err
+    assert set(json.loads((out / "results.json").read_text())["fits"]) == {"gradient"}
+
+
 # --------------------------------------------------------------- compilation cache
 
 

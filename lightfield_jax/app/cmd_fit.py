@@ -404,6 +404,13 @@ def _demo(args: argparse.Namespace) -> int | None:
                     )
             with naming_output(out / "results.json"):
                 atomic_write_json(staging / "results.json", {"truth": truth, "fits": results})
+    if "joint" not in results and (out / "demo_fit.png").exists():
+        # An earlier run's figure (kept: this run did not write it), not this run's fits.
+        _warn(
+            args,
+            f"{out / 'demo_fit.png'} is an earlier run's figure, not of this run's capture "
+            "(drawn for a joint fit, which this run has not)",
+        )
     head = (
         f"{'method':<9} {'sigma_t':>9} {'err':>7} {'sigma_s':>9} {'err':>7} {'g':>7} "
         f"{'err':>7} {'time s':>7} {'again s':>7} {'conv':>5}"
