@@ -665,7 +665,7 @@ def test_black_level_auto_against_a_uniform_white_frame_is_refused(tmp_path):
     (black,) = _images(tmp_path, n=1, fill=0.02, prefix="black")
     _error(
         tmp_path,
-        r"black_level: auto: the white_frame does not vary over the medium",
+        r"white_frame: white0\.\w+: every pixel value is 0\.5: not a camera image",
         images=names,
         white_frame=white,
         black_frame=black,

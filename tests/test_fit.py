@@ -1006,6 +1006,26 @@ def test_a_finer_model_that_is_not_finite_leaves_the_misfit_judged_against_the_n
     assert any("misfit far above" in r for r in untrustworthy(values, b, 100.0))
 
 
+@pytest.mark.parametrize("shift", ["nan", "none", "measured"])
+def test_a_misfit_judged_against_the_noise_alone_says_only_the_noise(shift):
+    """Before: with the model's own error not measured (chi2_model the noise's χ²), the
+    reason still said 'far above the capture's noise and the model's own error'."""
+    from lightfield_jax.inverse.trust import error_budget, untrustworthy
+
+    rng = np.random.default_rng(2)
+    jac = rng.normal(size=(300, 3))
+    residual = 20.0 * rng.normal(size=300)
+    dr = {"nan": np.full(300, np.nan), "none": None, "measured": 0.1 * rng.normal(size=300)}
+    b = error_budget(jac, residual, ["sigma_t", "sigma_s", "g"], 1.0, dr[shift])
+    values = {"sigma_t": 0.2, "sigma_s": 0.05, "g": 0.3, "gain": 1.0}
+    (reason,) = [r for r in untrustworthy(values, b, 100.0) if r.startswith("misfit")]
+    if shift == "measured":
+        assert reason.startswith("misfit far above the capture's noise and the model's own")
+    else:
+        assert reason.startswith("misfit far above the capture's noise: chi2/dof = "), reason
+        assert reason.endswith("(the model's own error not measured)"), reason
+
+
 @pytest.mark.parametrize("scale", [1e-30, 1e38])
 def test_images_beyond_the_float32_scale_are_refused_before_the_fit(scale):
     """Before: the paper's milk times 1e-30 ended "converged" with g 0.30 ± 0.003 for 0.40

@@ -484,6 +484,70 @@ def test_demo_publishes_its_results_and_figure_together(tmp_path, capsys, monkey
     assert not [n for n in os.listdir(out) if n.startswith(".")]
 
 
+def _tree(folder) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, ValueError])
+def test_a_demo_stopped_in_its_fit_leaves_no_capture_and_the_old_run_whole(
+    tmp_path, capsys, monkeypatch, stop
+):
+    """Before: the simulated capture was published into --out before the fits, so a
+    demo interrupted (Ctrl-C, SIGTERM) or failing in its fit left it there ('nothing
+    written', it said), and a failed rerun left the previous run's results.json and
+    figure beside the new capture. Now the demo publishes its folder whole or not."""
+    import lightfield_jax.inverse.capture_fit as capture_fit
+
+    out = tmp_path / "demo"
+
+    def broken(*_, **__):
+        raise stop("stopped in the fit")
+
+    def draw(images, pattern, result, path):
+        path.write_bytes(b"figure of sigma_t %g" % result.sigma_t)
+
+    _quick_demo(monkeypatch, 0.2, draw)
+    monkeypatch.setattr(capture_fit, "fit_capture", broken)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status != 0, err
+    assert not out.exists() and os.listdir(tmp_path) == []  # no capture, no temporary
+    _quick_demo(monkeypatch, 0.2, draw)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status == 0, err
+    before = _tree(out)
+    # A rerun with another capture (its noise's seed) that fails in its fit.
+    config = yaml.safe_load(SIMULATE)
+    config["noise"] = {**config.get("noise", {"photons": 1e5}), "seed": 99}
+    import lightfield_jax.app.cmd_fit as cmd_fit
+
+    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", config)
+    monkeypatch.setattr(capture_fit, "fit_capture", broken)
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
+    assert status != 0, err
+    assert _tree(out) == before  # the previous run's files, all of them as they were
+    assert not [n for n in os.listdir(out) if n.startswith(".")]
+
+
+def test_a_demo_rerun_without_joint_says_the_old_figure_is_not_its_own(
+    tmp_path, capsys, monkeypatch
+):
+    """Before: a rerun with --methods gradient left the earlier joint run's
+    demo_fit.png beside its new capture and results.json without a word."""
+    out = tmp_path / "demo"
+
+    def draw(images, pattern, result, path):
+        path.write_bytes(b"figure")
+
+    _quick_demo(monkeypatch, 0.2, draw)
+    assert _run(capsys, "demo", "--out", out, "--methods", "joint")[0] == 0
+    status, _, err = _run(capsys, "demo", "--out", out, "--methods", "gradient")
+    assert status == 0, err
+    assert f"{out / 'demo_fit.png'} is an earlier run's figure" in err
+    assert set(json.loads((out / "results.json").read_text())["fits"]) == {"gradient"}
+
+
 # --------------------------------------------------------------- compilation cache
 
 

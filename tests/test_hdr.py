@@ -233,6 +233,10 @@ def _capture_file(tmp_path, **changes):
         ({"exposure_times": None}, "exposure_times: bracketed images need a list"),
         ({"exposure_times": [0.02, 0.01]}, "exposure_times: must increase"),
         ({"exposure_times": [0.01, -1]}, r"exposure_times\[1\]: must be a positive number"),
+        # Before: a numpy overflow warning, then "no usable pixel" (1e-308 s: every merged
+        # value Inf) or "no light was captured" (1e308 s: every value 0).
+        ({"exposure_times": [1e-308, 2e-308]}, r"exposure_times\[0\]: must be a number of "),
+        ({"exposure_times": [0.01, 1e308]}, r"exposure_times\[1\]: .* in \[1e-09, 1e\+06\]"),
         ({"exposure_times": [0.01, 0.02, 0.04]}, r"images\[0\]: lists 2 exposure\(s\) for 3"),
         ({"images": [["a0.png", "a1.png"], "a0.png"]}, "images: mixes files and brackets"),
         ({"dark_frame": "a0.png"}, "dark_frame: with bracketed images give one file per"),

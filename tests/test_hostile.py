@@ -20,7 +20,7 @@ import yaml
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import XLA_CACHE_ENV, main
 from lightfield_jax.app.memory import MAX_MEMORY_ENV
-from lightfield_jax.capture.io import read_image, write_exr
+from lightfield_jax.capture.io import read_image, write_exr, write_png
 
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
@@ -566,6 +566,14 @@ def test_recursive_aliases_and_deep_nesting_are_one_line(tmp_path, capsys):
     _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="nested too deeply")
 
 
+@pytest.mark.parametrize("key", ["[a, b]", "{a: 1}"])
+def test_a_complex_yaml_key_is_one_line(capture, capsys, key):
+    """Before: '? [a, b]' in a capture file was a TypeError traceback (unhashable)."""
+    path = capture / "capture.yaml"
+    path.write_text(path.read_text() + f"? {key}\n: 2\n")
+    _refused(capsys, "inspect", path, match="invalid YAML: a key must be a string, got a")
+
+
 def test_huge_periods_are_refused(capture, capsys, tmp_path):
     pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
     _edit(capture, pattern={**pattern, "period": 10**21})
@@ -953,6 +961,12 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
         ({"atol": 0.1}, "fit: atol: must lie in [0, 0.01] or be None, got 0.1"),
         ({"bounces": 10**9}, "fit: bounces: at most 10000 bounces are marched"),
         ({"max_chi2": 0.0}, "fit: max_chi2: must be > 0, got 0.0"),
+        # Before: a grid of a billion fits ran until killed; max_steps 10**12 ended after
+        # compiling in "a value in the input is too large (An overflow ...)".
+        ({"g_grid": 10**9}, "fit: g_grid: must be an integer in [3, 100000], got 1000000000"),
+        ({"start_grid": 10**9}, "fit: start_grid: must be an integer <= 100000"),
+        ({"max_steps": 10**12}, "fit: max_steps: must be an integer <= 1e+09"),
+        ({"tail_max_steps": 10**12}, "fit: tail_max_steps: must be an integer <= 1e+09"),
         (
             {"bounces": 20, "tail": "gmres"},
             "fit: bounces: 20 marches exactly that many bounces, but tail: gmres keeps "
@@ -1172,6 +1186,17 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
     )
 
 
+def test_a_dark_level_beyond_float32_is_refused(capture, capsys):
+    """Before: dark_level 1e300 overflowed the images to -Inf: numpy's 'overflow
+    encountered in cast' and 'no direct light at the entry wall', exit 1."""
+    path = _edit(capture, dark_frame=None, dark_level=1.0e300)
+    _refused(
+        capsys,
+        *("inspect", path),
+        match="dark_level: must be at most 1e+30 (images are float32), got 1e+300",
+    )
+
+
 def test_zeros_in_a_flat_field_are_named_as_zeros(capture, capsys):
     """Before: 'N pixel value(s) are NaN or Inf (flat.exr: N)' for a flat field's zeros."""
     flat = np.ones((H, W))
@@ -1387,6 +1412,96 @@ def test_an_impossible_black_frame_is_refused(capture, capsys, tmp_path):
     argv = ("fit", capture / "capture.yaml", "--out", out)
     _refused(capsys, *argv, match="black_frame: the all-black frame against the mean")
     assert not out.exists()
+
+
+def test_a_saturated_black_frame_is_refused(capture, capsys, tmp_path):
+    """Before: a black frame clipped at its largest value (float) or at its top code
+    (16-bit) gave black_level: auto a level near 0 (0.0004, the truth 0.02), accepted."""
+    shifts = np.array([read_image(f).pixels[..., 0] for f in sorted(capture.glob("shift_*.exr"))])
+    noisy = 0.3 * shifts.mean(axis=0) + 0.05 + 1e-3 * np.random.default_rng(0).random((H, W))
+    write_exr(capture / "black.exr", {"Y": np.minimum(noisy, 0.06).astype(np.float32)})
+    path = _edit(capture, black_level="auto", black_frame="black.exr")
+    out = tmp_path / "r.json"
+    line = _refused(capsys, "fit", path, "--out", out, match="black_frame: black.exr: ")
+    assert "pixel values sit at its largest value (saturated" in line
+    assert not out.exists()
+    # 16-bit files: the black frame at the top code 65535
+    names = []
+    for i, image in enumerate(shifts):
+        names.append(f"s{i}.png")
+        write_png(capture / names[-1], 0.8 * image / shifts.max(), bits=16)
+    write_png(
+        capture / "black.png", np.where(np.arange(H)[:, None] < 3, 0.5, np.ones((H, W))), bits=16
+    )
+    data = yaml.safe_load(path.read_text())
+    del data["dark_frame"]
+    data.update(images=names, black_frame="black.png")
+    path.write_text(yaml.safe_dump(data))
+    line = _refused(capsys, "inspect", path, match="black_frame: black.png: ")
+    assert f"{(H - 3) * W} of {H * W} pixel values sit at its top code" in line
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5])
+def test_a_white_frame_of_one_value_is_refused_naming_it(capture, capsys, value):
+    """Before: an all-zero white frame was blamed on the images ('detect_geometry: no
+    lit medium found'); a constant one gave the whole frame as the medium."""
+    write_exr(capture / "white.exr", {"Y": np.full((H, W), value, np.float32)})
+    path = _edit(capture, white_frame="white.exr", medium_roi="auto")
+    _refused(
+        capsys, "inspect", path, match=f"white_frame: white.exr: every pixel value is {value:g}"
+    )
+
+
+def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(capture, capsys):
+    """Before: with phases: auto, shift_00.exr listed as images[0] and images[5] was
+    accepted without a word (one image fitted as two shifts, its noise counted twice)."""
+    names = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    path = _edit(capture, images=[*names[:5], names[0]])
+    data = yaml.safe_load(path.read_text())
+    data["pattern"]["phases"] = "auto"
+    path.write_text(yaml.safe_dump(data))
+    _, _, err = _run(capsys, "inspect", path)
+    assert "images[5] (shift_00.exr) is the file of images[0] listed again" in err, err
+    assert "Traceback" not in err
+
+
+def test_a_terminal_escape_in_a_file_name_is_printed_escaped(capture, capsys):
+    """Before: a file name holding ESC [31m was printed raw into the error line (the
+    terminal recoloured; other sequences rewrite it)."""
+    names = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    path = _edit(capture, images=["\x1b[31mred.exr", *names[1:]])
+    line = _refused(capsys, "inspect", path, match="images[0]: ")
+    assert "\\x1b[31mred.exr: file not found" in line and "\x1b" not in line, line
+
+
+def test_a_folder_named_in_another_encoding_is_one_line(capture, capsys, tmp_path):
+    """Before: a capture in (or simulate --out into) a folder whose name is not UTF-8
+    was OpenImageIO's 'open(): incompatible function arguments' traceback."""
+    folder = tmp_path / os.fsdecode(b"caf\xe9")  # Latin-1, as Python holds it
+    shutil.copytree(capture, folder)
+    _refused(
+        capsys,
+        "inspect",
+        folder / "capture.yaml",
+        match="shift_00.exr: the path is not valid UTF-8",
+    )
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    out = folder / "out"
+    _refused(capsys, "simulate", cfg, "--out", out, match="out: the path is not valid UTF-8")
+    assert not out.exists()
+
+
+def test_an_image_that_is_a_symlink_loop_is_one_line(capture, capsys):
+    """Before: pathlib's 'RuntimeError: Symlink loop from ...' traceback (the check of
+    one file in two roles resolved it)."""
+    (capture / "shift_01.exr").unlink()
+    (capture / "shift_01.exr").symlink_to(capture / "shift_01.exr")
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="images[1]: ",
+    )
 
 
 def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, capsys, tmp_path):

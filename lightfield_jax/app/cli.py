@@ -43,6 +43,7 @@ import argparse
 import contextlib
 import math
 import sys
+import unicodedata
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -185,8 +186,23 @@ def _refuse_empty_paths(args: argparse.Namespace) -> None:
             raise ValueError(f"--{name}: an empty path")
 
 
+# Escaped in a message line: control characters, and the surrogates a file name in
+# another encoding than UTF-8 holds (which a strict stream cannot print).
+CONTROLS = ("Cc", "Cs")
+
+
 def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
+    """``text`` on one line: whitespace runs (newlines too) as one space, and other
+    control characters and surrogates escaped (``\\x1b``, ``\\udcff``): a file name in a
+    capture file holding a terminal escape sequence printed it raw, recolouring or
+    rewriting the terminal."""
+    flat = " ".join(str(text).split())
+    if flat.isprintable():
+        return flat
+    return "".join(
+        c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROLS else c
+        for c in flat
+    )
 
 
 def _memory_size(text: str) -> int:

@@ -344,9 +344,9 @@ def _demo(args: argparse.Namespace) -> int | None:
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.config import parse_simulation_config
-    from lightfield_jax.app.outputs import CAPTURE_MARKER, staged_files
+    from lightfield_jax.app.outputs import CAPTURE_MARKER
     from lightfield_jax.capture.capture import load_capture
-    from lightfield_jax.capture.io import atomic_directory, atomic_write_json
+    from lightfield_jax.capture.io import atomic_directory, atomic_write_json, naming_output
     from lightfield_jax.checks import repeated
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
     from lightfield_jax.inverse.capture_fit import fit_capture
@@ -372,31 +372,45 @@ def _demo(args: argparse.Namespace) -> int | None:
     with _progress(args, "demo") as stage:
         stage("simulate the capture")
         sim = simulate_capture(config, stage=stage)
+        # The capture, results.json and the figure are written into one staging folder
+        # and published together at the end: a demo stopped or failing in its fit
+        # leaves no capture in DIR, and a failed rerun the previous run's files whole
+        # (before, the capture was published before the fits: an interrupted demo left
+        # it, a failed rerun left the old results.json beside the new capture).
         with atomic_directory(out) as staging:
             write_simulation(sim, staging)
-        capture = load_capture(out / "capture.yaml")
-        truth = sim.truth()
-        rows, results, again = [], {}, {}
-        for method in methods:
-            stage(f"fit: {method}")
-            fit = fit_capture(capture, method, progress=stage).results[0]
-            results[method] = _label_two_step(method, fit.to_dict())
-            rows.append((method, fit))
-            # The same fit once more: the programs compiled above are reused, as for
-            # another channel or the next capture of this size in one process.
-            stage(f"fit again: {method}")
-            again[method] = fit_capture(capture, method).results[0].seconds["total"]
-        # Published together, and only when both are written (as fit's outputs).
-        with staged_files() as write:
+            capture = load_capture(staging / "capture.yaml")
+            truth = sim.truth()
+            rows, results, again = [], {}, {}
+            for method in methods:
+                stage(f"fit: {method}")
+                fit = fit_capture(capture, method, progress=stage).results[0]
+                results[method] = _label_two_step(method, fit.to_dict())
+                rows.append((method, fit))
+                # The same fit once more: the programs compiled above are reused, as
+                # for another channel or the next capture of this size in one process.
+                stage(f"fit again: {method}")
+                again[method] = fit_capture(capture, method).results[0].seconds["total"]
             if "joint" in results:
                 stage("plot")
                 from lightfield_jax.viz import plot_fit
 
-                joint = dict(rows)["joint"]
-                plot_fit(
-                    capture.images[..., 0], capture.pattern, joint, write(out / "demo_fit.png")
-                )
-            atomic_write_json(write(out / "results.json"), {"truth": truth, "fits": results})
+                with naming_output(out / "demo_fit.png"):
+                    plot_fit(
+                        capture.images[..., 0],
+                        capture.pattern,
+                        dict(rows)["joint"],
+                        staging / "demo_fit.png",
+                    )
+            with naming_output(out / "results.json"):
+                atomic_write_json(staging / "results.json", {"truth": truth, "fits": results})
+    if "joint" not in results and (out / "demo_fit.png").exists():
+        # An earlier run's figure (kept: this run did not write it), not this run's fits.
+        _warn(
+            args,
+            f"{out / 'demo_fit.png'} is an earlier run's figure, not of this run's capture "
+            "(drawn for a joint fit, which this run has not)",
+        )
     head = (
         f"{'method':<9} {'sigma_t':>9} {'err':>7} {'sigma_s':>9} {'err':>7} {'g':>7} "
         f"{'err':>7} {'time s':>7} {'again s':>7} {'conv':>5}"

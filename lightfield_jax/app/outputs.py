@@ -44,6 +44,7 @@ from lightfield_jax.capture.io import (
     _write_failure,
     forget_temporary,
     naming_output,
+    oiio_name,
 )
 
 
@@ -120,7 +121,8 @@ def check_outputs(
                     f"{given}: {what} an input of this command ({source}), which it would "
                     "replace; choose another output"
                 )
-        if folder:
+        if folder:  # a folder's outputs are images (simulate, render, pattern, demo)
+            oiio_name(path, OutputError)
             _check_owner(path, os.fspath(given), folder_names, marker, writer)
         key = os.path.realpath(path)
         if key in seen:

@@ -198,6 +198,13 @@ def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
     )
 
 
+# Exposure times a camera takes, in seconds (1 ns to 11.6 days): the merge divides
+# the codes by them in float32, where 1e-308 s overflowed every value to Inf and
+# 1e308 s underflowed it to 0 (a numpy warning, then "no usable pixel" or "no light
+# was captured", blaming the images).
+EXPOSURE_RANGE = (1e-9, 1e6)
+
+
 def _exposure_times(top: _Section) -> list[float]:
     value = top.get("exposure_times", None)
     if not isinstance(value, list) or len(value) < 2:
@@ -208,6 +215,13 @@ def _exposure_times(top: _Section) -> list[float]:
     for i, t in enumerate(value):
         if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 < t < math.inf:
             top.fail(f"exposure_times[{i}]", f"must be a positive number of seconds, got {t!r}")
+        low, high = EXPOSURE_RANGE
+        if not low <= t <= high:
+            top.fail(
+                f"exposure_times[{i}]",
+                f"must be a number of seconds in [{low:g}, {high:g}] (a camera's exposure), "
+                f"got {t!r}",
+            )
     if any(b <= a for a, b in zip(value, value[1:], strict=False)):
         top.fail("exposure_times", f"must increase (shortest first), got {value!r}")
     return [float(t) for t in value]

@@ -170,10 +170,12 @@ from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry
 from lightfield_jax.capture.frames import (
     _aux_frame,
     _calibrate,
+    _check_projector_frames,
     _corrupt_to_nan,
     _flat,
     _floored,
     _frames,
+    _images_listed_twice,
     _inf_to_nan,
     _nonfinite,
     _saturated,
@@ -362,6 +364,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         check_not_mosaic(frames)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
+    _check_projector_frames(top, aux, merged is not None)
     roi = _roi(top, width, height)
     black_level = _black_level(top)
     pixel_size = _positive(top, "pixel_size_mm")
@@ -516,6 +519,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
     if contradiction:
         notes.append(contradiction)
+    # After the phases' checks, which refuse a repeated image where phases are given.
+    if merged is None and (again := _images_listed_twice(top, base)) is not None:
+        issues.append(again)
+        warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated
     images = _calibrate(raw, dark_pixels, flat_pixels, linear)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)

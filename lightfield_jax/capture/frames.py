@@ -14,6 +14,7 @@ import numpy as np
 
 from lightfield_jax.app.config import _Section, brief
 from lightfield_jax.app.memory import capture_bytes, check_memory
+from lightfield_jax.capture.calibration import sensor_top_code
 from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
@@ -54,6 +55,44 @@ def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
     return base / value
 
 
+def _file_identity(base: Path, value: str) -> Any:
+    """A listed file's identity: its device and inode (one file under two names, a hard
+    link), else its resolved path."""
+    path = base / value
+    with contextlib.suppress(OSError, RuntimeError):  # RuntimeError: a symlink loop
+        path = path.resolve()
+    with contextlib.suppress(OSError):
+        st = os.stat(path)
+        return (st.st_dev, st.st_ino)
+    return path
+
+
+def _images_listed_twice(top: _Section, base: Path) -> str | None:
+    """What to say of stripe images listed again under ``images`` (refused by the
+    phases' checks where the phases are given and differ; with ``phases: auto``, a
+    warning: one image counted as two shifts, its noise twice), or ``None``."""
+    images = top.get("images", None)
+    if not isinstance(images, list):
+        return None
+    seen: dict[Any, int] = {}
+    again = []
+    for i, value in enumerate(images):
+        if not isinstance(value, str) or not value or "\0" in value:
+            continue
+        ident = _file_identity(base, value)
+        if ident in seen:
+            again.append((i, seen[ident]))
+        seen.setdefault(ident, i)
+    if not again:
+        return None
+    i, j = again[0]
+    more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    return (
+        f"images[{i}] ({images[i]}) is the file of images[{j}] listed again{more}: one "
+        "image counted as two shifts (a slip in the list?)"
+    )
+
+
 def _distinct_files(top: _Section, base: Path) -> None:
     """Refuse one file given in two roles (a stripe image and a calibration frame, or
     two calibration frames): a user's slip that would otherwise
@@ -68,13 +107,7 @@ def _distinct_files(top: _Section, base: Path) -> None:
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
             continue  # not a path: _file names its key
-        path = base / value
-        with contextlib.suppress(OSError):
-            path = path.resolve()
-        ident: Any = path
-        with contextlib.suppress(OSError):  # one file under two names (a hard link)
-            st = os.stat(path)
-            ident = (st.st_dev, st.st_ino)
+        ident = _file_identity(base, value)
         # A stripe image listed twice is left to the phases' checks.
         both_images = key.startswith("images[") and seen.get(ident, "").startswith("images[")
         if ident in seen and not both_images:
@@ -335,6 +368,46 @@ def _float_clip(values: np.ndarray) -> np.ndarray | None:
     if measured and here.sum() >= max(CLIPPED_MIN, CLIPPED_SHARE * finite.size):
         return here
     return None
+
+
+def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
+    """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
+    projector's black or white: a black frame clipped at its top code or, a float file,
+    at its largest value (its slope against the white gave a black level near 0,
+    accepted), or either frame of one value (a white frame of zeros was blamed on the
+    images by the geometry's detection; a constant frame is no measurement). Merged
+    brackets' frames are radiances: only the one-value check applies to them."""
+    for key in ("white_frame", "black_frame"):
+        frame = aux.get(key)
+        if frame is None:
+            continue
+        name, pixels = frame.path.name, frame.pixels
+        if key == "black_frame" and not merged:
+            if frame.is_integer:
+                sensor = sensor_top_code(pixels[None], [frame]) if frame.bit_depth == 16 else None
+                at_top, where = pixels >= (1.0 if sensor is None else sensor[0]), "top code"
+            else:
+                clip = _float_clip(pixels)
+                at_top = np.zeros(pixels.shape, bool) if clip is None else clip
+                where = "largest value"
+            n = int(at_top.sum())
+            if n >= max(CLIPPED_MIN, CLIPPED_SHARE * at_top.size):
+                top.fail(
+                    key,
+                    f"{name}: {n} of {at_top.size} pixel values sit at its {where} (saturated: "
+                    "a clipped black frame gives a wrong black level); take it with a "
+                    "shorter exposure",
+                )
+        values = pixels[np.isfinite(pixels)]
+        if values.size == 0:
+            top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
+        if np.all(values == values.flat[0]):
+            shown = "white" if key == "white_frame" else "black"
+            top.fail(
+                key,
+                f"{name}: every pixel value is {float(values.flat[0]):.6g}: not a camera "
+                f"image of the projector showing all {shown} (that varies over the medium)",
+            )
 
 
 def _saturated(

@@ -165,6 +165,21 @@ def require_regular_file(path: Path, what: str, error: type[ValueError] = Captur
         raise error(f"{path}: is not a regular file (a FIFO, device or socket), not {what}")
 
 
+def oiio_name(path: str | os.PathLike, error: type[Exception] = CaptureError) -> str:
+    """``path`` as the image library takes it: a name that is valid UTF-8. A file or
+    folder named in another encoding (bytes Python holds as surrogates) is ``error``,
+    naming it: before, the library's "incompatible function arguments" traceback."""
+    name = os.fspath(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise error(
+            f"{name}: the path is not valid UTF-8 (a file or folder named in another "
+            "encoding), which the image library cannot open; rename it"
+        ) from None
+    return name
+
+
 def image_values(path: str | os.PathLike) -> int:
     """The number of samples (height × width × channels, × images for a ``.npy``
     stack) a file decodes to, from its header alone (no pixels read)."""
@@ -174,7 +189,7 @@ def image_values(path: str | os.PathLike) -> int:
         return math.prod(npy_header(path)[0])
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(oiio_name(path))
     if inp is None:
         raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
     try:
@@ -307,7 +322,7 @@ def read_npy_stack(path: str | os.PathLike) -> list[ImageData]:
 def _read_oiio(path: Path) -> ImageData:
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(oiio_name(path))
     if inp is None:
         raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
     try:
@@ -472,12 +487,14 @@ def _write_oiio(
         spec.channelnames = tuple(names)
     for key, value in attrs.items():
         spec.attribute(key, value)
+    oiio_name(path, ValueError)  # its temporary beside it is named alike
     with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
+        name = str(tmp)
+        out = oiio.ImageOutput.create(name)
         if out is None:
             raise OSError(f"{path}: cannot create an image writer ({oiio.geterror()})")
         try:
-            if not out.open(str(tmp), spec):
+            if not out.open(name, spec):
                 raise OSError(f"{path}: cannot open for writing ({out.geterror()})")
             if not out.write_image(pixels):
                 raise OSError(f"{path}: write failed ({out.geterror()})")
@@ -562,10 +579,14 @@ _WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO}
 @contextlib.contextmanager
 def naming_output(target: str | os.PathLike) -> Iterator[None]:
     """Re-raise a writer's failure for want of space as an ``OSError`` naming ``target``
-    (see :func:`_write_failure`); other errors pass unchanged."""
+    (see :func:`_write_failure`); other errors, and one that already names ``target``
+    or a file in it (an inner output's own name), pass unchanged."""
     try:
         yield
     except OSError as e:
+        named = e.filename
+        if isinstance(named, (str, bytes)) and Path(os.fsdecode(named)).is_relative_to(target):
+            raise
         failure = _write_failure(e, Path(target))
         if failure is None:
             raise

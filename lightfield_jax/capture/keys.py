@@ -189,6 +189,9 @@ def _dark_level(top: _Section, integer_bits: int | None, response: str) -> float
         top.fail("dark_level", "give a dark_frame or a dark_level, not both")
     if not math.isfinite(value) or value < 0:
         top.fail("dark_level", f"must be a finite value >= 0, got {brief(value)}")
+    # Before: 1e300 overflowed the float32 images to -Inf (a numpy warning and "no
+    # direct light at the entry wall", exit 1), past the pedestal check.
+    _at_most(top, "dark_level", value)
     if response != "linear":
         top.fail(
             "dark_level",

@@ -28,6 +28,14 @@ _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 # The loosest solver tolerance (looser ones stop the solve where it starts). The most
 # bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
 MAX_TOLERANCE = 0.01
+# The most g values a search takes (g_grid, start_grid): 5 times the densest grid the
+# experiments run (20481, configs/inverse_speed_accuracy.yaml). Before, g_grid 10**9
+# ran (a grid of a billion g values) until killed.
+MAX_G_VALUES = 100_000
+# The most iterations a solve may be given (max_steps, tail_max_steps; past this no
+# limit): the solvers count them in int32 (max_steps 10**12 ended in "an overflow ...
+# argument path is y", after the loading and compilation, naming no key).
+MAX_ITERATIONS = 10**9
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,13 +170,14 @@ class FitOptions:
         for name, least in (
             ("tail_bounces", 2),
             ("tail_max_steps", 1),
-            ("g_grid", 3),
             ("max_basins", 1),
             ("correction_renders", 1),
             ("max_cells", 1),
             ("max_render_cells", 1),
         ):
             check_int(getattr(self, name), name, low=least)
+        check_int(self.tail_max_steps, "tail_max_steps", high=MAX_ITERATIONS)
+        check_int(self.g_grid, "g_grid", low=3, high=MAX_G_VALUES)
         check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
         check_number(self.offset_stop, "offset_stop", low=0.0, high=OFFSET_EXPLAINS)
         for name in ("crop", "basin_search", "model_error", "correct"):
@@ -220,6 +229,8 @@ class FitOptions:
             value = getattr(self, name)
             if not (is_int(value) and value >= 1):
                 raise ValueError(f"{name}: must be an integer >= 1, got {value!r}")
+        check_int(self.start_grid, "start_grid", high=MAX_G_VALUES)
+        check_int(self.max_steps, "max_steps", high=MAX_ITERATIONS)
         if not (is_number(self.crop_fraction) and 0.0 <= self.crop_fraction < 1.0):
             raise ValueError(
                 f"crop_fraction: must lie in [0, 1) (a fraction of the peak), "

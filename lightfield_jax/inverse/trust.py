@@ -316,6 +316,8 @@ class Uncertainty:
     consistency: dict = dataclasses.field(default_factory=dict)
     # ``correlation`` is the total's (the noise's and the model's); this, the noise's.
     correlation_statistical: dict = dataclasses.field(default_factory=dict)
+    # Whether ``chi2_model`` holds the finer model's error (False: the noise's χ² alone).
+    model_measured: bool = False
 
 
 def error_budget(
@@ -395,6 +397,7 @@ def error_budget(
         chi2_model,
         consistency,
         _correlations(cov, names),
+        dr is not None and np.all(np.isfinite(dr)),
     )
 
 
@@ -483,15 +486,22 @@ def untrustworthy(
     """The reasons a solution is not to be trusted (empty: none): :func:`at_bound`, a
     parameter the capture's noise does not determine (:func:`unidentified`), a gain
     that is not positive (:func:`negative_gain`), and a misfit far above ``max_chi2``
-    judged by ``budget.chi2_model`` (noise ⊕ the model's own error)."""
+    judged by ``budget.chi2_model`` (noise ⊕ the model's own error, or the noise alone
+    where that error was not measured: said so)."""
     reasons = at_bound(values, black_range) + unidentified(values, budget)
     reasons += negative_gain(values)
     if math.isfinite(budget.chi2_model) and budget.chi2_model > max_chi2:
-        reasons.append(
-            f"misfit far above the capture's noise and the model's own error: chi2/dof = "
-            f"{budget.chi2_model:.3g} > {max_chi2:g} (against the noise alone: "
-            f"{budget.chi2_dof:.3g})"
-        )
+        if budget.model_measured:
+            reasons.append(
+                f"misfit far above the capture's noise and the model's own error: chi2/dof "
+                f"= {budget.chi2_model:.3g} > {max_chi2:g} (against the noise alone: "
+                f"{budget.chi2_dof:.3g})"
+            )
+        else:  # no finer model's error measured: judged against the noise alone
+            reasons.append(
+                f"misfit far above the capture's noise: chi2/dof = {budget.chi2_model:.3g} "
+                f"> {max_chi2:g} (the model's own error not measured)"
+            )
     return reasons
 
 
