@@ -13,6 +13,7 @@ import dataclasses
 import json
 import math
 import re
+import shutil
 import subprocess
 import sys
 import warnings
@@ -417,7 +418,9 @@ def test_mixed_bit_depths_are_refused(tmp_path):
     a = np.full((12, 16), 0.3)
     write_png(tmp_path / "a.png", a, bits=16)
     write_png(tmp_path / "b.png", a, bits=8)
-    (tmp_path / "capture.yaml").write_text(f"images: [a.png, b.png, a.png]\n{STRIPES}")
+    # Each shift its own file (one file listed twice is a warning of its own).
+    shutil.copy(tmp_path / "a.png", tmp_path / "a2.png")
+    (tmp_path / "capture.yaml").write_text(f"images: [a.png, b.png, a2.png]\n{STRIPES}")
     with pytest.raises(
         CaptureError,
         match=r"capture\.yaml: images\[1\]: b\.png is 8-bit integer \(uint8\) but images\[0\] "
@@ -425,21 +428,22 @@ def test_mixed_bit_depths_are_refused(tmp_path):
     ):
         load_capture(tmp_path / "capture.yaml")
     write_exr(tmp_path / "c.exr", {"Y": a})
+    shutil.copy(tmp_path / "c.exr", tmp_path / "c2.exr")
     (tmp_path / "capture.yaml").write_text(f"images: [a.png, c.exr]\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"c\.exr is 32-bit float"):
         load_capture(tmp_path / "capture.yaml")
     # An integer calibration frame of another depth is refused; a float one is taken.
-    (tmp_path / "capture.yaml").write_text(f"images: [a.png, a.png]\ndark_frame: b.png\n{STRIPES}")
+    (tmp_path / "capture.yaml").write_text(f"images: [a.png, a2.png]\ndark_frame: b.png\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"dark_frame: b\.png is 8-bit integer .* share"):
         load_capture(tmp_path / "capture.yaml")
-    (tmp_path / "capture.yaml").write_text(f"images: [a.png, a.png]\ndark_frame: c.exr\n{STRIPES}")
+    (tmp_path / "capture.yaml").write_text(f"images: [a.png, a2.png]\ndark_frame: c.exr\n{STRIPES}")
     load_capture(tmp_path / "capture.yaml")
     # Float images with an integer dark frame: [0, 1]-scaled codes against the images'
     # own units (before: taken). A flat field's units do not matter: taken.
-    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c.exr]\ndark_frame: a.png\n{STRIPES}")
+    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c2.exr]\ndark_frame: a.png\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"dark_frame: a\.png is 16-bit integer .* 32-bit float"):
         load_capture(tmp_path / "capture.yaml")
-    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c.exr]\nflat_field: a.png\n{STRIPES}")
+    (tmp_path / "capture.yaml").write_text(f"images: [c.exr, c2.exr]\nflat_field: a.png\n{STRIPES}")
     load_capture(tmp_path / "capture.yaml")
 
 
@@ -478,7 +482,8 @@ def test_bayer_mosaic_and_four_channels_are_refused(tmp_path):
 
     rgba = np.stack([smooth] * 3 + [np.ones_like(smooth)], axis=-1)
     write_png(tmp_path / "rgba.png", rgba, bits=16)
-    (tmp_path / "capture.yaml").write_text(f"images: [rgba.png, rgba.png]\n{STRIPES}")
+    write_png(tmp_path / "rgba2.png", rgba, bits=16)
+    (tmp_path / "capture.yaml").write_text(f"images: [rgba.png, rgba2.png]\n{STRIPES}")
     c = load_capture(tmp_path / "capture.yaml")
     assert c.channel_names == ("R", "G", "B") and any("alpha" in n for n in c.notes)
     rgba[..., 3] = smooth
@@ -486,11 +491,12 @@ def test_bayer_mosaic_and_four_channels_are_refused(tmp_path):
     with pytest.raises(CaptureError, match=r"rgba\.png has a varying alpha channel"):
         load_capture(tmp_path / "capture.yaml")
     write_exr(tmp_path / "planes.exr", {n: smooth for n in ("R", "G1", "G2", "B")})
-    (tmp_path / "capture.yaml").write_text(f"images: [planes.exr, planes.exr]\n{STRIPES}")
+    shutil.copy(tmp_path / "planes.exr", tmp_path / "planes2.exr")
+    (tmp_path / "capture.yaml").write_text(f"images: [planes.exr, planes2.exr]\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"planes\.exr has 4 channels .* Bayer"):
         load_capture(tmp_path / "capture.yaml")
     (tmp_path / "capture.yaml").write_text(
-        f"images: [planes.exr, planes.exr]\nchannel: G1\n{STRIPES}"
+        f"images: [planes.exr, planes2.exr]\nchannel: G1\n{STRIPES}"
     )
     assert load_capture(tmp_path / "capture.yaml").channel_names == ("G1",)
 
