@@ -241,6 +241,7 @@ def test_phases_inconsistent_with_image_count(tmp_path):
         ("channel: [R]\n", r"channel: must be a channel name, an index or 'all'"),
         ("channel: R\n", r"images\[0\]: .*s0\.exr: no channel named 'R'; channels: Y"),
         ("geometry: {kind: slab}\n", r"geometry\.thickness: required for kind 'slab'"),
+        ("geometry: {kind: auto}\n", r"geometry\.thickness: required for the slab it may"),
         (
             "geometry: {kind: slab, thickness: 0}\n",
             r"geometry\.thickness: must be a finite number > 0",

@@ -488,7 +488,8 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
     if kind == "plane":
         return Plane()
     if "thickness" not in spec:
-        raise ValueError(f"{where}.thickness: required for kind 'slab' (depth in pixels)")
+        why = "the slab it may choose" if kind == "auto" else "kind 'slab'"
+        raise ValueError(f"{where}.thickness: required for {why} (the tank's depth in pixels)")
     boundary = spec.get("boundary", "absorbing")
     if "n" in spec and boundary != "refractive":
         raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
