@@ -511,7 +511,8 @@ def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfi
     leaves under offset_stop of its misfit, so the fit solves its best basin on the
     cheap model only (no other basin, no final model, no finer model's render) and
     says why, naming the constant: not trusted, never converged. Before, such fits ran
-    2-5 minutes chasing the pedestal toward g's bound and only then named it."""
+    2-5 minutes chasing the pedestal toward g's bound and only then named it. With
+    ``geometry: auto`` no slab fit follows the plane's."""
     st, ss, g = 0.2051, 0.0366, 0.4
     clean = np.asarray(
         lfj.render(lfj.Medium(st, ss, g), lfj.Grid(32, 24, 32, 1), lfj.Stripes(), 8).total
@@ -519,8 +520,12 @@ def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfi
     clean = clean / clean.max()
     rng = np.random.default_rng(3)
     images = (rng.poisson(clean * 2e4) / 2e4 + 0.01).astype(np.float32)
-    res = lfj.fit_images(images, lfj.Stripes(), black_level=0.0)
+    # geometry auto: the plane fit stops; the slab would find the same constant.
+    auto = lfj.AutoGeometry(lfj.Slab(thickness=6.4))
+    res = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, geometry=auto)
     assert not res.converged
+    assert res.model["geometry_choice"]["reason"].startswith("not chosen: the plane fit stopped")
+    assert "plane_fit" not in res.seconds  # no slab fit after it
     (reason,) = res.reasons
     assert "stopped after the scan" in reason and "camera pedestal" in reason, reason
     assert float(reason.split("a constant ")[1].split()[0]) == pytest.approx(0.01, rel=0.1)

@@ -282,6 +282,15 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
         return chose(fit_with(auto.slab), reason)
     say("geometry auto: fitting the plane model")
     plane = fit_with(None)
+    if plane.basins is not None and "stopped" in plane.basins:
+        # A constant offset in the images (offset_stop): the capture's, not the
+        # geometry's; the slab's scan would find it too and stop the same way.
+        say("geometry auto: the plane fit stopped for a constant offset: no slab fit")
+        reason = {
+            "chosen": "plane",
+            "reason": "not chosen: the plane fit stopped for a constant offset in the images",
+        }
+        return chose(plane, reason)
     data = np.asarray(images, np.float64)
     # Pixels valid in every shift, as the fit's own data has them.
     valid, _, _ = valid_values(
