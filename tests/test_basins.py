@@ -512,7 +512,8 @@ def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfi
     cheap model only (no other basin, no final model, no finer model's render) and
     says why, naming the constant: not trusted, never converged. Before, such fits ran
     2-5 minutes chasing the pedestal toward g's bound and only then named it. With
-    ``geometry: auto`` no slab fit follows the plane's."""
+    ``geometry: auto`` no slab fit follows the plane's, nor a refit without the values
+    near a clip."""
     st, ss, g = 0.2051, 0.0366, 0.4
     clean = np.asarray(
         lfj.render(lfj.Medium(st, ss, g), lfj.Grid(32, 24, 32, 1), lfj.Stripes(), 8).total
@@ -522,9 +523,13 @@ def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfi
     images = (rng.poisson(clean * 2e4) / 2e4 + 0.01).astype(np.float32)
     # geometry auto: the plane fit stops; the slab would find the same constant.
     auto = lfj.AutoGeometry(lfj.Slab(thickness=6.4))
-    res = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, geometry=auto)
-    assert not res.converged
-    assert res.model["geometry_choice"]["reason"].startswith("not chosen: the plane fit stopped")
+    # Clipped at its 60 % quantile: no refit without the values near the clip follows.
+    clip = float(np.quantile(images, 0.6))
+    images = np.minimum(images, clip)
+    res = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, geometry=auto, saturation=clip)
+    assert not res.converged and "censoring" not in res.model
+    choice = res.model["geometry_choice"]
+    assert choice["chosen"] is None and "the plane fit stopped" in choice["reason"], choice
     assert "plane_fit" not in res.seconds  # no slab fit after it
     (reason,) = res.reasons
     assert "stopped after the scan" in reason and "camera pedestal" in reason, reason
@@ -550,6 +555,8 @@ def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
 
     (reason,) = stop(0.01)
     assert "+0.02 in every image value" in reason and "offset_stop: 0.05" in reason
+    assert "its best basin's cheap solve" in reason
+    assert "the given start's cheap solve" in stop(0.01, start=(0.03, 0.4))[0]
     assert "subtracts too much" in stop(0.01, value=-0.02)[0]
     assert stop(0.06) == [] and stop(0.01, offset_stop=0.0) == [] and stop(0.0, offset_stop=0) == []
     assert stop(0.2, offset_stop=0.25)

@@ -1452,6 +1452,15 @@ def test_a_white_frame_of_one_value_is_refused_naming_it(capture, capsys, value)
     )
 
 
+def test_a_black_frame_of_zeros_is_a_black_level_of_zero(capture, capsys):
+    """A camera clamping its black at 0 under a projector whose black is below one code
+    takes an all-zero black frame: a measurement (black level 0), not refused."""
+    write_exr(capture / "black.exr", {"Y": np.zeros((H, W), np.float32)})
+    path = _edit(capture, black_level="auto", black_frame="black.exr")
+    status, _, err = _run(capsys, "inspect", path)
+    assert status == 0 and "black_frame" not in err, err
+
+
 def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(capture, capsys):
     """Before: with phases: auto, shift_00.exr listed as images[0] and images[5] was
     accepted without a word (one image fitted as two shifts, its noise counted twice)."""
@@ -1472,6 +1481,10 @@ def test_a_terminal_escape_in_a_file_name_is_printed_escaped(capture, capsys):
     path = _edit(capture, images=["\x1b[31mred.exr", *names[1:]])
     line = _refused(capsys, "inspect", path, match="images[0]: ")
     assert "\\x1b[31mred.exr: file not found" in line and "\x1b" not in line, line
+    # A right-to-left override (a format character) reorders what the terminal shows.
+    path = _edit(capture, images=["a\u202egnp.exr", *names[1:]])
+    line = _refused(capsys, "inspect", path, match="images[0]: ")
+    assert "a\\u202egnp.exr" in line and "\u202e" not in line, line
 
 
 def test_a_folder_named_in_another_encoding_is_one_line(capture, capsys, tmp_path):

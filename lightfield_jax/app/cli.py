@@ -186,9 +186,10 @@ def _refuse_empty_paths(args: argparse.Namespace) -> None:
             raise ValueError(f"--{name}: an empty path")
 
 
-# Escaped in a message line: control characters, and the surrogates a file name in
-# another encoding than UTF-8 holds (which a strict stream cannot print).
-CONTROLS = ("Cc", "Cs")
+# Escaped in a message line: control characters, format characters (a right-to-left
+# override reorders what the terminal shows), and the surrogates a file name in another
+# encoding than UTF-8 holds (which a strict stream cannot print).
+CONTROLS = ("Cc", "Cf", "Cs")
 
 
 def _one_line(text: str) -> str:

@@ -374,9 +374,9 @@ def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,
     at its largest value (its slope against the white gave a black level near 0,
-    accepted), or either frame of one value (a white frame of zeros was blamed on the
-    images by the geometry's detection; a constant frame is no measurement). Merged
-    brackets' frames are radiances: only the one-value check applies to them."""
+    accepted), or a white frame of one value (one of zeros was blamed on the images by
+    the geometry's detection; a constant white is no measurement). Merged brackets'
+    frames are radiances: only the one-value check applies to them."""
     for key in ("white_frame", "black_frame"):
         frame = aux.get(key)
         if frame is None:
@@ -401,12 +401,13 @@ def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
         values = pixels[np.isfinite(pixels)]
         if values.size == 0:
             top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
-        if np.all(values == values.flat[0]):
-            shown = "white" if key == "white_frame" else "black"
+        # A black frame of one value is a measurement (a camera clamping its black at
+        # 0, a projector's black below one code): a black level of 0, as before.
+        if key == "white_frame" and np.all(values == values.flat[0]):
             top.fail(
                 key,
                 f"{name}: every pixel value is {float(values.flat[0]):.6g}: not a camera "
-                f"image of the projector showing all {shown} (that varies over the medium)",
+                "image of the projector showing all white (that varies over the medium)",
             )
 
 

@@ -283,12 +283,12 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     say("geometry auto: fitting the plane model")
     plane = fit_with(None)
     if plane.basins is not None and "stopped" in plane.basins:
-        # A constant offset in the images (offset_stop): the capture's, not the
-        # geometry's; the slab's scan would find it too and stop the same way.
+        # A constant offset in the images (offset_stop) that no geometry has: a slab
+        # fit would chase it as the plane's would have (or stop the same way).
         say("geometry auto: the plane fit stopped for a constant offset: no slab fit")
         reason = {
-            "chosen": "plane",
-            "reason": "not chosen: the plane fit stopped for a constant offset in the images",
+            "chosen": None,
+            "reason": "none chosen: the plane fit stopped for a constant offset in the images",
         }
         return chose(plane, reason)
     data = np.asarray(images, np.float64)

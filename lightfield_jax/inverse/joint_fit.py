@@ -482,8 +482,9 @@ def _offset_stop(the_scan: Scan, options: FitOptions, peak: float) -> list[str]:
     hint = offset_hint(found.value, found.fraction, "basin scan's", peak)
     if not hint:
         return []
+    solved = "the given start's" if options.start is not None else "its best basin's"
     return [
-        f"{hint[0]}; the fit stopped after the scan and its best basin's cheap solve "
+        f"{hint[0]}; the fit stopped after the scan and {solved} cheap solve "
         f"(offset_stop: {options.offset_stop:g})"
     ]
 
@@ -626,7 +627,9 @@ def _joint_fit(
         values = ", ".join(f"{v:.3g}" for v in scanned)
         say(f"  scanned at sigma_t {values}: kept {the_scan.sigma_t:.3g}")
     peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
-    stop = _offset_stop(the_scan, options, peak)
+    # Not in the censoring refit from an answer (``start``): joint_fit does not refit
+    # a fit that stopped, and one that did not is refined as it was.
+    stop = [] if start is not None else _offset_stop(the_scan, options, peak)
     if stop:
         say(f"  {stop[0]}")
     if start is not None:
@@ -896,7 +899,9 @@ def joint_fit(problem, options: FitOptions, say):
 
     model, seconds, values, last = run(problem.data)
     noise = values["budget"].noise
-    if not math.isfinite(noise):
+    if not math.isfinite(noise) or "stopped" in values["basins"]:
+        # (stopped: a constant offset explains the misfit; values near a clip are not
+        # what keeps such a fit from being trusted)
         return model, seconds, values
     data = problem.data
     fitted, sigma = last.values["gain"] * last.unit, _stage_sigma(last, noise)

@@ -397,7 +397,7 @@ def error_budget(
         chi2_model,
         consistency,
         _correlations(cov, names),
-        dr is not None and np.all(np.isfinite(dr)),
+        bool(dr is not None and np.all(np.isfinite(dr))),
     )
 
 
