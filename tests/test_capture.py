@@ -790,3 +790,41 @@ def test_dark_level_refusals(tmp_path):
     capture = _capture(tmp_path, text=base + "dark_level: 0.05\n")
     raw = np.stack([read_image(tmp_path / p).pixels for p in pngs])
     np.testing.assert_allclose(capture.images, raw - 0.05, atol=1e-6)
+
+
+def test_a_dark_level_per_channel_by_name(tmp_path):
+    """An RGB camera whose channels have pedestals of their own: ``dark_level`` as one
+    value per channel name, subtracted from each; a name the images lack, a channel
+    without a value and a list (whose order the user might not know) are refused; with
+    ``channel:`` the mapping names the channels loaded."""
+    rng = np.random.default_rng(1)
+    names = []
+    for i in range(P):
+        names.append(f"rgb{i}.exr")
+        write_exr(tmp_path / names[-1], {c: rng.uniform(0.1, 0.5, (H, W)) for c in "RGB"})
+    base = f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 2, 4]}}\n"
+    raw = np.stack([read_image(tmp_path / n).pixels for n in names])
+    capture = _capture(tmp_path, text=base + "dark_level: {R: 0.03, G: 0.01, B: 0.02}\n")
+    assert capture.channel_names == ("R", "G", "B")
+    np.testing.assert_allclose(capture.images, raw - [0.03, 0.01, 0.02], atol=1e-6)
+    assert "dark_level: [0.03, 0.01, 0.02] subtracted from every image" in capture.notes
+
+    def refused(extra, match):
+        (tmp_path / "capture.yaml").write_text(base + extra)
+        with pytest.raises(CaptureError, match=match) as info:
+            load_capture(tmp_path / "capture.yaml")
+        assert "\n" not in str(info.value)
+
+    refused(
+        "dark_level: {R: 0.03, G: 0.01, Y: 0.02}\n",
+        r"dark_level\.Y: no channel named 'Y' in the images; channels: R, G, B",
+    )
+    refused("dark_level: {R: 0.03, G: 0.01}\n", r"dark_level: no value for channel B")
+    refused("dark_level: [0.03, 0.01, 0.02]\n", r"dark_level: one value, or one per channel")
+    refused("dark_level: {R: 0.03, G: -1, B: 0.02}\n", r"dark_level\.G: must be a finite value")
+    refused(
+        "dark_level: {R: 0.03, G: 0.4, B: 0.02}\n",
+        r"dark_level: \[0\.03, 0\.4, 0\.02\] is above the camera's pedestal",
+    )
+    green = _capture(tmp_path, text=base + "channel: G\ndark_level: {G: 0.01}\n")
+    np.testing.assert_allclose(green.images[..., 0], raw[..., 1] - 0.01, atol=1e-6)

@@ -338,6 +338,9 @@ def test_a_dark_level_is_subtracted_from_every_exposure(radiance, tmp_path):
     lit = radiance > 1e-2 * radiance.max()
     ratio = with_level.images[..., 0][lit] / with_frames.images[..., 0][lit]
     assert np.percentile(np.abs(ratio - 1.0), 90) < 0.01
+    capture["dark_level"] = {"Y": PEDESTAL}  # by channel name: the same merge
+    path.write_text(yaml.safe_dump(capture))
+    np.testing.assert_array_equal(load_capture(path).images, with_level.images)
     capture["dark_level"] = 0.3  # far above the pedestal: refused, naming dark_level
     path.write_text(yaml.safe_dump(capture))
     with pytest.raises(CaptureError, match=r"dark_level: 0\.3 is above the camera's pedestal"):

@@ -17,7 +17,7 @@ from lightfield_jax.capture.detect import (
     detect_geometry,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import AUTO
+from lightfield_jax.capture.keys import AUTO, dark_level_text
 from lightfield_jax.scene.illumination import Stripes
 
 
@@ -48,7 +48,10 @@ DARK_BELOW, DARK_DEPTH = 0.05, 0.05
 
 
 def _check_light(
-    top: _Section, images: np.ndarray, dark: ImageData | None, dark_level: float | None = None
+    top: _Section,
+    images: np.ndarray,
+    dark: ImageData | None,
+    dark_level: float | np.ndarray | None = None,
 ) -> None:
     """Refuse images without light: no value above zero (every value zero, or negative
     images), or, with a dark frame, images darker than it (99 % of the values after
@@ -58,13 +61,14 @@ def _check_light(
     if finite.size == 0:
         return  # every value non-finite: the mask's check says so
     brightest = float(finite.max())
-    if dark_level:
+    if dark_level is not None:
         bright = float(np.percentile(finite, 99))
         below = float(np.mean(finite < -DARK_DEPTH * max(bright, 0.0)))
         if bright <= 0 or below > DARK_BELOW:
             top.fail(
                 "dark_level",
-                f"{dark_level:.6g} is above the camera's pedestal: after subtracting it, "
+                f"{dark_level_text(dark_level)} is above the camera's pedestal: after "
+                "subtracting it, "
                 f"{below:.0%} of the image values lie below zero by more than "
                 f"{DARK_DEPTH:.0%} of the bright ones (their 99th percentile "
                 f"{bright:.3g}); give it in image values (a 16-bit file's pedestal of C "

@@ -28,7 +28,7 @@ from lightfield_jax.capture.hdr import (
     merge_capture,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import _AUX_FRAMES, _dark_level, _positive
+from lightfield_jax.capture.keys import _AUX_FRAMES, _dark_level, _positive, dark_level_text
 
 
 def _brackets(top: _Section, base: Path, channel, notes: list[str]):
@@ -126,7 +126,12 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     response = read_response(top, base, first.channel_names, images, times)
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
-    level = _dark_level(top, first.bit_depth if first.is_integer else None, str(response_key))
+    level = _dark_level(
+        top,
+        first.bit_depth if first.is_integer else None,
+        str(response_key),
+        tuple(first.channel_names),
+    )
     if level is not None:
         dark = np.full((len(times), *first.pixels.shape), level, images.dtype)
     dark = None if dark is None else dark / full
@@ -143,7 +148,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
             m = merge_bracket(stack, times, response, levels=levels, dark=dark, clip=clip)
             merged[key] = _merged_frame(m.radiance, aux[key][-1])
     if dark is not None:
-        what = "dark_frame" if level is None else f"dark_level: {level:.6g}"
+        what = "dark_frame" if level is None else f"dark_level: {dark_level_text(level)}"
         notes.append(f"{what}: subtracted from every exposure before the merge")
     return frames, merged, record
 

@@ -63,9 +63,11 @@ Keys:
 - ``dark_level``: instead of a dark frame, the camera's constant black offset (its
   pedestal), in image values after integer scaling (as ``saturation``: a pedestal of
   2048 codes in 16-bit files is 2048/65535 = 0.03125), subtracted like a dark frame of
-  that value; linear images only. A pedestal left in the images is light the model
-  does not have: the joint fit then ends far above the noise and says so, with the
-  offset it measures.
+  that value; linear images only. One value, or one per channel by name
+  (``dark_level: {R: 0.0312, G: 0.0310, B: 0.0316}``, every channel loaded: with
+  ``channel: G``, ``{G: 0.0310}``). A
+  pedestal left in the images is light the model does not have: the joint fit then
+  stops or ends far above the noise and says so, with the offset it measures.
 - ``black_frame``, ``white_frame``: the camera's images of the projector showing all
   black and all white. The black frame measures the black level (``black_level:
   auto``); the white frame, if given, is where the medium's ROI is found.
@@ -197,6 +199,7 @@ from lightfield_jax.capture.keys import (
     _roi,
     _stripes,
     _truth,
+    dark_level_text,
     pixel_size_problem,
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
@@ -241,8 +244,8 @@ class Capture:
         source: the capture file.
         image_paths: the image files (one ``.npy`` stack repeated for a stack).
         dark_frame: the dark frame's file, or ``None``.
-        dark_level: the constant dark level subtracted instead (``dark_level`` key), or
-            ``None``.
+        dark_level: the constant dark level subtracted instead (``dark_level`` key): one
+            value, or one per channel (in ``channel_names``' order), or ``None``.
         n_masked: masked [H, W, C] entries: ``nonfinite``, ``saturated`` (finite but
             saturated or clipped in some image) and ``total``; ``values``: masked
             [P, H, W, C] values.
@@ -296,7 +299,7 @@ class Capture:
     fit_options: dict[str, Any] = dataclasses.field(default_factory=dict)
     floored: np.ndarray | None = None
     response: Response | None = None
-    dark_level: float | None = None
+    dark_level: float | np.ndarray | None = None
 
     def response_record(self) -> dict:
         """The inverse response the codes were linearised with: ``kind`` (linear, srgb,
@@ -427,10 +430,11 @@ def load_capture(path: str | os.PathLike) -> Capture:
     dark = aux["dark_frame"]
     dark_pixels = aux_linear["dark_frame"]
     bits = frames[0].bit_depth if frames[0].is_integer else None  # a merged frame: float
-    dark_level = _dark_level(top, bits, str(top.get("response", "linear")))
+    channels = tuple(frames[0].channel_names)
+    dark_level = _dark_level(top, bits, str(top.get("response", "linear")), channels)
     if dark_level is not None and merged is None:  # brackets: the merge subtracted it
-        dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)
-        notes.append(f"dark_level: {dark_level:.6g} subtracted from every image")
+        dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)  # per channel: last axis
+        notes.append(f"dark_level: {dark_level_text(dark_level)} subtracted from every image")
     dark_removed = (
         dark is not None
         or dark_level is not None

@@ -178,37 +178,74 @@ def _black_level(top: _Section) -> float | str | None:
     return value
 
 
-def _dark_level(top: _Section, integer_bits: int | None, response: str) -> float | None:
+def _dark_level(
+    top: _Section, integer_bits: int | None, response: str, channels: tuple[str, ...] = ()
+) -> float | np.ndarray | None:
     """``dark_level``: the camera's constant black offset (a pedestal), in the images'
     values after integer scaling (``integer_bits``: the files' bits, ``None`` for float
-    files), subtracted from every image like a dark frame of that value."""
-    value = top.float("dark_level", None)
-    if value is None:
+    files), subtracted from every image like a dark frame of that value: one value, or
+    one per channel by name (``{R: 0.0312, G: 0.0310, B: 0.0316}``; ``channels``: the
+    images' channels), returned in the channels' order. ``None``: no pedestal."""
+    given = top.get("dark_level", None)
+    if given is None:
         return None
     if "dark_frame" in top.data and top.get("dark_frame", None) is not None:
         top.fail("dark_level", "give a dark_frame or a dark_level, not both")
-    if not math.isfinite(value) or value < 0:
-        top.fail("dark_level", f"must be a finite value >= 0, got {brief(value)}")
-    # Before: 1e300 overflowed the float32 images to -Inf (a numpy warning and "no
-    # direct light at the entry wall", exit 1), past the pedestal check.
-    _at_most(top, "dark_level", value)
+    if isinstance(given, dict):
+        names = [str(k) for k in given]
+        for name in names:
+            if name not in channels:
+                top.fail(
+                    f"dark_level.{name}",
+                    f"no channel named {name!r} in the images; channels: {', '.join(channels)}",
+                )
+        missing = [c for c in channels if c not in names]
+        if missing:
+            top.fail(
+                "dark_level",
+                f"no value for channel {missing[0]} (one value per channel of the images: "
+                f"{', '.join(channels)}, or one value for all)",
+            )
+        keys = [f"dark_level.{c}" for c in channels]
+        levels = [_as_float(top, k, given[c]) for k, c in zip(keys, channels, strict=True)]
+    elif isinstance(given, list):
+        top.fail(
+            "dark_level",
+            "one value, or one per channel by name (e.g. {R: 0.0312, G: 0.031, B: 0.0316}), "
+            f"not a list: {brief(given)}",
+        )
+    else:
+        keys, levels = ["dark_level"], [top.float("dark_level", None)]
+    for key, value in zip(keys, levels, strict=True):
+        if not math.isfinite(value) or value < 0:
+            top.fail(key, f"must be a finite value >= 0, got {brief(value)}")
+        # Before: 1e300 overflowed the float32 images to -Inf (a numpy warning and "no
+        # direct light at the entry wall", exit 1), past the pedestal check.
+        _at_most(top, key, value)
+        if integer_bits is not None and value >= 1:
+            top_code = (1 << integer_bits) - 1
+            top.fail(
+                key,
+                f"{value:g} is not an image value of these {integer_bits}-bit files (scaled "
+                f"to [0, 1]): a pedestal of {value:g} codes is {key}: "
+                f"{value / top_code:.6g} ({value:g}/{top_code})",
+            )
     if response != "linear":
         top.fail(
             "dark_level",
             f"applies to linear images, not with response: {response} (a camera that "
             "encodes its files subtracts its pedestal first; take a dark_frame otherwise)",
         )
-    if integer_bits is not None and value >= 1:
-        top_code = (1 << integer_bits) - 1
-        top.fail(
-            "dark_level",
-            f"{value:g} is not an image value of these {integer_bits}-bit files (scaled "
-            f"to [0, 1]): a pedestal of {value:g} codes is dark_level: "
-            f"{value / top_code:.6g} ({value:g}/{top_code})",
-        )
-    if value == 0:
+    if not any(levels):
         return None  # no pedestal: nothing to subtract
-    return value
+    return levels[0] if len(levels) == 1 and not isinstance(given, dict) else np.array(levels)
+
+
+def dark_level_text(level: float | np.ndarray) -> str:
+    """A ``dark_level`` as a message shows it: ``0.0312`` or ``[0.0312, 0.031, 0.0316]``."""
+    if np.ndim(level) == 0:
+        return f"{float(level):.6g}"
+    return "[" + ", ".join(f"{float(v):.6g}" for v in level) + "]"
 
 
 def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
