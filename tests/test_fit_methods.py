@@ -172,8 +172,13 @@ def test_a_minimiser_is_refused_with_a_clear_error(make):
 def test_bad_method_settings_are_refused():
     with pytest.raises(ValueError, match="method: must be one of joint, gradient, grid"):
         lfj.FitOptions(method="newton")
-    with pytest.raises(ValueError, match="g_values: must be at least 3"):
+    with pytest.raises(ValueError, match=r"g_values: must be an integer in \[3, 100000\], got 2"):
         lfj.GridSearch(2)
+    # A billion g values ran until killed (the API's twin of fit: {g_grid: 1e9}).
+    with pytest.raises(ValueError, match=r"g_values: must be an integer in \[3, 100000\]"):
+        lfj.GridSearch(10**9)
+    with pytest.raises(ValueError, match=r"start_grid: must be an integer in \[3, 100000\]"):
+        lfj.TwoStep(start_grid=10**7)
     with pytest.raises(ValueError, match="start: must be"):
         lfj.Joint(start=(0.03, 1.2))
 

@@ -15,7 +15,13 @@ import optimistix as optx
 from lightfield_jax.checks import check_flag, check_int, check_number, number_problem
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
-from lightfield_jax.inverse.methods import FitMethod, check_solver, check_start, method_for
+from lightfield_jax.inverse.methods import (
+    MAX_G_VALUES,
+    FitMethod,
+    check_solver,
+    check_start,
+    method_for,
+)
 from lightfield_jax.inverse.model_size import _phase_integral
 from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
@@ -28,10 +34,6 @@ _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 # The loosest solver tolerance (looser ones stop the solve where it starts). The most
 # bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
 MAX_TOLERANCE = 0.01
-# The most g values a search takes (g_grid, start_grid): 5 times the densest grid the
-# experiments run (20481, configs/inverse_speed_accuracy.yaml). Before, g_grid 10**9
-# ran (a grid of a billion g values) until killed.
-MAX_G_VALUES = 100_000
 # The most iterations a solve may be given (max_steps, tail_max_steps; past this no
 # limit): the solvers count them in int32 (max_steps 10**12 ended in "an overflow ...
 # argument path is y", after the loading and compilation, naming no key).
