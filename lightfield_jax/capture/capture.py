@@ -180,6 +180,7 @@ from lightfield_jax.capture.frames import (
     _images_listed_twice,
     _inf_to_nan,
     _nonfinite,
+    _one_value,
     _saturated,
 )
 from lightfield_jax.capture.hdr import RESPONSES, Brackets, Response
@@ -320,12 +321,6 @@ class Capture:
 
 
 # --------------------------------------------------------------------------- loading
-
-
-def _one_value(image: np.ndarray) -> float | None:
-    """The one value of an image whose finite pixel values are all equal, else ``None``."""
-    values = image[np.isfinite(image)]
-    return float(values[0]) if values.size and np.all(values == values[0]) else None
 
 
 def load_capture(path: str | os.PathLike) -> Capture:

@@ -370,6 +370,12 @@ def _float_clip(values: np.ndarray) -> np.ndarray | None:
     return None
 
 
+def _one_value(image: np.ndarray) -> float | None:
+    """The one value of an image whose finite pixel values are all equal, else ``None``."""
+    values = image[np.isfinite(image)]
+    return float(values[0]) if values.size and np.all(values == values[0]) else None
+
+
 def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,
@@ -398,16 +404,16 @@ def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
                     "a clipped black frame gives a wrong black level); take it with a "
                     "shorter exposure",
                 )
-        values = pixels[np.isfinite(pixels)]
-        if values.size == 0:
+        if not np.isfinite(pixels).any():
             top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
         # A black frame of one value is a measurement (a camera clamping its black at
         # 0, a projector's black below one code): a black level of 0, as before.
-        if key == "white_frame" and np.all(values == values.flat[0]):
+        level = _one_value(pixels) if key == "white_frame" else None
+        if level is not None:
             top.fail(
                 key,
-                f"{name}: every pixel value is {float(values.flat[0]):.6g}: not a camera "
-                "image of the projector showing all white (that varies over the medium)",
+                f"{name}: every pixel value is {level:.6g}: not a camera image of the "
+                "projector showing all white (that varies over the medium)",
             )
 
 

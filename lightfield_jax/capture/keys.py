@@ -192,7 +192,8 @@ def _dark_level(
     if "dark_frame" in top.data and top.get("dark_frame", None) is not None:
         top.fail("dark_level", "give a dark_frame or a dark_level, not both")
     if isinstance(given, dict):
-        names = [str(k) for k in given]
+        given = {str(k): v for k, v in given.items()}  # a YAML key 0 names channel "0"
+        names = list(given)
         for name in names:
             if name not in channels:
                 top.fail(
