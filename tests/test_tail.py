@@ -262,3 +262,68 @@ def test_tail_acceleration_experiment_reduced(tmp_path):
         assert by["series_auto"]["bounces"] >= by["series_needed"]["bounces"]
         assert by["series_auto"]["error_total"] <= data["target"]
     assert len(record["summary"]["table"]) == len(rows)
+
+
+# The coarse tail (coarse_after): the later bounces on the native grid. A forward medium
+# whose model is refined, 40% of whose light is past the fourth bounce.
+_COARSE_SCENE = dict(
+    grid=lfj.Grid(48, 32, 64, refine=2),
+    illumination=lfj.Stripes(period=6, lit=3, phases=(0, 3)),
+    medium=lfj.Medium(0.25, 0.22, 0.7, "normalized"),
+)
+
+
+def test_the_coarse_tail_keeps_the_explicit_bounces_and_the_series_within_its_error():
+    grid, illum, medium = (_COARSE_SCENE[k] for k in ("grid", "illumination", "medium"))
+    k, k0 = 24, 4
+    full = np.asarray(lfj.render(medium, grid, illum, k).images)
+    coarse = np.asarray(lfj.render(medium, grid, illum, k, coarse_after=k0).images)
+    assert coarse.shape == full.shape
+    later = full[:, k0:].sum() / full.sum()
+    assert later > 0.3  # the coarse bounces carry much of the light
+    # The first K0 bounces are the renderer's own, the later ones the coarse grid's.
+    np.testing.assert_allclose(coarse[:, :k0], full[:, :k0], rtol=1e-6, atol=0)
+    assert not np.allclose(coarse[:, k0:], full[:, k0:], rtol=1e-6, atol=0)
+    # Measured: 7e-4 of the peak at most; per-bounce sums within 0.1 % of the full's.
+    peak = full.sum(axis=1).max()
+    assert np.abs(coarse.sum(axis=1) - full.sum(axis=1)).max() < 1e-3 * peak
+    per_bounce = coarse.sum(axis=(0, 2, 3)) / full.sum(axis=(0, 2, 3))
+    np.testing.assert_allclose(per_bounce[k0:], 1.0, atol=1e-2)
+
+
+def test_new_values_never_recompile_with_a_coarse_tail():
+    grid, illum = _COARSE_SCENE["grid"], _COARSE_SCENE["illumination"]
+    renderer = renderer_for(grid, illum, 10, "normalized", None, coarse_after=4)
+    renderer(0.2, 0.1, 0.7)
+    before = trace_count()
+    for st, ss, g in ((0.3, 0.29, 0.5), (0.1, 0.05, -0.4)):
+        renderer(st, ss, g)
+    assert trace_count() == before
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (
+            lambda g, b: Renderer(g, b, 8, coarse_after=1),
+            r"coarse_after: must be an integer in \[2",
+        ),
+        (
+            lambda g, b: Renderer(g, b, 8, tail="gmres", coarse_after=4),
+            "coarse_after: the later bounces are either",
+        ),
+        (
+            lambda g, b: lfj.make_renderer(
+                g, b, 8, "normalized", lfj.Slab(4.0, n_mu=4, n_z=1), coarse_after=4
+            ),
+            "coarse_after: SlabRenderer has no coarse grid",
+        ),
+        (
+            lambda g, b: Renderer(g, b, 8, coarse_after=4)(0.2, 0.1, 0.7, lightfield=True),
+            "lightfield: the bounces after coarse_after = 4",
+        ),
+    ],
+)
+def test_bad_coarse_tail_settings_raise_clear_errors(call, match):
+    with pytest.raises(ValueError, match=match):
+        call(lfj.Grid(16, 8, 64, refine=2), lfj.Beam(0.0, 4.0))

@@ -52,7 +52,7 @@ _FIT_INTS = (
     "max_render_cells",
     "correction_renders",
 )
-_FIT_OPTIONAL_INTS = ("n_theta", "refine")
+_FIT_OPTIONAL_INTS = ("n_theta", "refine", "coarse_after")
 _FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2", "offset_stop")
 _FIT_OPTIONAL_FLOATS = ("rtol", "atol")
 _FIT_BOOLS = ("crop", "basin_search", "model_error", "correct")

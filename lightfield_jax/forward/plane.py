@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.forward.base import AbstractRenderer, FirstOrders, _count_trace
+from lightfield_jax.forward.base import AbstractRenderer, FirstOrders, _count_trace, block_mean
 from lightfield_jax.forward.first_scatter import (
     convolve_kernels,
     convolve_separable,
@@ -55,6 +55,15 @@ def _phase_matrix_taps(g, n_theta: int):
     dtype = jnp.result_type(g)
     delta, weights = bin_pair_offsets(n_theta, _PHASE_SUBSAMPLES)
     return jnp.sum(phase_function(jnp.asarray(delta, dtype), g) * weights.astype(dtype), axis=1)
+
+
+def coarse_plane_grid(grid: Grid) -> Grid:
+    """The plane's coarse grid for the bounces after ``coarse_after``: the native grid
+    (refine 1), the same θ bins. Measured on the dense forward medium (ω 0.8, g 0.7,
+    128×96, 64 θ bins, refine 2, 32 bounces, the coarse grid after 8): per-bounce image
+    sums within 0.04 % of the full march's, the series' image within 5e-5 of its
+    peak; half the θ bins as well drifted by 2 % per bounce sum by the 32nd bounce."""
+    return Grid(grid.width, grid.height, grid.n_theta, 1)
 
 
 class BounceStep(eqx.Module):
@@ -100,8 +109,10 @@ class BounceStep(eqx.Module):
 class PlaneRenderer(AbstractRenderer):
     """The paper's 2-D model (:class:`~lightfield_jax.forward.base.AbstractRenderer`,
     whose call signature and outputs it has): ``Renderer(grid, illumination, bounces,
-    phase="paper", *, tail=None, tail_tol=1e-4, tail_max_steps=500)``; ``grid.n_theta``
-    must be set (:meth:`~lightfield_jax.Grid.resolve`). Public as ``Renderer``."""
+    phase="paper", *, tail=None, tail_tol=1e-4, tail_max_steps=500,
+    coarse_after=None)``; ``grid.n_theta`` must be set (:meth:`~lightfield_jax.Grid.resolve`).
+    Its coarse grid (``coarse_after``) is :func:`coarse_plane_grid`'s. Public as
+    ``Renderer``."""
 
     nodes: dict
     node_angle: Float[Array, " nodes"]
@@ -125,8 +136,11 @@ class PlaneRenderer(AbstractRenderer):
         tail: str | None = None,
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
+        coarse_after: int | None = None,
     ):
-        self._setup(grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps)
+        self._setup(
+            grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps, coarse_after
+        )
         Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
         theta0 = math.radians(illumination.direction_deg)
         nodes = kernel_nodes(self.width, self.height, grid.n_theta)
@@ -174,6 +188,22 @@ class PlaneRenderer(AbstractRenderer):
         along = source[p, :, a] / across[p, a]
         out = convolve_separable(across, along, jnp.swapaxes(kernels, -1, -2))
         return jnp.swapaxes(out, -1, -2)
+
+    def coarse_grid(self, grid: Grid) -> Grid:
+        return coarse_plane_grid(grid)
+
+    def _coarse_renderer(self, grid: Grid, illumination: Illumination) -> PlaneRenderer:
+        return PlaneRenderer(grid, illumination, 1, self.phase)
+
+    def restrict(self, q):
+        """Q of the working grid (P, n, fH, fW) on the native grid: summed over each
+        pixel's f×f cells (σ per working cell is σ/f, so Q per pixel is f times their
+        mean)."""
+        f = self.refine
+        return f * block_mean(q, f, (-2, -1))
+
+    def bounce_step(self, sigma_t, sigma_s, g) -> BounceStep:
+        return self._step(sigma_t, sigma_s, self._phase_parts(g)[2])
 
     def _step(self, sigma_t, sigma_s, mixing) -> BounceStep:
         return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta)
@@ -224,6 +254,8 @@ class PlaneRenderer(AbstractRenderer):
         do not depend on it. So the tangent travels beside the primal as extra
         patterns through the same convolution and transport, and only the small
         phase-function pieces are differentiated (by ``jax.jvp``)."""
+        if self.coarse is not None:  # the march's later bounces are the coarse grid's
+            return self._march_g_jvp(sigma_t, sigma_s, g, gain)
         n = self.n_theta
         groups = _groups(n)
         _count_trace()

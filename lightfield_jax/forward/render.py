@@ -101,6 +101,7 @@ def make_renderer(
     tail: str | None = None,
     tail_tol: float = 1e-4,
     tail_max_steps: int = 500,
+    coarse_after: int | None = None,
 ) -> AbstractRenderer:
     """The compiled forward model of a scene, the geometry's own renderer
     (:meth:`~lightfield_jax.Plane.renderer`): a :class:`Renderer` for the plane (the
@@ -108,7 +109,8 @@ def make_renderer(
     :class:`~lightfield_jax.SlabRenderer` for a :class:`~lightfield_jax.Slab`. Both
     have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``,
     ``n_z``) must be resolved. ``tail``: the orders after ``bounces`` from one Krylov
-    solve (see :class:`~lightfield_jax.forward.base.AbstractRenderer`)."""
+    solve; ``coarse_after``: the bounces after it marched on a coarse grid (the plane's;
+    see :class:`~lightfield_jax.forward.base.AbstractRenderer`)."""
     return as_geometry(geometry).renderer(
         grid,
         illumination,
@@ -117,6 +119,7 @@ def make_renderer(
         tail=tail,
         tail_tol=tail_tol,
         tail_max_steps=tail_max_steps,
+        coarse_after=coarse_after,
     )
 
 
@@ -130,6 +133,7 @@ def renderer_for(
     tail: str | None = None,
     tail_tol: float = 1e-4,
     tail_max_steps: int = 500,
+    coarse_after: int | None = None,
 ) -> AbstractRenderer:
     """A cached renderer (its tables are built once per static configuration)."""
     return make_renderer(
@@ -141,6 +145,7 @@ def renderer_for(
         tail=tail,
         tail_tol=tail_tol,
         tail_max_steps=tail_max_steps,
+        coarse_after=coarse_after,
     )
 
 
@@ -187,6 +192,7 @@ def render(
     tail: str | None = None,
     tail_tol: float = 1e-4,
     tail_max_steps: int = 500,
+    coarse_after: int | None = None,
 ) -> RenderResult:
     """Render per-bounce images (and optionally light fields) of a scene.
 
@@ -211,6 +217,10 @@ def render(
             stayed below it in the measurements; BiCGStab's ran up to 26× above it when
             the scene's per-bounce ratio approaches 1: see docs/tail_acceleration.md).
         tail_max_steps: the most iterations the tail solve may take.
+        coarse_after: ``None``, or K0: the plane's bounces after K0 are marched on its
+            coarse grid (the native grid where ``grid.refine`` > 1: about 1e-4 of the
+            peak from the full march, docs/tail_acceleration.md); not with ``tail`` or
+            ``lightfield``.
 
     Under ``phase="paper"`` with ρ ≥ 1 an explicit K still renders, the result has
     ``converges=False`` and a :class:`DivergentSeriesWarning` is issued; a tail is
@@ -263,7 +273,15 @@ def render(
         f"{', light fields' if lightfield else ''})",
     )
     renderer = renderer_for(
-        grid, illumination, k, medium.phase, geometry, tail, tail_tol, tail_max_steps
+        grid,
+        illumination,
+        k,
+        medium.phase,
+        geometry,
+        tail,
+        tail_tol,
+        tail_max_steps,
+        coarse_after=coarse_after,
     )
     images, fields, *solved = renderer(medium.sigma_t, medium.sigma_s, medium.g, gain, lightfield)
     extra = {}

@@ -170,12 +170,15 @@ class SlabRenderer(AbstractRenderer):
         tail: str | None = None,
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
+        coarse_after: int | None = None,
     ):
         if grid.n_theta is not None and (slab.n_mu is None or slab.n_z is None):
             raise ValueError("SlabRenderer needs slab.n_mu and slab.n_z: call Slab.resolve first")
         if phase not in ("paper", "normalized"):
             raise ValueError(f"phase: must be paper or normalized, got {phase!r}")
-        self._setup(grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps)
+        self._setup(
+            grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps, coarse_after
+        )
         f = self.refine
         self.n_mu = int(slab.n_mu)
         self.n_z = int(slab.n_z)

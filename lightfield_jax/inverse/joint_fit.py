@@ -415,7 +415,10 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
       ``max_render_cells`` (the slab's cell count, :func:`_slab_over_cap`).
 
     Then the same bounces with the rest of the series extrapolated geometrically or,
-    with a tail, the same K0 and a tail tolerance ten times as tight."""
+    with a tail, the same K0 and a tail tolerance ten times as tight; with a coarse
+    tail (the plane's ``coarse_after``), twice as many bounces on the refined grid
+    before it, so that the term also sees the coarse grid's error where most of the
+    coarse bounces' light is."""
     grid = model.grid
     geometry = model.geometry
     if geometry is not None:
@@ -460,7 +463,11 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     # bounces already marched (the dense forward medium, 128×96: 32 bounces instead of
     # 52 at 128 θ bins and refine 2).
     return dataclasses.replace(
-        model, grid=grid, geometry=geometry, extrapolate=not isinstance(options.bounces, int)
+        model,
+        grid=grid,
+        geometry=geometry,
+        extrapolate=not isinstance(options.bounces, int),
+        coarse_after=None if model.coarse is None else 2 * model.coarse,
     )
 
 
@@ -792,6 +799,7 @@ def _joint_fit(
             "refine": fine.grid.refine,
             "bounces": fine.bounces,
             "extrapolated": fine.extrapolate,
+            "coarse_after": fine.coarse,
             **(
                 {
                     "n_mu": fine.geometry.n_mu,

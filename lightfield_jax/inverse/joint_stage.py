@@ -65,7 +65,14 @@ def _result_message(result) -> tuple[bool, str]:
 
 def _renderer(model: _Model, illumination, phase: str):
     if model.tail is None:
-        return renderer_for(model.grid, illumination, model.bounces, phase, model.geometry)
+        return renderer_for(
+            model.grid,
+            illumination,
+            model.bounces,
+            phase,
+            model.geometry,
+            coarse_after=model.coarse,
+        )
     return renderer_for(
         model.grid,
         illumination,

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
+from lightfield_jax.forward.plane import coarse_plane_grid
 from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
@@ -44,6 +45,18 @@ class _Model:
     tail_max_steps: int = 200
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
     extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
+    coarse_after: int | None = None  # the plane's bounces after it on its coarse grid
+
+    @property
+    def coarse(self) -> int | None:
+        """K0 of the coarse tail where it applies (the plane, a march of more bounces,
+        a grid coarser than the model's), else ``None``."""
+        k0 = self.coarse_after
+        if k0 is None or self.geometry is not None or self.tail is not None:
+            return None
+        if self.bounces <= k0 or coarse_plane_grid(self.grid) == self.grid:
+            return None
+        return k0
 
     @property
     def tail_bound(self) -> float | None:
@@ -69,6 +82,13 @@ class _Model:
             "ratio_measured": self.ratio,
             "tail_bound": self.tail_bound,
             "extrapolated": self.extrapolate,
+            "coarse_tail": None
+            if self.coarse is None
+            else {
+                "after": self.coarse,
+                "n_theta": coarse_plane_grid(self.grid).n_theta,
+                "refine": 1,
+            },
             "tail": None
             if self.tail is None
             else {
@@ -183,7 +203,13 @@ def size_model(
     else:
         k = options.max_bounces
     model = _Model(
-        grid=grid, bounces=max(k, 2), crop=crop, converges=converges, rho=rho, geometry=slab
+        grid=grid,
+        bounces=max(k, 2),
+        crop=crop,
+        converges=converges,
+        rho=rho,
+        geometry=slab,
+        coarse_after=options.coarse_after if slab is None else None,
     )
     return _with_tail(model, options)
 
@@ -373,10 +399,11 @@ SCAN_TAIL_BOUNCES = 24
 
 
 def _orders(model: _Model) -> str:
+    coarse = "" if model.coarse is None else f" (after {model.coarse} on the coarse grid)"
     if model.extrapolate:
-        return f"{model.bounces} bounces and a geometric tail"
+        return f"{model.bounces} bounces{coarse} and a geometric tail"
     if model.tail is None:
-        return f"{model.bounces} bounces"
+        return f"{model.bounces} bounces{coarse}"
     return f"K0 = {model.bounces} and a {model.tail} tail"
 
 

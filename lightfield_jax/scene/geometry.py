@@ -99,6 +99,7 @@ class Plane:
         tail: str | None = None,
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
+        coarse_after: int | None = None,
     ) -> PlaneRenderer:
         """The compiled forward model of this geometry (``grid`` resolved)."""
         return PlaneRenderer(
@@ -109,6 +110,7 @@ class Plane:
             tail=tail,
             tail_tol=tail_tol,
             tail_max_steps=tail_max_steps,
+            coarse_after=coarse_after,
         )
 
 
@@ -286,6 +288,7 @@ class Slab:
         tail: str | None = None,
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
+        coarse_after: int | None = None,
     ) -> SlabRenderer:
         """The compiled slab model (``grid``, ``n_mu`` and ``n_z`` resolved)."""
         return SlabRenderer(
@@ -297,6 +300,7 @@ class Slab:
             tail=tail,
             tail_tol=tail_tol,
             tail_max_steps=tail_max_steps,
+            coarse_after=coarse_after,
         )
 
 
