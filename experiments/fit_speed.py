@@ -57,8 +57,9 @@ from lightfield_jax.scene.geometry import parse_geometry
 
 @dataclasses.dataclass(frozen=True)
 class MediumSpec:
-    """One medium: its name, σt, σs (per pixel), g; optional phase, geometry (a slab) and
-    the truth's bounces (default: auto)."""
+    """One medium: its name, σt, σs (per pixel), g; optional phase, geometry (a slab),
+    the truth's bounces (default: auto) and its own fit keywords (over the config's
+    ``fit``: the same medium fitted two ways in one run)."""
 
     name: str
     sigma_t: float
@@ -67,6 +68,7 @@ class MediumSpec:
     phase: str = "paper"
     geometry: dict | None = None
     bounces: int | str | None = None
+    fit: dict | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +95,9 @@ class Config:
             inv.check_simulation_config(_capture_config(self, m), f"fit_speed: media[{i}]")
         # The fit's keywords, as a capture file's fit: section (FitOptions' own checks).
         fit_keywords("fit_speed", "fit", self.fit)
+        for i, m in enumerate(self.media):
+            if m.get("fit") is not None:
+                fit_keywords("fit_speed", f"media[{i}].fit", {**self.fit, **m["fit"]})
 
 
 def _capture_config(cfg: Config, medium: dict) -> dict:
@@ -114,7 +119,12 @@ def _capture(cfg: Config, medium: dict) -> np.ndarray:
 
 
 def _fit_kwargs(cfg: Config, medium: dict) -> dict:
-    kwargs = {"black_level": 0.0, "phase": medium.get("phase", "paper"), **cfg.fit}
+    kwargs = {
+        "black_level": 0.0,
+        "phase": medium.get("phase", "paper"),
+        **cfg.fit,
+        **(medium.get("fit") or {}),
+    }
     if medium.get("geometry"):
         kwargs["geometry"] = medium["geometry"]
     return kwargs
@@ -216,6 +226,11 @@ def _summary_row(name: str, rec: dict) -> dict:
         "iterations": cold["iterations"],
         "model": (
             f"K = {model['bounces']}"
+            + (
+                f" (coarse after {model['coarse_tail']['after']})"
+                if model.get("coarse_tail")
+                else ""
+            )
             if tail is None
             else f"K0 = {tail['K0']} + {tail['method']} ({tail.get('steps')} steps)"
         ),
