@@ -248,6 +248,7 @@ def _refused(tmp_path, data, message, prefix=""):
         ("paper_figures", "oblique.y"),  # before: KeyError after figures 11-13 were drawn
         ("forward_accuracy", "scenes[0].beam.y"),  # before: TypeError in Beam()
         ("tail_acceleration", "slab.rho"),
+        ("coarse_tail", "media[0].bounces"),
         ("stability_maps", "start.media[0].g"),
         ("model_size", "truth.tolerance"),
         ("inverse_speed_accuracy", "medium.g"),
@@ -317,6 +318,14 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
         ("tail_acceleration", {"rho": [0.9, 1.0]}, r"rho\[1\]: must be in \(0, 1\), got 1.0$"),
         ("tail_acceleration", {"methods": ["cg"]}, r"methods\[0\]: must be one of series_auto"),
         ("tail_acceleration", {"methods": []}, "methods: at least one each"),  # max() of []
+        ("coarse_tail", {"coarse_after": [4, 1]}, r"coarse_after\[1\]: must be in \[2, 1000\]"),
+        ("coarse_tail", {"coarse_after": [32]}, r"media\[0\].bounces: must exceed every"),
+        ("coarse_tail", {"refine": 1}, r"refine: must be in \[2, 4\], got 1$"),
+        (
+            "coarse_tail",
+            {"media": [{"name": "m", "sigma_t": 0.1, "sigma_s": 0.2, "g": 0.5, "bounces": 32}]},
+            r"media\[0\]: medium.sigma_s: must satisfy",
+        ),
         (
             "stability_maps",
             {"albedo_g": {"sigma_t": "x", "albedo": [0.5], "g": [0]}},

@@ -327,3 +327,27 @@ def test_new_values_never_recompile_with_a_coarse_tail():
 def test_bad_coarse_tail_settings_raise_clear_errors(call, match):
     with pytest.raises(ValueError, match=match):
         call(lfj.Grid(16, 8, 64, refine=2), lfj.Beam(0.0, 4.0))
+
+
+def test_coarse_tail_experiment_reduced(tmp_path):
+    config = Path(__file__).resolve().parent.parent / "configs" / "coarse_tail.yaml"
+    record = run_experiment(config, tmp_path, reduced=True)
+    assert (tmp_path / "coarse_tail.png").stat().st_size > 0
+    data = json.loads((tmp_path / "coarse_tail.json").read_text())
+    assert {"versions", "machine", "date_utc"} <= set(data)
+    rows = data["rows"]
+    k0s = {None, *data["coarse_after"]}
+    assert {(r["medium"], r["coarse_after"]) for r in rows} == {
+        (m["name"], k0) for m in data["media"] for k0 in k0s
+    }
+    for r in rows:
+        assert r["refine"] == 2
+        assert np.isfinite([r["seconds"], r["first_call_s"], r["compile_s"]]).all()
+        assert r["seconds"] > 0
+        if r["coarse_after"] is None:
+            continue
+        numbers = [r[k] for k in ("error_max", "error_l1", "bounce_deviation", "speedup")]
+        assert np.isfinite(numbers).all(), r
+        assert r["error_max"] < 1e-2, r  # of the full march's peak
+        assert r["explicit_deviation"] < 1e-5  # the first K0 bounces are the renderer's own
+    assert len(record["summary"]["table"]) == len(rows)
