@@ -218,7 +218,7 @@ def render(
             the scene's per-bounce ratio approaches 1: see docs/tail_acceleration.md).
         tail_max_steps: the most iterations the tail solve may take.
         coarse_after: ``None``, or K0: the plane's bounces after K0 are marched on its
-            coarse grid (the native grid where ``grid.refine`` > 1: about 1e-4 of the
+            coarse grid (the native grid where ``grid.refine`` > 1: 5e-5 to 6e-4 of the
             peak from the full march, docs/tail_acceleration.md); not with ``tail`` or
             ``lightfield``.
 

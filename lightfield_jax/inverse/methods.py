@@ -207,8 +207,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         # A slab's depth layers and elevation nodes too (g decides the nodes, the
         # albedo the layers).
         deeper = need.geometry is not None and (
-            need.geometry.n_z > model.geometry.n_z
-            or need.geometry.n_mu >= 2 * model.geometry.n_mu
+            need.geometry.n_z > model.geometry.n_z or need.geometry.n_mu >= 2 * model.geometry.n_mu
         )
         if (
             need.grid.n_theta >= 4 * model.grid.n_theta
