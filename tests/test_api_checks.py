@@ -95,6 +95,8 @@ def test_a_beam_wider_than_any_medium_is_refused():
         ({"geometry": "slab"}, "geometry: must be None, a Plane or a Slab"),
         ({"bounces": np.ones(2)}, "bounces: must be an integer >= 1 or 'auto'"),
         ({"tail": np.ones(2)}, "tail: must be auto, None or one of"),
+        ({"coarse_after": 1}, r"coarse_after: must be an integer in \[2, 10000\]"),
+        ({"coarse_after": 8.5}, "coarse_after: must be an integer"),
     ],
 )
 def test_fit_options_refuse_values_of_the_wrong_kind(bad, match):

@@ -275,7 +275,7 @@ def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
     text = (
         f"images: {names}\npattern: {{period: 6, lit: 3}}\n"
         "fit: {n_theta: 64, bounces: 12, tail: null, rtol: 1.0e-5, correct: false, "
-        "start: [0.03, 0.4], max_render_cells: 4000000}\n"
+        "start: [0.03, 0.4], max_render_cells: 4000000, coarse_after: null}\n"
     )
     capture = _capture(tmp_path, text=text)
     assert capture.fit_options == {
@@ -286,6 +286,7 @@ def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
         "correct": False,
         "start": (0.03, 0.4),
         "max_render_cells": 4_000_000,
+        "coarse_after": None,
     }
     # fit_capture fits with them (the call's own keywords win).
     seen = []

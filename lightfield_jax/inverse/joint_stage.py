@@ -64,24 +64,23 @@ def _result_message(result) -> tuple[bool, str]:
 
 
 def _renderer(model: _Model, illumination, phase: str):
-    if model.tail is None:
-        return renderer_for(
-            model.grid,
-            illumination,
-            model.bounces,
-            phase,
-            model.geometry,
-            coarse_after=model.coarse,
-        )
+    solve = (
+        {}
+        if model.tail is None
+        else {
+            "tail": model.tail,
+            "tail_tol": model.tail_tol,
+            "tail_max_steps": model.tail_max_steps,
+        }
+    )
     return renderer_for(
         model.grid,
         illumination,
         model.bounces,
         phase,
         model.geometry,
-        model.tail,
-        model.tail_tol,
-        model.tail_max_steps,
+        coarse_after=model.coarse,
+        **solve,
     )
 
 

@@ -67,9 +67,11 @@ class FitOptions:
         coarse_after: (``joint``, plane) the bounces after this many are marched on the
             native grid where the model the answer needs is refined (|g| > 0.65) and
             marches more: later bounces are smooth in space, and this changes the image
-            of the series by 5e-5 (g 0.7) to 6e-4 (g 0.8) of its peak at 0.4–0.5× the render's cost
-            (docs/tail_acceleration.md); ``None``: every bounce on the model's grid. The
-            error term's finer model has the same coarse tail (at its θ bins).
+            of the series by 5e-5 (g 0.7) to 6e-4 (g 0.8) of its peak at 0.4–0.5× the
+            render's cost (docs/tail_acceleration.md); ``None``: every bounce on the
+            model's grid. The error term's finer model marches twice as many bounces
+            refined before its coarse tail, so its term sees the coarse grid's error
+            where most of the coarse bounces' light is.
         tail_max_steps: iteration limit of a tail solve; one that stops there makes
             the result not trustworthy.
         n_theta: direction bins, or ``None`` to choose them from the starting g.
