@@ -189,6 +189,17 @@ class AbstractRenderer(eqx.Module):
             )
         self.bounces = check_bounces(bounces)
         check_tail(tail, tail_tol, tail_max_steps)
+        if coarse_after is not None:
+            if number_problem(coarse_after, integer=True, low=2, high=MAX_BOUNCES) is not None:
+                raise ValueError(
+                    f"coarse_after: must be an integer in [2, {MAX_BOUNCES}] or None, "
+                    f"got {coarse_after!r}"
+                )
+            if tail is not None:
+                raise ValueError(
+                    f"coarse_after: the later bounces are either marched on a coarse grid "
+                    f"or summed by the tail solve, not both (tail: {tail!r})"
+                )
         self.tail, self.tail_tol, self.tail_max_steps = tail, float(tail_tol), int(tail_max_steps)
         f = self.refine = 1 if grid.refine is None else grid.refine
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
@@ -202,20 +213,11 @@ class AbstractRenderer(eqx.Module):
         self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
         self.coarse_after, self.coarse = None, None
         if coarse_after is not None:
-            if number_problem(coarse_after, integer=True, low=2, high=MAX_BOUNCES) is not None:
-                raise ValueError(
-                    f"coarse_after: must be an integer in [2, {MAX_BOUNCES}] or None, "
-                    f"got {coarse_after!r}"
-                )
-            if tail is not None:
-                raise ValueError(
-                    f"coarse_after: the later bounces are either marched on a coarse grid "
-                    f"or summed by the tail solve, not both (tail: {tail!r})"
-                )
             coarse = self.coarse_grid(grid)
             if coarse is None:
                 raise ValueError(f"coarse_after: {type(self).__name__} has no coarse grid")
-            if coarse != grid and self.bounces > coarse_after:
+            coarser = (coarse.n_theta, coarse.refine or 1) != (grid.n_theta, f)
+            if coarser and self.bounces > coarse_after:
                 self.coarse_after = int(coarse_after)
                 self.coarse = self._coarse_renderer(coarse, illumination)
 
