@@ -8,6 +8,7 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.inverse.correction import correct, in_domain
+from lightfield_jax.inverse.fit import _model_from
 
 X = np.arange(12.0)[None, None, :] + np.arange(3.0)[None, :, None]
 SHIFTS = np.array([0.0, 1.0])[:, None, None]
@@ -202,11 +203,20 @@ def test_a_dense_forward_capture_is_recovered_through_the_correction():
     assert result.model["coarse_tail"] == coarse
     fine = result.model["finer_model"]
     assert fine["coarse_after"] == (16 if fine["bounces"] > 16 else None)
+    # The model a result names renders as fitted (fitted_images), coarse tail included.
+    assert _model_from(result.model).coarse == 8
     assert result.converged, result.message
     st, ss, g = DENSE
     assert abs(result.sigma_t / st - 1) < 0.005
     assert abs(result.sigma_s / ss - 1) < 0.005
     assert abs(result.g - g) < 0.005
+
+
+def test_the_two_step_methods_march_every_bounce_on_the_models_grid():
+    # The paper's baseline takes no coarse tail, on a capture whose joint fit does.
+    result = _dense_fit(method="grid")
+    assert result.model["refine"] == 2 and result.model["bounces"] > 8
+    assert result.model["coarse_tail"] is None
 
 
 @pytest.mark.slow

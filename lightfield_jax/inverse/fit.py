@@ -338,6 +338,7 @@ def _model_from(d: dict) -> _Model:
         tail_max_steps=tail.get("max_steps", 200),
         ratio=d.get("ratio_measured"),
         extrapolate=bool(d.get("extrapolated", False)),
+        coarse_after=(d.get("coarse_tail") or {}).get("after"),
     )
 
 

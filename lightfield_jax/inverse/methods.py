@@ -178,6 +178,12 @@ def _with_solver(options: FitOptions, solver) -> FitOptions:
 TRUNCATION_LIMIT = 0.01
 
 
+def _marched(model):
+    """``model`` with every bounce on its own grid: the two-step methods, the paper's
+    baseline, take no coarse tail (``coarse_after`` is the joint fit's)."""
+    return dataclasses.replace(model, coarse_after=None)
+
+
 def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
     """The two-step methods after σt: solve on the first model; where the estimate needs
     a much larger model (4× the θ bins, a finer grid, more bounces: a forward-peaked
@@ -189,7 +195,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         renderer = _renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g)
 
-    model = _at_least(problem.model, problem.floor)
+    model = _marched(_at_least(problem.model, problem.floor))
     sol = on(model)
     compile_s = sol.compile
     s, g = sol.sigma_s, sol.g
@@ -221,7 +227,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
                 f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces"
                 + (f", n_mu {slab.n_mu}, n_z {slab.n_z})" if slab is not None else ")")
             )
-            model = _at_least(need, model)
+            model = _marched(_at_least(need, model))
             sol = on(model)
             compile_s += sol.compile
     ok, msg = _result_message(sol.result)

@@ -54,7 +54,8 @@ class _Model:
         k0 = self.coarse_after
         if k0 is None or self.geometry is not None or self.tail is not None:
             return None
-        if self.bounces <= k0 or coarse_plane_grid(self.grid) == self.grid:
+        coarse = coarse_plane_grid(self.grid)
+        if self.bounces <= k0 or (coarse.n_theta, 1) == (self.grid.n_theta, self.grid.refine or 1):
             return None
         return k0
 
