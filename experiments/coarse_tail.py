@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import time
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -43,10 +42,8 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.app.timing import repeated_calls
 from lightfield_jax.forward.render import renderer_for
-
-_LONG_CALL_S = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,25 +96,6 @@ class Config:
             raise ValueError(f"coarse_tail: {e}") from None
 
 
-def _timed(call, repeats: int) -> dict:
-    """First call (compile + run) and the median of ``repeats`` steady calls (a first
-    call that runs longer than ``_LONG_CALL_S`` is not repeated: its run time counts)."""
-    with stopwatch() as first:
-        out = call()
-    times = [first.run] if first.run > _LONG_CALL_S else []
-    for _ in range(repeats if not times else 0):
-        t0 = time.perf_counter()
-        out = call()
-        times.append(time.perf_counter() - t0)
-    return {
-        "first_call_s": first.total,
-        "compile_s": first.compile,
-        "seconds": float(np.median(times)),
-        "times_s": times,
-        "out": out,
-    }
-
-
 def _render(medium: lfj.Medium, grid, illumination, k: int, k0: int | None):
     """Per-bounce images (patterns, K, H, W) of the march, float64 on the host."""
     renderer = renderer_for(grid, illumination, k, medium.phase, None, coarse_after=k0)
@@ -146,7 +124,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
         "refine": grid.refine,
     }
     ctx.progress(f"{spec['name']}: full march, {k} bounces")
-    timed = _timed(_render(medium, grid, illumination, k, None), cfg["repeats"])
+    timed = repeated_calls(_render(medium, grid, illumination, k, None), cfg["repeats"])
     images_ref = timed.pop("out")
     total_ref = images_ref.sum(axis=1)
     sums_ref = images_ref.sum(axis=(0, 2, 3))
@@ -156,7 +134,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
     rows = [full]
     for k0 in cfg["coarse_after"]:
         ctx.progress(f"{spec['name']}: coarse_after {k0}")
-        timed = _timed(_render(medium, grid, illumination, k, k0), cfg["repeats"])
+        timed = repeated_calls(_render(medium, grid, illumination, k, k0), cfg["repeats"])
         images = timed.pop("out")
         delta = images.sum(axis=1) - total_ref
         sums = images.sum(axis=(0, 2, 3))

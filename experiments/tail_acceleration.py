@@ -36,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import time
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -53,12 +52,11 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.app.timing import repeated_calls
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.scene.medium import bounces_for_tolerance
 
 _METHODS = ("series_auto", "series_needed", "gmres", "bicgstab")
-_LONG_CALL_S = 10.0
 Rho = Annotated[float, Range(0, 1, open_low=True, open_high=True)]
 Boundary = Literal["absorbing", "refractive"]
 
@@ -128,25 +126,6 @@ def _medium(cfg: dict, sigma_t: float, rho: float, phase: str) -> lfj.Medium:
     if rho / a >= 1.0:
         raise ValueError(f"tail_acceleration: rho {rho} needs albedo {rho / a:.3f} >= 1 ({phase})")
     return lfj.Medium(st, rho / a * st, g, phase)
-
-
-def _timed(call, repeats: int) -> dict:
-    """First call (compile + run) and the median of ``repeats`` steady calls (a first
-    call that runs longer than ``_LONG_CALL_S`` is not repeated: its run time counts)."""
-    with stopwatch() as first:
-        out = call()
-    times = [first.run] if first.run > _LONG_CALL_S else []
-    for _ in range(repeats if not times else 0):
-        t0 = time.perf_counter()
-        out = call()
-        times.append(time.perf_counter() - t0)
-    return {
-        "first_call_s": first.total,
-        "compile_s": first.compile,
-        "seconds": float(np.median(times)),
-        "times_s": times,
-        "out": out,
-    }
 
 
 def _plain(medium, grid, k: int, geometry):
@@ -223,7 +202,7 @@ def _case(
                 row.update(skipped=f"{k} bounces > max_auto_bounces {cfg['max_auto_bounces']}")
                 rows.append(row)
                 continue
-            timed = _timed(_plain(medium, grid, k, geometry), cfg["repeats"])
+            timed = repeated_calls(_plain(medium, grid, k, geometry), cfg["repeats"])
             total = timed.pop("out").sum(axis=0)
             row.update(error_total=_rel_l1(total, total_ref))
         else:
@@ -235,7 +214,7 @@ def _case(
                 images, _, tail = renderer(medium.sigma_t, medium.sigma_s, medium.g)
                 return jax.block_until_ready((images, tail))
 
-            timed = _timed(call, cfg["repeats"])
+            timed = repeated_calls(call, cfg["repeats"])
             images, tail = timed.pop("out")
             images = np.asarray(images[0], np.float64)
             tail_image = np.asarray(tail.image[0], np.float64)

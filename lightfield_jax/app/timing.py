@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import statistics
 import threading
 import time
 from collections.abc import Iterator
@@ -66,3 +67,24 @@ def stopwatch() -> Iterator[Timing]:
         timing.total = time.perf_counter() - t0
         jax.monitoring.unregister_event_time_span_listener(listener)
         timing.compile = min(_union_length(spans), timing.total)
+
+
+def repeated_calls(call, repeats: int, long_call_s: float = 10.0) -> dict:
+    """Time ``call()``: its first call (compile + run, split by :func:`stopwatch`) and the
+    median of ``repeats`` steady calls; a first call that runs longer than
+    ``long_call_s`` is not repeated (its run time counts). Returns ``first_call_s``,
+    ``compile_s``, ``seconds`` (the median), ``times_s`` and the last call's ``out``."""
+    with stopwatch() as first:
+        out = call()
+    times = [first.run] if first.run > long_call_s else []
+    for _ in range(repeats if not times else 0):
+        t0 = time.perf_counter()
+        out = call()
+        times.append(time.perf_counter() - t0)
+    return {
+        "first_call_s": first.total,
+        "compile_s": first.compile,
+        "seconds": float(statistics.median(times)),
+        "times_s": times,
+        "out": out,
+    }
