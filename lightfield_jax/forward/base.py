@@ -13,9 +13,11 @@ geometry supplies its steps):
   n_theta" (radiance per radian of azimuth);
 - the tail Σ_{k>K0} from one Krylov solve over the same bounce step
   (:mod:`lightfield_jax.forward.tail`);
-- the coarse tail: the bounces after ``coarse_after`` marched on a coarser grid (a
-  geometry gives it, :meth:`AbstractRenderer.coarse_grid`, and restricts its source to
-  it, :meth:`AbstractRenderer.restrict`);
+- the coarse tail: the bounces after ``coarse_after`` marched on the native grid (a
+  geometry says whether it has one coarser than its working grid,
+  :meth:`AbstractRenderer.coarse_grid`, restricts its source to it,
+  :meth:`AbstractRenderer.restrict`, and gives the bounce step there,
+  :meth:`AbstractRenderer.coarse_step`);
 - the images' slope along g (:meth:`AbstractRenderer.images_and_g_slope`).
 
 A geometry (the plane: :class:`~lightfield_jax.forward.plane.PlaneRenderer`; the slab:
@@ -35,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from lightfield_jax.checks import number_problem
+from lightfield_jax.checks import check_int, number_problem
 from lightfield_jax.forward.tail import TailSolution, check_tail, solve_tail
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
@@ -165,8 +167,7 @@ class AbstractRenderer(eqx.Module):
     tail: str | None = eqx.field(static=True)
     tail_tol: float = eqx.field(static=True)
     tail_max_steps: int = eqx.field(static=True)
-    coarse_after: int | None = eqx.field(static=True)
-    coarse: AbstractRenderer | None
+    coarse_after: int | None = eqx.field(static=True)  # None: every bounce on the working grid
     coverage: Float[Array, "patterns H W"]
     mean_depth: Float[Array, "patterns H W"]
     var_depth: Float[Array, "patterns H W"]
@@ -190,11 +191,7 @@ class AbstractRenderer(eqx.Module):
         self.bounces = check_bounces(bounces)
         check_tail(tail, tail_tol, tail_max_steps)
         if coarse_after is not None:
-            if number_problem(coarse_after, integer=True, low=2, high=MAX_BOUNCES) is not None:
-                raise ValueError(
-                    f"coarse_after: must be an integer in [2, {MAX_BOUNCES}] or None, "
-                    f"got {coarse_after!r}"
-                )
+            check_int(coarse_after, "coarse_after", low=2, high=MAX_BOUNCES)
             if tail is not None:
                 raise ValueError(
                     f"coarse_after: the later bounces are either marched on a coarse grid "
@@ -211,15 +208,10 @@ class AbstractRenderer(eqx.Module):
         self.var_depth = jnp.asarray(var)
         theta0 = math.radians(illumination.direction_deg)
         self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
-        self.coarse_after, self.coarse = None, None
-        if coarse_after is not None:
-            coarse = self.coarse_grid(grid)
-            if coarse is None:
-                raise ValueError(f"coarse_after: {type(self).__name__} has no coarse grid")
-            coarser = (coarse.n_theta, coarse.refine or 1) != (grid.n_theta, f)
-            if coarser and self.bounces > coarse_after:
-                self.coarse_after = int(coarse_after)
-                self.coarse = self._coarse_renderer(coarse, illumination)
+        # Only where there is a coarser grid and bounces after K0 to march on it.
+        coarse = None if coarse_after is None else self.coarse_grid(grid)
+        marched = coarse is not None and self.bounces > coarse_after
+        self.coarse_after = int(coarse_after) if marched else None
 
     # -- what a geometry supplies --------------------------------------------------
 
@@ -249,16 +241,17 @@ class AbstractRenderer(eqx.Module):
         """Light fields of the working grid × this = light fields of the model grid."""
 
     def coarse_grid(self, grid: Grid) -> Grid | None:
-        """The grid of the bounces after ``coarse_after`` (``grid`` itself where there is
-        nothing coarser; ``None``: this geometry has none)."""
-        return None
-
-    def _coarse_renderer(self, grid: Grid, illumination: Illumination) -> AbstractRenderer:
-        """This geometry's renderer on the coarse grid (only its bounce step is used)."""
-        raise NotImplementedError
+        """The native grid the bounces after ``coarse_after`` are marched on, or ``None``
+        where it is no coarser than ``grid``; a geometry without a coarse tail refuses
+        ``coarse_after`` here."""
+        raise ValueError(f"coarse_after: {type(self).__name__} has no coarse grid")
 
     def restrict(self, q):
         """A source of the working grid as a source of the coarse grid."""
+        raise NotImplementedError
+
+    def coarse_step(self, sigma_t, sigma_s, g):
+        """The bounce step on the coarse grid, given σ per working-grid cell."""
         raise NotImplementedError
 
     # -- the loop -----------------------------------------------------------------
@@ -268,7 +261,7 @@ class AbstractRenderer(eqx.Module):
         return self.coverage.shape[0]
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
-        if lightfield and self.coarse is not None:
+        if lightfield and self.coarse_after is not None:
             raise ValueError(
                 f"lightfield: the bounces after coarse_after = {self.coarse_after} are on a "
                 "coarse grid; render light fields without coarse_after"
@@ -340,7 +333,7 @@ class AbstractRenderer(eqx.Module):
         # I_{K0+1} seed the tail's solve.
         march = self.bounces + (self.tail is not None)
         # With a coarse tail the working grid marches the first coarse_after bounces.
-        fine = march if self.coarse is None else self.coarse_after
+        fine = self.coarse_after or march
         orders = self.first_orders(sigma_t, sigma_s, g, source, march > 1 or lightfield)
         step, q = orders.step, orders.source
         images = [orders.image[None]]
@@ -386,19 +379,17 @@ class AbstractRenderer(eqx.Module):
 
     def _coarse_march(self, q, sigma_t, sigma_s, g, length: int):
         """Images of ``length`` bounces from Q_{K0} (working grid) marched on the coarse
-        grid, each coarse pixel's value repeated over its working cells (in working-grid
-        units: ``__call__`` averages them back)."""
+        (native) grid, each pixel's value repeated over its working cells, in
+        working-grid units (``__call__`` averages them back and scales them by
+        ``image_scale``; the native grid's images are the model's)."""
         f = self.refine
-        step = self.coarse.bounce_step(sigma_t * f, sigma_s * f, g)
+        step = self.coarse_step(sigma_t, sigma_s, g)
 
         def bounce(q, _):
             return step(q)
 
         images = jax.lax.scan(bounce, self.restrict(q), None, length=length)[1]
-        scale = self.coarse.image_scale / self.image_scale
-        if f > 1:
-            images = jnp.repeat(jnp.repeat(images, f, axis=-2), f, axis=-1)
-        return scale * images
+        return jnp.repeat(jnp.repeat(images, f, axis=-2), f, axis=-1) / self.image_scale
 
     # -- the slope along g ----------------------------------------------------------
 

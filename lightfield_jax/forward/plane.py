@@ -57,12 +57,15 @@ def _phase_matrix_taps(g, n_theta: int):
     return jnp.sum(phase_function(jnp.asarray(delta, dtype), g) * weights.astype(dtype), axis=1)
 
 
-def coarse_plane_grid(grid: Grid) -> Grid:
+def coarse_plane_grid(grid: Grid) -> Grid | None:
     """The plane's coarse grid for the bounces after ``coarse_after``: the native grid
-    (refine 1), the same θ bins. Measured on the dense forward medium (ω 0.8, g 0.7,
-    128×96, 64 θ bins, refine 2, 32 bounces, the coarse grid after 8): per-bounce image
-    sums within 0.04 % of the full march's, the series' image within 5e-5 of its
-    peak; half the θ bins as well drifted by 2 % per bounce sum by the 32nd bounce."""
+    (refine 1), the same θ bins; ``None`` where ``grid`` is not refined. Measured on the
+    dense forward medium (ω 0.8, g 0.7, 128×96, 64 θ bins, refine 2, 32 bounces, the
+    coarse grid after 8): per-bounce image sums within 0.04 % of the full march's, the
+    series' image within 5e-5 of its peak; half the θ bins as well drifted by 2 % per
+    bounce sum by the 32nd bounce."""
+    if (grid.refine or 1) == 1:
+        return None
     return Grid(grid.width, grid.height, grid.n_theta, 1)
 
 
@@ -189,11 +192,8 @@ class PlaneRenderer(AbstractRenderer):
         out = convolve_separable(across, along, jnp.swapaxes(kernels, -1, -2))
         return jnp.swapaxes(out, -1, -2)
 
-    def coarse_grid(self, grid: Grid) -> Grid:
+    def coarse_grid(self, grid: Grid) -> Grid | None:
         return coarse_plane_grid(grid)
-
-    def _coarse_renderer(self, grid: Grid, illumination: Illumination) -> PlaneRenderer:
-        return PlaneRenderer(grid, illumination, 1, self.phase)
 
     def restrict(self, q):
         """Q of the working grid (P, n, fH, fW) on the native grid: summed over each
@@ -204,6 +204,13 @@ class PlaneRenderer(AbstractRenderer):
 
     def bounce_step(self, sigma_t, sigma_s, g) -> BounceStep:
         return self._step(sigma_t, sigma_s, self._phase_parts(g)[2])
+
+    def coarse_step(self, sigma_t, sigma_s, g) -> BounceStep:
+        """This renderer's own step at σ per native pixel: the coarse grid has the same
+        θ bins, so the same transport tables and mixing matrix, and the step takes the
+        grid from its source's shape."""
+        f = self.refine
+        return self.bounce_step(sigma_t * f, sigma_s * f, g)
 
     def _step(self, sigma_t, sigma_s, mixing) -> BounceStep:
         return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta)
@@ -254,7 +261,7 @@ class PlaneRenderer(AbstractRenderer):
         do not depend on it. So the tangent travels beside the primal as extra
         patterns through the same convolution and transport, and only the small
         phase-function pieces are differentiated (by ``jax.jvp``)."""
-        if self.coarse is not None:  # the march's later bounces are the coarse grid's
+        if self.coarse_after is not None:  # the march's later bounces are the coarse grid's
             return self._march_g_jvp(sigma_t, sigma_s, g, gain)
         n = self.n_theta
         groups = _groups(n)

@@ -54,8 +54,7 @@ class _Model:
         k0 = self.coarse_after
         if k0 is None or self.geometry is not None or self.tail is not None:
             return None
-        coarse = coarse_plane_grid(self.grid)
-        if self.bounces <= k0 or (coarse.n_theta, 1) == (self.grid.n_theta, self.grid.refine or 1):
+        if self.bounces <= k0 or coarse_plane_grid(self.grid) is None:
             return None
         return k0
 
@@ -88,7 +87,7 @@ class _Model:
             else {
                 "after": self.coarse,
                 "n_theta": coarse_plane_grid(self.grid).n_theta,
-                "refine": 1,
+                "refine": coarse_plane_grid(self.grid).refine,
             },
             "tail": None
             if self.tail is None
