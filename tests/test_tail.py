@@ -277,7 +277,9 @@ def test_the_coarse_tail_keeps_the_explicit_bounces_and_the_series_within_its_er
     grid, illum, medium = (_COARSE_SCENE[k] for k in ("grid", "illumination", "medium"))
     k, k0 = 24, 4
     full = np.asarray(lfj.render(medium, grid, illum, k).images)
-    coarse = np.asarray(lfj.render(medium, grid, illum, k, coarse_after=k0).images)
+    result = lfj.render(medium, grid, illum, k, coarse_after=k0)
+    assert result.coarse_after == k0
+    coarse = np.asarray(result.images)
     assert coarse.shape == full.shape
     later = full[:, k0:].sum() / full.sum()
     assert later > 0.3  # the coarse bounces carry much of the light
@@ -329,6 +331,27 @@ def test_bad_coarse_tail_settings_raise_clear_errors(call, match):
         call(lfj.Grid(16, 8, 64, refine=2), lfj.Beam(0.0, 4.0))
 
 
+def test_render_refuses_light_fields_with_a_coarse_tail_before_its_tables(monkeypatch):
+    import lightfield_jax.forward.render as render_module
+
+    def no_tables(*args, **kwargs):
+        raise AssertionError("the renderer's tables were built")
+
+    monkeypatch.setattr(render_module, "renderer_for", no_tables)
+    medium = lfj.Medium(0.2, 0.1, 0.7, "normalized")
+    with pytest.raises(ValueError, match="lightfield: the bounces after coarse_after = 4"):
+        lfj.render(
+            medium,
+            lfj.Grid(16, 8, 64, refine=2),
+            lfj.Beam(0.0, 4.0),
+            8,
+            lightfield=True,
+            coarse_after=4,
+        )
+    with pytest.raises(ValueError, match=r"coarse_after: must be an integer in \[2"):
+        lfj.render(medium, lfj.Grid(16, 8, 64, refine=2), lfj.Beam(0.0, 4.0), 8, coarse_after=1)
+
+
 def test_coarse_tail_experiment_reduced(tmp_path):
     config = Path(__file__).resolve().parent.parent / "configs" / "coarse_tail.yaml"
     record = run_experiment(config, tmp_path, reduced=True)
@@ -362,3 +385,8 @@ def test_a_coarse_tail_on_the_native_grid_marches_as_without_it(refine):
     plain = Renderer(lfj.Grid(16, 8, 32, refine=refine), lfj.Beam(0.0, 4.0), 6)(0.2, 0.1, 0.3)[0]
     np.testing.assert_array_equal(np.asarray(images), np.asarray(plain))
     assert fields is not None
+    medium = lfj.Medium(0.2, 0.1, 0.3, "normalized")
+    kept = lfj.render(
+        medium, lfj.Grid(16, 8, 32, refine=refine), lfj.Beam(0.0, 4.0), 6, coarse_after=3
+    )
+    assert kept.coarse_after is None  # reported: nothing was marched on a coarse grid

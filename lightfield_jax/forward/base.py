@@ -125,6 +125,14 @@ class FirstOrders(eqx.Module):
     source: Array | None = None
 
 
+def coarse_lightfield_refusal(coarse_after: int) -> str:
+    """The message refusing light fields of a render with a coarse tail."""
+    return (
+        f"lightfield: the bounces after coarse_after = {coarse_after} are on a coarse "
+        "grid; render light fields without coarse_after"
+    )
+
+
 class AbstractRenderer(eqx.Module):
     """A compiled forward model for one grid, illumination and bounce count.
 
@@ -262,10 +270,7 @@ class AbstractRenderer(eqx.Module):
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
         if lightfield and self.coarse_after is not None:
-            raise ValueError(
-                f"lightfield: the bounces after coarse_after = {self.coarse_after} are on a "
-                "coarse grid; render light fields without coarse_after"
-            )
+            raise ValueError(coarse_lightfield_refusal(self.coarse_after))
         sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
         f = self.refine
         out = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)

@@ -28,8 +28,14 @@ from lightfield_jax.checks import (
     gain_problem,
     number_problem,
 )
-from lightfield_jax.forward.base import AbstractRenderer, check_bounces, trace_count
-from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer
+from lightfield_jax.forward.base import (
+    MAX_BOUNCES,
+    AbstractRenderer,
+    check_bounces,
+    coarse_lightfield_refusal,
+    trace_count,
+)
+from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer, coarse_plane_grid
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
@@ -69,6 +75,9 @@ class RenderResult(eqx.Module):
         tail_method: the tail's solver (``"gmres"``, ``"bicgstab"``) or ``None``.
         tail_steps: the tail solver's iterations, or ``None``.
         tail_converged: whether the tail solve met its tolerance (``None``: no tail).
+        coarse_after: the K0 after which the bounces were marched on the coarse grid, or
+            ``None`` where every bounce is the grid's own (none asked, a grid that is
+            not refined, or no more than K0 bounces).
     """
 
     images: Array
@@ -83,6 +92,7 @@ class RenderResult(eqx.Module):
     tail_method: str | None = eqx.field(static=True, default=None)
     tail_steps: int | None = eqx.field(static=True, default=None)
     tail_converged: bool | None = eqx.field(static=True, default=None)
+    coarse_after: int | None = eqx.field(static=True, default=None)
 
     @property
     def total(self) -> Array:
@@ -250,6 +260,11 @@ def render(
         raise ValueError(f"render: illumination.period: {problem}")
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
+    if coarse_after is not None:  # before the renderer's tables
+        check_int(coarse_after, "coarse_after", low=2, high=MAX_BOUNCES)
+        coarse = geometry.slab_or_none is None and coarse_plane_grid(grid) is not None
+        if lightfield and coarse and k > coarse_after:
+            raise ValueError(coarse_lightfield_refusal(coarse_after))
     converges = bool(rho < 1.0)
     if tail is not None and not converges:
         raise ValueError(
@@ -300,6 +315,7 @@ def render(
         refine=grid.refine,
         rho=rho,
         converges=converges,
+        coarse_after=renderer.coarse_after,
         **extra,
     )
 
