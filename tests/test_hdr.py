@@ -4,6 +4,8 @@ codes, linear or γ 2.2), are merged back to the capture's radiance; the fit rec
 the medium from them (slow)."""
 
 import json
+import os
+import warnings
 
 import numpy as np
 import pytest
@@ -268,6 +270,29 @@ def test_response_file_is_validated(tmp_path):
     bad.write_text("0.1, 0\n1, 1\n")
     with pytest.raises(CaptureError, match="must run from 0 to 1"):
         load_response(bad, 1)
+
+
+def test_response_files_that_are_no_tables_are_one_line_without_hanging(tmp_path):
+    # A FIFO blocked the read forever; a structured or complex .npy was a TypeError
+    # traceback or lost its imaginary part; an empty file also printed numpy's warning.
+    fifo = tmp_path / "fifo.csv"
+    os.mkfifo(fifo)
+    with pytest.raises(CaptureError, match="not a regular file .* not a response table"):
+        load_response(fifo, 1)
+    for dtype, value in (([("a", "f4"), ("b", "f4")], 0), (np.complex128, 1 + 1j)):
+        table = tmp_path / "r.npy"
+        np.save(table, np.array([[0, 0], [1, value]]).astype(dtype))
+        with pytest.raises(CaptureError, match="a response table holds numbers, got .* dtype"):
+            load_response(table, 1)
+    empty = tmp_path / "empty.csv"
+    empty.write_text("")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(CaptureError, match="got shape"):
+            load_response(empty, 1)
+    good = tmp_path / "good.npy"
+    np.save(good, np.array([[0, 0], [1, 1]], np.int32))
+    assert load_response(good, 1).curve[-1, 0] == 1.0
 
 
 @pytest.mark.slow

@@ -67,12 +67,19 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.capture.io import CaptureError, atomic_write_text
+from lightfield_jax.capture.io import (
+    CaptureError,
+    _load_npy,
+    _one_line,
+    atomic_write_text,
+    require_regular_file,
+)
 
 RESPONSES = ("linear", "srgb", "auto")
 CLIP = 0.98
@@ -200,18 +207,26 @@ def load_response(
     (``# z, x_R, x_G, x_B``) are taken by name: those of ``names``, the capture's
     channels (also one chosen with ``channel:``), in their order."""
     path = Path(path)
-    if not path.exists():
-        raise CaptureError(f"{path}: file not found")
+    # A FIFO would block the read forever, a folder or device is no table.
+    require_regular_file(path, "a response table")
     header: list[str] = []
     try:
         if path.suffix.lower() == ".npy":
-            table = np.load(path, allow_pickle=False)
+            table = _load_npy(path)  # its header checked against the memory first
+            if table.dtype.kind not in "iuf":
+                raise CaptureError(
+                    f"{path}: a response table holds numbers, got an array of dtype {table.dtype}"
+                )
         else:
             text = path.read_text()
             header = _header_names(text)
-            table = np.loadtxt(text.replace(",", " ").splitlines(), ndmin=2)
+            with warnings.catch_warnings():  # "input contained no data": the shape says it
+                warnings.simplefilter("ignore", UserWarning)
+                table = np.loadtxt(text.replace(",", " ").splitlines(), ndmin=2)
     except (OSError, ValueError) as e:
-        raise CaptureError(f"{path}: cannot read a response table ({e})") from None
+        if isinstance(e, CaptureError):
+            raise
+        raise CaptureError(f"{path}: cannot read a response table ({_one_line(e)})") from None
     table = np.asarray(table, np.float64)
     wanted = list(names or ())
     if wanted and table.ndim == 2 and len(header) == table.shape[1] - 1 > 1:
