@@ -818,11 +818,14 @@ def test_fifos_in_place_of_inputs_are_refused_without_hanging(capture, tmp_path)
     os.mkfifo(capture / "shift_02.exr")
     fifo_yaml = tmp_path / "fifo.yaml"
     os.mkfifo(fifo_yaml)
+    fifo_json = tmp_path / "fifo.json"  # render read its results file before: it hung
+    os.mkfifo(fifo_json)
     env = {**os.environ, "PYTHONPATH": str(ROOT), XLA_CACHE_ENV: "off"}
     for argv, match in (
         (["inspect", str(capture / "capture.yaml")], "shift_02.exr: is not a regular file"),
         (["inspect", str(fifo_yaml)], "fifo.yaml: is not a regular file"),
         (["simulate", str(fifo_yaml), "--out", str(tmp_path / "o")], "not a regular file"),
+        (["render", str(fifo_json), "--out", str(tmp_path / "r")], "fifo.json: is not a regular"),
     ):
         done = subprocess.run(
             [sys.executable, "-m", "lightfield_jax", *argv],

@@ -153,12 +153,21 @@ def unconverged_fit(fit: dict[str, Any]) -> str | None:
     return str(message) if message else "no reason recorded"
 
 
+def _results_text(source: Path) -> str:
+    """The text of a results file, refused before the read where it is no regular file
+    (a FIFO would block the read forever)."""
+    from lightfield_jax.capture.io import require_regular_file
+
+    require_regular_file(source, "a results file", ValueError)
+    return source.read_text()
+
+
 def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
     """The per-channel subfolders of ``folder`` that :func:`render_results` writes for
     ``results`` (none for one channel), for the output checks before the work; none
     for a results file it cannot use either (:func:`render_results` says why)."""
     try:
-        channels = _channel_results(json.loads(Path(results).read_text()), Path(results))
+        channels = _channel_results(json.loads(_results_text(Path(results))), Path(results))
     except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
         return []
     return [folder / name for name in channels] if len(channels) > 1 else []
@@ -181,7 +190,7 @@ def render_results(
 
     source = Path(results)
     try:
-        data = json.loads(source.read_text())
+        data = json.loads(_results_text(source))
     except json.JSONDecodeError as e:
         raise ValueError(f"{source}: not JSON ({e})") from None
     except RecursionError:
