@@ -31,6 +31,16 @@ def test_config_by_name(monkeypatch, tmp_path):
         _experiment.load_experiment_config("no_such_experiment")
 
 
+def test_an_empty_name_or_a_config_that_is_no_file_is_named(monkeypatch, tmp_path):
+    # Before: "": ".: no such experiment config"; a folder or FIFO: "no such config".
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(FileNotFoundError, match="^an empty experiment name"):
+        _experiment.load_experiment_config("")
+    (tmp_path / "folder.yaml").mkdir()
+    with pytest.raises(ValueError, match="folder.yaml: is a directory"):
+        _experiment.load_experiment_config(tmp_path / "folder.yaml")
+
+
 def test_packaged_copies_used_outside_a_checkout(monkeypatch, tmp_path):
     package = tmp_path / "site" / "lightfield_jax"
     (package / "_experiments").mkdir(parents=True)

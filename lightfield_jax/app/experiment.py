@@ -370,13 +370,18 @@ def save_figure(fig, path: Path, dpi: int = 110) -> Path:
 
 def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     """Read an experiment config; ``reduced`` applies its ``reduced:`` overrides."""
-    path = Path(path)
+    name, path = str(path), Path(path)
+    known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
+    if not name.strip():  # Path("") is "."
+        raise FileNotFoundError(
+            f"an empty experiment name: give NAME or a config file (shipped: {', '.join(known)})"
+        )
     shipped = CONFIGS_DIR / f"{path.stem}.yaml"
     if not path.is_file() and path.parent == Path(".") and shipped.is_file():
         path = shipped  # a shipped config, by name
-    if not path.is_file():
-        known = sorted(p.stem for p in CONFIGS_DIR.glob("*.yaml"))
+    if not path.is_file() and not (path.exists() or path.is_symlink()):
         raise FileNotFoundError(f"{path}: no such experiment config (shipped: {', '.join(known)})")
+    # Else a folder, FIFO or symlink loop: load_yaml names it (before the read).
     # The configs' own loader: duplicate keys, alias bombs and oversized files refused.
     data = load_yaml(path, ValueError)
     if "experiment" not in data:
