@@ -170,6 +170,8 @@ def test_wrong_types(data, expected):
         (_with(medium__sigma_s=-0.01), "medium.sigma_s: must satisfy 0 <= sigma_s"),
         (_with(medium__g=1.0), "medium.g: must satisfy -1 < g < 1, got 1.0"),
         (_with(bounces=0), "bounces: must be a positive integer or 'auto', got 0"),
+        # Refused before by the renderer, in a message that did not name the file.
+        (_with(bounces=100_000), "bounces: at most 10000 bounces are marched"),
         (_with(tolerance=1.5), "tolerance: must lie in (0, 1), got 1.5"),
         (_with(bounces=5, tolerance=1e-3), "tolerance: is used only with bounces: auto"),
         (

@@ -59,6 +59,7 @@ import yaml
 
 from lightfield_jax.capture.io import require_regular_file
 from lightfield_jax.checks import check_int, check_number, gain_problem, shown
+from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
@@ -617,6 +618,8 @@ def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | 
         bounces = _as_int(top, "bounces", bounces)
         if bounces < 1:
             top.fail("bounces", f"must be a positive integer or 'auto', got {brief(bounces)}")
+        if bounces > MAX_BOUNCES:  # the renderer's own check did not name the file
+            top.fail("bounces", too_many_bounces("bounces", bounces).removeprefix("bounces: "))
         if "tolerance" in top.data:
             top.fail("tolerance", f"is used only with bounces: auto (bounces is {bounces})")
     tolerance = top.float("tolerance", 1e-4)
