@@ -1216,6 +1216,27 @@ def test_zeros_in_a_flat_field_are_named_as_zeros(capture, capsys):
     ]
 
 
+def test_a_dead_pixel_in_a_flat_field_is_masked_not_divided_by(capture, capsys):
+    """Before: a flat pixel of 1e-30 multiplied its image values by 1e30 without a word
+    (inspect: 'D peak 2.674e+29'; the fit: 'the basin scan found no valid model')."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    dark = read_image(capture / data["dark_frame"]).pixels[..., 0].astype(np.float64)
+    flat = dark + 1.0
+    flat[H // 2, 5] = dark[H // 2, 5] + 1e-6  # 1e-6 above the dark frame
+    flat[H // 2, 6] = dark[H // 2, 6] + 0.5  # vignetting: kept
+    write_exr(capture / "flat.exr", {"Y": flat})
+    _edit(capture, flat_field="flat.exr")
+    status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status == 0, err
+    assert err.splitlines() == [
+        f"lightfield-jax: warning: {capture / 'capture.yaml'}: flat_field: 1 pixel value(s) "
+        "of flat.exr are below 0.001 of its median (the smallest 1e-06): dividing by them "
+        "would multiply those image values more than 1000-fold (dead pixels, not "
+        "vignetting); those pixels are masked"
+    ]
+    assert "e+29" not in out and "non-finite: 1," in out
+
+
 def test_infinite_pixels_are_masked_or_named_without_numpy_warnings(capture, capsys):
     """Before: numpy's 'invalid value encountered in reduce' (+Inf and -Inf in one
     pixel) or '... in scalar subtract' (Inf in the mosaic check's percentile) on the

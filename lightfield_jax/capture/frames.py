@@ -252,7 +252,22 @@ def _flat(
             f"positive ({', '.join(kinds)}): no vignetting is measured there; those pixels "
             "are masked"
         )
-    return np.where(good, f / np.median(f[good]), np.nan)
+    median = np.median(f[good])
+    dim = good & (f < _FLAT_DIM * median)
+    if dim.any():  # a dead pixel (1e-30) multiplied its image values by 1e30, unsaid
+        issues.append(
+            f"flat_field: {int(dim.sum())} pixel value(s) of {flat.path.name} are below "
+            f"{_FLAT_DIM:g} of its median (the smallest {float(np.min(f[dim]) / median):.3g}): "
+            "dividing by them would multiply those image values more than "
+            f"{1 / _FLAT_DIM:g}-fold (dead pixels, not vignetting); those pixels are masked"
+        )
+        good &= ~dim
+    return np.where(good, f / median, np.nan)
+
+
+# A flat field's pixels below this fraction of its median are masked: no lens vignettes
+# a thousandfold; such a pixel is dead or dust, and dividing by it blows the image up.
+_FLAT_DIM = 1e-3
 
 
 def _calibrate(
