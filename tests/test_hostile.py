@@ -851,6 +851,27 @@ def test_big_endian_npy_images_are_read(tmp_path):
     assert read_image(tmp_path / "be16.npy").pixels[1, 1, 0] == pytest.approx(5 / 65535)
 
 
+def test_double_values_beyond_float32_are_one_line_naming_the_file(capture, capsys):
+    """Before: five lines of numpy overflow warnings, then 'separate.images: no pixel is
+    finite ... nothing to separate' for a float64 .npy stack scaled by 1e300."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    stack = np.stack([read_image(capture / f).pixels.astype(np.float64) for f in data["images"]])
+    stack[3, 5, 5] = -1e300
+    np.save(capture / "stack.npy", stack)
+    _edit(capture, images="stack.npy")
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match="images: stack.npy: 1 value(s) beyond float32's range (up to 1e+300",
+    )
+    stack[3, 5, 5] = 0.5
+    np.save(capture / "stack.npy", stack)
+    np.save(capture / "dark.npy", np.full((H, W), 1e300))
+    _edit(capture, dark_frame="dark.npy")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="dark_frame: dark.npy: 768 value")
+
+
 # ------------------------------------------------------------------ 4. signals
 
 

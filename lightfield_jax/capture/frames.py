@@ -42,11 +42,33 @@ def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
 
 def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
     try:
-        return read_image(file, channel)
+        image = read_image(file, channel)
     except CaptureFileNotFoundError as e:
         raise CaptureFileNotFoundError(f"{top.source}: {key}: {e}") from None
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {key}: {e}") from None
+    _check_float32_range(top, key, image)
+    return image
+
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _check_float32_range(top: _Section, key: str, image: ImageData) -> None:
+    """Refuse double-precision samples beyond float32's range (1e300 in a .npy: before,
+    numpy's overflow warnings and 'no pixel is finite ... nothing to separate')."""
+    pixels = image.pixels
+    if pixels.dtype != np.float64:
+        return
+    with np.errstate(invalid="ignore"):
+        big = np.abs(pixels) > _FLOAT32_MAX
+    if big.any():
+        top.fail(
+            key,
+            f"{image.path.name}: {int(big.sum())} value(s) beyond float32's range (up to "
+            f"{float(np.max(np.abs(pixels[big]))):.3g}; float32 holds {_FLOAT32_MAX:.3g}), "
+            "which the pipeline computes in: scale the images by a constant",
+        )
 
 
 def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
@@ -141,6 +163,8 @@ def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
             raise CaptureFileNotFoundError(f"{top.source}: images: {e}") from None
         except CaptureError as e:
             raise CaptureError(f"{top.source}: images: {e}") from None
+        for frame in frames:
+            _check_float32_range(top, "images", frame)
         return frames
     if not isinstance(value, list):
         top.fail("images", f"must be a list of image files or one .npy stack, got {brief(value)}")
