@@ -13,6 +13,7 @@ from lightfield_jax.app.config import (
     MediumConfig,
     SimulationConfig,
     load_simulation_config,
+    load_yaml,
     parse_simulation_config,
 )
 
@@ -228,6 +229,21 @@ def test_bad_entry_wall(wall):
 def test_bad_illumination_kind(kind):
     message = _error(_with(illumination={"kind": kind}))
     assert f"illumination.kind: must be one of beam, stripes, full, got {kind!r}" in message
+
+
+def test_yaml_merge_keys_are_merged_and_duplicates_beside_them_refused(tmp_path):
+    """Before: any ``<<: *anchor`` was "could not determine a constructor for the tag
+    'tag:yaml.org,2002:merge'"."""
+    merged = tmp_path / "merged.yaml"
+    text = "a: &a {x: 1, y: 2}\nb: {<<: *a, y: 3}\n"
+    merged.write_text(text)
+    assert load_yaml(merged)["b"] == {"x": 1, "y": 3}  # the given key overrides
+    merged.write_text(text.replace("y: 3}", "y: 3, y: 4}"))
+    with pytest.raises(ConfigError, match="duplicate key 'y'"):
+        load_yaml(merged)
+    merged.write_text("b: {<<: 5}\n")
+    with pytest.raises(ConfigError, match="expected a mapping or list of mappings for merging"):
+        load_yaml(merged)
 
 
 def test_file_errors(tmp_path):

@@ -129,6 +129,11 @@ class _Loader(yaml.SafeLoader):
     def construct_mapping(self, node, deep=False):
         seen = set()
         for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                # ``<<: *base``: merged by SafeLoader (the keys given beside it override
+                # the merged ones); constructing it here was "could not determine a
+                # constructor for the tag 'tag:yaml.org,2002:merge'".
+                continue
             key = self.construct_object(key_node, deep=True)
             try:
                 hash(key)
