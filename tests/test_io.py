@@ -246,3 +246,20 @@ def test_atomic_directory_refuses_a_file(tmp_path):
     with pytest.raises(NotADirectoryError, match="out: exists and is not a directory"):
         with atomic_directory(tmp_path / "out"):
             pass
+
+
+def test_atomic_directory_into_the_working_folder_keeps_the_folder(tmp_path, monkeypatch):
+    """Before: "PosixPath('.') has an empty name" for --out . (and --out /)."""
+    here = tmp_path / "here"
+    (here / "sub").mkdir(parents=True)
+    monkeypatch.chdir(here / "sub")
+    inode = os.stat(".").st_ino
+    with atomic_directory(".") as stage:  # empty: a rename would replace the folder
+        (stage / "a.txt").write_text("a")
+    assert os.stat(".").st_ino == inode and (here / "sub" / "a.txt").read_text() == "a"
+    with atomic_directory("..") as stage:
+        (stage / "b.txt").write_text("b")
+    assert sorted(p.name for p in here.iterdir()) == ["b.txt", "sub"]
+    with pytest.raises(CaptureError, match="^/: the root folder cannot be an output folder"):
+        with atomic_directory("/"):
+            pass

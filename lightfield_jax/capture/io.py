@@ -671,19 +671,27 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise NotADirectoryError(f"{path}: exists and is not a directory")
+    keep_folder = path.name in ("", "..")
+    if keep_folder:
+        # ".", "..", "/": the staging folder is named after the folder (before:
+        # "PosixPath('.') has an empty name"), and the files are moved into it: a rename
+        # over an empty "." would leave the caller's shell in a deleted folder.
+        given, path = path, Path(os.path.abspath(path))
+        if not path.name:
+            raise CaptureError(f"{given}: the root folder cannot be an output folder")
     path.parent.mkdir(parents=True, exist_ok=True)
     stage = _reserve(path, lambda p: os.mkdir(p, 0o777))
     try:
         with naming_output(path):
             yield stage
-            _publish(stage, path)
+            _publish(stage, path, keep_folder)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
         forget_temporary(stage)
 
 
-def _publish(stage: Path, path: Path) -> None:
-    if not path.is_symlink():
+def _publish(stage: Path, path: Path, keep_folder: bool = False) -> None:
+    if not path.is_symlink() and not (keep_folder and path.is_dir()):
         try:
             os.rename(stage, path)  # replaces a missing or empty folder atomically
             return
