@@ -612,10 +612,14 @@ def test_renders_too_large_for_memory_are_refused_with_the_estimate(tmp_path, ca
     path.write_text(yaml.safe_dump(config))
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="needs about")
     assert "iB of memory, more than the" in line and "available memory" in line
-    config["grid"] = {"width": 128, "height": 96, "n_theta": 16}
-    config["bounces"] = 100000
+    # Many bounces: every image of each is kept (6 x 10000 images of 1024x768).
+    config["grid"] = {"width": 1024, "height": 768, "n_theta": 16}
+    config["bounces"] = 10000
     path.write_text(yaml.safe_dump(config))
     _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="needs about")
+    config["bounces"] = 100000  # past the march's limit: refused by the config check
+    path.write_text(yaml.safe_dump(config))
+    _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="at most 10000 bounces")
     # A normal render passes; --max-memory lowers (or raises) the limit.
     path.write_text(SIMULATE)
     line = _refused(
