@@ -608,3 +608,32 @@ def test_masked_exposure_and_split_values_are_not_used():
         assert given.sigma_t0 == pytest.approx(0.2, rel=1e-3)
     with pytest.raises(ValueError, match=r"^split: must be a pair \(direct, multiple\) .*"):
         prepare_data(images, pattern, split=(direct,))
+
+
+def test_render_under_a_transformation_names_the_traced_value():
+    """Before: render, Beam, Slab or Full given values traced by jax.jit, grad or vmap
+    failed inside with JAX's many-line ConcretizationTypeError (float() of a tracer)."""
+    grid = lfj.Grid(16, 12, 8, 1)
+
+    def total(sigma_t):
+        return lfj.render(lfj.Medium(sigma_t, 0.05, 0.4), grid, lfj.Full(), 2).images.sum()
+
+    for transform in (jax.jit, jax.grad, jax.vmap):
+        with pytest.raises(ValueError, match="render: medium.sigma_t: got a traced value") as err:
+            transform(total)(jnp.asarray([0.2]) if transform is jax.vmap else 0.2)
+        assert "lfj.make_renderer" in _one_line(err)
+    for make, match in [
+        (lambda y: lfj.Beam(0.0, y), "illumination.y: must be a number, got a traced value"),
+        (
+            lambda d: lfj.Full(direction_deg=d),
+            "illumination.direction_deg: must be a number, got a",
+        ),
+        (lambda t: lfj.Slab(t), "geometry.thickness: must be a number, got a traced value"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            jax.jit(make)(5.0)
+        _one_line(err)
+    # The transformable path: the renderer, whose values are traced.
+    renderer = lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
+    slope = jax.grad(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(0.2)
+    assert math.isfinite(float(slope))

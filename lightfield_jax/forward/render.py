@@ -258,6 +258,14 @@ def render(
         )
     if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
         raise ValueError(f"render: illumination.period: {problem}")
+    for name in ("sigma_t", "sigma_s", "g"):
+        if isinstance(getattr(medium, name), jax.core.Tracer):
+            raise ValueError(
+                f"render: medium.{name}: got a traced value (under jax.jit, grad or vmap): "
+                "render picks the model's size from concrete values; to transform, use "
+                "lfj.make_renderer(grid, illumination, bounces, phase, geometry) and call it "
+                "with (sigma_t, sigma_s, g, gain)"
+            )
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     if coarse_after is not None:  # before the renderer's tables
