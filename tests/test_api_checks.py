@@ -637,3 +637,28 @@ def test_render_under_a_transformation_names_the_traced_value():
     renderer = lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
     slope = jax.grad(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(0.2)
     assert math.isfinite(float(slope))
+
+
+def test_make_renderer_checks_its_arguments_before_the_tables(monkeypatch):
+    """Before: make_renderer(Grid(30000, 30000, 8, 1), ...) tried to allocate 429 GiB (a
+    MemoryError from numpy), a string illumination or a tuple grid failed in an
+    AttributeError, and stripes longer than the grid were rendered (all-zero shifts)."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
+    grid = lfj.Grid(16, 12, 8, 1)
+    for args, match in [
+        ((lfj.Grid(30000, 30000, 8, 1), lfj.Full()), r"make_renderer: the 30000x30000 grid .*"),
+        (((16, 12), lfj.Full()), "make_renderer: grid: must be a Grid, got tuple"),
+        ((grid, "full"), "make_renderer: illumination: must be a Beam, Stripes or Full, got str"),
+        (
+            (grid, lfj.Stripes(period=40, lit=3, phases=(0, 10))),
+            "make_renderer: illumination.period: 40 rows is longer than the 16x12 grid",
+        ),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.make_renderer(*args, 2, "paper", None)
+        _one_line(err)
+    slab = lfj.Slab(4.0, n_mu=4, n_z=2)
+    images, _ = lfj.make_renderer(grid, lfj.Full(), np.int64(2), "paper", slab)(0.2, 0.1, 0.3, 1.0)
+    assert np.asarray(images).shape == (1, 2, 12, 16)
