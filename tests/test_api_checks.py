@@ -662,3 +662,15 @@ def test_make_renderer_checks_its_arguments_before_the_tables(monkeypatch):
     slab = lfj.Slab(4.0, n_mu=4, n_z=2)
     images, _ = lfj.make_renderer(grid, lfj.Full(), np.int64(2), "paper", slab)(0.2, 0.1, 0.3, 1.0)
     assert np.asarray(images).shape == (1, 2, 12, 16)
+
+
+def test_enable_compilation_cache_names_a_path_that_is_not_one(tmp_path, monkeypatch):
+    """Before: "" cached every program into the current folder, silently; None, bytes
+    or 5 raised Python's bare TypeError and a NUL 'embedded null byte', naming no
+    argument."""
+    monkeypatch.chdir(tmp_path)
+    for path in ("", "  ", None, 5, b"/tmp/x", "a\0b"):
+        with pytest.raises(ValueError, match="enable_compilation_cache: path: must be a") as err:
+            lfj.enable_compilation_cache(path)
+        _one_line(err)
+    assert list(tmp_path.iterdir()) == []
