@@ -674,3 +674,15 @@ def test_enable_compilation_cache_names_a_path_that_is_not_one(tmp_path, monkeyp
             lfj.enable_compilation_cache(path)
         _one_line(err)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_fit_options_of_another_type_are_named():
+    """Before: fit_images(options={"max_steps": 3}) ended in dataclasses' bare
+    'replace() should be called on dataclass instances', options={} or 0 was taken as
+    the defaults, and fit_capture alike."""
+    images = np.ones((6, 8, 16))
+    for options in ({"max_steps": 3}, {}, 0, "joint"):
+        with pytest.raises(ValueError, match="fit_images: options: must be a FitOptions or None"):
+            lfj.fit_images(images, lfj.Stripes(), options=options)
+        with pytest.raises(ValueError, match="fit_capture: options: must be a FitOptions or None"):
+            lfj.fit_capture(object(), options=options)

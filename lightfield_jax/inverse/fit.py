@@ -108,6 +108,13 @@ def fit_images(
             ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
             A numpy masked array is honoured: a value whose T is masked is not used.
     """
+    if options is not None and not isinstance(options, FitOptions):
+        # Before: a dict ended in dataclasses' bare "replace() should be called on
+        # dataclass instances", and a falsy value ({}, 0) was taken as the defaults.
+        raise ValueError(
+            f"fit_images: options: must be a FitOptions or None, got {type(options).__name__} "
+            "(its fields can also be given as keywords: fit_images(..., max_steps=20))"
+        )
     options = dataclasses.replace(options or FitOptions(), **overrides)
     check_pixel_size(pixel_size_mm)
     images, mask = unmask(images, mask)
