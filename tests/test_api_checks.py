@@ -686,3 +686,12 @@ def test_fit_options_of_another_type_are_named():
             lfj.fit_images(images, lfj.Stripes(), options=options)
         with pytest.raises(ValueError, match="fit_capture: options: must be a FitOptions or None"):
             lfj.fit_capture(object(), options=options)
+
+
+def test_fit_images_names_its_own_black_level():
+    """Before: 'separate.black_level: must be in [0, 1), got nan', the helper's name."""
+    images = np.ones((6, 8, 16))
+    for black, got in ((math.nan, "must be finite, got nan"), (1.0, "got 1.0"), (-1e-5, "-1e-05")):
+        with pytest.raises(ValueError, match=f"^fit_images: black_level: .*{got}") as err:
+            lfj.fit_images(images, lfj.Stripes(), black_level=black)
+        _one_line(err)

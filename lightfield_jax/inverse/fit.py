@@ -48,7 +48,7 @@ from collections.abc import Callable
 import numpy as np
 
 from lightfield_jax.capture.keys import check_pixel_size
-from lightfield_jax.checks import unmask
+from lightfield_jax.checks import number_problem, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
@@ -116,6 +116,11 @@ def fit_images(
             "(its fields can also be given as keywords: fit_images(..., max_steps=20))"
         )
     options = dataclasses.replace(options or FitOptions(), **overrides)
+    if black_level is not None:
+        # Before: named "separate.black_level" (the helper's), after the images' checks.
+        problem = number_problem(black_level, low=0.0, high=1.0, high_open=True)
+        if problem is not None:
+            raise ValueError(f"fit_images: black_level: {problem}")
     check_pixel_size(pixel_size_mm)
     images, mask = unmask(images, mask)
     return _fit_one(
