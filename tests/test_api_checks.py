@@ -695,3 +695,17 @@ def test_fit_images_names_its_own_black_level():
         with pytest.raises(ValueError, match=f"^fit_images: black_level: .*{got}") as err:
             lfj.fit_images(images, lfj.Stripes(), black_level=black)
         _one_line(err)
+
+
+def test_separate_and_fit_decay_refuse_values_that_are_not_intensities():
+    """Before: separate() took complex images (their real part, a ComplexWarning) and
+    bool or object ones, and fit_decay() fitted a bool image (True as 1); fit_images
+    refused them."""
+    for images in (np.ones((3, 4, 4), complex), np.ones((3, 4, 4), bool)):
+        with pytest.raises(ValueError, match="^separate.images: must be real numbers, got"):
+            lfj.separate(images)
+    with pytest.raises(ValueError, match="^separate.dark_frame: must be real numbers, got dtype"):
+        lfj.separate(np.ones((3, 4, 4)), dark_frame=np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="^fit_decay.direct: must be real numbers, got dtype bool"):
+        lfj.fit_decay(np.ones((24, 32), bool))
+    assert lfj.separate(np.ones((3, 4, 4), np.uint16)).direct.shape == (4, 4)
