@@ -709,3 +709,23 @@ def test_separate_and_fit_decay_refuse_values_that_are_not_intensities():
     with pytest.raises(ValueError, match="^fit_decay.direct: must be real numbers, got dtype bool"):
         lfj.fit_decay(np.ones((24, 32), bool))
     assert lfj.separate(np.ones((3, 4, 4), np.uint16)).direct.shape == (4, 4)
+
+
+def test_a_renderer_refuses_concrete_values_no_medium_has():
+    """Before: make_renderer(...)(0.2, 0.3, 0.4) (sigma_s > sigma_t) rendered, g = 1 or
+    a NaN sigma_t gave NaN images and gain -1 negative ones, silently; '0.2' or None
+    ended in JAX's own message. Traced values still pass (jit, grad, vmap)."""
+    renderer = lfj.make_renderer(lfj.Grid(16, 12, 8, 1), lfj.Full(), 2, "paper", None)
+    for args, match in [
+        ((0.2, 0.3, 0.4), r"renderer: medium.sigma_s: must satisfy 0 <= sigma_s <= sigma_t"),
+        ((0.2, 0.05, 1.0), "renderer: medium.g: must satisfy -1 < g < 1, got 1.0"),
+        ((math.nan, 0.05, 0.4), "renderer: medium.sigma_t: must be finite, got nan"),
+        (("0.2", 0.05, 0.4), "renderer: medium.sigma_t: must be a number, got '0.2'"),
+        ((0.2, 0.05, 0.4, -1.0), "renderer: gain: must be a number > 0, got -1.0"),
+        ((0.2, 0.05, 0.4, None), "renderer: gain: must be a number, got None"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            renderer(*args)
+        _one_line(err)
+    batch = jax.vmap(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(jnp.array([0.2, 0.3]))
+    assert np.all(np.isfinite(np.asarray(batch)))

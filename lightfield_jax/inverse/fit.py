@@ -362,7 +362,8 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     model = _model_from(result.model)
 
     def render(illumination):
-        out = _renderer(model, illumination, result.phase)(result.sigma_t, result.sigma_s, result.g)
+        renderer = _renderer(model, illumination, result.phase)
+        out = renderer.unchecked(result.sigma_t, result.sigma_s, result.g)
         if model.tail is None:
             return np.asarray(out[0])
         return np.concatenate([np.asarray(out[0]), np.asarray(out[2].image)[:, None]], axis=1)
