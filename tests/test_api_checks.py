@@ -73,6 +73,10 @@ def test_a_beam_wider_than_any_medium_is_refused():
     cell cancelled to 0 in float64)."""
     with pytest.raises(ValueError, match=r"illumination.width: must be at most 100000 pixels"):
         lfj.Beam(0.0, 8.0, width=1e20)
+    # Before: width 1e-20 rendered all-zero images (the lit length and the float32 images).
+    for narrow in (1e-20, 1e-7):
+        with pytest.raises(ValueError, match=r"illumination.width: must be at least 1e-06 pixels"):
+            lfj.Beam(0.0, 8.0, width=narrow)
     # The widest beam taken lights the whole wall, as full illumination does.
     medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
     wide = lfj.render(medium, grid, lfj.Beam(0.0, 6.0, width=1e5), 2).images
