@@ -733,3 +733,17 @@ def test_a_renderer_refuses_concrete_values_no_medium_has():
         _one_line(err)
     batch = jax.vmap(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(jnp.array([0.2, 0.3]))
     assert np.all(np.isfinite(np.asarray(batch)))
+
+
+def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
+    """Before: Grid(2, 2, 80000) passed the memory check (its fields are small) and the
+    renderer's n_theta x n_theta direction table ended in a MemoryError (47.7 GiB)
+    after 11 s."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
+    grid = lfj.Grid(2, 2, 8 * 10**4, 1)
+    with pytest.raises(ValueError, match=r"render: the 2x2 grid \(80000 directions.* needs about"):
+        lfj.render(lfj.Medium(0.2, 0.1, 0.3), grid, lfj.Full(), 2)
+    with pytest.raises(ValueError, match=r"make_renderer: the 2x2 grid \(80000 directions"):
+        lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
