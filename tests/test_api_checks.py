@@ -738,12 +738,18 @@ def test_a_renderer_refuses_concrete_values_no_medium_has():
 def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
     """Before: Grid(2, 2, 80000) passed the memory check (its fields are small) and the
     renderer's n_theta x n_theta direction table ended in a MemoryError (47.7 GiB)
-    after 11 s."""
+    after 11 s; FitOptions(n_theta=80000) in a fit, after 47 s."""
     from lightfield_jax.app.memory import MAX_MEMORY_ENV
 
-    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
-    grid = lfj.Grid(2, 2, 8 * 10**4, 1)
-    with pytest.raises(ValueError, match=r"render: the 2x2 grid \(80000 directions.* needs about"):
+    monkeypatch.setenv(MAX_MEMORY_ENV, "256M")
+    grid = lfj.Grid(2, 2, 4096, 1)  # the most bins a grid takes: 400 MB of tables
+    with pytest.raises(ValueError, match=r"render: the 2x2 grid \(4096 directions.* needs about"):
         lfj.render(lfj.Medium(0.2, 0.1, 0.3), grid, lfj.Full(), 2)
-    with pytest.raises(ValueError, match=r"make_renderer: the 2x2 grid \(80000 directions"):
+    with pytest.raises(ValueError, match=r"make_renderer: the 2x2 grid \(4096 directions"):
         lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
+    # More are refused by the grid and the fit's options, before any work.
+    limit = r"n_theta: must be at most 4096 direction bins"
+    with pytest.raises(ValueError, match=f"^grid.{limit}"):
+        lfj.Grid(2, 2, 8 * 10**4, 1)
+    with pytest.raises(ValueError, match=f"^{limit}"):
+        lfj.FitOptions(n_theta=8 * 10**4)
