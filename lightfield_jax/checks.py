@@ -8,13 +8,15 @@ number to ``float()``: both were taken silently). :func:`number_problem` says wh
 wrong with a value (``None``: nothing), :func:`check_number` raises it as
 ``ValueError("KEY: PROBLEM")`` naming the argument, the value and the allowed range.
 JAX tracers (values under ``jit`` or ``grad``) are not numbers to check here: callers
-that take them skip the check (see :class:`~lightfield_jax.Medium`).
+that take them skip the check (see :class:`~lightfield_jax.Medium`); given to one that
+does not, a tracer is named as such (it was JAX's many-line ConcretizationTypeError).
 """
 
 from __future__ import annotations
 
 import math
 import reprlib
+import sys
 
 import numpy as np
 
@@ -39,6 +41,14 @@ def _range(kind: str, low, high, low_open: bool, high_open: bool, unit: str) -> 
     return f"must be {kind} {'<' if high_open else '<='} {high:g}{unit}"
 
 
+def _is_tracer(value) -> bool:
+    jax = sys.modules.get("jax")  # no JAX imported: no tracer
+    return jax is not None and isinstance(value, jax.core.Tracer)
+
+
+TRACED = "a traced value (under jax.jit, grad or vmap): it must be concrete here"
+
+
 def number_problem(
     value,
     *,
@@ -59,6 +69,8 @@ def number_problem(
     kind = "an integer" if integer else "a number"
     if isinstance(value, (bool, np.bool_, str, bytes, np.str_)) or value is None:
         return f"must be {kind}, got {shown(value)}"
+    if _is_tracer(value):
+        return f"must be {kind}, got {TRACED}"
     if isinstance(value, (int, np.integer)):
         v = value
     elif integer:

@@ -73,6 +73,10 @@ def test_a_beam_wider_than_any_medium_is_refused():
     cell cancelled to 0 in float64)."""
     with pytest.raises(ValueError, match=r"illumination.width: must be at most 100000 pixels"):
         lfj.Beam(0.0, 8.0, width=1e20)
+    # Before: width 1e-20 rendered all-zero images (the lit length and the float32 images).
+    for narrow in (1e-20, 1e-7):
+        with pytest.raises(ValueError, match=r"illumination.width: must be at least 1e-06 pixels"):
+            lfj.Beam(0.0, 8.0, width=narrow)
     # The widest beam taken lights the whole wall, as full illumination does.
     medium, grid = lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1)
     wide = lfj.render(medium, grid, lfj.Beam(0.0, 6.0, width=1e5), 2).images
@@ -608,3 +612,144 @@ def test_masked_exposure_and_split_values_are_not_used():
         assert given.sigma_t0 == pytest.approx(0.2, rel=1e-3)
     with pytest.raises(ValueError, match=r"^split: must be a pair \(direct, multiple\) .*"):
         prepare_data(images, pattern, split=(direct,))
+
+
+def test_render_under_a_transformation_names_the_traced_value():
+    """Before: render, Beam, Slab or Full given values traced by jax.jit, grad or vmap
+    failed inside with JAX's many-line ConcretizationTypeError (float() of a tracer)."""
+    grid = lfj.Grid(16, 12, 8, 1)
+
+    def total(sigma_t):
+        return lfj.render(lfj.Medium(sigma_t, 0.05, 0.4), grid, lfj.Full(), 2).images.sum()
+
+    for transform in (jax.jit, jax.grad, jax.vmap):
+        with pytest.raises(ValueError, match="render: medium.sigma_t: got a traced value") as err:
+            transform(total)(jnp.asarray([0.2]) if transform is jax.vmap else 0.2)
+        assert "lfj.make_renderer" in _one_line(err)
+    for make, match in [
+        (lambda y: lfj.Beam(0.0, y), "illumination.y: must be a number, got a traced value"),
+        (
+            lambda d: lfj.Full(direction_deg=d),
+            "illumination.direction_deg: must be a number, got a",
+        ),
+        (lambda t: lfj.Slab(t), "geometry.thickness: must be a number, got a traced value"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            jax.jit(make)(5.0)
+        _one_line(err)
+    # The transformable path: the renderer, whose values are traced.
+    renderer = lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
+    slope = jax.grad(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(0.2)
+    assert math.isfinite(float(slope))
+
+
+def test_make_renderer_checks_its_arguments_before_the_tables(monkeypatch):
+    """Before: make_renderer(Grid(30000, 30000, 8, 1), ...) tried to allocate 429 GiB (a
+    MemoryError from numpy), a string illumination or a tuple grid failed in an
+    AttributeError, and stripes longer than the grid were rendered (all-zero shifts)."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
+    grid = lfj.Grid(16, 12, 8, 1)
+    for args, match in [
+        ((lfj.Grid(30000, 30000, 8, 1), lfj.Full()), r"make_renderer: the 30000x30000 grid .*"),
+        (((16, 12), lfj.Full()), "make_renderer: grid: must be a Grid, got tuple"),
+        ((grid, "full"), "make_renderer: illumination: must be a Beam, Stripes or Full, got str"),
+        (
+            (grid, lfj.Stripes(period=40, lit=3, phases=(0, 10))),
+            "make_renderer: illumination.period: 40 rows is longer than the 16x12 grid",
+        ),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            lfj.make_renderer(*args, 2, "paper", None)
+        _one_line(err)
+    slab = lfj.Slab(4.0, n_mu=4, n_z=2)
+    images, _ = lfj.make_renderer(grid, lfj.Full(), np.int64(2), "paper", slab)(0.2, 0.1, 0.3, 1.0)
+    assert np.asarray(images).shape == (1, 2, 12, 16)
+
+
+def test_enable_compilation_cache_names_a_path_that_is_not_one(tmp_path, monkeypatch):
+    """Before: "" cached every program into the current folder, silently; None, bytes
+    or 5 raised Python's bare TypeError and a NUL 'embedded null byte', naming no
+    argument."""
+    monkeypatch.chdir(tmp_path)
+    for path in ("", "  ", None, 5, b"/tmp/x", "a\0b"):
+        with pytest.raises(ValueError, match="enable_compilation_cache: path: must be a") as err:
+            lfj.enable_compilation_cache(path)
+        _one_line(err)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_fit_options_of_another_type_are_named():
+    """Before: fit_images(options={"max_steps": 3}) ended in dataclasses' bare
+    'replace() should be called on dataclass instances', options={} or 0 was taken as
+    the defaults, and fit_capture alike."""
+    images = np.ones((6, 8, 16))
+    for options in ({"max_steps": 3}, {}, 0, "joint"):
+        with pytest.raises(ValueError, match="fit_images: options: must be a FitOptions or None"):
+            lfj.fit_images(images, lfj.Stripes(), options=options)
+        with pytest.raises(ValueError, match="fit_capture: options: must be a FitOptions or None"):
+            lfj.fit_capture(object(), options=options)
+
+
+def test_fit_images_names_its_own_black_level():
+    """Before: 'separate.black_level: must be in [0, 1), got nan', the helper's name."""
+    images = np.ones((6, 8, 16))
+    for black, got in ((math.nan, "must be finite, got nan"), (1.0, "got 1.0"), (-1e-5, "-1e-05")):
+        with pytest.raises(ValueError, match=f"^fit_images: black_level: .*{got}") as err:
+            lfj.fit_images(images, lfj.Stripes(), black_level=black)
+        _one_line(err)
+
+
+def test_separate_and_fit_decay_refuse_values_that_are_not_intensities():
+    """Before: separate() took complex images (their real part, a ComplexWarning) and
+    bool or object ones, and fit_decay() fitted a bool image (True as 1); fit_images
+    refused them."""
+    for images in (np.ones((3, 4, 4), complex), np.ones((3, 4, 4), bool)):
+        with pytest.raises(ValueError, match="^separate.images: must be real numbers, got"):
+            lfj.separate(images)
+    with pytest.raises(ValueError, match="^separate.dark_frame: must be real numbers, got dtype"):
+        lfj.separate(np.ones((3, 4, 4)), dark_frame=np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="^fit_decay.direct: must be real numbers, got dtype bool"):
+        lfj.fit_decay(np.ones((24, 32), bool))
+    assert lfj.separate(np.ones((3, 4, 4), np.uint16)).direct.shape == (4, 4)
+
+
+def test_a_renderer_refuses_concrete_values_no_medium_has():
+    """Before: make_renderer(...)(0.2, 0.3, 0.4) (sigma_s > sigma_t) rendered, g = 1 or
+    a NaN sigma_t gave NaN images and gain -1 negative ones, silently; '0.2' or None
+    ended in JAX's own message. Traced values still pass (jit, grad, vmap)."""
+    renderer = lfj.make_renderer(lfj.Grid(16, 12, 8, 1), lfj.Full(), 2, "paper", None)
+    for args, match in [
+        ((0.2, 0.3, 0.4), r"renderer: medium.sigma_s: must satisfy 0 <= sigma_s <= sigma_t"),
+        ((0.2, 0.05, 1.0), "renderer: medium.g: must satisfy -1 < g < 1, got 1.0"),
+        ((math.nan, 0.05, 0.4), "renderer: medium.sigma_t: must be finite, got nan"),
+        (("0.2", 0.05, 0.4), "renderer: medium.sigma_t: must be a number, got '0.2'"),
+        ((0.2, 0.05, 0.4, -1.0), "renderer: gain: must be a number > 0, got -1.0"),
+        ((0.2, 0.05, 0.4, None), "renderer: gain: must be a number, got None"),
+    ]:
+        with pytest.raises(ValueError, match=match) as err:
+            renderer(*args)
+        _one_line(err)
+    batch = jax.vmap(lambda st: renderer(st, 0.05, 0.4, 1.0)[0].sum())(jnp.array([0.2, 0.3]))
+    assert np.all(np.isfinite(np.asarray(batch)))
+
+
+def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
+    """Before: Grid(2, 2, 80000) passed the memory check (its fields are small) and the
+    renderer's n_theta x n_theta direction table ended in a MemoryError (47.7 GiB)
+    after 11 s; FitOptions(n_theta=80000) in a fit, after 47 s."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "256M")
+    grid = lfj.Grid(2, 2, 4096, 1)  # the most bins a grid takes: 400 MB of tables
+    with pytest.raises(ValueError, match=r"render: the 2x2 grid \(4096 directions.* needs about"):
+        lfj.render(lfj.Medium(0.2, 0.1, 0.3), grid, lfj.Full(), 2)
+    with pytest.raises(ValueError, match=r"make_renderer: the 2x2 grid \(4096 directions"):
+        lfj.make_renderer(grid, lfj.Full(), 2, "paper", None)
+    # More are refused by the grid and the fit's options, before any work.
+    limit = r"n_theta: must be at most 4096 direction bins"
+    with pytest.raises(ValueError, match=f"^grid.{limit}"):
+        lfj.Grid(2, 2, 8 * 10**4, 1)
+    with pytest.raises(ValueError, match=f"^{limit}"):
+        lfj.FitOptions(n_theta=8 * 10**4)

@@ -1359,6 +1359,23 @@ def test_fit_images_refuses_arrays_that_are_not_images(images, pattern, match):
         lfj.fit_images(images, lfj.Stripes() if pattern == "stripes" else pattern)
 
 
+def test_fit_images_refuses_images_without_light_or_stripes_by_cause():
+    """Before: negated images ended in 'the basin scan found no valid model ... give
+    bounces or a start', all-zero images and one image given for every shift in
+    'fit_decay: sigma_t is not identifiable: 0 usable pixels ... too dim'."""
+    import lightfield_jax as lfj
+
+    lit = np.random.default_rng(0).random((6, H, W)) + 0.1
+    for images, match in [
+        (-lit, r"images: no value is above 0 \(the largest is -0.1"),
+        (np.zeros((6, H, W)), r"images: no value is above 0 \(the largest is 0\)"),
+        (np.repeat(lit[:1], 6, axis=0), "images: the 6 shifts are the same image"),
+        (np.full((6, H, W), 0.5), "images: the 6 shifts are the same image"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.fit_images(images, lfj.Stripes())
+
+
 def test_an_all_saturated_capture_is_one_error_line_with_its_cause(capture, capsys):
     """Before: two warnings (every pixel saturated; pixels masked), then the error."""
     for i in range(P):

@@ -2,7 +2,9 @@
 ``simulate --plot``, ``render RESULTS.json`` (checked against the simulation it
 re-renders) and what ``fit --plot`` shows (masked pixels, the crop, the truth)."""
 
+import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -132,6 +134,16 @@ def _fit_result(crop) -> FitResult:
                "bounces": 5, "crop": list(crop), "geometry": {"kind": "plane"}},
         pixel_size_mm=0.05,
     )  # fmt: skip
+
+
+def test_fit_plot_of_a_result_without_finite_values_names_them(rendered):
+    """Before: 'separate.images: no pixel is finite in every one of the 3 images' (the NaN
+    model's, not the finite images given)."""
+    images = np.asarray(rendered[1].images).sum(axis=1)
+    for key in ("sigma_t", "g"):
+        bad = dataclasses.replace(_fit_result((0, 0, 24, 24)), **{key: math.nan})
+        with pytest.raises(ValueError, match=f"^plot_fit.result: {key} is nan: a fit without"):
+            viz.plot_fit(images, lfj.Stripes(6, 3, (0, 2, 4)), bad)
 
 
 def test_fit_plot_shows_masked_pixels_the_crop_and_the_truth(rendered):

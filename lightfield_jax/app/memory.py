@@ -136,12 +136,15 @@ def render_bytes(
     """A render of ``n_patterns`` illuminations: the light fields (float32, at the
     refined grid, × n_mu elevations for a slab), the per-bounce images (float64,
     bounces × patterns × H × W, three copies) and, with ``lightfield``, the stored
-    fields ((K+1) × P × H × W × n_theta float32, two copies)."""
+    fields ((K+1) × P × H × W × n_theta float32, two copies), and the direction
+    tables of n_theta² entries (the circulant index, built in int64: Grid(2, 2, 80000)
+    allocated 47.7 GiB for it, unestimated)."""
     cells = height * width * n_theta * n_mu
     fields = RENDER_FIELDS * n_patterns * cells * refine**2 * 4
     images = 3 * bounces * n_patterns * height * width * 8
     stored = 2 * (bounces + 1) * n_patterns * cells * 4 if lightfield else 0
-    return fields + images + stored
+    tables = 24 * n_theta**2
+    return fields + images + stored + tables
 
 
 def scene_render_bytes(

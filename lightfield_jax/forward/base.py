@@ -56,6 +56,23 @@ def trace_count() -> int:
     return _TRACES["renderer"]
 
 
+def check_physical(sigma_t, sigma_s, g, gain, where: str = "renderer") -> None:
+    """Refuse concrete values no medium has, as :class:`~lightfield_jax.Medium` does
+    (``ValueError("WHERE: medium.KEY: ...")``), and a gain that is not a finite number;
+    traced values pass unchecked. Before: a renderer called with σs > σt, g = 1, NaN or
+    a gain of -1 returned NaN or negative images, and '0.2' or None a JAX traceback."""
+    from lightfield_jax.scene.medium import Medium
+
+    try:
+        Medium(sigma_t, sigma_s, g)
+    except ValueError as e:
+        raise ValueError(f"{where}: {e}") from None
+    if not isinstance(gain, jax.core.Tracer):
+        problem = number_problem(gain, low=0.0, low_open=True)
+        if problem is not None:
+            raise ValueError(f"{where}: gain: {problem}")
+
+
 def as_physical(sigma_t, sigma_s, g, gain):
     """(σt, σs, g, gain) as arrays of one floating dtype. Python scalars would be static
     under ``filter_jit`` (a recompile per value): every physical value becomes an array."""
@@ -269,6 +286,12 @@ class AbstractRenderer(eqx.Module):
         return self.coverage.shape[0]
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        check_physical(sigma_t, sigma_s, g, gain)
+        return self.unchecked(sigma_t, sigma_s, g, gain, lightfield)
+
+    def unchecked(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        """The call without :func:`check_physical` (a fitted result's values, NaN
+        included, drawn as they are)."""
         if lightfield and self.coarse_after is not None:
             raise ValueError(coarse_lightfield_refusal(self.coarse_after))
         sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)

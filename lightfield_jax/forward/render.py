@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.app.memory import check_memory, scene_render_bytes
+from lightfield_jax.app.memory import check_memory, render_bytes, scene_render_bytes
 from lightfield_jax.checks import (
     check_flag,
     check_int,
@@ -120,7 +120,65 @@ def make_renderer(
     have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``,
     ``n_z``) must be resolved. ``tail``: the orders after ``bounces`` from one Krylov
     solve; ``coarse_after``: the bounces after it marched on a coarse grid (the plane's;
-    see :class:`~lightfield_jax.forward.base.AbstractRenderer`)."""
+    see :class:`~lightfield_jax.forward.base.AbstractRenderer`).
+
+    The arguments are checked before the renderer's tables are built (ValueError: a
+    grid or illumination of another type, stripes longer than the grid, or tables
+    beyond the memory limit of :mod:`lightfield_jax.app.memory`)."""
+    if not isinstance(grid, Grid):
+        raise ValueError(f"make_renderer: grid: must be a Grid, got {type(grid).__name__}")
+    if not isinstance(illumination, (Beam, Stripes, Full)):
+        raise ValueError(
+            f"make_renderer: illumination: must be a Beam, Stripes or Full, got "
+            f"{type(illumination).__name__}"
+        )
+    if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
+        raise ValueError(f"make_renderer: illumination.period: {problem}")
+    geometry = as_geometry(geometry)
+    counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)
+    if grid.n_theta is not None and grid.refine is not None and counted and bounces >= 1:
+        # Before the tables: Grid(30000, 30000, 8, 1) allocated 429 GiB (a MemoryError).
+        slab = geometry.slab_or_none
+        resolved = slab is None or (slab.n_mu is not None and slab.n_z is not None)
+        check_memory(
+            render_bytes(
+                illumination.n_patterns,
+                grid.height,
+                grid.width,
+                grid.n_theta,
+                refine=grid.refine,
+                n_mu=geometry.fields_per_bin(0.0, 1.0, 0.5) if resolved else 1,
+                bounces=int(bounces),
+            ),
+            f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
+            f"refine {grid.refine}, {bounces} bounces, {illumination.n_patterns} patterns)",
+        )
+    return _make_renderer(
+        grid,
+        illumination,
+        bounces,
+        phase,
+        geometry,
+        tail=tail,
+        tail_tol=tail_tol,
+        tail_max_steps=tail_max_steps,
+        coarse_after=coarse_after,
+    )
+
+
+def _make_renderer(
+    grid: Grid,
+    illumination: Illumination,
+    bounces: int,
+    phase: str,
+    geometry=None,
+    *,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
+    coarse_after: int | None = None,
+) -> AbstractRenderer:
+    """:func:`make_renderer` without its checks (the callers checked)."""
     return as_geometry(geometry).renderer(
         grid,
         illumination,
@@ -146,7 +204,7 @@ def renderer_for(
     coarse_after: int | None = None,
 ) -> AbstractRenderer:
     """A cached renderer (its tables are built once per static configuration)."""
-    return make_renderer(
+    return _make_renderer(
         grid,
         illumination,
         bounces,
@@ -258,6 +316,14 @@ def render(
         )
     if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
         raise ValueError(f"render: illumination.period: {problem}")
+    for name in ("sigma_t", "sigma_s", "g"):
+        if isinstance(getattr(medium, name), jax.core.Tracer):
+            raise ValueError(
+                f"render: medium.{name}: got a traced value (under jax.jit, grad or vmap): "
+                "render picks the model's size from concrete values; to transform, use "
+                "lfj.make_renderer(grid, illumination, bounces, phase, geometry) and call it "
+                "with (sigma_t, sigma_s, g, gain)"
+            )
     grid, geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces, tolerance, tail)
     if coarse_after is not None:  # before the renderer's tables

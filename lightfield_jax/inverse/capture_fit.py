@@ -93,6 +93,10 @@ def fit_capture(
             file's ``fit:`` settings, :attr:`Capture.fit_options`).
         progress: called with a description of each stage.
     """
+    if options is not None and not isinstance(options, FitOptions):  # before the capture's load
+        raise ValueError(
+            f"fit_capture: options: must be a FitOptions or None, got {type(options).__name__}"
+        )
     if isinstance(capture, (str, os.PathLike)):
         from lightfield_jax.capture.capture import load_capture
 

@@ -218,6 +218,18 @@ def prepare_data(
             "fit need pixels valid in every shift"
         )
     _check_scale(images[samples])
+    brightest = float(images[samples].max())
+    if not brightest > 0:  # was: "the basin scan found no valid model" or "0 usable pixels"
+        raise ValueError(
+            f"images: no value is above 0 (the largest is {brightest:.3g}): images of light "
+            "are not negative (values must be linear, black at 0)"
+        )
+    if split is None and np.all(images[:, pixels] == images[:1, pixels]):
+        raise ValueError(
+            f"images: the {images.shape[0]} shifts are the same image: the stripes moved "
+            "nothing, so there is no direct light to separate (one image given for every "
+            "shift?)"
+        )
     images = np.where(samples, images, 0.0)
     if split is None:
         sep = separate(

@@ -45,6 +45,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from lightfield_jax.checks import check_number, masked_to_nan, number_problem
+from lightfield_jax.inverse.separate import real_dtype
 from lightfield_jax.scene.illumination import (
     _INWARD_DEG,
     WALLS,
@@ -279,7 +280,11 @@ def fit_decay(
         direction_deg = _INWARD_DEG[entry]
     direction_deg = _direction(direction_deg, "fit_decay.direction_deg")
     _check_direction(entry, direction_deg, "fit_decay")
-    direct = jnp.asarray(masked_to_nan(direct))
+    direct = masked_to_nan(direct)
+    dtype = direct.dtype if hasattr(direct, "dtype") else np.asarray(direct).dtype
+    if not real_dtype(dtype):  # before: a bool image was fitted (True as 1)
+        raise ValueError(f"fit_decay.direct: must be real numbers, got dtype {dtype}")
+    direct = jnp.asarray(direct)
     # The fit runs in the wider of the image's and JAX's default float dtype: integer
     # frames become floats, and float32 data with x64 enabled is widened because
     # optimistix's Levenberg–Marquardt fails on mixed float32/float64 state.

@@ -48,7 +48,7 @@ from collections.abc import Callable
 import numpy as np
 
 from lightfield_jax.capture.keys import check_pixel_size
-from lightfield_jax.checks import unmask
+from lightfield_jax.checks import number_problem, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
@@ -108,7 +108,19 @@ def fit_images(
             ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
             A numpy masked array is honoured: a value whose T is masked is not used.
     """
+    if options is not None and not isinstance(options, FitOptions):
+        # Before: a dict ended in dataclasses' bare "replace() should be called on
+        # dataclass instances", and a falsy value ({}, 0) was taken as the defaults.
+        raise ValueError(
+            f"fit_images: options: must be a FitOptions or None, got {type(options).__name__} "
+            "(its fields can also be given as keywords: fit_images(..., max_steps=20))"
+        )
     options = dataclasses.replace(options or FitOptions(), **overrides)
+    if black_level is not None:
+        # Before: named "separate.black_level" (the helper's), after the images' checks.
+        problem = number_problem(black_level, low=0.0, high=1.0, high_open=True)
+        if problem is not None:
+            raise ValueError(f"fit_images: black_level: {problem}")
     check_pixel_size(pixel_size_mm)
     images, mask = unmask(images, mask)
     return _fit_one(
@@ -350,7 +362,8 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     model = _model_from(result.model)
 
     def render(illumination):
-        out = _renderer(model, illumination, result.phase)(result.sigma_t, result.sigma_s, result.g)
+        renderer = _renderer(model, illumination, result.phase)
+        out = renderer.unchecked(result.sigma_t, result.sigma_s, result.g)
         if model.tail is None:
             return np.asarray(out[0])
         return np.concatenate([np.asarray(out[0]), np.asarray(out[2].image)[:, None]], axis=1)

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import jax
 
+from lightfield_jax.checks import shown
+
 
 def _compiler_options() -> dict | None:
     """XLA options of the fit programs: on the CPU, LLVM's optimisation level 1 instead
@@ -53,7 +55,15 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
     it cannot be created."""
     from jax.experimental.compilation_cache import compilation_cache
 
-    folder = Path(path).expanduser()
+    # Before: "" cached into the current folder silently, None or bytes raised Python's
+    # bare TypeError, a NUL "embedded null byte", none of them naming the argument.
+    text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
+    if not isinstance(text, str) or not text.strip() or "\0" in text:
+        raise ValueError(
+            f"enable_compilation_cache: path: must be a folder's path (a non-empty str or "
+            f"os.PathLike without NUL), got {shown(path)}"
+        )
+    folder = Path(text).expanduser()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:

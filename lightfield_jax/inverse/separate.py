@@ -70,7 +70,15 @@ def _split(
     return Separation(direct=direct, multiple=multiple, imax=imax, imin=imin)
 
 
-def _as_float(x: ArrayLike) -> Float[Array, "..."]:
+def real_dtype(dtype) -> bool:
+    """Integers or floats (NumPy's or JAX's, bfloat16 included), not bool or complex."""
+    return jnp.issubdtype(dtype, jnp.integer) or jnp.issubdtype(dtype, jnp.floating)
+
+
+def _as_float(x: ArrayLike, name: str = "images") -> Float[Array, "..."]:
+    dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
+    if not real_dtype(dtype):  # before: complex, bool and object images were separated
+        raise ValueError(f"separate.{name}: must be real numbers, got dtype {dtype}")
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         # Camera frames are often unsigned integers: convert before subtracting.
@@ -147,7 +155,9 @@ def separate(
             f"separate.images: need at least 2 shifted images to form Imax and Imin, got "
             f"{images.shape[0]}"
         )
-    dark = jnp.zeros((), images.dtype) if dark_frame is None else _as_float(dark_frame)
+    dark = (
+        jnp.zeros((), images.dtype) if dark_frame is None else _as_float(dark_frame, "dark_frame")
+    )
     try:
         broadcast_ok = np.broadcast_shapes(dark.shape, images.shape) == images.shape
     except ValueError:

@@ -17,6 +17,10 @@ from lightfield_jax.checks import check_number, number_problem
 # (docs in README, measured by experiments/forward_accuracy.py).
 _N_THETA_RULE: tuple[tuple[float, int], ...] = ((0.5, 32), (0.85, 64), (0.93, 128))
 _N_THETA_MAX = 256
+# The most θ bins a grid takes: 16x the finest default. The renderer's direction tables
+# grow as n_theta² (Grid(2, 2, 80000) or FitOptions(n_theta=80000) ended in a 47.7 GiB
+# MemoryError, the fit's after 47 s).
+N_THETA_LIMIT = 4096
 
 
 # Spatial refinement chosen from |g| (see Grid.refine).
@@ -56,6 +60,11 @@ def check_n_theta(n, key: str = "grid.n_theta") -> None:
     """Refuse θ bins that are not ``None`` or a multiple of 8 (>= 8), naming ``key``."""
     if n is not None and (number_problem(n, integer=True, low=8) is not None or n % 8):
         raise ValueError(f"{key}: must be a multiple of 8 (>= 8), got {n!r}")
+    if n is not None and n > N_THETA_LIMIT:
+        raise ValueError(
+            f"{key}: must be at most {N_THETA_LIMIT} direction bins (the finest default is "
+            f"{_N_THETA_MAX}; the renderer's tables grow as n_theta squared), got {n!r}"
+        )
 
 
 def check_refine(r, key: str = "grid.refine") -> None:

@@ -60,8 +60,11 @@ def _check_direction(entry: str, direction_deg: float, what: str) -> None:
 # wider than any medium is full illumination (Full), and the lit length of a wall cell,
 # a difference of coordinates offset by half the width, cancels to 0 in float64 for
 # widths near 1e16 (Beam(width=1e20) rendered all-zero images); a heading past a turn
-# is a slip (1e20 degrees has no direction left in float64).
+# is a slip (1e20 degrees has no direction left in float64). The narrowest beam: the
+# lit length cancels likewise in float64 below it (width 1e-12 at y = 12 was 0.2 % off),
+# and the images, proportional to the width, underflow float32 (1e-20: all zero).
 MAX_BEAM_WIDTH = 1e5
+MIN_BEAM_WIDTH = 1e-6
 MAX_DIRECTION_DEG = 360.0
 
 
@@ -80,7 +83,8 @@ class Beam:
             x = width the right wall, y = 0 the top wall, y = height the bottom wall).
         direction_deg: heading θ0 in degrees from +x toward +y, in [−360, 360].
         width: transverse width w in pixels (uniform unit irradiance across it), in
-            (0, :data:`MAX_BEAM_WIDTH`]: a wider light is :class:`Full` illumination.
+            [:data:`MIN_BEAM_WIDTH`, :data:`MAX_BEAM_WIDTH`]: a wider light is
+            :class:`Full` illumination.
     """
 
     x: float
@@ -98,6 +102,12 @@ class Beam:
         width = check_number(self.width, "illumination.width")
         if width <= 0:
             raise ValueError(f"illumination.width: must be > 0 pixels, got {self.width!r}")
+        if width < MIN_BEAM_WIDTH:
+            raise ValueError(
+                f"illumination.width: must be at least {MIN_BEAM_WIDTH:g} pixels (narrower, "
+                f"the lit length cancels in float64 and the images underflow), got "
+                f"{self.width!r}"
+            )
         if width > MAX_BEAM_WIDTH:
             raise ValueError(
                 f"illumination.width: must be at most {MAX_BEAM_WIDTH:g} pixels (a beam; a "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -100,6 +101,15 @@ def plot_fit(
             f"{fn}.result: must be a FitResult (lightfield_jax.fit_images), got "
             f"{type(result).__name__}"
         )
+    for key in ("sigma_t", "sigma_s", "g", "gain"):
+        # Before: the NaN model's separation ended in "separate.images: no pixel is
+        # finite ... (NaN or Inf everywhere)", of images that were finite.
+        value = getattr(result, key)
+        if not (isinstance(value, (int, float, np.number)) and math.isfinite(value)):
+            raise ValueError(
+                f"{fn}.result: {key} is {brief(value)}: a fit without finite values has no "
+                "model to draw"
+            )
     # Masked values may be NaN (a capture's non-finite pixels).
     images = real_array(images, f"{fn}.images", (3,), "(shifts, height, width)", finite="some")
     p, h, w = images.shape
