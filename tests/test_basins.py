@@ -562,3 +562,20 @@ def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
     assert stop(0.2, offset_stop=0.25)
     with pytest.raises(ValueError, match=r"offset_stop: must be a number in \[0, 0.25\]"):
         lfj.FitOptions(offset_stop=0.5)
+
+
+def test_a_cheap_solve_lost_at_a_divergent_series_is_not_refined():
+    """Images no medium has (ω 0.8, g 0.85 under ``paper``: ρ = 1.72, the series cut
+    after 12 bounces): the cheap solve runs out of steps at values whose bounce series
+    diverges. Before, the fit then solved on the model those values ask for (256 θ
+    bins, refine 2, max_bounces) and had not returned after 900 s (48×36); now it stops
+    there, not trusted."""
+    medium = lfj.Medium(0.2, 0.16, 0.85, "paper")
+    with pytest.warns(lfj.DivergentSeriesWarning):
+        images = np.asarray(lfj.render(medium, lfj.Grid(32, 24), lfj.Stripes(), 12).total)
+    log = []
+    result = lfj.fit_images(
+        images / images.max(), lfj.Stripes(), black_level=0.0, progress=log.append
+    )
+    assert not result.converged and "not trustworthy" in result.message
+    assert any("bounce series diverges" in m and "not refined" in m for m in log), log

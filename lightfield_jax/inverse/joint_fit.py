@@ -268,6 +268,17 @@ def _continuation(
     # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
     # the corrected one, reached by primal renders, by max_render_cells.
     need = _at_least(needed(options.max_cells), floor)
+    tail_failed = first.tail is not None and "error" in first.tail
+    if not first.ok and not tail_failed and not need.converges:
+        # Measured: the stability map's divergent truth (ω 0.8, g 0.85 under paper, an
+        # explicit 12-bounce truncation, 48×36): the cheap solve ran out of steps at
+        # ω 0.99, g 0.94, and the solve on the model it asked for (256 θ bins, refine 2,
+        # max_bounces) had not returned after 900 s.
+        say(
+            f"  the cheap solve did not converge, at values whose bounce series diverges "
+            f"(rho {need.rho:.3g} >= 1): not refined"
+        )
+        return first
     correct = options.correct and first.ok
     target = _at_least(needed(options.max_render_cells), need) if correct else need
     if _covers(coarse, target):
