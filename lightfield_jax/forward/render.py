@@ -101,6 +101,21 @@ class RenderResult(eqx.Module):
         return total if self.tail is None else total + self.tail
 
 
+def check_scene(where: str, grid, illumination) -> None:
+    """Refuse a grid that is not a :class:`Grid`, an illumination that is not a
+    :class:`Beam`, :class:`Stripes` or :class:`Full`, and stripes the grid cannot hold
+    (``ValueError("WHERE: KEY: ...")``), before any table is built."""
+    if not isinstance(grid, Grid):
+        raise ValueError(f"{where}: grid: must be a Grid, got {type(grid).__name__}")
+    if not isinstance(illumination, (Beam, Stripes, Full)):
+        raise ValueError(
+            f"{where}: illumination: must be a Beam, Stripes or Full, got "
+            f"{type(illumination).__name__}"
+        )
+    if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
+        raise ValueError(f"{where}: illumination.period: {problem}")
+
+
 def make_renderer(
     grid: Grid,
     illumination: Illumination,
@@ -125,15 +140,7 @@ def make_renderer(
     The arguments are checked before the renderer's tables are built (ValueError: a
     grid or illumination of another type, stripes longer than the grid, or tables
     beyond the memory limit of :mod:`lightfield_jax.app.memory`)."""
-    if not isinstance(grid, Grid):
-        raise ValueError(f"make_renderer: grid: must be a Grid, got {type(grid).__name__}")
-    if not isinstance(illumination, (Beam, Stripes, Full)):
-        raise ValueError(
-            f"make_renderer: illumination: must be a Beam, Stripes or Full, got "
-            f"{type(illumination).__name__}"
-        )
-    if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
-        raise ValueError(f"make_renderer: illumination.period: {problem}")
+    check_scene("make_renderer", grid, illumination)
     geometry = as_geometry(geometry)
     counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)
     if grid.n_theta is not None and grid.refine is not None and counted and bounces >= 1:
@@ -296,11 +303,9 @@ def render(
     stops before its tolerance gives ``tail_converged=False`` and a
     :class:`~lightfield_jax.forward.tail.TailNotConvergedWarning`.
     """
-    for key, value, kind in (("medium", medium, Medium), ("grid", grid, Grid)):
-        if not isinstance(value, kind):
-            raise ValueError(
-                f"render: {key}: must be a {kind.__name__}, got {type(value).__name__}"
-            )
+    if not isinstance(medium, Medium):
+        raise ValueError(f"render: medium: must be a Medium, got {type(medium).__name__}")
+    check_scene("render", grid, illumination)
     check_flag(lightfield, "render: lightfield")
     check_number(tolerance, "render: tolerance", low=0.0, high=1.0, low_open=True, high_open=True)
     check_tail(tail, tail_tol, tail_max_steps)
@@ -309,13 +314,6 @@ def render(
             raise ValueError(f"render: gain: must be a single number, got shape {gain.shape}")
     elif (problem := gain_problem(gain)) is not None:
         raise ValueError(f"render: gain: {problem}")
-    if not isinstance(illumination, (Beam, Stripes, Full)):
-        raise ValueError(
-            f"render: illumination: must be a Beam, Stripes or Full, got "
-            f"{type(illumination).__name__}"
-        )
-    if (problem := period_problem(illumination, grid.width, grid.height)) is not None:
-        raise ValueError(f"render: illumination.period: {problem}")
     for name in ("sigma_t", "sigma_s", "g"):
         if isinstance(getattr(medium, name), jax.core.Tracer):
             raise ValueError(

@@ -268,8 +268,7 @@ def _continuation(
     # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
     # the corrected one, reached by primal renders, by max_render_cells.
     need = _at_least(needed(options.max_cells), floor)
-    tail_failed = first.tail is not None and "error" in first.tail
-    if not first.ok and not tail_failed and not need.converges:
+    if not first.ok and not _tail_failed(first) and not need.converges:
         # Measured: the stability map's divergent truth (ω 0.8, g 0.85 under paper, an
         # explicit 12-bounce truncation, 48×36): the cheap solve ran out of steps at
         # ω 0.99, g 0.94, and the solve on the model it asked for (256 θ bins, refine 2,
@@ -319,11 +318,15 @@ def _continuation(
     return last
 
 
+def _tail_failed(stage: _Stage) -> bool:
+    """Whether the stage's tail solve failed (it then did not run its solver)."""
+    return stage.tail is not None and "error" in stage.tail
+
+
 def _runaway(stage: _Stage) -> bool:
     """A cheap solve that did not converge (a tail that failed aside) or ended with g or
     the albedo at a bound."""
-    tail_failed = stage.tail is not None and "error" in stage.tail
-    return (not stage.ok and not tail_failed) or bool(at_bound(stage.values))
+    return (not stage.ok and not _tail_failed(stage)) or bool(at_bound(stage.values))
 
 
 def _cheap_solve(data, pattern, coarse: _Model, options, black, weights, y0, say):
