@@ -488,6 +488,17 @@ def test_phase_function_refuses_g_outside_minus_one_to_one():
     assert float(both[0]) == pytest.approx(p)
 
 
+def test_fit_images_refuses_stripes_longer_than_the_images():
+    """Before: render refused them, but fit_images fitted 32x24 images of period-40
+    stripes for 31 s (shifts that light no row) and ended "not trustworthy"."""
+    stripes = lfj.Stripes(period=60, lit=3, phases=(0, 15, 30, 45))
+    images = np.ones((4, 36, 48), np.float32)
+    message = "60 rows is longer than the 48x36 images: a stripe period is a few rows"
+    with pytest.raises(ValueError, match=f"^pattern.period: {message}$") as err:
+        lfj.fit_images(images, stripes)
+    _one_line(err)
+
+
 def test_stripes_longer_than_the_grid_are_refused_by_the_api():
     """Before: only a simulate config refused them; render drew all-zero images for the
     shifts whose stripe missed the 16x12 grid, and a SimulationConfig made in code

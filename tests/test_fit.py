@@ -304,6 +304,7 @@ def _backend_compiles(fn) -> int:
 
 
 # The gradient method's reuse is slow-marked: the joint fit's covers the same machinery.
+@pytest.mark.forgets_compiled
 @pytest.mark.parametrize("method", [pytest.param("gradient", marks=pytest.mark.slow), "joint"])
 def test_a_second_fit_of_the_same_shape_reuses_the_compiled_program(method):
     from lightfield_jax.inverse.fit import clear_compiled

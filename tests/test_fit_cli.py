@@ -575,6 +575,7 @@ def restore_jax_cache_config():
     compilation_cache.reset_cache()
 
 
+@pytest.mark.forgets_compiled
 def test_fit_stores_compiled_programs_unless_told_not_to(
     simulated, tmp_path, capsys, monkeypatch, restore_jax_cache_config
 ):

@@ -21,7 +21,7 @@ from lightfield_jax.checks import unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
-from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.scene.illumination import Stripes, period_problem
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.model_size import _Model
@@ -164,6 +164,9 @@ def prepare_data(
             f"least {MIN_ALONG} px along the light ({'x' if along_x else 'y'}: the direct "
             f"light's decay and the noise's 4th differences)"
         )
+    period = period_problem(pattern, images.shape[2], images.shape[1], "images")
+    if period is not None:  # as render refuses them (before: a 31 s fit of no stripes)
+        raise ValueError(f"pattern.period: {period}")
     finite = np.isfinite(images)
     if mask is not None and np.shape(mask) not in (images.shape, images.shape[1:]):
         raise ValueError(

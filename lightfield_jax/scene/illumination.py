@@ -352,7 +352,7 @@ def source_moments(
     return (np.swapaxes(a, 1, 2) for a in (cov, mean, var))
 
 
-def period_problem(illumination, width: int, height: int) -> str | None:
+def period_problem(illumination, width: int, height: int, what: str = "grid") -> str | None:
     """What is wrong with stripes whose period is longer than a ``width``x``height``
     grid (``None``: nothing, or not stripes; ``illumination`` may be the period
     itself). The rule of a simulate config's ``illumination.period``
@@ -366,4 +366,6 @@ def period_problem(illumination, width: int, height: int) -> str | None:
         return None
     if period <= max(width, height):
         return None
-    return f"{period} rows is longer than the {width}x{height} grid: a stripe period is a few rows"
+    return (
+        f"{period} rows is longer than the {width}x{height} {what}: a stripe period is a few rows"
+    )
