@@ -17,8 +17,8 @@ on small simulated stripe captures (``width`` × ``height``), over:
 - ``black_level``: the projector's dark-stripe level b, given to the fit (``known``)
   or not (two-step methods then assume 0; ``joint`` estimates it).
 - ``start`` (``joint`` only): the joint fit started away from the truth, σs × a
-  factor, g + an offset (``FitOptions.start``; σt comes from the decay fit, so its
-  factor is recorded but not applied), the basin search off.
+  factor, g + an offset (``FitOptions.start``; σt comes from the decay fit: it has no
+  start), the basin search off.
 - ``high_albedo``: albedo × g near ω = 1 under ``phase: normalized`` (captures and
   fits), where ρ = ω < 1: the series converges but slowly. Truths are marched to the
   bounces ``tolerance`` needs, capped at the row's ``max_truth_bounces``; the record
@@ -146,7 +146,6 @@ class StartMap:
     media: tuple[Annotated[dict, NamedCoefficients], ...]
     sigma_s_factor: tuple[Positive, ...]
     g_offset: tuple[float, ...]
-    sigma_t_factor: tuple[Positive, ...]
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -630,11 +629,12 @@ def _starts(config: Config, ctx) -> list[dict]:
         m = {k: float(medium[k]) for k in ("sigma_t", "sigma_s", "g")}
         cell = _cell(config, medium=m)
         images = functools.cache(lambda c=cell: inv.camera(_simulated(c, config), None, 0))
-        offsets = [(1.0, fs, dg) for fs in spec["sigma_s_factor"] for dg in spec["g_offset"]]
-        offsets += [(ft, 1.0, 0.0) for ft in spec["sigma_t_factor"] if ft != 1.0]
-        for i, (ft, fs, dg) in enumerate(offsets):
+        # σt is not a start: the fit takes it from the direct light's decay (a start is
+        # σs and g, FitOptions.start); σs's start is kept below 0.98·σt.
+        offsets = [(fs, dg) for fs in spec["sigma_s_factor"] for dg in spec["g_offset"]]
+        for i, (fs, dg) in enumerate(offsets):
             ctx.progress(f"start {medium['name']} {i + 1}/{len(offsets)}")
-            st0 = m["sigma_t"] * ft
+            st0 = m["sigma_t"]
             start = (
                 st0,
                 min(m["sigma_s"] * fs, 0.98 * st0),
@@ -645,7 +645,7 @@ def _starts(config: Config, ctx) -> list[dict]:
                 f"start|{_key(cell, 'joint', config)}|{start}",
                 lambda m=m, start=start, images=images: _start_solve(m, start, images(), config),
             )
-            offset = {"sigma_t_factor": ft, "sigma_s_factor": fs, "g_offset": dg}
+            offset = {"sigma_s_factor": fs, "g_offset": dg}
             rows.append({"medium": medium["name"], **offset, **rec})
     return rows
 
@@ -768,7 +768,8 @@ def _summary(config, results, starts, figures) -> dict:
             "failed_starts": [
                 {
                     "medium": s["medium"],
-                    "start_factor": [s["sigma_t_factor"], s["sigma_s_factor"], s["g_offset"]],
+                    "sigma_s_factor": s["sigma_s_factor"],
+                    "g_offset": s["g_offset"],
                     "failure": s["failure"],
                     "error": s["errors"]["error"],
                 }
@@ -883,7 +884,7 @@ def _write_csv(path: Path, rows, starts) -> None:
             yield (
                 [
                     f"start:{s['medium']}",
-                    f"{s['sigma_t_factor']}/{s['sigma_s_factor']}/{s['g_offset']}",
+                    f"{s['sigma_s_factor']}/{s['g_offset']}",
                     "joint",
                     None,
                     None,
@@ -1193,21 +1194,14 @@ def _plot_starts(config, starts, out: Path) -> str:
     spec = config.start
     media = list(dict.fromkeys(s["medium"] for s in starts))
     fs, dg = list(spec["sigma_s_factor"]), list(spec["g_offset"])
-    with_st = any(s["sigma_t_factor"] != 1.0 for s in starts)
     fig, axes = plt.subplots(
-        len(media),
-        2 if with_st else 1,
-        figsize=(10 if with_st else 7, 0.8 + (2.4 + 0.5 * len(fs)) * len(media)),
-        squeeze=False,
-        gridspec_kw={"width_ratios": [3, 1.3] if with_st else [1]},
+        len(media), 1, figsize=(7, 0.8 + (2.4 + 0.5 * len(fs)) * len(media)), squeeze=False
     )
     for i, med in enumerate(media):
         mine = [s for s in starts if s["medium"] == med]
         grid = np.full((len(fs), len(dg)), np.nan)
         ax = axes[i, 0]
         for s in mine:
-            if s["sigma_t_factor"] != 1.0:
-                continue
             a, b = fs.index(s["sigma_s_factor"]), dg.index(s["g_offset"])
             e = s["errors"]["error"]
             grid[a, b] = np.nan if e is None else max(e, 1e-5)
@@ -1240,30 +1234,10 @@ def _plot_starts(config, starts, out: Path) -> str:
             for sym, k in (("σt", "sigma_t"), ("σs", "sigma_s"), ("g", "g"))
             if k in true
         )
-        ax.set_title(f"{med} ({truth}): σs and g starts, σt start = truth", fontsize=9)
-        if not with_st:
-            continue
-        ax = axes[i, 1]
-        line = sorted(
-            (s for s in mine if s["g_offset"] == 0 and s["sigma_s_factor"] == 1.0),
-            key=lambda s: s["sigma_t_factor"],
-        )
-        xs = [s["sigma_t_factor"] for s in line]
-        ys = [max(s["errors"]["error"] or 10.0, 1e-7) for s in line]
-        ax.plot(xs, ys, "-", color="tab:green")
-        for x, y, s in zip(xs, ys, line, strict=True):
-            ax.plot(x, y, _MARKERS[s["failure"]], color="tab:green")
-        inv.log_axes(ax, y=False)
-        ax.set_yscale("log")
-        ax.set_ylim(1e-7, 2.0)
-        ax.axhline(config.bias_threshold, color="k", lw=0.8, ls=":")
-        ax.set_xlabel("start σt / true σt")
-        ax.set_ylabel("final error (dotted: the 'ok' threshold)", fontsize=8)
-        ax.set_title(f"{med}: σt starts (σs, g = truth)", fontsize=9)
-        ax.grid(True, which="both", alpha=0.3)
+        ax.set_title(f"{med} ({truth}): σs and g starts, σt from the decay fit", fontsize=9)
     fig.suptitle(
-        "The joint fit's basin of convergence: one Levenberg–Marquardt solve from each start "
-        "(coarse stage skipped), on the model the truth needs\n"
+        "The joint fit's basin of convergence: the default fit from each start (σs, g), the "
+        "basin scan off\n"
         f"noiseless {config.width}×{config.height} px captures, period 6, lit 3, "
         f"6 shifts; ok: error ≤ {config.bias_threshold:g}; n.c.: not converged; "
         "it: iterations; start |g| clipped to 0.95, start σs to 0.98·σt",
