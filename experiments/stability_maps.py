@@ -1238,8 +1238,8 @@ def _plot_starts(config, starts, out: Path) -> str:
     fig.suptitle(
         "The joint fit's basin of convergence: the default fit from each start (σs, g), the "
         "basin scan off\n"
-        f"noiseless {config.width}×{config.height} px captures, period 6, lit 3, "
-        f"6 shifts; ok: error ≤ {config.bias_threshold:g}; n.c.: not converged; "
+        f"noiseless {config.width}×{config.height} px captures, period 6, lit 3, 6 shifts; "
+        f"ok: error ≤ {config.bias_threshold:g}; n.c.: not converged\n"
         "it: iterations; start |g| clipped to 0.95, start σs to 0.98·σt",
         fontsize=9,
     )
