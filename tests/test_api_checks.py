@@ -679,6 +679,32 @@ def test_make_renderer_checks_its_arguments_before_the_tables(monkeypatch):
     assert np.asarray(images).shape == (1, 2, 12, 16)
 
 
+def test_compiled_programs_are_forgotten_before_the_memory_maps_run_out(monkeypatch):
+    """Before: a process that compiled programs until the kernel's memory-map limit was
+    near (the whole test suite in one process) crashed in XLA's compiler. A fit first
+    forgets the compiled programs where more than half the limit is in use."""
+    from lightfield_jax.inverse import programs
+
+    square = jax.jit(lambda x: x * x)
+    square(jnp.ones(3))
+    assert square._cache_size() == 1
+    monkeypatch.setattr(programs, "memory_maps", lambda: (1000, 65530))
+    assert not programs.forget_if_crowded() and square._cache_size() == 1
+    said = []
+    monkeypatch.setattr(programs, "memory_maps", lambda: (40000, 65530))
+    assert programs.forget_if_crowded(said.append) and square._cache_size() == 0
+    assert said == [
+        "compiled programs forgotten (they held 40000 of the system's 65530 memory maps): "
+        "this fit compiles its own again"
+    ]
+    monkeypatch.setattr(programs, "memory_maps", lambda: (0, 0))  # not Linux: nothing
+    square(jnp.ones(3))
+    assert not programs.forget_if_crowded() and square._cache_size() == 1
+    monkeypatch.undo()
+    used, limit = programs.memory_maps()  # this machine's own count and limit
+    assert (used, limit) == (0, 0) or 0 < used < limit
+
+
 def test_enable_compilation_cache_names_a_path_that_is_not_one(tmp_path, monkeypatch):
     """Before: "" cached every program into the current folder, silently; None, bytes
     or 5 raised Python's bare TypeError and a NUL 'embedded null byte', naming no

@@ -56,6 +56,7 @@ from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, size_model
 from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
+from lightfield_jax.inverse.programs import forget_if_crowded
 from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
@@ -184,6 +185,7 @@ def _fit_one(
     method = method_for(options.method)
     if method.per_bounce:
         options = dataclasses.replace(options, tail=None)
+    forget_if_crowded(say)
     t_start = time.perf_counter()
     say("separating direct and multiple scattering")
     whole = prepare_data(

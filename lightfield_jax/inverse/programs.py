@@ -46,6 +46,43 @@ def clear_compiled() -> None:
     jax.clear_caches()
 
 
+# Every compiled XLA program maps its code into the process's memory, and the kernel
+# limits the number of maps (vm.max_map_count, 65530 by default on Linux): past it the
+# next compilation crashes the process (a segmentation fault or an abort inside XLA's
+# compiler; measured: the test suite in one process, about 650 tests in, with 4 GB in
+# use). A fit starts by forgetting the compiled programs where more than this share of
+# the limit is in use (a long session of fits of many sizes).
+CROWDED_SHARE = 0.5
+
+
+def memory_maps() -> tuple[int, int]:
+    """The process's memory maps and the kernel's limit on them (``(0, 0)`` where the
+    system does not say: not Linux)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            used = sum(1 for _ in f)
+        with open("/proc/sys/vm/max_map_count") as f:
+            return used, int(f.read())
+    except (OSError, ValueError):
+        return 0, 0
+
+
+def forget_if_crowded(say=None) -> bool:
+    """Forget the compiled programs (:func:`clear_compiled`) where the process holds
+    more than ``CROWDED_SHARE`` of the kernel's memory-map limit; whether it did.
+    ``say`` is told why."""
+    used, limit = memory_maps()
+    if not limit or used <= CROWDED_SHARE * limit:
+        return False
+    clear_compiled()
+    if say is not None:
+        say(
+            f"compiled programs forgotten (they held {used} of the system's {limit} memory "
+            "maps): this fit compiles its own again"
+        )
+    return True
+
+
 def enable_compilation_cache(path: str | os.PathLike) -> Path:
     """Keep compiled XLA programs in ``path`` (created if missing) across processes.
 
@@ -75,4 +112,10 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
     return folder
 
 
-__all__ = ["clear_compiled", "enable_compilation_cache", "jitted"]
+__all__ = [
+    "clear_compiled",
+    "enable_compilation_cache",
+    "forget_if_crowded",
+    "jitted",
+    "memory_maps",
+]
