@@ -160,33 +160,7 @@ def make_renderer(
             f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
             f"refine {grid.refine}, {bounces} bounces, {illumination.n_patterns} patterns)",
         )
-    return _make_renderer(
-        grid,
-        illumination,
-        bounces,
-        phase,
-        geometry,
-        tail=tail,
-        tail_tol=tail_tol,
-        tail_max_steps=tail_max_steps,
-        coarse_after=coarse_after,
-    )
-
-
-def _make_renderer(
-    grid: Grid,
-    illumination: Illumination,
-    bounces: int,
-    phase: str,
-    geometry=None,
-    *,
-    tail: str | None = None,
-    tail_tol: float = 1e-4,
-    tail_max_steps: int = 500,
-    coarse_after: int | None = None,
-) -> AbstractRenderer:
-    """:func:`make_renderer` without its checks (the callers checked)."""
-    return as_geometry(geometry).renderer(
+    return geometry.renderer(
         grid,
         illumination,
         bounces,
@@ -210,13 +184,13 @@ def renderer_for(
     tail_max_steps: int = 500,
     coarse_after: int | None = None,
 ) -> AbstractRenderer:
-    """A cached renderer (its tables are built once per static configuration)."""
-    return _make_renderer(
+    """A cached renderer (its tables are built once per static configuration; not
+    checked as :func:`make_renderer`'s arguments are: the fit sizes its own models)."""
+    return as_geometry(geometry).renderer(
         grid,
         illumination,
         bounces,
         phase,
-        geometry,
         tail=tail,
         tail_tol=tail_tol,
         tail_max_steps=tail_max_steps,

@@ -18,7 +18,7 @@ from lightfield_jax.checks import repeated
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
-from lightfield_jax.inverse.options import FitOptions, FitResult
+from lightfield_jax.inverse.options import FitOptions, FitResult, check_options
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry
 from lightfield_jax.scene.grid import Grid
 
@@ -93,10 +93,7 @@ def fit_capture(
             file's ``fit:`` settings, :attr:`Capture.fit_options`).
         progress: called with a description of each stage.
     """
-    if options is not None and not isinstance(options, FitOptions):  # before the capture's load
-        raise ValueError(
-            f"fit_capture: options: must be a FitOptions or None, got {type(options).__name__}"
-        )
+    check_options(options, "fit_capture")  # before the capture's load
     if isinstance(capture, (str, os.PathLike)):
         from lightfield_jax.capture.capture import load_capture
 

@@ -54,7 +54,7 @@ from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, size_model
-from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult
+from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult, check_options
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import forget_if_crowded
 from lightfield_jax.inverse.trust import Uncertainty
@@ -109,13 +109,7 @@ def fit_images(
             ``images`` (:mod:`lightfield_jax.capture.hdr`): the joint fit weights by √T.
             A numpy masked array is honoured: a value whose T is masked is not used.
     """
-    if options is not None and not isinstance(options, FitOptions):
-        # Before: a dict ended in dataclasses' bare "replace() should be called on
-        # dataclass instances", and a falsy value ({}, 0) was taken as the defaults.
-        raise ValueError(
-            f"fit_images: options: must be a FitOptions or None, got {type(options).__name__} "
-            "(its fields can also be given as keywords: fit_images(..., max_steps=20))"
-        )
+    check_options(options, "fit_images")
     options = dataclasses.replace(options or FitOptions(), **overrides)
     if black_level is not None:
         # Before: named "separate.black_level" (the helper's), after the images' checks.

@@ -395,6 +395,18 @@ class FitResult:
         return out
 
 
+def check_options(options, where: str) -> None:
+    """Refuse ``options`` that are neither a :class:`FitOptions` nor ``None``
+    (``ValueError("WHERE: options: ...")``). Before: a dict ended in dataclasses' bare
+    "replace() should be called on dataclass instances", and a falsy value ({}, 0) was
+    taken as the defaults."""
+    if options is not None and not isinstance(options, FitOptions):
+        raise ValueError(
+            f"{where}: options: must be a FitOptions or None, got {type(options).__name__} "
+            f"(its fields can also be given as keywords: {where}(..., max_steps=20))"
+        )
+
+
 def _json_float(v):
     v = float(v)
     return v if math.isfinite(v) else None
