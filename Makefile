@@ -17,11 +17,12 @@ setup: $(BIN)/lightfield-jax
 demo: setup
 	$(BIN)/lightfield-jax demo --out demo_out
 
+# Two processes, each test file in one (its module fixtures and compiled programs shared).
 test: setup
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-slow: setup
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m slow
 
 bench: setup
 	$(BIN)/lightfield-jax bench --out bench.json
