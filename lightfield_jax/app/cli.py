@@ -236,6 +236,10 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
     them; other warnings keep the filters in force."""
     from lightfield_jax.capture.capture import CaptureWarning
     from lightfield_jax.forward.render import DivergentSeriesWarning
+    from lightfield_jax.inverse.programs import (
+        CompilationCacheWarning,
+        repairing_compilation_cache,
+    )
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = _one_line(str(message))
@@ -243,10 +247,11 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
         print(f"{PROG}: warning: {text}", file=sys.stderr)
 
     with warnings.catch_warnings():
-        for category in (DivergentSeriesWarning, CaptureWarning):
+        for category in (DivergentSeriesWarning, CaptureWarning, CompilationCacheWarning):
             warnings.simplefilter("always", category)
         warnings.showwarning = show
-        yield
+        with repairing_compilation_cache():
+            yield
 
 
 def _warn(args: argparse.Namespace, text: str) -> None:

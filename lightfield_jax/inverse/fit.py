@@ -56,7 +56,7 @@ from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, size_model
 from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult, check_options
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
-from lightfield_jax.inverse.programs import forget_if_crowded
+from lightfield_jax.inverse.programs import forget_if_crowded, repairing_compilation_cache
 from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
@@ -132,6 +132,7 @@ def fit_images(
     )
 
 
+@repairing_compilation_cache()
 def _fit_one(
     images,
     pattern: Stripes,
