@@ -1442,6 +1442,52 @@ def test_one_file_in_two_roles_is_refused(capture, capsys, tmp_path, change, mat
     assert not out.exists()
 
 
+def _bracketed(capture: Path) -> Path:
+    """The capture as two-exposure brackets (float EXR, times 1 and 4 s), dark frame alike."""
+    rows = []
+    for i in range(P):
+        x = read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0]
+        for j, t in enumerate((1, 4)):
+            write_exr(capture / f"b{i}_{j}.exr", {"Y": x * t})
+        rows.append([f"b{i}_{j}.exr" for j in range(2)])
+    dark = read_image(capture / "dark.exr").pixels[..., 0]
+    for j in range(2):
+        write_exr(capture / f"dark_{j}.exr", {"Y": dark})
+    return _edit(
+        capture, images=rows, exposure_times=[1, 4], dark_frame=["dark_0.exr", "dark_1.exr"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (
+            {"dark_frame": ["b0_0.exr", "dark_1.exr"]},
+            "dark_frame[0]: b0_0.exr is also images[0][0]",
+        ),
+        (
+            {"black_frame": ["dark_0.exr", "dark_1.exr"]},
+            "black_frame[0]: dark_0.exr is also dark_frame[0]",
+        ),
+    ],
+)
+def test_one_file_in_two_roles_is_refused_in_brackets(capture, capsys, tmp_path, change, match):
+    """Before: with exposure brackets the files were not compared at all: a stripe
+    image's exposure taken as a dark frame (or the dark bracket as the black one) was
+    merged and fitted. Now refused as for single exposures, naming both keys."""
+    _bracketed(capture)
+    _edit(capture, **change)
+    out = tmp_path / "r.json"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match=match)
+    assert not out.exists()
+
+
+def test_a_calibration_frame_repeated_in_its_own_bracket_is_kept(capture):
+    """The same dark frame at every exposure is one role, not two."""
+    _bracketed(capture)
+    assert lfj.load_capture(capture / "capture.yaml").brackets.times == (1.0, 4.0)
+
+
 def test_api_arguments_are_checked_before_any_work():
     """Before: boolean images ran a 26 s nonsense fit, a mask of another shape ended in
     numpy's broadcast message, a negative saturation in 'sigma_t is not identifiable',

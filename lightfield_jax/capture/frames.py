@@ -125,14 +125,26 @@ def _distinct_files(top: _Section, base: Path) -> None:
     if isinstance(images, list):
         roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
     roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
+    # Exposure brackets: each exposure's file (images[i][j], dark_frame[j]).
+    roles = [
+        item
+        for key, value in roles
+        for item in (
+            [(f"{key}[{j}]", v) for j, v in enumerate(value)]
+            if isinstance(value, list)
+            else [(key, value)]
+        )
+    ]
     seen: dict[Any, str] = {}
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
             continue  # not a path: _file names its key
         ident = _file_identity(base, value)
-        # A stripe image listed twice is left to the phases' checks.
-        both_images = key.startswith("images[") and seen.get(ident, "").startswith("images[")
-        if ident in seen and not both_images:
+        # A stripe image listed twice is left to the phases' checks (and, within a
+        # bracket, to its exposure ratios); a calibration frame repeated in its own
+        # bracket keeps its role.
+        role, other = key.split("[")[0], seen.get(ident, "").split("[")[0]
+        if ident in seen and role != other:
             top.fail(key, f"{value} is also {seen[ident]}: one file cannot be both")
         seen.setdefault(ident, key)
 
