@@ -111,6 +111,18 @@ def test_an_output_that_is_an_input_is_refused(capture, capsys):
     assert _snapshot(capture) == before
 
 
+def test_a_file_output_ending_in_a_separator_is_refused(capture, capsys, tmp_path):
+    """Before: ``fit --out results/`` (a folder meant, none there yet) wrote the results
+    as a file named ``results``, and ``--plot fit.png/`` a figure ``fit.png``."""
+    out = tmp_path / "results"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", f"{out}/", match="ends in '/'")
+    json_out = tmp_path / "r.json"
+    plot = f"{tmp_path / 'fit.png'}/"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", json_out, "--plot", plot, match=plot)
+    _refused(capsys, "inspect", capture / "capture.yaml", "--json", f"{out}/", match="a folder")
+    assert sorted(tmp_path.iterdir()) == [capture]
+
+
 def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_path):
     """Before: ``render --out DIR`` into simulate's folder replaced its bounces.npy
     (exit 0), and simulate into render's folder its bounces.npy and bounces.exr."""
