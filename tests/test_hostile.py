@@ -650,6 +650,18 @@ def test_bench_sizes_too_large_for_memory_are_refused(tmp_path, capsys):
     assert not (tmp_path / "b.json").exists()
 
 
+@pytest.mark.parametrize("flag", ["--fits", "--no-fits"])
+def test_bench_repeats_beyond_any_use_are_refused(tmp_path, capsys, flag):
+    """Before: ``bench --repeats 1000000000`` was taken and timed the renders (with
+    ``--fits``: fresh fit processes) until killed; now refused by argparse at once."""
+    status, out, err = _run(
+        capsys, "bench", "--repeats", "1000000000", flag, "--out", tmp_path / "b.json"
+    )
+    assert status == 2 and len(err.splitlines()) == 1, err
+    assert "argument --repeats: must be at most 1000, got '1000000000'" in err
+    assert not (tmp_path / "b.json").exists()
+
+
 def _png_header(path: Path, width: int, height: int) -> None:
     """A PNG whose header declares width x height RGB 8-bit, followed by a 64 MiB data
     chunk that is a hole in a sparse file (no disk used)."""
