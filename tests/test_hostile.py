@@ -304,6 +304,22 @@ def test_an_experiment_config_is_read_by_the_configs_loader(capsys, tmp_path):
     _refused(capsys, "experiment", bomb, "--out", tmp_path / "o", match="alias")
 
 
+def test_the_default_experiment_folder_is_checked_like_a_given_one(capsys, tmp_path, monkeypatch):
+    """Before: without --out the folder results/NAME was not checked: an experiment ran
+    and wrote its *.json and figures into the outputs of another command there (here
+    simulate's, whose metadata.json matches), which --out results/NAME refuses."""
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "results" / "coverage"
+    folder.mkdir(parents=True)
+    (folder / "metadata.json").write_text("{}")
+    _refused(
+        capsys,
+        *("experiment", "coverage", "--reduced"),
+        match="results/coverage: holds the outputs of lightfield-jax simulate (metadata.json)",
+    )
+    assert sorted(p.name for p in folder.iterdir()) == ["metadata.json"]
+
+
 def test_pattern_does_not_replace_a_capture_file(capsys, tmp_path):
     """Before: ``pattern --out DIR`` replaced DIR's capture.yaml (a hand-edited capture
     file) by its template, exit 0."""
