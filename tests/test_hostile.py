@@ -1528,6 +1528,15 @@ def test_a_calibration_frame_repeated_in_its_own_bracket_is_kept(capture):
     assert lfj.load_capture(capture / "capture.yaml").brackets.times == (1.0, 4.0)
 
 
+def test_a_response_table_named_npy_is_refused(capture, capsys, tmp_path):
+    """Before: ``inspect --response curve.npy`` wrote the CSV text into curve.npy, which
+    ``response: curve.npy`` then refused as 'not a readable .npy array'."""
+    _bracketed(capture)
+    table = tmp_path / "curve.npy"
+    _refused(capsys, "inspect", capture / "capture.yaml", "--response", table, match="name it .csv")
+    assert not table.exists()
+
+
 def test_api_arguments_are_checked_before_any_work():
     """Before: boolean images ran a 26 s nonsense fit, a mask of another shape ended in
     numpy's broadcast message, a negative saturation in 'sigma_t is not identifiable',
