@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import inspect
 import math
 import sys
 import unicodedata
@@ -118,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(
             name,
             help=help_text,
-            description=handler.__doc__,
+            description=inspect.cleandoc(handler.__doc__ or ""),
             parents=[common],
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
