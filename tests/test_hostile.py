@@ -242,6 +242,21 @@ def test_an_empty_output_path_is_refused_by_its_option(capture, capsys, tmp_path
     assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "sim.yaml"]
 
 
+def test_a_dash_for_standard_output_is_refused_by_its_option(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: ``inspect --json -`` (standard output, to most tools) wrote a file named
+    ``-`` in the current folder, and ``fit --out -`` its results there."""
+    monkeypatch.chdir(tmp_path)
+    for argv, option in (
+        (["inspect", capture / "capture.yaml", "--json", "-"], "--json"),
+        (["fit", capture / "capture.yaml", "--out", "-"], "--out"),
+        (["fit", capture / "capture.yaml", "--out", "r.json", "--plot", "-"], "--plot"),
+    ):
+        _refused(capsys, *argv, match=f"{option}: '-' (standard output) is not supported")
+    assert sorted(os.listdir(tmp_path)) == ["cap"]
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(
