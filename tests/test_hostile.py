@@ -1229,6 +1229,27 @@ def test_render_refuses_channel_names_that_leave_its_folder(capture, capsys, tmp
     assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "rgb.json"]
 
 
+def test_render_never_takes_another_folders_capture_file(capture, capsys, tmp_path, monkeypatch):
+    """Before: fit wrote the capture's path as given (``capture.yaml``, run in its
+    folder), and render looked for it in the current folder first: run from another
+    capture's folder, it rendered with that capture's geometry, silently. Now fit
+    writes the absolute path, and a relative one that names two files is refused."""
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    monkeypatch.chdir(capture)
+    status = main(["fit", "capture.yaml", "--method", "gradient", "--out", "r.json", "-q"])
+    assert status in (0, 1)
+    capsys.readouterr()
+    fit = json.loads((capture / "r.json").read_text())
+    assert fit["capture"] == str(capture / "capture.yaml")
+    fit["capture"] = "capture.yaml"  # as fit wrote it before
+    (capture / "r.json").write_text(json.dumps(fit))
+    monkeypatch.chdir(other)
+    view = tmp_path / "view"
+    _refused(capsys, "render", capture / "r.json", "--out", view, match="names two files")
+    assert not view.exists()
+
+
 def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     results = _results(capture, tmp_path)
     assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0

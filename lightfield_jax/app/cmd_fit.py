@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -293,7 +294,7 @@ def _fit(args: argparse.Namespace) -> int | None:
             )
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
         result = _label_two_step(args.method, fit.to_dict())
-        result["capture"] = str(capture.source)
+        result["capture"] = os.path.abspath(capture.source)  # render finds it from anywhere
         result["response"] = capture.response_record()
         compared = _against_truth(capture, fit) if capture.truth else []
         if capture.truth:
