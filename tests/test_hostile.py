@@ -1573,6 +1573,15 @@ def test_a_response_table_named_npy_is_refused(capture, capsys, tmp_path):
     assert not table.exists()
 
 
+def test_a_npy_stack_as_a_calibration_frame_too_is_named(capture, capsys):
+    """Before: the stack [P, H, W] given also as the dark frame was refused as 'st.npy is
+    24x6 pixels with 32 channel(s)' (its axes read as an image's), not as the slip."""
+    stack = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    np.save(capture / "st.npy", stack)
+    _edit(capture, images="st.npy", dark_frame="st.npy")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="dark_frame: st.npy is also images")
+
+
 def test_api_arguments_are_checked_before_any_work():
     """Before: boolean images ran a 26 s nonsense fit, a mask of another shape ended in
     numpy's broadcast message, a negative saturation in 'sigma_t is not identifiable',
