@@ -1681,6 +1681,20 @@ def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(ca
     assert "Traceback" not in err
 
 
+def test_a_bracket_listed_twice_is_said_where_the_phases_cannot_catch_it(capture, capsys):
+    """Before: the warning above was given for single exposures only: with brackets and
+    phases: auto, one shift's bracket listed again was merged and fitted as two shifts
+    without a word."""
+    path = _bracketed(capture)
+    data = yaml.safe_load(path.read_text())
+    data["images"][5] = data["images"][0]
+    data["pattern"]["phases"] = "auto"
+    path.write_text(yaml.safe_dump(data))
+    _, _, err = _run(capsys, "inspect", path)
+    assert "images[5] (b0_0.exr, b0_1.exr) is the bracket of images[0] listed again" in err, err
+    assert "Traceback" not in err
+
+
 def test_a_terminal_escape_in_a_file_name_is_printed_escaped(capture, capsys):
     """Before: a file name holding ESC [31m was printed raw into the error line (the
     terminal recoloured; other sequences rewrite it)."""

@@ -519,7 +519,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if contradiction:
         notes.append(contradiction)
     # After the phases' checks, which refuse a repeated image where phases are given.
-    if merged is None and (again := _images_listed_twice(top, base)) is not None:
+    if (again := _images_listed_twice(top, base)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated

@@ -99,9 +99,11 @@ def _images_listed_twice(top: _Section, base: Path) -> str | None:
     seen: dict[Any, int] = {}
     again = []
     for i, value in enumerate(images):
-        if not isinstance(value, str) or not value or "\0" in value:
+        # A bracket (a list of exposures) is one shift too: its files, in order.
+        files = value if isinstance(value, list) else [value]
+        if not all(isinstance(v, str) and v and "\0" not in v for v in files):
             continue
-        ident = _file_identity(base, value)
+        ident = tuple(_file_identity(base, v) for v in files)
         if ident in seen:
             again.append((i, seen[ident]))
         seen.setdefault(ident, i)
@@ -109,9 +111,11 @@ def _images_listed_twice(top: _Section, base: Path) -> str | None:
         return None
     i, j = again[0]
     more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    bracket = isinstance(images[i], list)
+    shown = ", ".join(images[i]) if bracket else images[i]
     return (
-        f"images[{i}] ({images[i]}) is the file of images[{j}] listed again{more}: one "
-        "image counted as two shifts (a slip in the list?)"
+        f"images[{i}] ({shown}) is the {'bracket' if bracket else 'file'} of images[{j}] "
+        f"listed again{more}: one image counted as two shifts (a slip in the list?)"
     )
 
 
