@@ -1250,6 +1250,21 @@ def test_render_never_takes_another_folders_capture_file(capture, capsys, tmp_pa
     assert not view.exists()
 
 
+def test_a_truth_in_another_phase_convention_is_not_compared_for_sigma_s(capture, capsys, tmp_path):
+    """Before: ``fit --phase normalized`` of a capture whose truth is ``phase: paper``
+    printed 'sigma_s -38.1 % (-186.1 sigma)' against the truth (and wrote it) for a fit
+    that had found the medium: the conventions' sigma_s differ by A(g)."""
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", capture / "capture.yaml", "--phase", "normalized", "--out", out
+    )
+    assert status in (0, 1), err
+    assert "truth.phase is paper, the fit's --phase normalized: sigma_s is not compared" in err
+    said = [line for line in stdout.splitlines() if "against the truth" in line]
+    assert len(said) == 1 and "sigma_t" in said[0] and "sigma_s" not in said[0], stdout
+    assert set(json.loads(out.read_text())["truth_error"]) == {"sigma_t", "g"}
+
+
 def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     results = _results(capture, tmp_path)
     assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
