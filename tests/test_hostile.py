@@ -1306,6 +1306,29 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
     )
 
 
+@pytest.mark.parametrize("bracketed", [False, True])
+def test_a_saturation_in_codes_for_integer_images_is_refused(capture, capsys, bracketed):
+    """Before: ``saturation: 65000`` (codes, for 16-bit images scaled to [0, 1]) masked
+    nothing: the values clipped at the top code were fitted as light, without a word."""
+    names = []
+    for i in range(P):
+        x = read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0]
+        write_png(capture / f"s{i}.png", np.clip(3 * x, 0, 1), bits=16)
+        names.append(f"s{i}.png")
+    write_png(capture / "d.png", np.zeros((H, W)), bits=16)
+    if bracketed:
+        _edit(capture, images=[[n, n] for n in names], exposure_times=[1, 2])
+        _edit(capture, dark_frame=["d.png", "d.png"])
+    else:
+        _edit(capture, images=names, dark_frame="d.png")
+    _edit(capture, saturation=65000)
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="saturation: must be at most 1 with integer images (s0.png is 16-bit",
+    )
+
+
 def test_a_dark_level_beyond_float32_is_refused(capture, capsys):
     """Before: dark_level 1e300 overflowed the images to -Inf: numpy's 'overflow
     encountered in cast' and 'no direct light at the entry wall', exit 1."""

@@ -28,7 +28,13 @@ from lightfield_jax.capture.hdr import (
     merge_capture,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import _AUX_FRAMES, _dark_level, _positive, dark_level_text
+from lightfield_jax.capture.keys import (
+    _AUX_FRAMES,
+    _dark_level,
+    _positive,
+    check_integer_saturation,
+    dark_level_text,
+)
 
 
 def _brackets(top: _Section, base: Path, channel, notes: list[str]):
@@ -117,6 +123,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
     clip = _positive(top, "saturation")
+    check_integer_saturation(top, clip, first)
     # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
     sensor = None
     if clip is None:
