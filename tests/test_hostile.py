@@ -1325,7 +1325,8 @@ def test_a_saturation_in_codes_for_integer_images_is_refused(capture, capsys, br
     _refused(
         capsys,
         *("inspect", capture / "capture.yaml"),
-        match="saturation: must be at most 1 with integer images (s0.png is 16-bit",
+        match="saturation: must be at most 1 with integer images (s0.png is 16-bit, scaled to "
+        "[0, 1]: its top code is 1), got 65000: a threshold of 65000 codes is saturation: 0.991836",
     )
 
 
