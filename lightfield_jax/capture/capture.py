@@ -84,9 +84,9 @@ Keys:
   rectangle. Images are cropped to it and its edges are the medium's walls.
 - ``pixel_size_mm``: pixel pitch in mm (> 0), to report coefficients in mm⁻¹.
 - ``saturation``: image value (after integer scaling: at most 1 for integer images) at
-  or above which a raw pixel is saturated and masked. Absent: integer frames mask pixels at their top code (255
-  or 65535, i.e. 1.0, or a 16-bit file's sensor top code, see ``images``), float
-  frames mask nothing.
+  or above which a raw pixel is saturated and masked. Absent: integer frames mask
+  pixels at their top code (255 or 65535, i.e. 1.0, or a 16-bit file's sensor top
+  code, see ``images``), float frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
   (default: every channel, fitted separately).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
