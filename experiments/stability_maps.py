@@ -84,6 +84,21 @@ Bounces = Annotated[int, Range(1, 100_000)]
 Timeout = Annotated[float, Range(0, 86_400, open_low=True)]  # seconds
 
 
+def _at_least_one(spec, key: str) -> None:
+    """Refuse an empty list in a sweep's or row's mapping ``key`` (and an empty phase set
+    in ``shifts.phases``): before, ``albedo_g.albedo: []`` ended in scipy's "array of
+    sample points is empty", an empty ``noise``, ``period``, ``shifts``,
+    ``black_level`` or ``start`` list ran and published empty tables and figures (exit
+    0), and a row's ``methods: []`` ran the top level's methods."""
+    for field in dataclasses.fields(spec):
+        value = getattr(spec, field.name)
+        if isinstance(value, tuple) and not value:
+            raise ValueError(f"stability_maps: {key}.{field.name}: at least one value, got []")
+        if isinstance(value, tuple) and any(v == () for v in value):
+            i = value.index(())
+            raise ValueError(f"stability_maps: {key}.{field.name}[{i}]: at least one value, got []")
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Coefficients:
     """A medium: σt, σs per pixel (σs ≤ σt), g."""
@@ -108,6 +123,9 @@ class AlbedoG:
     albedo: tuple[Albedo, ...]
     g: tuple[G, ...]
 
+    def __post_init__(self):
+        _at_least_one(self, "albedo_g")
+
 
 @dataclasses.dataclass(frozen=True)
 class NoiseSweep:
@@ -116,6 +134,7 @@ class NoiseSweep:
     levels: tuple[tuple[float | None, ...], ...]
 
     def __post_init__(self):
+        _at_least_one(self, "noise")
         for level in self.levels:
             photons, read = level if len(level) == 2 else (-1, -1)
             if not ((photons is None or photons > 0) and read is not None and read >= 0):
@@ -129,10 +148,16 @@ class PeriodSweep:
     sigma_t: tuple[Positive, ...]
     period: tuple[Annotated[int, Range(2, 1000)], ...]
 
+    def __post_init__(self):
+        _at_least_one(self, "period")
+
 
 @dataclasses.dataclass(frozen=True)
 class ShiftsSweep:
     phases: tuple[tuple[Annotated[int, Range(0, 5)], ...], ...]  # of period 6
+
+    def __post_init__(self):
+        _at_least_one(self, "shifts")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,12 +165,18 @@ class BlackLevelSweep:
     levels: tuple[Annotated[float, Range(0, 1)], ...]
     known: tuple[bool, ...]
 
+    def __post_init__(self):
+        _at_least_one(self, "black_level")
+
 
 @dataclasses.dataclass(frozen=True)
 class StartMap:
     media: tuple[Annotated[dict, NamedCoefficients], ...]
     sigma_s_factor: tuple[Positive, ...]
     g_offset: tuple[float, ...]
+
+    def __post_init__(self):
+        _at_least_one(self, "start")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -163,6 +194,9 @@ class HighAlbedo(RowSettings):
     albedo: tuple[Albedo, ...]
     g: tuple[G, ...]
 
+    def __post_init__(self):
+        _at_least_one(self, "high_albedo")
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class RefractiveSlab(RowSettings):
@@ -170,6 +204,7 @@ class RefractiveSlab(RowSettings):
     media: tuple[Annotated[dict, NamedCoefficients], ...]
 
     def __post_init__(self):
+        _at_least_one(self, "refractive_slab")
         where = "stability_maps: refractive_slab.geometry"
         if not isinstance(parse_geometry(self.geometry, where), lfj.Slab):
             raise ValueError(f"{where}: must be a slab")

@@ -283,6 +283,18 @@ def test_help_describes_the_files(capsys):
         assert name in stdout
 
 
+@pytest.mark.parametrize(
+    "command", ["simulate", "bench", "fit", "demo", "pattern", "inspect", "render", "experiment"]
+)
+def test_every_help_runs_and_its_text_starts_at_the_margin(capsys, command):
+    """Before: each description was the raw docstring, so every line after the first was
+    printed indented by four spaces (the file tables by six)."""
+    status, stdout, err = _run(capsys, command, "--help")
+    assert status == 0 and err == ""
+    description = stdout.split("\n\n")[1]
+    assert not description.startswith(" ") and "\n    " not in description, description
+
+
 def test_progress_display_names_stages():
     stream = io.StringIO()
     with progress("simulate", 2, enabled=True, delay=0.0, file=stream) as stage:

@@ -347,6 +347,41 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
             r"high_albedo.joint_timeout: must be in \(0, 86400\]",
         ),
         ("stability_maps", {"noise": {"levels": [[1000.0]]}}, "noise.levels"),
+        # Before: run, then one of the two kept (model_size.json, forward_accuracy's
+        # scene table) or their rows mixed in one figure (stability_maps' start map).
+        (
+            "model_size",
+            {
+                "scenes": [
+                    {"name": "m", "sigma_t": 0.2, "sigma_s": s, "g": 0.4} for s in (0.03, 0.1)
+                ]
+            },
+            r"scenes: names must differ, got \['m', 'm'\]",
+        ),
+        (
+            "forward_accuracy",
+            {
+                "scenes": [
+                    {"name": "a/b", "sigma_t": 0.2, "sigma_s": 0.03, "g": 0.4, "beam": {"y": 8}}
+                ]
+            },
+            r"scenes\[0\].name: must be a non-empty name without '/', got 'a/b'",
+        ),
+        # Before: scipy's "array of sample points is empty" naming no key; an empty
+        # shifts/noise/period/black_level/start list published empty results (exit 0);
+        # a row's methods: [] ran the top level's methods.
+        (
+            "stability_maps",
+            {"albedo_g": {"sigma_t": 0.2, "albedo": [], "g": [0.4]}},
+            r"albedo_g.albedo: at least one value, got \[\]$",
+        ),
+        ("stability_maps", {"shifts": {"phases": [[0, 3], []]}}, r"shifts.phases\[1\]: at least"),
+        ("stability_maps", {"noise": {"levels": []}}, "noise.levels: at least one value"),
+        (
+            "stability_maps",
+            {"high_albedo": {"sigma_t": 0.2, "albedo": [0.9], "g": [0.5], "methods": []}},
+            "high_albedo.methods: at least one value",
+        ),
         (
             "fit_speed",
             {"fit": {"tial": None}},

@@ -111,6 +111,18 @@ def test_an_output_that_is_an_input_is_refused(capture, capsys):
     assert _snapshot(capture) == before
 
 
+def test_a_file_output_ending_in_a_separator_is_refused(capture, capsys, tmp_path):
+    """Before: ``fit --out results/`` (a folder meant, none there yet) wrote the results
+    as a file named ``results``, and ``--plot fit.png/`` a figure ``fit.png``."""
+    out = tmp_path / "results"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", f"{out}/", match="ends in '/'")
+    json_out = tmp_path / "r.json"
+    plot = f"{tmp_path / 'fit.png'}/"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", json_out, "--plot", plot, match=plot)
+    _refused(capsys, "inspect", capture / "capture.yaml", "--json", f"{out}/", match="a folder")
+    assert sorted(tmp_path.iterdir()) == [capture]
+
+
 def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_path):
     """Before: ``render --out DIR`` into simulate's folder replaced its bounces.npy
     (exit 0), and simulate into render's folder its bounces.npy and bounces.exr."""
@@ -230,6 +242,21 @@ def test_an_empty_output_path_is_refused_by_its_option(capture, capsys, tmp_path
     assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "sim.yaml"]
 
 
+def test_a_dash_for_standard_output_is_refused_by_its_option(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: ``inspect --json -`` (standard output, to most tools) wrote a file named
+    ``-`` in the current folder, and ``fit --out -`` its results there."""
+    monkeypatch.chdir(tmp_path)
+    for argv, option in (
+        (["inspect", capture / "capture.yaml", "--json", "-"], "--json"),
+        (["fit", capture / "capture.yaml", "--out", "-"], "--out"),
+        (["fit", capture / "capture.yaml", "--out", "r.json", "--plot", "-"], "--plot"),
+    ):
+        _refused(capsys, *argv, match=f"{option}: '-' (standard output) is not supported")
+    assert sorted(os.listdir(tmp_path)) == ["cap"]
+
+
 def test_two_outputs_naming_one_file_are_refused(capture, capsys, tmp_path):
     out = tmp_path / "r.png"
     _refused(
@@ -290,6 +317,22 @@ def test_an_experiment_config_is_read_by_the_configs_loader(capsys, tmp_path):
     levels += [f"a{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]" for i in range(1, 9)]
     bomb.write_text("experiment: fit_speed\n" + "\n".join(levels) + "\nn_theta: *l8\n")
     _refused(capsys, "experiment", bomb, "--out", tmp_path / "o", match="alias")
+
+
+def test_the_default_experiment_folder_is_checked_like_a_given_one(capsys, tmp_path, monkeypatch):
+    """Before: without --out the folder results/NAME was not checked: an experiment ran
+    and wrote its *.json and figures into the outputs of another command there (here
+    simulate's, whose metadata.json matches), which --out results/NAME refuses."""
+    monkeypatch.chdir(tmp_path)
+    folder = tmp_path / "results" / "coverage"
+    folder.mkdir(parents=True)
+    (folder / "metadata.json").write_text("{}")
+    _refused(
+        capsys,
+        *("experiment", "coverage", "--reduced"),
+        match="results/coverage: holds the outputs of lightfield-jax simulate (metadata.json)",
+    )
+    assert sorted(p.name for p in folder.iterdir()) == ["metadata.json"]
 
 
 def test_pattern_does_not_replace_a_capture_file(capsys, tmp_path):
@@ -635,6 +678,18 @@ def test_bench_sizes_too_large_for_memory_are_refused(tmp_path, capsys):
         *("bench", "--sizes", "3000x3000x512", "--out", tmp_path / "b.json"),
         match="bench --sizes 3000x3000x512 needs about",
     )
+    assert not (tmp_path / "b.json").exists()
+
+
+@pytest.mark.parametrize("flag", ["--fits", "--no-fits"])
+def test_bench_repeats_beyond_any_use_are_refused(tmp_path, capsys, flag):
+    """Before: ``bench --repeats 1000000000`` was taken and timed the renders (with
+    ``--fits``: fresh fit processes) until killed; now refused by argparse at once."""
+    status, out, err = _run(
+        capsys, "bench", "--repeats", "1000000000", flag, "--out", tmp_path / "b.json"
+    )
+    assert status == 2 and len(err.splitlines()) == 1, err
+    assert "argument --repeats: must be at most 1000, got '1000000000'" in err
     assert not (tmp_path / "b.json").exists()
 
 
@@ -1174,6 +1229,42 @@ def test_render_refuses_channel_names_that_leave_its_folder(capture, capsys, tmp
     assert sorted(os.listdir(tmp_path)) == ["cap", "results.json", "rgb.json"]
 
 
+def test_render_never_takes_another_folders_capture_file(capture, capsys, tmp_path, monkeypatch):
+    """Before: fit wrote the capture's path as given (``capture.yaml``, run in its
+    folder), and render looked for it in the current folder first: run from another
+    capture's folder, it rendered with that capture's geometry, silently. Now fit
+    writes the absolute path, and a relative one that names two files is refused."""
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    monkeypatch.chdir(capture)
+    status = main(["fit", "capture.yaml", "--method", "gradient", "--out", "r.json", "-q"])
+    assert status in (0, 1)
+    capsys.readouterr()
+    fit = json.loads((capture / "r.json").read_text())
+    assert fit["capture"] == str(capture / "capture.yaml")
+    fit["capture"] = "capture.yaml"  # as fit wrote it before
+    (capture / "r.json").write_text(json.dumps(fit))
+    monkeypatch.chdir(other)
+    view = tmp_path / "view"
+    _refused(capsys, "render", capture / "r.json", "--out", view, match="names two files")
+    assert not view.exists()
+
+
+def test_a_truth_in_another_phase_convention_is_not_compared_for_sigma_s(capture, capsys, tmp_path):
+    """Before: ``fit --phase normalized`` of a capture whose truth is ``phase: paper``
+    printed 'sigma_s -38.1 % (-186.1 sigma)' against the truth (and wrote it) for a fit
+    that had found the medium: the conventions' sigma_s differ by A(g)."""
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", capture / "capture.yaml", "--phase", "normalized", "--out", out
+    )
+    assert status in (0, 1), err
+    assert "truth.phase is paper, the fit's --phase normalized: sigma_s is not compared" in err
+    said = [line for line in stdout.splitlines() if "against the truth" in line]
+    assert len(said) == 1 and "sigma_t" in said[0] and "sigma_s" not in said[0], stdout
+    assert set(json.loads(out.read_text())["truth_error"]) == {"sigma_t", "g"}
+
+
 def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     results = _results(capture, tmp_path)
     assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
@@ -1212,6 +1303,30 @@ def test_a_saturation_beyond_float32_is_refused(capture, capsys):
         capsys,
         *("inspect", capture / "capture.yaml"),
         match="saturation: must be at most 1e+30 (images are float32), got 1e+300",
+    )
+
+
+@pytest.mark.parametrize("bracketed", [False, True])
+def test_a_saturation_in_codes_for_integer_images_is_refused(capture, capsys, bracketed):
+    """Before: ``saturation: 65000`` (codes, for 16-bit images scaled to [0, 1]) masked
+    nothing: the values clipped at the top code were fitted as light, without a word."""
+    names = []
+    for i in range(P):
+        x = read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0]
+        write_png(capture / f"s{i}.png", np.clip(3 * x, 0, 1), bits=16)
+        names.append(f"s{i}.png")
+    write_png(capture / "d.png", np.zeros((H, W)), bits=16)
+    if bracketed:
+        _edit(capture, images=[[n, n] for n in names], exposure_times=[1, 2])
+        _edit(capture, dark_frame=["d.png", "d.png"])
+    else:
+        _edit(capture, images=names, dark_frame="d.png")
+    _edit(capture, saturation=65000)
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match="saturation: must be at most 1 with integer images (s0.png is 16-bit, scaled to "
+        "[0, 1]: its top code is 1), got 65000: a threshold of 65000 codes is saturation: 0.991836",
     )
 
 
@@ -1442,6 +1557,70 @@ def test_one_file_in_two_roles_is_refused(capture, capsys, tmp_path, change, mat
     assert not out.exists()
 
 
+def _bracketed(capture: Path) -> Path:
+    """The capture as two-exposure brackets (float EXR, times 1 and 4 s), dark frame alike."""
+    rows = []
+    for i in range(P):
+        x = read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0]
+        for j, t in enumerate((1, 4)):
+            write_exr(capture / f"b{i}_{j}.exr", {"Y": x * t})
+        rows.append([f"b{i}_{j}.exr" for j in range(2)])
+    dark = read_image(capture / "dark.exr").pixels[..., 0]
+    for j in range(2):
+        write_exr(capture / f"dark_{j}.exr", {"Y": dark})
+    return _edit(
+        capture, images=rows, exposure_times=[1, 4], dark_frame=["dark_0.exr", "dark_1.exr"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (
+            {"dark_frame": ["b0_0.exr", "dark_1.exr"]},
+            "dark_frame[0]: b0_0.exr is also images[0][0]",
+        ),
+        (
+            {"black_frame": ["dark_0.exr", "dark_1.exr"]},
+            "black_frame[0]: dark_0.exr is also dark_frame[0]",
+        ),
+    ],
+)
+def test_one_file_in_two_roles_is_refused_in_brackets(capture, capsys, tmp_path, change, match):
+    """Before: with exposure brackets the files were not compared at all: a stripe
+    image's exposure taken as a dark frame (or the dark bracket as the black one) was
+    merged and fitted. Now refused as for single exposures, naming both keys."""
+    _bracketed(capture)
+    _edit(capture, **change)
+    out = tmp_path / "r.json"
+    _refused(capsys, "fit", capture / "capture.yaml", "--out", out, match=match)
+    assert not out.exists()
+
+
+def test_a_calibration_frame_repeated_in_its_own_bracket_is_kept(capture):
+    """The same dark frame at every exposure is one role, not two."""
+    _bracketed(capture)
+    assert lfj.load_capture(capture / "capture.yaml").brackets.times == (1.0, 4.0)
+
+
+def test_a_response_table_named_npy_is_refused(capture, capsys, tmp_path):
+    """Before: ``inspect --response curve.npy`` wrote the CSV text into curve.npy, which
+    ``response: curve.npy`` then refused as 'not a readable .npy array'."""
+    _bracketed(capture)
+    table = tmp_path / "curve.npy"
+    _refused(capsys, "inspect", capture / "capture.yaml", "--response", table, match="name it .csv")
+    assert not table.exists()
+
+
+def test_a_npy_stack_as_a_calibration_frame_too_is_named(capture, capsys):
+    """Before: the stack [P, H, W] given also as the dark frame was refused as 'st.npy is
+    24x6 pixels with 32 channel(s)' (its axes read as an image's), not as the slip."""
+    stack = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    np.save(capture / "st.npy", stack)
+    _edit(capture, images="st.npy", dark_frame="st.npy")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="dark_frame: st.npy is also images")
+
+
 def test_api_arguments_are_checked_before_any_work():
     """Before: boolean images ran a 26 s nonsense fit, a mask of another shape ended in
     numpy's broadcast message, a negative saturation in 'sigma_t is not identifiable',
@@ -1538,6 +1717,20 @@ def test_a_stripe_image_listed_twice_is_said_where_the_phases_cannot_catch_it(ca
     path.write_text(yaml.safe_dump(data))
     _, _, err = _run(capsys, "inspect", path)
     assert "images[5] (shift_00.exr) is the file of images[0] listed again" in err, err
+    assert "Traceback" not in err
+
+
+def test_a_bracket_listed_twice_is_said_where_the_phases_cannot_catch_it(capture, capsys):
+    """Before: the warning above was given for single exposures only: with brackets and
+    phases: auto, one shift's bracket listed again was merged and fitted as two shifts
+    without a word."""
+    path = _bracketed(capture)
+    data = yaml.safe_load(path.read_text())
+    data["images"][5] = data["images"][0]
+    data["pattern"]["phases"] = "auto"
+    path.write_text(yaml.safe_dump(data))
+    _, _, err = _run(capsys, "inspect", path)
+    assert "images[5] (b0_0.exr, b0_1.exr) is the bracket of images[0] listed again" in err, err
     assert "Traceback" not in err
 
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import inspect
 import math
 import sys
 import unicodedata
@@ -118,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(
             name,
             help=help_text,
-            description=handler.__doc__,
+            description=inspect.cleandoc(handler.__doc__ or ""),
             parents=[common],
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
@@ -180,10 +181,16 @@ PATH_OPTIONS = ("out", "plot", "json", "response")
 
 def _refuse_empty_paths(args: argparse.Namespace) -> None:
     """An empty output path (``--out ''``) is a mistake, not "no output" nor ".": refuse
-    it by the option's name."""
+    it by the option's name; so is ``-``, which means standard output to most tools
+    (before: ``--json -`` wrote a file named ``-``)."""
     for name in PATH_OPTIONS:
         if getattr(args, name, None) == "":
             raise ValueError(f"--{name}: an empty path")
+        if getattr(args, name, None) == "-":
+            raise ValueError(
+                f"--{name}: '-' (standard output) is not supported; give a file name "
+                "(./- for a file named -)"
+            )
 
 
 # Escaped in a message line: control characters, format characters (a right-to-left

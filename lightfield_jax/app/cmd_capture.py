@@ -134,6 +134,12 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     plot = Path(args.plot) if args.plot else None
     out = Path(args.json) if args.json else None
     response = Path(args.response) if args.response else None
+    if response is not None and response.suffix.lower() == ".npy":
+        # The table is text; response: FILE.npy would read it back as a NumPy array.
+        raise ValueError(
+            f"--response: {response}: the table is written as text (CSV), which a .npy "
+            "name would have read back as a NumPy array; name it .csv"
+        )
     capture = load_capture(args.capture)
     if response is not None and capture.brackets is None:
         raise ValueError(f"--response: {args.capture} has no exposure brackets")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -53,10 +54,12 @@ def _fit_summary(fit) -> str:
     return "\n".join(lines)
 
 
-def _against_truth(capture, fit) -> list[dict]:
+def _against_truth(capture, fit, phase: str) -> list[dict]:
     """Per fitted channel, each parameter the capture's truth gives: the error (σt, σs
     in %, g absolute) and in units of the reported total 1σ. A σt or σs whose truth is
-    0 (no relative error) gets its absolute error, marked ``"absolute": true``."""
+    0 (no relative error) gets its absolute error, marked ``"absolute": true``. A σs
+    whose truth is in another phase convention than the fit's ``phase`` is not compared
+    (:func:`_truth_phase_note`)."""
     from lightfield_jax.capture.keys import truth_for
 
     out = []
@@ -64,7 +67,7 @@ def _against_truth(capture, fit) -> list[dict]:
         truth = truth_for(capture.truth, capture.channel_names.index(name)) or {}
         e = {}
         for k in ("sigma_t", "sigma_s", "g"):
-            if k not in truth:
+            if k not in truth or (k == "sigma_s" and truth.get("phase", phase) != phase):
                 continue
             value, true, sd = getattr(r, k), truth[k], r.uncertainty.get(k, float("nan"))
             diff = value - true
@@ -77,6 +80,26 @@ def _against_truth(capture, fit) -> list[dict]:
                 e[k]["absolute"] = True
         out.append(e)
     return out
+
+
+def _truth_phase_note(capture, phase: str) -> str | None:
+    """What to say where the capture's truth is in another phase convention than the
+    fit's: its σs is not compared (before: ``fit --phase normalized`` of a ``paper``
+    truth printed σs -38 %, -186 sigma, for a fit that had found the medium)."""
+    from lightfield_jax.capture.keys import truth_for
+
+    phases = {
+        (truth_for(capture.truth, i) or {}).get("phase", phase)
+        for i in range(len(capture.channel_names))
+    }
+    others = sorted(str(p) for p in phases - {phase})
+    if not others:
+        return None
+    return (
+        f"{capture.source}: truth.phase is {', '.join(others)}, the fit's --phase {phase}: "
+        "sigma_s is not compared with the truth (the conventions' sigma_s differ by the "
+        "phase function's integral)"
+    )
 
 
 def _error_unit(k: str, v: dict) -> str:
@@ -248,6 +271,8 @@ def _fit(args: argparse.Namespace) -> int | None:
     channels = args.channel or capture.channel_names
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
     _outputs(files=[out, *figures], inputs=inputs)
+    if capture.truth and (note := _truth_phase_note(capture, args.phase)) is not None:
+        _warn(args, note)
     h, w = capture.shape
     defaults = FitOptions(**capture.fit_options)
     # θ bins or a refinement fixed by the capture's fit: settings are never lowered to
@@ -293,9 +318,9 @@ def _fit(args: argparse.Namespace) -> int | None:
             )
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
         result = _label_two_step(args.method, fit.to_dict())
-        result["capture"] = str(capture.source)
+        result["capture"] = os.path.abspath(capture.source)  # render finds it from anywhere
         result["response"] = capture.response_record()
-        compared = _against_truth(capture, fit) if capture.truth else []
+        compared = _against_truth(capture, fit, args.phase) if capture.truth else []
         if capture.truth:
             result["truth"] = capture.truth
             result["truth_error"] = compared[0] if len(compared) == 1 else compared

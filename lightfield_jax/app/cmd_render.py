@@ -95,18 +95,25 @@ def _experiment(args: argparse.Namespace) -> None:
     status 1 when the experiment itself fails, 2 for a bad config). A rerun into the
     same DIR resumes from the work already stored in DIR/cache."""
     from lightfield_jax.app.cli import PROG, _one_line
-    from lightfield_jax.app.experiment import ExperimentError, run_experiment
+    from lightfield_jax.app.experiment import (
+        ExperimentError,
+        load_experiment_config,
+        run_experiment,
+    )
 
     config = Path(args.config)  # a config inside DIR named like an output is kept
+    out = args.out
+    if out is None:  # the default folder is checked like one given
+        out = str(Path("results") / str(load_experiment_config(config, args.reduced)["experiment"]))
     _outputs(
-        folders=[args.out],
+        folders=[out],
         inputs=[config] if config.is_file() else [],
         folder_names=("*.json", "*.csv", "*.png", "*.npz"),
         marker="summary.json",
     )
     try:
         with _progress(args, "experiment") as stage:
-            record = run_experiment(args.config, args.out, reduced=args.reduced, progress=stage)
+            record = run_experiment(args.config, out, reduced=args.reduced, progress=stage)
     except ExperimentError as e:
         if args.debug:
             raise

@@ -141,6 +141,18 @@ def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
     return tuple(sizes)
 
 
+# Timed runs per measurement (with --fits: processes per method, each a fresh fit): a
+# median of more is no steadier, and --repeats 1000000000 ran for days.
+MAX_REPEATS = 1000
+
+
+def _repeats(text: str) -> int:
+    value = _positive_int(text)
+    if value > MAX_REPEATS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_REPEATS}, got {text!r}")
+    return value
+
+
 @command(
     "bench",
     "time the forward model on a few grid sizes",
@@ -153,9 +165,10 @@ def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
     ),
     arg(
         "--repeats",
-        type=_positive_int,
+        type=_repeats,
         default=None,
-        help="timed runs per measurement (default 5; with --fits 3 processes per method)",
+        help="timed runs per measurement (default 5; with --fits 3 processes per method; "
+        "at most 1000)",
     ),
     arg("--out", default="bench.json", metavar="FILE", help="JSON results (default: %(default)s)"),
     arg(

@@ -268,7 +268,9 @@ def _check_value(value, annotation, key: str):
         inner = args[0] if args else Any
         if not isinstance(value, (list, tuple)):
             raise _WrongType(key, annotation, value)
-        return tuple(_check_value(v, inner, f"{key}[{i}]") for i, v in enumerate(value))
+        items = tuple(_check_value(v, inner, f"{key}[{i}]") for i, v in enumerate(value))
+        _check_names(items, key)
+        return items
     if annotation is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         if ok and not math.isfinite(value):
@@ -282,6 +284,21 @@ def _check_value(value, annotation, key: str):
     if not ok:
         raise _WrongType(key, annotation, value)
     return value
+
+
+def _check_names(items: tuple, key: str) -> None:
+    """A list of named mappings (media, scenes): the names key the tables, the figures
+    and some figures' file names, so they must differ and hold no path separator
+    (before: two scenes of one name ran both, then kept one in the results or mixed
+    their rows in one figure; a name with '/' named a figure file in another folder)."""
+    names = [v["name"] for v in items if isinstance(v, dict) and isinstance(v.get("name"), str)]
+    if len(names) != len(items):
+        return
+    for i, name in enumerate(names):
+        if not name or "/" in name or "\\" in name or "\0" in name:
+            raise _Invalid(f"{key}[{i}].name: must be a non-empty name without '/', got {name!r}")
+    if len(set(names)) < len(names):
+        raise _Invalid(f"{key}: names must differ, got {names}")
 
 
 def _build(cls, config: dict, prefix: str = ""):

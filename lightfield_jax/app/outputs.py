@@ -110,6 +110,9 @@ def check_outputs(
     seen: dict[str, str] = {}
     for given, folder in [(f, False) for f in files] + [(d, True) for d in folders]:
         path = Path(given)
+        if not folder and os.fspath(given).endswith(("/", os.sep)):
+            # Path() drops the separator: "--out new/" wrote the results as a file "new".
+            raise OutputError(f"{given}: ends in {os.sep!r}, a folder; expected a file name")
         _check_kind(path, folder)
         for source in inputs:
             inside = folder and _same(path, source.parent)

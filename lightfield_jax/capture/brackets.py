@@ -16,7 +16,7 @@ from lightfield_jax.capture.calibration import (
     drop_constant_alpha,
     sensor_top_code,
 )
-from lightfield_jax.capture.frames import _aux_frame, _file, _read, _size
+from lightfield_jax.capture.frames import _aux_frame, _distinct_files, _file, _read, _size
 from lightfield_jax.capture.hdr import (
     CLIP,
     EXPOSURE_RATIO_TOLERANCE,
@@ -28,7 +28,13 @@ from lightfield_jax.capture.hdr import (
     merge_capture,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import _AUX_FRAMES, _dark_level, _positive, dark_level_text
+from lightfield_jax.capture.keys import (
+    _AUX_FRAMES,
+    _dark_level,
+    _positive,
+    check_integer_saturation,
+    dark_level_text,
+)
 
 
 def _brackets(top: _Section, base: Path, channel, notes: list[str]):
@@ -93,7 +99,6 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         raise CaptureError(f"{top.source}: images: {e}") from None
     shifts = [[next(kept) for _ in row] for row in shifts]
     first = shifts[0][0]
-    aux: dict[str, list[ImageData] | None] = {}
     for key in _AUX_FRAMES:
         files = top.get(key, None)
         if files is not None and (not isinstance(files, list) or len(files) != len(times)):
@@ -102,6 +107,10 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
                 f"with bracketed images give one file per exposure time ({len(times)}), in "
                 f"their order, got {files!r}",
             )
+    _distinct_files(top, base)
+    aux: dict[str, list[ImageData] | None] = {}
+    for key in _AUX_FRAMES:
+        files = top.get(key, None)
         aux[key] = (
             None if files is None else [read(f"{key}[{j}]", f, first) for j, f in enumerate(files)]
         )
@@ -114,6 +123,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
     clip = _positive(top, "saturation")
+    check_integer_saturation(top, clip, first)
     # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
     sensor = None
     if clip is None:

@@ -83,10 +83,10 @@ Keys:
 - ``medium_roi``: [x0, y0, x1, y1] in pixels, x1 and y1 exclusive: the medium's
   rectangle. Images are cropped to it and its edges are the medium's walls.
 - ``pixel_size_mm``: pixel pitch in mm (> 0), to report coefficients in mm⁻¹.
-- ``saturation``: image value (after integer scaling) at or above which a raw pixel
-  is saturated and masked. Absent: integer frames mask pixels at their top code (255
-  or 65535, i.e. 1.0, or a 16-bit file's sensor top code, see ``images``), float
-  frames mask nothing.
+- ``saturation``: image value (after integer scaling: at most 1 for integer images) at
+  or above which a raw pixel is saturated and masked. Absent: integer frames mask
+  pixels at their top code (255 or 65535, i.e. 1.0, or a 16-bit file's sensor top
+  code, see ``images``), float frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
   (default: every channel, fitted separately).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
@@ -200,6 +200,7 @@ from lightfield_jax.capture.keys import (
     _roi,
     _stripes,
     _truth,
+    check_integer_saturation,
     dark_level_text,
     pixel_size_problem,
 )
@@ -369,6 +370,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if (problem := pixel_size_problem(pixel_size)) is not None:
         top.fail("pixel_size_mm", problem)
     saturation = _positive(top, "saturation") if merged is None else None
+    check_integer_saturation(top, saturation, frames[0])
     geometry = _geometry(top)
     truth = _truth(top, n_channels)
 
@@ -519,7 +521,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if contradiction:
         notes.append(contradiction)
     # After the phases' checks, which refuse a repeated image where phases are given.
-    if merged is None and (again := _images_listed_twice(top, base)) is not None:
+    if (again := _images_listed_twice(top, base)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated

@@ -99,9 +99,11 @@ def _images_listed_twice(top: _Section, base: Path) -> str | None:
     seen: dict[Any, int] = {}
     again = []
     for i, value in enumerate(images):
-        if not isinstance(value, str) or not value or "\0" in value:
+        # A bracket (a list of exposures) is one shift too: its files, in order.
+        files = value if isinstance(value, list) else [value]
+        if not all(isinstance(v, str) and v and "\0" not in v for v in files):
             continue
-        ident = _file_identity(base, value)
+        ident = tuple(_file_identity(base, v) for v in files)
         if ident in seen:
             again.append((i, seen[ident]))
         seen.setdefault(ident, i)
@@ -109,9 +111,11 @@ def _images_listed_twice(top: _Section, base: Path) -> str | None:
         return None
     i, j = again[0]
     more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    bracket = isinstance(images[i], list)
+    shown = ", ".join(images[i]) if bracket else images[i]
     return (
-        f"images[{i}] ({images[i]}) is the file of images[{j}] listed again{more}: one "
-        "image counted as two shifts (a slip in the list?)"
+        f"images[{i}] ({shown}) is the {'bracket' if bracket else 'file'} of images[{j}] "
+        f"listed again{more}: one image counted as two shifts (a slip in the list?)"
     )
 
 
@@ -124,15 +128,29 @@ def _distinct_files(top: _Section, base: Path) -> None:
     images = top.get("images", None)
     if isinstance(images, list):
         roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
+    else:  # a .npy stack (before: its file as a calibration frame was refused by size)
+        roles.append(("images", images))
     roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
+    # Exposure brackets: each exposure's file (images[i][j], dark_frame[j]).
+    roles = [
+        item
+        for key, value in roles
+        for item in (
+            [(f"{key}[{j}]", v) for j, v in enumerate(value)]
+            if isinstance(value, list)
+            else [(key, value)]
+        )
+    ]
     seen: dict[Any, str] = {}
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
             continue  # not a path: _file names its key
         ident = _file_identity(base, value)
-        # A stripe image listed twice is left to the phases' checks.
-        both_images = key.startswith("images[") and seen.get(ident, "").startswith("images[")
-        if ident in seen and not both_images:
+        # A stripe image listed twice is left to the phases' checks (and, within a
+        # bracket, to its exposure ratios); a calibration frame repeated in its own
+        # bracket keeps its role.
+        role, other = key.split("[")[0], seen.get(ident, "").split("[")[0]
+        if ident in seen and role != other:
             top.fail(key, f"{value} is also {seen[ident]}: one file cannot be both")
         seen.setdefault(ident, key)
 

@@ -305,6 +305,25 @@ def _positive(top: _Section, key: str) -> float | None:
     return value
 
 
+def check_integer_saturation(top: _Section, value: float | None, frame) -> None:
+    """``saturation`` above 1 with integer images (``frame``), whose samples are scaled
+    to [0, 1], would mask nothing: a threshold given in codes (65000 of 65535) kept
+    every clipped value in the fit, without a word."""
+    if value is not None and value > 1 and frame.is_integer:
+        top_code = (1 << frame.bit_depth) - 1
+        codes = (
+            f": a threshold of {value:g} codes is saturation: {value / top_code:.6g} "
+            f"({value:g}/{top_code})"
+            if value <= top_code
+            else ""
+        )
+        top.fail(
+            "saturation",
+            f"must be at most 1 with integer images ({frame.path.name} is {frame.bit_depth}-bit, "
+            f"scaled to [0, 1]: its top code is 1), got {value:g}{codes}",
+        )
+
+
 def _geometry(top: _Section) -> dict[str, Any]:
     """The model geometry: ``{kind: plane}`` (default) or a slab (docs/model.md §7)."""
     if "geometry" not in top.data:

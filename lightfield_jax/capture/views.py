@@ -202,10 +202,21 @@ def render_results(
         raise ValueError(
             f"{source}: capture: must be the capture file's path, got {data['capture']!r}"
         )
-    # The fit wrote the capture's path as given; from elsewhere, try beside the results.
+    # The fit writes the capture's absolute path (before: as given, relative to the
+    # folder it ran in); from elsewhere, try beside the results. A relative path that
+    # names one file here and another beside the results is refused: render picked the
+    # current folder's capture.yaml (another capture's geometry) silently.
     named = Path(data["capture"])
     candidates = [named, source.parent / named, source.parent / named.name]
-    capture_path = next((c for c in candidates if c.exists()), named)
+    found = {os.path.realpath(c): c for c in candidates if c.exists()}
+    if len(found) > 1:
+        here, beside = list(found.values())[:2]
+        raise ValueError(
+            f"{source}: capture: {named} names two files, {here} (from the current folder) "
+            f"and {beside} (beside the results): run render where the fit ran, or give the "
+            "capture's absolute path in the results"
+        )
+    capture_path = next(iter(found.values()), named)
     stage("load the capture")
     try:
         capture = load_capture(capture_path)
