@@ -95,7 +95,13 @@ def number_problem(
             return f"must be {what}, got {shown(value)} (dtype {dtype})"
         v = float(value)
     if isinstance(v, float) or not integer:
-        f = float(v)
+        try:
+            f = float(v)
+        except OverflowError:  # an int beyond float64 (10**400): was a bare OverflowError
+            if (low is None or v >= low) and (high is None or v <= high):
+                big = sys.float_info.max
+                return f"must be a number of magnitude at most {big:.3g}, got {shown(value)}"
+            f = 0.0  # outside the range: said below
         if math.isnan(f) or (math.isinf(f) and not allow_inf):
             return f"must be finite, got {shown(value)}"
     if (low is not None and (v < low or (low_open and v == low))) or (

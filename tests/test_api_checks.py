@@ -790,3 +790,24 @@ def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
         lfj.Grid(2, 2, 8 * 10**4, 1)
     with pytest.raises(ValueError, match=f"^{limit}"):
         lfj.FitOptions(n_theta=8 * 10**4)
+
+
+def test_a_python_int_beyond_float64_is_named_not_an_overflow():
+    """Before: Medium(10**400, ...), render(gain=10**400) and FitOptions(basin_tolerance=
+    10**400) raised a bare 'OverflowError: int too large to convert to float', naming
+    neither the argument nor the range."""
+    huge = 10**400
+    assert number_problem(huge, low=0, high=1).startswith("must be a number in [0, 1], got 1")
+    for make, match in [
+        (lambda: lfj.Medium(huge, 0.1, 0.3), "medium.sigma_t: must be a number of magnitude at"),
+        (lambda: lfj.Medium(0.2, 0.1, -huge), "medium.g: must be a number of magnitude at most"),
+        (lambda: lfj.FitOptions(basin_tolerance=huge), "basin_tolerance: must be a number of"),
+        (
+            lambda: lfj.render(lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1), lfj.Full(), 2,
+                               gain=huge),
+            r"render: gain: must be a number in \[1e-30, 1e\+30\]",
+        ),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match) as err:
+            make()
+        _one_line(err)
