@@ -811,3 +811,11 @@ def test_a_python_int_beyond_float64_is_named_not_an_overflow():
         with pytest.raises(ValueError, match=match) as err:
             make()
         _one_line(err)
+
+
+def test_images_of_different_shapes_in_one_list_are_named():
+    """Before: a list of shifted images of two sizes ended in numpy's 'setting an array
+    element with a sequence ... inhomogeneous shape', naming no argument."""
+    images = [np.ones((24, 32))] * 5 + [np.ones((24, 30))]
+    with pytest.raises(ValueError, match=r"^images: must be an array \(6, height, width\)"):
+        lfj.fit_images(images, lfj.Stripes())

@@ -147,7 +147,13 @@ def prepare_data(
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     images, mask = unmask(images, mask)
-    given = np.asarray(images)
+    try:
+        given = np.asarray(images)
+    except (TypeError, ValueError):  # a ragged list: was numpy's "inhomogeneous shape"
+        raise ValueError(
+            f"images: must be an array ({pattern.n_patterns}, height, width) of real "
+            f"numbers, got {type(images).__name__} of images of different shapes"
+        ) from None
     if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
     images = given.astype(jnp.result_type(float))
