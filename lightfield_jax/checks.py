@@ -196,11 +196,36 @@ def unmasked(values) -> tuple[np.ndarray, np.ndarray]:
     return data, np.zeros(data.shape, bool)
 
 
+def check_mask(mask, key: str = "mask"):
+    """``mask`` as a bool array (``None`` as given), or ``ValueError("KEY: ...")``: flags
+    are bools, or numbers that are 0 or 1 (a NaN, a 2 or a string was taken as true, an
+    object array of ``None`` as false)."""
+    if mask is None:
+        return None
+    try:
+        flags = np.asarray(mask)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be an array of flags, got {type(mask).__name__}") from None
+    if flags.dtype.kind == "b":
+        return flags
+    if flags.dtype.kind not in "iuf":
+        raise ValueError(f"{key}: must be flags (bool, or 0 and 1), got dtype {flags.dtype}")
+    other = ~((flags == 0) | (flags == 1))
+    if other.any():
+        raise ValueError(
+            f"{key}: must be flags (bool, or 0 and 1), got {int(other.sum())} of "
+            f"{flags.size} values that are neither, e.g. {flags[other].flat[0].item()!r}"
+        )
+    return flags.astype(bool)
+
+
 def unmask(images, mask=None):
     """``(images, mask)`` with a numpy masked array's mask honoured: its masked values
     are excluded, combined with ``mask`` (``True`` where valid, per pixel ``(height,
     width)`` or per value like ``images``) into a per-value mask. Anything else is
-    returned as given (``np.asarray`` would drop the mask silently)."""
+    returned as given (``np.asarray`` would drop the mask silently). ``mask`` is checked
+    (:func:`check_mask`) and returned as a bool array."""
+    mask = check_mask(mask)
     if not isinstance(images, np.ma.MaskedArray):
         return images, mask
     data, masked = unmasked(images)
@@ -212,7 +237,7 @@ def unmask(images, mask=None):
     given = np.asarray(mask)
     if given.shape not in (data.shape, data.shape[-2:]):
         return data, mask  # refused as it would be without the masked array
-    return data, given.astype(bool) & valid  # as prepare_data takes a mask: truthiness
+    return data, given & valid
 
 
 def masked_to_nan(images):

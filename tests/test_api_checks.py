@@ -819,3 +819,22 @@ def test_images_of_different_shapes_in_one_list_are_named():
     images = [np.ones((24, 32))] * 5 + [np.ones((24, 30))]
     with pytest.raises(ValueError, match=r"^images: must be an array \(6, height, width\)"):
         lfj.fit_images(images, lfj.Stripes())
+
+
+def test_a_mask_of_values_that_are_not_flags_is_refused():
+    """Before: a mask of NaN (or of 2s, or of strings) was taken as all true and the fit
+    ran on every pixel; an object array of None as all false ('no pixel is valid ... by
+    mask'). Flags are bools, or numbers 0 and 1 (ints and floats still taken)."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    for mask, match in [
+        (np.full((24, 32), np.nan), r"^mask: .* got 768 of 768 values that are neither, e.g. nan"),
+        (np.full((24, 32), 2), r"^mask: must be flags \(bool, or 0 and 1\), got 768 of 768"),
+        (np.full((24, 32), "x"), r"^mask: must be flags \(bool, or 0 and 1\), got dtype <U1"),
+        (np.full((24, 32), None), r"^mask: must be flags \(bool, or 0 and 1\), got dtype object"),
+    ]:
+        for given in (images, np.ma.masked_array(images, mask=images > 0.99)):
+            with pytest.raises(ValueError, match=match):
+                lfj.fit_images(given, lfj.Stripes(), mask=mask)
+    from lightfield_jax.checks import check_mask
+
+    assert check_mask(np.eye(3)).dtype == bool and check_mask([[1, 0], [0, 1]]).sum() == 2
