@@ -838,3 +838,11 @@ def test_a_mask_of_values_that_are_not_flags_is_refused():
     from lightfield_jax.checks import check_mask
 
     assert check_mask(np.eye(3)).dtype == bool and check_mask([[1, 0], [0, 1]]).sum() == 2
+
+
+def test_a_saturation_beyond_float64_is_named():
+    """Before: fit_images(saturation=10**400) ended in numpy's "ufunc 'isfinite' not
+    supported for the input types", naming no argument."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    with pytest.raises(ValueError, match=r"^saturation: must be a positive number, got 1000"):
+        lfj.fit_images(images, lfj.Stripes(), saturation=10**400)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.checks import unmask, unmasked
+from lightfield_jax.checks import number_problem, shown, unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
@@ -200,13 +200,10 @@ def prepare_data(
     if split is not None:
         direct, multiple, unknown = _split_images(split, images.shape[1:], images.dtype)
         mask = _excluding(mask, unknown)
-    if saturation is not None and not (
-        isinstance(saturation, (int, float, np.number))
-        and not isinstance(saturation, bool)
-        and np.isfinite(saturation)
-        and saturation > 0
-    ):
-        raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
+    if saturation is not None:  # 10**400 was numpy's "ufunc 'isfinite' not supported"
+        if number_problem(saturation, low=0.0, low_open=True) is not None:
+            raise ValueError(f"saturation: must be a positive number, got {shown(saturation)}")
+        saturation = float(saturation)
     samples, censored, floored = valid_values(images, pattern, mask, saturation, clipped, floored)
     top = censored & ~floored & finite
     level = _clip_level(images, top, saturation)
