@@ -846,3 +846,18 @@ def test_a_saturation_beyond_float64_is_named():
     images = np.random.default_rng(0).random((6, 24, 32))
     with pytest.raises(ValueError, match=r"^saturation: must be a positive number, got 1000"):
         lfj.fit_images(images, lfj.Stripes(), saturation=10**400)
+
+
+def test_a_split_of_values_that_are_not_intensities_is_refused():
+    """Before: a complex split was cast to real with a warning and fitted (28 s), one of
+    strings ended in numpy's DTypePromotionError, one with NaN in 'fit_decay: sigma_t is
+    not identifiable: 0 usable pixels'."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    one = np.ones((24, 32))
+    for split, match in [
+        ((one.astype(complex), one), "^split: direct: must be real numbers, got dtype complex"),
+        ((one, np.full((24, 32), "x")), "^split: multiple: must be real numbers, got dtype <U1"),
+        ((one * np.nan, one), "^split: direct: must be finite where not masked, got 768 of 768"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.fit_images(images, lfj.Stripes(), split=split)

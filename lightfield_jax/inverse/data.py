@@ -301,6 +301,17 @@ def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...
             f"got {direct.shape} and {multiple.shape}"
         )
     unknown = d_unknown | m_unknown
+    for name, a in (("direct", direct), ("multiple", multiple)):
+        # Before: complex values were cast to real (a warning, a fit), strings ended in
+        # numpy's DTypePromotionError, NaN in "fit_decay: ... 0 usable pixels".
+        if a.dtype.kind not in "iuf":
+            raise ValueError(f"split: {name}: must be real numbers, got dtype {a.dtype}")
+        bad = ~np.isfinite(a) & ~unknown
+        if bad.any():
+            raise ValueError(
+                f"split: {name}: must be finite where not masked, got {int(bad.sum())} of "
+                f"{a.size} values NaN or inf"
+            )
     direct, multiple = (np.where(unknown, 0.0, a).astype(dtype) for a in (direct, multiple))
     return direct, multiple, unknown
 
