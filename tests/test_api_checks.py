@@ -861,3 +861,13 @@ def test_a_split_of_values_that_are_not_intensities_is_refused():
     ]:
         with pytest.raises(ValueError, match=match):
             lfj.fit_images(images, lfj.Stripes(), split=split)
+
+
+def test_a_progress_that_cannot_be_called_is_named_first(tmp_path):
+    """Before: fit_images(progress=True) ended in "TypeError: 'bool' object is not
+    callable" at its first stage; fit_capture loaded the capture first."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    with pytest.raises(ValueError, match="^fit_images: progress: must be a function .* got True"):
+        lfj.fit_images(images, lfj.Stripes(), progress=True)
+    with pytest.raises(ValueError, match="^fit_capture: progress: must be a function .* got 5"):
+        lfj.fit_capture(tmp_path / "missing.yaml", progress=5)

@@ -18,7 +18,7 @@ from lightfield_jax.checks import repeated
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
-from lightfield_jax.inverse.options import FitOptions, FitResult, check_options
+from lightfield_jax.inverse.options import FitOptions, FitResult, check_options, check_progress
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry
 from lightfield_jax.scene.grid import Grid
 
@@ -94,6 +94,7 @@ def fit_capture(
         progress: called with a description of each stage.
     """
     check_options(options, "fit_capture")  # before the capture's load
+    check_progress(progress, "fit_capture")
     if isinstance(capture, (str, os.PathLike)):
         from lightfield_jax.capture.capture import load_capture
 

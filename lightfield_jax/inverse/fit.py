@@ -54,7 +54,13 @@ from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, size_model
-from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult, check_options
+from lightfield_jax.inverse.options import (
+    _PARAMS,
+    FitOptions,
+    FitResult,
+    check_options,
+    check_progress,
+)
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import forget_if_crowded
 from lightfield_jax.inverse.trust import Uncertainty
@@ -110,6 +116,7 @@ def fit_images(
             A numpy masked array is honoured: a value whose T is masked is not used.
     """
     check_options(options, "fit_images")
+    check_progress(progress, "fit_images")
     options = dataclasses.replace(options or FitOptions(), **overrides)
     if black_level is not None:
         # Before: named "separate.black_level" (the helper's), after the images' checks.

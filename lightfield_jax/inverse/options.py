@@ -12,7 +12,7 @@ import math
 
 import optimistix as optx
 
-from lightfield_jax.checks import check_flag, check_int, check_number, number_problem
+from lightfield_jax.checks import check_flag, check_int, check_number, number_problem, shown
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import (
@@ -404,6 +404,17 @@ def check_options(options, where: str) -> None:
         raise ValueError(
             f"{where}: options: must be a FitOptions or None, got {type(options).__name__} "
             f"(its fields can also be given as keywords: {where}(..., max_steps=20))"
+        )
+
+
+def check_progress(progress, where: str) -> None:
+    """Refuse a ``progress`` that is neither callable nor ``None``
+    (``ValueError("WHERE: progress: ...")``). Before: ``progress=True`` ran until the
+    first stage, then "TypeError: 'bool' object is not callable"."""
+    if progress is not None and not callable(progress):
+        raise ValueError(
+            f"{where}: progress: must be a function of one argument (each stage's "
+            f"description) or None, got {shown(progress)}"
         )
 
 
