@@ -871,3 +871,24 @@ def test_a_progress_that_cannot_be_called_is_named_first(tmp_path):
         lfj.fit_images(images, lfj.Stripes(), progress=True)
     with pytest.raises(ValueError, match="^fit_capture: progress: must be a function .* got 5"):
         lfj.fit_capture(tmp_path / "missing.yaml", progress=5)
+
+
+def test_a_result_with_nan_in_its_model_records_is_strict_json():
+    """Before: to_dict() passed ``seconds`` and ``model`` through as they were: a NaN or
+    inf in them (a tail solve's residual, a correction's misfit; NumPy floats too) made
+    the strict JSON write of results.json fail after the fit."""
+    import json
+
+    from lightfield_jax.inverse.options import FitResult
+
+    nan = math.nan
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=False, message="m", iterations=1,
+        residual=nan, seconds={"total": 1.0, "compile": math.inf},
+        model={"tail": {"residual": nan, "steps": [np.float32(nan), 1.5]}, "n": 3},
+    )  # fmt: skip
+    out = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert out["seconds"] == {"total": 1.0, "compile": None}
+    assert out["model"] == {"tail": {"residual": None, "steps": [None, 1.5]}, "n": 3}
+    assert out["residual"] is None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import optimistix as optx
 
 from lightfield_jax.checks import check_flag, check_int, check_number, number_problem, shown
@@ -376,8 +377,10 @@ class FitResult:
             "message": self.message,
             "iterations": self.iterations,
             "residual": _json_float(self.residual),
-            "seconds": self.seconds,
-            "model": self.model,
+            # NaN or inf in the model's records (a tail solve's residual, a correction
+            # step's misfit) made the strict JSON write fail after the fit.
+            "seconds": _json_clean(self.seconds),
+            "model": _json_clean(self.model),
         }
         if self.basins is not None:
             out["basins"] = _json_clean(self.basins)
@@ -429,7 +432,7 @@ def _json_clean(obj):
         return {k: _json_clean(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_json_clean(v) for v in obj]
-    if isinstance(obj, float):
+    if isinstance(obj, (float, np.floating)):
         return _json_float(obj)
     return obj
 
