@@ -892,3 +892,19 @@ def test_a_result_with_nan_in_its_model_records_is_strict_json():
     assert out["seconds"] == {"total": 1.0, "compile": None}
     assert out["model"] == {"tail": {"residual": None, "steps": [None, 1.5]}, "n": 3}
     assert out["residual"] is None
+
+
+def test_numpy_numbers_in_fit_options_are_stored_as_python_numbers():
+    """Before: FitOptions(max_steps=np.int64(2)) passed its check and the fit ended
+    seconds in, after the scan, in optimistix's "`max_steps` must be a Python integer"."""
+    options = lfj.FitOptions(max_steps=np.int64(2), tolerance=np.array(1e-4), n_theta=np.int32(16))
+    assert type(options.max_steps) is int and type(options.n_theta) is int
+    assert type(options.tolerance) is float
+    assert type(dataclasses.replace(options, tail_max_steps=np.int64(5)).tail_max_steps) is int
+    images = np.asarray(
+        lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
+    )
+    fit = lfj.fit_images(
+        images, lfj.Stripes(), options=options, basin_search=False, model_error=False
+    )
+    assert math.isfinite(fit.sigma_t)

@@ -206,6 +206,13 @@ class FitOptions:
         self._check_ranges()
         check_start(self.start)
         check_solver(self.solver)
+        # NumPy numbers (np.int64(20), a 0-d array) are numbers here, stored as Python's:
+        # optimistix took max_steps=np.int64(20) only after the scan ("`max_steps` must
+        # be a Python integer", seconds into the fit).
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, np.generic) or (isinstance(value, np.ndarray) and value.ndim == 0):
+                object.__setattr__(self, field.name, value.item())
 
     def _check_ranges(self) -> None:
         """Refuse settings the fit would otherwise ignore or quietly replace (a bounce
