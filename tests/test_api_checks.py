@@ -908,3 +908,18 @@ def test_numpy_numbers_in_fit_options_are_stored_as_python_numbers():
         images, lfj.Stripes(), options=options, basin_search=False, model_error=False
     )
     assert math.isfinite(fit.sigma_t)
+
+
+def test_a_start_given_as_a_list_or_an_array_is_stored_as_a_tuple():
+    """Before: FitOptions(start=np.array([0.03, 0.4])) == the same raised numpy's 'truth
+    value of an array ... is ambiguous', a list made the options (and a Joint) unhashable,
+    and start=('0.03', '0.4') or (True, 0.4) was taken as numbers."""
+    for given in ([0.03, 0.4], np.array([0.03, 0.4]), (np.float32(0.03), 0.4)):
+        options, method = lfj.FitOptions(start=given), lfj.Joint(start=given)
+        assert options.start == method.start == pytest.approx((0.03, 0.4))
+        assert type(options.start) is tuple and type(options.start[0]) is float
+        assert options == lfj.FitOptions(start=given) and hash(options) and hash(method)
+    for bad in (("0.03", "0.4"), (True, 0.4), "ab"):
+        for make in (lfj.FitOptions, lfj.Joint):
+            with pytest.raises(ValueError, match=r"^start: must be \(sigma_s > 0, \|g\| < 1\)"):
+                make(start=bad)

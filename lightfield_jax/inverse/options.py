@@ -204,7 +204,7 @@ class FitOptions:
                 f"{self.max_render_cells!r}"
             )
         self._check_ranges()
-        check_start(self.start)
+        object.__setattr__(self, "start", check_start(self.start))  # a tuple of floats
         check_solver(self.solver)
         # NumPy numbers (np.int64(20), a 0-d array) are numbers here, stored as Python's:
         # optimistix took max_steps=np.int64(20) only after the scan ("`max_steps` must
