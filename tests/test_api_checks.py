@@ -923,3 +923,12 @@ def test_a_start_given_as_a_list_or_an_array_is_stored_as_a_tuple():
         for make in (lfj.FitOptions, lfj.Joint):
             with pytest.raises(ValueError, match=r"^start: must be \(sigma_s > 0, \|g\| < 1\)"):
                 make(start=bad)
+
+
+def test_fit_capture_refuses_channels_that_are_not_a_list_of_names(tmp_path):
+    """Before: channels='red' was split into letters ("channel: 'r' is not in the
+    capture"), channels='YY' chose 'Y' twice, channels=0 raised "'int' object is not
+    iterable"; each after the capture was loaded."""
+    for channels in ("red", b"Y", 0):
+        with pytest.raises(ValueError, match=r"^channels: must be a sequence of channel names"):
+            lfj.fit_capture(tmp_path / "missing.yaml", channels=channels)

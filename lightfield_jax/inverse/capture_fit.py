@@ -10,11 +10,11 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from lightfield_jax.checks import repeated
+from lightfield_jax.checks import repeated, shown
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
@@ -95,6 +95,13 @@ def fit_capture(
     """
     check_options(options, "fit_capture")  # before the capture's load
     check_progress(progress, "fit_capture")
+    if channels is not None and (
+        isinstance(channels, (str, bytes)) or not isinstance(channels, Iterable)
+    ):  # a string was split into letters ('red': 'r' is not in the capture), 0 a TypeError
+        raise ValueError(
+            "channels: must be a sequence of channel names (e.g. ['R', 'G']) or None, "
+            f"got {shown(channels)}"
+        )
     if isinstance(capture, (str, os.PathLike)):
         from lightfield_jax.capture.capture import load_capture
 
