@@ -932,3 +932,23 @@ def test_fit_capture_refuses_channels_that_are_not_a_list_of_names(tmp_path):
     for channels in ("red", b"Y", 0):
         with pytest.raises(ValueError, match=r"^channels: must be a sequence of channel names"):
             lfj.fit_capture(tmp_path / "missing.yaml", channels=channels)
+
+
+def test_inspect_capture_takes_a_path_and_names_other_things(tmp_path):
+    """Before: inspect_capture('capture.yaml') and inspect_capture(5) raised "'str'
+    object has no attribute 'images'"; a path is now loaded, as fit_capture does."""
+    with pytest.raises(TypeError, match=r"^inspect_capture: expected a capture .* got int$"):
+        lfj.inspect_capture(5)
+    with pytest.raises(lfj.CaptureError, match="missing.yaml: file not found"):
+        lfj.inspect_capture(tmp_path / "missing.yaml")
+    images = np.asarray(
+        lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
+    )
+    from lightfield_jax.capture.io import write_exr
+
+    names = []
+    for i, image in enumerate(images):
+        names.append(f"s{i}.exr")
+        write_exr(tmp_path / names[-1], {"Y": image.astype(np.float32)})
+    (tmp_path / "capture.yaml").write_text(f"images: {names}\npattern: {{period: 6, lit: 3}}\n")
+    assert lfj.inspect_capture(str(tmp_path / "capture.yaml")).direct.shape == (24, 32, 1)
