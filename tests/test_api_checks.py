@@ -952,3 +952,15 @@ def test_inspect_capture_takes_a_path_and_names_other_things(tmp_path):
         write_exr(tmp_path / names[-1], {"Y": image.astype(np.float32)})
     (tmp_path / "capture.yaml").write_text(f"images: {names}\npattern: {{period: 6, lit: 3}}\n")
     assert lfj.inspect_capture(str(tmp_path / "capture.yaml")).direct.shape == (24, 32, 1)
+
+
+def test_stripe_patterns_too_large_for_memory_are_refused_before_allocating(tmp_path):
+    """Before: lfj.stripe_patterns(10**6, 10**6) asked numpy for 931 GiB (a bare
+    MemoryError, or the machine swapping where it overcommits); write_patterns alike.
+    The command line checked this, the Python API did not."""
+    with pytest.raises(ValueError, match=r"^stripe_patterns: 8 images of 1000000x1000000 needs"):
+        lfj.stripe_patterns(10**6, 10**6, 6, 3)
+    with pytest.raises(ValueError, match=r"^stripe_patterns: 8 images of 1000000x1000000 needs"):
+        lfj.write_patterns(tmp_path / "p", 10**6, 10**6)
+    assert not (tmp_path / "p").exists()
+    assert len(lfj.stripe_patterns(64, 48)[1]) == 6
