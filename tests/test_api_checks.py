@@ -964,3 +964,18 @@ def test_stripe_patterns_too_large_for_memory_are_refused_before_allocating(tmp_
         lfj.write_patterns(tmp_path / "p", 10**6, 10**6)
     assert not (tmp_path / "p").exists()
     assert len(lfj.stripe_patterns(64, 48)[1]) == 6
+
+
+def test_a_channel_not_in_a_capture_fit_is_named():
+    """Before: CaptureFit['Q'] raised tuple.index's 'tuple.index(x): x not in tuple'."""
+    from lightfield_jax.inverse.options import FitResult
+
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model={},
+    )  # fmt: skip
+    fit = lfj.CaptureFit(("R", "G"), (result, result))
+    assert fit["G"] is result
+    with pytest.raises(ValueError, match=r"^channel: 'Q' is not in the fit \(it has R, G\)$"):
+        fit["Q"]

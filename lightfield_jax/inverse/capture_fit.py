@@ -35,6 +35,10 @@ class CaptureFit:
         return all(r.converged for r in self.results)
 
     def __getitem__(self, channel: str) -> FitResult:
+        if channel not in self.channels:  # was tuple.index's "x not in tuple"
+            raise ValueError(
+                f"channel: {shown(channel)} is not in the fit (it has {', '.join(self.channels)})"
+            )
         return self.results[self.channels.index(channel)]
 
     def to_dict(self) -> dict:
