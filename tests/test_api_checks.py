@@ -979,3 +979,11 @@ def test_a_channel_not_in_a_capture_fit_is_named():
     assert fit["G"] is result
     with pytest.raises(ValueError, match=r"^channel: 'Q' is not in the fit \(it has R, G\)$"):
         fit["Q"]
+
+
+def test_a_single_shift_is_named_as_too_few():
+    """Before: one stripe image was refused as 'the 1 shifts are the same image: the
+    stripes moved nothing ... (one image given for every shift?)'."""
+    image = np.random.default_rng(0).random((1, 24, 32))
+    with pytest.raises(ValueError, match=r"^pattern.phases: a fit needs at least 2 shifted"):
+        lfj.fit_images(image, lfj.Stripes(phases=(0,)))

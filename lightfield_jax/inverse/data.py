@@ -230,6 +230,11 @@ def prepare_data(
             f"images: no value is above 0 (the largest is {brightest:.3g}): images of light "
             "are not negative (values must be linear, black at 0)"
         )
+    if split is None and images.shape[0] < 2:  # was "the 1 shifts are the same image"
+        raise ValueError(
+            "pattern.phases: a fit needs at least 2 shifted images (the separation of the "
+            f"direct light compares them), got {images.shape[0]}"
+        )
     if split is None and np.all(images[:, pixels] == images[:1, pixels]):
         raise ValueError(
             f"images: the {images.shape[0]} shifts are the same image: the stripes moved "
