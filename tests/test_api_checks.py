@@ -987,3 +987,18 @@ def test_a_single_shift_is_named_as_too_few():
     image = np.random.default_rng(0).random((1, 24, 32))
     with pytest.raises(ValueError, match=r"^pattern.phases: a fit needs at least 2 shifted"):
         lfj.fit_images(image, lfj.Stripes(phases=(0,)))
+
+
+def test_fit_decay_names_an_image_beyond_float32():
+    """Before: with JAX's default float32, a float64 direct image of 1e300 became inf (or
+    of 1e-300 zero) and fit_decay said 'sigma_t is not identifiable: 0 usable pixels'."""
+    x = np.arange(48.0)
+    direct = np.exp(-0.2 * x)[None, :] * np.ones((8, 1))
+    with jax.enable_x64(False):
+        for scale in (1e300, 1e-300):
+            with pytest.raises(
+                ValueError, match=r"^fit_decay.direct: its brightest value .* float32"
+            ):
+                lfj.fit_decay(scale * direct)
+        assert float(lfj.fit_decay(1e30 * direct).sigma_t) == pytest.approx(0.2, rel=1e-3)
+    assert float(lfj.fit_decay(1e300 * direct).sigma_t) == pytest.approx(0.2, rel=1e-6)  # x64
