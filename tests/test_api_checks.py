@@ -1002,3 +1002,32 @@ def test_fit_decay_names_an_image_beyond_float32():
                 lfj.fit_decay(scale * direct)
         assert float(lfj.fit_decay(1e30 * direct).sigma_t) == pytest.approx(0.2, rel=1e-3)
     assert float(lfj.fit_decay(1e300 * direct).sigma_t) == pytest.approx(0.2, rel=1e-6)  # x64
+
+
+def test_fitted_images_checks_its_arguments_before_rendering(monkeypatch):
+    """Before: a result's to_dict() or pattern=None raised an AttributeError, shape
+    'ab' or (-1, 3) numpy's errors, (10**6, 10**6) a MemoryError for 306 TiB."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.inverse.options import FitResult
+
+    model = {"width": 32, "height": 24, "n_theta": 8, "refine": 1, "bounces": 2,
+             "crop": [0, 0, 32, 24]}  # fmt: skip
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model=model,
+    )  # fmt: skip
+    pattern = lfj.Stripes()
+    monkeypatch.setenv(MAX_MEMORY_ENV, "1G")
+    for args, match in [
+        ((result.to_dict(), pattern, (24, 32)), "result: must be a FitResult, got dict"),
+        ((result, None, (24, 32)), "pattern: must be a Stripes, got NoneType"),
+        ((result, pattern, "ab"), r"shape: must be the images' \(height, width\), holding"),
+        ((result, pattern, (-1, 3)), r"shape: .* = \(0, 0, 32, 24\), got \(-1, 3\)"),
+        ((result, pattern, (20, 32)), r"shape: .* got \(20, 32\)"),
+        ((result, pattern, (10**6, 10**6)), r"7 x 2 images of 1000000x1000000 needs about"),
+    ]:
+        with pytest.raises(ValueError, match=f"^fitted_images: {match}"):
+            lfj.fitted_images(*args)
+    stripes, full = lfj.fitted_images(result, pattern, np.array([30, 40]))
+    assert stripes.shape == (6, 2, 30, 40) and full.shape == (2, 30, 40)

@@ -47,8 +47,9 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lightfield_jax.app.memory import check_memory
 from lightfield_jax.capture.keys import check_pixel_size
-from lightfield_jax.checks import number_problem, unmask
+from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
@@ -362,7 +363,30 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     gain and black level included, over the cropped model region placed in an image of
     ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``. A model with
     a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k."""
+    # Before: another result (a to_dict()) or pattern raised an AttributeError, a shape
+    # of strings or negative sizes numpy's errors, one of 10**6 x 10**6 a MemoryError.
+    if not isinstance(result, FitResult):
+        raise ValueError(f"fitted_images: result: must be a FitResult, got {type(result).__name__}")
+    if not isinstance(pattern, Stripes):
+        raise ValueError(f"fitted_images: pattern: must be a Stripes, got {type(pattern).__name__}")
     model = _model_from(result.model)
+    x0, y0, x1, y1 = model.crop
+    dims = () if isinstance(shape, (str, bytes)) or not np.iterable(shape) else tuple(shape)
+    if not (
+        len(dims) == 2
+        and all(number_problem(n, integer=True, low=1) is None for n in dims)
+        and dims[0] >= y1
+        and dims[1] >= x1
+    ):
+        raise ValueError(
+            f"fitted_images: shape: must be the images' (height, width), holding the fit's "
+            f"model crop (x0, y0, x1, y1) = {model.crop}, got {shown(shape)}"
+        )
+    k = model.bounces + (model.tail is not None)
+    check_memory(
+        8 * (pattern.n_patterns + 1) * k * dims[0] * dims[1],
+        f"fitted_images: {pattern.n_patterns + 1} x {k} images of {dims[1]}x{dims[0]}",
+    )
 
     def render(illumination):
         renderer = _renderer(model, illumination, result.phase)
@@ -375,9 +399,8 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     stripes, full = render(pattern), render(_full_for(pattern))[0]
     stripes = c * ((1 - b) * stripes + b * full[None])
     full = c * full
-    x0, y0, x1, y1 = model.crop
-    out_s = np.zeros(stripes.shape[:2] + tuple(shape))
-    out_f = np.zeros(full.shape[:1] + tuple(shape))
+    out_s = np.zeros(stripes.shape[:2] + dims)
+    out_f = np.zeros(full.shape[:1] + dims)
     out_s[..., y0:y1, x0:x1] = stripes
     out_f[..., y0:y1, x0:x1] = full
     return out_s, out_f
