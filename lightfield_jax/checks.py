@@ -240,6 +240,31 @@ def unmask(images, mask=None):
     return data, given & valid
 
 
+def check_float_range(values, key: str) -> None:
+    """Refuse concrete float values that JAX's default float (float32 unless x64 is on)
+    cannot hold: whose largest magnitude overflows it, or underflows below its smallest
+    normal number (``ValueError("KEY: ...")``). Before: a float64 image of 1e300 became
+    inf (1e-300 zero) in float32 and a later step failed naming another cause."""
+    jax = sys.modules.get("jax")
+    if jax is None or _is_tracer(values):
+        return
+    a = np.asarray(values)
+    if a.dtype.kind != "f":
+        return
+    work = np.dtype(jax.dtypes.canonicalize_dtype(a.dtype))
+    if a.dtype.itemsize <= work.itemsize:
+        return
+    finite = np.abs(a[np.isfinite(a)])
+    peak = float(finite.max()) if finite.size else 0.0
+    info = np.finfo(work)
+    if peak > float(info.max) or 0.0 < peak < float(info.tiny):
+        raise ValueError(
+            f"{key}: its largest value {peak:.3g} lies outside {work}'s range "
+            f"[{info.tiny:.3g}, {info.max:.3g}] (JAX's default float): scale the values by "
+            "a constant"
+        )
+
+
 def masked_to_nan(images):
     """A numpy masked array as a float array with NaN at its masked values (for the
     functions that skip NaN values); anything else as given."""

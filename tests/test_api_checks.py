@@ -997,7 +997,7 @@ def test_fit_decay_names_an_image_beyond_float32():
     with jax.enable_x64(False):
         for scale in (1e300, 1e-300):
             with pytest.raises(
-                ValueError, match=r"^fit_decay.direct: its brightest value .* float32"
+                ValueError, match=r"^fit_decay.direct: its largest value .* float32"
             ):
                 lfj.fit_decay(scale * direct)
         assert float(lfj.fit_decay(1e30 * direct).sigma_t) == pytest.approx(0.2, rel=1e-3)
@@ -1031,3 +1031,18 @@ def test_fitted_images_checks_its_arguments_before_rendering(monkeypatch):
             lfj.fitted_images(*args)
     stripes, full = lfj.fitted_images(result, pattern, np.array([30, 40]))
     assert stripes.shape == (6, 2, 30, 40) and full.shape == (2, 30, 40)
+
+
+def test_separate_names_images_beyond_float32():
+    """Before: with JAX's default float32, float64 images of 1e300 became inf and
+    separate said 'no pixel is finite in every one of the 6 images' (with numpy's
+    overflow warning); images of 1e-300 became zeros, separated silently."""
+    images = 1.0 + np.random.default_rng(0).random((6, 8, 8))
+    with jax.enable_x64(False):
+        for scale in (1e300, 1e-300):
+            with pytest.raises(ValueError, match=r"^separate.images: its largest value .* float32"):
+                lfj.separate(scale * images)
+        with pytest.raises(ValueError, match=r"^separate.dark_frame: its largest value"):
+            lfj.separate(images, dark_frame=np.full((8, 8), 1e300))
+        assert np.isfinite(np.asarray(lfj.separate(1e30 * images).direct)).all()
+    assert np.isfinite(np.asarray(lfj.separate(1e300 * images).direct)).all()  # x64

@@ -44,7 +44,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from lightfield_jax.checks import check_number, masked_to_nan, number_problem
+from lightfield_jax.checks import check_float_range, check_number, masked_to_nan, number_problem
 from lightfield_jax.inverse.separate import real_dtype
 from lightfield_jax.scene.illumination import (
     _INWARD_DEG,
@@ -232,26 +232,6 @@ def _fit(
     )
 
 
-def _check_range(direct, work: np.dtype) -> None:
-    """Refuse a concrete image whose brightest value overflows or underflows ``work``,
-    the dtype the fit runs in (before: 1e300 became inf and 1e-300 zero in float32, and
-    the fit said "sigma_t is not identifiable: 0 usable pixels")."""
-    if not _is_concrete(direct) or work.kind != "f":
-        return
-    a = np.asarray(direct)
-    if a.dtype.kind != "f" or a.dtype.itemsize <= work.itemsize:
-        return
-    finite = np.abs(a[np.isfinite(a)])
-    peak = float(finite.max()) if finite.size else 0.0
-    info = np.finfo(work)
-    if peak > float(info.max) or 0.0 < peak < float(info.tiny):
-        raise ValueError(
-            f"fit_decay.direct: its brightest value {peak:.3g} lies outside {work}'s range "
-            f"[{info.tiny:.3g}, {info.max:.3g}], where the fit runs (JAX's default float): "
-            "scale the image by a constant (sigma_t does not depend on it)"
-        )
-
-
 def fit_decay(
     direct: Float[ArrayLike, "height width"],
     *,
@@ -304,7 +284,7 @@ def fit_decay(
     dtype = direct.dtype if hasattr(direct, "dtype") else np.asarray(direct).dtype
     if not real_dtype(dtype):  # before: a bool image was fitted (True as 1)
         raise ValueError(f"fit_decay.direct: must be real numbers, got dtype {dtype}")
-    _check_range(direct, jax.dtypes.canonicalize_dtype(np.promote_types(dtype, float)))
+    check_float_range(direct, "fit_decay.direct")
     direct = jnp.asarray(direct)
     # The fit runs in the wider of the image's and JAX's default float dtype: integer
     # frames become floats, and float32 data with x64 enabled is widened because
