@@ -1046,3 +1046,29 @@ def test_separate_names_images_beyond_float32():
             lfj.separate(images, dark_frame=np.full((8, 8), 1e300))
         assert np.isfinite(np.asarray(lfj.separate(1e30 * images).direct)).all()
     assert np.isfinite(np.asarray(lfj.separate(1e300 * images).direct)).all()  # x64
+
+
+def test_detect_geometry_names_arguments_it_cannot_use():
+    """Before: period 0 raised a ZeroDivisionError, entry 'up' a KeyError, a NaN
+    direction "cannot convert float NaN to integer", a roi of three values an unpacking
+    error, images of strings "could not convert string to float"; complex or bool images,
+    lit 0 and floor '0' were taken, and a reference of another shape ended in 'no lit
+    medium found'."""
+    images = np.zeros((6, 40, 48))
+    images[:, 8:32, 8:40] = np.random.default_rng(0).random((6, 24, 32))
+    for kwargs, match in [
+        ({"period": 0}, "period: must be an integer >= 2, got 0"),
+        ({"lit": 0}, r"lit: must be an integer in \[1, 5\], got 0"),
+        ({"entry": "up"}, "entry: must be one of left, right, top, bottom, got 'up'"),
+        ({"direction_deg": math.nan}, "direction_deg: must be finite, got nan"),
+        ({"floor": "0"}, "floor: must be a number, got '0'"),
+        ({"roi": (0, 0, 20)}, r"roi: must be \(x0, y0, x1, y1\), integers with 0 <= x0 < x1 <= 48"),
+        ({"roi": (30, 30, 2, 2)}, r"roi: must be .* got \(30, 30, 2, 2\)"),
+        ({"reference": np.ones((3, 3))}, r"reference: must have the images' \(H, W\[, C\]\)"),
+    ]:
+        with pytest.raises(ValueError, match="^detect_geometry: " + match):
+            lfj.detect_geometry(images, **kwargs)
+    for bad in (images.astype(complex), images > 0, "x"):
+        with pytest.raises(ValueError, match=r"^detect_geometry: images: must be an array of real"):
+            lfj.detect_geometry(bad)
+    assert lfj.detect_geometry(images, roi=(8, 8, 40, 32)).roi == (8, 8, 40, 32)
