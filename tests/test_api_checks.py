@@ -1072,3 +1072,22 @@ def test_detect_geometry_names_arguments_it_cannot_use():
         with pytest.raises(ValueError, match=r"^detect_geometry: images: must be an array of real"):
             lfj.detect_geometry(bad)
     assert lfj.detect_geometry(images, roi=(8, 8, 40, 32)).roi == (8, 8, 40, 32)
+
+
+def test_a_setting_the_chosen_method_does_not_use_is_refused():
+    """Before: FitOptions(method='grid', start=(0.03, 0.4)) or a solver with the grid
+    search was taken and ignored: the fit ran from its own search."""
+    import optimistix as optx
+
+    solver = optx.Dogleg(rtol=1e-6, atol=1e-8)
+    for kwargs, match in [
+        ({"method": "grid", "start": (0.03, 0.4)}, "^start: the grid method does not use it"),
+        ({"method": lfj.TwoStep(), "start": (0.03, 0.4)}, "^start: the gradient method does"),
+        ({"method": "grid", "solver": solver}, "^solver: the grid method does not use it"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.FitOptions(**kwargs)
+    with pytest.raises(ValueError, match="^start: the grid method does not use it"):
+        dataclasses.replace(lfj.FitOptions(start=(0.03, 0.4)), method="grid")
+    assert lfj.FitOptions(method="gradient", solver=solver).solver is solver
+    assert lfj.FitOptions(method=lfj.Joint(), start=(0.03, 0.4)).start == (0.03, 0.4)

@@ -162,7 +162,7 @@ class FitOptions:
     solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
-        method_for(self.method)  # a known name or a FitMethod
+        method = method_for(self.method)  # a known name or a FitMethod
         if self.tail is not None and not (
             isinstance(self.tail, str) and (self.tail == "auto" or self.tail in TAIL_METHODS)
         ):
@@ -206,6 +206,17 @@ class FitOptions:
         self._check_ranges()
         object.__setattr__(self, "start", check_start(self.start))  # a tuple of floats
         check_solver(self.solver)
+        # A setting the chosen method does not use was ignored silently (a start with
+        # the grid search, which searches g; a solver with it, which solves nothing).
+        unused = {"start": self.start is not None and method.name != "joint"}
+        unused["solver"] = self.solver is not None and method.name == "grid"
+        for name, is_unused in unused.items():
+            if is_unused:
+                raise ValueError(
+                    f"{name}: the {method.name} method does not use it (start: the joint "
+                    "fit's; solver: the joint and gradient fits'): drop it, or choose a "
+                    "method that does"
+                )
         # NumPy numbers (np.int64(20), a 0-d array) are numbers here, stored as Python's:
         # optimistix took max_steps=np.int64(20) only after the scan ("`max_steps` must
         # be a Python integer", seconds into the fit).
