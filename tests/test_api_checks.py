@@ -1091,3 +1091,14 @@ def test_a_setting_the_chosen_method_does_not_use_is_refused():
         dataclasses.replace(lfj.FitOptions(start=(0.03, 0.4)), method="grid")
     assert lfj.FitOptions(method="gradient", solver=solver).solver is solver
     assert lfj.FitOptions(method=lfj.Joint(), start=(0.03, 0.4)).start == (0.03, 0.4)
+
+
+def test_fit_images_under_a_transformation_names_the_traced_images():
+    """Before: fit_images under jax.jit ended in JAX's many-line
+    TracerArrayConversionError (then, briefly, 'images of different shapes')."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    for transform in (jax.jit, jax.vmap):
+        with pytest.raises(ValueError, match=r"^images: must be an array .* got a traced value"):
+            transform(lambda x: lfj.fit_images(x, lfj.Stripes()).sigma_t)(
+                images if transform is jax.jit else images[None]
+            )
