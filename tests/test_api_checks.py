@@ -1102,3 +1102,30 @@ def test_fit_images_under_a_transformation_names_the_traced_images():
             transform(lambda x: lfj.fit_images(x, lfj.Stripes()).sigma_t)(
                 images if transform is jax.jit else images[None]
             )
+
+
+def test_write_capture_yaml_writes_only_what_load_capture_takes(tmp_path):
+    """Before: pattern=None raised an AttributeError, images=5 "'int' object is not
+    iterable", a NumPy array or a Slab yaml's RepresenterError; a NaN saturation was
+    written into a file load_capture then refused. Arrays and geometries are now written
+    as their lists and dicts."""
+    images = [f"s{i}.exr" for i in range(6)]
+    for kwargs, match in [
+        ({"pattern": None}, "pattern: must be a Stripes, got NoneType"),
+        ({"images": 5}, "images: must be a list of image files or one .npy stack, got 5"),
+        ({"saturation": math.nan}, "saturation: must be finite, got nan"),
+        ({"black_level": 1.5}, r"black_level: must be a number in \[0, 1\), got 1.5"),
+        ({"pixel_size_mm": -1.0}, "pixel_size_mm: must lie in"),
+        ({"truth": {"medium": lfj.Medium(0.2, 0.03, 0.4)}}, "truth: cannot be written to a"),
+    ]:
+        given = {"images": images, "pattern": lfj.Stripes(), **kwargs}
+        with pytest.raises(ValueError, match="^write_capture_yaml: " + match):
+            lfj.write_capture_yaml(tmp_path / "c.yaml", **given)
+        assert not (tmp_path / "c.yaml").exists()
+    lfj.write_capture_yaml(
+        tmp_path / "c.yaml", images=images, pattern=lfj.Stripes(), saturation=np.array(2.0),
+        medium_roi=np.array([0, 0, 32, 24]), geometry=lfj.Slab(3.0),
+    )  # fmt: skip
+    text = (tmp_path / "c.yaml").read_text()
+    assert "medium_roi: [0, 0, 32, 24]" in text and "saturation: 2.0" in text
+    assert "geometry: {kind: slab, thickness: 3.0, boundary: absorbing}" in text
