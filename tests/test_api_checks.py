@@ -1129,3 +1129,20 @@ def test_write_capture_yaml_writes_only_what_load_capture_takes(tmp_path):
     text = (tmp_path / "c.yaml").read_text()
     assert "medium_roi: [0, 0, 32, 24]" in text and "saturation: 2.0" in text
     assert "geometry: {kind: slab, thickness: 3.0, boundary: absorbing}" in text
+
+
+def test_a_capture_fit_pairs_one_result_with_each_channel():
+    """Before: CaptureFit(('R', 'G'), (result,)) was made and its to_dict() wrote that
+    result as channel R, silently; a dict among the results failed only in to_dict."""
+    from lightfield_jax.inverse.options import FitResult
+
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model={},
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"^CaptureFit: needs one result per channel, got 2"):
+        lfj.CaptureFit(("R", "G"), (result,))
+    with pytest.raises(ValueError, match="^CaptureFit: results: must be FitResults, got dict"):
+        lfj.CaptureFit(("R",), (result.to_dict(),))
+    assert lfj.CaptureFit(("R",), (result,)).to_dict()["channel"] == "R"

@@ -30,6 +30,20 @@ class CaptureFit:
     channels: tuple[str, ...]
     results: tuple[FitResult, ...]
 
+    def __post_init__(self):
+        # Before: two channels with one result wrote that result as the first channel's
+        # (to_dict), and a result of another kind failed in to_dict.
+        if len(self.channels) != len(self.results) or not self.results:
+            raise ValueError(
+                f"CaptureFit: needs one result per channel, got {len(self.channels)} "
+                f"channel(s) and {len(self.results)} result(s)"
+            )
+        for result in self.results:
+            if not isinstance(result, FitResult):
+                raise ValueError(
+                    f"CaptureFit: results: must be FitResults, got {type(result).__name__}"
+                )
+
     @property
     def converged(self) -> bool:
         return all(r.converged for r in self.results)
