@@ -1146,3 +1146,15 @@ def test_a_capture_fit_pairs_one_result_with_each_channel():
     with pytest.raises(ValueError, match="^CaptureFit: results: must be FitResults, got dict"):
         lfj.CaptureFit(("R",), (result.to_dict(),))
     assert lfj.CaptureFit(("R",), (result,)).to_dict()["channel"] == "R"
+
+
+def test_a_fit_too_large_for_memory_is_refused_by_the_python_api(monkeypatch):
+    """Before: only the command line estimated a fit's memory: fit_images with n_theta
+    4096 and refine 8 on six 128x96 images (8.4 TiB) ran for minutes toward it."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "2G")
+    images = np.random.default_rng(0).random((6, 96, 128))
+    big = {"n_theta": 4096, "refine": 8, "max_cells": 10**12, "max_render_cells": 10**12}
+    with pytest.raises(ValueError, match=r"^the fit of 6 images of 128x96 needs about 8.4 TiB"):
+        lfj.fit_images(images, lfj.Stripes(), **big)
