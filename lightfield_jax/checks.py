@@ -187,12 +187,17 @@ def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str
     return a
 
 
-def unmasked(values) -> tuple[np.ndarray, np.ndarray]:
+def unmasked(values, key: str = "values") -> tuple[np.ndarray, np.ndarray]:
     """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
-    for any other array), so that its fill values are never used as values."""
+    for any other array), so that its fill values are never used as values. A ragged
+    list is ``ValueError("KEY: ...")`` (was numpy's "inhomogeneous shape")."""
     if isinstance(values, np.ma.MaskedArray):
         return np.ma.getdata(values), np.ma.getmaskarray(values)
-    data = np.asarray(values)
+    try:
+        data = np.asarray(values)
+    except (TypeError, ValueError):
+        got = TRACED if _is_tracer(values) else f"{type(values).__name__} of different shapes"
+        raise ValueError(f"{key}: must be an array of real numbers, got {got}") from None
     return data, np.zeros(data.shape, bool)
 
 

@@ -1158,3 +1158,16 @@ def test_a_fit_too_large_for_memory_is_refused_by_the_python_api(monkeypatch):
     big = {"n_theta": 4096, "refine": 8, "max_cells": 10**12, "max_render_cells": 10**12}
     with pytest.raises(ValueError, match=r"^the fit of 6 images of 128x96 needs about 8.4 TiB"):
         lfj.fit_images(images, lfj.Stripes(), **big)
+
+
+def test_an_exposure_or_split_of_arrays_of_different_shapes_is_named():
+    """Before: a list of exposures (or a split's direct image given as rows) of
+    different shapes ended in numpy's 'setting an array element with a sequence ...
+    inhomogeneous shape', naming no argument."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    ragged = [np.ones((24, 32))] * 5 + [np.ones((24, 30))]
+    with pytest.raises(ValueError, match=r"^exposure: must be an array of real numbers, got list"):
+        lfj.fit_images(images, lfj.Stripes(), exposure=ragged)
+    rows = [np.ones(32)] * 23 + [np.ones(30)]
+    with pytest.raises(ValueError, match=r"^split: direct: must be an array of real numbers"):
+        lfj.fit_images(images, lfj.Stripes(), split=(rows, np.ones((24, 32))))

@@ -184,7 +184,7 @@ def prepare_data(
             f"in every shift) or their shape {images.shape} (per sample), got {np.shape(mask)}"
         )
     if exposure is not None:
-        t, unknown = unmasked(exposure)
+        t, unknown = unmasked(exposure, "exposure")
         if t.dtype.kind not in "iuf" or t.shape != images.shape:
             raise ValueError(
                 f"exposure: must be real numbers of the images' shape {images.shape}, got "
@@ -303,7 +303,10 @@ def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...
         raise ValueError(
             f"split: must be a pair (direct, multiple) of images of shape {shape}, got {got}"
         ) from None
-    (direct, d_unknown), (multiple, m_unknown) = map(unmasked, (direct, multiple))
+    (direct, d_unknown), (multiple, m_unknown) = (
+        unmasked(direct, "split: direct"),
+        unmasked(multiple, "split: multiple"),
+    )
     if direct.shape != shape or multiple.shape != shape:
         raise ValueError(
             f"split: direct and multiple must have the images' shape {shape}, "
