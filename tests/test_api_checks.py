@@ -1171,3 +1171,17 @@ def test_an_exposure_or_split_of_arrays_of_different_shapes_is_named():
     rows = [np.ones(32)] * 23 + [np.ones(30)]
     with pytest.raises(ValueError, match=r"^split: direct: must be an array of real numbers"):
         lfj.fit_images(images, lfj.Stripes(), split=(rows, np.ones((24, 32))))
+
+
+def test_a_geometry_does_not_take_its_kind_as_an_argument():
+    """Before: lfj.Plane(6.4) was a plane of kind 6.4 (the thickness meant for a slab
+    lost, the paper's 2-D model used), lfj.Slab(3.0, kind='plane') a slab named a plane."""
+    with pytest.raises(TypeError, match="Plane.__init__.. takes 1 positional argument"):
+        lfj.Plane(6.4)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'kind'"):
+        lfj.Slab(3.0, kind="plane")
+    with pytest.raises(TypeError, match="AutoGeometry.__init__.. takes from 2 to 3 positional"):
+        lfj.AutoGeometry(lfj.Slab(3.0), 1.0, "plane")
+    assert lfj.Plane().kind == "plane" and lfj.Slab(3.0).kind == "slab"
+    assert dataclasses.replace(lfj.Slab(3.0), n_mu=4) == lfj.Slab(3.0, n_mu=4)
+    assert lfj.AutoGeometry(lfj.Slab(3.0)).kind == "auto"
