@@ -1185,3 +1185,19 @@ def test_a_geometry_does_not_take_its_kind_as_an_argument():
     assert lfj.Plane().kind == "plane" and lfj.Slab(3.0).kind == "slab"
     assert dataclasses.replace(lfj.Slab(3.0), n_mu=4) == lfj.Slab(3.0, n_mu=4)
     assert lfj.AutoGeometry(lfj.Slab(3.0)).kind == "auto"
+
+
+def test_the_phase_function_holds_in_float32_near_g_of_one():
+    """Before: in float32 (JAX's default) 1 + g² − 2g·cos θ cancelled to 0 at the peak:
+    phase_integral(0.9999) and phase_function(0, 0.9999) were inf (a render's ρ inf),
+    phase_integral(0.999) 8 % low (319.8 for 348.1), with no error."""
+    with jax.enable_x64(False):
+        a32 = {g: float(lfj.phase_integral(g)) for g in (0.999, 0.9999, -0.9999)}
+        p32 = float(lfj.phase_function(0.0, 0.9999)), float(lfj.phase_function(math.pi, -0.9999))
+    a64 = {g: float(lfj.phase_integral(g)) for g in a32}  # the tests run x64
+    for g in a32:
+        assert a32[g] == pytest.approx(a64[g], rel=1e-3), g
+    assert p32 == pytest.approx((float(lfj.phase_function(0.0, 0.9999)),) * 2, rel=1e-3)
+    assert float(lfj.phase_function(0.3, 0.4)) == pytest.approx(
+        (1 - 0.16) / (4 * math.pi * (1 + 0.16 - 0.8 * math.cos(0.3)) ** 1.5), rel=1e-14
+    )

@@ -40,7 +40,15 @@ def phase_function(theta: ArrayLike, g: ArrayLike) -> Float[Array, "..."]:
     _check_asymmetry(g, "phase_function")
     theta = jnp.asarray(theta)
     g = jnp.asarray(g)
-    return (1.0 - g**2) / (4.0 * jnp.pi * (1.0 + g**2 - 2.0 * g * jnp.cos(theta)) ** 1.5)
+    # 1 + g² − 2g·cos θ as (1 − g)² + 4g·sin²(θ/2) (g ≥ 0) or (1 + g)² − 4g·cos²(θ/2)
+    # (g < 0): equal in exact arithmetic, without the cancellation that made it 0 in
+    # float32 at the forward (backward) peak for |g| ≳ 0.9997 (p, A(g) and ρ were inf).
+    base = jnp.where(
+        g >= 0,
+        (1.0 - g) ** 2 + 4.0 * g * jnp.sin(0.5 * theta) ** 2,
+        (1.0 + g) ** 2 - 4.0 * g * jnp.cos(0.5 * theta) ** 2,
+    )
+    return (1.0 - g) * (1.0 + g) / (4.0 * jnp.pi * base**1.5)
 
 
 def phase_integral(g: ArrayLike) -> Float[Array, ""]:
