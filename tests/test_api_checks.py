@@ -1201,3 +1201,11 @@ def test_the_phase_function_holds_in_float32_near_g_of_one():
     assert float(lfj.phase_function(0.3, 0.4)) == pytest.approx(
         (1 - 0.16) / (4 * math.pi * (1 + 0.16 - 0.8 * math.cos(0.3)) ** 1.5), rel=1e-14
     )
+
+
+def test_bounces_for_tolerance_refuses_a_negative_rho():
+    """Before: bounces_for_tolerance(-0.5) returned 1 bounce (rho = albedo*A(g) is never
+    negative: a sign error upstream went unnoticed)."""
+    with pytest.raises(ValueError, match=r"^rho: must be a number >= 0, got -0.5"):
+        lfj.bounces_for_tolerance(-0.5, 1e-3)
+    assert lfj.bounces_for_tolerance(0.0, 1e-3) == 1 and lfj.bounces_for_tolerance(0.5) == 15

@@ -196,7 +196,8 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
     when ρ ≥ 1 (the series does not converge: there is no such K).
     """
-    rho = check_number(rho, "rho", allow_inf=True)
+    # rho = albedo*A(g) >= 0 (before: a negative rho was taken, one bounce returned)
+    rho = check_number(rho, "rho", low=0.0, allow_inf=True)
     if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
     if rho >= 1.0:
@@ -206,7 +207,7 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
             "Use phase: normalized, or give an explicit bounce count (the result will "
             "say that the series does not converge)."
         )
-    if rho <= 0.0:
+    if rho == 0.0:
         return 1
     k = math.ceil(math.log(tolerance * (1.0 - rho)) / math.log(rho))
     k = max(1, k)
