@@ -95,7 +95,13 @@ def number_problem(
             return f"must be {what}, got {shown(value)} (dtype {dtype})"
         v = float(value)
     if isinstance(v, float) or not integer:
-        f = float(v)
+        try:
+            f = float(v)
+        except OverflowError:  # an int beyond float64 (10**400): was a bare OverflowError
+            if (low is None or v >= low) and (high is None or v <= high):
+                big = sys.float_info.max
+                return f"must be a number of magnitude at most {big:.3g}, got {shown(value)}"
+            f = 0.0  # outside the range: said below
         if math.isnan(f) or (math.isinf(f) and not allow_inf):
             return f"must be finite, got {shown(value)}"
     if (low is not None and (v < low or (low_open and v == low))) or (
@@ -181,20 +187,50 @@ def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str
     return a
 
 
-def unmasked(values) -> tuple[np.ndarray, np.ndarray]:
+def unmasked(values, key: str = "values") -> tuple[np.ndarray, np.ndarray]:
     """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
-    for any other array), so that its fill values are never used as values."""
+    for any other array), so that its fill values are never used as values. A ragged
+    list is ``ValueError("KEY: ...")`` (was numpy's "inhomogeneous shape")."""
     if isinstance(values, np.ma.MaskedArray):
         return np.ma.getdata(values), np.ma.getmaskarray(values)
-    data = np.asarray(values)
+    try:
+        data = np.asarray(values)
+    except (TypeError, ValueError):
+        got = TRACED if _is_tracer(values) else f"{type(values).__name__} of different shapes"
+        raise ValueError(f"{key}: must be an array of real numbers, got {got}") from None
     return data, np.zeros(data.shape, bool)
+
+
+def check_mask(mask, key: str = "mask"):
+    """``mask`` as a bool array (``None`` as given), or ``ValueError("KEY: ...")``: flags
+    are bools, or numbers that are 0 or 1 (a NaN, a 2 or a string was taken as true, an
+    object array of ``None`` as false)."""
+    if mask is None:
+        return None
+    try:
+        flags = np.asarray(mask)
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: must be an array of flags, got {type(mask).__name__}") from None
+    if flags.dtype.kind == "b":
+        return flags
+    if flags.dtype.kind not in "iuf":
+        raise ValueError(f"{key}: must be flags (bool, or 0 and 1), got dtype {flags.dtype}")
+    other = ~((flags == 0) | (flags == 1))
+    if other.any():
+        raise ValueError(
+            f"{key}: must be flags (bool, or 0 and 1), got {int(other.sum())} of "
+            f"{flags.size} values that are neither, e.g. {flags[other].flat[0].item()!r}"
+        )
+    return flags.astype(bool)
 
 
 def unmask(images, mask=None):
     """``(images, mask)`` with a numpy masked array's mask honoured: its masked values
     are excluded, combined with ``mask`` (``True`` where valid, per pixel ``(height,
     width)`` or per value like ``images``) into a per-value mask. Anything else is
-    returned as given (``np.asarray`` would drop the mask silently)."""
+    returned as given (``np.asarray`` would drop the mask silently). ``mask`` is checked
+    (:func:`check_mask`) and returned as a bool array."""
+    mask = check_mask(mask)
     if not isinstance(images, np.ma.MaskedArray):
         return images, mask
     data, masked = unmasked(images)
@@ -206,7 +242,32 @@ def unmask(images, mask=None):
     given = np.asarray(mask)
     if given.shape not in (data.shape, data.shape[-2:]):
         return data, mask  # refused as it would be without the masked array
-    return data, given.astype(bool) & valid  # as prepare_data takes a mask: truthiness
+    return data, given & valid
+
+
+def check_float_range(values, key: str) -> None:
+    """Refuse concrete float values that JAX's default float (float32 unless x64 is on)
+    cannot hold: whose largest magnitude overflows it, or underflows below its smallest
+    normal number (``ValueError("KEY: ...")``). Before: a float64 image of 1e300 became
+    inf (1e-300 zero) in float32 and a later step failed naming another cause."""
+    jax = sys.modules.get("jax")
+    if jax is None or _is_tracer(values):
+        return
+    a = np.asarray(values)
+    if a.dtype.kind != "f":
+        return
+    work = np.dtype(jax.dtypes.canonicalize_dtype(a.dtype))
+    if a.dtype.itemsize <= work.itemsize:
+        return
+    finite = np.abs(a[np.isfinite(a)])
+    peak = float(finite.max()) if finite.size else 0.0
+    info = np.finfo(work)
+    if peak > float(info.max) or 0.0 < peak < float(info.tiny):
+        raise ValueError(
+            f"{key}: its largest value {peak:.3g} lies outside {work}'s range "
+            f"[{info.tiny:.3g}, {info.max:.3g}] (JAX's default float): scale the values by "
+            "a constant"
+        )
 
 
 def masked_to_nan(images):

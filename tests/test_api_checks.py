@@ -790,3 +790,422 @@ def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
         lfj.Grid(2, 2, 8 * 10**4, 1)
     with pytest.raises(ValueError, match=f"^{limit}"):
         lfj.FitOptions(n_theta=8 * 10**4)
+
+
+def test_a_python_int_beyond_float64_is_named_not_an_overflow():
+    """Before: Medium(10**400, ...), render(gain=10**400) and FitOptions(basin_tolerance=
+    10**400) raised a bare 'OverflowError: int too large to convert to float', naming
+    neither the argument nor the range."""
+    huge = 10**400
+    assert number_problem(huge, low=0, high=1).startswith("must be a number in [0, 1], got 1")
+    for make, match in [
+        (lambda: lfj.Medium(huge, 0.1, 0.3), "medium.sigma_t: must be a number of magnitude at"),
+        (lambda: lfj.Medium(0.2, 0.1, -huge), "medium.g: must be a number of magnitude at most"),
+        (lambda: lfj.FitOptions(basin_tolerance=huge), "basin_tolerance: must be a number of"),
+        (
+            lambda: lfj.render(lfj.Medium(0.2, 0.1, 0.3), lfj.Grid(16, 12, 8, 1), lfj.Full(), 2,
+                               gain=huge),
+            r"render: gain: must be a number in \[1e-30, 1e\+30\]",
+        ),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match=match) as err:
+            make()
+        _one_line(err)
+
+
+def test_images_of_different_shapes_in_one_list_are_named():
+    """Before: a list of shifted images of two sizes ended in numpy's 'setting an array
+    element with a sequence ... inhomogeneous shape', naming no argument."""
+    images = [np.ones((24, 32))] * 5 + [np.ones((24, 30))]
+    with pytest.raises(ValueError, match=r"^images: must be an array \(6, height, width\)"):
+        lfj.fit_images(images, lfj.Stripes())
+
+
+def test_a_mask_of_values_that_are_not_flags_is_refused():
+    """Before: a mask of NaN (or of 2s, or of strings) was taken as all true and the fit
+    ran on every pixel; an object array of None as all false ('no pixel is valid ... by
+    mask'). Flags are bools, or numbers 0 and 1 (ints and floats still taken)."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    for mask, match in [
+        (np.full((24, 32), np.nan), r"^mask: .* got 768 of 768 values that are neither, e.g. nan"),
+        (np.full((24, 32), 2), r"^mask: must be flags \(bool, or 0 and 1\), got 768 of 768"),
+        (np.full((24, 32), "x"), r"^mask: must be flags \(bool, or 0 and 1\), got dtype <U1"),
+        (np.full((24, 32), None), r"^mask: must be flags \(bool, or 0 and 1\), got dtype object"),
+    ]:
+        for given in (images, np.ma.masked_array(images, mask=images > 0.99)):
+            with pytest.raises(ValueError, match=match):
+                lfj.fit_images(given, lfj.Stripes(), mask=mask)
+    from lightfield_jax.checks import check_mask
+
+    assert check_mask(np.eye(3)).dtype == bool and check_mask([[1, 0], [0, 1]]).sum() == 2
+
+
+def test_a_saturation_beyond_float64_is_named():
+    """Before: fit_images(saturation=10**400) ended in numpy's "ufunc 'isfinite' not
+    supported for the input types", naming no argument."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    with pytest.raises(ValueError, match=r"^saturation: must be a positive number, got 1000"):
+        lfj.fit_images(images, lfj.Stripes(), saturation=10**400)
+
+
+def test_a_split_of_values_that_are_not_intensities_is_refused():
+    """Before: a complex split was cast to real with a warning and fitted (28 s), one of
+    strings ended in numpy's DTypePromotionError, one with NaN in 'fit_decay: sigma_t is
+    not identifiable: 0 usable pixels'."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    one = np.ones((24, 32))
+    for split, match in [
+        ((one.astype(complex), one), "^split: direct: must be real numbers, got dtype complex"),
+        ((one, np.full((24, 32), "x")), "^split: multiple: must be real numbers, got dtype <U1"),
+        ((one * np.nan, one), "^split: direct: must be finite where not masked, got 768 of 768"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.fit_images(images, lfj.Stripes(), split=split)
+
+
+def test_a_progress_that_cannot_be_called_is_named_first(tmp_path):
+    """Before: fit_images(progress=True) ended in "TypeError: 'bool' object is not
+    callable" at its first stage; fit_capture loaded the capture first."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    with pytest.raises(ValueError, match="^fit_images: progress: must be a function .* got True"):
+        lfj.fit_images(images, lfj.Stripes(), progress=True)
+    with pytest.raises(ValueError, match="^fit_capture: progress: must be a function .* got 5"):
+        lfj.fit_capture(tmp_path / "missing.yaml", progress=5)
+
+
+def test_a_result_with_nan_in_its_model_records_is_strict_json():
+    """Before: to_dict() passed ``seconds`` and ``model`` through as they were: a NaN or
+    inf in them (a tail solve's residual, a correction's misfit; NumPy floats too) made
+    the strict JSON write of results.json fail after the fit."""
+    import json
+
+    from lightfield_jax.inverse.options import FitResult
+
+    nan = math.nan
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=False, message="m", iterations=1,
+        residual=nan, seconds={"total": 1.0, "compile": math.inf},
+        model={"tail": {"residual": nan, "steps": [np.float32(nan), 1.5]}, "n": 3},
+    )  # fmt: skip
+    out = json.loads(json.dumps(result.to_dict(), allow_nan=False))
+    assert out["seconds"] == {"total": 1.0, "compile": None}
+    assert out["model"] == {"tail": {"residual": None, "steps": [None, 1.5]}, "n": 3}
+    assert out["residual"] is None
+
+
+def test_numpy_numbers_in_fit_options_are_stored_as_python_numbers():
+    """Before: FitOptions(max_steps=np.int64(2)) passed its check and the fit ended
+    seconds in, after the scan, in optimistix's "`max_steps` must be a Python integer"."""
+    options = lfj.FitOptions(max_steps=np.int64(2), tolerance=np.array(1e-4), n_theta=np.int32(16))
+    assert type(options.max_steps) is int and type(options.n_theta) is int
+    assert type(options.tolerance) is float
+    assert type(dataclasses.replace(options, tail_max_steps=np.int64(5)).tail_max_steps) is int
+    images = np.asarray(
+        lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
+    )
+    fit = lfj.fit_images(
+        images, lfj.Stripes(), options=options, basin_search=False, model_error=False
+    )
+    assert math.isfinite(fit.sigma_t)
+
+
+def test_a_start_given_as_a_list_or_an_array_is_stored_as_a_tuple():
+    """Before: FitOptions(start=np.array([0.03, 0.4])) == the same raised numpy's 'truth
+    value of an array ... is ambiguous', a list made the options (and a Joint) unhashable,
+    and start=('0.03', '0.4') or (True, 0.4) was taken as numbers."""
+    for given in ([0.03, 0.4], np.array([0.03, 0.4]), (np.float32(0.03), 0.4)):
+        options, method = lfj.FitOptions(start=given), lfj.Joint(start=given)
+        assert options.start == method.start == pytest.approx((0.03, 0.4))
+        assert type(options.start) is tuple and type(options.start[0]) is float
+        assert options == lfj.FitOptions(start=given) and hash(options) and hash(method)
+    for bad in (("0.03", "0.4"), (True, 0.4), "ab"):
+        for make in (lfj.FitOptions, lfj.Joint):
+            with pytest.raises(ValueError, match=r"^start: must be \(sigma_s > 0, \|g\| < 1\)"):
+                make(start=bad)
+
+
+def test_fit_capture_refuses_channels_that_are_not_a_list_of_names(tmp_path):
+    """Before: channels='red' was split into letters ("channel: 'r' is not in the
+    capture"), channels='YY' chose 'Y' twice, channels=0 raised "'int' object is not
+    iterable"; each after the capture was loaded."""
+    for channels in ("red", b"Y", 0):
+        with pytest.raises(ValueError, match=r"^channels: must be a sequence of channel names"):
+            lfj.fit_capture(tmp_path / "missing.yaml", channels=channels)
+
+
+def test_inspect_capture_takes_a_path_and_names_other_things(tmp_path):
+    """Before: inspect_capture('capture.yaml') and inspect_capture(5) raised "'str'
+    object has no attribute 'images'"; a path is now loaded, as fit_capture does."""
+    with pytest.raises(TypeError, match=r"^inspect_capture: expected a capture .* got int$"):
+        lfj.inspect_capture(5)
+    with pytest.raises(lfj.CaptureError, match="missing.yaml: file not found"):
+        lfj.inspect_capture(tmp_path / "missing.yaml")
+    images = np.asarray(
+        lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
+    )
+    from lightfield_jax.capture.io import write_exr
+
+    names = []
+    for i, image in enumerate(images):
+        names.append(f"s{i}.exr")
+        write_exr(tmp_path / names[-1], {"Y": image.astype(np.float32)})
+    (tmp_path / "capture.yaml").write_text(f"images: {names}\npattern: {{period: 6, lit: 3}}\n")
+    assert lfj.inspect_capture(str(tmp_path / "capture.yaml")).direct.shape == (24, 32, 1)
+
+
+def test_stripe_patterns_too_large_for_memory_are_refused_before_allocating(tmp_path):
+    """Before: lfj.stripe_patterns(10**6, 10**6) asked numpy for 931 GiB (a bare
+    MemoryError, or the machine swapping where it overcommits); write_patterns alike.
+    The command line checked this, the Python API did not."""
+    with pytest.raises(ValueError, match=r"^stripe_patterns: 8 images of 1000000x1000000 needs"):
+        lfj.stripe_patterns(10**6, 10**6, 6, 3)
+    with pytest.raises(ValueError, match=r"^stripe_patterns: 8 images of 1000000x1000000 needs"):
+        lfj.write_patterns(tmp_path / "p", 10**6, 10**6)
+    assert not (tmp_path / "p").exists()
+    assert len(lfj.stripe_patterns(64, 48)[1]) == 6
+
+
+def test_a_channel_not_in_a_capture_fit_is_named():
+    """Before: CaptureFit['Q'] raised tuple.index's 'tuple.index(x): x not in tuple'."""
+    from lightfield_jax.inverse.options import FitResult
+
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model={},
+    )  # fmt: skip
+    fit = lfj.CaptureFit(("R", "G"), (result, result))
+    assert fit["G"] is result
+    with pytest.raises(ValueError, match=r"^channel: 'Q' is not in the fit \(it has R, G\)$"):
+        fit["Q"]
+
+
+def test_a_single_shift_is_named_as_too_few():
+    """Before: one stripe image was refused as 'the 1 shifts are the same image: the
+    stripes moved nothing ... (one image given for every shift?)'."""
+    image = np.random.default_rng(0).random((1, 24, 32))
+    with pytest.raises(ValueError, match=r"^pattern.phases: a fit needs at least 2 shifted"):
+        lfj.fit_images(image, lfj.Stripes(phases=(0,)))
+
+
+def test_fit_decay_names_an_image_beyond_float32():
+    """Before: with JAX's default float32, a float64 direct image of 1e300 became inf (or
+    of 1e-300 zero) and fit_decay said 'sigma_t is not identifiable: 0 usable pixels'."""
+    x = np.arange(48.0)
+    direct = np.exp(-0.2 * x)[None, :] * np.ones((8, 1))
+    with jax.enable_x64(False):
+        for scale in (1e300, 1e-300):
+            with pytest.raises(
+                ValueError, match=r"^fit_decay.direct: its largest value .* float32"
+            ):
+                lfj.fit_decay(scale * direct)
+        assert float(lfj.fit_decay(1e30 * direct).sigma_t) == pytest.approx(0.2, rel=1e-3)
+    assert float(lfj.fit_decay(1e300 * direct).sigma_t) == pytest.approx(0.2, rel=1e-6)  # x64
+
+
+def test_fitted_images_checks_its_arguments_before_rendering(monkeypatch):
+    """Before: a result's to_dict() or pattern=None raised an AttributeError, shape
+    'ab' or (-1, 3) numpy's errors, (10**6, 10**6) a MemoryError for 306 TiB."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.inverse.options import FitResult
+
+    model = {"width": 32, "height": 24, "n_theta": 8, "refine": 1, "bounces": 2,
+             "crop": [0, 0, 32, 24]}  # fmt: skip
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model=model,
+    )  # fmt: skip
+    pattern = lfj.Stripes()
+    monkeypatch.setenv(MAX_MEMORY_ENV, "1G")
+    for args, match in [
+        ((result.to_dict(), pattern, (24, 32)), "result: must be a FitResult, got dict"),
+        ((result, None, (24, 32)), "pattern: must be a Stripes, got NoneType"),
+        ((result, pattern, "ab"), r"shape: must be the images' \(height, width\), holding"),
+        ((result, pattern, (-1, 3)), r"shape: .* = \(0, 0, 32, 24\), got \(-1, 3\)"),
+        ((result, pattern, (20, 32)), r"shape: .* got \(20, 32\)"),
+        ((result, pattern, (10**6, 10**6)), r"7 x 2 images of 1000000x1000000 needs about"),
+    ]:
+        with pytest.raises(ValueError, match=f"^fitted_images: {match}"):
+            lfj.fitted_images(*args)
+    stripes, full = lfj.fitted_images(result, pattern, np.array([30, 40]))
+    assert stripes.shape == (6, 2, 30, 40) and full.shape == (2, 30, 40)
+
+
+def test_separate_names_images_beyond_float32():
+    """Before: with JAX's default float32, float64 images of 1e300 became inf and
+    separate said 'no pixel is finite in every one of the 6 images' (with numpy's
+    overflow warning); images of 1e-300 became zeros, separated silently."""
+    images = 1.0 + np.random.default_rng(0).random((6, 8, 8))
+    with jax.enable_x64(False):
+        for scale in (1e300, 1e-300):
+            with pytest.raises(ValueError, match=r"^separate.images: its largest value .* float32"):
+                lfj.separate(scale * images)
+        with pytest.raises(ValueError, match=r"^separate.dark_frame: its largest value"):
+            lfj.separate(images, dark_frame=np.full((8, 8), 1e300))
+        assert np.isfinite(np.asarray(lfj.separate(1e30 * images).direct)).all()
+    assert np.isfinite(np.asarray(lfj.separate(1e300 * images).direct)).all()  # x64
+
+
+def test_detect_geometry_names_arguments_it_cannot_use():
+    """Before: period 0 raised a ZeroDivisionError, entry 'up' a KeyError, a NaN
+    direction "cannot convert float NaN to integer", a roi of three values an unpacking
+    error, images of strings "could not convert string to float"; complex or bool images,
+    lit 0 and floor '0' were taken, and a reference of another shape ended in 'no lit
+    medium found'."""
+    images = np.zeros((6, 40, 48))
+    images[:, 8:32, 8:40] = np.random.default_rng(0).random((6, 24, 32))
+    for kwargs, match in [
+        ({"period": 0}, "period: must be an integer >= 2, got 0"),
+        ({"lit": 0}, r"lit: must be an integer in \[1, 5\], got 0"),
+        ({"entry": "up"}, "entry: must be one of left, right, top, bottom, got 'up'"),
+        ({"direction_deg": math.nan}, "direction_deg: must be finite, got nan"),
+        ({"floor": "0"}, "floor: must be a number, got '0'"),
+        ({"roi": (0, 0, 20)}, r"roi: must be \(x0, y0, x1, y1\), integers with 0 <= x0 < x1 <= 48"),
+        ({"roi": (30, 30, 2, 2)}, r"roi: must be .* got \(30, 30, 2, 2\)"),
+        ({"reference": np.ones((3, 3))}, r"reference: must have the images' \(H, W\[, C\]\)"),
+    ]:
+        with pytest.raises(ValueError, match="^detect_geometry: " + match):
+            lfj.detect_geometry(images, **kwargs)
+    for bad in (images.astype(complex), images > 0, "x"):
+        with pytest.raises(ValueError, match=r"^detect_geometry: images: must be an array of real"):
+            lfj.detect_geometry(bad)
+    assert lfj.detect_geometry(images, roi=(8, 8, 40, 32)).roi == (8, 8, 40, 32)
+
+
+def test_a_setting_the_chosen_method_does_not_use_is_refused():
+    """Before: FitOptions(method='grid', start=(0.03, 0.4)) or a solver with the grid
+    search was taken and ignored: the fit ran from its own search."""
+    import optimistix as optx
+
+    solver = optx.Dogleg(rtol=1e-6, atol=1e-8)
+    for kwargs, match in [
+        ({"method": "grid", "start": (0.03, 0.4)}, "^start: the grid method does not use it"),
+        ({"method": lfj.TwoStep(), "start": (0.03, 0.4)}, "^start: the gradient method does"),
+        ({"method": "grid", "solver": solver}, "^solver: the grid method does not use it"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            lfj.FitOptions(**kwargs)
+    with pytest.raises(ValueError, match="^start: the grid method does not use it"):
+        dataclasses.replace(lfj.FitOptions(start=(0.03, 0.4)), method="grid")
+    assert lfj.FitOptions(method="gradient", solver=solver).solver is solver
+    assert lfj.FitOptions(method=lfj.Joint(), start=(0.03, 0.4)).start == (0.03, 0.4)
+
+
+def test_fit_images_under_a_transformation_names_the_traced_images():
+    """Before: fit_images under jax.jit ended in JAX's many-line
+    TracerArrayConversionError (then, briefly, 'images of different shapes')."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    for transform in (jax.jit, jax.vmap):
+        with pytest.raises(ValueError, match=r"^images: must be an array .* got a traced value"):
+            transform(lambda x: lfj.fit_images(x, lfj.Stripes()).sigma_t)(
+                images if transform is jax.jit else images[None]
+            )
+
+
+def test_write_capture_yaml_writes_only_what_load_capture_takes(tmp_path):
+    """Before: pattern=None raised an AttributeError, images=5 "'int' object is not
+    iterable", a NumPy array or a Slab yaml's RepresenterError; a NaN saturation was
+    written into a file load_capture then refused. Arrays and geometries are now written
+    as their lists and dicts."""
+    images = [f"s{i}.exr" for i in range(6)]
+    for kwargs, match in [
+        ({"pattern": None}, "pattern: must be a Stripes, got NoneType"),
+        ({"images": 5}, "images: must be a list of image files or one .npy stack, got 5"),
+        ({"saturation": math.nan}, "saturation: must be finite, got nan"),
+        ({"black_level": 1.5}, r"black_level: must be a number in \[0, 1\), got 1.5"),
+        ({"pixel_size_mm": -1.0}, "pixel_size_mm: must lie in"),
+        ({"truth": {"medium": lfj.Medium(0.2, 0.03, 0.4)}}, "truth: cannot be written to a"),
+    ]:
+        given = {"images": images, "pattern": lfj.Stripes(), **kwargs}
+        with pytest.raises(ValueError, match="^write_capture_yaml: " + match):
+            lfj.write_capture_yaml(tmp_path / "c.yaml", **given)
+        assert not (tmp_path / "c.yaml").exists()
+    lfj.write_capture_yaml(
+        tmp_path / "c.yaml", images=images, pattern=lfj.Stripes(), saturation=np.array(2.0),
+        medium_roi=np.array([0, 0, 32, 24]), geometry=lfj.Slab(3.0),
+    )  # fmt: skip
+    text = (tmp_path / "c.yaml").read_text()
+    assert "medium_roi: [0, 0, 32, 24]" in text and "saturation: 2.0" in text
+    assert "geometry: {kind: slab, thickness: 3.0, boundary: absorbing}" in text
+
+
+def test_a_capture_fit_pairs_one_result_with_each_channel():
+    """Before: CaptureFit(('R', 'G'), (result,)) was made and its to_dict() wrote that
+    result as channel R, silently; a dict among the results failed only in to_dict."""
+    from lightfield_jax.inverse.options import FitResult
+
+    result = FitResult(
+        method="joint", sigma_t=0.2, sigma_s=0.03, g=0.4, gain=1.0, black_level=None,
+        uncertainty={}, correlation={}, converged=True, message="m", iterations=1,
+        residual=0.0, seconds={}, model={},
+    )  # fmt: skip
+    with pytest.raises(ValueError, match=r"^CaptureFit: needs one result per channel, got 2"):
+        lfj.CaptureFit(("R", "G"), (result,))
+    with pytest.raises(ValueError, match="^CaptureFit: results: must be FitResults, got dict"):
+        lfj.CaptureFit(("R",), (result.to_dict(),))
+    assert lfj.CaptureFit(("R",), (result,)).to_dict()["channel"] == "R"
+
+
+def test_a_fit_too_large_for_memory_is_refused_by_the_python_api(monkeypatch):
+    """Before: only the command line estimated a fit's memory: fit_images with n_theta
+    4096 and refine 8 on six 128x96 images (8.4 TiB) ran for minutes toward it."""
+    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+
+    monkeypatch.setenv(MAX_MEMORY_ENV, "2G")
+    images = np.random.default_rng(0).random((6, 96, 128))
+    big = {"n_theta": 4096, "refine": 8, "max_cells": 10**12, "max_render_cells": 10**12}
+    with pytest.raises(ValueError, match=r"^the fit of 6 images of 128x96 needs about 8.4 TiB"):
+        lfj.fit_images(images, lfj.Stripes(), **big)
+
+
+def test_an_exposure_or_split_of_arrays_of_different_shapes_is_named():
+    """Before: a list of exposures (or a split's direct image given as rows) of
+    different shapes ended in numpy's 'setting an array element with a sequence ...
+    inhomogeneous shape', naming no argument."""
+    images = np.random.default_rng(0).random((6, 24, 32))
+    ragged = [np.ones((24, 32))] * 5 + [np.ones((24, 30))]
+    with pytest.raises(ValueError, match=r"^exposure: must be an array of real numbers, got list"):
+        lfj.fit_images(images, lfj.Stripes(), exposure=ragged)
+    rows = [np.ones(32)] * 23 + [np.ones(30)]
+    with pytest.raises(ValueError, match=r"^split: direct: must be an array of real numbers"):
+        lfj.fit_images(images, lfj.Stripes(), split=(rows, np.ones((24, 32))))
+
+
+def test_a_geometry_does_not_take_its_kind_as_an_argument():
+    """Before: lfj.Plane(6.4) was a plane of kind 6.4 (the thickness meant for a slab
+    lost, the paper's 2-D model used), lfj.Slab(3.0, kind='plane') a slab named a plane."""
+    with pytest.raises(TypeError, match="Plane.__init__.. takes 1 positional argument"):
+        lfj.Plane(6.4)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'kind'"):
+        lfj.Slab(3.0, kind="plane")
+    with pytest.raises(TypeError, match="AutoGeometry.__init__.. takes from 2 to 3 positional"):
+        lfj.AutoGeometry(lfj.Slab(3.0), 1.0, "plane")
+    assert lfj.Plane().kind == "plane" and lfj.Slab(3.0).kind == "slab"
+    assert dataclasses.replace(lfj.Slab(3.0), n_mu=4) == lfj.Slab(3.0, n_mu=4)
+    assert lfj.AutoGeometry(lfj.Slab(3.0)).kind == "auto"
+
+
+def test_the_phase_function_holds_in_float32_near_g_of_one():
+    """Before: in float32 (JAX's default) 1 + g² − 2g·cos θ cancelled to 0 at the peak:
+    phase_integral(0.9999) and phase_function(0, 0.9999) were inf (a render's ρ inf),
+    phase_integral(0.999) 8 % low (319.8 for 348.1), with no error."""
+    with jax.enable_x64(False):
+        a32 = {g: float(lfj.phase_integral(g)) for g in (0.999, 0.9999, -0.9999)}
+        p32 = float(lfj.phase_function(0.0, 0.9999)), float(lfj.phase_function(math.pi, -0.9999))
+    a64 = {g: float(lfj.phase_integral(g)) for g in a32}  # the tests run x64
+    for g in a32:
+        assert a32[g] == pytest.approx(a64[g], rel=1e-3), g
+    assert p32 == pytest.approx((float(lfj.phase_function(0.0, 0.9999)),) * 2, rel=1e-3)
+    assert float(lfj.phase_function(0.3, 0.4)) == pytest.approx(
+        (1 - 0.16) / (4 * math.pi * (1 + 0.16 - 0.8 * math.cos(0.3)) ** 1.5), rel=1e-14
+    )
+
+
+def test_bounces_for_tolerance_refuses_a_negative_rho():
+    """Before: bounces_for_tolerance(-0.5) returned 1 bounce (rho = albedo*A(g) is never
+    negative: a sign error upstream went unnoticed)."""
+    with pytest.raises(ValueError, match=r"^rho: must be a number >= 0, got -0.5"):
+        lfj.bounces_for_tolerance(-0.5, 1e-3)
+    assert lfj.bounces_for_tolerance(0.0, 1e-3) == 1 and lfj.bounces_for_tolerance(0.5) == 15

@@ -23,6 +23,10 @@ from lightfield_jax.app.cli import (
     command,
     xla_cache_folder,
 )
+
+# The fit's memory estimate (fit_memory) and its constants, named here as before.
+from lightfield_jax.app.memory import FIT_N_THETA as FIT_N_THETA
+from lightfield_jax.app.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS_PER_PIXEL
 from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
 
 # --------------------------------------------------------------------------- fit
@@ -162,15 +166,6 @@ def _shown(capture, i: int) -> dict:
     return {"mask": _channel_mask(capture, i), "truth": truth_for(capture.truth, i)}
 
 
-# Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
-# (g <= 0.5); more are capped by FitOptions.max_cells.
-FIT_N_THETA = 32
-# Cells per pixel of the largest primal render a fit may make (a forward medium's
-# error-term model: 128 θ bins at refinement 2); more are capped at twice
-# FitOptions.max_render_cells.
-RENDER_CELLS_PER_PIXEL = 128 * 2**2
-
-
 # The two-step methods separate the direct light first; on stripe captures the
 # separation is biased (the multiple light is not the same under every shift), and
 # their ± (the noise's spread) says nothing of it.
@@ -256,7 +251,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from lightfield_jax.app.memory import check_memory, correction_bytes, fit_bytes, series_bytes
+    from lightfield_jax.app.memory import check_memory, fit_memory
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
@@ -275,24 +270,8 @@ def _fit(args: argparse.Namespace) -> int | None:
         _warn(args, note)
     h, w = capture.shape
     defaults = FitOptions(**capture.fit_options)
-    # θ bins or a refinement fixed by the capture's fit: settings are never lowered to
-    # max_cells, so they bound the model from below.
-    fixed = 0
-    if defaults.n_theta is not None or defaults.refine is not None:
-        fixed = h * w * (defaults.n_theta or FIT_N_THETA) * (defaults.refine or 1) ** 2
-    cells = max(min(h * w * FIT_N_THETA, defaults.max_cells), fixed)
-    rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * defaults.max_render_cells), fixed)
-    # A fixed bounce count keeps every bounce's field, as does a march capped by a
-    # max_bounces raised above its default (the default cap is within the estimates).
-    fixed_series = defaults.bounces if isinstance(defaults.bounces, int) else 0
-    if defaults.max_bounces > FitOptions().max_bounces:
-        fixed_series = max(fixed_series, defaults.max_bounces)
     check_memory(
-        max(
-            fit_bytes(capture.images.size, capture.n_images, cells)
-            + series_bytes(capture.n_images, cells, fixed_series),
-            correction_bytes(capture.images.size, capture.n_images, rendered),
-        ),
+        fit_memory(capture.images.size, capture.n_images, h, w, defaults),
         f"{capture.source}: the fit",
     )
     # What loading measured or doubted (a pattern.lit the stripes contradict makes the

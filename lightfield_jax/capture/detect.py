@@ -86,6 +86,7 @@ from typing import Any
 
 import numpy as np
 
+from lightfield_jax.checks import check_int, check_number, number_problem, real_array, shown
 from lightfield_jax.scene.illumination import WALLS, _check_direction, along_x
 
 _OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top"}
@@ -342,6 +343,46 @@ def _clip01(v: float) -> float:
 # --------------------------------------------------------------------------- detection
 
 
+def _checked(images, period, lit, reference, floor, roi, entry, direction_deg):
+    """``(images, reference)`` as float64 arrays, every argument of
+    :func:`detect_geometry` checked (ValueError naming it). Before: period 0 raised a
+    ZeroDivisionError, 6.0 a TypeError, an unknown entry a KeyError, a NaN direction
+    "cannot convert float NaN to integer", a roi of three values an unpacking error;
+    complex or bool images, lit 0 or 10 and a floor of "0" were taken; a reference of
+    another shape ended in "no lit medium found"."""
+    key = "detect_geometry"
+    a = real_array(images, f"{key}: images", (3, 4), "(P, H, W) or (P, H, W, C)", finite="any")
+    check_int(period, f"{key}: period", low=2)
+    check_int(lit, f"{key}: lit", low=1, high=period - 1)
+    if floor is not None:
+        check_number(floor, f"{key}: floor")
+    if reference is not None:
+        reference = real_array(reference, f"{key}: reference", (2, 3), "(H, W[, C])", finite="any")
+        if reference.shape not in (a.shape[1:3], a.shape[1:]):
+            raise ValueError(
+                f"{key}: reference: must have the images' (H, W[, C]) {a.shape[1:]}, got "
+                f"shape {reference.shape}"
+            )
+    height, width = a.shape[1:3]
+    if roi is not None:
+        box = () if isinstance(roi, (str, bytes)) or not np.iterable(roi) else tuple(roi)
+        if not (
+            len(box) == 4
+            and all(number_problem(v, integer=True) is None for v in box)
+            and 0 <= box[0] < box[2] <= width
+            and 0 <= box[1] < box[3] <= height
+        ):
+            raise ValueError(
+                f"{key}: roi: must be (x0, y0, x1, y1), integers with 0 <= x0 < x1 <= "
+                f"{width} and 0 <= y0 < y1 <= {height}, got {shown(roi)}"
+            )
+    if entry is not None and entry not in WALLS:
+        raise ValueError(f"{key}: entry: must be one of {', '.join(WALLS)}, got {shown(entry)}")
+    if direction_deg is not None:
+        check_number(direction_deg, f"{key}: direction_deg", low=-360.0, high=360.0)
+    return a, reference
+
+
 def detect_geometry(
     images,
     *,
@@ -375,15 +416,11 @@ def detect_geometry(
         ValueError: no lit medium, no visible stripes, or given values that contradict
             each other; the message says which.
     """
-    a = np.asarray(images, dtype=np.float64)
+    a, reference = _checked(images, period, lit, reference, floor, roi, entry, direction_deg)
     if a.ndim == 4:
         a = np.where(np.isfinite(a), a, 0.0).sum(axis=-1)
-    if a.ndim != 3 or a.shape[0] < 1:
-        raise ValueError(
-            f"detect_geometry: images must be (P, H, W) or (P, H, W, C), got {a.shape}"
-        )
     a = np.where(np.isfinite(a), a, 0.0)
-    s = _signal(a, None if reference is None else np.asarray(reference, np.float64))
+    s = _signal(a, reference)
     given = []
     if roi is None:
         roi, edges, (level, noise, threshold) = _detect_roi(s, floor)

@@ -17,10 +17,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 
-from lightfield_jax.capture.capture import Capture
+from lightfield_jax.capture.capture import Capture, load_capture
 from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.separate import separate
 
@@ -192,8 +193,17 @@ def _snr(
     return out
 
 
-def inspect_capture(capture: Capture) -> Inspection:
-    """Separate a loaded capture and measure its SNR along the light (module docs)."""
+def inspect_capture(capture: Capture | str | os.PathLike) -> Inspection:
+    """Separate a loaded capture (or its capture file's path, loaded with
+    :func:`~lightfield_jax.load_capture`) and measure its SNR along the light (module
+    docs)."""
+    if isinstance(capture, (str, os.PathLike)):  # as fit_capture (was an AttributeError)
+        capture = load_capture(capture)
+    elif not isinstance(capture, Capture):
+        raise TypeError(
+            f"inspect_capture: expected a capture (lightfield_jax.load_capture) or a capture "
+            f"file's path, got {type(capture).__name__}"
+        )
     images = np.asarray(capture.images, np.float64)
     p, h, w, n = images.shape
     pattern = capture.pattern

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lightfield_jax.app.memory import check_memory
 from lightfield_jax.capture.io import atomic_write_text, write_png
 
 ORIENTATIONS: tuple[str, ...] = ("rows", "columns")
@@ -79,6 +80,11 @@ def stripe_patterns(
             f"pattern.orientation: must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}"
         )
     phases = pattern_phases(period, lit, shifts)
+    # Before: stripe_patterns(10**6, 10**6) asked numpy for 931 GiB (a MemoryError).
+    check_memory(
+        pattern_memory(width, height, len(phases)),
+        f"stripe_patterns: {len(phases) + 2} images of {width}x{height}",
+    )
     across = height if orientation == "rows" else width
     images = []
     for phase in phases:

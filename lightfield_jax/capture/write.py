@@ -11,6 +11,9 @@ import numpy as np
 import yaml
 
 from lightfield_jax.capture.io import atomic_write_text
+from lightfield_jax.capture.keys import check_pixel_size
+from lightfield_jax.checks import check_number, shown
+from lightfield_jax.scene.geometry import Plane, Slab
 from lightfield_jax.scene.illumination import Stripes
 
 
@@ -38,9 +41,31 @@ def write_capture_yaml(
     capture file's folder. ``medium_roi`` and ``black_level`` may be ``"auto"``.
     """
 
+    # Before: pattern=None raised an AttributeError, images=5 "'int' object is not
+    # iterable", an array or a Slab yaml's RepresenterError, and a NaN saturation or
+    # pixel pitch was written into a file load_capture then refused.
+    if not isinstance(pattern, Stripes):
+        raise ValueError(
+            f"write_capture_yaml: pattern: must be a Stripes, got {type(pattern).__name__}"
+        )
+    if isinstance(images, bytes) or not isinstance(images, (str, os.PathLike, Sequence)):
+        raise ValueError(
+            "write_capture_yaml: images: must be a list of image files or one .npy stack, "
+            f"got {shown(images)}"
+        )
+    check_pixel_size(pixel_size_mm, "write_capture_yaml: pixel_size_mm")
+    if saturation is not None:
+        check_number(saturation, "write_capture_yaml: saturation", low=0.0, low_open=True)
+    if black_level is not None and black_level != "auto":
+        check_number(
+            black_level, "write_capture_yaml: black_level", low=0.0, high=1.0, high_open=True
+        )
+
     def plain(value):
-        if isinstance(value, np.generic):
-            return value.item()
+        if isinstance(value, (np.generic, np.ndarray)):
+            return value.tolist()
+        if isinstance(value, (Plane, Slab)):
+            return value.as_dict()
         if isinstance(value, dict):
             return {k: plain(v) for k, v in value.items()}
         if isinstance(value, (list, tuple)):
@@ -65,6 +90,14 @@ def write_capture_yaml(
         "flat_field": flat_field,
     }
     data = plain({k: v for k, v in data.items() if v is not None})
+    for key, value in data.items():
+        try:
+            yaml.safe_dump(value)
+        except yaml.YAMLError:
+            raise ValueError(
+                f"write_capture_yaml: {key}: cannot be written to a capture file, got "
+                f"{shown(value)}"
+            ) from None
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
     header = "# lightfield_jax capture file (format: lightfield_jax.capture.capture)\n"
     return atomic_write_text(path, header + text)

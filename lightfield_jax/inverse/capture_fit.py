@@ -10,15 +10,15 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from lightfield_jax.checks import repeated
+from lightfield_jax.checks import repeated, shown
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
-from lightfield_jax.inverse.options import FitOptions, FitResult, check_options
+from lightfield_jax.inverse.options import FitOptions, FitResult, check_options, check_progress
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry
 from lightfield_jax.scene.grid import Grid
 
@@ -30,11 +30,29 @@ class CaptureFit:
     channels: tuple[str, ...]
     results: tuple[FitResult, ...]
 
+    def __post_init__(self):
+        # Before: two channels with one result wrote that result as the first channel's
+        # (to_dict), and a result of another kind failed in to_dict.
+        if len(self.channels) != len(self.results) or not self.results:
+            raise ValueError(
+                f"CaptureFit: needs one result per channel, got {len(self.channels)} "
+                f"channel(s) and {len(self.results)} result(s)"
+            )
+        for result in self.results:
+            if not isinstance(result, FitResult):
+                raise ValueError(
+                    f"CaptureFit: results: must be FitResults, got {type(result).__name__}"
+                )
+
     @property
     def converged(self) -> bool:
         return all(r.converged for r in self.results)
 
     def __getitem__(self, channel: str) -> FitResult:
+        if channel not in self.channels:  # was tuple.index's "x not in tuple"
+            raise ValueError(
+                f"channel: {shown(channel)} is not in the fit (it has {', '.join(self.channels)})"
+            )
         return self.results[self.channels.index(channel)]
 
     def to_dict(self) -> dict:
@@ -94,6 +112,14 @@ def fit_capture(
         progress: called with a description of each stage.
     """
     check_options(options, "fit_capture")  # before the capture's load
+    check_progress(progress, "fit_capture")
+    if channels is not None and (
+        isinstance(channels, (str, bytes)) or not isinstance(channels, Iterable)
+    ):  # a string was split into letters ('red': 'r' is not in the capture), 0 a TypeError
+        raise ValueError(
+            "channels: must be a sequence of channel names (e.g. ['R', 'G']) or None, "
+            f"got {shown(channels)}"
+        )
     if isinstance(capture, (str, os.PathLike)):
         from lightfield_jax.capture.capture import load_capture
 

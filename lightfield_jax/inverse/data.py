@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.checks import unmask, unmasked
+from lightfield_jax.checks import TRACED, _is_tracer, number_problem, shown, unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
@@ -147,7 +147,17 @@ def prepare_data(
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     images, mask = unmask(images, mask)
-    given = np.asarray(images)
+    try:
+        given = np.asarray(images)
+    except (TypeError, ValueError):  # a ragged list: was numpy's "inhomogeneous shape"
+        # (a tracer: JAX's many-line TracerArrayConversionError)
+        got = f"{type(images).__name__} of images of different shapes"
+        if _is_tracer(images):
+            got = TRACED
+        raise ValueError(
+            f"images: must be an array ({pattern.n_patterns}, height, width) of real "
+            f"numbers, got {got}"
+        ) from None
     if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
     images = given.astype(jnp.result_type(float))
@@ -174,7 +184,7 @@ def prepare_data(
             f"in every shift) or their shape {images.shape} (per sample), got {np.shape(mask)}"
         )
     if exposure is not None:
-        t, unknown = unmasked(exposure)
+        t, unknown = unmasked(exposure, "exposure")
         if t.dtype.kind not in "iuf" or t.shape != images.shape:
             raise ValueError(
                 f"exposure: must be real numbers of the images' shape {images.shape}, got "
@@ -194,13 +204,10 @@ def prepare_data(
     if split is not None:
         direct, multiple, unknown = _split_images(split, images.shape[1:], images.dtype)
         mask = _excluding(mask, unknown)
-    if saturation is not None and not (
-        isinstance(saturation, (int, float, np.number))
-        and not isinstance(saturation, bool)
-        and np.isfinite(saturation)
-        and saturation > 0
-    ):
-        raise ValueError(f"saturation: must be a positive number, got {saturation!r}")
+    if saturation is not None:  # 10**400 was numpy's "ufunc 'isfinite' not supported"
+        if number_problem(saturation, low=0.0, low_open=True) is not None:
+            raise ValueError(f"saturation: must be a positive number, got {shown(saturation)}")
+        saturation = float(saturation)
     samples, censored, floored = valid_values(images, pattern, mask, saturation, clipped, floored)
     top = censored & ~floored & finite
     level = _clip_level(images, top, saturation)
@@ -226,6 +233,11 @@ def prepare_data(
         raise ValueError(
             f"images: no value is above 0 (the largest is {brightest:.3g}): images of light "
             "are not negative (values must be linear, black at 0)"
+        )
+    if split is None and images.shape[0] < 2:  # was "the 1 shifts are the same image"
+        raise ValueError(
+            "pattern.phases: a fit needs at least 2 shifted images (the separation of the "
+            f"direct light compares them), got {images.shape[0]}"
         )
     if split is None and np.all(images[:, pixels] == images[:1, pixels]):
         raise ValueError(
@@ -291,13 +303,27 @@ def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...
         raise ValueError(
             f"split: must be a pair (direct, multiple) of images of shape {shape}, got {got}"
         ) from None
-    (direct, d_unknown), (multiple, m_unknown) = map(unmasked, (direct, multiple))
+    (direct, d_unknown), (multiple, m_unknown) = (
+        unmasked(direct, "split: direct"),
+        unmasked(multiple, "split: multiple"),
+    )
     if direct.shape != shape or multiple.shape != shape:
         raise ValueError(
             f"split: direct and multiple must have the images' shape {shape}, "
             f"got {direct.shape} and {multiple.shape}"
         )
     unknown = d_unknown | m_unknown
+    for name, a in (("direct", direct), ("multiple", multiple)):
+        # Before: complex values were cast to real (a warning, a fit), strings ended in
+        # numpy's DTypePromotionError, NaN in "fit_decay: ... 0 usable pixels".
+        if a.dtype.kind not in "iuf":
+            raise ValueError(f"split: {name}: must be real numbers, got dtype {a.dtype}")
+        bad = ~np.isfinite(a) & ~unknown
+        if bad.any():
+            raise ValueError(
+                f"split: {name}: must be finite where not masked, got {int(bad.sum())} of "
+                f"{a.size} values NaN or inf"
+            )
     direct, multiple = (np.where(unknown, 0.0, a).astype(dtype) for a in (direct, multiple))
     return direct, multiple, unknown
 

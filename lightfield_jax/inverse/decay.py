@@ -44,7 +44,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from lightfield_jax.checks import check_number, masked_to_nan, number_problem
+from lightfield_jax.checks import check_float_range, check_number, masked_to_nan, number_problem
 from lightfield_jax.inverse.separate import real_dtype
 from lightfield_jax.scene.illumination import (
     _INWARD_DEG,
@@ -284,6 +284,7 @@ def fit_decay(
     dtype = direct.dtype if hasattr(direct, "dtype") else np.asarray(direct).dtype
     if not real_dtype(dtype):  # before: a bool image was fitted (True as 1)
         raise ValueError(f"fit_decay.direct: must be real numbers, got dtype {dtype}")
+    check_float_range(direct, "fit_decay.direct")
     direct = jnp.asarray(direct)
     # The fit runs in the wider of the image's and JAX's default float dtype: integer
     # frames become floats, and float32 data with x64 enabled is widened because

@@ -47,14 +47,21 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lightfield_jax.app.memory import check_memory, fit_memory
 from lightfield_jax.capture.keys import check_pixel_size
-from lightfield_jax.checks import number_problem, unmask
+from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, size_model
-from lightfield_jax.inverse.options import _PARAMS, FitOptions, FitResult, check_options
+from lightfield_jax.inverse.options import (
+    _PARAMS,
+    FitOptions,
+    FitResult,
+    check_options,
+    check_progress,
+)
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import forget_if_crowded, repairing_compilation_cache
 from lightfield_jax.inverse.trust import Uncertainty
@@ -110,6 +117,7 @@ def fit_images(
             A numpy masked array is honoured: a value whose T is masked is not used.
     """
     check_options(options, "fit_images")
+    check_progress(progress, "fit_images")
     options = dataclasses.replace(options or FitOptions(), **overrides)
     if black_level is not None:
         # Before: named "separate.black_level" (the helper's), after the images' checks.
@@ -153,6 +161,15 @@ def _fit_one(
     refinement, bounces), so that the channels of a capture share compiled programs;
     ``clipped`` and ``floored``: the values a capture masked as saturated and as clamped
     at a floor (:func:`prepare_data`)."""
+    try:
+        shape = np.shape(images)
+    except ValueError:  # ragged: prepare_data names it
+        shape = ()
+    if len(shape) == 3:
+        # Before: only the command line checked this; fit_images with n_theta 4096 and
+        # refine 8 on 128x96 images ran for minutes toward an allocation it cannot make.
+        p, h, w = shape
+        check_memory(fit_memory(p * h * w, p, h, w, options), f"the fit of {p} images of {w}x{h}")
     if as_geometry(options.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,
@@ -356,7 +373,30 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     gain and black level included, over the cropped model region placed in an image of
     ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``. A model with
     a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k."""
+    # Before: another result (a to_dict()) or pattern raised an AttributeError, a shape
+    # of strings or negative sizes numpy's errors, one of 10**6 x 10**6 a MemoryError.
+    if not isinstance(result, FitResult):
+        raise ValueError(f"fitted_images: result: must be a FitResult, got {type(result).__name__}")
+    if not isinstance(pattern, Stripes):
+        raise ValueError(f"fitted_images: pattern: must be a Stripes, got {type(pattern).__name__}")
     model = _model_from(result.model)
+    x0, y0, x1, y1 = model.crop
+    dims = () if isinstance(shape, (str, bytes)) or not np.iterable(shape) else tuple(shape)
+    if not (
+        len(dims) == 2
+        and all(number_problem(n, integer=True, low=1) is None for n in dims)
+        and dims[0] >= y1
+        and dims[1] >= x1
+    ):
+        raise ValueError(
+            f"fitted_images: shape: must be the images' (height, width), holding the fit's "
+            f"model crop (x0, y0, x1, y1) = {model.crop}, got {shown(shape)}"
+        )
+    k = model.bounces + (model.tail is not None)
+    check_memory(
+        8 * (pattern.n_patterns + 1) * k * dims[0] * dims[1],
+        f"fitted_images: {pattern.n_patterns + 1} x {k} images of {dims[1]}x{dims[0]}",
+    )
 
     def render(illumination):
         renderer = _renderer(model, illumination, result.phase)
@@ -369,9 +409,8 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     stripes, full = render(pattern), render(_full_for(pattern))[0]
     stripes = c * ((1 - b) * stripes + b * full[None])
     full = c * full
-    x0, y0, x1, y1 = model.crop
-    out_s = np.zeros(stripes.shape[:2] + tuple(shape))
-    out_f = np.zeros(full.shape[:1] + tuple(shape))
+    out_s = np.zeros(stripes.shape[:2] + dims)
+    out_f = np.zeros(full.shape[:1] + dims)
     out_s[..., y0:y1, x0:x1] = stripes
     out_f[..., y0:y1, x0:x1] = full
     return out_s, out_f

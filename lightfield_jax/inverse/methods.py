@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import optimistix as optx
 
-from lightfield_jax.checks import check_int
+from lightfield_jax.checks import check_int, number_problem, shown
 from lightfield_jax.inverse.data import FitProblem, FitSolution
 from lightfield_jax.inverse.joint_fit import joint_fit
 from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
@@ -58,16 +58,25 @@ def check_solver(solver, key: str = "solver") -> None:
         )
 
 
-def check_start(start, key: str = "start") -> None:
-    """Refuse a joint start that is not (σs > 0, |g| < 1)."""
+def check_start(start, key: str = "start") -> tuple[float, float] | None:
+    """A joint start (σs > 0, |g| < 1) as a tuple of two floats (``None`` as given), or
+    ``ValueError``. Before: a list or an array was kept as given (the options then
+    unhashable, ``==`` between them an error) and strings or ``True`` taken as numbers."""
     if start is None:
-        return
+        return None
+    refused = ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {shown(start)}")
+    if isinstance(start, (str, bytes)):
+        raise refused
     try:
-        ss, g = (float(v) for v in start)
-    except (TypeError, ValueError):
-        raise ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {start!r}") from None
+        items = tuple(start)
+    except TypeError:
+        raise refused from None
+    if len(items) != 2 or any(number_problem(v) is not None for v in items):
+        raise refused
+    ss, g = (float(v) for v in items)
     if not (0 < ss < math.inf and abs(g) < 1):
-        raise ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {start!r}")
+        raise refused
+    return ss, g
 
 
 class FitMethod(eqx.Module):
@@ -140,7 +149,7 @@ class Joint(FitMethod):
     (``None``: ``FitOptions.start``)."""
 
     solver: optx.AbstractLeastSquaresSolver | None = None
-    start: tuple[float, float] | None = None
+    start: tuple[float, float] | None = eqx.field(default=None, converter=check_start)
     name: ClassVar[str] = "joint"
 
     def __check_init__(self):

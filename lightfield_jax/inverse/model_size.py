@@ -198,7 +198,7 @@ def size_model(
     if isinstance(options.bounces, int):
         k = options.bounces
     elif converges:
-        bound = min(rho * margin + 0.01, 0.995)
+        bound = min(max(rho * margin + 0.01, 0.0), 0.995)
         k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
     else:
         k = options.max_bounces
@@ -246,7 +246,7 @@ def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Mod
     auto = options.tail == "auto" and options.bounces == "auto"
     if not (auto and model.converges and math.isfinite(ratio)):
         return model
-    bound = min(ratio + RATIO_MARGIN, 0.995)
+    bound = min(max(ratio + RATIO_MARGIN, 0.0), 0.995)  # a measured ratio, never below 0
     k = max(_bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
     if model.tail is not None and k <= options.max_bounces:
         return dataclasses.replace(model, bounces=k, tail=None, ratio=ratio)

@@ -10,9 +10,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
 import optimistix as optx
 
-from lightfield_jax.checks import check_flag, check_int, check_number, number_problem
+from lightfield_jax.checks import check_flag, check_int, check_number, number_problem, shown
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
 from lightfield_jax.inverse.methods import (
@@ -161,7 +162,7 @@ class FitOptions:
     solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
-        method_for(self.method)  # a known name or a FitMethod
+        method = method_for(self.method)  # a known name or a FitMethod
         if self.tail is not None and not (
             isinstance(self.tail, str) and (self.tail == "auto" or self.tail in TAIL_METHODS)
         ):
@@ -203,8 +204,26 @@ class FitOptions:
                 f"{self.max_render_cells!r}"
             )
         self._check_ranges()
-        check_start(self.start)
+        object.__setattr__(self, "start", check_start(self.start))  # a tuple of floats
         check_solver(self.solver)
+        # A setting the chosen method does not use was ignored silently (a start with
+        # the grid search, which searches g; a solver with it, which solves nothing).
+        unused = {"start": self.start is not None and method.name != "joint"}
+        unused["solver"] = self.solver is not None and method.name == "grid"
+        for name, is_unused in unused.items():
+            if is_unused:
+                raise ValueError(
+                    f"{name}: the {method.name} method does not use it (start: the joint "
+                    "fit's; solver: the joint and gradient fits'): drop it, or choose a "
+                    "method that does"
+                )
+        # NumPy numbers (np.int64(20), a 0-d array) are numbers here, stored as Python's:
+        # optimistix took max_steps=np.int64(20) only after the scan ("`max_steps` must
+        # be a Python integer", seconds into the fit).
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, np.generic) or (isinstance(value, np.ndarray) and value.ndim == 0):
+                object.__setattr__(self, field.name, value.item())
 
     def _check_ranges(self) -> None:
         """Refuse settings the fit would otherwise ignore or quietly replace (a bounce
@@ -376,8 +395,10 @@ class FitResult:
             "message": self.message,
             "iterations": self.iterations,
             "residual": _json_float(self.residual),
-            "seconds": self.seconds,
-            "model": self.model,
+            # NaN or inf in the model's records (a tail solve's residual, a correction
+            # step's misfit) made the strict JSON write fail after the fit.
+            "seconds": _json_clean(self.seconds),
+            "model": _json_clean(self.model),
         }
         if self.basins is not None:
             out["basins"] = _json_clean(self.basins)
@@ -407,6 +428,17 @@ def check_options(options, where: str) -> None:
         )
 
 
+def check_progress(progress, where: str) -> None:
+    """Refuse a ``progress`` that is neither callable nor ``None``
+    (``ValueError("WHERE: progress: ...")``). Before: ``progress=True`` ran until the
+    first stage, then "TypeError: 'bool' object is not callable"."""
+    if progress is not None and not callable(progress):
+        raise ValueError(
+            f"{where}: progress: must be a function of one argument (each stage's "
+            f"description) or None, got {shown(progress)}"
+        )
+
+
 def _json_float(v):
     v = float(v)
     return v if math.isfinite(v) else None
@@ -418,7 +450,7 @@ def _json_clean(obj):
         return {k: _json_clean(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_json_clean(v) for v in obj]
-    if isinstance(obj, float):
+    if isinstance(obj, (float, np.floating)):
         return _json_float(obj)
     return obj
 

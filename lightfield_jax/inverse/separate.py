@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from lightfield_jax.checks import masked_to_nan, number_problem
+from lightfield_jax.checks import check_float_range, masked_to_nan, number_problem
 
 SeparationMethod = Literal["general", "paper"]
 SEPARATION_METHODS: tuple[str, ...] = ("general", "paper")
@@ -79,6 +79,7 @@ def _as_float(x: ArrayLike, name: str = "images") -> Float[Array, "..."]:
     dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
     if not real_dtype(dtype):  # before: complex, bool and object images were separated
         raise ValueError(f"separate.{name}: must be real numbers, got dtype {dtype}")
+    check_float_range(x, f"separate.{name}")  # 1e300 was inf: "no pixel is finite"
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         # Camera frames are often unsigned integers: convert before subtracting.

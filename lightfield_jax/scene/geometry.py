@@ -48,9 +48,13 @@ def _positive_finite(value, what: str) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class Plane:
-    """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4)."""
+    """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4).
 
-    kind: Literal["plane"] = "plane"
+    ``kind`` (here and on :class:`Slab`, :class:`AutoGeometry`) is not an argument:
+    ``Plane(6.4)`` was taken as a plane of kind 6.4 (a thickness meant for a slab, lost
+    silently), ``Slab(3.0, kind="plane")`` as a slab named a plane."""
+
+    kind: Literal["plane"] = dataclasses.field(default="plane", init=False)
 
     def as_dict(self) -> dict:
         return {"kind": "plane"}
@@ -144,7 +148,7 @@ class Slab:
     n_mu: int | None = None
     n_z: int | None = None
     depth_profile: str | None = None
-    kind: Literal["slab"] = "slab"
+    kind: Literal["slab"] = dataclasses.field(default="slab", init=False)
 
     def __post_init__(self):
         thickness = _positive_finite(self.thickness, "geometry.thickness")
@@ -312,7 +316,7 @@ class AutoGeometry:
 
     slab: Slab
     threshold: float = 1.0
-    kind: Literal["auto"] = "auto"
+    kind: Literal["auto"] = dataclasses.field(default="auto", init=False)
 
     def __post_init__(self):
         if not isinstance(self.slab, Slab):

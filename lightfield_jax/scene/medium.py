@@ -40,7 +40,15 @@ def phase_function(theta: ArrayLike, g: ArrayLike) -> Float[Array, "..."]:
     _check_asymmetry(g, "phase_function")
     theta = jnp.asarray(theta)
     g = jnp.asarray(g)
-    return (1.0 - g**2) / (4.0 * jnp.pi * (1.0 + g**2 - 2.0 * g * jnp.cos(theta)) ** 1.5)
+    # 1 + g² − 2g·cos θ as (1 − g)² + 4g·sin²(θ/2) (g ≥ 0) or (1 + g)² − 4g·cos²(θ/2)
+    # (g < 0): equal in exact arithmetic, without the cancellation that made it 0 in
+    # float32 at the forward (backward) peak for |g| ≳ 0.9997 (p, A(g) and ρ were inf).
+    base = jnp.where(
+        g >= 0,
+        (1.0 - g) ** 2 + 4.0 * g * jnp.sin(0.5 * theta) ** 2,
+        (1.0 + g) ** 2 - 4.0 * g * jnp.cos(0.5 * theta) ** 2,
+    )
+    return (1.0 - g) * (1.0 + g) / (4.0 * jnp.pi * base**1.5)
 
 
 def phase_integral(g: ArrayLike) -> Float[Array, ""]:
@@ -188,7 +196,8 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
     when ρ ≥ 1 (the series does not converge: there is no such K).
     """
-    rho = check_number(rho, "rho", allow_inf=True)
+    # rho = albedo*A(g) >= 0 (before: a negative rho was taken, one bounce returned)
+    rho = check_number(rho, "rho", low=0.0, allow_inf=True)
     if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
     if rho >= 1.0:
@@ -198,7 +207,7 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
             "Use phase: normalized, or give an explicit bounce count (the result will "
             "say that the series does not converge)."
         )
-    if rho <= 0.0:
+    if rho == 0.0:
         return 1
     k = math.ceil(math.log(tolerance * (1.0 - rho)) / math.log(rho))
     k = max(1, k)
