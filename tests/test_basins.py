@@ -121,6 +121,7 @@ def test_noise_floor_tells_read_noise_from_shot_noise(seed):
     assert noise_floor(both, mask, lfj.Stripes()) == pytest.approx(0.003**2 * photons, rel=0.3)
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_a_read_noise_capture_is_fitted_with_read_noise_weights():
     """Read noise of 3 % of the peak on the milk (48×36): with shot-noise weights the
     dark pixels (noise-dominated, weighted 30× the bright ones) drove the fit to
@@ -136,6 +137,7 @@ def test_a_read_noise_capture_is_fitted_with_read_noise_weights():
         assert abs(getattr(result, key) - truth) < 2 * result.uncertainty[key], key
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_a_later_basin_worse_than_the_answer_found_is_not_refined():
     """Read noise (0.3 % of the peak) gives the milk's scan a second basin near
     g −0.75, whose cheap answer (g −0.9) asked for a 256-bin, 2×-refined model: its
@@ -507,6 +509,7 @@ def test_an_untrusted_fit_near_the_noise_still_looks_for_an_offset():
     assert OFFSET_HINT_CHI2 <= 13.9
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfit():
     """A pedestal of 1 % of the peak left in a noisy milk capture: the scan's offset
     leaves under offset_stop of its misfit, so the fit solves its best basin on the
@@ -565,6 +568,7 @@ def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
         lfj.FitOptions(offset_stop=0.5)
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_a_cheap_solve_lost_at_a_divergent_series_is_not_refined():
     """Images no medium has (ω 0.8, g 0.85 under ``paper``: ρ = 1.72, the series cut
     after 12 bounces): the cheap solve runs out of steps at values whose bounce series

@@ -239,6 +239,7 @@ def test_bench_tiny(tmp_path, capsys):
     assert result["results"][0]["per_bounce_s"] is not None
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_bench_fits_runs_each_fit_in_a_fresh_process():
     from lightfield_jax.app.bench import bench_fits
 

@@ -212,6 +212,7 @@ def test_a_dense_forward_capture_is_recovered_through_the_correction():
     assert abs(result.g - g) < 0.005
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_the_two_step_methods_march_every_bounce_on_the_models_grid():
     # The paper's baseline takes no coarse tail, on a capture whose joint fit does (12
     # bounces: past the joint fit's coarse_after 8).

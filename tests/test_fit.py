@@ -542,6 +542,7 @@ def test_values_at_the_saturation_are_masked_one_shift_at_a_time():
     assert not unmasked.converged
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_values_the_answer_puts_near_the_clip_are_masked_too(tmp_path):
     """The clip keeps a value near it only when its noise went down: the kept values
     there are biased low (censoring), and with them σt (−0.64 %, −3.2σ, before) and σs
@@ -595,6 +596,7 @@ def test_near_the_clip_judges_the_fitted_light_not_the_values():
     assert unclipped.clipped is None and near_the_clip(unclipped, images, sigma) is None
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_dark_values_clamped_at_zero_are_censored_from_below(tmp_path):
     """A 16-bit file or a camera's black subtraction clamps the read noise of dark values
     at 0: those values are censored from below, and the values near 0 that are left
@@ -694,6 +696,7 @@ def test_geometry_auto_takes_a_mask_per_value():
     assert abs(result.g - MEDIA["milk"][2]) < 0.01
 
 
+@pytest.mark.slow  # about 10-20 s: run by make test-slow
 def test_an_error_the_model_cannot_show_is_seen_by_the_parts_of_the_capture():
     """Light the model has no term for near the entry wall (up to +10 %, fading over 4
     pixels), with shot noise: the fit is biased (σt +2.7 %) with a misfit only 1.6×
