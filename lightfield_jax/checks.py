@@ -193,12 +193,21 @@ def unmasked(values, key: str = "values") -> tuple[np.ndarray, np.ndarray]:
     list is ``ValueError("KEY: ...")`` (was numpy's "inhomogeneous shape")."""
     if isinstance(values, np.ma.MaskedArray):
         return np.ma.getdata(values), np.ma.getmaskarray(values)
-    try:
-        data = np.asarray(values)
-    except (TypeError, ValueError):
-        got = TRACED if _is_tracer(values) else f"{type(values).__name__} of different shapes"
-        raise ValueError(f"{key}: must be an array of real numbers, got {got}") from None
+    data = as_array(values, key)
     return data, np.zeros(data.shape, bool)
+
+
+def as_array(values, key: str, what: str = "an array of real numbers", items: str = ""):
+    """``np.asarray(values)``, or ``ValueError("KEY: must be WHAT, got ...")`` naming a
+    ragged list (``list of ITEMSdifferent shapes``; was numpy's "inhomogeneous shape")
+    or a traced value (was JAX's many-line TracerArrayConversionError)."""
+    try:
+        return np.asarray(values)
+    except (TypeError, ValueError):
+        got = (
+            TRACED if _is_tracer(values) else f"{type(values).__name__} of {items}different shapes"
+        )
+        raise ValueError(f"{key}: must be {what}, got {got}") from None
 
 
 def check_mask(mask, key: str = "mask"):

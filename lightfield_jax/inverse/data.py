@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.checks import TRACED, _is_tracer, number_problem, shown, unmask, unmasked
+from lightfield_jax.checks import as_array, number_problem, shown, unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
@@ -147,17 +147,8 @@ def prepare_data(
     if not isinstance(pattern, Stripes):
         raise ValueError(f"pattern: must be a Stripes, got {type(pattern).__name__}")
     images, mask = unmask(images, mask)
-    try:
-        given = np.asarray(images)
-    except (TypeError, ValueError):  # a ragged list: was numpy's "inhomogeneous shape"
-        # (a tracer: JAX's many-line TracerArrayConversionError)
-        got = f"{type(images).__name__} of images of different shapes"
-        if _is_tracer(images):
-            got = TRACED
-        raise ValueError(
-            f"images: must be an array ({pattern.n_patterns}, height, width) of real "
-            f"numbers, got {got}"
-        ) from None
+    what = f"an array ({pattern.n_patterns}, height, width) of real numbers"
+    given = as_array(images, "images", what, items="images of ")
     if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
     images = given.astype(jnp.result_type(float))
