@@ -4,6 +4,7 @@ answer). Each case was accepted before (or failed deep inside), as its comment s
 
 import dataclasses
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -1209,3 +1210,20 @@ def test_bounces_for_tolerance_refuses_a_negative_rho():
     with pytest.raises(ValueError, match=r"^rho: must be a number >= 0, got -0.5"):
         lfj.bounces_for_tolerance(-0.5, 1e-3)
     assert lfj.bounces_for_tolerance(0.0, 1e-3) == 1 and lfj.bounces_for_tolerance(0.5) == 15
+
+
+def test_fit_images_refuses_a_period_the_images_contradict():
+    """Before: ``fit_images(images, Stripes(period=24))`` for period-6 stripes fitted for
+    about a minute and ended not converged; the command line's capture check (the
+    stripes' strongest period) now runs for the Python API too, before the fit."""
+    right = lfj.Stripes(period=6, lit=3, phases=tuple(range(6)))
+    images = _decaying_stripes(right, height=36, width=32)
+    for period, lit in ((24, 12), (9, 4)):
+        wrong = lfj.Stripes(period=period, lit=lit, phases=tuple(range(0, period, period // 6))[:6])
+        with pytest.raises(ValueError, match=f"pattern.period: {period} contradicts") as err:
+            lfj.fit_images(images, wrong, black_level=0.0)
+        assert re.search(r"every (5\.9\d|6\.0\d) px", _one_line(err)), err.value
+    # A half period (its harmonic is weak) or a period within 10 % is not refused here.
+    from lightfield_jax.capture.detect import other_period
+
+    assert other_period(images, 0, 6) is None and other_period(images, 0, 6.5) is None

@@ -123,6 +123,18 @@ def test_a_file_output_ending_in_a_separator_is_refused(capture, capsys, tmp_pat
     assert sorted(tmp_path.iterdir()) == [capture]
 
 
+def test_a_json_output_named_like_an_image_or_a_figure_is_refused(capture, capsys, tmp_path):
+    """Before: ``fit --out results.png`` (the figure meant) wrote the JSON results into
+    a file named results.png, exit 0; ``inspect --json`` and ``bench --out`` too."""
+    yaml_file = capture / "capture.yaml"
+    line = _refused(capsys, "fit", yaml_file, "--out", tmp_path / "r.png", match="--out")
+    assert "written as JSON" in line and ".png" in line and "--plot" in line
+    _refused(capsys, "fit", yaml_file, "--out", tmp_path / "r.EXR", match="a .exr name")
+    _refused(capsys, "inspect", yaml_file, "--json", tmp_path / "i.pdf", match="--json")
+    _refused(capsys, "bench", "--out", tmp_path / "b.npy", match="a .npy name")
+    assert sorted(tmp_path.iterdir()) == [capture]
+
+
 def test_a_folder_of_another_command_is_not_written_over(capture, capsys, tmp_path):
     """Before: ``render --out DIR`` into simulate's folder replaced its bounces.npy
     (exit 0), and simulate into render's folder its bounces.npy and bounces.exr."""

@@ -327,19 +327,31 @@ def _use_xla_cache(args: argparse.Namespace) -> None:
 
 
 def _outputs(
-    files=(), folders=(), inputs=(), plots=(), folder_names=(), marker=None, writer=None
+    files=(),
+    folders=(),
+    inputs=(),
+    plots=(),
+    folder_names=(),
+    marker=None,
+    writer=None,
+    json=(),
 ) -> None:
     """Check every output of a command before its work (see
     :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
-    ``files``, whose format is checked too; ``folder_names``: the names written into
-    ``folders``; ``marker``: the command's own file (its folders are its own);
-    ``writer``: the command's name where a folder without ``marker`` is the user's."""
-    from lightfield_jax.app.outputs import check_outputs, check_plot_format
+    ``files``, whose format is checked too; ``json``: (option, file, hint) of the JSON
+    files among them, whose names must not be an image's or a figure's;
+    ``folder_names``: the names written into ``folders``; ``marker``: the command's own
+    file (its folders are its own); ``writer``: the command's name where a folder
+    without ``marker`` is the user's."""
+    from lightfield_jax.app.outputs import check_json_name, check_outputs, check_plot_format
 
     for plot in plots:
         check_plot_format(plot)
     files, folders = [f for f in files if f], [d for d in folders if d]
     check_outputs(files, folders, inputs, folder_names, marker, writer)
+    for option, given, hint in json:
+        if given:
+            check_json_name(given, option, hint)
 
 
 @contextlib.contextmanager

@@ -130,6 +130,7 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
         files=[args.plot, args.json, args.response],
         inputs=capture_files(args.capture),
         plots=[args.plot] if args.plot else [],
+        json=[("--json", args.json, " (the figure: --plot FIG.png)")],
     )
     plot = Path(args.plot) if args.plot else None
     out = Path(args.json) if args.json else None

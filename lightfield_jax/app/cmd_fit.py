@@ -259,7 +259,12 @@ def _fit(args: argparse.Namespace) -> int | None:
     from lightfield_jax.inverse.options import FitOptions
 
     inputs = capture_files(args.capture)
-    _outputs(files=[args.out, args.plot], inputs=inputs, plots=[args.plot] if args.plot else [])
+    _outputs(
+        files=[args.out, args.plot],
+        inputs=inputs,
+        plots=[args.plot] if args.plot else [],
+        json=[("--out", args.out, " (the figure: --plot FIG.png)")],
+    )
     out = Path(args.out)
     _use_xla_cache(args)
     capture = load_capture(args.capture)

@@ -195,7 +195,7 @@ def _bench(args: argparse.Namespace) -> None:
     from lightfield_jax.app.bench import bench_fits, bench_slab, run_benchmark
     from lightfield_jax.capture.io import atomic_write_json
 
-    _outputs(files=[args.out])
+    _outputs(files=[args.out], json=[("--out", args.out, "")])
     out = Path(args.out)
     if args.fits and args.slab:
         raise ValueError("bench: --fits and --slab are separate benchmarks: give one")

@@ -86,6 +86,20 @@ def check_plot_format(given: str) -> None:
         )
 
 
+def check_json_name(given: str, option: str, hint: str = "") -> None:
+    """Refuse a JSON output (``option``, e.g. ``--out``) named like an image, an array
+    or a figure (``results.png``: the figure was meant, or the file would be misread as
+    an image); ``hint`` is added to the message (where the figure goes)."""
+    from lightfield_jax.capture.io import IMAGE_EXTENSIONS
+
+    suffix = Path(given).suffix.lower()
+    if suffix in IMAGE_EXTENSIONS or suffix.lstrip(".") in plot_formats():
+        raise OutputError(
+            f"{option} {given}: the results are written as JSON, which a {suffix} name "
+            f"would hide; name it .json{hint}"
+        )
+
+
 def check_outputs(
     files: Sequence[str | os.PathLike] = (),
     folders: Sequence[str | os.PathLike] = (),

@@ -11,10 +11,12 @@ from lightfield_jax.app.config import _Section
 from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
 from lightfield_jax.capture.detect import (
     LOW_CONFIDENCE,
+    STRIPED,
     Geometry,
     _across_first,
     _coefficients,
     detect_geometry,
+    other_period,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import AUTO, dark_level_text
@@ -96,13 +98,10 @@ def _check_light(
         )
 
 
-# Stripe contrast of an image: its Fourier amplitude across the stripes at the period
-# against that at 2/3 of it (not a harmonic of the stripes: noise alone gives about 1,
-# a 24-row crop of rendered stripes about 4, the window's leakage included). A capture
-# whose median contrast reaches _STRIPED has stripes; an image of it whose amplitude is
-# below _UNSTRIPED times the median image's is not a stripe image (a white or black
-# frame listed among them: measured 0.003).
-_STRIPED, _UNSTRIPED = 2.5, 0.1
+# An image whose stripe amplitude is below _UNSTRIPED times the median image's, in a
+# capture with stripes (detect.STRIPED), is not a stripe image (a white or black frame
+# listed among them: measured 0.003).
+_UNSTRIPED = 0.1
 # Declared phases are compared with measured ones only when the detector is sure of
 # them: the stripes' period found within 2 % and every phase within 0.1 row of an
 # integer (noise images reach neither).
@@ -127,14 +126,14 @@ def _check_stripes(
     def amplitude(period):
         return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
-    _check_period(top, pattern, stack, amplitude)
+    _check_period(top, pattern, stack, u0)
     if len(names) >= 2:
         _check_geometry_seen(top, pattern, images, roi, dark_removed, auto, notes)
     stripes = amplitude(pattern.period)
     with np.errstate(divide="ignore", invalid="ignore"):
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
         relative = stripes / np.median(stripes)
-    if not contrast >= _STRIPED:
+    if not contrast >= STRIPED:
         return None  # no stripes to compare with
     for name, r in zip(names, relative, strict=True):
         if not r >= _UNSTRIPED:
@@ -162,12 +161,6 @@ def _check_stripes(
     top.fail("pattern.phases", message)
 
 
-# A given period contradicts the images where their stripes' strongest period differs
-# from it by more than PERIOD_OFF and the given one's stripe amplitude is below
-# PERIOD_WEAK of that one's (a stripe pattern's harmonics are weaker than its
-# fundamental: a half or a double period has little amplitude; a small capture cannot
-# tell 6 from 8 px apart better than 0.47, measured on 24 rows).
-PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
 # A given entry wall, direction or lit width is compared with what the stripe detector
 # measures (every part measured: the wall, the heading, the lit width next to the wall)
 # only where it is sure of the stripes (their period found within 2 %, _SURE_PHASES:
@@ -192,20 +185,11 @@ DIRECTION_OFF, DIRECTION_SIGMAS = 2.0, 5.0
 LIT_OFF = 0.6
 
 
-def _check_period(top, pattern: Stripes, stack, amplitude) -> None:
+def _check_period(top, pattern: Stripes, stack, u0: int) -> None:
     """Refuse a ``pattern.period`` the images' stripes do not have, where they show
-    clear stripes of another period (between 2 px and a third of the wall)."""
-    n = stack.shape[-2]
-    longest = n / 3.0
-    if longest <= 2.0:
-        return
-    periods = 1.0 / np.linspace(1.0 / longest, 0.5, 400)
-    power = [float(np.median(amplitude(p))) for p in periods]
-    best = float(periods[int(np.argmax(power))])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        seen = np.median(amplitude(best) / amplitude(1.5 * best)) >= _STRIPED
-        weak = np.median(amplitude(pattern.period)) < PERIOD_WEAK * max(power)
-    if seen and weak and abs(best / pattern.period - 1.0) > PERIOD_OFF:
+    clear stripes of another period (:func:`~lightfield_jax.capture.detect.other_period`)."""
+    best = other_period(stack, u0, pattern.period)
+    if best is not None:
         top.fail(
             "pattern.period",
             f"{pattern.period} contradicts the images, whose stripes repeat every "

@@ -276,6 +276,41 @@ def _coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
     return np.einsum("u,puj->pj", basis, a - mean[:, None, :])
 
 
+# Stripe contrast of an image: its Fourier amplitude across the stripes at the period
+# against that at 1.5 times it (not a harmonic of the stripes: noise alone gives about
+# 1, a 24-row crop of rendered stripes about 4, the window's leakage included). Images
+# whose median contrast reaches STRIPED have stripes.
+STRIPED = 2.5
+# A given period contradicts the images where their stripes' strongest period differs
+# from it by more than PERIOD_OFF and the given one's stripe amplitude is below
+# PERIOD_WEAK of that one's (a stripe pattern's harmonics are weaker than its
+# fundamental: a half or a double period has little amplitude; a small capture cannot
+# tell 6 from 8 px apart better than 0.47, measured on 24 rows).
+PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
+
+
+def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
+    """The period (px) of the clear stripes of a (P, across, along) stack
+    (:func:`_across_first`, first across pixel u0) where it contradicts the given
+    ``period`` (see PERIOD_OFF), searched between 2 px and a third of the wall;
+    ``None`` where it does not, or where no stripes are clear."""
+    n = stack.shape[-2]
+    longest = n / 3.0
+    if longest <= 2.0:
+        return None
+
+    def amplitude(p):
+        return np.abs(_coefficients(stack, u0, 1.0 / p)).sum(axis=-1)
+
+    periods = 1.0 / np.linspace(1.0 / longest, 0.5, 400)
+    power = [float(np.median(amplitude(p))) for p in periods]
+    best = float(periods[int(np.argmax(power))])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        seen = np.median(amplitude(best) / amplitude(1.5 * best)) >= STRIPED
+        weak = np.median(amplitude(period)) < PERIOD_WEAK * max(power)
+    return best if seen and weak and abs(best / period - 1.0) > PERIOD_OFF else None
+
+
 def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
     return float(np.sum(np.abs(_coefficients(a, u0, 1.0 / period)) ** 2))
 
@@ -584,4 +619,4 @@ def _points_in(entry: str, direction_deg: float) -> bool:
     return True
 
 
-__all__ = ["Geometry", "LOW_CONFIDENCE", "detect_geometry"]
+__all__ = ["Geometry", "LOW_CONFIDENCE", "STRIPED", "detect_geometry", "other_period"]
