@@ -630,7 +630,7 @@ def test_fit_capture_takes_a_path_and_refuses_other_things(tmp_path):
         capture_fit.fit_capture(42)
     _, text = _srgb_capture(tmp_path, "srgb")
     (tmp_path / "capture.yaml").write_text(text)
-    with pytest.raises(ValueError, match=r"channel: 'nope' is not in the capture \(it has Y\)"):
+    with pytest.raises(ValueError, match=r"channel: 'nope' is not in the capture \(it has Y; "):
         capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=["nope"])
     with pytest.raises(ValueError, match=r"channel: 'Y' chosen more than once"):
         capture_fit.fit_capture(str(tmp_path / "capture.yaml"), channels=["Y", "Y"])

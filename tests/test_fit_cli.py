@@ -365,7 +365,10 @@ def test_all_saturated_frames_are_named_in_a_warning(simulated, tmp_path, capsys
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--channel", "Q"], "channel: 'Q' is not in the capture (it has Y)"),
+        (
+            ["--channel", "Q"],
+            "channel: 'Q' is not in the capture (it has Y; the capture file's channel key",
+        ),
         (["--channel", "Y", "--channel", "Y"], "channel: 'Y' chosen more than once"),
         (["--max-steps", "0"], "argument --max-steps: must be a positive integer, got '0'"),
         (["--method", "newton"], "argument --method: invalid choice: 'newton'"),

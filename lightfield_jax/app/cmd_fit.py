@@ -216,7 +216,8 @@ def _roi_record(capture) -> dict:
         "--channel",
         action="append",
         metavar="NAME",
-        help="fit only this channel (repeatable; default: the capture's channel key)",
+        help="fit only this channel of those the capture file's channel key loads "
+        "(repeatable; default: all of them)",
     ),
     arg("--out", default="results.json", metavar="FILE", help="JSON results (%(default)s)"),
     arg(

@@ -106,7 +106,8 @@ def fit_capture(
             (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
             :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
             whose own settings (its solver, start, grid size) replace these.
-        channels: channel names to fit (default: every channel the capture holds).
+        channels: channel names to fit (default: every channel the capture holds; its
+            file's ``channel`` key chooses which channels are loaded).
         options, overrides: see :func:`fit_images` (``options`` ``None``: the capture
             file's ``fit:`` settings, :attr:`Capture.fit_options`).
         progress: called with a description of each stage.
@@ -133,7 +134,10 @@ def fit_capture(
     chosen = names if channels is None else tuple(channels)
     for c in chosen:
         if c not in names:
-            raise ValueError(f"channel: {c!r} is not in the capture (it has {', '.join(names)})")
+            raise ValueError(
+                f"channel: {c!r} is not in the capture (it has {', '.join(names)}; the capture "
+                "file's channel key chooses the channels it loads)"
+            )
     if not chosen:
         raise ValueError("channel: no channel chosen (give at least one, or None for all)")
     twice = repeated(chosen)
