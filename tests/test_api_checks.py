@@ -1227,3 +1227,13 @@ def test_fit_images_refuses_a_period_the_images_contradict():
     from lightfield_jax.capture.detect import other_period
 
     assert other_period(images, 0, 6) is None and other_period(images, 0, 6.5) is None
+
+
+def test_stripes_refuse_more_phases_than_images_could_be_given():
+    """Before: ``Stripes(phases=range(10**12))`` was made a tuple until memory ran out
+    (MemoryError); now the count is checked first."""
+    for phases in (range(10**12), np.zeros(5000, int), [0] * 4097):
+        with pytest.raises(ValueError, match="at most 4096 phases") as err:
+            lfj.Stripes(phases=phases)
+        _one_line(err)
+    assert lfj.Stripes(phases=[0] * 4096).n_patterns == 4096

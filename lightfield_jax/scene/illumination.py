@@ -140,6 +140,10 @@ class Beam:
         return candidates[0]
 
 
+# Phases (one image each) a stripe pattern may list.
+MAX_PHASES = 4096
+
+
 @dataclasses.dataclass(frozen=True)
 class Stripes:
     """Shifted projector stripes entering through one wall (one image per phase)."""
@@ -163,6 +167,11 @@ class Stripes:
         ):
             raise ValueError(
                 f"illumination.phases: must be a sequence of integers, got {shown(self.phases)}"
+            )
+        count = np.size(self.phases) if isinstance(self.phases, np.ndarray) else len(self.phases)
+        if count > MAX_PHASES:  # before: range(10**12) was made a tuple until memory ran out
+            raise ValueError(
+                f"illumination.phases: at most {MAX_PHASES} phases (one image each), got {count}"
             )
         phases = (
             tuple(np.asarray(self.phases).ravel())
