@@ -1881,3 +1881,22 @@ def test_a_time_limit_beyond_a_timers_range_is_no_limit_and_no_traceback(seconds
     finally:
         threading.excepthook = previous
     assert failed == []
+
+
+def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, monkeypatch):
+    """Before: numpy's short write (no errno: a quota, a file size limit) of a file in a
+    staged folder (render's R/bounces.npy) read "view: write failed ([Errno None] write
+    failed (8400 requested and 7648 written): '.../.view.tmp-164f67c5/R/bounces.npy')",
+    naming the temporary. Now "view: write failed (8400 requested and 7648 written)"."""
+    from lightfield_jax.app.cli import _describe
+    from lightfield_jax.capture.io import atomic_directory, atomic_write_npy
+
+    def short_write(*_, **__):
+        raise OSError("8400 requested and 7648 written")
+
+    monkeypatch.setattr(np, "save", short_write)
+    view = tmp_path / "view"
+    with pytest.raises(OSError) as e, atomic_directory(view) as staging:
+        atomic_write_npy(staging / "R" / "bounces.npy", np.zeros(3))
+    assert _describe(e.value) == f"{view}: write failed (8400 requested and 7648 written)"
+    assert os.listdir(tmp_path) == []
