@@ -1900,3 +1900,15 @@ def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, m
         atomic_write_npy(staging / "R" / "bounces.npy", np.zeros(3))
     assert _describe(e.value) == f"{view}: write failed (8400 requested and 7648 written)"
     assert os.listdir(tmp_path) == []
+
+
+def test_inspect_of_one_stripe_image_names_the_images_key(capture, capsys):
+    """Before: inspect of a capture of one image was refused as "separate.images: need
+    at least 2 shifted images", a key no capture file has (fit names pattern.phases)."""
+    _edit(capture, images=["shift_00.exr"], pattern={"period": 6, "lit": 3, "phases": [0]})
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match="capture.yaml: images: inspecting needs at least 2 shifted images",
+    )
