@@ -504,6 +504,29 @@ def test_unsupported_plot_format_is_refused_before_the_fit(capture, capsys, tmp_
     )
 
 
+def test_a_pgf_figure_without_its_tex_program_is_refused_before_the_fit(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: ``fit --plot fit.pgf`` (or inspect's) on a machine without xelatex ran the
+    whole fit, then ended in matplotlib's traceback "'xelatex' not found"."""
+    monkeypatch.setenv("PATH", str(tmp_path))  # no TeX program on it
+    results = tmp_path / "results.json"
+    t0 = time.perf_counter()
+    for command in ("fit", "inspect"):
+        line = _refused(
+            capsys,
+            command,
+            capture / "capture.yaml",
+            "--plot",
+            tmp_path / "fig.pgf",
+            *(("--out", results) if command == "fit" else ()),
+            match="fig.pgf: matplotlib writes .pgf figures through xelatex, which is not installed",
+        )
+        assert "pdf" in line and "pgf," not in line
+    assert time.perf_counter() - t0 < 10  # refused before the fit (which takes longer)
+    assert not results.exists() and not (tmp_path / "fig.pgf").exists()
+
+
 # --------------------------------------------------- two-step caveat, staged writes
 
 
