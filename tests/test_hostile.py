@@ -1306,6 +1306,24 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
 
 
+def test_render_never_replaces_a_file_of_the_capture(capture, capsys, tmp_path):
+    """Before: ``render results.json --out CAPTURE_FOLDER`` of a capture whose image stack
+    was named lightfield.npy and whose dark frame bounces.exr replaced both with the
+    render's files (only the results file was an input). Now refused, naming the input."""
+    stack = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    np.save(capture / "lightfield.npy", stack)
+    (capture / "dark.exr").rename(capture / "bounces.exr")
+    _edit(capture, images="lightfield.npy", dark_frame="bounces.exr")
+    results = _results(capture, tmp_path)
+    before = _snapshot(capture)
+    _refused(capsys, "render", results, "--out", capture, match="holds an input of this command")
+    assert _snapshot(capture) == before
+    _edit(capture, images=[f"shift_{i:02d}.exr" for i in range(P)])
+    before = _snapshot(capture)
+    _refused(capsys, "render", results, "--out", capture, match="bounces.exr), which it would")
+    assert _snapshot(capture) == before
+
+
 def test_render_of_a_fit_that_did_not_converge_warns_and_records_it(capture, capsys, tmp_path):
     """Before: rendered without a word (render.json did not say either)."""
     reasons = ["chi2/dof = 41 is far above the noise", "g = 0.981 is at its bound"]
