@@ -1953,3 +1953,17 @@ def test_inspect_of_one_stripe_image_names_the_images_key(capture, capsys):
         capture / "capture.yaml",
         match="capture.yaml: images: inspecting needs at least 2 shifted images",
     )
+
+
+def test_a_dark_frame_of_nan_only_is_named_by_its_key(capture, capsys):
+    """Before: a dark frame whose every value is NaN was refused as "images: no usable
+    pixel: every pixel is non-finite or saturated in some image (...)", under the images'
+    key; now by its own key, as the stripe images and the projector's frames are."""
+    write_exr(capture / "bad.exr", {"Y": np.full((H, W), np.nan, np.float32)})
+    _edit(capture, dark_frame="bad.exr")
+    match = "dark_frame: bad.exr: every pixel value is NaN or Inf (a corrupt file?)"
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+    _bracketed(capture)
+    _edit(capture, dark_frame=["dark_0.exr", "bad.exr"])
+    match = "dark_frame[1]: bad.exr: every pixel value is NaN or Inf"
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
