@@ -1650,6 +1650,44 @@ def test_one_file_in_two_roles_is_refused_in_brackets(capture, capsys, tmp_path,
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("value", "match"),
+    [
+        (np.nan, "images[2][0]: b2_0.exr: every pixel value is NaN or Inf (a corrupt file?)"),
+        (0.0, "images[2][0]: b2_0.exr: every pixel value is 0, unlike the other images"),
+    ],
+)
+def test_a_corrupt_or_dropped_exposure_in_a_bracket_is_refused(capture, capsys, value, match):
+    """Before: an exposure of NaN only (a corrupt file) or of zeros (a dropped frame) was
+    merged as zeros without a word: its shift's image near 0 wherever the longer
+    exposure clipped. Now refused as a single exposure is."""
+    _bracketed(capture)
+    write_exr(capture / "b2_0.exr", {"Y": np.full((H, W), value, np.float32)})
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
+def test_nan_samples_in_a_bracket_are_left_out_of_the_merge(capture):
+    """Before: a NaN sample was merged as 0: where the longer exposure clipped the pixel
+    came out near 0, not masked; elsewhere the merge was pulled down by a fifth."""
+    _bracketed(capture)
+    x = read_image(capture / "b2_0.exr").pixels[..., 0]
+    bright = np.unravel_index(np.argmax(x), x.shape)  # clipped at 4 s
+    dim = (H // 2, W - 2)  # well exposed at 4 s
+    assert x[bright] * 4 > 1 and x[dim] * 4 < 0.5
+    x = x.copy()
+    x[bright] = x[dim] = np.nan
+    write_exr(capture / "b2_0.exr", {"Y": x})
+    broken = lfj.load_capture(capture / "capture.yaml")
+    assert not broken.sample_mask[2][bright].any()  # clipped in its one finite sample
+    # Merged from its 4 s sample alone (the dark frame subtracted).
+    alone = (
+        read_image(capture / "b2_1.exr").pixels[dim]
+        - read_image(capture / "dark_1.exr").pixels[dim]
+    )
+    assert broken.images[2][dim] == pytest.approx(alone / 4, rel=1e-5)
+    assert any("2 sample value(s) are NaN or Inf (b2_0.exr: 2)" in n for n in broken.notes)
+
+
 def test_a_calibration_frame_repeated_in_its_own_bracket_is_kept(capture):
     """The same dark frame at every exposure is one role, not two."""
     _bracketed(capture)

@@ -16,7 +16,14 @@ from lightfield_jax.capture.calibration import (
     drop_constant_alpha,
     sensor_top_code,
 )
-from lightfield_jax.capture.frames import _aux_frame, _distinct_files, _file, _read, _size
+from lightfield_jax.capture.frames import (
+    _aux_frame,
+    _distinct_files,
+    _file,
+    _one_value,
+    _read,
+    _size,
+)
 from lightfield_jax.capture.hdr import (
     CLIP,
     EXPOSURE_RATIO_TOLERANCE,
@@ -98,6 +105,25 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     shifts = [[next(kept) for _ in row] for row in shifts]
+    # As for single exposures: before, a corrupt or dropped exposure merged (as 0) into
+    # its shift's image without a word, near 0 where the longer exposures clipped.
+    flat = [_one_value(f.pixels) for row in shifts for f in row]
+    for (key, _), f, level in zip(listed, (f for row in shifts for f in row), flat, strict=True):
+        if not np.isfinite(f.pixels).any():
+            top.fail(key, f"{f.path.name}: every pixel value is NaN or Inf (a corrupt file?)")
+        if level is not None and level <= 0 and None in flat:
+            top.fail(
+                key,
+                f"{f.path.name}: every pixel value is {level:.6g}, unlike the other images (a "
+                "dropped frame, or the projector or camera off?)",
+            )
+    bad = {f.path.name: int(np.sum(~np.isfinite(f.pixels))) for row in shifts for f in row}
+    if bad := {name: n for name, n in bad.items() if n}:
+        notes.append(
+            f"{sum(bad.values())} sample value(s) are NaN or Inf "
+            f"({', '.join(f'{name}: {n}' for name, n in bad.items())}): left out of the "
+            "merge (a pixel with no other sample is masked)"
+        )
     first = shifts[0][0]
     for key in _AUX_FRAMES:
         files = top.get(key, None)
