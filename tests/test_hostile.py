@@ -2005,3 +2005,20 @@ def test_a_dark_frame_of_nan_only_is_named_by_its_key(capture, capsys):
     _edit(capture, dark_frame=["dark_0.exr", "bad.exr"])
     match = "dark_frame[1]: bad.exr: every pixel value is NaN or Inf"
     _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
+@pytest.mark.parametrize("response", ["srgb", "auto"])
+def test_a_response_curve_for_float_brackets_is_refused(capture, capsys, response):
+    """Before: float (EXR) brackets with a response curve were refused as exposures
+    "listed out of order" (a wrong cause), or, with auto, their linear values were
+    quantised to 256 codes and fitted (a NaN sample: numpy's "invalid value encountered
+    in cast" on the terminal). Now refused as for single exposures: floats are linear."""
+    _bracketed(capture)
+    _edit(capture, response=response)
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match=f"response: {response} maps a camera's integer codes (8- or 16-bit files), but "
+        "images[0][0] (b0_0.exr) holds float values, which are linear",
+    )

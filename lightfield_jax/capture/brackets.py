@@ -146,6 +146,15 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         )
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
+    if response != "linear" and not first.is_integer:
+        # As for single exposures (before: srgb was refused as exposures "listed out of
+        # order", and auto quantised the float values to 256 codes without a word).
+        top.fail(
+            "response",
+            f"{response} maps a camera's integer codes (8- or 16-bit files), but "
+            f"images[0][0] ({first.path.name}) holds float values, which are linear: give "
+            "response: linear",
+        )
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
     clip = _positive(top, "saturation")
