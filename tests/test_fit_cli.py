@@ -199,14 +199,16 @@ def test_fit_that_does_not_converge_writes_results_and_exits_1(simulated, tmp_pa
         out,
     )
     assert status == 1, err
-    assert _lines(err) == [
-        "lightfield-jax: warning: the fit did not converge: results were written with "
-        "converged: false"
-    ]
     assert "NOT CONVERGED" in stdout
     result = json.loads(out.read_text())
     assert result["converged"] is False and result["iterations"] <= 1
     assert result["message"] != "converged"
+    # The reasons are on stderr too (before: only in the summary, which -q silences).
+    why = "; ".join(result["reasons"]) or result["message"]
+    assert _lines(err) == [
+        f"lightfield-jax: warning: the fit did not converge ([Y] {why}): results were "
+        "written with converged: false"
+    ]
 
 
 def test_the_capture_notes_are_said_before_the_fit(simulated, tmp_path, capsys, monkeypatch):

@@ -504,6 +504,29 @@ def test_unsupported_plot_format_is_refused_before_the_fit(capture, capsys, tmp_
     )
 
 
+def test_a_pgf_figure_without_its_tex_program_is_refused_before_the_fit(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: ``fit --plot fit.pgf`` (or inspect's) on a machine without xelatex ran the
+    whole fit, then ended in matplotlib's traceback "'xelatex' not found"."""
+    monkeypatch.setenv("PATH", str(tmp_path))  # no TeX program on it
+    results = tmp_path / "results.json"
+    t0 = time.perf_counter()
+    for command in ("fit", "inspect"):
+        line = _refused(
+            capsys,
+            command,
+            capture / "capture.yaml",
+            "--plot",
+            tmp_path / "fig.pgf",
+            *(("--out", results) if command == "fit" else ()),
+            match="fig.pgf: matplotlib writes .pgf figures through xelatex, which is not installed",
+        )
+        assert "pdf" in line and "pgf," not in line
+    assert time.perf_counter() - t0 < 10  # refused before the fit (which takes longer)
+    assert not results.exists() and not (tmp_path / "fig.pgf").exists()
+
+
 # --------------------------------------------------- two-step caveat, staged writes
 
 
@@ -1283,6 +1306,24 @@ def test_a_valid_handmade_results_file_renders(capture, capsys, tmp_path):
     assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
 
 
+def test_render_never_replaces_a_file_of_the_capture(capture, capsys, tmp_path):
+    """Before: ``render results.json --out CAPTURE_FOLDER`` of a capture whose image stack
+    was named lightfield.npy and whose dark frame bounces.exr replaced both with the
+    render's files (only the results file was an input). Now refused, naming the input."""
+    stack = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    np.save(capture / "lightfield.npy", stack)
+    (capture / "dark.exr").rename(capture / "bounces.exr")
+    _edit(capture, images="lightfield.npy", dark_frame="bounces.exr")
+    results = _results(capture, tmp_path)
+    before = _snapshot(capture)
+    _refused(capsys, "render", results, "--out", capture, match="holds an input of this command")
+    assert _snapshot(capture) == before
+    _edit(capture, images=[f"shift_{i:02d}.exr" for i in range(P)])
+    before = _snapshot(capture)
+    _refused(capsys, "render", results, "--out", capture, match="bounces.exr), which it would")
+    assert _snapshot(capture) == before
+
+
 def test_render_of_a_fit_that_did_not_converge_warns_and_records_it(capture, capsys, tmp_path):
     """Before: rendered without a word (render.json did not say either)."""
     reasons = ["chi2/dof = 41 is far above the noise", "g = 0.981 is at its bound"]
@@ -1609,6 +1650,44 @@ def test_one_file_in_two_roles_is_refused_in_brackets(capture, capsys, tmp_path,
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("value", "match"),
+    [
+        (np.nan, "images[2][0]: b2_0.exr: every pixel value is NaN or Inf (a corrupt file?)"),
+        (0.0, "images[2][0]: b2_0.exr: every pixel value is 0, unlike the other images"),
+    ],
+)
+def test_a_corrupt_or_dropped_exposure_in_a_bracket_is_refused(capture, capsys, value, match):
+    """Before: an exposure of NaN only (a corrupt file) or of zeros (a dropped frame) was
+    merged as zeros without a word: its shift's image near 0 wherever the longer
+    exposure clipped. Now refused as a single exposure is."""
+    _bracketed(capture)
+    write_exr(capture / "b2_0.exr", {"Y": np.full((H, W), value, np.float32)})
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
+def test_nan_samples_in_a_bracket_are_left_out_of_the_merge(capture):
+    """Before: a NaN sample was merged as 0: where the longer exposure clipped the pixel
+    came out near 0, not masked; elsewhere the merge was pulled down by a fifth."""
+    _bracketed(capture)
+    x = read_image(capture / "b2_0.exr").pixels[..., 0]
+    bright = np.unravel_index(np.argmax(x), x.shape)  # clipped at 4 s
+    dim = (H // 2, W - 2)  # well exposed at 4 s
+    assert x[bright] * 4 > 1 and x[dim] * 4 < 0.5
+    x = x.copy()
+    x[bright] = x[dim] = np.nan
+    write_exr(capture / "b2_0.exr", {"Y": x})
+    broken = lfj.load_capture(capture / "capture.yaml")
+    assert not broken.sample_mask[2][bright].any()  # clipped in its one finite sample
+    # Merged from its 4 s sample alone (the dark frame subtracted).
+    alone = (
+        read_image(capture / "b2_1.exr").pixels[dim]
+        - read_image(capture / "dark_1.exr").pixels[dim]
+    )
+    assert broken.images[2][dim] == pytest.approx(alone / 4, rel=1e-5)
+    assert any("2 sample value(s) are NaN or Inf (b2_0.exr: 2)" in n for n in broken.notes)
+
+
 def test_a_calibration_frame_repeated_in_its_own_bracket_is_kept(capture):
     """The same dark frame at every exposure is one role, not two."""
     _bracketed(capture)
@@ -1881,3 +1960,65 @@ def test_a_time_limit_beyond_a_timers_range_is_no_limit_and_no_traceback(seconds
     finally:
         threading.excepthook = previous
     assert failed == []
+
+
+def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, monkeypatch):
+    """Before: numpy's short write (no errno: a quota, a file size limit) of a file in a
+    staged folder (render's R/bounces.npy) read "view: write failed ([Errno None] write
+    failed (8400 requested and 7648 written): '.../.view.tmp-164f67c5/R/bounces.npy')",
+    naming the temporary. Now "view: write failed (8400 requested and 7648 written)"."""
+    from lightfield_jax.app.cli import _describe
+    from lightfield_jax.capture.io import atomic_directory, atomic_write_npy
+
+    def short_write(*_, **__):
+        raise OSError("8400 requested and 7648 written")
+
+    monkeypatch.setattr(np, "save", short_write)
+    view = tmp_path / "view"
+    with pytest.raises(OSError) as e, atomic_directory(view) as staging:
+        atomic_write_npy(staging / "R" / "bounces.npy", np.zeros(3))
+    assert _describe(e.value) == f"{view}: write failed (8400 requested and 7648 written)"
+    assert os.listdir(tmp_path) == []
+
+
+def test_inspect_of_one_stripe_image_names_the_images_key(capture, capsys):
+    """Before: inspect of a capture of one image was refused as "separate.images: need
+    at least 2 shifted images", a key no capture file has (fit names pattern.phases)."""
+    _edit(capture, images=["shift_00.exr"], pattern={"period": 6, "lit": 3, "phases": [0]})
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match="capture.yaml: images: inspecting needs at least 2 shifted images",
+    )
+
+
+def test_a_dark_frame_of_nan_only_is_named_by_its_key(capture, capsys):
+    """Before: a dark frame whose every value is NaN was refused as "images: no usable
+    pixel: every pixel is non-finite or saturated in some image (...)", under the images'
+    key; now by its own key, as the stripe images and the projector's frames are."""
+    write_exr(capture / "bad.exr", {"Y": np.full((H, W), np.nan, np.float32)})
+    _edit(capture, dark_frame="bad.exr")
+    match = "dark_frame: bad.exr: every pixel value is NaN or Inf (a corrupt file?)"
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+    _bracketed(capture)
+    _edit(capture, dark_frame=["dark_0.exr", "bad.exr"])
+    match = "dark_frame[1]: bad.exr: every pixel value is NaN or Inf"
+    _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+
+
+@pytest.mark.parametrize("response", ["srgb", "auto"])
+def test_a_response_curve_for_float_brackets_is_refused(capture, capsys, response):
+    """Before: float (EXR) brackets with a response curve were refused as exposures
+    "listed out of order" (a wrong cause), or, with auto, their linear values were
+    quantised to 256 codes and fitted (a NaN sample: numpy's "invalid value encountered
+    in cast" on the terminal). Now refused as for single exposures: floats are linear."""
+    _bracketed(capture)
+    _edit(capture, response=response)
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match=f"response: {response} maps a camera's integer codes (8- or 16-bit files), but "
+        "images[0][0] (b0_0.exr) holds float values, which are linear",
+    )

@@ -329,8 +329,16 @@ def _fit(args: argparse.Namespace) -> int | None:
     if args.method in TWO_STEP_METHODS:
         _say(args, f"note: {TWO_STEP_CAVEAT}")
     _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")
-    if not fit.converged:
-        _warn(args, "the fit did not converge: results were written with converged: false")
+    if not fit.converged:  # its reasons too (were only in the summary, which -q silences)
+        why = "; ".join(
+            f"[{name}] {'; '.join(r.reasons) or r.message}"
+            for name, r in zip(fit.channels, fit.results, strict=True)
+            if not r.converged
+        )
+        _warn(
+            args,
+            f"the fit did not converge ({why}): results were written with converged: false",
+        )
         return 1
     return None
 

@@ -58,13 +58,14 @@ def _render_command(args: argparse.Namespace) -> None:
 
     Nothing is written unless the whole command succeeds."""
     from lightfield_jax.capture.io import atomic_directory
-    from lightfield_jax.capture.views import render_folders, render_results
+    from lightfield_jax.capture.views import render_folders, render_inputs, render_results
 
     # Each channel's subfolder is checked like DIR: another command's outputs there
-    # (simulate's bounces.npy beside its metadata.json) would be replaced.
+    # (simulate's bounces.npy beside its metadata.json) would be replaced, and so would
+    # the capture's own files (was: a stack named lightfield.npy replaced by the render).
     _outputs(
         folders=[args.out, *render_folders(args.results, Path(args.out))],
-        inputs=[args.results],
+        inputs=[args.results, *render_inputs(args.results)],
         folder_names=RENDER_FILES,
         marker="render.json",
     )

@@ -74,10 +74,29 @@ def plot_formats() -> tuple[str, ...]:
     return tuple(sorted(FigureCanvasBase.get_supported_filetypes()))
 
 
+def _tex_system() -> str | None:
+    """The TeX program matplotlib's pgf backend runs, where it is missing."""
+    import shutil
+
+    import matplotlib
+
+    tex = str(matplotlib.rcParams["pgf.texsystem"])
+    return None if shutil.which(tex) else tex
+
+
 def check_plot_format(given: str) -> None:
-    """Refuse a figure name whose extension matplotlib cannot write."""
+    """Refuse a figure name whose extension matplotlib cannot write (a .pgf one too
+    where its TeX program is missing)."""
     suffix = Path(given).suffix.lower().lstrip(".")
     formats = plot_formats()
+    tex = _tex_system() if "pgf" in formats else None
+    if tex is not None:
+        formats = tuple(f for f in formats if f != "pgf")
+        if suffix == "pgf":  # was a traceback after the work ("'xelatex' not found")
+            raise OutputError(
+                f"{given}: matplotlib writes .pgf figures through {tex}, which is not "
+                f"installed; choose another format: {', '.join(formats)}"
+            )
     if suffix not in formats:
         shown = f"extension {'.' + suffix!r}" if suffix else "no extension"
         raise OutputError(

@@ -16,7 +16,14 @@ from lightfield_jax.capture.calibration import (
     drop_constant_alpha,
     sensor_top_code,
 )
-from lightfield_jax.capture.frames import _aux_frame, _distinct_files, _file, _read, _size
+from lightfield_jax.capture.frames import (
+    _aux_frame,
+    _distinct_files,
+    _file,
+    _one_value,
+    _read,
+    _size,
+)
 from lightfield_jax.capture.hdr import (
     CLIP,
     EXPOSURE_RATIO_TOLERANCE,
@@ -98,6 +105,25 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     shifts = [[next(kept) for _ in row] for row in shifts]
+    # As for single exposures: before, a corrupt or dropped exposure merged (as 0) into
+    # its shift's image without a word, near 0 where the longer exposures clipped.
+    flat = [_one_value(f.pixels) for row in shifts for f in row]
+    for (key, _), f, level in zip(listed, (f for row in shifts for f in row), flat, strict=True):
+        if not np.isfinite(f.pixels).any():
+            top.fail(key, f"{f.path.name}: every pixel value is NaN or Inf (a corrupt file?)")
+        if level is not None and level <= 0 and None in flat:
+            top.fail(
+                key,
+                f"{f.path.name}: every pixel value is {level:.6g}, unlike the other images (a "
+                "dropped frame, or the projector or camera off?)",
+            )
+    bad = {f.path.name: int(np.sum(~np.isfinite(f.pixels))) for row in shifts for f in row}
+    if bad := {name: n for name, n in bad.items() if n}:
+        notes.append(
+            f"{sum(bad.values())} sample value(s) are NaN or Inf "
+            f"({', '.join(f'{name}: {n}' for name, n in bad.items())}): left out of the "
+            "merge (a pixel with no other sample is masked)"
+        )
     first = shifts[0][0]
     for key in _AUX_FRAMES:
         files = top.get(key, None)
@@ -120,6 +146,15 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         )
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
+    if response != "linear" and not first.is_integer:
+        # As for single exposures (before: srgb was refused as exposures "listed out of
+        # order", and auto quantised the float values to 256 codes without a word).
+        top.fail(
+            "response",
+            f"{response} maps a camera's integer codes (8- or 16-bit files), but "
+            f"images[0][0] ({first.path.name}) holds float values, which are linear: give "
+            "response: linear",
+        )
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
     clip = _positive(top, "saturation")

@@ -228,6 +228,8 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
             f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
             "they have)",
         )
+    if not np.isfinite(frame.pixels).any():  # a dark frame's was "images: no usable pixel"
+        top.fail(key, f"{value}: every pixel value is NaN or Inf (a corrupt file?)")
     return frame
 
 

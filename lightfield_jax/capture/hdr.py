@@ -349,15 +349,19 @@ def merge_bracket(
     if response.kind == "auto":
         clip = min(clip, AUTO_CLIP)
     t = np.asarray(times, np.float64).reshape(-1, 1, 1, 1)
-    z = np.where(np.isfinite(z), z, 0.0)
+    # A NaN or Inf sample (or dark value) is no sample: before, read as 0, it became the
+    # pixel's reference where the longer exposures clipped, and the merge near 0.
+    finite = np.isfinite(z)
+    z = np.where(finite, z, 0.0)
     x = response.linearize(z)
     d = np.zeros_like(x)
     if dark is not None:
-        dz = np.asarray(dark, np.float64)
-        d = response.linearize(np.broadcast_to(np.where(np.isfinite(dz), dz, 0.0), z.shape))
+        dz = np.broadcast_to(np.asarray(dark, np.float64), z.shape)
+        finite = finite & np.isfinite(dz)
+        d = response.linearize(np.where(np.isfinite(dz), dz, 0.0))
         x = x - d
-    clipped = ~(z < clip)
-    unclipped = ~clipped
+    clipped = ~(z < clip) & finite
+    unclipped = (z < clip) & finite
     # The reference of each pixel: its longest unclipped exposure (none: the shortest,
     # flagged clipped). It is always merged; the light it measured predicts each other
     # sample's signal, and a sample joins where that prediction resolves it.
@@ -382,11 +386,12 @@ def merge_bracket(
     merged = np.sum(np.where(valid, x, 0.0), axis=0)
     empty = total == 0  # every exposure clipped: the shortest one's value
     radiance = np.where(empty, ref_x / ref_t, merged / np.where(empty, 1.0, total))
+    radiance = np.where(finite.any(axis=0), radiance, np.nan)  # no sample: masked as NaN
     ref_black = np.take_along_axis(black, ref[None], axis=0)[0]
     return Merged(
         radiance=radiance,
         exposure=np.where(empty, ref_t, total),
-        clipped=none_ok,
+        clipped=none_ok & finite.any(axis=0),
         dark=ref_black & (total == ref_t) & ~none_ok,
         clipped_samples=clipped,
         near_black_samples=black,

@@ -206,6 +206,11 @@ def inspect_capture(capture: Capture | str | os.PathLike) -> Inspection:
         )
     images = np.asarray(capture.images, np.float64)
     p, h, w, n = images.shape
+    if p < 2:  # was "separate.images: need at least 2 ...", a key no capture file has
+        raise ValueError(
+            f"images: inspecting needs at least 2 shifted images (the separation of the "
+            f"direct light compares them), got {p}"
+        )
     pattern = capture.pattern
     b = min(max(capture.black_level or 0.0, 0.0), 0.99)
     sep = separate(images, lit_fraction=pattern.lit_fraction, black_level=b)

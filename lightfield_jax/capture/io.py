@@ -565,6 +565,10 @@ def _write_failure(error: OSError, target: Path) -> OSError | None:
         return OSError(error.errno, error.strerror or os.strerror(error.errno), str(target))
     if error.errno is not None or type(error) is not OSError:
         return None
+    if error.filename is not None and error.strerror:
+        # Already named by an inner output (a file in a staged folder): keep its words,
+        # not its temporary's name (was "write failed ([Errno None] write failed ...").
+        return OSError(None, error.strerror, str(target))
     message = " ".join(str(error).split()) or "write failed"
     with contextlib.suppress(OSError):
         folder = next(p for p in (target, *target.parents) if p.exists())

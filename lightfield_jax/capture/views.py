@@ -173,6 +173,44 @@ def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
     return [folder / name for name in channels] if len(channels) > 1 else []
 
 
+def _capture_path(data: dict, source: Path) -> Path:
+    """The capture file a results file ``data`` (read from ``source``) names."""
+    if "capture" not in data:
+        raise ValueError(f"{source}: names no capture (key 'capture'), whose geometry is needed")
+    if not isinstance(data["capture"], str) or not data["capture"]:
+        raise ValueError(
+            f"{source}: capture: must be the capture file's path, got {data['capture']!r}"
+        )
+    # The fit writes the capture's absolute path (before: as given, relative to the
+    # folder it ran in); from elsewhere, try beside the results. A relative path that
+    # names one file here and another beside the results is refused: render picked the
+    # current folder's capture.yaml (another capture's geometry) silently.
+    named = Path(data["capture"])
+    candidates = [named, source.parent / named, source.parent / named.name]
+    found = {os.path.realpath(c): c for c in candidates if c.exists()}
+    if len(found) > 1:
+        here, beside = list(found.values())[:2]
+        raise ValueError(
+            f"{source}: capture: {named} names two files, {here} (from the current folder) "
+            f"and {beside} (beside the results): run render where the fit ran, or give the "
+            "capture's absolute path in the results"
+        )
+    return next(iter(found.values()), named)
+
+
+def render_inputs(results: str | os.PathLike) -> list[Path]:
+    """The capture file that ``results`` names and every file it lists (the inputs
+    render's outputs must not replace); none for a results file or capture that
+    :func:`render_results` cannot use (it says why)."""
+    from lightfield_jax.capture.capture import capture_files
+
+    source = Path(results)
+    try:
+        return capture_files(_capture_path(json.loads(_results_text(source)), source))
+    except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
+        return []
+
+
 def render_results(
     results: str | os.PathLike,
     folder: Path,
@@ -196,27 +234,7 @@ def render_results(
     except RecursionError:
         raise ValueError(f"{source}: nested too deeply to be a results file") from None
     channels = _channel_results(data, source)
-    if "capture" not in data:
-        raise ValueError(f"{source}: names no capture (key 'capture'), whose geometry is needed")
-    if not isinstance(data["capture"], str) or not data["capture"]:
-        raise ValueError(
-            f"{source}: capture: must be the capture file's path, got {data['capture']!r}"
-        )
-    # The fit writes the capture's absolute path (before: as given, relative to the
-    # folder it ran in); from elsewhere, try beside the results. A relative path that
-    # names one file here and another beside the results is refused: render picked the
-    # current folder's capture.yaml (another capture's geometry) silently.
-    named = Path(data["capture"])
-    candidates = [named, source.parent / named, source.parent / named.name]
-    found = {os.path.realpath(c): c for c in candidates if c.exists()}
-    if len(found) > 1:
-        here, beside = list(found.values())[:2]
-        raise ValueError(
-            f"{source}: capture: {named} names two files, {here} (from the current folder) "
-            f"and {beside} (beside the results): run render where the fit ran, or give the "
-            "capture's absolute path in the results"
-        )
-    capture_path = next(iter(found.values()), named)
+    capture_path = _capture_path(data, source)
     stage("load the capture")
     try:
         capture = load_capture(capture_path)
