@@ -399,6 +399,15 @@ def test_a_pattern_the_images_contradict_is_refused(capture, capsys, pattern, ma
     _refused(capsys, "inspect", capture / "capture.yaml", match=match)
 
 
+def test_a_wrong_period_with_phases_auto_is_one_line(capture, capsys):
+    """Before: with ``phases: auto`` the detector's "low confidence 0.00" warning (its
+    phases measured for the wrong period) was printed before the period's refusal: two
+    lines on stderr. The capture's warnings now wait for the pattern's checks."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    _edit(capture, pattern={**data["pattern"], "period": 8, "phases": "auto"})
+    _refused(capsys, "inspect", capture / "capture.yaml", match="pattern.period: 8 contradicts")
+
+
 @pytest.mark.parametrize("lit", [2, 4])
 def test_a_lit_width_the_images_seem_to_contradict_is_noted(capture, lit):
     """Before: ``lit: 2`` for stripes lit 3 rows of 6 passed inspect without a word and

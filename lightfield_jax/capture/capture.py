@@ -511,8 +511,6 @@ def load_capture(path: str | os.PathLike) -> Capture:
             "images",
             f"no usable pixel: every pixel is non-finite or saturated in some image{cause}",
         )
-    for issue in issues:
-        warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
     contradiction = _check_stripes(
@@ -520,6 +518,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
     if contradiction:
         notes.append(contradiction)
+    # After the pattern's checks: a refusal there is the one line said (before: the
+    # detector's low confidence for a wrong period was warned first).
+    for issue in issues:
+        warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     # After the phases' checks, which refuse a repeated image where phases are given.
     if (again := _images_listed_twice(top, base)) is not None:
         issues.append(again)
