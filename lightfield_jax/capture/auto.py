@@ -16,7 +16,7 @@ from lightfield_jax.capture.detect import (
     _across_first,
     _coefficients,
     detect_geometry,
-    other_period,
+    period_contradiction,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import AUTO, dark_level_text
@@ -188,13 +188,8 @@ LIT_OFF = 0.6
 def _check_period(top, pattern: Stripes, stack, u0: int) -> None:
     """Refuse a ``pattern.period`` the images' stripes do not have, where they show
     clear stripes of another period (:func:`~lightfield_jax.capture.detect.other_period`)."""
-    best = other_period(stack, u0, pattern.period)
-    if best is not None:
-        top.fail(
-            "pattern.period",
-            f"{pattern.period} contradicts the images, whose stripes repeat every "
-            f"{best:.2f} px across the {pattern.entry} wall (measured); correct it",
-        )
+    if (problem := period_contradiction(stack, u0, pattern.period, pattern.entry)) is not None:
+        top.fail("pattern.period", problem)
 
 
 def _measured(

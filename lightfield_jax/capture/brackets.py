@@ -18,9 +18,9 @@ from lightfield_jax.capture.calibration import (
 )
 from lightfield_jax.capture.frames import (
     _aux_frame,
+    _check_not_blank,
     _distinct_files,
     _file,
-    _one_value,
     _read,
     _size,
 )
@@ -107,17 +107,10 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     shifts = [[next(kept) for _ in row] for row in shifts]
     # As for single exposures: before, a corrupt or dropped exposure merged (as 0) into
     # its shift's image without a word, near 0 where the longer exposures clipped.
-    flat = [_one_value(f.pixels) for row in shifts for f in row]
-    for (key, _), f, level in zip(listed, (f for row in shifts for f in row), flat, strict=True):
-        if not np.isfinite(f.pixels).any():
-            top.fail(key, f"{f.path.name}: every pixel value is NaN or Inf (a corrupt file?)")
-        if level is not None and level <= 0 and None in flat:
-            top.fail(
-                key,
-                f"{f.path.name}: every pixel value is {level:.6g}, unlike the other images (a "
-                "dropped frame, or the projector or camera off?)",
-            )
-    bad = {f.path.name: int(np.sum(~np.isfinite(f.pixels))) for row in shifts for f in row}
+    frames = [f for row in shifts for f in row]
+    keys = [key for key, _ in listed]
+    _check_not_blank(top, [(k, f.path.name, f.pixels) for k, f in zip(keys, frames, strict=True)])
+    bad = {f.path.name: int(np.sum(~np.isfinite(f.pixels))) for f in frames}
     if bad := {name: n for name, n in bad.items() if n}:
         notes.append(
             f"{sum(bad.values())} sample value(s) are NaN or Inf "

@@ -172,6 +172,7 @@ from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry
 from lightfield_jax.capture.frames import (
     _aux_frame,
     _calibrate,
+    _check_not_blank,
     _check_projector_frames,
     _corrupt_to_nan,
     _flat,
@@ -180,7 +181,6 @@ from lightfield_jax.capture.frames import (
     _images_listed_twice,
     _inf_to_nan,
     _nonfinite,
-    _one_value,
     _saturated,
 )
 from lightfield_jax.capture.hdr import RESPONSES, Brackets, Response
@@ -378,21 +378,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = np.stack([f.pixels for f in frames])
-    if merged is None:  # NaN and Inf first: an image of nothing else is no image
-        for i, name in enumerate(names):
-            if not np.isfinite(raw[i]).any():
-                top.fail("images", f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
-        # A frame all 0 (or one negative value) among frames that vary: no stripes, no
-        # light (a dropped frame: before, fitted as a shift, not converged without a word
-        # of it). Every frame alike is said below with its cause.
-        flat = [_one_value(raw[i]) for i in range(len(names))]
-        for name, level in zip(names, flat, strict=True):
-            if level is not None and level <= 0 and None in flat:
-                top.fail(
-                    "images",
-                    f"{name}: every pixel value is {level:.6g}, unlike the other images (a "
-                    "dropped frame, or the projector or camera off?)",
-                )
+    if merged is None:  # (brackets: each exposure, by _brackets)
+        _check_not_blank(top, [("images", name, raw[i]) for i, name in enumerate(names)])
     raw = _inf_to_nan(_corrupt_to_nan(raw, names, issues))
     response = None if merged is not None else read_response(top, base, frames[0].channel_names)
     sensor = None if saturation is not None else sensor_top_code(raw, frames)

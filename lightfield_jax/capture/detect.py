@@ -311,6 +311,19 @@ def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
     return best if seen and weak and abs(best / period - 1.0) > PERIOD_OFF else None
 
 
+def period_contradiction(stack: np.ndarray, u0: int, period: int, entry: str) -> str | None:
+    """What to say of a given stripe ``period`` the stack's clear stripes contradict
+    (:func:`other_period`), after its key (``pattern.period``); ``None`` where they do
+    not. The capture file's check and ``fit_images``' say it alike."""
+    best = other_period(stack, u0, period)
+    if best is None:
+        return None
+    return (
+        f"{period} contradicts the images, whose stripes repeat every {best:.2f} px across "
+        f"the {entry} wall (measured); correct it"
+    )
+
+
 def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
     return float(np.sum(np.abs(_coefficients(a, u0, 1.0 / period)) ** 2))
 
@@ -619,4 +632,11 @@ def _points_in(entry: str, direction_deg: float) -> bool:
     return True
 
 
-__all__ = ["Geometry", "LOW_CONFIDENCE", "STRIPED", "detect_geometry", "other_period"]
+__all__ = [
+    "Geometry",
+    "LOW_CONFIDENCE",
+    "STRIPED",
+    "detect_geometry",
+    "other_period",
+    "period_contradiction",
+]

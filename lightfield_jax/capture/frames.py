@@ -435,6 +435,25 @@ def _one_value(image: np.ndarray) -> float | None:
     return float(values[0]) if values.size and np.all(values == values[0]) else None
 
 
+def _check_not_blank(top: _Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
+    """Refuse a stripe image (``(key, name, pixels)`` each: a single exposure or one
+    exposure of a bracket) that holds no image: NaN and Inf only (checked first in every
+    frame: an image of nothing else is no image), or one value ≤ 0 among frames that vary
+    (a dropped frame: before, fitted as a shift, not converged without a word of it).
+    Every frame alike is said later, with its cause."""
+    for key, name, pixels in frames:
+        if not np.isfinite(pixels).any():
+            top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
+    flat = [_one_value(pixels) for _, _, pixels in frames]
+    for (key, name, _), level in zip(frames, flat, strict=True):
+        if level is not None and level <= 0 and None in flat:
+            top.fail(
+                key,
+                f"{name}: every pixel value is {level:.6g}, unlike the other images (a "
+                "dropped frame, or the projector or camera off?)",
+            )
+
+
 def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,

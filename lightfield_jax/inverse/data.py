@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.capture.detect import _across_first, other_period
+from lightfield_jax.capture.detect import _across_first, period_contradiction
 from lightfield_jax.checks import as_array, number_problem, shown, unmask, unmasked
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
@@ -238,12 +238,9 @@ def prepare_data(
             "shift?)"
         )
     images = np.where(samples, images, 0.0)
-    across = _across_first(images, pattern.entry)
-    if (best := other_period(across, 0, pattern.period)) is not None:  # a fit of 60 s
-        raise ValueError(
-            f"pattern.period: {pattern.period} contradicts the images, whose stripes repeat "
-            f"every {best:.2f} px across the {pattern.entry} wall (measured); correct it"
-        )
+    across = _across_first(images, pattern.entry)  # before: a fit of 60 s, not converged
+    if (problem := period_contradiction(across, 0, pattern.period, pattern.entry)) is not None:
+        raise ValueError(f"pattern.period: {problem}")
     if split is None:
         sep = separate(
             jnp.asarray(images),
