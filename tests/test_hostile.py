@@ -954,6 +954,82 @@ def test_big_endian_npy_images_are_read(tmp_path):
     assert read_image(tmp_path / "be16.npy").pixels[1, 1, 0] == pytest.approx(5 / 65535)
 
 
+def _write_pages(path: Path, pages: list[np.ndarray], fmt: str) -> Path:
+    """A file of one subimage per (height, width, channels) page: the pages of a TIFF,
+    the parts of an EXR, written with OpenImageIO."""
+    import OpenImageIO as oiio
+
+    specs = [oiio.ImageSpec(a.shape[1], a.shape[0], a.shape[2], fmt) for a in pages]
+    out = oiio.ImageOutput.create(str(path))
+    assert out is not None and out.open(str(path), specs), oiio.geterror()
+    for i, a in enumerate(pages):
+        if i:
+            assert out.open(str(path), specs[i], "AppendSubimage"), out.geterror()
+        assert out.write_image(np.ascontiguousarray(a, dtype=np.float32)), out.geterror()
+    assert out.close()
+    return path
+
+
+def test_multi_page_tiffs_and_multi_part_exrs_are_refused(capture, capsys, tmp_path):
+    """Before: a burst saved as the pages of one TIFF (or the parts of one EXR) was read
+    as its first page, without a word, and fitted from that one frame."""
+    rng = np.random.default_rng(0)
+    frames = [rng.uniform(size=(4, 5, 1)) for _ in range(3)]
+    tiff = _write_pages(tmp_path / "burst.tif", frames[:2], "uint16")
+    exr = _write_pages(tmp_path / "burst.exr", frames, "float")
+    with pytest.raises(lfj.CaptureError, match=r"burst\.tif: holds 2 pages \(a multi-page TIFF\)"):
+        read_image(tiff)
+    with pytest.raises(lfj.CaptureError, match=r"burst\.exr: holds 3 parts \(a multi-part EXR\)"):
+        read_image(exr)
+    many = _write_pages(tmp_path / "many.tif", [np.zeros((1, 1, 1))] * 101, "uint8")
+    with pytest.raises(lfj.CaptureError, match=r"many\.tif: holds more than 100 pages"):
+        read_image(many)
+    # One page or part reads as before.
+    for name, fmt in (("one.tif", "uint16"), ("one.exr", "float")):
+        image = read_image(_write_pages(tmp_path / name, frames[:1], fmt))
+        np.testing.assert_allclose(image.pixels, frames[0], atol=1e-4)
+    # A capture naming a burst file is refused, naming its key, before any fit.
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    shifts = [read_image(capture / f).pixels for f in data["images"]]
+    _write_pages(capture / "burst.exr", shifts[:2], "float")
+    _edit(capture, images=["burst.exr"] + data["images"][1:])
+    with pytest.raises(lfj.CaptureError, match=r"images\[0\]: .*burst\.exr: holds 2 parts"):
+        lfj.load_capture(capture / "capture.yaml")
+    _refused(capsys, "fit", capture / "capture.yaml", match="burst.exr: holds 2 parts")
+
+
+def test_the_mip_levels_of_one_tiff_are_not_pages(tmp_path):
+    """A tiled, MIP-mapped TIFF (one image at several resolutions) reads its full level."""
+    import OpenImageIO as oiio
+
+    pixels = np.random.default_rng(1).uniform(size=(16, 16, 1)).astype(np.float32)
+    buf = oiio.ImageBuf(oiio.ImageSpec(16, 16, 1, "float"))
+    assert buf.set_pixels(oiio.ROI(0, 16, 0, 16, 0, 1, 0, 1), pixels)
+    path = tmp_path / "mip.tif"
+    assert oiio.ImageBufAlgo.make_texture(oiio.MakeTxTexture, buf, str(path)), oiio.geterror()
+    inp = oiio.ImageInput.open(str(path))
+    assert inp.seek_subimage(0, 1)  # it has MIP levels
+    inp.close()
+    np.testing.assert_array_equal(read_image(path).pixels, pixels)
+
+
+def test_a_constant_alpha_is_dropped_from_any_channel_count(capture, capsys):
+    """Before: alpha was dropped only from 2 or 4 channels; a 5-channel EXR (R, G, B, A,
+    Z) kept its constant alpha as a channel to fit."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    for f in [*data["images"], data["dark_frame"]]:
+        y = read_image(capture / f).pixels[..., 0]
+        names = ("R", "G", "B", "A", "Z")
+        write_exr(capture / f, {n: np.ones_like(y) if n == "A" else y for n in names})
+    c = lfj.load_capture(capture / "capture.yaml")
+    assert c.channel_names == ("R", "G", "B", "Z")
+    assert "dropped the constant alpha channel A of the 5-channel images" in " ".join(c.notes)
+    y = read_image(capture / data["images"][0]).pixels[..., 0]
+    write_exr(capture / data["images"][0], {n: y for n in names})  # alpha varies
+    with pytest.raises(lfj.CaptureError, match=r"shift_00\.exr has a varying alpha channel"):
+        lfj.load_capture(capture / "capture.yaml")
+
+
 def test_double_values_beyond_float32_are_one_line_naming_the_file(capture, capsys):
     """Before: five lines of numpy overflow warnings, then 'separate.images: no pixel is
     finite ... nothing to separate' for a float64 .npy stack scaled by 1e300."""

@@ -13,7 +13,10 @@ files go wrong into clear errors or notes:
   pixels, the sensor clipped there: those pixels are saturated although they are far
   below 65535.
 - A 4-channel image is RGBA (an alpha channel that is constant is dropped) or a split
-  raw Bayer mosaic (R, G, G, B planes): a varying fourth channel is refused.
+  raw Bayer mosaic (R, G, G, B planes): a varying fourth channel is refused. A
+  constant alpha (the channel named A) is dropped from any image of two or more
+  channels, and a varying one refused, wherever it stands (a 5-channel EXR: R, G, B,
+  A, Z).
 - A 1-channel image can be an undemosaiced Bayer mosaic: its four 2×2 pixel classes
   (even/odd row × even/odd column) carry different colour filters. The test compares
   each pixel with its 3×3 neighbourhood mean in log space, class by class, on the
@@ -104,20 +107,28 @@ def sensor_top_code(raw: np.ndarray, frames: Sequence[ImageData]) -> tuple[float
 
 
 def drop_constant_alpha(frames: list[ImageData], notes: list[str]) -> list[ImageData]:
-    """Frames without a constant alpha channel (noted); a varying alpha, or four
-    channels that are not RGBA, is a :class:`CaptureError`."""
+    """Frames without a constant alpha channel (the channel named A, of two or more;
+    noted); a varying alpha, or four channels that are not RGBA, is a
+    :class:`CaptureError`. Before, alpha was dropped only from 2 or 4 channels: a
+    5-channel EXR (R, G, B, A, Z) kept its alpha as a channel to fit."""
     names = frames[0].channel_names
     n = len(names)
-    if names[-1] == "A" and n in (2, 4):
-        alpha = np.stack([f.pixels[..., -1] for f in frames])
+    if "A" in names and n >= 2:
+        a = n - 1 if names[-1] == "A" else names.index("A")
+        alpha = np.stack([f.pixels[..., a] for f in frames])
         finite = alpha[np.isfinite(alpha)]
         if finite.size and np.all(finite == finite[0]):
             notes.append(
                 f"dropped the constant alpha channel A of the {n}-channel images "
                 f"({', '.join(names)})"
             )
+            keep = [i for i in range(n) if i != a]
             return [
-                dataclasses.replace(f, pixels=f.pixels[..., :-1], channel_names=names[:-1])
+                dataclasses.replace(
+                    f,
+                    pixels=np.ascontiguousarray(f.pixels[..., keep]),
+                    channel_names=tuple(names[i] for i in keep),
+                )
                 for f in frames
             ]
         raise CaptureError(

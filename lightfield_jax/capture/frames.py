@@ -216,9 +216,20 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
     frame = _read(top, key, _file(top, key, value, base), channel)
     h, w, c = first.pixels.shape
     fh, fw, fc = frame.pixels.shape
-    if fc == c + 1 and frame.channel_names[-1] == "A":
+    names = frame.channel_names
+    # Its alpha: the last channel, or one elsewhere without which the channels are the
+    # images' (R, G, B, A, Z for R, G, B, Z images whose alpha was dropped).
+    a = fc - 1 if names[-1] == "A" else names.index("A") if "A" in names else None
+    if (
+        fc == c + 1
+        and a is not None
+        and (a == fc - 1 or names[:a] + names[a + 1 :] == first.channel_names)
+    ):
+        keep = [i for i in range(fc) if i != a]
         frame = dataclasses.replace(
-            frame, pixels=frame.pixels[..., :c], channel_names=frame.channel_names[:c]
+            frame,
+            pixels=np.ascontiguousarray(frame.pixels[..., keep]),
+            channel_names=tuple(frame.channel_names[i] for i in keep),
         )
         fc = c
     if (fh, fw) != (h, w) or fc not in (1, c):

@@ -187,11 +187,7 @@ def image_values(path: str | os.PathLike) -> int:
     require_regular_file(path, "an image file")
     if path.suffix.lower() == ".npy":
         return math.prod(npy_header(path)[0])
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(oiio_name(path))
-    if inp is None:
-        raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
+    inp = _open_oiio(path)
     try:
         spec = inp.spec()
         return spec.height * spec.width * spec.nchannels
@@ -319,12 +315,48 @@ def read_npy_stack(path: str | os.PathLike) -> list[ImageData]:
     return [dataclasses.replace(stack, pixels=frame) for frame in stack.pixels]
 
 
-def _read_oiio(path: Path) -> ImageData:
+# Subimages counted at most: a hostile file with a million pages is refused as "more
+# than 100" without seeking through them all.
+_MAX_SUBIMAGES = 100
+# What one subimage is called in the formats that hold several.
+_SUBIMAGE_WORDS = {"tiff": ("page", "a multi-page TIFF"), "openexr": ("part", "a multi-part EXR")}
+
+
+def _open_oiio(path: Path):
+    """An open OpenImageIO reader of ``path`` at its first subimage, from its header
+    alone. A file that holds several subimages (the pages of a multi-page TIFF, the parts
+    of a multi-part EXR) is refused: before, only the first was read, without a word.
+    MIP levels of one image are not subimages, and are not refused."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(oiio_name(path))
     if inp is None:
         raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
+    try:
+        count = 1
+        while count <= _MAX_SUBIMAGES and inp.seek_subimage(count, 0):
+            count += 1
+        inp.geterror()  # the failed seek's message (TIFF), not an error of the file
+        if count > 1:
+            word, kind = _SUBIMAGE_WORDS.get(inp.format_name(), ("subimage", "a multi-image file"))
+            many = f"more than {_MAX_SUBIMAGES}" if count > _MAX_SUBIMAGES else str(count)
+            raise CaptureError(
+                f"{path}: holds {many} {word}s ({kind}), but only one image per file is "
+                f"read: save each {word} as a file of its own and list each file"
+            )
+        if not inp.seek_subimage(0, 0):
+            why = inp.geterror() or oiio.geterror() or "unknown error"
+            raise CaptureError(f"{path}: cannot read image ({why})")
+    except BaseException:
+        inp.close()
+        raise
+    return inp
+
+
+def _read_oiio(path: Path) -> ImageData:
+    import OpenImageIO as oiio
+
+    inp = _open_oiio(path)
     try:
         spec = inp.spec()
         check_memory(
