@@ -213,3 +213,54 @@ def test_two_step_methods_march_where_the_joint_fit_gets_a_tail(method):
     long = lfj.fit_images(images, lfj.Stripes(), max_bounces=400, **kwargs)
     assert long.model["tail"] is None and long.model["bounces"] > 80
     assert "truncated" not in long.message
+
+
+def test_the_gradient_solves_a_larger_model_from_its_first_answer_without_searching_again(
+    monkeypatch,
+):
+    """Where the first answer needs a much larger model (a forward medium: 4× the θ
+    bins), the gradient method solves on it from that answer: the search over g is
+    compiled once (on the first model), not again on the larger one, and the answer is
+    the larger model's own, the one a search and solve there finds."""
+    import jax.numpy as jnp
+
+    from lightfield_jax.forward.render import renderer_for
+    from lightfield_jax.inverse import two_step
+
+    medium, grid = lfj.Medium(0.25, 0.15, 0.7), lfj.Grid(30, 22, 16, 1)
+    full = GAIN * np.asarray(lfj.render(medium, grid, lfj.Full(), "auto").images)
+    split = (full[0], full[1:].sum(axis=0))
+    images = GAIN * np.asarray(lfj.render(medium, grid, lfj.Stripes(), "auto").total)
+    searched = []
+    search = two_step.search_g
+    monkeypatch.setattr(
+        two_step, "search_g", lambda *a, **k: searched.append(a[0]) or search(*a, **k)
+    )
+    said = []
+    lfj.clear_compiled()
+    result = lfj.fit_images(
+        images,
+        lfj.Stripes(),
+        method="gradient",
+        split=split,
+        black_level=0.0,
+        model_error=False,
+        progress=said.append,
+    )
+    assert any("again with the model the estimate needs" in m for m in said), said
+    assert result.converged, result.message
+    assert result.model["n_theta"] >= 4 * grid.n_theta
+    assert len(searched) == 1, "the search was compiled again for the larger model"
+    # The same minimum as a search (9 values of g) and solve on the larger model.
+    model = result.model
+    larger = lfj.Grid(30, 22, model["n_theta"], model["refine"])
+    data = prepare_data(images, lfj.Stripes(), black_level=0.0, split=split)
+    again = two_step.solve_two_step(
+        data,
+        renderer_for(larger, lfj.Full(), model["bounces"], "paper"),
+        optx.LevenbergMarquardt(rtol=1e-4, atol=1e-4),
+        two_step.TwoStepSettings(True, "paper", 100),
+        9,
+    )
+    np.testing.assert_allclose([result.sigma_s, result.g], [again.sigma_s, again.g], rtol=2e-4)
+    assert float(jnp.asarray(result.sigma_t)) == pytest.approx(data.sigma_t0)

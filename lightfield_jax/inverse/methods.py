@@ -193,52 +193,69 @@ def _marched(model):
     return dataclasses.replace(model, coarse_after=None)
 
 
+def _grown(problem: FitProblem, options, model, sigma_s: float, g: float):
+    """The model an estimate (σs, g) needs where it is much larger than ``model`` (4×
+    the θ bins, a finer grid, more bounces, a slab's depth layers or twice its elevation
+    nodes: a forward-peaked medium), else ``None`` (a 2× θ difference costs less than a
+    refit)."""
+    data = problem.data
+    if not (math.isfinite(sigma_s) and math.isfinite(g) and sigma_s > 0):
+        return None
+    need = size_model(
+        problem.images,
+        problem.pattern,
+        albedo=min(sigma_s / data.sigma_t0, 0.98),
+        g=g,
+        options=options,
+        sigma_t=data.sigma_t0,
+        crop=model.crop,
+    )
+    # A slab's depth layers and elevation nodes too (g decides the nodes, the albedo
+    # the layers).
+    deeper = need.geometry is not None and (
+        need.geometry.n_z > model.geometry.n_z or need.geometry.n_mu >= 2 * model.geometry.n_mu
+    )
+    if (
+        need.grid.n_theta >= 4 * model.grid.n_theta
+        or need.grid.refine > model.grid.refine
+        or need.bounces > model.bounces
+        or deeper
+    ):
+        return _marched(_at_least(need, model))
+    return None
+
+
+def _model_words(model) -> str:
+    slab = model.geometry
+    words = f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces"
+    return words + (f", n_mu {slab.n_mu}, n_z {slab.n_z}" if slab is not None else "")
+
+
 def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
-    """The two-step methods after σt: solve on the first model; where the estimate needs
-    a much larger model (4× the θ bins, a finer grid, more bounces: a forward-peaked
-    medium), once more on that one (a 2× θ difference costs less than a refit)."""
+    """The two-step methods after σt: solve on the first model (sized before g was
+    known, g = 0); where the estimate needs a much larger one (:func:`_grown`), once more
+    on that one: the grid searches again, the gradient method solves from its first
+    answer without the search (its program then holds one copy of the render, not two,
+    and renders no search on the larger model)."""
     data = problem.data
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
 
-    def on(model):
+    def on(model, settings=settings, start=None):
         renderer = _renderer(model, full_for(problem.pattern), options.phase)
-        return solve_two_step(data, renderer, solver, settings, n_g)
+        return solve_two_step(data, renderer, solver, settings, n_g, start)
 
     model = _marched(_at_least(problem.model, problem.floor))
     sol = on(model)
     compile_s = sol.compile
-    s, g = sol.sigma_s, sol.g
-    # The first model was sized before g was known (g = 0).
-    if math.isfinite(s) and math.isfinite(g) and s > 0:
-        need = size_model(
-            problem.images,
-            problem.pattern,
-            albedo=min(s / data.sigma_t0, 0.98),
-            g=g,
-            options=options,
-            sigma_t=data.sigma_t0,
-            crop=model.crop,
-        )
-        # A slab's depth layers and elevation nodes too (g decides the nodes, the
-        # albedo the layers).
-        deeper = need.geometry is not None and (
-            need.geometry.n_z > model.geometry.n_z or need.geometry.n_mu >= 2 * model.geometry.n_mu
-        )
-        if (
-            need.grid.n_theta >= 4 * model.grid.n_theta
-            or need.grid.refine > model.grid.refine
-            or need.bounces > model.bounces
-            or deeper
-        ):
-            slab = need.geometry
-            say(
-                f"{name}: again with the model the estimate needs (n_theta "
-                f"{need.grid.n_theta}, refine {need.grid.refine}, {need.bounces} bounces"
-                + (f", n_mu {slab.n_mu}, n_z {slab.n_z})" if slab is not None else ")")
-            )
-            model = _marched(_at_least(need, model))
+    bigger = _grown(problem, options, model, sol.sigma_s, sol.g)
+    if bigger is not None:
+        say(f"{name}: again with the model the estimate needs ({_model_words(bigger)})")
+        model = bigger
+        if solver is None:
             sol = on(model)
-            compile_s += sol.compile
+        else:
+            sol = on(model, dataclasses.replace(settings, search=False), (sol.sigma_s, sol.g))
+        compile_s += sol.compile
     ok, msg = _result_message(sol.result)
     if solver is None:
         msg = f"grid search over {n_g} values of g"

@@ -8,8 +8,9 @@ image M against the series Σ_{k≥2} I_k, the gain from the single scatter, ove
   solver (the package's, or an outside one) is handed.
 - :func:`solve_two_step`: one compiled program: the search over g and, for the
   gradient method, an optimistix least-squares solve over (σs, g) from the search's
-  best point; the residual and its Jacobian at the answer for the error budget.
-  The fit methods (:mod:`lightfield_jax.inverse.methods`) call it.
+  best point (on a larger model, from a given start instead: no search); the residual
+  and its Jacobian at the answer for the error budget. The fit methods
+  (:mod:`lightfield_jax.inverse.methods`) call it.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ from lightfield_jax.inverse.jacobian import with_jacobian
 from lightfield_jax.inverse.programs import jitted
 from lightfield_jax.inverse.trust import Uncertainty, error_budget
 from lightfield_jax.scene.illumination import Full, Stripes
-from lightfield_jax.scene.medium import phase_function
 
 
 def masked_dot(a, b, mask):
@@ -180,18 +180,29 @@ def search_start(gs, s_all, cost, sigma_t, phase: str):
     g_vertex, t = parabolic_minimum(gs, cost, best)
     near = jnp.clip(best + jnp.sign(t).astype(best.dtype), 0, gs.shape[0] - 1)
     s_vertex = s_all[best] + jnp.abs(t) * (s_all[near] - s_all[best])
-    frac = jnp.clip(s_vertex / sigma_s_max(sigma_t, g_vertex, phase), 1e-3, 1 - 1e-3)
-    return jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g_vertex, -0.95, 0.95))])
+    return start_y(jnp.stack([s_vertex, g_vertex]), sigma_t, phase)
+
+
+def start_y(start, sigma_t, phase: str):
+    """The solve's start y (see :func:`to_params`) at ``start`` = (σs, g), kept off the
+    bounds (σs within 0.1 % of them, |g| ≤ 0.95)."""
+    s, g = start[0], start[1]
+    frac = jnp.clip(s / sigma_s_max(sigma_t, g, phase), 1e-3, 1 - 1e-3)
+    return jnp.stack([jnp.log(frac / (1 - frac)), jnp.arctanh(jnp.clip(g, -0.95, 0.95))])
 
 
 @dataclasses.dataclass(frozen=True)
 class TwoStepSettings:
-    """Static settings of the two-step program: ``search`` only (the grid method) or
-    search then solve (the gradient method), the phase convention, the step limit."""
+    """Static settings of the two-step program: ``solve`` false, the search over g
+    alone (the grid method); true, the search then the solve over (σs, g) from its best
+    point (the gradient method), or, with ``search`` false, the solve alone from a given
+    start (the gradient method on a larger model, from the answer on the first: one copy
+    of the render in the program, not two); the phase convention, the step limit."""
 
     solve: bool
     phase: str
     max_steps: int
+    search: bool = True
 
 
 def _two_step_run(
@@ -205,35 +216,41 @@ def _two_step_run(
     mask,
     gs,
     scale,
+    start=None,
 ):
     """The two-step program: the search over ``gs`` and (``settings.solve``) the solve
-    over (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the residual
-    and its Jacobian evaluated explicitly at the answer."""
+    over (σs, g) from its best point, or (``settings.search`` false) the solve alone from
+    ``start`` = (σs, g); returns (σs, g, a = c·σs, r, ∂r/∂(σs, g), result, steps), the
+    residual and its Jacobian evaluated explicitly at the answer."""
     phase = settings.phase
     rendered_and_slope = rendered_and_g_slope(renderer, sigma_t, phase)
 
     def residual(p):
         return two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase, p)
 
-    s_all, a_all, cost = search_g(renderer, sigma_t, d, m, mask, gs, phase)
-    best = jnp.argmin(cost)
-    if not settings.solve:
-        r, jac, a = residual(jnp.stack([s_all[best], gs[best]]))
-        return s_all[best], gs[best], a, r, jac, optx.RESULTS.successful, jnp.asarray(gs.shape[0])
+    if settings.search or not settings.solve:
+        s_all, _, cost = search_g(renderer, sigma_t, d, m, mask, gs, phase)
+        best = jnp.argmin(cost)
+        if not settings.solve:
+            r, jac, a = residual(jnp.stack([s_all[best], gs[best]]))
+            steps = jnp.asarray(gs.shape[0])
+            return s_all[best], gs[best], a, r, jac, optx.RESULTS.successful, steps
+        y0 = search_start(gs, s_all, cost, sigma_t, phase)
+    else:
+        y0 = start_y(start, sigma_t, phase)
     solver = eqx.combine(solver_arrays, solver_static)
 
-    def residual_y(y):  # (r, (r, ∂r/∂p)) and their Jacobians in y (of the second: 0)
-        r, jac, _a = residual(to_params(y, sigma_t, phase))
+    def residual_y(y):  # (r, (r, ∂r/∂p, a)) and their Jacobians in y (of the second: 0)
+        r, jac, a = residual(to_params(y, sigma_t, phase))
         jac_y = matmul(jac, jax.jacfwd(lambda y: to_params(y, sigma_t, phase))(y))
-        return (r, (r, jac)), (
+        return (r, (r, jac, a)), (
             jac_y,
-            (jnp.zeros(r.shape + y.shape), jnp.zeros(jac.shape + y.shape)),
+            (jnp.zeros(r.shape + y.shape), jnp.zeros(jac.shape + y.shape), jnp.zeros(y.shape)),
         )
 
     # The solver linearises a matrix product J·δy (the custom JVP), not the residual's
     # code: one copy of the renderer in the loop, a small program.
     residual_y = with_jacobian(residual_y)
-    y0 = search_start(gs, s_all, cost, sigma_t, phase)
     sol = optx.least_squares(
         lambda y, _: residual_y(y)[0],
         solver,
@@ -246,12 +263,10 @@ def _two_step_run(
     if isinstance(solver, optx.AbstractGaussNewton):
         # Gauss-Newton solvers keep the auxiliary output at their last accepted point,
         # the answer: its residual and Jacobian without another copy of the render
-        # (about a second of compilation).
-        r, jac = sol.state.aux
+        # (about a second of compilation), and a = c·σs from that render.
+        r, jac, a = sol.state.aux
     else:
-        r, jac, _a = residual(jnp.stack([s, g]))
-    # a = ⟨D, I_1⟩/⟨I_1, I_1⟩ and I_1 ∝ p_g(π/2): rescale from the grid's best g.
-    a = a_all[best] * phase_function(jnp.pi / 2, gs[best]) / phase_function(jnp.pi / 2, g)
+        r, jac, a = residual(jnp.stack([s, g]))
     return s, g, a, r, jac, sol.result, sol.stats["num_steps"]
 
 
@@ -291,12 +306,13 @@ def problem_arrays(data: FitData, renderer, n_g: int) -> tuple:
 
 
 def solve_two_step(
-    data: FitData, renderer, solver, settings: TwoStepSettings, n_g: int
+    data: FitData, renderer, solver, settings: TwoStepSettings, n_g: int, start=None
 ) -> TwoStepSolution:
     """Run the two-step program (:func:`_two_step_run`) on ``data`` at its σt estimate:
     ``renderer`` renders full illumination on the model, ``solver`` is the optimistix
     least-squares solver of the gradient method, ``n_g`` values of g on (−0.95, 0.95)
-    are searched. One compiled program (search, solve and the Jacobian for the
+    are searched (not with ``settings.search`` false: the solve then starts at
+    ``start`` = (σs, g)). One compiled program (search, solve and the Jacobian for the
     uncertainties).
 
     σs enters the model only through the polynomial (I_k ∝ σs^k), so the residual's
@@ -304,6 +320,10 @@ def solve_two_step(
     the renderer along g gives the Jacobian of each step."""
     args = problem_arrays(data, renderer, n_g)
     scale = float(args[-1])
+    if not settings.search:
+        if not settings.solve or start is None:
+            raise ValueError("solve_two_step: without the search, a solve and its start")
+        args = (*args, jnp.asarray(start, args[1].dtype))
     run = jitted(_two_step_run, ("settings", "solver_static"))
     arrays, static = eqx.partition(solver, eqx.is_array)
     with stopwatch() as timing:
@@ -334,6 +354,7 @@ __all__ = [
     "search_start",
     "sigma_s_max",
     "solve_two_step",
+    "start_y",
     "to_params",
     "two_step_residual",
 ]
