@@ -268,12 +268,32 @@ def _across_first(a: np.ndarray, entry: str) -> np.ndarray:
 def _coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
     """Hann-windowed Fourier coefficient at ``frequency`` across axis −2 of a
     (P, across, along) stack whose first across pixel is u0: (P, along)."""
+    return _spectrum(a, u0, np.array([frequency]), lambda c: c)[0]
+
+
+# Frequencies per matrix product in _spectrum: bounds its (F, P, along) block.
+_SPECTRUM_CHUNK = 32
+
+
+def _spectrum(a: np.ndarray, u0: int, frequencies: np.ndarray, reduce) -> np.ndarray:
+    """``reduce`` of the Hann-windowed Fourier coefficients (F, P, along) at each of
+    ``frequencies`` across axis −2 of a (P, across, along) stack whose first across
+    pixel is u0, stacked over the frequencies: one matrix product per block of
+    frequencies, not a pass over the stack per frequency."""
     n = a.shape[-2]
     w = np.hanning(n + 2)[1:-1]
     u = u0 + np.arange(n) + 0.5
     mean = np.einsum("u,puj->pj", w, a) / w.sum()
-    basis = w * np.exp(-2j * np.pi * frequency * u)
-    return np.einsum("u,puj->pj", basis, a - mean[:, None, :])
+    p, _, along = a.shape
+    # (across, P·along), windowed: real matrix products with the cosines and sines.
+    centred = (w[:, None] * np.moveaxis(a - mean[:, None, :], 1, 0).reshape(n, -1)).astype(float)
+    out = []
+    for i in range(0, len(frequencies), _SPECTRUM_CHUNK):
+        f = np.asarray(frequencies[i : i + _SPECTRUM_CHUNK], float)
+        phase = 2 * np.pi * f[:, None] * u  # (F, across)
+        c = (np.cos(phase) @ centred) - 1j * (np.sin(phase) @ centred)
+        out.append(reduce(c.reshape(len(f), p, along)))
+    return np.concatenate(out)
 
 
 # Stripe contrast of an image: its Fourier amplitude across the stripes at the period
@@ -302,12 +322,13 @@ def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
     def amplitude(p):
         return np.abs(_coefficients(stack, u0, 1.0 / p)).sum(axis=-1)
 
-    periods = 1.0 / np.linspace(1.0 / longest, 0.5, 400)
-    power = [float(np.median(amplitude(p))) for p in periods]
+    frequencies = np.linspace(1.0 / longest, 0.5, 400)
+    periods = 1.0 / frequencies
+    power = np.median(_spectrum(stack, u0, frequencies, lambda c: np.abs(c).sum(axis=-1)), 1)
     best = float(periods[int(np.argmax(power))])
     with np.errstate(divide="ignore", invalid="ignore"):
         seen = np.median(amplitude(best) / amplitude(1.5 * best)) >= STRIPED
-        weak = np.median(amplitude(period)) < PERIOD_WEAK * max(power)
+        weak = np.median(amplitude(period)) < PERIOD_WEAK * np.max(power)
     return best if seen and weak and abs(best / period - 1.0) > PERIOD_OFF else None
 
 
@@ -330,7 +351,7 @@ def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
 
 def _measured_period(a: np.ndarray, u0: int, period: int) -> float:
     freqs = np.linspace(1.0 / (1.5 * period), 1.5 / period, 301)
-    power = [np.sum(np.abs(_coefficients(a, u0, f)) ** 2) for f in freqs]
+    power = _spectrum(a, u0, freqs, lambda c: np.sum(np.abs(c) ** 2, axis=(1, 2)))
     return float(1.0 / freqs[int(np.argmax(power))])
 
 
