@@ -109,8 +109,8 @@ def sensor_top_code(raw: np.ndarray, frames: Sequence[ImageData]) -> tuple[float
 def drop_constant_alpha(frames: list[ImageData], notes: list[str]) -> list[ImageData]:
     """Frames without a constant alpha channel (the channel named A, of two or more;
     noted); a varying alpha, or four channels that are not RGBA, is a
-    :class:`CaptureError`. Before, alpha was dropped only from 2 or 4 channels: a
-    5-channel EXR (R, G, B, A, Z) kept its alpha as a channel to fit."""
+    :class:`CaptureError`. The alpha may stand anywhere (a 5-channel EXR: R, G, B, A,
+    Z)."""
     names = frames[0].channel_names
     n = len(names)
     if "A" in names and n >= 2:

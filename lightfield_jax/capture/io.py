@@ -325,8 +325,8 @@ _SUBIMAGE_WORDS = {"tiff": ("page", "a multi-page TIFF"), "openexr": ("part", "a
 def _open_oiio(path: Path):
     """An open OpenImageIO reader of ``path`` at its first subimage, from its header
     alone. A file that holds several subimages (the pages of a multi-page TIFF, the parts
-    of a multi-part EXR) is refused: before, only the first was read, without a word.
-    MIP levels of one image are not subimages, and are not refused."""
+    of a multi-part EXR) is refused: only one would be read. MIP levels of one image are
+    not subimages, and are not refused."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(oiio_name(path))
