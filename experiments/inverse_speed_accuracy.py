@@ -180,7 +180,7 @@ def _jaxopt_run(solver: str, max_steps: int, renderer, sigma_t, d, m, mask, gs, 
     then jaxopt's solver on the package's two-step residual in the package's
     parametrisation (:mod:`lightfield_jax.internal`)."""
     jaxopt = _import_jaxopt()
-    s_all, _a, cost = lfi.search_g(renderer, sigma_t, d, m, mask, gs, "paper")
+    s_all, cost = lfi.search_g(renderer, sigma_t, d, m, mask, gs, "paper")
     start = lfi.search_start(gs, s_all, cost, sigma_t, "paper")
     slope = lfi.rendered_and_g_slope(renderer, sigma_t, "paper")
 

@@ -106,6 +106,14 @@ def sensor_top_code(raw: np.ndarray, frames: Sequence[ImageData]) -> tuple[float
     return None
 
 
+def alpha_index(names: Sequence[str]) -> int | None:
+    """The alpha channel's index among ``names`` (the channel named A: the last one if
+    several are), ``None`` without one or with a single channel."""
+    if len(names) < 2 or "A" not in names:
+        return None
+    return len(names) - 1 if names[-1] == "A" else list(names).index("A")
+
+
 def drop_constant_alpha(frames: list[ImageData], notes: list[str]) -> list[ImageData]:
     """Frames without a constant alpha channel (the channel named A, of two or more;
     noted); a varying alpha, or four channels that are not RGBA, is a
@@ -113,8 +121,7 @@ def drop_constant_alpha(frames: list[ImageData], notes: list[str]) -> list[Image
     Z)."""
     names = frames[0].channel_names
     n = len(names)
-    if "A" in names and n >= 2:
-        a = n - 1 if names[-1] == "A" else names.index("A")
+    if (a := alpha_index(names)) is not None:
         alpha = np.stack([f.pixels[..., a] for f in frames])
         finite = alpha[np.isfinite(alpha)]
         if finite.size and np.all(finite == finite[0]):

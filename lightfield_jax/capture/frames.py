@@ -14,7 +14,7 @@ import numpy as np
 
 from lightfield_jax.app.config import _Section, brief
 from lightfield_jax.app.memory import capture_bytes, check_memory
-from lightfield_jax.capture.calibration import sensor_top_code
+from lightfield_jax.capture.calibration import alpha_index, sensor_top_code
 from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
@@ -219,7 +219,7 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
     names = frame.channel_names
     # Its alpha: the last channel, or one elsewhere without which the channels are the
     # images' (R, G, B, A, Z for R, G, B, Z images whose alpha was dropped).
-    a = fc - 1 if names[-1] == "A" else names.index("A") if "A" in names else None
+    a = alpha_index(names)
     if (
         fc == c + 1
         and a is not None

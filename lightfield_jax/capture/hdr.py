@@ -357,8 +357,9 @@ def merge_bracket(
     d = np.zeros_like(x)
     if dark is not None:
         dz = np.broadcast_to(np.asarray(dark, np.float64), z.shape)
-        finite = finite & np.isfinite(dz)
-        d = response.linearize(np.where(np.isfinite(dz), dz, 0.0))
+        dark_finite = np.isfinite(dz)
+        finite = finite & dark_finite
+        d = response.linearize(np.where(dark_finite, dz, 0.0))
         x = x - d
     clipped = ~(z < clip) & finite
     unclipped = (z < clip) & finite

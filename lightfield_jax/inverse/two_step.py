@@ -150,13 +150,14 @@ def two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase: str
 def search_g(renderer, sigma_t, d, m, mask, gs, phase: str):
     """The search over ``gs``: for each g, render I_k at (σt, σs_ref(g), g) under full
     illumination (``lax.map``) and solve eq. 10 for σs (:func:`poly_fit_sigma_s`).
-    Returns (σs, a = c·σs, residual²), one value per g."""
+    Returns (σs, residual²), one value per g (the gain at the answer comes from the
+    residual there, :func:`two_step_residual`)."""
 
     def per_g(g):
         ref, u_max = reference_sigma_s(sigma_t, g, phase)
         images = renderer(sigma_t, ref, g)[0][0]
-        u, a_ref, cost = poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
-        return u * ref, a_ref * ref, cost
+        u, _, cost = poly_fit_sigma_s(d, m, images[0], images[1:], mask, u_max)
+        return u * ref, cost
 
     return jax.lax.map(per_g, gs)
 
@@ -229,7 +230,7 @@ def _two_step_run(
         return two_step_residual(rendered_and_slope, sigma_t, d, m, mask, scale, phase, p)
 
     if settings.search or not settings.solve:
-        s_all, _, cost = search_g(renderer, sigma_t, d, m, mask, gs, phase)
+        s_all, cost = search_g(renderer, sigma_t, d, m, mask, gs, phase)
         best = jnp.argmin(cost)
         if not settings.solve:
             r, jac, a = residual(jnp.stack([s_all[best], gs[best]]))
