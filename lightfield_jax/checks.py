@@ -190,7 +190,7 @@ def real_array(value, key: str, ndim: tuple[int, ...], what: str, *, finite: str
 def unmasked(values, key: str = "values") -> tuple[np.ndarray, np.ndarray]:
     """``(data, masked)``: a numpy masked array's data and mask (``masked`` all false
     for any other array), so that its fill values are never used as values. A ragged
-    list is ``ValueError("KEY: ...")`` (was numpy's "inhomogeneous shape")."""
+    list is ``ValueError("KEY: ...")`` (not numpy's "inhomogeneous shape")."""
     if isinstance(values, np.ma.MaskedArray):
         return np.ma.getdata(values), np.ma.getmaskarray(values)
     data = as_array(values, key)
@@ -199,8 +199,8 @@ def unmasked(values, key: str = "values") -> tuple[np.ndarray, np.ndarray]:
 
 def as_array(values, key: str, what: str = "an array of real numbers", items: str = ""):
     """``np.asarray(values)``, or ``ValueError("KEY: must be WHAT, got ...")`` naming a
-    ragged list (``list of ITEMSdifferent shapes``; was numpy's "inhomogeneous shape")
-    or a traced value (was JAX's many-line TracerArrayConversionError)."""
+    ragged list (``list of ITEMSdifferent shapes``; not numpy's "inhomogeneous shape")
+    or a traced value (not JAX's many-line TracerArrayConversionError)."""
     try:
         return np.asarray(values)
     except (TypeError, ValueError):

@@ -141,7 +141,7 @@ def fit_capture(
     if not chosen:
         raise ValueError("channel: no channel chosen (give at least one, or None for all)")
     twice = repeated(chosen)
-    if twice:  # before: fitted twice, its results listed twice and kept once by name
+    if twice:  # else fitted twice, its results listed twice and kept once by name
         raise ValueError(f"channel: {', '.join(map(repr, twice))} chosen more than once")
     results = []
     say = progress or (lambda _m: None)

@@ -167,7 +167,7 @@ def prepare_data(
             f"light's decay and the noise's 4th differences)"
         )
     period = period_problem(pattern, images.shape[2], images.shape[1], "images")
-    if period is not None:  # as render refuses them (before: a 31 s fit of no stripes)
+    if period is not None:  # as render refuses them (else: a fit of no stripes)
         raise ValueError(f"pattern.period: {period}")
     finite = np.isfinite(images)
     if mask is not None and np.shape(mask) not in (images.shape, images.shape[1:]):
@@ -221,7 +221,7 @@ def prepare_data(
         )
     _check_scale(images[samples])
     brightest = float(images[samples].max())
-    if not brightest > 0:  # was: "the basin scan found no valid model" or "0 usable pixels"
+    if not brightest > 0:  # else the scan says "no valid model", not why
         raise ValueError(
             f"images: no value is above 0 (the largest is {brightest:.3g}): images of light "
             "are not negative (values must be linear, black at 0)"
@@ -238,7 +238,7 @@ def prepare_data(
             "shift?)"
         )
     images = np.where(samples, images, 0.0)
-    across = _across_first(images, pattern.entry)  # before: a fit of 60 s, not converged
+    across = _across_first(images, pattern.entry)  # else: a long fit that does not converge
     if (problem := period_contradiction(across, 0, pattern.period, pattern.entry)) is not None:
         raise ValueError(f"pattern.period: {problem}")
     if split is None:

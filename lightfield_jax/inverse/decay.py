@@ -282,7 +282,7 @@ def fit_decay(
     _check_direction(entry, direction_deg, "fit_decay")
     direct = masked_to_nan(direct)
     dtype = direct.dtype if hasattr(direct, "dtype") else np.asarray(direct).dtype
-    if not real_dtype(dtype):  # before: a bool image was fitted (True as 1)
+    if not real_dtype(dtype):  # a bool image would be fitted (True as 1)
         raise ValueError(f"fit_decay.direct: must be real numbers, got dtype {dtype}")
     check_float_range(direct, "fit_decay.direct")
     direct = jnp.asarray(direct)

@@ -98,8 +98,8 @@ class FitMethod(eqx.Module):
 
 
 # The most g values a search takes (g_grid, start_grid, g_values): 5 times the densest
-# grid the experiments run (20481, configs/inverse_speed_accuracy.yaml). Before, g_grid
-# 10**9 ran (a grid of a billion g values) until killed.
+# grid the experiments run (20481, configs/inverse_speed_accuracy.yaml); g_grid 10**9
+# (a billion g values) would run until killed.
 MAX_G_VALUES = 100_000
 
 

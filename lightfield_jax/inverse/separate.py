@@ -77,9 +77,9 @@ def real_dtype(dtype) -> bool:
 
 def _as_float(x: ArrayLike, name: str = "images") -> Float[Array, "..."]:
     dtype = x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype
-    if not real_dtype(dtype):  # before: complex, bool and object images were separated
+    if not real_dtype(dtype):  # complex, bool and object images are no light
         raise ValueError(f"separate.{name}: must be real numbers, got dtype {dtype}")
-    check_float_range(x, f"separate.{name}")  # 1e300 was inf: "no pixel is finite"
+    check_float_range(x, f"separate.{name}")  # 1e300 is inf in float32
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         # Camera frames are often unsigned integers: convert before subtracting.

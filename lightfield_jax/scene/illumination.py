@@ -169,7 +169,7 @@ class Stripes:
                 f"illumination.phases: must be a sequence of integers, got {shown(self.phases)}"
             )
         count = np.size(self.phases) if isinstance(self.phases, np.ndarray) else len(self.phases)
-        if count > MAX_PHASES:  # before: range(10**12) was made a tuple until memory ran out
+        if count > MAX_PHASES:  # range(10**12) as a tuple: out of memory
             raise ValueError(
                 f"illumination.phases: at most {MAX_PHASES} phases (one image each), got {count}"
             )

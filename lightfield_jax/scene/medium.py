@@ -196,7 +196,7 @@ def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int 
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
     when ρ ≥ 1 (the series does not converge: there is no such K).
     """
-    # rho = albedo*A(g) >= 0 (before: a negative rho was taken, one bounce returned)
+    # rho = albedo*A(g) >= 0 (a negative rho would give one bounce)
     rho = check_number(rho, "rho", low=0.0, allow_inf=True)
     if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
