@@ -1302,6 +1302,9 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"gain": "400"}, "channel Y: no usable gain"),
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        # Before: a TypeError traceback (unhashable type: 'list'), exit 1.
+        ({"channel": ["Y"]}, "channel: must be the channel's name, got ['Y']"),
+        ({"channel": {"name": "Y"}}, "channel: must be the channel's name, got {'name': 'Y'}"),
         ({"capture_file": "/nonexistent/capture.yaml"}, "capture: /nonexistent/capture.yaml"),
         # Before: a TypeError traceback (an edited "capture": 5 or null).
         ({"capture_file": 5}, "capture: must be the capture file's path, got 5"),
@@ -1965,6 +1968,16 @@ def test_a_nul_in_a_path_and_a_deeply_nested_results_file_are_named(capture, cap
     deep = tmp_path / "deep.json"
     deep.write_text("[" * 100_000 + "]" * 100_000)
     _refused(capsys, "render", deep, "--out", tmp_path / "v", match=f"{deep}: nested too deeply")
+
+
+def test_a_results_file_that_is_not_utf8_is_named(capture, capsys, tmp_path):
+    """Before: 'error: 'utf-8' codec can't decode byte 0xe9 in position 14: invalid
+    continuation byte', naming neither the file nor what it should have been."""
+    results = _results(capture, tmp_path)
+    results.write_bytes(results.read_bytes().replace(b'"paper"', b'"caf\xe9"'))
+    line = _refused(capsys, "render", results, "--out", tmp_path / "v", match=f"{results}: ")
+    assert "not UTF-8 text" in line and "byte 0xe9" in line
+    assert not (tmp_path / "v").exists()
 
 
 def test_api_values_that_broke_deep_inside_are_refused_by_name():

@@ -103,6 +103,11 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
             f"{source}: per_channel: must map each channel's name to its fit, got "
             f"{shown(per_channel)}"
         )
+    if "per_channel" not in data and not isinstance(data.get("channel", "Y"), str):
+        # An edited list or mapping was a TypeError traceback (an unhashable name).
+        raise ValueError(
+            f"{source}: channel: must be the channel's name, got {shown(data['channel'])}"
+        )
     channels = dict(per_channel) if "per_channel" in data else {data.get("channel", "Y"): data}
     for name, fit in channels.items():
         if len(channels) > 1 and not _folder_name(name):
@@ -159,7 +164,14 @@ def _results_text(source: Path) -> str:
     from lightfield_jax.capture.io import require_regular_file
 
     require_regular_file(source, "a results file", ValueError)
-    return source.read_text()
+    try:
+        return source.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:  # was the codec's message, without the file
+        byte = e.object[e.start : e.start + 1].hex()
+        raise ValueError(
+            f"{source}: not UTF-8 text (byte 0x{byte} at offset {e.start}): not a results "
+            "file of lightfield-jax fit"
+        ) from None
 
 
 def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
