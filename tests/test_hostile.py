@@ -689,6 +689,28 @@ def test_npy_header_claiming_terabytes_is_refused(capture, capsys):
     _refused(capsys, "inspect", capture / "capture.yaml", match="truncated or corrupt")
 
 
+def test_an_npy_image_without_pixels_is_named_as_empty(capture, capsys):
+    """Before: an image ``.npy`` of shape (0, 32) was 'every pixel value is NaN or Inf
+    (a corrupt file?)', and a dark frame of shape (24, 0) '0x24 pixels' against the
+    images' size."""
+    images = [f"shift_{i:02d}.npy" for i in range(P)]
+    for i, name in enumerate(images):
+        np.save(capture / name, read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0])
+    np.save(capture / images[2], np.zeros((0, W), np.float32))
+    _edit(capture, images=images)
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        match=f"images[2]: {capture / images[2]}: expected a (height, width) or (height, width, "
+        f"channels) array, got shape (0, {W}, 1) (no pixels)",
+    )
+    np.save(capture / images[2], read_image(capture / "shift_02.exr").pixels[..., 0])
+    np.save(capture / "dark.npy", np.zeros((H, 0), np.float32))
+    _edit(capture, dark_frame="dark.npy")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="dark_frame: ")
+    _refused(capsys, "inspect", capture / "capture.yaml", match="(no pixels)")
+
+
 # --------------------------------------------------------------------- 5. memory
 
 

@@ -287,10 +287,12 @@ def _read_npy(path: Path) -> ImageData:
     a = _load_npy(path)
     if a.ndim == 2:
         a = a[..., None]
-    if a.ndim != 3:
+    # An empty one (a height of 0) was 'every pixel value is NaN or Inf (a corrupt
+    # file?)' as an image, and a size mismatch naming '0x24 pixels' as a dark frame.
+    if a.ndim != 3 or 0 in a.shape:
         raise CaptureError(
             f"{path}: expected a (height, width) or (height, width, channels) array, "
-            f"got shape {a.shape}"
+            f"got shape {a.shape}{' (no pixels)' if a.ndim == 3 else ''}"
         )
     return _npy_image(a, path)
 
