@@ -2064,6 +2064,44 @@ def test_simulate_publishes_nothing_when_its_figures_fail(capsys, tmp_path, monk
     assert not (tmp_path / "o2").exists() and not (tmp_path / "f2").exists()
 
 
+def test_a_failed_command_leaves_no_folders_it_made_for_its_outputs(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: ``render bad.json --out new/a/b/view`` refused the results (exit 2,
+    'nothing written') but left the empty folders new/a/b it had made for the output,
+    and so did inspect and simulate whose last step failed."""
+    bad = _results(capture, tmp_path, g=1.0)
+    _refused(capsys, "render", bad, "--out", tmp_path / "new" / "a" / "b" / "view", match="g")
+    assert not (tmp_path / "new").exists()
+    import lightfield_jax.viz as viz
+
+    def broken(*args, **kwargs):
+        raise ValueError("plotting failed")
+
+    monkeypatch.setattr(viz, "plot_inspect", broken)
+    _refused(
+        capsys,
+        *("inspect", capture / "capture.yaml"),
+        *("--json", tmp_path / "j" / "i.json", "--plot", tmp_path / "p" / "q" / "i.png"),
+        match="plotting failed",
+    )
+    assert not (tmp_path / "j").exists() and not (tmp_path / "p").exists()
+    from lightfield_jax.capture import views
+
+    monkeypatch.setattr(views, "plot_simulation", broken)
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text(SIMULATE)
+    status, _, _ = _run(
+        capsys, "simulate", cfg, "--out", tmp_path / "s" / "o", "--plot", tmp_path / "f" / "g"
+    )
+    assert status == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "results.json", "sim.yaml"]
+    # A folder that existed before is kept, empty or not.
+    (tmp_path / "kept").mkdir()
+    _refused(capsys, "render", bad, "--out", tmp_path / "kept" / "a" / "view", match="g")
+    assert list((tmp_path / "kept").iterdir()) == []
+
+
 @pytest.mark.parametrize("seconds", [1e10, 1e300])
 def test_a_time_limit_beyond_a_timers_range_is_no_limit_and_no_traceback(seconds):
     """Before: ``--time-limit 1e300`` started a timer whose wait overflowed (a traceback

@@ -43,8 +43,11 @@ from lightfield_jax.capture.io import (
     _reserve,
     _write_failure,
     forget_temporary,
+    keep_made_folders,
+    make_folders,
     naming_output,
     oiio_name,
+    remove_made_folders,
 )
 
 
@@ -260,10 +263,12 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
     and every target is left as it was.
     """
     pending: list[tuple[Path, Path]] = []
+    made: list[Path] = []  # the folders made for the outputs: removed unless published
+    published = False
 
     def stage(target: str | os.PathLike) -> Path:
         target = Path(target)
-        target.parent.mkdir(parents=True, exist_ok=True)
+        made.extend(make_folders(target.parent))
         tmp = _reserve(target, _make_file)
         pending.append((tmp, target))
         return tmp
@@ -285,11 +290,16 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
         for tmp, target in pending:
             os.replace(tmp, target)
             forget_temporary(tmp)
+        published = True
     finally:
         for tmp, _ in pending:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
             forget_temporary(tmp)
+        if published:
+            keep_made_folders(made)
+        else:  # nothing written: nor the folders made to hold it
+            remove_made_folders(made)
 
 
 __all__ = [

@@ -565,8 +565,50 @@ def forget_temporary(path: Path) -> None:
     _TEMPORARIES.discard(path)
 
 
+# Folders made to hold outputs not yet published, outermost first: removed (where still
+# empty) when the command fails or is stopped by a signal. A failed command left the
+# empty folders of its output's path behind (render bad.json --out new/a/view: new/a).
+_MADE_FOLDERS: list[Path] = []
+
+
+def make_folders(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; the ones made, outermost first, are
+    registered for :func:`remove_made_folders` until :func:`keep_made_folders`."""
+    missing = []
+    for f in (folder, *folder.parents):
+        if os.path.lexists(f):
+            break
+        missing.append(f)
+    made = []
+    for f in reversed(missing):
+        try:
+            os.mkdir(f)
+        except FileExistsError:  # made meanwhile (a folder or not: said by the next step)
+            continue
+        made.append(f)
+        _MADE_FOLDERS.append(f)
+    return made
+
+
+def keep_made_folders(made: Sequence[Path]) -> None:
+    """The folders ``made`` hold published outputs: no longer to remove."""
+    for f in made:
+        with contextlib.suppress(ValueError):
+            _MADE_FOLDERS.remove(f)
+
+
+def remove_made_folders(made: Sequence[Path] | None = None) -> None:
+    """Remove the folders ``made`` (default: every one registered), innermost first,
+    where they are still empty."""
+    for f in reversed(list(_MADE_FOLDERS if made is None else made)):
+        with contextlib.suppress(OSError):
+            os.rmdir(f)
+    keep_made_folders(list(_MADE_FOLDERS if made is None else made))
+
+
 def remove_temporaries() -> None:
-    """Remove every temporary file and staging folder not yet published (on a signal)."""
+    """Remove every temporary file and staging folder not yet published (on a signal),
+    and the folders made for them where they are left empty."""
     for path in list(_TEMPORARIES):
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path, ignore_errors=True)
@@ -574,6 +616,7 @@ def remove_temporaries() -> None:
             with contextlib.suppress(OSError):
                 path.unlink()
         _TEMPORARIES.discard(path)
+    remove_made_folders()
 
 
 def _make_file(p: Path) -> None:
@@ -642,8 +685,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _reserve(path, _make_file)
+    made = make_folders(path.parent)
+    try:
+        tmp = _reserve(path, _make_file)
+    except BaseException:
+        remove_made_folders(made)
+        raise
     try:
         with naming_output(path):
             yield tmp
@@ -652,9 +699,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        remove_made_folders(made)
         raise
     finally:
         forget_temporary(tmp)
+    keep_made_folders(made)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -717,15 +766,23 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         given, path = path, Path(os.path.abspath(path))
         if not path.name:
             raise CaptureError(f"{given}: the root folder cannot be an output folder")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    stage = _reserve(path, lambda p: os.mkdir(p, 0o777))
+    made = make_folders(path.parent)
+    published = False
     try:
-        with naming_output(path):
-            yield stage
-            _publish(stage, path, keep_folder)
+        stage = _reserve(path, lambda p: os.mkdir(p, 0o777))
+        try:
+            with naming_output(path):
+                yield stage
+                _publish(stage, path, keep_folder)
+                published = True
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+            forget_temporary(stage)
     finally:
-        shutil.rmtree(stage, ignore_errors=True)
-        forget_temporary(stage)
+        if published:
+            keep_made_folders(made)
+        else:  # nothing written: nor the folders made to hold it
+            remove_made_folders(made)
 
 
 def _publish(stage: Path, path: Path, keep_folder: bool = False) -> None:
