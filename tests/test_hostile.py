@@ -818,6 +818,18 @@ def test_phases_outside_the_period_are_refused(capture, capsys):
     _refused(capsys, "fit", capture / "capture.yaml", match="[6] outside [0, period)")
 
 
+def test_more_images_than_the_period_without_phases_are_named(capture, capsys):
+    """Before: 12 images and no pattern.phases was 'pattern.phases: each phase must lie
+    in [0, period = 6), got 6', about phases the capture file does not give."""
+    images = [f"shift_{i % P:02d}.exr" for i in range(2 * P)]
+    path = _edit(capture, images=images)
+    data = yaml.safe_load(path.read_text())
+    del data["pattern"]["phases"]
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    line = _refused(capsys, "inspect", path, match="pattern.phases: not given, so the 12 images")
+    assert "take the phases 0..11, beyond the period 6" in line and "phases: auto" in line
+
+
 def test_phases_that_contradict_the_images_are_refused(capture, capsys):
     pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
     _edit(capture, pattern={**pattern, "phases": [2, 3, 4, 5, 0, 1]})

@@ -99,6 +99,13 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
     phases = s.get("phases", None)
     spec["phases_from"] = "default" if phases is None else "given"
     if phases is None:
+        if n_images > spec["period"]:  # was "each phase must lie in [0, period = 6), got 6"
+            s.fail(
+                s.key("phases"),
+                f"not given, so the {n_images} images take the phases 0..{n_images - 1}, "
+                f"beyond the period {spec['period']}: give one phase per image in [0, "
+                f"{spec['period']}) (or phases: auto)",
+            )
         phases = list(range(n_images))
     elif phases == AUTO:
         pass
