@@ -1064,6 +1064,24 @@ def test_a_constant_alpha_is_dropped_from_any_channel_count(capture, capsys):
         lfj.load_capture(capture / "capture.yaml")
 
 
+def test_a_stack_saved_as_one_image_file_is_named_as_a_stack(capture, capsys):
+    """Before: a .npy of shape (2, 24, 32) listed as one image was a 24x32 image with 32
+    channels, refused as having 'a varying alpha channel (R, G, B, A, channel4, ...)'."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    frames = [read_image(capture / f).pixels[..., 0] for f in data["images"]]
+    pairs = []
+    for i in range(0, len(frames), 2):
+        np.save(capture / f"pair_{i}.npy", np.stack(frames[i : i + 2]))
+        pairs.append(f"pair_{i}.npy")
+    path = _edit(capture, images=pairs)
+    line = _refused(capsys, "inspect", path, match="images[0]: ")
+    assert f"pair_0.npy: shape (2, {H}, {W}) looks like a stack of 2 images ({H} x {W}," in line
+    assert "images: pair_0.npy" in line and "alpha" not in line
+    # Four channels or fewer are still one image.
+    np.save(capture / "rgb.npy", np.repeat(frames[0][..., None], 3, axis=-1))
+    assert read_image(capture / "rgb.npy").channel_names == ("R", "G", "B")
+
+
 def test_double_values_beyond_float32_are_one_line_naming_the_file(capture, capsys):
     """Before: five lines of numpy overflow warnings, then 'separate.images: no pixel is
     finite ... nothing to separate' for a float64 .npy stack scaled by 1e300."""

@@ -41,6 +41,9 @@ IMAGE_EXTENSIONS: tuple[str, ...] = (".exr", ".tif", ".tiff", ".png", ".npy")
 _CHANNEL_ORDER_ATTR = "lightfield_jax:channels"
 # Default channel names by channel count, as OpenImageIO names them.
 _DEFAULT_NAMES = ("R", "G", "B", "A")
+# The most channels a camera image holds (RGBA): a (height, width, channels) .npy with
+# more is a stack of images.
+_MAX_CHANNELS = 4
 
 
 class CaptureError(ValueError):
@@ -105,8 +108,8 @@ def read_image(
 
     Args:
         path: an ``.exr``, ``.tif``/``.tiff``, ``.png`` or ``.npy`` file. A ``.npy``
-            array is (height, width) or (height, width, channels); uint8/uint16 arrays
-            are scaled like image files, float arrays kept.
+            array is (height, width) or (height, width, 1-4 channels); uint8/uint16
+            arrays are scaled like image files, float arrays kept.
         channel: keep only this channel (a name or an index) or these channels, in the
             order given; ``None`` keeps all.
         n_channels: when given, the number of channels the caller expects (after the
@@ -293,6 +296,16 @@ def _read_npy(path: Path) -> ImageData:
         raise CaptureError(
             f"{path}: expected a (height, width) or (height, width, channels) array, "
             f"got shape {a.shape}{' (no pixels)' if a.ndim == 3 else ''}"
+        )
+    if a.shape[-1] > _MAX_CHANNELS:
+        # A stack of images saved as one image file: before, a 24x32 image with 32
+        # channels, refused as having 'a varying alpha channel' (R, G, B, A, channel4...).
+        n, height, width = a.shape
+        raise CaptureError(
+            f"{path}: shape {a.shape} looks like a stack of {n} images ({height} x {width}, "
+            f"height x width), not one image with {width} channels (a camera image has at "
+            f"most {_MAX_CHANNELS}): give a stack alone as the capture file's images "
+            f"(images: {path.name}), or save one file per image and list them"
         )
     return _npy_image(a, path)
 
