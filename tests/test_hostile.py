@@ -1312,6 +1312,44 @@ def test_simulate_values_beyond_float32_are_refused(tmp_path, capsys, change, ma
     assert str(path) in line and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(
+    ("illumination", "noise", "match"),
+    [
+        (
+            {"phases": [0, 0, 0]},
+            False,
+            "illumination.phases: the 3 shifts are the same image: the stripes moved nothing",
+        ),
+        ({"phases": [4]}, True, "illumination.phases: a fit needs at least 2 shifted images"),
+        ({"shifts": 1}, True, "illumination.shifts: a fit needs at least 2 shifted images"),
+    ],
+)
+def test_simulate_refuses_stripes_whose_capture_the_fit_refuses(
+    tmp_path, capsys, illumination, noise, match
+):
+    """Before: simulate wrote the capture, and the fit refused it ('images: the 3 shifts
+    are the same image', 'pattern.phases: a fit needs at least 2 shifted images')."""
+    config = yaml.safe_load(SIMULATE)
+    config["illumination"] = {"kind": "stripes", "period": 6, "lit": 3, **illumination}
+    if not noise:
+        del config["noise"]
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=match)
+    assert str(path) in line and not (tmp_path / "o").exists()
+
+
+def test_simulate_keeps_repeated_phases_the_fit_takes(tmp_path):
+    """With noise the images of repeated phases differ, and the fit takes them."""
+    from lightfield_jax.app.config import parse_simulation_config
+
+    config = yaml.safe_load(SIMULATE)
+    config["illumination"] = {"kind": "stripes", "period": 6, "lit": 3, "phases": [0, 0, 3]}
+    assert parse_simulation_config(config).illumination.phases == (0, 0, 3)
+    config["illumination"]["phases"] = [1, 1, 1]
+    assert parse_simulation_config(config).illumination.phases == (1, 1, 1)
+
+
 # ------------------------------------------------------------------ render: results
 
 

@@ -35,8 +35,10 @@ Optional keys (all absent by default):
 Every error is a :class:`ConfigError` whose message starts with the file name, then
 the key's path (``medium.sigma_t``) and the offending value (its text bounded in
 size). Stripe phases lie in [0, period), ``shifts`` in [1, period], and the period is
-no longer than the grid. A YAML file must be a regular file of at most 16 MiB whose
-aliases expand to at most :data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
+no longer than the grid; stripes whose capture a fit refuses (one shift, or phases that
+all light the same rows without noise: identical images) are refused too. A YAML file
+must be a regular file of at most 16 MiB whose aliases expand to at most
+:data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
 before it is built), nested less deeply than Python's recursion limit. Unknown keys, duplicate
 keys, wrong types and out-of-range values are all errors. Float keys accept numeric
 strings (YAML 1.1 reads ``1e-4`` as one); integer keys accept only integers.
@@ -69,6 +71,7 @@ from lightfield_jax.scene.illumination import (
     Illumination,
     Stripes,
     period_problem,
+    shifts_problem,
 )
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
 
@@ -477,13 +480,15 @@ def parse_simulation_config(data: Mapping, source: str = "<dict>") -> Simulation
     illumination = _illumination(source, top.get("illumination"), grid)
     geometry = _geometry(top)
     bounces, tolerance = _bounces(top, medium, geometry)
+    camera = _camera(top, illumination)
+    _check_shifts(top, illumination, camera["noise"])
     return SimulationConfig(
         grid=grid,
         medium=medium,
         illumination=illumination,
         bounces=bounces,
         tolerance=tolerance,
-        **_camera(top, illumination),
+        **camera,
         geometry=geometry,
         source=source,
         raw=copy.deepcopy(dict(data)),
@@ -564,6 +569,26 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     return _build(
         s, Stripes, period, lit, tuple(range(shifts)), direction_deg=direction, entry=entry
     )
+
+
+def _check_shifts(top: _Section, illumination: Illumination, noise) -> None:
+    """Refuse stripes whose capture the fit refuses (the fit's rule,
+    :func:`~lightfield_jax.scene.illumination.shifts_problem`): one shift, or shifts
+    whose noise-free images are all the same (every phase the same). Before, simulate
+    wrote the capture, and the fit refused it."""
+    if not isinstance(illumination, Stripes):
+        return
+    phases = illumination.phases
+    same = noise is None and len({p % illumination.period for p in phases}) == 1
+    if (problem := shifts_problem(len(phases), same)) is None:
+        return
+    key = "illumination.phases" if "phases" in top.data["illumination"] else "illumination.shifts"
+    if len(phases) >= 2:
+        problem += (
+            f" (the phases {brief(list(phases))} light the same rows, and there is no "
+            "noise): give phases that differ"
+        )
+    top.fail(key, problem)
 
 
 def _at_most(s: _Section, key: str, value: float, limit: float = MAX_VALUE) -> None:

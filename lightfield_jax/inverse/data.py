@@ -22,7 +22,7 @@ from lightfield_jax.checks import as_array, number_problem, shown, unmask, unmas
 from lightfield_jax.inverse.decay import fit_decay
 from lightfield_jax.inverse.separate import separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
-from lightfield_jax.scene.illumination import Stripes, period_problem
+from lightfield_jax.scene.illumination import Stripes, period_problem, shifts_problem
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.model_size import _Model
@@ -226,17 +226,15 @@ def prepare_data(
             f"images: no value is above 0 (the largest is {brightest:.3g}): images of light "
             "are not negative (values must be linear, black at 0)"
         )
-    if split is None and images.shape[0] < 2:  # was "the 1 shifts are the same image"
-        raise ValueError(
-            "pattern.phases: a fit needs at least 2 shifted images (the separation of the "
-            f"direct light compares them), got {images.shape[0]}"
-        )
-    if split is None and np.all(images[:, pixels] == images[:1, pixels]):
-        raise ValueError(
-            f"images: the {images.shape[0]} shifts are the same image: the stripes moved "
-            "nothing, so there is no direct light to separate (one image given for every "
-            "shift?)"
-        )
+    if split is None:
+        # Fewer than 2 was "the 1 shifts are the same image". A simulate config is
+        # refused by the same rule (app.config): simulate writes no capture refused here.
+        n_shifts = images.shape[0]
+        same = n_shifts >= 2 and bool(np.all(images[:, pixels] == images[:1, pixels]))
+        if (problem := shifts_problem(n_shifts, same)) is not None:
+            if n_shifts < 2:
+                raise ValueError(f"pattern.phases: {problem}")
+            raise ValueError(f"images: {problem} (one image given for every shift?)")
     images = np.where(samples, images, 0.0)
     across = _across_first(images, pattern.entry)  # else: a long fit that does not converge
     if (problem := period_contradiction(across, 0, pattern.period, pattern.entry)) is not None:

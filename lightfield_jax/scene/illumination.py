@@ -361,6 +361,24 @@ def source_moments(
     return (np.swapaxes(a, 1, 2) for a in (cov, mean, var))
 
 
+def shifts_problem(n_shifts: int, same: bool) -> str | None:
+    """What a fit refuses about a stripe capture's shifts (``None``: nothing): fewer
+    than 2 images, or images that are all the same (``same``: the stripes moved
+    nothing). The rule of the fit (:mod:`lightfield_jax.inverse.data`), and of a
+    simulate config (:mod:`lightfield_jax.app.config`), whose capture the fit reads."""
+    if n_shifts < 2:
+        return (
+            "a fit needs at least 2 shifted images (the separation of the direct light "
+            f"compares them), got {n_shifts}"
+        )
+    if same:
+        return (
+            f"the {n_shifts} shifts are the same image: the stripes moved nothing, so there "
+            "is no direct light to separate"
+        )
+    return None
+
+
 def period_problem(illumination, width: int, height: int, what: str = "grid") -> str | None:
     """What is wrong with stripes whose period is longer than a ``width``x``height``
     grid (``None``: nothing, or not stripes; ``illumination`` may be the period
