@@ -1392,6 +1392,10 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ({"gain": "400"}, "channel Y: no usable gain"),
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        # Before: a hand-edited "no" (or 0, null) warned "did not converge (converged)".
+        ({"converged": "no"}, "channel Y: converged: must be true or false, got 'no'"),
+        ({"converged": 0}, "channel Y: converged: must be true or false, got 0"),
+        ({"converged": None}, "channel Y: converged: must be true or false, got None"),
         # Before: a TypeError traceback (unhashable type: 'list'), exit 1.
         ({"channel": ["Y"]}, "channel: must be the channel's name, got ['Y']"),
         ({"channel": {"name": "Y"}}, "channel: must be the channel's name, got {'name': 'Y'}"),

@@ -124,6 +124,12 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
             raise ValueError(
                 f"{source}: channel {name}: no usable {', '.join(missing)} (a failed fit?)"
             )
+        converged = fit.get("converged", True)
+        if not isinstance(converged, bool):  # "no" warned "did not converge (converged)"
+            raise ValueError(
+                f"{source}: channel {name}: converged: must be true or false, got "
+                f"{shown(converged)}"
+            )
         crop = model["crop"]
         if not (
             isinstance(crop, list)
