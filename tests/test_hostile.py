@@ -1004,6 +1004,34 @@ def _write_pages(path: Path, pages: list[np.ndarray], fmt: str) -> Path:
     return path
 
 
+def test_signed_and_32_bit_integer_images_are_refused_alike_in_tiff_and_npy(capture, capsys):
+    """Before: an int16 TIFF (counts from a scientific camera) was read scaled by 32767,
+    an int32 or uint32 one by its full range, while a .npy of those types was refused."""
+    import OpenImageIO as oiio
+
+    for dtype in (np.int16, np.int32, np.uint32):
+        name = np.dtype(dtype).name
+        counts = np.full((H, W, 1), 1000, dtype)
+        tiff = capture / f"{name}.tif"
+        out = oiio.ImageOutput.create(str(tiff))
+        spec = oiio.ImageSpec(W, H, 1, getattr(oiio, name.upper()))
+        assert out.open(str(tiff), spec), out.geterror()
+        assert out.write_image(counts) and out.close(), out.geterror()
+        npy = capture / f"{name}.npy"
+        np.save(npy, counts[..., 0])
+        kind = "unsigned" if name.startswith("u") else "signed"
+        words = f"{name} ({kind} {counts.itemsize * 8}-bit integers): integer samples are read"
+        for path, what in ((tiff, "sample type"), (npy, "array dtype")):
+            with pytest.raises(lfj.CaptureError, match=r"\.(tif|npy): unsupported") as e:
+                read_image(path)
+            assert str(e.value).startswith(f"{path}: unsupported {what} {words}"), e.value
+            assert "save the counts as uint16 (0..65535) or as float32" in str(e.value)
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    path = _edit(capture, images=["int16.tif", *data["images"][1:]])
+    line = _refused(capsys, "inspect", path, match="images[0]: ")
+    assert "int16.tif: unsupported sample type int16 (signed 16-bit integers)" in line
+
+
 def test_multi_page_tiffs_and_multi_part_exrs_are_refused(capture, capsys, tmp_path):
     """Before: a burst saved as the pages of one TIFF (or the parts of one EXR) was read
     as its first page, without a word, and fitted from that one frame."""

@@ -32,7 +32,8 @@ Keys:
   formats (8- and 16-bit, integer and float), 1-channel images that are an
   undemosaiced Bayer mosaic, 4-channel images that are not RGB with a constant alpha
   (a constant alpha channel is dropped), files of several images (a multi-page TIFF,
-  a multi-part EXR). 16-bit files that hold 10-, 12- or 14-bit data
+  a multi-part EXR), signed or 32-bit integer samples (a TIFF or a ``.npy``: save
+  the counts as uint16 or float32). 16-bit files that hold 10-, 12- or 14-bit data
   clipped at its top code (4095 for 12 bits) have those pixels masked as saturated.
   See :mod:`lightfield_jax.capture.calibration`.
 - ``images`` as exposure brackets, one list per shift (``[[s0_1ms.png, s0_8ms.png],

@@ -3,7 +3,9 @@
 Reading: :func:`read_image` loads OpenEXR, TIFF (8/16-bit, float), PNG (8/16-bit) and
 ``.npy`` files into an ``(height, width, channels)`` float array in the image frame of
 docs/model.md section 1 (row 0 at the top). Integer samples are scaled to [0, 1] by their
-type's maximum (255 or 65535); float samples are kept as they are. The source sample
+type's maximum (255 or 65535); float samples are kept as they are. Other integer samples
+(signed, or 32-bit: some scientific cameras' TIFFs) are refused alike in a TIFF and a
+``.npy``, naming the type: save them as uint16 or float32. The source sample
 type is reported, so a caller can tell a saturated 8-bit pixel from a bright HDR one.
 
 Writing: every writer is atomic. It writes a temporary file in the target's directory
@@ -269,6 +271,8 @@ def _npy_image(a: np.ndarray, path: Path) -> ImageData:
         pixels = a.astype(np.float32)
     elif a.dtype == np.float64:
         pixels = a
+    elif a.dtype.kind in "iu":
+        raise _integer_samples(path, "array dtype", a.dtype.name)
     else:
         raise CaptureError(
             f"{path}: unsupported array dtype {a.dtype}; expected uint8, uint16, "
@@ -283,6 +287,22 @@ def _npy_image(a: np.ndarray, path: Path) -> ImageData:
         bit_depth=a.dtype.itemsize * 8,
         path=path,
         sample_type=sample_type,
+    )
+
+
+def _integer_samples(path: Path, what: str, name: str) -> CaptureError:
+    """The refusal of integer samples other than uint8 and uint16 (``name``: numpy's
+    name, e.g. ``int16``, ``uint32``), alike for a TIFF and a ``.npy``. Their scale is
+    not a camera's: a signed 16-bit TIFF was scaled by 32767 (counts up to 65535 from
+    some scientific cameras wrapped to negative values), a 32-bit one by 2^32 - 1, and
+    the top code of a clipped sensor, the response table and dark_level in codes /
+    65535 all count in 8 or 16 unsigned bits."""
+    bits = np.dtype(name).itemsize * 8
+    kind = "unsigned" if name.startswith("u") else "signed"
+    return CaptureError(
+        f"{path}: unsupported {what} {name} ({kind} {bits}-bit integers): integer samples "
+        "are read as unsigned 8- or 16-bit (scaled by 255 or 65535); save the counts as "
+        "uint16 (0..65535) or as float32"
     )
 
 
@@ -392,6 +412,11 @@ def _read_oiio(path: Path) -> ImageData:
                 f"{spec.full_width}x{spec.full_height}); crop or pad the image first"
             )
         base = spec.format.basetype
+        if base not in (oiio.UINT8, oiio.UINT16, oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
+            # Was read, scaled by the type's range: int16 by 32767, uint32 by 2^32 - 1.
+            signed = base in (oiio.INT8, oiio.INT16, oiio.INT32, oiio.INT64)
+            name = f"{'' if signed else 'u'}int{spec.format.size() * 8}"
+            raise _integer_samples(path, "sample type", name)
         # Reading with an explicit type; OpenImageIO scales integers to [0, 1].
         fmt = oiio.DOUBLE if base == oiio.DOUBLE else oiio.FLOAT
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
