@@ -1313,6 +1313,40 @@ def test_fixed_model_sizes_count_in_the_fits_memory_estimate(capture, capsys, tm
     assert not out.exists()
 
 
+def test_a_model_larger_than_max_cells_is_noted(capture, capsys, tmp_path):
+    """Before: max_cells below the smallest model (32 θ bins), and θ bins or a
+    refinement fixed beyond it, were used without a word."""
+    _edit(capture, fit={"max_cells": 100})
+    status, out, err = _run(capsys, "fit", capture / "capture.yaml", "--out", tmp_path / "r.json")
+    assert status in (0, 1), err
+    notes = [line for line in out.splitlines() if "max_cells" in line]
+    assert notes == [
+        f"note: max_cells 100 is below the model's size ({W}x{H} px, n_theta 32, refine 1, "
+        f"{W * H * 32} cells): n_theta is not lowered below 32; the fit solves on that model"
+    ], out
+
+    class Stop(Exception):
+        pass
+
+    def notes_of(fit: dict) -> list[str]:
+        _edit(capture, fit=fit)
+        said = []
+
+        def progress(message: str) -> None:  # stopped once the solve starts
+            said.append(message)
+            if not message.startswith(("separating", "note: ")):
+                raise Stop
+
+        with pytest.raises(Stop):
+            lfj.fit_capture(lfj.load_capture(capture / "capture.yaml"), progress=progress)
+        return [m for m in said if m.startswith("note: ")]
+
+    fixed = notes_of({"n_theta": 128, "refine": 2, "max_cells": 100000})
+    assert len(fixed) == 1 and fixed[0].startswith("note: max_cells 100000 is below"), fixed
+    assert "n_theta 128 and refine 2 are fixed by the fit options, never lowered" in fixed[0]
+    assert notes_of({}) == []  # the defaults: within max_cells, nothing said
+
+
 # ------------------------------------------------------------------ simulate: float32
 
 

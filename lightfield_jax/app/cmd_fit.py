@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -286,9 +287,12 @@ def _fit(args: argparse.Namespace) -> int | None:
         _say(args, f"note: {note}")
     with _progress(args, f"fit ({args.method})") as stage, _about(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
-        doing = [""]
+        doing, fit_notes = [""], []
 
         def staged(message: str) -> None:
+            if message.startswith("note: ") or re.match(r"\[[^]]*\] note: ", message):
+                fit_notes.append(message)  # said with the summary: the display is erased
+                return
             doing[0] = message.strip()
             stage(message)
 
@@ -315,6 +319,8 @@ def _fit(args: argparse.Namespace) -> int | None:
                 stage("plot")
                 _fit_figures(capture, fit, figures, write)
             atomic_write_json(write(out), result)
+    for note in fit_notes:
+        _say(args, note)
     _say(args, _fit_summary(fit))
     if compared:
         for name, e in zip(fit.channels, compared, strict=True):

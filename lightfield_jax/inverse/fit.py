@@ -54,7 +54,7 @@ from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.joint_stage import _renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
-from lightfield_jax.inverse.model_size import _Model, size_model
+from lightfield_jax.inverse.model_size import _Model, over_cap_note, size_model
 from lightfield_jax.inverse.options import (
     _PARAMS,
     FitOptions,
@@ -225,6 +225,8 @@ def _fit_one(
         sigma_t=whole.sigma_t0,
         crop=crop,
     )
+    if (note := over_cap_note(model, options)) is not None:
+        say(f"note: {note}")
     problem = FitProblem(
         data=whole.cropped(model.crop),
         images=whole.images,

@@ -340,6 +340,48 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     return _with_tail(model, options)
 
 
+def over_cap_note(model: _Model, options: FitOptions) -> str | None:
+    """A note where :func:`size_model`'s ``model`` is larger than ``max_cells`` allows
+    (``None``: it is not): θ bins or a refinement the options fix are never lowered,
+    and θ bins not below 32 on the plane (8, with 4 elevation nodes, on the slab).
+    Before, a ``max_cells`` below the smallest model, or fixed bins beyond it, were
+    used without a word."""
+    g, slab = model.grid, model.geometry
+    cells = g.width * g.height * g.n_theta * g.refine**2
+    if slab is None:
+        if cells <= options.max_cells:
+            return None
+        size = f"{cells} cells"
+    else:
+        if not _slab_over_cap(g.width, g.height, g.n_theta, g.refine, slab, options.max_cells):
+            return None
+        slab_cells = cells * 4 * slab.n_mu * slab.n_z * slab.depth_coefficients
+        size = f"{slab.n_mu} elevation nodes: {slab_cells} slab cells, 4 x max_cells allowed"
+    fixed = [
+        f"{name} {value}"
+        for name, value, given in (
+            ("n_theta", g.n_theta, options.n_theta),
+            ("refine", g.refine, options.refine),
+        )
+        if given is not None
+    ]
+    user_slab = as_geometry(options.geometry).slab_or_none
+    if slab is not None and user_slab is not None and user_slab.n_mu is not None:
+        fixed.append(f"{slab.n_mu} elevation nodes")
+    why = []
+    if fixed:
+        are = "is" if len(fixed) == 1 else "are"
+        why.append(f"{' and '.join(fixed)} {are} fixed by the fit options, never lowered")
+    if options.n_theta is None:
+        least = "32" if slab is None else f"8 (nor elevation nodes below {MIN_CAPPED_MU})"
+        why.append(f"n_theta is not lowered below {least}")
+    return (
+        f"max_cells {options.max_cells} is below the model's size ({g.width}x{g.height} "
+        f"px, n_theta {g.n_theta}, refine {g.refine}, {size}): {'; '.join(why)}; the fit "
+        "solves on that model"
+    )
+
+
 # The slab's cheap model for a second try (:func:`_finer_cheap`): azimuth bins and
 # elevation nodes.
 RETRY_SLAB = (16, 8)

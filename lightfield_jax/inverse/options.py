@@ -80,7 +80,9 @@ class FitOptions:
         g_grid: number of g values of the ``grid`` method's search on (−0.95, 0.95).
         start_grid: number of g values of the coarse search that starts ``gradient``.
         max_cells: cap on the model's working size (W·H·n_theta·refine²): the
-            refinement, then n_theta, are lowered to fit it.
+            refinement, then n_theta, are lowered to fit it; never values the options
+            fix, nor n_theta below 32 (8 on the slab): a model left larger is said in
+            a note (the progress callback's ``note: ...``).
         crop: crop the model along the propagation direction to where the signal is
             above ``crop_fraction`` of its peak.
         crop_fraction: see ``crop``.
