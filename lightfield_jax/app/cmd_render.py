@@ -58,21 +58,27 @@ def _render_command(args: argparse.Namespace) -> None:
 
     Nothing is written unless the whole command succeeds."""
     from lightfield_jax.capture.io import atomic_directory
-    from lightfield_jax.capture.views import render_folders, render_inputs, render_results
+    from lightfield_jax.capture.views import (
+        read_results,
+        render_folders,
+        render_inputs,
+        render_results,
+    )
 
+    data, source = read_results(args.results)
     # Each channel's subfolder is checked like DIR: another command's outputs there
     # (simulate's bounces.npy beside its metadata.json) would be replaced, and so would
-    # the capture's own files (was: a stack named lightfield.npy replaced by the render).
+    # the capture's own files (a stack named lightfield.npy).
     _outputs(
-        folders=[args.out, *render_folders(args.results, Path(args.out))],
-        inputs=[args.results, *render_inputs(args.results)],
+        folders=[args.out, *render_folders(data, source, Path(args.out))],
+        inputs=[args.results, *render_inputs(data, source)],
         folder_names=RENDER_FILES,
         marker="render.json",
     )
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
         files, notes = render_results(
-            args.results, staging, plot=args.plot, stage=stage, warn=lambda t: _warn(args, t)
+            data, source, staging, plot=args.plot, stage=stage, warn=lambda t: _warn(args, t)
         )
     for note in notes:
         _warn(args, note)

@@ -172,7 +172,7 @@ def _results_text(source: Path) -> str:
     require_regular_file(source, "a results file", ValueError)
     try:
         return source.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:  # was the codec's message, without the file
+    except UnicodeDecodeError as e:  # the codec's own message names no file
         byte = e.object[e.start : e.start + 1].hex()
         raise ValueError(
             f"{source}: not UTF-8 text (byte 0x{byte} at offset {e.start}): not a results "
@@ -180,13 +180,27 @@ def _results_text(source: Path) -> str:
         ) from None
 
 
-def render_folders(results: str | os.PathLike, folder: Path) -> list[Path]:
-    """The per-channel subfolders of ``folder`` that :func:`render_results` writes for
-    ``results`` (none for one channel), for the output checks before the work; none
-    for a results file it cannot use either (:func:`render_results` says why)."""
+def read_results(results: str | os.PathLike) -> tuple[dict[str, Any], Path]:
+    """A results file's data and path, read once (render checks its outputs against it,
+    then renders from the same data): a ``ValueError`` naming the file where it is no
+    regular file, not UTF-8, not JSON or nested too deeply."""
+    source = Path(results)
     try:
-        channels = _channel_results(json.loads(_results_text(Path(results))), Path(results))
-    except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
+        return json.loads(_results_text(source)), source
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{source}: not JSON ({e})") from None
+    except RecursionError:
+        raise ValueError(f"{source}: nested too deeply to be a results file") from None
+
+
+def render_folders(data: dict[str, Any], source: Path, folder: Path) -> list[Path]:
+    """The per-channel subfolders of ``folder`` that :func:`render_results` writes for
+    the results ``data`` read from ``source`` (none for one channel), for the output
+    checks before the work; none for results it cannot use either
+    (:func:`render_results` says why)."""
+    try:
+        channels = _channel_results(data, source)
+    except (ValueError, RecursionError, TypeError, AttributeError, KeyError):
         return []
     return [folder / name for name in channels] if len(channels) > 1 else []
 
@@ -216,41 +230,35 @@ def _capture_path(data: dict, source: Path) -> Path:
     return next(iter(found.values()), named)
 
 
-def render_inputs(results: str | os.PathLike) -> list[Path]:
-    """The capture file that ``results`` names and every file it lists (the inputs
-    render's outputs must not replace); none for a results file or capture that
-    :func:`render_results` cannot use (it says why)."""
+def render_inputs(data: dict[str, Any], source: Path) -> list[Path]:
+    """The capture file that the results ``data`` (read from ``source``) name and every
+    file it lists (the inputs render's outputs must not replace); none for results or a
+    capture that :func:`render_results` cannot use (it says why)."""
     from lightfield_jax.capture.capture import capture_files
 
-    source = Path(results)
     try:
-        return capture_files(_capture_path(json.loads(_results_text(source)), source))
+        return capture_files(_capture_path(data, source))
     except (OSError, ValueError, RecursionError, TypeError, AttributeError, KeyError):
         return []
 
 
 def render_results(
-    results: str | os.PathLike,
+    data: dict[str, Any],
+    source: Path,
     folder: Path,
     *,
     plot: bool,
     stage=lambda _s: None,
     warn=lambda _t: None,
 ) -> tuple[dict[str, str], list[str]]:
-    """Render the fitted medium of every channel of a results file into ``folder`` (one
-    subfolder per channel when there are several): the files written and notes.
+    """Render the fitted medium of every channel of the results ``data`` (read from
+    ``source`` by :func:`read_results`) into ``folder`` (one subfolder per channel when
+    there are several): the files written and notes.
     ``warn`` is told at once of a channel whose fit did not converge (rendered all
     the same; its ``render.json`` says so)."""
     from lightfield_jax.capture.capture import load_capture
     from lightfield_jax.capture.io import atomic_write_json
 
-    source = Path(results)
-    try:
-        data = json.loads(_results_text(source))
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{source}: not JSON ({e})") from None
-    except RecursionError:
-        raise ValueError(f"{source}: nested too deeply to be a results file") from None
     channels = _channel_results(data, source)
     capture_path = _capture_path(data, source)
     stage("load the capture")
