@@ -182,7 +182,7 @@ PATH_OPTIONS = ("out", "plot", "json", "response")
 def _refuse_empty_paths(args: argparse.Namespace) -> None:
     """An empty output path (``--out ''``) is a mistake, not "no output" nor ".": refuse
     it by the option's name; so is ``-``, which means standard output to most tools
-    (before: ``--json -`` wrote a file named ``-``)."""
+    (``--json -`` would write a file named ``-``)."""
     for name in PATH_OPTIONS:
         if getattr(args, name, None) == "":
             raise ValueError(f"--{name}: an empty path")

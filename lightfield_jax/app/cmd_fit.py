@@ -89,8 +89,8 @@ def _against_truth(capture, fit, phase: str) -> list[dict]:
 
 def _truth_phase_note(capture, phase: str) -> str | None:
     """What to say where the capture's truth is in another phase convention than the
-    fit's: its σs is not compared (before: ``fit --phase normalized`` of a ``paper``
-    truth printed σs -38 %, -186 sigma, for a fit that had found the medium)."""
+    fit's: its σs is not compared (``fit --phase normalized`` of a ``paper`` truth
+    would print σs -38 %, -186 sigma, for a fit that found the medium)."""
     from lightfield_jax.capture.keys import truth_for
 
     phases = {
@@ -121,7 +121,7 @@ def _figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
         return [plot]
     from lightfield_jax.checks import one_path_part
 
-    for name in channels:  # before: pathlib's "Invalid name 'fit_a/b.png'", naming nothing
+    for name in channels:  # else pathlib's "Invalid name 'fit_a/b.png'", naming nothing
         if not one_path_part(name):
             raise ValueError(
                 f"--plot: the images' channel {name!r} cannot name a figure "
@@ -382,7 +382,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")
     twice = repeated(methods)
-    if twice:  # before: fitted twice, the table's rows twice, results.json's once
+    if twice:  # else fitted twice, the table's rows twice, results.json's once
         raise ValueError(f"--methods: names {', '.join(twice)} more than once: {args.methods!r}")
     _outputs(
         folders=[args.out],
@@ -399,8 +399,8 @@ def _demo(args: argparse.Namespace) -> int | None:
         # The capture, results.json and the figure are written into one staging folder
         # and published together at the end: a demo stopped or failing in its fit
         # leaves no capture in DIR, and a failed rerun the previous run's files whole
-        # (before, the capture was published before the fits: an interrupted demo left
-        # it, a failed rerun left the old results.json beside the new capture).
+        # (the capture is not published before the fits: an interrupted demo would leave
+        # it, a failed rerun the old results.json beside the new capture).
         with atomic_directory(out) as staging:
             write_simulation(sim, staging)
             capture = load_capture(staging / "capture.yaml")

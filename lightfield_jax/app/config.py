@@ -574,8 +574,8 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
 def _check_shifts(top: _Section, illumination: Illumination, noise) -> None:
     """Refuse stripes whose capture the fit refuses (the fit's rule,
     :func:`~lightfield_jax.scene.illumination.shifts_problem`): one shift, or shifts
-    whose noise-free images are all the same (every phase the same). Before, simulate
-    wrote the capture, and the fit refused it."""
+    whose noise-free images are all the same (every phase the same): refused here, before
+    the render, as the fit would refuse the capture."""
     if not isinstance(illumination, Stripes):
         return
     phases = illumination.phases

@@ -289,8 +289,8 @@ def _check_value(value, annotation, key: str):
 def _check_names(items: tuple, key: str) -> None:
     """A list of named mappings (media, scenes): the names key the tables, the figures
     and some figures' file names, so they must differ and hold no path separator
-    (before: two scenes of one name ran both, then kept one in the results or mixed
-    their rows in one figure; a name with '/' named a figure file in another folder)."""
+    (two scenes of one name would both run, then one be kept in the results or their
+    rows mixed in one figure; a name with '/' would name a file in another folder)."""
     names = [v["name"] for v in items if isinstance(v, dict) and isinstance(v.get("name"), str)]
     if len(names) != len(items):
         return

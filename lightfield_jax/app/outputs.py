@@ -95,7 +95,7 @@ def check_plot_format(given: str) -> None:
     tex = _tex_system() if "pgf" in formats else None
     if tex is not None:
         formats = tuple(f for f in formats if f != "pgf")
-        if suffix == "pgf":  # was a traceback after the work ("'xelatex' not found")
+        if suffix == "pgf":  # else a traceback after the work ("'xelatex' not found")
             raise OutputError(
                 f"{given}: matplotlib writes .pgf figures through {tex}, which is not "
                 f"installed; choose another format: {', '.join(formats)}"

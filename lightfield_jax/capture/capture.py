@@ -507,8 +507,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
     )
     if contradiction:
         notes.append(contradiction)
-    # After the pattern's checks: a refusal there is the one line said (before: the
-    # detector's low confidence for a wrong period was warned first).
+    # After the pattern's checks: a refusal there is the one line said (not a warning of
+    # the detector's low confidence for a wrong period first).
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     # After the phases' checks, which refuse a repeated image where phases are given.

@@ -128,7 +128,7 @@ def _distinct_files(top: _Section, base: Path) -> None:
     images = top.get("images", None)
     if isinstance(images, list):
         roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
-    else:  # a .npy stack (before: its file as a calibration frame was refused by size)
+    else:  # a .npy stack (its file may also be a calibration frame's)
         roles.append(("images", images))
     roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
     # Exposure brackets: each exposure's file (images[i][j], dark_frame[j]).

@@ -197,7 +197,7 @@ def inspect_capture(capture: Capture | str | os.PathLike) -> Inspection:
     """Separate a loaded capture (or its capture file's path, loaded with
     :func:`~lightfield_jax.load_capture`) and measure its SNR along the light (module
     docs)."""
-    if isinstance(capture, (str, os.PathLike)):  # as fit_capture (was an AttributeError)
+    if isinstance(capture, (str, os.PathLike)):  # as fit_capture takes it
         capture = load_capture(capture)
     elif not isinstance(capture, Capture):
         raise TypeError(
@@ -206,7 +206,7 @@ def inspect_capture(capture: Capture | str | os.PathLike) -> Inspection:
         )
     images = np.asarray(capture.images, np.float64)
     p, h, w, n = images.shape
-    if p < 2:  # was "separate.images: need at least 2 ...", a key no capture file has
+    if p < 2:  # in the capture file's words, not separate's
         raise ValueError(
             f"images: inspecting needs at least 2 shifted images (the separation of the "
             f"direct light compares them), got {p}"

@@ -682,7 +682,7 @@ def _write_failure(error: OSError, target: Path) -> OSError | None:
         return None
     if error.filename is not None and error.strerror:
         # Already named by an inner output (a file in a staged folder): keep its words,
-        # not its temporary's name (was "write failed ([Errno None] write failed ...").
+        # not its temporary's name (not "write failed ([Errno None] write failed ...").
         return OSError(None, error.strerror, str(target))
     message = " ".join(str(error).split()) or "write failed"
     with contextlib.suppress(OSError):
@@ -798,8 +798,8 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
         raise NotADirectoryError(f"{path}: exists and is not a directory")
     keep_folder = path.name in ("", "..")
     if keep_folder:
-        # ".", "..", "/": the staging folder is named after the folder (before:
-        # "PosixPath('.') has an empty name"), and the files are moved into it: a rename
+        # ".", "..", "/": the staging folder is named after the folder
+        # (not "PosixPath('.') has an empty name"), and the files are moved into it: a rename
         # over an empty "." would leave the caller's shell in a deleted folder.
         given, path = path, Path(os.path.abspath(path))
         if not path.name:

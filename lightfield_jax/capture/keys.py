@@ -99,7 +99,7 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
     phases = s.get("phases", None)
     spec["phases_from"] = "default" if phases is None else "given"
     if phases is None:
-        if n_images > spec["period"]:  # was "each phase must lie in [0, period = 6), got 6"
+        if n_images > spec["period"]:  # not "each phase must lie in [0, 6)": none are given
             s.fail(
                 s.key("phases"),
                 f"not given, so the {n_images} images take the phases 0..{n_images - 1}, "

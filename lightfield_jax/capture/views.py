@@ -213,10 +213,10 @@ def _capture_path(data: dict, source: Path) -> Path:
         raise ValueError(
             f"{source}: capture: must be the capture file's path, got {data['capture']!r}"
         )
-    # The fit writes the capture's absolute path (before: as given, relative to the
-    # folder it ran in); from elsewhere, try beside the results. A relative path that
-    # names one file here and another beside the results is refused: render picked the
-    # current folder's capture.yaml (another capture's geometry) silently.
+    # The fit writes the capture's absolute path; a relative one (a hand-written or
+    # moved results file) is tried here, then beside the results. A relative path that
+    # names one file here and another beside the results is refused: which capture's
+    # geometry is meant cannot be told.
     named = Path(data["capture"])
     candidates = [named, source.parent / named, source.parent / named.name]
     found = {os.path.realpath(c): c for c in candidates if c.exists()}

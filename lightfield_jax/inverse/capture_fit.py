@@ -49,7 +49,7 @@ class CaptureFit:
         return all(r.converged for r in self.results)
 
     def __getitem__(self, channel: str) -> FitResult:
-        if channel not in self.channels:  # was tuple.index's "x not in tuple"
+        if channel not in self.channels:  # naming the channels it has
             raise ValueError(
                 f"channel: {shown(channel)} is not in the fit (it has {', '.join(self.channels)})"
             )

@@ -344,8 +344,8 @@ def over_cap_note(model: _Model, options: FitOptions) -> str | None:
     """A note where :func:`size_model`'s ``model`` is larger than ``max_cells`` allows
     (``None``: it is not): θ bins or a refinement the options fix are never lowered,
     and θ bins not below 32 on the plane (8, with 4 elevation nodes, on the slab).
-    Before, a ``max_cells`` below the smallest model, or fixed bins beyond it, were
-    used without a word."""
+    A ``max_cells`` below the smallest model, or fixed bins beyond it, are used with
+    this note, not silently."""
     g, slab = model.grid, model.geometry
     cells = g.width * g.height * g.n_theta * g.refine**2
     if slab is None:
