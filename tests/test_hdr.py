@@ -5,6 +5,7 @@ the medium from them (slow)."""
 
 import json
 import os
+import re
 import warnings
 
 import numpy as np
@@ -16,10 +17,15 @@ from lightfield_jax.app.cli import main
 from lightfield_jax.app.config import parse_simulation_config
 from lightfield_jax.capture.capture import load_capture
 from lightfield_jax.capture.hdr import (
+    EXPOSURE_MISMATCH_SHARE,
+    _srgb_encode,
     calibrate_response,
+    exposure_mismatch_problem,
+    exposure_mismatches,
     linear_response,
     load_response,
     merge_bracket,
+    srgb_response,
     write_response,
 )
 from lightfield_jax.capture.io import CaptureError, write_png
@@ -212,6 +218,83 @@ def test_brackets_out_of_order_or_with_wrong_times_are_refused(radiance, tmp_pat
     data["exposure_times"] = [0.001, 0.009, 0.07]  # within the tolerance: a shutter's error
     path.write_text(yaml.safe_dump(data))
     assert load_capture(path).brackets.times == (0.001, 0.009, 0.07)
+
+
+def test_an_exposure_of_another_shift_is_refused(radiance, tmp_path):
+    """Shift 2's 64 ms file listed in shift 1's bracket: the right brightness for its
+    time (its median ratio to the 8 ms exposure is as stated), its stripes a row away.
+    Merged, it mixes two stripe patterns into one image: refused, naming both files.
+    Shift 2's 8 ms file instead moves the median ratio to the 1 ms exposure too: that
+    refusal names the same cause, not the files' order."""
+    path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True)
+    data = yaml.safe_load(path.read_text())
+    data["images"][1][2] = "shift2_2.png"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    message = str(info.value)
+    assert message.startswith(
+        f"{path}: images[1]: shift2_2.png (listed for 0.064 s) and shift1_1.png (listed "
+        "for 0.008 s) disagree pixel by pixel: "
+    ), message
+    assert message.endswith(
+        "(exposures of one scene: at most 20 %): is one a file from another shift, or did "
+        "the scene move between exposures?"
+    ), message
+    share = re.search(r": (\d+) % of the \d+ samples compared differ from their median", message)
+    assert share is not None and int(share.group(1)) > 25, message
+    assert "\n" not in message
+    data["images"][1][2] = "shift1_2.png"
+    data["images"][1][1] = "shift2_1.png"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    message = str(info.value)
+    assert "images[1]: shift2_1.png (listed for 0.008 s) is 1.5 times as bright" in message
+    assert "they disagree pixel by pixel (" in message, message
+    assert "from another shift" in message and "listed out of order" not in message
+
+
+def test_an_exposure_of_another_shift_is_named_where_another_pair_is_off(radiance, tmp_path):
+    """With an auto response, shift 2's 64 ms file in shift 1's bracket moves the median
+    ratio of the 1 ms and 64 ms exposures (a pair with few samples to compare pixel by
+    pixel): the refusal names the pair that disagrees, not the files' order."""
+    path = _write_brackets(tmp_path, radiance, 2.2, "auto", dark=False)
+    data = yaml.safe_load(path.read_text())
+    data["images"][1][2] = "shift2_2.png"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    message = str(info.value)
+    assert re.search(r"images\[1\]: shift2_2.png \(listed for 0.064 s\) is 1[34]\S* times", message)
+    assert "shift2_2.png and shift1_1.png disagree pixel by pixel (" in message, message
+    assert "from another shift" in message and "listed out of order" not in message
+
+
+@pytest.mark.parametrize("response", ["linear", "srgb", "auto"])
+def test_noisy_brackets_of_one_scene_agree_pixel_by_pixel(radiance, response):
+    """Brackets of one scene with 1000 photo-electrons at full scale, 8-bit, pass the
+    pixel-by-pixel check with a margin; the same brackets with one exposure from the
+    next shift do not."""
+    rng = np.random.default_rng(3)
+    times = [0.001, 0.004, 0.016]
+    scale = 0.5 / (radiance.max() * times[0])
+    encode = {"linear": lambda x: x, "srgb": _srgb_encode, "auto": lambda x: x ** (1 / 2.2)}
+    x = rng.poisson(radiance[:, None] * scale * np.reshape(times, (1, 3, 1, 1)) * 1000) / 1000
+    z = np.rint(encode[response](np.clip(x, 0, 1)) * 255)[..., None] / 255  # [P, J, H, W, 1]
+    if response == "auto":
+        curve = calibrate_response(np.moveaxis(z, 1, 0).reshape(3, -1, 1), times)
+    else:
+        curve = srgb_response() if response == "srgb" else linear_response()
+    for bracket in z:
+        shares = [s for *_, s, _ in exposure_mismatches(bracket, times, curve, levels=256)]
+        assert shares and max(shares) < EXPOSURE_MISMATCH_SHARE / 4, shares
+        assert exposure_mismatch_problem(bracket, times, curve, levels=256) is None
+    for j in range(len(times)):  # each exposure in turn from the next shift
+        swapped = z[1].copy()
+        swapped[j] = z[2, j]
+        found = exposure_mismatch_problem(swapped, times, curve, levels=256)
+        assert found is not None and found[2] > 1.2 * EXPOSURE_MISMATCH_SHARE, (j, found)
 
 
 def _capture_file(tmp_path, **changes):

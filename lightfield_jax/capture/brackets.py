@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from lightfield_jax.app.config import _Section
+from lightfield_jax.capture.auto import _check_light
 from lightfield_jax.capture.calibration import (
     check_sample_formats,
     drop_constant_alpha,
@@ -26,10 +27,15 @@ from lightfield_jax.capture.frames import (
 )
 from lightfield_jax.capture.hdr import (
     CLIP,
+    EXPOSURE_MISMATCH_FACTOR,
+    EXPOSURE_MISMATCH_SHARE,
     EXPOSURE_RATIO_TOLERANCE,
     RESPONSES,
     bracket_offset,
+    exposure_mismatch_problem,
+    exposure_mismatches,
     exposure_ratio_problem,
+    exposure_ratios,
     linear_response,
     merge_bracket,
     merge_capture,
@@ -173,7 +179,9 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     if level is not None:
         dark = np.full((len(times), *first.pixels.shape), level, images.dtype)
     dark = None if dark is None else dark / full
-    _check_exposure_ratios(top, images, times, response, levels, dark, clip, shifts, aux, full)
+    _check_exposure_ratios(
+        top, images, times, response, levels, dark, clip, shifts, aux, full, level
+    )
     radiance, record = merge_capture(
         images, times, response, levels=levels, dark=dark, clip=clip,
         files=[[f.path for f in row] for row in shifts],
@@ -191,39 +199,52 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     return frames, merged, record
 
 
-def _check_exposure_ratios(top, images, times, response, levels, dark, clip, shifts, aux, full):
+def _check_exposure_ratios(
+    top, images, times, response, levels, dark, clip, shifts, aux, full, level
+):
     """Refuse brackets whose exposures do not scale as ``exposure_times`` say (files
     listed out of order, or wrong times), before the merge: merged, they give a capture
-    the fit cannot explain (it ended not converged, sigma_t 22 % off)."""
+    the fit cannot explain (it ended not converged, sigma_t 22 % off). Then refuse
+    brackets whose exposures scale as stated in their median but disagree pixel by
+    pixel (an exposure of another shift, or a scene that moved): merged, they mix two
+    stripe patterns into one image."""
     rows = [(f"images[{i}]", images[i], [f.path.name for f in row]) for i, row in enumerate(shifts)]
     for key in ("white_frame", "flat_field"):
         if aux[key] is not None:
             stack = np.stack([f.pixels for f in aux[key]]) / full
             rows.append((key, stack, [f.path.name for f in aux[key]]))
+    kw = {"levels": levels, "dark": dark, "clip": clip}
     for key, bracket, names in rows:
-        found = exposure_ratio_problem(
-            bracket, times, response, levels=levels, dark=dark, clip=clip
-        )
+        found = exposure_ratio_problem(bracket, times, response, **kw)
         if found is not None:
             j, k, measured, stated = found
             # A pedestal left in (or a dark level above it) breaks the ratio too: said
             # where one constant in every sample makes the pair scale as stated.
-            p = bracket_offset(
-                bracket, times, response, (j, k), levels=levels, dark=dark, clip=clip
-            )
+            p = bracket_offset(bracket, times, response, (j, k), **kw)
+            # An exposure of another shift moves the median too (where its stripes
+            # leave few samples well exposed in both): said where this pair, or
+            # another whose median ratio is as stated, disagrees pixel by pixel
+            # (files out of order or wrong times scale alike in every pixel).
+            pairs = [(j, k)] + [
+                (a, b)
+                for a, b, m, t in exposure_ratios(bracket, times, response, **kw)
+                if 1 / EXPOSURE_RATIO_TOLERANCE <= m / t <= EXPOSURE_RATIO_TOLERANCE
+            ]
+            shares = exposure_mismatches(bracket, times, response, **kw, pairs=pairs)
+            mismatch = next((m for m in shares if m[2] > EXPOSURE_MISMATCH_SHARE), None)
             cause = (
                 "are the files listed out of order (each shift's in the order of "
                 "exposure_times, shortest first), or are exposure_times wrong?"
             )
             if math.isfinite(p):
-                what = (
-                    "a camera pedestal left in the images (give dark_level or a dark_frame)"
-                    if p > 0
-                    else "a dark_level or dark_frame that subtracts too much"
-                )
+                cause = _offset_cause(p * full)
+            elif mismatch is not None:
+                a, b, share, _ = mismatch
+                who = "they" if (a, b) == (j, k) else f"{names[b]} and {names[a]}"
                 cause = (
-                    f"they scale as exposure_times say with a constant {p * full:+.4g} in "
-                    f"every image value: {what}?"
+                    f"{who} disagree pixel by pixel ({100 * share:.0f} % of the samples "
+                    f"compared more than {EXPOSURE_MISMATCH_FACTOR:g}x off their median "
+                    f"ratio): {_MISMATCH_CAUSE}"
                 )
             top.fail(
                 key,
@@ -232,6 +253,52 @@ def _check_exposure_ratios(top, images, times, response, levels, dark, clip, shi
                 f"over the pixels), but exposure_times make it {stated:.3g} (more than "
                 f"{EXPOSURE_RATIO_TOLERANCE:g}x apart): {cause}",
             )
+        found = exposure_mismatch_problem(bracket, times, response, **kw)
+        if found is None:
+            continue
+        j, k, share, compared = found
+        if level is not None:
+            # A dark_level above the pedestal pushes the dark values below zero, which
+            # no exposure predicts: refused as for single exposures, naming dark_level.
+            _check_light(top, bracket - dark, None, level)
+        cause = _MISMATCH_CAUSE
+        p = bracket_offset(bracket, times, response, (j, k), **kw)
+        if math.isfinite(p):  # one constant in every value, where it explains them
+            again = exposure_mismatches(bracket, times, response, **kw, pairs=[(j, k)], offset=p)
+            if any(s <= EXPOSURE_MISMATCH_SHARE for *_, s, _ in again):
+                cause = _offset_cause(p * full)
+        if cause is _MISMATCH_CAUSE and response.kind != "linear":
+            # A curve that does not fit the camera makes the ratio vary with the
+            # code: measured on an auto curve recovered from two 8-bit exposures,
+            # most of them clipped (1.3-1.8x off over the top codes), 0.27-0.34 off.
+            cause = (
+                "is one a file from another shift, did the scene move between exposures, "
+                f"or does the response curve ({response.kind}) not fit the camera?"
+            )
+        top.fail(
+            key,
+            f"{names[k]} (listed for {times[k]:g} s) and {names[j]} (listed for "
+            f"{times[j]:g} s) disagree pixel by pixel: {100 * share:.0f} % of the "
+            f"{compared} samples compared differ from their median ratio by more than "
+            f"{EXPOSURE_MISMATCH_FACTOR:g}x (exposures of one scene: at most "
+            f"{100 * EXPOSURE_MISMATCH_SHARE:.0f} %): {cause}",
+        )
+
+
+_MISMATCH_CAUSE = "is one a file from another shift, or did the scene move between exposures?"
+
+
+def _offset_cause(constant: float) -> str:
+    """The cause of a pair that scales as stated with one constant in every image value."""
+    what = (
+        "a camera pedestal left in the images (give dark_level or a dark_frame)"
+        if constant > 0
+        else "a dark_level or dark_frame that subtracts too much"
+    )
+    return (
+        f"they scale as exposure_times say with a constant {constant:+.4g} in every image "
+        f"value: {what}?"
+    )
 
 
 def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
