@@ -111,8 +111,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     shifts = [[next(kept) for _ in row] for row in shifts]
-    # As for single exposures: before, a corrupt or dropped exposure merged (as 0) into
-    # its shift's image without a word, near 0 where the longer exposures clipped.
+    # As for single exposures: a corrupt or dropped exposure would merge (as 0) into its
+    # shift's image without a word, near 0 where the longer exposures clipped.
     frames = [f for row in shifts for f in row]
     keys = [key for key, _ in listed]
     _check_not_blank(top, [(k, f.path.name, f.pixels) for k, f in zip(keys, frames, strict=True)])
@@ -146,8 +146,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
     if response != "linear" and not first.is_integer:
-        # As for single exposures (before: srgb was refused as exposures "listed out of
-        # order", and auto quantised the float values to 256 codes without a word).
+        # As for single exposures (srgb would refuse them as exposures "listed out of
+        # order", and auto would quantise the float values to 256 codes without a word).
         top.fail(
             "response",
             f"{response} maps a camera's integer codes (8- or 16-bit files), but "
@@ -309,8 +309,8 @@ def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
 
 
 # Exposure times a camera takes, in seconds (1 ns to 11.6 days): the merge divides
-# the codes by them in float32, where 1e-308 s overflowed every value to Inf and
-# 1e308 s underflowed it to 0 (a numpy warning, then "no usable pixel" or "no light
+# the codes by them in float32, where 1e-308 s overflows every value to Inf and
+# 1e308 s underflows it to 0 (a numpy warning, then "no usable pixel" or "no light
 # was captured", blaming the images).
 EXPOSURE_RANGE = (1e-9, 1e6)
 

@@ -355,7 +355,7 @@ def merge_bracket(
     if response.kind == "auto":
         clip = min(clip, AUTO_CLIP)
     t = np.asarray(times, np.float64).reshape(-1, 1, 1, 1)
-    # A NaN or Inf sample (or dark value) is no sample: before, read as 0, it became the
+    # A NaN or Inf sample (or dark value) is no sample: read as 0, it would become the
     # pixel's reference where the longer exposures clipped, and the merge near 0.
     finite = np.isfinite(z)
     z = np.where(finite, z, 0.0)
