@@ -702,7 +702,7 @@ def test_an_npy_image_without_pixels_is_named_as_empty(capture, capsys):
         capsys,
         *("inspect", capture / "capture.yaml"),
         match=f"images[2]: {capture / images[2]}: expected a (height, width) or (height, width, "
-        f"channels) array, got shape (0, {W}, 1) (no pixels)",
+        f"channels) array, got shape (0, {W}) (no pixels)",
     )
     np.save(capture / images[2], read_image(capture / "shift_02.exr").pixels[..., 0])
     np.save(capture / "dark.npy", np.zeros((H, 0), np.float32))
@@ -1108,6 +1108,11 @@ def test_a_stack_saved_as_one_image_file_is_named_as_a_stack(capture, capsys):
     # Four channels or fewer are still one image.
     np.save(capture / "rgb.npy", np.repeat(frames[0][..., None], 3, axis=-1))
     assert read_image(capture / "rgb.npy").channel_names == ("R", "G", "B")
+    # A band chosen from a multispectral .npy (six bands) is read: no stack is meant.
+    bands = np.stack([frames[0] * (b + 1) for b in range(6)], axis=-1)
+    np.save(capture / "bands.npy", bands)
+    band = read_image(capture / "bands.npy", channel=4)
+    assert band.pixels.shape == (H, W, 1) and np.allclose(band.pixels[..., 0], bands[..., 4])
 
 
 def test_double_values_beyond_float32_are_one_line_naming_the_file(capture, capsys):
@@ -1382,6 +1387,11 @@ def test_simulate_values_beyond_float32_are_refused(tmp_path, capsys, change, ma
             False,
             "illumination.phases: the 3 shifts are the same image: the stripes moved nothing",
         ),
+        (
+            {"phases": [0, 0, 0]},
+            {"read": 0},  # a noise section that adds none
+            "illumination.phases: the 3 shifts are the same image: the stripes moved nothing",
+        ),
         ({"phases": [4]}, True, "illumination.phases: a fit needs at least 2 shifted images"),
         ({"shifts": 1}, True, "illumination.shifts: a fit needs at least 2 shifted images"),
     ],
@@ -1395,6 +1405,8 @@ def test_simulate_refuses_stripes_whose_capture_the_fit_refuses(
     config["illumination"] = {"kind": "stripes", "period": 6, "lit": 3, **illumination}
     if not noise:
         del config["noise"]
+    elif isinstance(noise, dict):
+        config["noise"] = noise
     path = tmp_path / "sim.yaml"
     path.write_text(yaml.safe_dump(config))
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=match)

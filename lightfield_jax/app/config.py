@@ -579,7 +579,8 @@ def _check_shifts(top: _Section, illumination: Illumination, noise) -> None:
     if not isinstance(illumination, Stripes):
         return
     phases = illumination.phases
-    same = noise is None and len({p % illumination.period for p in phases}) == 1
+    noisy = noise is not None and (noise.photons is not None or noise.read > 0)
+    same = not noisy and len({p % illumination.period for p in phases}) == 1
     if (problem := shifts_problem(len(phases), same)) is None:
         return
     key = "illumination.phases" if "phases" in top.data["illumination"] else "illumination.shifts"

@@ -484,27 +484,34 @@ def exposure_ratios(
 ):
     """``(j, k, measured, stated)`` for each pair of a bracket's exposures (nearest
     first) with enough samples that hold signal in both (:func:`exposure_ratio_problem`)."""
-    x, good, top, finite, full = _signal_samples(samples, response, levels, dark, clip)
-    unclipped = finite & (x < top)
+    signal = _signal_samples(samples, response, levels, dark, clip)
+    for j, k in _pairs(len(times)):
+        measured = _pair_ratio(signal, response, levels, j, k)
+        if measured is not None:
+            yield j, k, measured, float(times[k]) / float(times[j])
+
+
+def _pair_ratio(signal, response: Response, levels, j: int, k: int) -> float | None:
+    """The median ratio x_k/x_j of two exposures (``signal``: :func:`_signal_samples`),
+    unbiased by noise: a rough ratio over the samples with signal in both, then the
+    median of dimmer/brighter over samples chosen on the brighter exposure's value
+    alone, so that the dimmer one's noise near its floor does not choose them (the
+    brighter one is never near 0, the dimmer one may read 0 or less); ``None`` where
+    fewer than ``_MIN_RATIO_SAMPLES`` samples serve either step."""
+    x, good, top, finite, full = signal
+    rough = _median_ratio(x, good, j, k)
+    if rough is None:
+        return None
     floor = response.linearize(np.maximum(response.near_black(levels), _WELL_EXPOSED)[None])[0]
     floor = np.minimum(floor, _AGREEMENT_FLOOR * full)
-    for j, k in _pairs(len(times)):
-        rough = _median_ratio(x, good, j, k)
-        if rough is None:
-            continue
-        # a the brighter exposure, b the dimmer: samples chosen on a's value alone, so
-        # that b's noise near its floor does not choose them; the median of b/a (a is
-        # never near 0, b may read 0 or less).
-        a, b, r = (k, j, rough) if rough >= 1 else (j, k, 1 / rough)
-        chosen = good[a] & unclipped[b] & (x[a] >= floor * r)
-        if chosen.sum() < _MIN_RATIO_SAMPLES:
-            continue
-        q = float(np.median(x[b][chosen] / x[a][chosen]))
-        if a == j:
-            measured = q
-        else:
-            measured = 1 / q if q > 0 else math.inf
-        yield j, k, measured, float(times[k]) / float(times[j])
+    a, b, r = (k, j, rough) if rough >= 1 else (j, k, 1 / rough)
+    chosen = good[a] & finite[b] & (x[b] < top[b]) & (x[a] >= floor * r)
+    if chosen.sum() < _MIN_RATIO_SAMPLES:
+        return None
+    q = float(np.median(x[b][chosen] / x[a][chosen]))
+    if a == j:
+        return q
+    return 1 / q if q > 0 else math.inf
 
 
 def _pairs(n: int) -> list[tuple[int, int]]:
@@ -568,7 +575,8 @@ def _median_ratio(x, good, j, k) -> float | None:
 # check above, and the merge mixes two stripe patterns into one image. Compared: every
 # sample whose value in one exposure is well exposed and at least _AGREEMENT_FLOOR of
 # full scale after the dark frame (where shot noise stays small), where it predicts the
-# other exposure's value (times their median ratio) between that floor and the clip; a
+# other exposure's value (times their measured ratio, _pair_ratio) between that floor
+# and the clip; a
 # sample the other exposure clipped, or left at or below its dark value, counts as its
 # value reads. At most EXPOSURE_MISMATCH_SHARE of them may differ from the median ratio
 # by more than EXPOSURE_MISMATCH_FACTOR. Measured, the share in the worst pair of each
@@ -637,15 +645,15 @@ def exposure_mismatches(
     default every pair, nearest first) that has enough samples to compare
     (:func:`exposure_mismatch_problem`); ``offset``: a constant taken from every linear
     value first (:func:`bracket_offset`)."""
-    x, good, top, finite, full = _signal_samples(samples, response, levels, dark, clip, offset)
+    signal = _signal_samples(samples, response, levels, dark, clip, offset)
+    x, good, top, finite, full = signal
     low = _AGREEMENT_FLOOR * full
     tiny = 1e-6 * full  # a sample at or below its dark value: far off any prediction
     for j, k in _pairs(len(times)) if pairs is None else pairs:
-        # Their median ratio where both hold signal; where few do, the stated one
-        # (the median over samples near the well-exposed floor is biased by their
-        # noise: 8 for a stated 16 at 300 photo-electrons, 10 at 1000).
-        ratio = _median_ratio(x, good, j, k)
-        if ratio is None:
+        # Their measured ratio (unbiased: _pair_ratio); where too few samples serve it,
+        # the stated one.
+        ratio = _pair_ratio(signal, response, levels, j, k)
+        if ratio is None or not math.isfinite(ratio) or ratio <= 0:
             ratio = float(times[k]) / float(times[j])
         to_k, to_j = x[j] * ratio, x[k] / ratio
         compared = (good[j] & finite[k] & (to_k >= low) & (to_k <= top[k])) | (

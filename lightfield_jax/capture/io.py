@@ -136,7 +136,7 @@ def read_image(
             f"{path}: unsupported image extension {path.suffix!r}; "
             f"supported: {', '.join(IMAGE_EXTENSIONS)}{why}"
         )
-    image = _read_npy(path) if ext == ".npy" else _read_oiio(path)
+    image = _read_npy(path, channel is None) if ext == ".npy" else _read_oiio(path)
     if channel is not None:
         wanted = [channel] if isinstance(channel, (str, int, np.integer)) else list(channel)
         index = [_channel_index(image.channel_names, c, path) for c in wanted]
@@ -173,7 +173,7 @@ def require_regular_file(path: Path, what: str, error: type[ValueError] = Captur
 def oiio_name(path: str | os.PathLike, error: type[Exception] = CaptureError) -> str:
     """``path`` as the image library takes it: a name that is valid UTF-8. A file or
     folder named in another encoding (bytes Python holds as surrogates) is ``error``,
-    naming it: before, the library's "incompatible function arguments" traceback."""
+    naming it, not the library's "incompatible function arguments" traceback."""
     name = os.fspath(path)
     try:
         name.encode("utf-8")
@@ -293,8 +293,8 @@ def _npy_image(a: np.ndarray, path: Path) -> ImageData:
 def _integer_samples(path: Path, what: str, name: str) -> CaptureError:
     """The refusal of integer samples other than uint8 and uint16 (``name``: numpy's
     name, e.g. ``int16``, ``uint32``), alike for a TIFF and a ``.npy``. Their scale is
-    not a camera's: a signed 16-bit TIFF was scaled by 32767 (counts up to 65535 from
-    some scientific cameras wrapped to negative values), a 32-bit one by 2^32 - 1, and
+    not a camera's: a signed 16-bit TIFF would be scaled by 32767 (counts up to 65535
+    from some scientific cameras wrapped to negative values), a 32-bit one by 2^32 - 1, and
     the top code of a clipped sensor, the response table and dark_level in codes /
     65535 all count in 8 or 16 unsigned bits."""
     bits = np.dtype(name).itemsize * 8
@@ -306,20 +306,23 @@ def _integer_samples(path: Path, what: str, name: str) -> CaptureError:
     )
 
 
-def _read_npy(path: Path) -> ImageData:
+def _read_npy(path: Path, whole: bool = True) -> ImageData:
+    """A ``.npy`` image; ``whole``: every channel is kept (none chosen), so that one
+    with more than :data:`_MAX_CHANNELS` is taken for a stack saved as one image."""
     a = _load_npy(path)
+    shape = a.shape
     if a.ndim == 2:
         a = a[..., None]
-    # An empty one (a height of 0) was 'every pixel value is NaN or Inf (a corrupt
-    # file?)' as an image, and a size mismatch naming '0x24 pixels' as a dark frame.
+    # An empty one (a height of 0) is named as such, not as 'every pixel value is NaN or
+    # Inf' (an image) or a size mismatch of '0x24 pixels' (a dark frame).
     if a.ndim != 3 or 0 in a.shape:
         raise CaptureError(
             f"{path}: expected a (height, width) or (height, width, channels) array, "
-            f"got shape {a.shape}{' (no pixels)' if a.ndim == 3 else ''}"
+            f"got shape {shape}{' (no pixels)' if a.ndim == 3 else ''}"
         )
-    if a.shape[-1] > _MAX_CHANNELS:
-        # A stack of images saved as one image file: before, a 24x32 image with 32
-        # channels, refused as having 'a varying alpha channel' (R, G, B, A, channel4...).
+    if whole and a.shape[-1] > _MAX_CHANNELS:
+        # A stack of images saved as one image file, not a 24x32 image with 32 channels
+        # (which would be refused as having 'a varying alpha channel').
         n, height, width = a.shape
         raise CaptureError(
             f"{path}: shape {a.shape} looks like a stack of {n} images ({height} x {width}, "
@@ -413,7 +416,7 @@ def _read_oiio(path: Path) -> ImageData:
             )
         base = spec.format.basetype
         if base not in (oiio.UINT8, oiio.UINT16, oiio.HALF, oiio.FLOAT, oiio.DOUBLE):
-            # Was read, scaled by the type's range: int16 by 32767, uint32 by 2^32 - 1.
+            # Not read scaled by the type's range (int16 by 32767, uint32 by 2^32 - 1).
             signed = base in (oiio.INT8, oiio.INT16, oiio.INT32, oiio.INT64)
             name = f"{'' if signed else 'u'}int{spec.format.size() * 8}"
             raise _integer_samples(path, "sample type", name)
@@ -604,8 +607,8 @@ def forget_temporary(path: Path) -> None:
 
 
 # Folders made to hold outputs not yet published, outermost first: removed (where still
-# empty) when the command fails or is stopped by a signal. A failed command left the
-# empty folders of its output's path behind (render bad.json --out new/a/view: new/a).
+# empty) when the command fails or is stopped by a signal, so that a failed command
+# leaves no empty folders of its output's path (render bad.json --out new/a/view: new/a).
 _MADE_FOLDERS: list[Path] = []
 
 

@@ -104,7 +104,7 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
             f"{shown(per_channel)}"
         )
     if "per_channel" not in data and not isinstance(data.get("channel", "Y"), str):
-        # An edited list or mapping was a TypeError traceback (an unhashable name).
+        # An edited list or mapping: one line, not a TypeError (an unhashable name).
         raise ValueError(
             f"{source}: channel: must be the channel's name, got {shown(data['channel'])}"
         )
@@ -125,7 +125,7 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
                 f"{source}: channel {name}: no usable {', '.join(missing)} (a failed fit?)"
             )
         converged = fit.get("converged", True)
-        if not isinstance(converged, bool):  # "no" warned "did not converge (converged)"
+        if not isinstance(converged, bool):  # "no" is no verdict
             raise ValueError(
                 f"{source}: channel {name}: converged: must be true or false, got "
                 f"{shown(converged)}"

@@ -227,8 +227,9 @@ def prepare_data(
             "are not negative (values must be linear, black at 0)"
         )
     if split is None:
-        # Fewer than 2 was "the 1 shifts are the same image". A simulate config is
-        # refused by the same rule (app.config): simulate writes no capture refused here.
+        # Fewer than 2: named as such, not as "the 1 shifts are the same image". A simulate
+        # config is refused by the same rule (app.config): simulate writes no capture that
+        # is refused here.
         n_shifts = images.shape[0]
         same = n_shifts >= 2 and bool(np.all(images[:, pixels] == images[:1, pixels]))
         if (problem := shifts_problem(n_shifts, same)) is not None:
