@@ -32,13 +32,13 @@ from lightfield_jax.capture.hdr import (
     EXPOSURE_RATIO_TOLERANCE,
     RESPONSES,
     bracket_offset,
-    exposure_mismatch_problem,
-    exposure_mismatches,
-    exposure_ratio_problem,
-    exposure_ratios,
     linear_response,
     merge_bracket,
     merge_capture,
+    mismatch_problem_of,
+    pair_statistics,
+    ratio_problem_of,
+    ratio_within,
 )
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import (
@@ -215,7 +215,8 @@ def _check_exposure_ratios(
             rows.append((key, stack, [f.path.name for f in aux[key]]))
     kw = {"levels": levels, "dark": dark, "clip": clip}
     for key, bracket, names in rows:
-        found = exposure_ratio_problem(bracket, times, response, **kw)
+        stats = pair_statistics(bracket, times, response, **kw)
+        found = ratio_problem_of(stats)
         if found is not None:
             j, k, measured, stated = found
             # A pedestal left in (or a dark level above it) breaks the ratio too: said
@@ -225,13 +226,8 @@ def _check_exposure_ratios(
             # leave few samples well exposed in both): said where this pair, or
             # another whose median ratio is as stated, disagrees pixel by pixel
             # (files out of order or wrong times scale alike in every pixel).
-            pairs = [(j, k)] + [
-                (a, b)
-                for a, b, m, t in exposure_ratios(bracket, times, response, **kw)
-                if 1 / EXPOSURE_RATIO_TOLERANCE <= m / t <= EXPOSURE_RATIO_TOLERANCE
-            ]
-            shares = exposure_mismatches(bracket, times, response, **kw, pairs=pairs)
-            mismatch = next((m for m in shares if m[2] > EXPOSURE_MISMATCH_SHARE), None)
+            as_stated = [s for s in stats if s[2] is not None and ratio_within(s[2], s[3])]
+            mismatch = mismatch_problem_of([s for s in stats if s[:2] == (j, k)] + as_stated)
             cause = (
                 "are the files listed out of order (each shift's in the order of "
                 "exposure_times, shortest first), or are exposure_times wrong?"
@@ -253,7 +249,7 @@ def _check_exposure_ratios(
                 f"over the pixels), but exposure_times make it {stated:.3g} (more than "
                 f"{EXPOSURE_RATIO_TOLERANCE:g}x apart): {cause}",
             )
-        found = exposure_mismatch_problem(bracket, times, response, **kw)
+        found = mismatch_problem_of(stats)
         if found is None:
             continue
         j, k, share, compared = found
@@ -264,8 +260,9 @@ def _check_exposure_ratios(
         cause = _MISMATCH_CAUSE
         p = bracket_offset(bracket, times, response, (j, k), **kw)
         if math.isfinite(p):  # one constant in every value, where it explains them
-            again = exposure_mismatches(bracket, times, response, **kw, pairs=[(j, k)], offset=p)
-            if any(s <= EXPOSURE_MISMATCH_SHARE for *_, s, _ in again):
+            again = pair_statistics(bracket, times, response, **kw, pairs=[(j, k)], offset=p)
+            share = again[0][4]  # None: too few samples to compare with p taken out
+            if share is not None and share <= EXPOSURE_MISMATCH_SHARE:
                 cause = _offset_cause(p * full)
         if cause is _MISMATCH_CAUSE and response.kind != "linear":
             # A curve that does not fit the camera makes the ratio vary with the

@@ -465,12 +465,22 @@ def exposure_ratio_problem(
     value: the comment above :data:`EXPOSURE_RATIO_TOLERANCE`) against t_k / t_j.
     Returns the first pair off by more than :data:`EXPOSURE_RATIO_TOLERANCE`,
     ``(j, k, measured, stated)``, else ``None``."""
-    for j, k, measured, stated in exposure_ratios(
-        samples, times, response, levels=levels, dark=dark, clip=clip
-    ):
-        if not 1.0 / EXPOSURE_RATIO_TOLERANCE <= measured / stated <= EXPOSURE_RATIO_TOLERANCE:
-            return j, k, measured, stated
-    return None
+    return ratio_problem_of(
+        pair_statistics(samples, times, response, levels=levels, dark=dark, clip=clip)
+    )
+
+
+def ratio_within(measured: float, stated: float) -> bool:
+    """Whether a pair's median ratio is its times' within :data:`EXPOSURE_RATIO_TOLERANCE`."""
+    return 1.0 / EXPOSURE_RATIO_TOLERANCE <= measured / stated <= EXPOSURE_RATIO_TOLERANCE
+
+
+def ratio_problem_of(stats) -> tuple[int, int, float, float] | None:
+    """:func:`exposure_ratio_problem` of a bracket's :func:`pair_statistics`."""
+    return next(
+        ((j, k, m, s) for j, k, m, s, _, _ in stats if m is not None and not ratio_within(m, s)),
+        None,
+    )
 
 
 def exposure_ratios(
@@ -484,11 +494,53 @@ def exposure_ratios(
 ):
     """``(j, k, measured, stated)`` for each pair of a bracket's exposures (nearest
     first) with enough samples that hold signal in both (:func:`exposure_ratio_problem`)."""
-    signal = _signal_samples(samples, response, levels, dark, clip)
-    for j, k in _pairs(len(times)):
+    stats = pair_statistics(samples, times, response, levels=levels, dark=dark, clip=clip)
+    return [(j, k, m, s) for j, k, m, s, _, _ in stats if m is not None]
+
+
+def pair_statistics(
+    samples: np.ndarray,
+    times: Sequence[float],
+    response: Response,
+    *,
+    levels: int | None,
+    dark: np.ndarray | None = None,
+    clip: float = CLIP,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    offset: float = 0.0,
+) -> list[tuple[int, int, float | None, float, float | None, int]]:
+    """Both checks' figures of a bracket's pairs of exposures (``pairs``, default every
+    pair, nearest first), from one linearisation and one median ratio per pair:
+    ``(j, k, measured, stated, share, compared)``, ``measured`` the median ratio x_k/x_j
+    (:func:`_pair_ratio`; ``None`` where too few samples hold signal in both),
+    ``stated`` t_k/t_j, ``share`` of the ``compared`` samples off that ratio (or the
+    stated one, where none was measured) by more than :data:`EXPOSURE_MISMATCH_FACTOR`
+    (``None`` where fewer than ``_MIN_RATIO_SAMPLES`` are compared: the comment above
+    :data:`EXPOSURE_MISMATCH_SHARE`); ``offset``: a constant taken from every linear
+    value first (:func:`bracket_offset`)."""
+    signal = _signal_samples(samples, response, levels, dark, clip, offset)
+    x, good, top, finite, full = signal
+    low = _AGREEMENT_FLOOR * full
+    tiny = 1e-6 * full  # a sample at or below its dark value: far off any prediction
+    stats = []
+    for j, k in _pairs(len(times)) if pairs is None else pairs:
+        stated = float(times[k]) / float(times[j])
         measured = _pair_ratio(signal, response, levels, j, k)
-        if measured is not None:
-            yield j, k, measured, float(times[k]) / float(times[j])
+        valid = measured is not None and math.isfinite(measured) and measured > 0
+        ratio = measured if valid else stated
+        to_k, to_j = x[j] * ratio, x[k] / ratio
+        compared = (good[j] & finite[k] & (to_k >= low) & (to_k <= top[k])) | (
+            good[k] & finite[j] & (to_j >= low) & (to_j <= top[j])
+        )
+        count = int(compared.sum())
+        share = None
+        if count >= _MIN_RATIO_SAMPLES:
+            xj = np.maximum(x[j], tiny)[compared]
+            xk = np.maximum(x[k], tiny)[compared]
+            off = np.abs(np.log(xk / (ratio * xj))) > math.log(EXPOSURE_MISMATCH_FACTOR)
+            share = float(off.mean())
+        stats.append((j, k, measured, stated, share, count))
+    return stats
 
 
 def _pair_ratio(signal, response: Response, levels, j: int, k: int) -> float | None:
@@ -625,12 +677,21 @@ def exposure_mismatch_problem(
     compare, the share that differ from their median ratio by more than
     :data:`EXPOSURE_MISMATCH_FACTOR`. Returns the first pair whose share exceeds
     :data:`EXPOSURE_MISMATCH_SHARE`, ``(j, k, share, compared)``, else ``None``."""
-    for j, k, share, count in exposure_mismatches(
-        samples, times, response, levels=levels, dark=dark, clip=clip
-    ):
-        if share > EXPOSURE_MISMATCH_SHARE:
-            return j, k, share, count
-    return None
+    return mismatch_problem_of(
+        pair_statistics(samples, times, response, levels=levels, dark=dark, clip=clip)
+    )
+
+
+def mismatch_problem_of(stats) -> tuple[int, int, float, int] | None:
+    """:func:`exposure_mismatch_problem` of a bracket's :func:`pair_statistics`."""
+    return next(
+        (
+            (j, k, share, n)
+            for j, k, _, _, share, n in stats
+            if share is not None and share > EXPOSURE_MISMATCH_SHARE
+        ),
+        None,
+    )
 
 
 def exposure_mismatches(
@@ -646,29 +707,11 @@ def exposure_mismatches(
 ):
     """``(j, k, share, compared)`` for each pair of a bracket's exposures (``pairs``,
     default every pair, nearest first) that has enough samples to compare
-    (:func:`exposure_mismatch_problem`); ``offset``: a constant taken from every linear
-    value first (:func:`bracket_offset`)."""
-    signal = _signal_samples(samples, response, levels, dark, clip, offset)
-    x, good, top, finite, full = signal
-    low = _AGREEMENT_FLOOR * full
-    tiny = 1e-6 * full  # a sample at or below its dark value: far off any prediction
-    for j, k in _pairs(len(times)) if pairs is None else pairs:
-        # Their measured ratio (unbiased: _pair_ratio); where too few samples serve it,
-        # the stated one.
-        ratio = _pair_ratio(signal, response, levels, j, k)
-        if ratio is None or not math.isfinite(ratio) or ratio <= 0:
-            ratio = float(times[k]) / float(times[j])
-        to_k, to_j = x[j] * ratio, x[k] / ratio
-        compared = (good[j] & finite[k] & (to_k >= low) & (to_k <= top[k])) | (
-            good[k] & finite[j] & (to_j >= low) & (to_j <= top[j])
-        )
-        count = int(compared.sum())
-        if count < _MIN_RATIO_SAMPLES:
-            continue
-        xj = np.maximum(x[j], tiny)[compared]
-        xk = np.maximum(x[k], tiny)[compared]
-        off = np.abs(np.log(xk / (ratio * xj))) > math.log(EXPOSURE_MISMATCH_FACTOR)
-        yield j, k, float(off.mean()), count
+    (:func:`exposure_mismatch_problem`, :func:`pair_statistics`)."""
+    stats = pair_statistics(
+        samples, times, response, levels=levels, dark=dark, clip=clip, pairs=pairs, offset=offset
+    )
+    return [(j, k, share, n) for j, k, _, _, share, n in stats if share is not None]
 
 
 def bracket_offset(
