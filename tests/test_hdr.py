@@ -226,16 +226,21 @@ def test_auto_response_needs_lit_unclipped_pixels():
         calibrate_response(dark, TIMES)
 
 
+def _refusal(path, data) -> str:
+    """The CaptureError's message of loading capture file ``path`` written with ``data``."""
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(CaptureError) as info:
+        load_capture(path)
+    return str(info.value)
+
+
 def test_brackets_out_of_order_or_with_wrong_times_are_refused(radiance, tmp_path):
     """Before: merged as given, and the fit ended not converged, sigma_t 22 % off."""
     path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True)
     data = yaml.safe_load(path.read_text())
     row = data["images"][3]
     data["images"][3] = [row[1], row[0], row[2]]  # the two shorter exposures swapped
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CaptureError) as info:
-        load_capture(path)
-    message = str(info.value)
+    message = _refusal(path, data)
     assert message.startswith(f"{path}: images[3]: shift3_0.png (listed for 0.008 s) is 0.12")
     assert "as bright as shift3_1.png (listed for 0.001 s)" in message and "\n" not in message
     assert "exposure_times make it 8 (more than 1.5x apart)" in message
@@ -262,10 +267,7 @@ def test_an_exposure_of_another_shift_is_refused(radiance, tmp_path):
     path = _write_brackets(tmp_path, radiance, 1.0, "linear", dark=True)
     data = yaml.safe_load(path.read_text())
     data["images"][1][2] = "shift2_2.png"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CaptureError) as info:
-        load_capture(path)
-    message = str(info.value)
+    message = _refusal(path, data)
     assert message.startswith(
         f"{path}: images[1]: shift2_2.png (listed for 0.064 s) and shift1_1.png (listed "
         "for 0.008 s) disagree pixel by pixel: "
@@ -279,10 +281,7 @@ def test_an_exposure_of_another_shift_is_refused(radiance, tmp_path):
     assert "\n" not in message
     data["images"][1][2] = "shift1_2.png"
     data["images"][1][1] = "shift2_1.png"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CaptureError) as info:
-        load_capture(path)
-    message = str(info.value)
+    message = _refusal(path, data)
     assert message.startswith(
         f"{path}: images[1]: shift2_1.png (listed for 0.008 s) and shift1_0.png (listed "
         "for 0.001 s) disagree pixel by pixel: "
@@ -298,10 +297,7 @@ def test_an_exposure_of_another_shift_is_named_where_another_pair_is_off(radianc
     path = _write_brackets(tmp_path, radiance, 2.2, "auto", dark=False)
     data = yaml.safe_load(path.read_text())
     data["images"][1][2] = "shift2_2.png"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CaptureError) as info:
-        load_capture(path)
-    message = str(info.value)
+    message = _refusal(path, data)
     assert message.startswith(
         f"{path}: images[1]: shift2_2.png (listed for 0.064 s) and shift1_1.png (listed "
         "for 0.008 s) disagree pixel by pixel: "
@@ -559,10 +555,7 @@ def test_a_bracket_off_by_a_pedestal_is_said_to_be(tmp_path, level, said):
     if level is not None:
         data["dark_level"] = level
     path = tmp_path / "capture.yaml"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(CaptureError) as info:
-        load_capture(path)
-    message = str(info.value)
+    message = _refusal(path, data)
     assert f"with a constant {said} in every image value" in message, message
     assert "listed out of order" not in message and "\n" not in message
     data["dark_level"] = 0.05
