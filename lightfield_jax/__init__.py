@@ -21,6 +21,7 @@ from lightfield_jax.capture.inspect import inspect_capture as inspect_capture
 from lightfield_jax.capture.io import CaptureError as CaptureError
 from lightfield_jax.capture.pattern import stripe_patterns as stripe_patterns
 from lightfield_jax.capture.pattern import write_patterns as write_patterns
+from lightfield_jax.forward.cell import CellRenderer as CellRenderer
 from lightfield_jax.forward.render import DivergentSeriesWarning as DivergentSeriesWarning
 from lightfield_jax.forward.render import Renderer as Renderer
 from lightfield_jax.forward.render import RenderResult as RenderResult

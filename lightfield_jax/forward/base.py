@@ -35,6 +35,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from lightfield_jax.checks import check_int, number_problem
@@ -88,6 +89,25 @@ def block_mean(a, f: int, axes: tuple[int, int]):
     ay, ax = (ax_ % a.ndim for ax_ in axes)
     shape = a.shape[:ay] + (a.shape[ay] // f, f, a.shape[ax] // f, f) + a.shape[ax + 1 :]
     return a.reshape(shape).mean(axis=(ay + 1, ay + 3))
+
+
+def restrict_moments(coverage, mean, var, c: int):
+    """Source moments (each (P, H, W), depths in pixels) on a grid ``c`` times coarser:
+    each c×c block's lit fraction, and the mean and variance of the depth over its lit
+    part (within plus between its pixels), in coarse pixels. ``c`` divides H and W."""
+    if c == 1:
+        return coverage, mean, var
+
+    def blocks(a):
+        p, h, w = a.shape
+        return a.reshape(p, h // c, c, w // c, c)
+
+    cov, m, v = blocks(coverage), blocks(mean), blocks(var)
+    lit = cov.sum(axis=(2, 4))
+    safe = np.where(lit > 0, lit, 1.0)
+    m1 = (cov * m).sum(axis=(2, 4)) / safe
+    m2 = (cov * (v + m * m)).sum(axis=(2, 4)) / safe
+    return lit / (c * c), m1 / c, np.maximum(m2 - m1 * m1, 0.0) / (c * c)
 
 
 def _log_sinhc(x):
@@ -207,8 +227,12 @@ class AbstractRenderer(eqx.Module):
         tail_tol: float,
         tail_max_steps: int,
         coarse_after: int | None = None,
+        moments=None,
     ) -> None:
-        """The fields every geometry fills alike (called from a subclass's ``__init__``)."""
+        """The fields every geometry fills alike (called from a subclass's ``__init__``).
+        ``moments``: the source moments ``(coverage, mean, var)`` of the working grid,
+        given instead of those of ``illumination`` (a coarser grid's restriction of a
+        finer one's, :func:`restrict_moments`)."""
         if grid.n_theta is None:
             raise ValueError(
                 f"{type(self).__name__} needs grid.n_theta: call Grid.resolve(g) first"
@@ -227,7 +251,9 @@ class AbstractRenderer(eqx.Module):
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.phase = phase
         illumination.entry_wall(grid.width, grid.height)  # validates the entry point
-        cov, mean, var = source_moments(scaled(illumination, f), self.width, self.height)
+        if moments is None:
+            moments = source_moments(scaled(illumination, f), self.width, self.height)
+        cov, mean, var = moments
         self.coverage = jnp.asarray(cov)
         self.mean_depth = jnp.asarray(mean)
         self.var_depth = jnp.asarray(var)

@@ -84,6 +84,7 @@ class BounceStep(eqx.Module):
     mixing: Float[Array, "n_theta+1 n_theta"]
     tables: dict
     n_theta: int = eqx.field(static=True)
+    periods: int = eqx.field(static=True, default=0)  # > 0: periodic in y (the cell)
 
     @property
     def linear(self) -> BounceStep:
@@ -92,7 +93,7 @@ class BounceStep(eqx.Module):
 
     def transport(self, q):
         """L = T[Q] on the grid (:func:`lightfield_jax.forward.transport.transport`)."""
-        return transport(q, self.sigma_t, _groups(self.n_theta), self.tables)
+        return transport(q, self.sigma_t, _groups(self.n_theta), self.tables, self.periods)
 
     def scatter(self, field):
         """(Q_next, image) of a light field: rows 0..n−1 and row n of the mixing matmul."""
@@ -128,6 +129,8 @@ class PlaneRenderer(AbstractRenderer):
     separable: str | None = eqx.field(static=True)
     across: Array | None
     along_at: tuple[int, int] | None = eqx.field(static=True)
+    # > 0: the grid is periodic in y (the stripe cell, :mod:`lightfield_jax.forward.cell`)
+    periods: int = eqx.field(static=True, default=0)
 
     def __init__(
         self,
@@ -140,9 +143,18 @@ class PlaneRenderer(AbstractRenderer):
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
         coarse_after: int | None = None,
+        moments=None,
     ):
         self._setup(
-            grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps, coarse_after
+            grid,
+            illumination,
+            bounces,
+            phase,
+            tail,
+            tail_tol,
+            tail_max_steps,
+            coarse_after,
+            moments,
         )
         Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
         theta0 = math.radians(illumination.direction_deg)
@@ -213,7 +225,7 @@ class PlaneRenderer(AbstractRenderer):
         return self.bounce_step(sigma_t * f, sigma_s * f, g)
 
     def _step(self, sigma_t, sigma_s, mixing) -> BounceStep:
-        return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta)
+        return BounceStep(sigma_t, sigma_s, mixing, self.tables, self.n_theta, self.periods)
 
     def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
         p_camera, node_p, mixing = self._phase_parts(g)
@@ -298,7 +310,9 @@ class PlaneRenderer(AbstractRenderer):
             bounces.append(image[None])
 
             def bounce(q, _):
-                q_next, image = scatter(transport(q, sigma_t, groups, self.tables))
+                q_next, image = scatter(
+                    transport(q, sigma_t, groups, self.tables, self.periods)
+                )
                 return q_next, image
 
             if self.bounces > 2:

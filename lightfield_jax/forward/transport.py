@@ -14,6 +14,11 @@ Discretisation (short characteristics, one sweep per direction group):
   φ1(τ) = (1 − e^{−τ})/τ, φ2(τ) = (1 − e^{−τ}(1 + τ))/τ².
 - Walls are black: nothing enters from outside; the first step from the wall to the
   first pixel centre has length Δs/2.
+- Periodic in y (``periods`` > 0, the stripe cell of :mod:`lightfield_jax.forward.cell`):
+  the x group interpolates across rows with wrap-around, and the y group marches the
+  cell ``periods`` times over from a black wall that far upstream, keeping the last
+  period: a ray's history is as long as ``periods`` cells (the caller makes that the
+  tank's height, the longest history a ray has in the tank).
 
 Cost per call: one ``lax.scan`` advancing both groups, O(N) in N = H·W·nθ.
 """
@@ -126,22 +131,26 @@ def _step_weights(lo, hi, step, sigma_t):
     }
 
 
-def _advance(l_prev, q_prev, q_cur, w):
-    """One step: L_B = interp(e^{−τ} L_A + w_A Q_A) + w_B Q_B along the last axis."""
+def _advance(l_prev, q_prev, q_cur, w, wrap: bool = False):
+    """One step: L_B = interp(e^{−τ} L_A + w_A Q_A) + w_B Q_B along the last axis
+    (``wrap``: periodic across it, else black walls)."""
     v = w["decay"] * l_prev + w["upstream"] * q_prev
-    zero = jnp.zeros_like(v[..., :1])
-    v_lo = jnp.concatenate([zero, v[..., :-1]], axis=-1)
-    v_hi = jnp.concatenate([v[..., 1:], zero], axis=-1)
+    if wrap:
+        v_lo, v_hi = jnp.roll(v, 1, axis=-1), jnp.roll(v, -1, axis=-1)
+    else:
+        zero = jnp.zeros_like(v[..., :1])
+        v_lo = jnp.concatenate([zero, v[..., :-1]], axis=-1)
+        v_hi = jnp.concatenate([v[..., 1:], zero], axis=-1)
     return w["mid"] * v + w["lo"] * v_lo + w["hi"] * v_hi + w["current"] * q_cur
 
 
-def _sweep_both(qx, qy, wx, wy):
+def _sweep_both(qx, qy, wx, wy, wrap_x: bool = False):
     """March both groups in one ``lax.scan`` (one loop, not two: XLA's CPU runtime runs
     two independent loops in one program several times slower than one).
 
     qx: (W, ..., n_x, H), qy: (H, ..., n_y, W): march axis first, transverse axis last
     (contiguous; ~3x faster on CPU than directions last). The shorter group is padded
-    with zero steps at its end.
+    with zero steps at its end. ``wrap_x``: the x group's rows are periodic.
     """
     n_x, n_y = qx.shape[0], qy.shape[0]
     n = max(n_x, n_y)
@@ -153,7 +162,7 @@ def _sweep_both(qx, qy, wx, wy):
     def advance(carry, q_cur):
         lx, qx_prev, ly, qy_prev = carry
         qx_cur, qy_cur = q_cur
-        lx = _advance(lx, qx_prev, qx_cur, wx)
+        lx = _advance(lx, qx_prev, qx_cur, wx, wrap_x)
         ly = _advance(ly, qy_prev, qy_cur, wy)
         return (lx, qx_cur, ly, qy_cur), (lx, ly)
 
@@ -174,8 +183,9 @@ def _take(a, index: np.ndarray, axis: int):
     return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces, axis=axis)
 
 
-def transport(q, sigma_t, groups: DirectionGroups, tables):
-    """L = T[Q] for q of shape (..., n_theta, H, W) (direction-major), black walls.
+def transport(q, sigma_t, groups: DirectionGroups, tables, periods: int = 0):
+    """L = T[Q] for q of shape (..., n_theta, H, W) (direction-major), black walls, or
+    periodic in y with ``periods`` > 0 (the y group marched that many periods).
 
     ``tables`` holds the per-group shifts and step lengths as arrays (passed as traced
     arguments rather than baked-in constants).
@@ -198,7 +208,11 @@ def transport(q, sigma_t, groups: DirectionGroups, tables):
     )
     wx = _step_weights(tables["x_lo"], tables["x_hi"], tables["x_step"], sigma_t)
     wy = _step_weights(tables["y_lo"], tables["y_hi"], tables["y_step"], sigma_t)
-    lx, ly = jax.lax.optimization_barrier(_sweep_both(qx, qy, wx, wy))
+    height = qy.shape[0]
+    if periods > 1:
+        qy = jnp.tile(qy, (periods,) + (1,) * (qy.ndim - 1))
+    lx, ly = jax.lax.optimization_barrier(_sweep_both(qx, qy, wx, wy, periods > 0))
+    ly = ly[-height:]
     lx = jnp.concatenate([lx[..., :nxp, :], jnp.flip(lx[..., nxp:, :], axis=0)], axis=-2)
     ly = jnp.concatenate([ly[..., :nyp, :], jnp.flip(ly[..., nyp:, :], axis=0)], axis=-2)
     # (W, ..., n_x, H) and (H, ..., n_y, W) back to (..., n, H, W).

@@ -1,0 +1,382 @@
+"""Stripes on the plane from one stripe period: the periodic cell (docs/model.md §4.5).
+
+A homogeneous medium lit through a side wall by stripes of period P repeats every P
+rows, and every shift is a roll of one solution, except where the tank's top and bottom
+walls break the repetition. :class:`CellRenderer` renders a stripe capture as
+
+    I_1, I_2 of every shift:  exact, on the whole tank (walls included): I_1 is local,
+        and I_2 is the unscattered fluence convolved with the first-scatter kernel
+        summed over directions (:mod:`lightfield_jax.forward.first_scatter`), one 2-D
+        convolution per shift;
+    I_k, k ≥ 3:  the cell's I_k (one period, periodic in y, one pattern:
+        :class:`PeriodicCell`), rolled to each shift's phase and tiled over the rows,
+        plus the walls' effect on the shifts' mean, a·(F_k − F̃_k): F the full light
+        (every row lit) of the tank with its walls, F̃ the same light on the periodic
+        grid, a = lit/period the pattern's mean.
+
+The only approximation against the full-domain render is that the walls act on the
+mean of the shifts alone, not on their modulation, from the third order on: two
+scatterings have smoothed the modulation of a period of a few rows to a small part of
+those orders. F and F̃ are marched on the native grid (or ``dc_coarsen`` times coarser),
+where the smooth walls' term needs no refinement; their discretisations are the same,
+so their difference keeps little of either's error.
+
+The cost is the cell's march (P rows, one pattern) and one full-light march of the tank
+at the coarse resolution, instead of every shift over every row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from lightfield_jax.checks import check_int
+from lightfield_jax.forward.base import (
+    AbstractRenderer,
+    FirstOrders,
+    _count_trace,
+    as_physical,
+    block_mean,
+    check_bounces,
+    restrict_moments,
+)
+from lightfield_jax.forward.first_scatter import kernel_nodes
+from lightfield_jax.forward.kernels import fft_convolve, padded_spectrum, splat
+from lightfield_jax.forward.plane import PlaneRenderer, _groups
+from lightfield_jax.forward.tail import TailSolution, check_tail
+from lightfield_jax.forward.transport import transport_tables
+from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Full, Stripes, along_x, scaled, source_moments
+from lightfield_jax.scene.medium import Medium
+
+
+def _folded_index(index: np.ndarray, height: int, width: int, rows: int) -> np.ndarray:
+    """Flat kernel indices into (J, 2·height, 2·width) (offsets stored modulo the size)
+    as indices into (J, rows, 2·width): the y offsets folded modulo ``rows`` (the
+    periodic images of a source ``rows`` apart add up)."""
+    plane = 4 * height * width
+    j, rem = np.divmod(index.astype(np.int64), plane)
+    ty, tx = np.divmod(rem, 2 * width)
+    dy = np.where(ty < height, ty, ty - 2 * height)
+    return ((j * rows + np.mod(dy, rows)) * 2 * width + tx).astype(np.int32)
+
+
+def _cell_moments(illumination, width: int, rows: int):
+    """Source moments of one period of ``illumination`` (phase 0, working grid) on a
+    grid periodic in y: those of the last ``rows`` rows of a grid tall enough that no
+    pixel there sees the top wall (an oblique sheet's backward ray climbs |tan θ0| rows
+    per column)."""
+    t0 = math.radians(illumination.direction_deg)
+    climb = abs(math.tan(t0)) * width
+    tall = rows * (math.ceil(climb / rows) + 2)
+    moments = source_moments(illumination, width, tall)
+    return tuple(m[:, tall - rows :] for m in moments)
+
+
+class PeriodicCell(PlaneRenderer):
+    """The plane on a grid periodic in y, for one period of stripes or full light
+    (:class:`~lightfield_jax.forward.plane.PlaneRenderer`'s loop and bounce step; its
+    transport periodic in y, its first-scatter kernel folded modulo the cell).
+
+    ``grid`` is the cell (its height the period, in native rows), ``illumination`` one
+    phase of stripes (phase 0) or :class:`~lightfield_jax.scene.illumination.Full`
+    entering the left or right wall; ``tank_height`` (native rows) bounds how far a ray
+    travels in y, as in the tank: the kernel's offsets and the y sweep's history.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        illumination: Stripes | Full,
+        bounces: int,
+        phase: str,
+        *,
+        tank_height: int,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
+        moments=None,
+    ):
+        if not along_x(illumination.entry):
+            raise ValueError("PeriodicCell: the cell is periodic in y: light enters a side wall")
+        Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
+        self.bounces = check_bounces(bounces)
+        check_tail(tail, tail_tol, tail_max_steps)
+        self.tail, self.tail_tol, self.tail_max_steps = tail, float(tail_tol), int(tail_max_steps)
+        f = self.refine = 1 if grid.refine is None else grid.refine
+        self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
+        self.phase = phase
+        self.coarse_after = None
+        if moments is None:
+            moments = _cell_moments(scaled(illumination, f), self.width, self.height)
+        cov, mean, var = moments
+        self.coverage, self.mean_depth, self.var_depth = (
+            jnp.asarray(a) for a in (cov, mean, var)
+        )
+        theta0 = math.radians(illumination.direction_deg)
+        self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
+        tank = max(tank_height, grid.height) * f
+        nodes = kernel_nodes(self.width, tank, grid.n_theta)
+        self.nodes = {
+            "r": jnp.asarray(nodes["r"]),
+            "weight": jnp.asarray(nodes["weight"]),
+            "splat": jnp.asarray(nodes["splat"]),
+            "index": jnp.asarray(_folded_index(nodes["index"], tank, self.width, self.height)),
+        }
+        self.node_angle = jnp.asarray(nodes["phi"] - theta0)
+        self.tables = transport_tables(_groups(grid.n_theta))
+        j = np.arange(grid.n_theta)
+        self.circulant = jnp.asarray((j[:, None] - j[None, :]) % grid.n_theta, dtype=jnp.int32)
+        self.separable, self.across, self.along_at = None, None, None
+        self.periods = max(1, math.ceil(tank / self.height))
+
+    def coarse_grid(self, grid: Grid) -> Grid | None:
+        return None
+
+    def kernel(self, node_values) -> Float[Array, "n_theta rows 2W"]:
+        """The first-scatter kernel (without σs) of node values p(φ − θ0)·e^{−σt r}·w,
+        folded modulo the cell's rows."""
+        size = self.n_theta * self.height * 2 * self.width
+        k = splat(self.nodes["index"], self.nodes["splat"], node_values[None], size)
+        return k.reshape(self.n_theta, self.height, 2 * self.width)
+
+    def node_values(self, node_p, sigma_t):
+        dtype = node_p.dtype
+        r = self.nodes["r"].astype(dtype)
+        return node_p * jnp.exp(-sigma_t * r) * self.nodes["weight"].astype(dtype)
+
+    def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
+        p_camera, node_p, mixing = self._phase_parts(g)
+        image = sigma_s * p_camera * source
+        if not scattered:
+            return FirstOrders(image)
+        kernel = self.kernel(self.node_values(node_p, sigma_t))
+        rows, width = self.height, self.width
+        # Periodic in y (no padding), zero-padded in x.
+        spectrum = jnp.fft.rfft2(source, s=(rows, 2 * width))[:, None]
+        l1 = jnp.fft.irfft2(spectrum * jnp.fft.rfft2(kernel)[None], s=(rows, 2 * width))
+        l1 = sigma_s * jnp.maximum(l1[..., :width], 0.0)
+        step = self._step(sigma_t, sigma_s, mixing)
+        q2, i2 = step.scatter(l1)
+        return FirstOrders(image, step, i2, l1, q2)
+
+
+# How the walls' term is formed: every shift's own (``shifts``: the coarse tank's render
+# of each shift less the coarse periodic grid's), or the shifts' mean alone (``mean``:
+# full light's, times the lit fraction; the walls' effect on the stripes' modulation
+# left out).
+WALLS_TERMS = ("shifts", "mean")
+
+
+def cell_problem(grid: Grid, illumination) -> str | None:
+    """Why stripes on this grid are not rendered from one period (``None``: they can
+    be): the cell is for stripes entering a side wall (periodic in y), shorter than
+    the tank."""
+    if not isinstance(illumination, Stripes):
+        return "only stripes repeat"
+    if not along_x(illumination.entry):
+        return "the cell is periodic in y: stripes entering the top or bottom wall"
+    if illumination.period >= grid.height:
+        return "the period is not shorter than the tank"
+    return None
+
+
+class CellRenderer(AbstractRenderer):
+    """Stripes on the plane rendered from one period (the module's scheme): the call
+    signature and outputs of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
+    per-bounce images of every shift on the whole grid; no light fields (those of a
+    full-domain render: :class:`~lightfield_jax.forward.plane.PlaneRenderer`) and no
+    coarse tail (the cell is marched on its refined grid throughout).
+
+    ``walls_coarsen``: the walls' term is marched on a grid this many times coarser
+    than the native one (it must divide the grid's width and height).
+    """
+
+    cell: PeriodicCell
+    tank: PlaneRenderer | None
+    unwalled: PeriodicCell | None
+    sum_index: Int[Array, "nodes 4"]
+    rows: Int[Array, "patterns H"]
+    walls: str = eqx.field(static=True)
+    walls_coarsen: int = eqx.field(static=True)
+    walls_weight: float = eqx.field(static=True)
+
+    def __init__(
+        self,
+        grid: Grid,
+        illumination: Stripes,
+        bounces: int,
+        phase: str = "paper",
+        *,
+        tail: str | None = None,
+        tail_tol: float = 1e-4,
+        tail_max_steps: int = 500,
+        walls: str = "shifts",
+        walls_coarsen: int = 1,
+    ):
+        problem = cell_problem(grid, illumination)
+        if walls not in WALLS_TERMS:
+            raise ValueError(f"walls: must be one of {', '.join(WALLS_TERMS)}, got {walls!r}")
+        if problem is not None:
+            raise ValueError(f"CellRenderer: {problem}")
+        c = check_int(walls_coarsen, "walls_coarsen", low=1)
+        if grid.width % c or grid.height % c:
+            raise ValueError(
+                f"CellRenderer: walls_coarsen {c} must divide the grid ({grid.width}x{grid.height})"
+            )
+        self._setup(grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps)
+        self.walls_coarsen = c
+        self.walls = walls
+        solve = {"tail": tail, "tail_tol": tail_tol, "tail_max_steps": tail_max_steps}
+        period = illumination.period
+        one = dataclasses.replace(illumination, phases=(0,))
+        cell_grid = Grid(grid.width, period, grid.n_theta, self.refine)
+        self.cell = PeriodicCell(
+            cell_grid, one, self.bounces, phase, tank_height=grid.height, **solve
+        )
+        if self.bounces >= 3 or tail is not None:
+            if walls == "mean":
+                self.walls_weight = illumination.lit / period
+                light = Full(illumination.direction_deg, illumination.entry)
+            else:
+                self.walls_weight = 1.0
+                light = illumination
+            # Both on the coarse grid, with the light's moments restricted to it.
+            tank = restrict_moments(*source_moments(light, grid.width, grid.height), c)
+            coarse = Grid(grid.width // c, grid.height // c, grid.n_theta, 1)
+            self.tank = PlaneRenderer(coarse, light, self.bounces, phase, moments=tank, **solve)
+            rows = math.lcm(period, c)
+            rows *= 2 if rows == c else 1
+            free = restrict_moments(*_cell_moments(light, grid.width, rows), c)
+            self.unwalled = PeriodicCell(
+                Grid(grid.width // c, rows // c, grid.n_theta, 1),
+                light,
+                self.bounces,
+                phase,
+                tank_height=grid.height // c,
+                moments=free,
+                **solve,
+            )
+        else:
+            self.tank, self.unwalled, self.walls_weight = None, None, 0.0
+        # The θ-summed kernel on the whole (refined) tank: the same nodes as the cell's.
+        nodes = kernel_nodes(self.width, self.height, grid.n_theta)
+        self.sum_index = jnp.asarray(np.mod(nodes["index"], 4 * self.height * self.width))
+        phases = np.asarray(illumination.phases)[:, None]
+        self.rows = jnp.asarray(np.mod(np.arange(grid.height)[None] + phases, period), jnp.int32)
+
+    # What AbstractRenderer asks of a geometry: the cell renders through its parts.
+    def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
+        raise NotImplementedError("CellRenderer renders through its cell")
+
+    def integrate(self, field):
+        return field
+
+    @property
+    def direct_depth(self) -> float:
+        return 1.0
+
+    @property
+    def image_scale(self) -> float:
+        return self.refine
+
+    @property
+    def field_scale(self) -> float:
+        return 1.0
+
+    def unchecked(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        if lightfield:
+            raise ValueError(
+                "lightfield: a stripe cell renders images only; render light fields on the "
+                "whole grid (cell: false)"
+            )
+        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
+        images, tail = self._images(sigma_t, sigma_s, g, gain)
+        return (images, None) if tail is None else (images, None, tail)
+
+    def images_and_g_slope(self, sigma_t, sigma_s, g, gain=1.0):
+        if self.tail is not None:
+            raise ValueError(
+                f"images_and_g_slope: per-bounce images only; this renderer has tail "
+                f"{self.tail!r} (use jax.jvp through the call)"
+            )
+        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
+        return self._g_slope(sigma_t, sigma_s, g, gain)
+
+    @eqx.filter_jit
+    def _g_slope(self, sigma_t, sigma_s, g, gain):
+        return jax.jvp(
+            lambda g: self._compose(sigma_t, sigma_s, g, gain)[0], (g,), (jnp.ones_like(g),)
+        )
+
+    @eqx.filter_jit
+    def _images(self, sigma_t, sigma_s, g, gain):
+        return self._compose(sigma_t, sigma_s, g, gain)
+
+    def _first_two(self, sigma_t, sigma_s, g):
+        """I_1 and I_2 of every shift on the whole tank (native grid, unit gain)."""
+        f = self.refine
+        st, ss = sigma_t / f, sigma_s / f
+        source = self.unscattered(st)
+        p_camera, node_p, _ = self.cell._phase_parts(g)
+        out = [ss * p_camera * source]
+        if self.bounces >= 2:
+            values = self.cell.node_values(node_p, st)
+            size = 4 * self.height * self.width
+            kernel = splat(self.sum_index, self.cell.nodes["splat"], values[None], size)
+            kernel = kernel.reshape(2 * self.height, 2 * self.width)
+            summed = fft_convolve(
+                padded_spectrum(source), jnp.fft.rfft2(kernel), self.height, self.width
+            )
+            dtheta = 2 * math.pi / self.n_theta
+            out.append(ss * ss * p_camera * dtheta * jnp.maximum(summed, 0.0))
+        images = jnp.stack(out, axis=1)  # (patterns, 1 or 2, fH, fW)
+        return f * block_mean(images, f, (-2, -1)) if f > 1 else images
+
+    def _walls_term(self, sigma_t, sigma_s, g):
+        """The walls' term per shift and order (native grid, unit gain): the coarse
+        tank's render less the coarse periodic grid's, and that of their tails."""
+        c = self.walls_coarsen
+        tank = self.tank.unchecked(sigma_t * c, sigma_s * c, g)
+        free = self.unwalled.unchecked(sigma_t * c, sigma_s * c, g)
+        rows = np.arange(self.tank.height) % self.unwalled.height
+        weight = self.walls_weight
+
+        def up(x):
+            x = weight * x
+            return jnp.repeat(jnp.repeat(x, c, axis=-2), c, axis=-1) / c if c > 1 else x
+
+        orders = up(tank[0] - free[0][..., rows, :])  # (patterns, K, H, W)
+        if self.tail is None:
+            return orders, None
+        tail = up(tank[2].image - free[2].image[..., rows, :])
+        return orders, (tail, tank[2], free[2])
+
+    def _compose(self, sigma_t, sigma_s, g, gain):
+        _count_trace()
+        first = self._first_two(sigma_t, sigma_s, g)
+        if self.bounces <= 2 and self.tail is None:
+            return gain * first[:, : self.bounces], None
+        cell = self.cell.unchecked(sigma_t, sigma_s, g)
+        walls, walls_tail = self._walls_term(sigma_t, sigma_s, g)
+        later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
+        images = jnp.concatenate([first, (later + walls)[:, 2:]], axis=1)
+        images = gain * images[:, : self.bounces]
+        if self.tail is None:
+            return images, None
+        tail_image, tank_tail, free_tail = walls_tail
+        cell_tail = cell[2]
+        solves = (cell_tail, tank_tail, free_tail)
+        tail = TailSolution(
+            image=gain * (cell_tail.image[0][self.rows] + tail_image),
+            lightfield=None,
+            steps=jnp.max(jnp.stack([s.steps for s in solves])),
+            converged=jnp.all(jnp.stack([s.converged for s in solves])),
+        )
+        return images, tail
