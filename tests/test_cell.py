@@ -58,22 +58,22 @@ def test_periodic_cell_is_the_tank_far_from_its_walls():
 def test_first_two_orders_are_exact_at_the_walls():
     grid = Grid(24, 18, 8, 2)
     stripes = Stripes(6, 3, (0, 2, 4), direction_deg=-20.0)
-    full, cell = _both(grid, stripes, 4, walls="mean")
+    full, cell = _both(grid, stripes, 4, shift_orders=2)
     a = np.asarray(full(0.2, 0.1, 0.6)[0])
     b = np.asarray(cell(0.2, 0.1, 0.6)[0])
     np.testing.assert_allclose(b[:, :2], a[:, :2], rtol=1e-5, atol=1e-7 * a.max())
 
 
 @pytest.mark.parametrize(
-    ("walls", "refine", "bound"),
+    ("shift_orders", "refine", "bound"),
     # The rows' worst error of the series' image, here largest in the rows next to the
     # walls (docs/periodic_cell.md has the measured table for other media).
-    [("shifts", 2, 0.006), ("mean", 1, 0.002)],
+    [(None, 2, 0.006), (2, 1, 0.002)],
 )
-def test_walls_terms_keep_the_rows_next_to_the_walls(walls, refine, bound):
+def test_walls_terms_keep_the_rows_next_to_the_walls(shift_orders, refine, bound):
     grid = Grid(36, 30, 16, refine)
     stripes = Stripes(6, 3, (0, 1, 2, 3, 4, 5))
-    full, cell = _both(grid, stripes, 10, walls=walls)
+    full, cell = _both(grid, stripes, 10, shift_orders=shift_orders)
     a = np.asarray(full(0.2, 0.05, 0.4)[0]).sum(axis=1)
     b = np.asarray(cell(0.2, 0.05, 0.4)[0]).sum(axis=1)
     rows = _rows_error(a, b)
@@ -115,7 +115,7 @@ def test_cell_derivatives_are_the_full_renders():
 
 
 def test_new_values_do_not_recompile_the_cell():
-    cell = CellRenderer(Grid(24, 18, 8, 1), Stripes(6, 3, (0, 1, 2)), 4, walls="mean")
+    cell = CellRenderer(Grid(24, 18, 8, 1), Stripes(6, 3, (0, 1, 2)), 4, shift_orders=3)
     cell(0.3, 0.1, 0.2)
     before = trace_count()
     cell(0.4, 0.2, -0.3)
@@ -127,7 +127,7 @@ def test_new_values_do_not_recompile_the_cell():
     ("kwargs", "message"),
     [
         ({"illumination": Stripes(6, 3, (0, 1), entry="top")}, "top or bottom wall"),
-        ({"walls": "edges"}, "walls: must be one of shifts, mean"),
+        ({"shift_orders": 1}, "shift_orders: must be an integer >= 2"),
         ({"walls_coarsen": 5}, "walls_coarsen 5 must divide the grid"),
         ({"illumination": Stripes(24, 3, (0, 1))}, "period is not shorter than the tank"),
     ],
