@@ -1145,7 +1145,9 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-@pytest.mark.parametrize(("signum", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.parametrize(
+    ("signum", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGHUP, 129)]
+)
 def test_a_signal_stops_a_fit_at_once_and_leaves_no_output(simulated, tmp_path, signum, status):
     """The fit is signalled after 6 s of CPU (imported, compiling or solving: XLA at
     work, which Python's own handling waits for) and must end within 3 s."""
@@ -1157,6 +1159,8 @@ def test_a_signal_stops_a_fit_at_once_and_leaves_no_output(simulated, tmp_path, 
         stderr=subprocess.PIPE,
         text=True,
         env=env,
+        # As from a terminal, whatever this test runs under (nohup ignores SIGHUP).
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL),
     )
     try:
         while _cpu_seconds(child.pid) < 6.0:
@@ -1445,12 +1449,12 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
 @pytest.mark.parametrize(
     ("changes", "match"),
     [
-        ({"model": {"bounces": 10**9}}, "channel Y: bounces: at most 10000 bounces"),
-        ({"model": {"n_theta": 8 * 10**6}}, "channel Y: grid.n_theta: must be at most 4096"),
-        ({"sigma_t": -1.0}, "channel Y: medium.sigma_t: must be > 0"),
-        ({"g": 1.0}, "channel Y: medium.g: must satisfy -1 < g < 1, got 1.0"),
-        ({"model": {"n_theta": 7}}, "channel Y: grid.n_theta: must be a multiple of 8"),
-        ({"model": {"bounces": 0}}, "channel Y: bounces: must be a positive integer"),
+        ({"model": {"bounces": 10**9}}, "channel Y: model.bounces: at most 10000 bounces"),
+        ({"model": {"n_theta": 8 * 10**6}}, "channel Y: model.n_theta: must be at most 4096"),
+        ({"sigma_t": -1.0}, "channel Y: sigma_t: must be > 0"),
+        ({"g": 1.0}, "channel Y: g: must satisfy -1 < g < 1, got 1.0"),
+        ({"model": {"n_theta": 7}}, "channel Y: model.n_theta: must be a multiple of 8"),
+        ({"model": {"bounces": 0}}, "channel Y: model.bounces: must be a positive integer"),
         (
             {"gain": -5.0},
             "channel Y: gain: must be a number in [1e-30, 1e+30] (images are float32), got -5.0",
@@ -2326,3 +2330,315 @@ def test_a_response_curve_for_float_brackets_is_refused(capture, capsys, respons
         match=f"response: {response} maps a camera's integer codes (8- or 16-bit files), but "
         "images[0][0] (b0_0.exr) holds float values, which are linear",
     )
+
+
+# ------------------------------------------------- round three: files, bounds, noise
+
+
+def test_render_and_experiment_never_write_over_a_folder_of_the_users_own(
+    capture, capsys, tmp_path
+):
+    """A folder holding files the command would replace that it did not write (no
+    render.json, no summary.json) is the user's: refused, its files kept."""
+    results = _results(capture, tmp_path)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "bounces.npy").write_bytes(b"my own array")
+    (mine / "coverage.png").write_bytes(b"my own figure")
+    before = _snapshot(mine)
+    line = _refused(capsys, "render", results, "--out", mine, match="holds bounces.npy")
+    assert "that lightfield-jax render did not write (no render.json; a file of your own?)" in line
+    line = _refused(
+        capsys, "experiment", "coverage", "--reduced", "--out", mine, match="holds coverage.png"
+    )
+    assert "lightfield-jax experiment did not write (no summary.json" in line
+    assert _snapshot(mine) == before
+    # The command's own folder is rerun into as before.
+    assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
+    assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
+
+
+def _sparse(path: Path, size: int) -> Path:
+    """A file of ``size`` bytes that is a hole (no disk used)."""
+    with open(path, "wb") as f:
+        f.truncate(size)
+    return path
+
+
+def test_results_files_and_response_tables_are_bounded_in_size_before_the_read(
+    capture, capsys, tmp_path
+):
+    from lightfield_jax.capture.hdr import load_response
+    from lightfield_jax.capture.io import CaptureError
+
+    results = _sparse(tmp_path / "big.json", 20 << 20)
+    line = _refused(capsys, "render", results, "--out", tmp_path / "r", match="20971520 bytes")
+    assert "too large for a results file of lightfield-jax fit (at most 16777216" in line
+    table = _sparse(tmp_path / "curve.csv", 20 << 20)
+    with pytest.raises(CaptureError, match=r"curve.csv: 20971520 bytes is too large for a resp"):
+        load_response(table, 1)
+
+
+def test_an_experiment_sweeping_too_many_cells_is_refused_unless_allowed(capsys, tmp_path):
+    from lightfield_jax.app.experiment import count_cells, load_experiment_config
+
+    config = yaml.safe_load((ROOT / "configs" / "coverage.yaml").read_text())
+    config.pop("reduced")
+    config["seeds"] = 5000  # three media x 5000 seeds
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml.safe_dump(config))
+    assert count_cells(load_experiment_config(path)) == 15000
+    line = _refused(
+        capsys, "experiment", path, "--out", tmp_path / "o", match="sweeps about 15000 cells"
+    )
+    assert "more than the limit of 10000" in line and "--max-cells 15000" in line
+    assert not (tmp_path / "o").exists()
+    # Allowed: counted and said before the work (here refused later, by the script's
+    # own check of an unknown key).
+    config["unknown_key"] = 1
+    path.write_text(yaml.safe_dump(config))
+    status, out, err = _run(
+        capsys, "experiment", path, "--out", tmp_path / "o", "--max-cells", "20000"
+    )
+    assert status == 2 and "unknown_key" in err
+    assert out.splitlines()[0] == "experiment coverage: about 15000 cells of work"
+    # The shipped configs stay within the default limit.
+    for shipped in (ROOT / "configs").glob("*.yaml"):
+        data = yaml.safe_load(shipped.read_text())
+        if "experiment" in data:
+            assert count_cells(load_experiment_config(shipped)) <= 10_000, shipped
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_stale_temporaries_of_a_killed_command_are_removed_by_the_next(capture, tmp_path):
+    """Temporaries named for a process that is gone (kill -9) are removed by the next
+    command writing beside them; a running process's are kept (a concurrent writer)."""
+    results = _results(capture, tmp_path)
+    dead, alive = _dead_pid(), os.getppid()
+    stale_folder = tmp_path / f".r.tmp-{dead}-0123abcd"
+    stale_folder.mkdir()
+    (stale_folder / "bounces.npy").write_bytes(b"half")
+    stale_file = tmp_path / f".fig.png.tmp-{dead}-0123abcd.png"
+    stale_file.write_bytes(b"half")
+    live = tmp_path / f".other.json.tmp-{alive}-0123abcd.json"
+    live.write_bytes(b"being written")
+    assert main(["render", str(results), "--out", str(tmp_path / "r"), "-q"]) == 0
+    assert not stale_folder.exists() and not stale_file.exists()
+    assert live.read_bytes() == b"being written"
+    assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name and p != live]
+
+
+def test_a_stdout_that_cannot_be_written_is_one_line_after_the_files(
+    capture, capsys, tmp_path, monkeypatch
+):
+    import errno
+    import io
+
+    class Full(io.StringIO):
+        def write(self, text):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    results = _results(capture, tmp_path)
+    monkeypatch.setattr(sys, "stdout", Full())
+    status = main(["render", str(results), "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert status == 2 and err.splitlines() == [
+        "lightfield-jax: error: standard output: No space left on device: the command "
+        "finished (its files written), but its report there is incomplete"
+    ]
+    assert np.load(tmp_path / "r" / "bounces.npy").shape == (4, H, W)
+
+
+def test_a_results_file_that_cannot_be_written_has_its_values_printed(
+    capture, capsys, tmp_path, monkeypatch
+):
+    import errno
+
+    import lightfield_jax.capture.io as lio
+
+    def full(path, obj, **_):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(lio, "atomic_write_json", full)
+    out = tmp_path / "r.json"
+    status, stdout, err = _run(
+        capsys, "fit", capture / "capture.yaml", "--method", "gradient", "--out", out, "-q"
+    )
+    assert status == 2 and f"{out}: No space left on device" in err, err
+    assert f"not written: {out}; the fit:" in stdout
+    assert "[Y] gradient: sigma_t " in stdout and "sigma_s " in stdout, stdout
+    assert not out.exists()
+
+
+def test_a_long_output_name_has_a_temporary_that_fits_beside_it(capture, capsys, tmp_path):
+    """A valid name of 252 bytes (84 three-byte characters) or with a long extension:
+    its temporary's name is cut to the file system's 255 bytes."""
+    results = _results(capture, tmp_path)
+    folder = tmp_path / ("日" * 84)
+    assert main(["render", str(results), "--out", str(folder), "-q"]) == 0
+    assert (folder / "bounces.npy").is_file()
+    from lightfield_jax.capture.io import atomic_write_json
+
+    long_suffix = tmp_path / ("r." + "a" * 240)
+    atomic_write_json(long_suffix, {"a": 1})
+    assert json.loads(long_suffix.read_text()) == {"a": 1}
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_long_plain_list_is_not_called_an_alias_bomb(capture, capsys):
+    _edit(capture, images=[f"shift_{i % P:02d}.exr" for i in range(100_001)])
+    line = _refused(
+        capsys, "inspect", capture / "capture.yaml", match="holds more than 100000 values"
+    )
+    assert "alias" not in line
+
+
+def test_api_images_beyond_float32_bfloat16_and_write_exr_of_an_array():
+    import jax
+
+    from lightfield_jax.inverse.data import prepare_data
+
+    images = np.stack([np.full((H, W), 0.2 + 0.1 * (i % 2)) for i in range(P)])
+    pattern = lfj.Stripes(6, 3, tuple(range(P)))
+    with jax.enable_x64(False):  # float64 images converted to float32, as in a plain session
+        with pytest.raises(ValueError, match=r"images: its largest value 3e\+299 lies outsi"):
+            prepare_data(images * 1e300, pattern)
+        with pytest.raises(ValueError, match=r"images: its largest value 3e-301 lies outsid"):
+            prepare_data(images * 1e-300, pattern)
+    import ml_dtypes
+
+    # bfloat16 images are taken as float16 ones are.
+    for dtype in (np.float16, ml_dtypes.bfloat16):
+        prepare_data(images.astype(dtype), pattern)
+    with pytest.raises(TypeError, match=r"channels must map each channel's name to a \(height"):
+        write_exr("x.exr", images[0])
+
+
+def test_a_quoted_number_is_refused_like_a_quoted_integer(capture, capsys):
+    _edit(capture, black_level="0.01")
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        match="black_level: must be a number, got '0.01' (str) (a quoted number: remove the",
+    )
+
+
+def test_render_names_the_results_files_keys(capture, capsys, tmp_path):
+    for changes, match in (
+        ({"model": {"n_theta": 7}}, "channel Y: model.n_theta: must be a multiple of 8"),
+        ({"model": {"bounces": 0}}, "channel Y: model.bounces: must be a positive integer"),
+        ({"g": 1.0}, "channel Y: g: must satisfy -1 < g < 1, got 1.0"),
+        ({"capture_file": "/etc/passwd"}, "capture: /etc/passwd: "),
+    ):
+        results = _results(capture, tmp_path, **changes)
+        line = _refused(capsys, "render", results, "--out", tmp_path / "r", match=match)
+        assert line.startswith(f"lightfield-jax: error: {results}: "), line
+
+
+def test_an_image_whose_header_differs_in_size_is_refused_before_decoding(capture, capsys):
+    _png_header(capture / "huge.png", 20000, 20000)
+    _edit(capture, images=[f"shift_{i:02d}.exr" for i in range(P)][:2] + ["huge.png"] * 4)
+    _refused(
+        capsys,
+        "inspect",
+        capture / "capture.yaml",
+        "--max-memory",
+        "8G",
+        match=f"images[2]: huge.png is 20000x20000 pixels (its header), but images[0] "
+        f"(shift_00.exr) is {W}x{H}",
+    )
+
+
+def test_libpng_lines_are_not_printed_raw(capture, tmp_path):
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    ihdr = struct.pack(">IIBBBBB", W, H, 8, 0, 0, 0, 0)
+    (capture / "bad.png").write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", b"\x01" * 64)
+        + chunk(b"IEND", b"")
+    )
+    _edit(capture, images=["bad.png"] + [f"shift_{i:02d}.exr" for i in range(1, P)])
+    env = {**os.environ, "PYTHONPATH": str(ROOT), XLA_CACHE_ENV: "off"}
+    done = subprocess.run(
+        [sys.executable, "-m", "lightfield_jax", "inspect", str(capture / "capture.yaml")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    lines = done.stderr.splitlines()
+    assert done.returncode == 2 and len(lines) == 1, done.stderr
+    assert "images[0]: " in lines[0] and "bad.png" in lines[0]
+
+
+def test_a_full_compilation_cache_is_one_warning():
+    import warnings
+
+    from lightfield_jax.inverse.programs import CompilationCacheWarning, repairing_compilation_cache
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with repairing_compilation_cache():
+            for i in range(27):
+                warnings.warn(
+                    f"Error writing persistent compilation cache entry for 'jit_f{i}': "
+                    "OSError: [Errno 28] No space left on device",
+                    stacklevel=1,
+                )
+    assert len(caught) == 1 and caught[0].category is CompilationCacheWarning
+    assert "could not store 27 compiled program(s) (OSError: [Errno 28] No space" in str(
+        caught[0].message
+    )
+
+
+def test_a_staged_output_is_written_without_a_nested_temporary(tmp_path, monkeypatch):
+    import lightfield_jax.capture.io as lio
+    from lightfield_jax.app.outputs import staged_files
+
+    made = []
+    real = lio._make_file
+    monkeypatch.setattr(lio, "_make_file", lambda p: made.append(p.name) or real(p))
+    with staged_files() as write:
+        lio.atomic_write_json(write(tmp_path / "r.json"), {"a": 1})
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1}
+    assert made == [], made  # no temporary of the temporary (a name ..r.json.tmp-*.tmp-*)
+
+
+def test_a_newline_in_an_output_path_is_printed_escaped(capture, capsys, tmp_path):
+    results = _results(capture, tmp_path)
+    status, out, _ = _run(capsys, "render", results, "--out", tmp_path / "a\nb")
+    assert status == 0 and len(out.splitlines()) == 1, out
+    assert "a\\nb: " in out
+
+
+def test_a_hangup_ignored_by_nohup_stays_ignored():
+    """SIGHUP ends a command as SIGTERM does, but not one started under nohup."""
+    code = (
+        "import os, signal\n"
+        "from lightfield_jax.app.signals import stop_on_signals\n"
+        "with stop_on_signals('x'):\n"
+        "    os.kill(os.getpid(), signal.SIGHUP)\n"
+        "    import time; time.sleep(0.5)\n"
+        "print('still here')\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN),
+    )
+    assert done.returncode == 0 and done.stdout == "still here\n", done.stderr

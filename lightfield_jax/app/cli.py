@@ -23,8 +23,10 @@ Conventions every command keeps:
   output folders through :func:`~lightfield_jax.capture.io.atomic_directory` and single files
   through :func:`~lightfield_jax.app.outputs.staged_files`, so a failure leaves no
   partial output and replaces no existing file.
-- SIGINT (Ctrl-C) and SIGTERM end a command within a moment, with status 130 or 143
-  and nothing written (:mod:`lightfield_jax.app.signals`).
+- SIGINT (Ctrl-C), SIGTERM and SIGHUP end a command within a moment, with status 130,
+  143 or 129 and nothing written (:mod:`lightfield_jax.app.signals`).
+- Results and summaries go to stdout through :func:`_say` (a stdout that fails is said
+  once, at the end, exit status 2); paths printed go through :func:`_path`.
 - Warnings print as ``lightfield-jax: warning: ...`` and are collected in
   ``args.warnings`` (e.g. for a metadata file).
 - Long work reports its stages through :func:`_progress`: a display on stderr that
@@ -172,6 +174,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"{PROG}: error: {_describe_limit(MemoryError())}", file=sys.stderr)
         return 2
+    failed = getattr(args, "stdout_failed", None)
+    if failed is not None:
+        why = failed.strerror or type(failed).__name__
+        print(
+            f"{PROG}: error: standard output: {_one_line(why)}: the command finished (its "
+            "files written), but its report there is incomplete",
+            file=sys.stderr,
+        )
+        return 2
     return 0 if status is None else int(status)
 
 
@@ -210,6 +221,19 @@ def _one_line(text: str) -> str:
     return "".join(
         c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROLS else c
         for c in flat
+    )
+
+
+def _path(path) -> str:
+    """A path as a message prints it: as given, its control characters escaped (a
+    newline in a file name would split the line, an escape sequence recolour the
+    terminal)."""
+    text = str(path)
+    if text.isprintable():
+        return text
+    return "".join(
+        c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROLS else c
+        for c in text
     )
 
 
@@ -275,9 +299,34 @@ def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
     return progress(desc, total, enabled=False if args.quiet else None)
 
 
-def _say(args: argparse.Namespace, text: str) -> None:
-    if not args.quiet:
+def _say(args: argparse.Namespace, text: str, always: bool = False) -> None:
+    """``text`` on stdout (silenced by ``--quiet`` unless ``always``). A stdout that
+    cannot take it (a full disk, a closed pipe) is noted in ``args.stdout_failed`` and
+    not written to again: the command finishes its files, and :func:`main` says it."""
+    if (args.quiet and not always) or getattr(args, "stdout_failed", None) is not None:
+        return
+    try:
         print(text)
+        sys.stdout.flush()
+    except OSError as e:
+        args.stdout_failed = e
+        _drop_stdout()
+
+
+def _drop_stdout() -> None:
+    """Send what is left in stdout's buffer to /dev/null: the interpreter's flush at
+    exit would fail again ("Exception ignored ... BrokenPipeError")."""
+    import os
+
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
 
 
 # ------------------------------------------------------------------ compilation cache

@@ -8,6 +8,7 @@ from pathlib import Path
 from lightfield_jax.app.cli import (
     _about,
     _outputs,
+    _path,
     _positive_int,
     _progress,
     _say,
@@ -90,9 +91,9 @@ def _pattern(args: argparse.Namespace) -> None:
         )
     _say(
         args,
-        f"wrote {len(files)} files to {out}: {len(phases)} stripe images (period {args.period}, "
-        f"lit {args.lit}, phases {list(phases)}, {args.orientation}), white.png, black.png, "
-        "capture.yaml",
+        f"wrote {len(files)} files to {_path(out)}: {len(phases)} stripe images (period "
+        f"{args.period}, lit {args.lit}, phases {list(phases)}, {args.orientation}), white.png, "
+        "black.png, capture.yaml",
     )
 
 
@@ -161,7 +162,7 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     _say(args, inspection.summary())
     written = [f for f in (plot, out, response) if f is not None]
     if written:
-        _say(args, f"wrote {', '.join(str(f) for f in written)}")
+        _say(args, f"wrote {', '.join(_path(f) for f in written)}")
     problems = inspection.problems()
     for problem in problems:
         _warn(args, f"{capture.source}: {problem}")

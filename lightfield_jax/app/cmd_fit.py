@@ -14,6 +14,7 @@ from lightfield_jax.app.cli import (
     PROG,
     _about,
     _outputs,
+    _path,
     _positive_int,
     _positive_seconds,
     _progress,
@@ -314,11 +315,16 @@ def _fit(args: argparse.Namespace) -> int | None:
             result["truth"] = capture.truth
             result["truth_error"] = compared[0] if len(compared) == 1 else compared
         result["medium_roi"] = _roi_record(capture)
-        with staged_files() as write:
-            if figures:
-                stage("plot")
-                _fit_figures(capture, fit, figures, write)
-            atomic_write_json(write(out), result)
+        try:
+            with staged_files() as write:
+                if figures:
+                    stage("plot")
+                    _fit_figures(capture, fit, figures, write)
+                atomic_write_json(write(out), result)
+        except OSError:
+            # A full disk must not lose the fit's minutes: its values on the screen.
+            _say(args, f"not written: {_path(out)}; the fit:\n{_fit_summary(fit)}", always=True)
+            raise
     for note in fit_notes:
         _say(args, note)
     _say(args, _fit_summary(fit))
@@ -334,7 +340,7 @@ def _fit(args: argparse.Namespace) -> int | None:
             )
     if args.method in TWO_STEP_METHODS:
         _say(args, f"note: {TWO_STEP_CAVEAT}")
-    _say(args, f"wrote {', '.join(str(f) for f in [out, *figures])}")
+    _say(args, f"wrote {', '.join(_path(f) for f in [out, *figures])}")
     if not fit.converged:  # its reasons too (were only in the summary, which -q silences)
         why = "; ".join(
             f"[{name}] {'; '.join(r.reasons) or r.message}"
@@ -467,6 +473,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     _say(args, "\n".join(lines))
     _say(
         args,
-        f"wrote {out}/ (capture, results.json" + (", demo_fit.png)" if "joint" in results else ")"),
+        f"wrote {_path(out)}/ (capture, results.json"
+        + (", demo_fit.png)" if "joint" in results else ")"),
     )
     return None if all(r.converged for _, r in rows) else 1

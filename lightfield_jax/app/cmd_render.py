@@ -9,6 +9,8 @@ from pathlib import Path
 
 from lightfield_jax.app.cli import (
     _outputs,
+    _path,
+    _positive_int,
     _progress,
     _say,
     _warn,
@@ -30,7 +32,8 @@ RENDER_FILES = ("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "
         "--out",
         metavar="DIR",
         required=True,
-        help="output folder (created; its files replaced; another command's folder refused)",
+        help="output folder (created; a rerun replaces its files; a folder holding "
+        "files render would replace that it did not write is refused)",
     ),
     arg(
         "--plot",
@@ -74,6 +77,7 @@ def _render_command(args: argparse.Namespace) -> None:
         inputs=[args.results, *render_inputs(data, source)],
         folder_names=RENDER_FILES,
         marker="render.json",
+        writer="render",  # a folder without render.json holds the user's own files
     )
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
@@ -82,7 +86,7 @@ def _render_command(args: argparse.Namespace) -> None:
         )
     for note in notes:
         _warn(args, note)
-    _say(args, f"wrote {len(files)} files to {out}: {', '.join(files)}")
+    _say(args, f"wrote {len(files)} files to {_path(out)}: {', '.join(map(_path, files))}")
 
 
 # --------------------------------------------------------------------------- experiment
@@ -94,6 +98,14 @@ def _render_command(args: argparse.Namespace) -> None:
     arg("config", metavar="CONFIG.yaml", help="an experiment config (configs/)"),
     arg("--out", metavar="DIR", help="results folder (default: results/NAME)"),
     arg("--reduced", action="store_true", help="the config's reduced size (as the tests run)"),
+    arg(
+        "--max-cells",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="the most cells (units of work: the product of the config's lists' lengths) "
+        "a run may sweep (default: 10000); a larger config is refused before it starts",
+    ),
 )
 def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
@@ -103,24 +115,33 @@ def _experiment(args: argparse.Namespace) -> None:
     same DIR resumes from the work already stored in DIR/cache."""
     from lightfield_jax.app.cli import PROG, _one_line
     from lightfield_jax.app.experiment import (
+        MAX_CELLS,
         ExperimentError,
+        check_cells,
         load_experiment_config,
         run_experiment,
     )
 
     config = Path(args.config)  # a config inside DIR named like an output is kept
+    data = load_experiment_config(config, args.reduced)
+    limit = MAX_CELLS if args.max_cells is None else args.max_cells
+    cells = check_cells(data, args.config, limit)  # refused here, before any work
     out = args.out
     if out is None:  # the default folder is checked like one given
-        out = str(Path("results") / str(load_experiment_config(config, args.reduced)["experiment"]))
+        out = str(Path("results") / str(data["experiment"]))
     _outputs(
         folders=[out],
         inputs=[config] if config.is_file() else [],
         folder_names=("*.json", "*.csv", "*.png", "*.npz"),
         marker="summary.json",
+        writer="experiment",  # a folder without summary.json holds the user's own files
     )
+    _say(args, f"experiment {data['experiment']}: about {cells} cells of work")
     try:
         with _progress(args, "experiment") as stage:
-            record = run_experiment(args.config, out, reduced=args.reduced, progress=stage)
+            record = run_experiment(
+                args.config, out, reduced=args.reduced, progress=stage, max_cells=limit
+            )
     except ExperimentError as e:
         if args.debug:
             raise

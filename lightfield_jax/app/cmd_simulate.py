@@ -8,6 +8,7 @@ from pathlib import Path
 from lightfield_jax.app.cli import (
     DEMO_CONFIG,
     _outputs,
+    _path,
     _positive_int,
     _progress,
     _say,
@@ -105,12 +106,12 @@ def _simulate(args: argparse.Namespace) -> None:
         if plot is not None:
             for note in notes:
                 _warn(args, note)
-            _say(args, f"wrote {', '.join(figures)} to {plot}")
+            _say(args, f"wrote {', '.join(figures)} to {_path(plot)}")
     converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
     _say(
         args,
-        f"wrote {len(files)} files to {out}: K = {sim.n_bounces} bounces, rho = {sim.rho:.4f} "
-        f"({converges}), n_theta = {sim.n_theta}, refine = {sim.refine}; "
+        f"wrote {len(files)} files to {_path(out)}: K = {sim.n_bounces} bounces, rho = "
+        f"{sim.rho:.4f} ({converges}), n_theta = {sim.n_theta}, refine = {sim.refine}; "
         f"compile {sim.timing['compile']:.2f} s, run {sim.timing['run']:.2f} s",
     )
 
@@ -206,7 +207,7 @@ def _bench(args: argparse.Namespace) -> None:
                 DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: _say(args, m)
             )
         atomic_write_json(out, result)
-        _say(args, f"wrote {out}")
+        _say(args, f"wrote {_path(out)}")
         return
     if args.slab:
         with _progress(args, "bench", 3) as stage:
@@ -215,7 +216,7 @@ def _bench(args: argparse.Namespace) -> None:
                 repeats=args.repeats or 5, fits=not args.no_fits, progress=lambda m: _say(args, m)
             )
         atomic_write_json(out, result)
-        _say(args, f"wrote {out}")
+        _say(args, f"wrote {_path(out)}")
         return
     sizes = args.sizes
     from lightfield_jax.app.memory import check_memory, render_bytes
@@ -235,4 +236,4 @@ def _bench(args: argparse.Namespace) -> None:
 
         result = run_benchmark(sizes, args.repeats or 5, progress=report)
     atomic_write_json(out, result)
-    _say(args, f"wrote {out}")
+    _say(args, f"wrote {_path(out)}")

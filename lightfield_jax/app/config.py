@@ -40,8 +40,9 @@ all light the same rows without noise: identical images) are refused too. A YAML
 must be a regular file of at most 16 MiB whose aliases expand to at most
 :data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
 before it is built), nested less deeply than Python's recursion limit. Unknown keys, duplicate
-keys, wrong types and out-of-range values are all errors. Float keys accept numeric
-strings (YAML 1.1 reads ``1e-4`` as one); integer keys accept only integers.
+keys, wrong types and out-of-range values are all errors. Float keys accept the
+strings YAML 1.1 leaves unread (``1e-4``), no other string (a quoted ``'0.01'``);
+integer keys accept only integers.
 """
 
 from __future__ import annotations
@@ -121,11 +122,16 @@ class _Loader(yaml.SafeLoader):
         node = self.get_single_node()
         if node is None:
             return None
-        size = _expanded_size(node)
-        if size > MAX_YAML_VALUES:
+        size, written = _expanded_size(node)
+        if size > MAX_YAML_VALUES and written <= MAX_YAML_VALUES:
             raise yaml.YAMLError(
                 f"its aliases expand to more than {MAX_YAML_VALUES} values (an alias "
                 "bomb?); a config holds a few hundred"
+            )
+        if size > MAX_YAML_VALUES:  # written out: a long list, no aliases
+            raise yaml.YAMLError(
+                f"it holds more than {MAX_YAML_VALUES} values; a config holds a few "
+                "hundred (many images: give them as one .npy stack)"
             )
         return self.construct_document(node)
 
@@ -157,9 +163,10 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
-def _expanded_size(root: yaml.Node) -> int:
+def _expanded_size(root: yaml.Node) -> tuple[int, int]:
     """The number of values ``root`` holds with every alias expanded, counted once per
-    distinct node (memoised, without recursion) and capped just past the limit."""
+    distinct node (memoised, without recursion) and capped just past the limit; and the
+    number of distinct nodes (as written, without the aliases' expansion)."""
     sizes: dict[int, int] = {}
     on_path: set[int] = set()
     stack: list[tuple[yaml.Node, bool]] = [(root, False)]
@@ -176,7 +183,7 @@ def _expanded_size(root: yaml.Node) -> int:
             on_path.add(key)
             stack.append((node, True))
             stack.extend((c, False) for c in children if id(c) not in sizes)
-    return sizes[id(root)]
+    return sizes[id(root)], len(sizes)
 
 
 def _children(node: yaml.Node) -> list[yaml.Node]:
@@ -187,11 +194,9 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
     return []
 
 
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
-)
+# The floats YAML 1.1 (PyYAML's default loader) reads as strings: 1e-4, 2E5.
+_YAML11_FLOAT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML11_FLOAT, list("-+0123456789"))
 
 
 def load_yaml(path: str | os.PathLike, error: type[ValueError] = ConfigError) -> dict:
@@ -303,6 +308,13 @@ def _show(value: Any) -> str:
 
 
 def _as_float(section: _Section, where: str, value: Any) -> float:
+    # A string is a number only in the form YAML 1.1 leaves unread (a config parsed by
+    # PyYAML's default loader); a quoted '0.01' is a string, refused as integer keys
+    # refuse a quoted '6'.
+    if isinstance(value, str) and not _YAML11_FLOAT.match(value):
+        section.fail(
+            where, f"must be a number, got {_show(value)} (a quoted number: remove the quotes)"
+        )
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         section.fail(where, f"must be a number, got {_show(value)}")
     try:

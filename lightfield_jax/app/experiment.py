@@ -418,6 +418,57 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     return data
 
 
+# A sweep larger than this is refused unless allowed (run_experiment's max_cells,
+# ``experiment --max-cells``): a config of 10**6 cells would start days of work
+# without a word. The shipped full configs count at most a few thousand.
+MAX_CELLS = 10_000
+# Integer keys that count repetitions of the whole experiment (one cell each).
+_COUNT_KEYS = ("seeds",)
+
+
+def count_cells(config: dict) -> int:
+    """An upper estimate of the units of work (cells) an experiment config sweeps,
+    from its shape alone (no script loaded): in each mapping, the product of the
+    lengths of its lists (each a sweep axis) and of its ``seeds`` count, times the sum
+    of the cells of its sub-mappings that sweep something (each a sweep of its own).
+    ``experiment`` and ``reduced`` are not counted. Any runner can call it before the
+    work starts."""
+    return _cells(config, top=True)[0]
+
+
+def _cells(value: dict, top: bool = False) -> tuple[int, bool]:
+    """(cells, whether ``value`` sweeps anything) of one mapping of a config."""
+    product, sections, sweeps = 1, 0, False
+    for key, item in value.items():
+        if top and key in ("experiment", "reduced"):
+            continue
+        if isinstance(item, list):
+            product *= max(1, len(item))
+            sweeps = True
+        elif key in _COUNT_KEYS and isinstance(item, int) and not isinstance(item, bool):
+            product *= max(1, item)
+            sweeps = True
+        elif isinstance(item, dict):
+            cells, inner = _cells(item)
+            if inner:
+                sections += cells
+                sweeps = True
+    return product * max(1, sections), sweeps
+
+
+def check_cells(config: dict, source: str | Path, limit: int | None = MAX_CELLS) -> int:
+    """The cells of ``config`` (:func:`count_cells`), refused (a ``ValueError`` naming
+    ``source`` and the count) above ``limit`` (``None``: no limit)."""
+    cells = count_cells(config)
+    if limit is not None and cells > limit:
+        raise ValueError(
+            f"{source}: sweeps about {cells} cells (the product of its lists' lengths), "
+            f"more than the limit of {limit}; a run of that size is meant: give "
+            f"--max-cells {cells} (run_experiment(..., max_cells={cells}))"
+        )
+    return cells
+
+
 def _exec_module(name: str, path: Path):
     """Execute ``path`` as the module ``lightfield_jax_experiments.NAME``, registered in
     ``sys.modules`` first (dataclasses in a script look their module up)."""
@@ -499,14 +550,18 @@ def run_experiment(
     *,
     reduced: bool = False,
     progress: Callable[[str], None] = lambda _m: None,
+    max_cells: int | None = MAX_CELLS,
 ) -> dict:
     """Run one experiment; returns its summary (also written to ``out/summary.json``).
 
     The config is checked whole before any work (:func:`check_experiment_config`). The
     outputs are written into a staging folder beside ``out`` and published into ``out``
     (with ``summary.json``) only when the run succeeds: a failed run leaves no partial
-    result, only ``out/cache`` (the finished units a rerun resumes from)."""
+    result, only ``out/cache`` (the finished units a rerun resumes from). A config
+    sweeping more than ``max_cells`` cells (:func:`count_cells`) is refused before it
+    starts (``None``: no limit)."""
     config = load_experiment_config(config_path, reduced)
+    check_cells(config, config_path, max_cells)
     try:
         module = _load_script(config["experiment"])
         check_experiment_config(module, config)

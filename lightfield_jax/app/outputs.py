@@ -19,7 +19,9 @@ its inputs (the config or capture file and every file a capture lists) to
   command's own marker is its own: a rerun replaces its files, as before. A command
   writing a simulated capture (:data:`CAPTURE_MARKER`) or a pattern's template
   (``capture.yaml``) also refuses a folder without its marker holding a file it would
-  replace (the user's own capture or a camera's frames). Every folder a
+  replace (the user's own capture or a camera's frames); so do ``render`` and
+  ``experiment`` (their own markers): a folder of figures or arrays of the user's own
+  (``docs/figures``) is never written over. Every folder a
   command writes into is named, each checked alike: ``render`` of several channels
   names each channel's subfolder too.
 
@@ -192,9 +194,10 @@ def _check_owner(
         replaced.insert(0, replaced.pop(replaced.index("capture.yaml")))
     more = f" (and {len(replaced) - 1} more)" if len(replaced) > 1 else ""
     if replaced and users:
+        whose = "a capture" if marker == CAPTURE_MARKER else "a file"
         raise OutputError(
             f"{given}: holds {replaced[0]}{more} that lightfield-jax {writer} did not write "
-            f"(no {marker}; a capture of your own?), which this command would replace; "
+            f"(no {marker}; {whose} of your own?), which this command would replace; "
             "choose another output folder"
         )
     if replaced:

@@ -1,4 +1,5 @@
-"""Stop a command on Ctrl-C (SIGINT) or SIGTERM within a moment, whatever it computes.
+"""Stop a command on Ctrl-C (SIGINT), SIGTERM or SIGHUP (a dropped ssh connection)
+within a moment, whatever it computes.
 
 Python runs a signal handler only when the main thread returns to the interpreter,
 and a running XLA computation does not: after a ``KeyboardInterrupt`` the main thread
@@ -7,8 +8,8 @@ signal is seen by a watcher thread instead: Python's C-level handler writes the
 signal's number to a pipe (:func:`signal.set_wakeup_fd`) at once, the thread removes
 the command's unpublished temporary files and folders
 (:func:`~lightfield_jax.capture.io.remove_temporaries`) and ends the process with
-:func:`os._exit` (status 130 for SIGINT, 143 for SIGTERM, as shells report them),
-which does not wait for the computation. Nothing was published: outputs replace their
+:func:`os._exit` (status 130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP, as shells
+report them), which does not wait for the computation. Nothing was published: outputs replace their
 targets only when a command succeeds, so no output is left.
 """
 
@@ -23,7 +24,8 @@ from collections.abc import Iterator
 
 from lightfield_jax.capture.io import remove_temporaries
 
-EXIT_STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
+# SIGHUP: the terminal went away (an ssh connection dropped); ended like SIGTERM.
+EXIT_STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
 
 
 def _ignore(signum, frame) -> None:
@@ -48,14 +50,18 @@ def _watch(read_fd: int, prog: str) -> None:
 
 @contextlib.contextmanager
 def stop_on_signals(prog: str) -> Iterator[None]:
-    """Within the block, SIGINT and SIGTERM end the process at once (see the module
-    docstring). Outside the main thread (where handlers cannot be set) it does nothing."""
+    """Within the block, SIGINT, SIGTERM and SIGHUP end the process at once (see the module
+    docstring); a SIGHUP ignored when the command started (``nohup``) stays ignored.
+    Outside the main thread (where handlers cannot be set) it does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     read_fd, write_fd = os.pipe()
     os.set_blocking(write_fd, False)
-    previous = {s: signal.signal(s, _ignore) for s in EXIT_STATUS}
+    watched = [
+        s for s in EXIT_STATUS if not (s == signal.SIGHUP and signal.getsignal(s) == signal.SIG_IGN)
+    ]
+    previous = {s: signal.signal(s, _ignore) for s in watched}
     old_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
     watcher = threading.Thread(target=_watch, args=(read_fd, prog), daemon=True)
     watcher.start()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -20,7 +21,7 @@ from lightfield_jax.capture.io import (
     CaptureFileNotFoundError,
     ImageData,
     _channel_index,
-    image_values,
+    image_shape,
     read_image,
     read_npy_stack,
 )
@@ -29,15 +30,39 @@ from lightfield_jax.inverse.data import floor_is_cut, floor_pileup
 
 
 def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
-    """Refuse, from the first file's header, a capture too large to load (a file that
-    cannot be read is left to the read, which names its key)."""
-    try:
-        samples = image_values(files[0]) * len(files)
-    except CaptureError:
-        return
+    """Refuse, from the files' headers, before any is decoded, an image whose size
+    differs from the first's (a header claiming 20000x20000 pixels) and a capture too
+    large to load (a file that cannot be read is left to the read, which names its
+    key)."""
+    shapes: list[tuple[int, ...]] = []
+    first: tuple[int, ...] | None = None
+    for i, file in enumerate(files):
+        try:
+            shape = image_shape(file)
+        except CaptureError:
+            if first is None:
+                return
+            shape = first  # its read says what is wrong
+        if first is None:
+            first = shape
+        elif _image_like(shape) and _image_like(first) and shape[:2] != first[:2]:
+            top.fail(
+                f"images[{i}]",
+                f"{file.name} is {shape[1]}x{shape[0]} pixels (its header), but images[0] "
+                f"({files[0].name}) is {first[1]}x{first[0]}; every image must have the "
+                "same size and channels",
+            )
+        shapes.append(shape)
+    samples = sum(math.prod(shape) for shape in shapes)
     check_memory(
         capture_bytes(samples), f"{top.source}: images ({len(files)} file(s), {samples} samples)"
     )
+
+
+def _image_like(shape: tuple[int, ...]) -> bool:
+    """A header's shape that is one image's, (height, width[, channels]) with pixels;
+    others (an empty array, a stack) are named by the read."""
+    return len(shape) in (2, 3) and 0 not in shape
 
 
 def _read(top: _Section, key: str, file: Path, channel) -> ImageData:

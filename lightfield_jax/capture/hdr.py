@@ -203,6 +203,11 @@ def _header_names(text: str) -> list[str]:
     return []
 
 
+# A response table has at most one row per code of a 16-bit camera (65536 rows of a
+# code and four columns: about 5 MB of text).
+MAX_RESPONSE_BYTES = 1 << 24
+
+
 def load_response(
     path: str | os.PathLike, n_channels: int, names: Sequence[str] | None = None
 ) -> Response:
@@ -215,6 +220,12 @@ def load_response(
     path = Path(path)
     # A FIFO would block the read forever, a folder or device is no table.
     require_regular_file(path, "a response table")
+    size = os.path.getsize(path)
+    if size > MAX_RESPONSE_BYTES:  # parsed as text, it would take ten times its size
+        raise CaptureError(
+            f"{path}: {size} bytes is too large for a response table (at most "
+            f"{MAX_RESPONSE_BYTES}: one row per code of a 16-bit camera is about 5 MB)"
+        )
     header: list[str] = []
     try:
         if path.suffix.lower() == ".npy":

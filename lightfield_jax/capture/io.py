@@ -26,9 +26,13 @@ import errno
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import stat
+import sys
+import tempfile
+import threading
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -188,14 +192,20 @@ def oiio_name(path: str | os.PathLike, error: type[Exception] = CaptureError) ->
 def image_values(path: str | os.PathLike) -> int:
     """The number of samples (height × width × channels, × images for a ``.npy``
     stack) a file decodes to, from its header alone (no pixels read)."""
+    return math.prod(image_shape(path))
+
+
+def image_shape(path: str | os.PathLike) -> tuple[int, ...]:
+    """The shape a file decodes to, from its header alone (no pixels read): (height,
+    width, channels) for an image file, the array's shape for a ``.npy``."""
     path = Path(path)
     require_regular_file(path, "an image file")
     if path.suffix.lower() == ".npy":
-        return math.prod(npy_header(path)[0])
+        return tuple(npy_header(path)[0])
     inp = _open_oiio(path)
     try:
         spec = inp.spec()
-        return spec.height * spec.width * spec.nchannels
+        return (spec.height, spec.width, spec.nchannels)
     finally:
         inp.close()
 
@@ -360,6 +370,48 @@ _MAX_SUBIMAGES = 100
 _SUBIMAGE_WORDS = {"tiff": ("page", "a multi-page TIFF"), "openexr": ("part", "a multi-part EXR")}
 
 
+# Lines an image library prints on the process's stderr itself, besides the error
+# OpenImageIO reports (which the message quotes): libpng's "libpng error: ...".
+_LIBRARY_LINES = (b"libpng error:", b"libpng warning:")
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _library_stderr() -> Iterator[None]:
+    """Within the block, the lines the image libraries print on stderr (file descriptor
+    2) are held and dropped where they are :data:`_LIBRARY_LINES` (the error they
+    report is in the one-line message); any other output is passed on after it."""
+    try:
+        held = tempfile.TemporaryFile()
+    except OSError:  # no temporary folder: the lines are shown as printed
+        yield
+        return
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to keep clean
+        held.close()
+        yield
+        return
+    with _STDERR_LOCK, held:
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            kept = [
+                line
+                for line in held.read().splitlines(keepends=True)
+                if not line.startswith(_LIBRARY_LINES)
+            ]
+            if kept:
+                with contextlib.suppress(OSError):
+                    os.write(2, b"".join(kept))
+
+
 def _open_oiio(path: Path):
     """An open OpenImageIO reader of ``path`` at its first subimage, from its header
     alone. A file that holds several subimages (the pages of a multi-page TIFF, the parts
@@ -367,7 +419,8 @@ def _open_oiio(path: Path):
     not subimages, and are not refused."""
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(oiio_name(path))
+    with _library_stderr():
+        inp = oiio.ImageInput.open(oiio_name(path))
     if inp is None:
         raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
     try:
@@ -422,7 +475,8 @@ def _read_oiio(path: Path) -> ImageData:
             raise _integer_samples(path, "sample type", name)
         # Reading with an explicit type; OpenImageIO scales integers to [0, 1].
         fmt = oiio.DOUBLE if base == oiio.DOUBLE else oiio.FLOAT
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        with _library_stderr():
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if pixels is None:
             raise CaptureError(f"{path}: cannot read pixels ({inp.geterror() or oiio.geterror()})")
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
@@ -463,6 +517,12 @@ def write_exr(
         metadata: extra header attributes (string, int or float values).
     """
     path = Path(path)
+    if not isinstance(channels, Mapping):  # an array has no names (nor one truth value)
+        shape = f" of shape {np.shape(channels)}" if hasattr(channels, "shape") else ""
+        raise TypeError(
+            f"{path}: write_exr: channels must map each channel's name to a (height, width) "
+            f"array (e.g. {{'Y': image}}), got {type(channels).__name__}{shape}"
+        )
     if not channels:
         raise ValueError(f"{path}: write_exr needs at least one channel")
     names = list(channels)
@@ -586,12 +646,75 @@ def _write_oiio(
 _TEMPORARIES: set[Path] = set()
 
 
+# The name of a temporary: ``.NAME.tmp-PID-HEX.EXT``, PID the process writing it. One
+# whose process is gone (killed by SIGKILL, a power cut) is stale: the next command
+# writing beside it removes it (:func:`_sweep_stale`).
+_TEMPORARY_NAME = re.compile(r"\..*\.tmp-(\d+)-[0-9a-f]{8}(\.[^.]*)?", re.DOTALL)
+# The longest file name most file systems take (bytes); a temporary's name is kept
+# within it whatever the target's length (a 250-byte name, or a long extension).
+_NAME_MAX = 255
+# An extension longer than this is left off a temporary's name: the writers that pick
+# a format by the extension (images, figures) take short ones only.
+_MAX_SUFFIX = 16
+# Folders already swept of stale temporaries by this process.
+_SWEPT: set[str] = set()
+
+
+def _temporary_name(path: Path) -> str:
+    """A fresh temporary name for ``path``: hidden, its extension kept (the writers
+    pick a format by it), at most :data:`_NAME_MAX` bytes (the target's name cut)."""
+    suffix = path.suffix if len(os.fsencode(path.suffix)) <= _MAX_SUFFIX else ""
+    tail = f".tmp-{os.getpid()}-{secrets.token_hex(4)}{suffix}"
+    room = _NAME_MAX - 1 - len(os.fsencode(tail))
+    stem = os.fsencode(path.name)[:room].decode(errors="ignore")  # whole characters
+    return f".{stem}{tail}"
+
+
+def _sweep_stale(folder: Path) -> None:
+    """Remove, once per folder and process, the temporaries there (files and staging
+    folders of :data:`_TEMPORARY_NAME`) whose process no longer runs on this machine:
+    what a killed command left."""
+    key = os.path.abspath(folder)
+    if key in _SWEPT:
+        return
+    _SWEPT.add(key)
+    try:
+        with os.scandir(folder) as entries:
+            names = [e.name for e in entries if e.name.startswith(".")]
+    except OSError:
+        return
+    for name in names:
+        match = _TEMPORARY_NAME.fullmatch(name)
+        if match is None or _running(int(match.group(1))):
+            continue
+        stale = folder / name
+        if stale.is_dir() and not stale.is_symlink():
+            shutil.rmtree(stale, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                stale.unlink()
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (ours included)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # none (or no process id at all)
+        return False
+    except OSError:  # another user's: running
+        return True
+    return True
+
+
 def _reserve(path: Path, make) -> Path:
     """Create a uniquely named sibling of ``path`` (hidden, same extension) with ``make``;
-    it is registered as a temporary until :func:`forget_temporary`."""
-    stem = path.name[:200]
+    it is registered as a temporary until :func:`forget_temporary`. Stale temporaries
+    beside it (of a killed command) are removed first."""
+    _sweep_stale(path.parent)
     for _ in range(100):
-        candidate = path.with_name(f".{stem}.tmp-{secrets.token_hex(4)}{path.suffix}")
+        candidate = path.with_name(_temporary_name(path))
         try:
             make(candidate)
         except FileExistsError:
@@ -726,6 +849,12 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(f"{path}: is a directory")
+    if path in _TEMPORARIES:
+        # Already a temporary (staged_files'): written in place, published by its owner,
+        # not staged again under a temporary of the temporary's name.
+        with naming_output(path):
+            yield path
+        return
     made = make_folders(path.parent)
     try:
         tmp = _reserve(path, _make_file)

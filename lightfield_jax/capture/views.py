@@ -31,6 +31,8 @@ from lightfield_jax.scene.illumination import Beam, Full, Stripes
 from lightfield_jax.scene.medium import Medium
 
 MAX_LIGHTFIELD_FLOATS = 50_000_000  # 200 MB of float32
+# A fit's results file is a few kilobytes per channel.
+MAX_RESULTS_BYTES = 1 << 24
 
 
 def full_light(illumination) -> Beam | Full:
@@ -151,6 +153,15 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
     return {str(k): v for k, v in channels.items()}
 
 
+def _results_key(error: ValueError, model_key: str, results_key: str) -> str:
+    """``error``'s message with its leading key ``model_key`` said as the results file's
+    ``results_key``."""
+    text = str(error)
+    if text.startswith(model_key):
+        return results_key + text[len(model_key) :]
+    return text
+
+
 def unconverged_fit(fit: dict[str, Any]) -> str | None:
     """Why a fit of a results file is not to be trusted (``converged: false``): its
     ``reasons``, else its ``message``; ``None`` for a converged fit (or one that does
@@ -170,6 +181,12 @@ def _results_text(source: Path) -> str:
     from lightfield_jax.capture.io import require_regular_file
 
     require_regular_file(source, "a results file", ValueError)
+    size = os.path.getsize(source)
+    if size > MAX_RESULTS_BYTES:  # read whole, it would take several times its size
+        raise ValueError(
+            f"{source}: {size} bytes is too large for a results file of lightfield-jax fit "
+            f"(at most {MAX_RESULTS_BYTES}; a fit writes a few kilobytes)"
+        )
     try:
         return source.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:  # the codec's own message names no file
@@ -266,6 +283,9 @@ def render_results(
         capture = load_capture(capture_path)
     except FileNotFoundError as e:
         raise ValueError(f"{source}: capture: {e}") from None
+    except ValueError as e:  # not a capture file (capture: /etc/passwd): named by its key
+        e.args = (f"{source}: capture: {e}",)  # its kind kept (a MemoryLimitError)
+        raise
     height, width = capture.shape
     for name, fit in channels.items():
         crop = fit["model"]["crop"]
@@ -292,12 +312,20 @@ def render_results(
                 "all the same"
             )
             warn(fit_warning)
+        # The model's messages name its own keys (medium.g, grid.n_theta, bounces);
+        # said here by the results file's (g, model.n_theta, model.bounces).
         try:
             medium = Medium(fit["sigma_t"], fit["sigma_s"], fit["g"], fit.get("phase", "paper"))
+        except ValueError as e:
+            raise ValueError(f"{where}: {_results_key(e, 'medium.', '')}") from None
+        try:
             grid = Grid(m["width"], m["height"], m["n_theta"], m["refine"])
+        except ValueError as e:
+            raise ValueError(f"{where}: {_results_key(e, 'grid.', 'model.')}") from None
+        try:
             resolve_bounces(0.0, m["bounces"])  # its type; "auto" is resolved below
         except ValueError as e:
-            raise ValueError(f"{where}: {e}") from None
+            raise ValueError(f"{where}: {_results_key(e, 'bounces', 'model.bounces')}") from None
         stage(f"render {name}")
         result, left_out = render_transport(
             medium,

@@ -18,9 +18,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from lightfield_jax.capture.detect import _across_first, period_contradiction
-from lightfield_jax.checks import as_array, number_problem, shown, unmask, unmasked
+from lightfield_jax.checks import (
+    as_array,
+    check_float_range,
+    number_problem,
+    shown,
+    unmask,
+    unmasked,
+)
 from lightfield_jax.inverse.decay import fit_decay
-from lightfield_jax.inverse.separate import separate
+from lightfield_jax.inverse.separate import real_dtype, separate
 from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
 from lightfield_jax.scene.illumination import Stripes, period_problem, shifts_problem
 
@@ -150,8 +157,11 @@ def prepare_data(
     images, mask = unmask(images, mask)
     what = f"an array ({pattern.n_patterns}, height, width) of real numbers"
     given = as_array(images, "images", what, items="images of ")
-    if given.dtype.kind not in "iuf":  # bool, complex, strings, objects: not intensities
+    if not real_dtype(given.dtype):  # bool, complex, strings, objects: not intensities
         raise ValueError(f"images: must be real numbers, got dtype {given.dtype}")
+    # Converted to JAX's float: 1e300 would become inf and 1e-300 zero, then refused as
+    # "non-finite" or "not above 0" for what is only a scale.
+    check_float_range(given, "images")
     images = given.astype(jnp.result_type(float))
     if images.ndim != 3 or images.shape[0] != pattern.n_patterns or min(images.shape[1:]) < 2:
         raise ValueError(

@@ -123,6 +123,9 @@ class CompilationCacheWarning(UserWarning):
 # JAX's warning for an entry of the persistent cache it cannot read (a file cut short
 # by a crash or a full disk, or written by another version); it names the program.
 _UNREADABLE = "Error reading persistent compilation cache entry for '"
+# JAX's warning for a program it could not store (a full disk, a read-only folder): one
+# per program, tens per fit, all of one cause.
+_UNWRITABLE = "Error writing persistent compilation cache entry for '"
 
 
 def _cache_folder() -> str | None:
@@ -147,12 +150,17 @@ def repairing_compilation_cache():
     again (measured: 31 lines per fit from a cache whose files were damaged). Inside
     this context such an entry is deleted when JAX warns about it (the program it then
     compiles is stored in its place), and one :class:`CompilationCacheWarning` at the
-    end says so; other warnings are shown as before. Usable as a decorator."""
+    end says so; JAX's warning for each program it could not store (a full disk) is
+    said in one too; other warnings are shown as before. Usable as a decorator."""
     previous = warnings.showwarning
     deleted: list[str] = []
+    unstored: list[str] = []  # the reason of each program JAX could not store
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = str(message)
+        if text.startswith(_UNWRITABLE):
+            unstored.append(text[len(_UNWRITABLE) :].split("': ", 1)[-1])
+            return
         if not text.startswith(_UNREADABLE):
             previous(message, category, filename, lineno, file, line)
             return
@@ -163,6 +171,15 @@ def repairing_compilation_cache():
     with warnings.catch_warnings():
         warnings.showwarning = show
         yield
+    if unstored:
+        warnings.warn(
+            CompilationCacheWarning(
+                f"the compilation cache {_cache_folder()} could not store "
+                f"{len(unstored)} compiled program(s) ({unstored[0]}): they are compiled "
+                "again by the next run"
+            ),
+            stacklevel=3,
+        )
     if deleted:
         names = ", ".join(sorted(set(deleted))[:4]) + (", ..." if len(set(deleted)) > 4 else "")
         warnings.warn(
