@@ -328,8 +328,8 @@ def test_progress_without_a_terminal_is_one_plain_line_per_stage():
 
 @pytest.mark.parametrize(
     ("flags", "env", "lines"),
-    [((), None, True), (("--progress",), "none", True), (("--quiet",), None, False),
-     (("--progress", "none"), None, False)],
+    [((), None, True), (("--progress", "lines"), "none", True), (("--quiet",), None, False),
+     (("--progress", "none"), None, False), (("--quiet", "--progress", "lines"), None, True)],
 )  # fmt: skip
 def test_commands_choose_their_progress_display(tmp_path, capsys, monkeypatch, flags, env, lines):
     if env is None:

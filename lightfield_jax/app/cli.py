@@ -98,17 +98,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
-        "-q", "--quiet", action="store_true", help="no progress display and no summary"
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="no summary, and no progress display unless --progress is given",
     )
     common.add_argument(
         "--progress",
-        nargs="?",
-        const="lines",
         choices=MODES,
         metavar="MODE",
         help="how stages are shown on stderr: auto (a bar on a terminal, else one line "
-        "per stage with the elapsed time), bar, lines (the same without MODE), none "
-        f"(default: ${PROGRESS_ENV} or auto)",
+        "per stage with the elapsed time), bar, lines, none (default: "
+        f"${PROGRESS_ENV}, else auto; none with --quiet unless given)",
     )
     common.add_argument(
         "--debug", action="store_true", help="show a traceback for errors in the input"
@@ -289,13 +290,16 @@ def _warn(args: argparse.Namespace, text: str) -> None:
 
 def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
     """The stage display of a command: ``--progress MODE``, else ``$LIGHTFIELD_JAX_PROGRESS``,
-    else ``auto`` (off with ``--quiet``)."""
+    else ``auto``; off with ``--quiet`` unless ``--progress`` is given."""
     import os
 
-    mode = getattr(args, "progress", None) or os.environ.get(PROGRESS_ENV) or "auto"
+    given = getattr(args, "progress", None)
+    mode = given or os.environ.get(PROGRESS_ENV) or "auto"
     if mode not in MODES:
         raise ValueError(f"{PROGRESS_ENV}: must be one of {', '.join(MODES)}, got {mode!r}")
-    return progress(desc, total, mode="none" if args.quiet else mode, prefix=f"{PROG}: ")
+    if args.quiet and not given:  # --quiet --progress lines: a log's stages, no summary
+        mode = "none"
+    return progress(desc, total, mode=mode, prefix=f"{PROG}: ")
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
