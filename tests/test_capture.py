@@ -670,7 +670,10 @@ def test_fit_of_an_srgb_encoded_8bit_capture(tmp_path):
     names = [f"s{i}.png" for i in range(6)]
     for name, image in zip(names, images, strict=True):
         write_png(tmp_path / name, srgb_response().encode(np.clip(image, 0, 1)), bits=8)
-    text = f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5]}}\n"
+    text = (
+        f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5]}}\n"
+        "fit: {phase: paper}\n"  # the simulation's convention
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CaptureWarning)
         fit = capture_fit.fit_capture(_capture(tmp_path, text=text + "response: srgb\n"))

@@ -375,3 +375,20 @@ def test_cli_modules_do_not_load_image_libraries():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_matplotlibs_own_warnings_are_not_shown_as_the_packages(capsys):
+    """A figure's layout warning printed as "lightfield-jax: warning: ..."."""
+    import warnings
+
+    from lightfield_jax.app.cli import _warnings_to_stderr
+
+    collected = []
+    with _warnings_to_stderr(collected), warnings.catch_warnings():
+        warnings.simplefilter("always")
+        where = str(Path("site-packages") / "matplotlib" / "layout_engine.py")
+        warnings.warn_explicit("constrained_layout not applied", UserWarning, where, 1)
+        warnings.warn_explicit("a note of ours", UserWarning, "lightfield_jax/x.py", 1)
+    err = capsys.readouterr().err
+    assert "lightfield-jax: warning: constrained_layout" not in err
+    assert "lightfield-jax: warning: a note of ours" in err and collected == ["a note of ours"]
