@@ -115,7 +115,12 @@ def capture_config(
     illum["phases"] = list(range(period)) if phases is None else list(phases)
     cfg = {
         "grid": grid,
-        "medium": {k: medium[k] for k in ("sigma_t", "sigma_s", "g", "phase") if k in medium},
+        # The experiments fit under FitOptions' phase (paper unless a medium says):
+        # the simulated truth follows the same convention, not the files' default.
+        "medium": {
+            **{k: medium[k] for k in ("sigma_t", "sigma_s", "g")},
+            "phase": medium.get("phase", "paper"),
+        },
         "illumination": illum,
         "bounces": bounces,
         "gain": gain,

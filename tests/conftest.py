@@ -1,5 +1,11 @@
+import os
+
 import jax
 import pytest
+
+# The commands' stderr is compared line by line: their stage lines (on by default where
+# stderr is not a terminal) are tested on their own, with --progress.
+os.environ["LIGHTFIELD_JAX_PROGRESS"] = "none"
 
 # Tests check convergence and gradients: float64 unless a test asks for float32.
 jax.config.update("jax_enable_x64", True)

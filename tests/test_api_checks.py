@@ -169,7 +169,7 @@ def test_a_gain_that_underflows_the_images_is_refused():
     assert np.asarray(lfj.render(medium, grid, lfj.Full(), 2, gain=1e-30).images).max() > 0
     config = {
         "grid": {"width": 16, "height": 12, "n_theta": 8, "refine": 1},
-        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3},
+        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3, "phase": "paper"},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3},
         "bounces": 2,
     }
@@ -515,7 +515,7 @@ def test_stripes_longer_than_the_grid_are_refused_by_the_api():
     config = parse_simulation_config(
         {
             "grid": {"width": 16, "height": 12},
-            "medium": {"sigma_t": 0.2, "sigma_s": 0.03, "g": 0.4},
+            "medium": {"sigma_t": 0.2, "sigma_s": 0.03, "g": 0.4, "phase": "paper"},
             "illumination": {"kind": "stripes", "period": 6},
         }
     )

@@ -344,7 +344,7 @@ def _noisy_32x24(medium: dict) -> np.ndarray:
 
     config = {
         "grid": {"width": 32, "height": 24},
-        "medium": medium,
+        "medium": {"phase": "paper", **medium},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
         "bounces": "auto",
         "gain": 400,

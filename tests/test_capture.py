@@ -37,7 +37,7 @@ def simulated(tmp_path_factory):
     config = parse_simulation_config(
         {
             "grid": {"width": 24, "height": 16, "n_theta": 16, "refine": 1},
-            "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3},
+            "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.3, "phase": "paper"},
             "illumination": {"kind": "stripes", "period": 6, "lit": 3},
             "bounces": 3,
             "gain": 1.5,
@@ -303,6 +303,40 @@ def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
     assert seen[0].max_steps == 7 and seen[0].bounces == 12
 
 
+@pytest.mark.parametrize(("fit", "phase"), [("", "normalized"), ("fit: {phase: paper}\n", "paper")])
+def test_a_capture_is_fitted_in_its_files_phase_convention_normalized_by_default(
+    tmp_path, monkeypatch, fit, phase
+):
+    """``fit: {phase: ...}`` was refused as an unknown key, and a capture that said none
+    was fitted under ``paper``, which has no answer for milk (ρ = ω·A(g) ≥ 1)."""
+    names = _images(tmp_path)
+    capture = _capture(tmp_path, text=f"images: {names}\npattern: {{period: 6, lit: 3}}\n{fit}")
+    seen = []
+
+    def fake_fit(images, pattern, options, *args, **kwargs):
+        seen.append(options)
+        raise StopIteration
+
+    monkeypatch.setattr(capture_fit, "_capture_floor", lambda *a: None)
+    monkeypatch.setattr(capture_fit, "_fit_one", fake_fit)
+    with pytest.raises(StopIteration):
+        lfj.fit_capture(capture)
+    assert seen[0].phase == phase
+    with pytest.raises(StopIteration):  # the call's own keyword wins
+        lfj.fit_capture(capture, phase="paper")
+    assert seen[1].phase == "paper"
+
+
+def test_a_fit_phase_that_is_no_convention_is_named(tmp_path):
+    names = _images(tmp_path)
+    message = _error(
+        tmp_path,
+        r"fit\.phase: must be one of paper, normalized, got 'physical'",
+        text=f"images: {names}\npattern: {{period: 6, lit: 3}}\nfit: {{phase: physical}}\n",
+    )
+    assert "unknown key" not in message
+
+
 def test_dark_frame_size_and_channels(tmp_path):
     names = _images(tmp_path)
     write_exr(tmp_path / "small.exr", {"Y": np.zeros((H, W - 1))})
@@ -508,6 +542,32 @@ def test_truth_per_channel(tmp_path):
     )
 
 
+def test_truth_as_a_list_of_one_medium_per_channel(tmp_path):
+    """``truth: [{...}, {...}, {...}]`` (one medium per channel, as the README's "a list
+    per channel" reads) was refused: only a mapping of lists was taken."""
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "rgb.npy", rng.uniform(0.1, 0.5, (P, H, W, 3)).astype(np.float32))
+    text = "images: rgb.npy\npattern: {period: 6, lit: 3}\ntruth: [{}, {}, {}]\n"
+    media = "[{sigma_t: 0.2, g: 0.8}, {sigma_t: 0.3, g: 0.7}, {sigma_t: 0.4, g: 0.6}]"
+    capture = _capture(tmp_path, text=text.replace("[{}, {}, {}]", media))
+    assert capture.truth == {"sigma_t": [0.2, 0.3, 0.4], "g": [0.8, 0.7, 0.6]}
+    _error(
+        tmp_path,
+        r"truth: a list gives one mapping per channel: 3 here, got 2",
+        text=text.replace("[{}, {}, {}]", "[{g: 0.8}, {g: 0.7}]"),
+    )
+    _error(
+        tmp_path,
+        r"truth\[1\]: sigma_t: given for another channel but not this one",
+        text=text.replace("[{}, {}, {}]", "[{sigma_t: 0.2}, {g: 0.7}, {sigma_t: 0.4}]"),
+    )
+    _error(
+        tmp_path,
+        r"truth\.g\[2\]: must be a number",
+        text=text.replace("[{}, {}, {}]", "[{g: 0.8}, {g: 0.7}, {g: high}]"),
+    )
+
+
 def _srgb_capture(folder, response=None, flat=None):
     """Three 16-bit PNGs written through the sRGB curve (with a dark frame and, where
     given, a flat field's vignetting) and their capture file; returns the linear light."""
@@ -601,7 +661,7 @@ def test_fit_of_an_srgb_encoded_8bit_capture(tmp_path):
     truth = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}
     config = {
         "grid": {"width": 48, "height": 36},
-        "medium": truth,
+        "medium": {**truth, "phase": "paper"},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
     }
     peak = float(simulate_capture(parse_simulation_config(config)).images.max())
@@ -610,7 +670,10 @@ def test_fit_of_an_srgb_encoded_8bit_capture(tmp_path):
     names = [f"s{i}.png" for i in range(6)]
     for name, image in zip(names, images, strict=True):
         write_png(tmp_path / name, srgb_response().encode(np.clip(image, 0, 1)), bits=8)
-    text = f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5]}}\n"
+    text = (
+        f"images: {names}\npattern: {{period: 6, lit: 3, phases: [0, 1, 2, 3, 4, 5]}}\n"
+        "fit: {phase: paper}\n"  # the simulation's convention
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", CaptureWarning)
         fit = capture_fit.fit_capture(_capture(tmp_path, text=text + "response: srgb\n"))
@@ -829,3 +892,14 @@ def test_a_dark_level_per_channel_by_name(tmp_path):
     )
     green = _capture(tmp_path, text=base + "channel: G\ndark_level: {G: 0.01}\n")
     np.testing.assert_allclose(green.images[..., 0], raw[..., 1] - 0.01, atol=1e-6)
+
+
+def test_help_of_load_capture_describes_the_files_keys():
+    """``help(lfj.load_capture)``, which the README points to, said only "see the module
+    docstring"."""
+    import pydoc
+
+    text = pydoc.render_doc(lfj.load_capture, renderer=pydoc.plaintext)
+    assert "see the module docstring" not in text
+    for key in ("images", "pattern", "dark_frame", "medium_roi", "fit", "truth", "phase"):
+        assert f"``{key}``" in text, key

@@ -5,6 +5,7 @@ import io
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -20,7 +21,7 @@ from lightfield_jax.app.progress import progress
 from lightfield_jax.capture.io import read_image
 
 GRID = "grid: {width: 24, height: 16, n_theta: 16, refine: 1}\n"
-MEDIUM = "medium: {sigma_t: 0.2, sigma_s: 0.1, g: 0.3}\n"
+MEDIUM = "medium: {sigma_t: 0.2, sigma_s: 0.1, g: 0.3, phase: paper}\n"
 BEAM = GRID + MEDIUM + "illumination: {kind: beam, x: 0.0, y: 8.5}\nbounces: 3\ngain: 2.0\n"
 STRIPES = (
     GRID
@@ -100,6 +101,8 @@ def test_simulate_stripes_writes_shifts_capture_and_dark(tmp_path, capsys):
     per_bounce = {f"bounces_{i:02d}.exr" for i in range(P)}
     common = {"bounces.npy", "lightfield.npy", "metadata.json", "capture.yaml", "dark.exr"}
     assert _names(out) == shifts | per_bounce | common
+    # Its capture is fitted in the convention it was simulated in, whatever the default.
+    assert "\nfit: {phase: paper}\n" in (out / "capture.yaml").read_text()
 
     bounces = np.load(out / "bounces.npy")
     assert bounces.shape == (P, K, H, W)
@@ -245,7 +248,7 @@ def test_bench_fits_runs_each_fit_in_a_fresh_process():
 
     config = {
         "grid": {"width": 32, "height": 24, "n_theta": 16},
-        "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4},
+        "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "phase": "paper"},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
         "bounces": 4,
     }
@@ -304,9 +307,49 @@ def test_progress_display_names_stages():
     text = stream.getvalue()
     assert "simulate: render" in text and "simulate: write files (1/2 done)" in text
     silent = io.StringIO()
-    with progress("simulate", enabled=None, file=silent) as stage:
+    with progress("simulate", mode="none", file=silent) as stage:
         stage("render")
     assert silent.getvalue() == ""
+
+
+def test_progress_without_a_terminal_is_one_plain_line_per_stage():
+    """Where stderr is a log file, a redrawn bar is unreadable and was not shown at all:
+    a fit that ran for 108 minutes printed nothing."""
+    log = io.StringIO()  # not a terminal
+    with progress("fit (joint)", prefix="lightfield-jax: ", file=log) as stage:
+        stage("scan")
+        stage("[R] solve")
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 3 and "\r" not in log.getvalue()
+    assert re.fullmatch(r"lightfield-jax: fit \(joint\): scan \[\d+\.\d s\]", lines[0])
+    assert lines[1].startswith("lightfield-jax: fit (joint): [R] solve [")
+    assert lines[2].startswith("lightfield-jax: fit (joint): done [")
+
+
+@pytest.mark.parametrize(
+    ("flags", "env", "lines"),
+    [((), None, True), (("--progress", "lines"), "none", True), (("--quiet",), None, False),
+     (("--progress", "none"), None, False), (("--quiet", "--progress", "lines"), None, True)],
+)  # fmt: skip
+def test_commands_choose_their_progress_display(tmp_path, capsys, monkeypatch, flags, env, lines):
+    if env is None:
+        monkeypatch.delenv("LIGHTFIELD_JAX_PROGRESS", raising=False)
+    else:
+        monkeypatch.setenv("LIGHTFIELD_JAX_PROGRESS", env)
+    status, _, err = _run(
+        capsys, "simulate", _config(tmp_path, BEAM), "--out", str(tmp_path / "o"), *flags
+    )
+    assert status == 0, err
+    said = [line for line in err.splitlines() if line.startswith("lightfield-jax: simulate: ")]
+    assert bool(said) == lines, err
+    if lines:
+        assert said[-1].startswith("lightfield-jax: simulate: done [") and len(said) >= 2
+
+
+def test_a_progress_setting_that_is_no_mode_is_refused(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("LIGHTFIELD_JAX_PROGRESS", "loud")
+    status, _, err = _run(capsys, "simulate", _config(tmp_path, BEAM), "--out", str(tmp_path / "o"))
+    assert status == 2 and "LIGHTFIELD_JAX_PROGRESS: must be one of auto, bar, lines, none" in err
 
 
 def test_console_script_is_installed(tmp_path):
@@ -332,3 +375,20 @@ def test_cli_modules_do_not_load_image_libraries():
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_matplotlibs_own_warnings_are_not_shown_as_the_packages(capsys):
+    """A figure's layout warning printed as "lightfield-jax: warning: ..."."""
+    import warnings
+
+    from lightfield_jax.app.cli import _warnings_to_stderr
+
+    collected = []
+    with _warnings_to_stderr(collected), warnings.catch_warnings():
+        warnings.simplefilter("always")
+        where = str(Path("site-packages") / "matplotlib" / "layout_engine.py")
+        warnings.warn_explicit("constrained_layout not applied", UserWarning, where, 1)
+        warnings.warn_explicit("a note of ours", UserWarning, "lightfield_jax/x.py", 1)
+    err = capsys.readouterr().err
+    assert "lightfield-jax: warning: constrained_layout" not in err
+    assert "lightfield-jax: warning: a note of ours" in err and collected == ["a note of ours"]

@@ -26,7 +26,7 @@ bounces: 10
 
 BASE = {
     "grid": {"width": 32, "height": 24},
-    "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4},
+    "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "phase": "paper"},
     "illumination": {"kind": "stripes"},
 }
 
@@ -52,6 +52,17 @@ def _error(data, source="sim.yaml"):
     message = str(info.value)
     assert message.startswith(f"{source}: "), message
     return message
+
+
+def test_a_simulate_config_without_a_phase_is_in_the_energy_conserving_convention():
+    """Milk (σt 0.2, σs 0.19, g 0.8) was refused without a phase: ρ = ω·A(g) 1.54 under
+    the paper's convention, the default then."""
+    milk = {"sigma_t": 0.2, "sigma_s": 0.19, "g": 0.8}
+    config = parse_simulation_config(_with(medium=milk))
+    assert config.medium.phase == "normalized"
+    assert config.medium.medium().rho == pytest.approx(0.95)
+    with pytest.raises(ConfigError, match="rho = albedo"):
+        parse_simulation_config(_with(medium={**milk, "phase": "paper"}))
 
 
 def test_load_paper_beam_config(tmp_path):
@@ -207,7 +218,7 @@ def test_out_of_range_values(data, expected):
 
 def test_auto_bounces_refused_when_the_paper_series_diverges():
     # omega = 0.95, A(0.9) ~ 3.2: rho > 1 under phase: paper.
-    data = _with(medium={"sigma_t": 0.2, "sigma_s": 0.19, "g": 0.9})
+    data = _with(medium={"sigma_t": 0.2, "sigma_s": 0.19, "g": 0.9, "phase": "paper"})
     assert "bounces: auto is impossible: rho = albedo*A(g)" in _error(data)
     explicit = parse_simulation_config({**data, "bounces": 4})
     assert explicit.bounces == 4

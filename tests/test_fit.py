@@ -16,6 +16,7 @@ the model matching the data's); the 128x96 versions are marked ``slow``.
 import dataclasses
 import functools
 import math
+import re
 
 import jax
 import numpy as np
@@ -756,7 +757,7 @@ def test_a_second_channel_with_other_values_compiles_nothing_new():
         pixel_size_mm=None,
         geometry=None,
     )
-    kwargs = dict(n_theta=16, refine=1)
+    kwargs = dict(n_theta=16, refine=1, phase="paper")  # the renders' convention
     lfj.fit_capture(capture, channels=["R"], **kwargs)  # compiles, and sizes the floor
     fits = []
     count = _backend_compiles(lambda: fits.append(lfj.fit_capture(capture, **kwargs)))
@@ -951,7 +952,10 @@ def test_a_noisy_capture_in_large_units_gives_the_same_answer():
 
     config = {
         "grid": {"width": 48, "height": 36},
-        "medium": dict(zip(("sigma_t", "sigma_s", "g"), MEDIA["milk"], strict=True)),
+        "medium": {
+            **dict(zip(("sigma_t", "sigma_s", "g"), MEDIA["milk"], strict=True)),
+            "phase": "paper",
+        },
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
     }
     peak = float(lfj.simulate_capture(parse_simulation_config(config)).images.max())
@@ -1038,3 +1042,29 @@ def test_images_beyond_the_float32_scale_are_refused_before_the_fit(scale):
     images = (scale * rng.uniform(0.1, 1.0, (6, 12, 16))).astype(np.float32)
     with pytest.raises(ValueError, match=r"images: their values' 99th percentile is .* outside"):
         lfj.fit_images(images, lfj.Stripes())
+
+
+@pytest.mark.slow  # about 25 s: run by make test-slow
+def test_a_cut_series_names_a_setting_that_sums_the_orders_left_out():
+    """The advice was 'raise max_bounces (or bounces), or ... tail: auto': the tail is
+    the default already, and max_bounces does not move a count that was given or sized
+    from the scan (measured: the same K and verdict at max_bounces 160). The setting
+    the reason names, applied, must clear it."""
+    from lightfield_jax.app.config import parse_simulation_config
+
+    config = {
+        "grid": {"width": 24, "height": 16},
+        "medium": {**dict(zip(("sigma_t", "sigma_s", "g"), MEDIA["milk"], strict=True)),
+                   "phase": "paper"},
+        "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
+        "gain": 400, "black_level": 0.01, "noise": {"photons": 2e4, "read": 5e-4, "seed": 0},
+    }  # fmt: skip
+    images = np.asarray(lfj.simulate_capture(parse_simulation_config(config)).images)
+    cut = lfj.fit_images(images, lfj.Stripes(), bounces=2)
+    said = [r for r in cut.reasons if r.startswith("the bounce series is cut at 2 bounces")]
+    assert said and not cut.converged, cut.reasons
+    assert "max_bounces" not in said[0]
+    setting = re.search(r"fit: \{bounces: (\d+)\}", said[0])
+    assert setting, said[0]
+    again = lfj.fit_images(images, lfj.Stripes(), bounces=int(setting.group(1)))
+    assert not [r for r in again.reasons if "the bounce series is cut" in r], again.reasons

@@ -561,3 +561,23 @@ def test_a_bracket_off_by_a_pedestal_is_said_to_be(tmp_path, level, said):
     data["dark_level"] = 0.05
     path.write_text(yaml.safe_dump(data))
     load_capture(path)
+
+
+def test_a_merge_with_a_dark_frame_says_so_and_where_near_black_samples_are(radiance, tmp_path):
+    """The response plot said "(no dark frame)" of a capture that had one, and inspect's
+    "near black 61.6 %" did not say that those are mostly pixels outside the tank."""
+    from lightfield_jax.capture.inspect import inspect_capture
+    from lightfield_jax.viz import plot_inspect
+
+    for dark in (True, False):
+        folder = tmp_path / str(dark)
+        folder.mkdir()
+        capture = load_capture(_write_brackets(folder, radiance, 2.2, "srgb", dark=dark))
+        assert capture.brackets.dark_frame is dark
+        summary = capture.brackets.summary()
+        assert "pixels outside the medium are near black" in summary
+        assert ("without a dark frame z <" in summary) is not dark
+        figure = plot_inspect(inspect_capture(capture))
+        labels = [t.get_text() for ax in figure.axes if ax.get_legend() for t in
+                  ax.get_legend().get_texts()]  # fmt: skip
+        assert ("near black below (no dark frame)" in labels) is not dark, labels

@@ -25,7 +25,7 @@ from lightfield_jax.capture.io import read_image, write_exr, write_png
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
 grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
-medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}}
+medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}}
 illumination: {{kind: stripes, period: 6, lit: 3}}
 gain: 400.0
 black_level: 0.02
@@ -78,6 +78,10 @@ def _refused(capsys, *argv, match: str) -> str:
 def _edit(folder: Path, **changes) -> Path:
     path = folder / "capture.yaml"
     data = yaml.safe_load(path.read_text())
+    phase = (data.get("fit") or {}).get("phase")
+    if isinstance(changes.get("fit"), dict) and phase is not None:
+        # New fit settings keep the convention the capture was simulated in.
+        changes["fit"] = {"phase": phase, **changes["fit"]}
     data.update(changes)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -2193,7 +2197,8 @@ def test_simulate_publishes_nothing_when_its_figures_fail(capsys, tmp_path, monk
     scene are now drawn; a failure in them publishes neither folder."""
     cfg = tmp_path / "obl.yaml"
     cfg.write_text(
-        "grid: {width: 24, height: 16}\nmedium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4}\n"
+        "grid: {width: 24, height: 16}\n"
+        "medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}\n"
         "illumination: {kind: full, direction_deg: 87}\n"
     )
     status, _, err = _run(

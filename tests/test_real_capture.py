@@ -119,6 +119,24 @@ def loaded(rgb):
 # ----------------------------------------------------------------------- pattern command
 
 
+def test_pattern_writes_the_stripes_size_on_the_camera_from_a_measured_scale(tmp_path, capsys):
+    """``--period`` is in projector pixels, the capture file's period in camera pixels
+    (the model's unit): the template said they were the same, always."""
+    out = tmp_path / "projector"
+    argv = ["pattern", "--width", "30", "--height", "20", "--period", "3", "--lit", "1"]
+    assert main([*argv, "--camera-px-per-projector-px", "2", "--out", str(out)]) == 0
+    assert "(period 6, lit 2 camera px at 2 camera px per projector px)" in capsys.readouterr().out
+    template = yaml.safe_load((out / "capture.yaml").read_text())
+    assert template["pattern"]["period"] == 6 and template["pattern"]["lit"] == 2
+    assert "fit: {phase: normalized}" in (out / "capture.yaml").read_text()
+    # A scale that puts a stripe between camera pixels is refused, naming the option.
+    status = main([*argv, "--camera-px-per-projector-px", "1.5", "--out", str(tmp_path / "b")])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1, err
+    assert "--camera-px-per-projector-px: 1.5 puts a period of 3 projector px on 4.5" in err
+    assert not (tmp_path / "b").exists()
+
+
 def test_pattern_command_writes_stripes_white_black_and_template(tmp_path, capsys):
     out = tmp_path / "projector"
     status = main(
@@ -542,7 +560,10 @@ def test_inspect_reports_what_the_pipeline_sees(rgb, loaded, tmp_path, capsys):
 @pytest.fixture(scope="module")
 def fitted(loaded):
     # One small model for every channel: n_theta 16, 6 bounces, no crop.
-    return lfj.fit_capture(loaded, "gradient", n_theta=16, refine=1, bounces=6, start_grid=5)
+    # phase: the convention the frames were rendered in.
+    return lfj.fit_capture(
+        loaded, "gradient", n_theta=16, refine=1, bounces=6, start_grid=5, phase="paper"
+    )
 
 
 def test_each_channel_fit_converges(fitted):

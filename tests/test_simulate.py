@@ -8,7 +8,7 @@ from lightfield_jax.forward.simulate import simulate_capture
 
 BASE = {
     "grid": {"width": 24, "height": 18, "n_theta": 16, "refine": 1},
-    "medium": {"sigma_t": 0.25, "sigma_s": 0.15, "g": 0.3},
+    "medium": {"sigma_t": 0.25, "sigma_s": 0.15, "g": 0.3, "phase": "paper"},
     "bounces": 3,
 }
 
@@ -60,7 +60,7 @@ def test_accepts_a_config_path(tmp_path):
     path = tmp_path / "sim.yaml"
     path.write_text(
         "grid: {width: 24, height: 18, n_theta: 16, refine: 1}\n"
-        "medium: {sigma_t: 0.25, sigma_s: 0.15, g: 0.3}\n"
+        "medium: {sigma_t: 0.25, sigma_s: 0.15, g: 0.3, phase: paper}\n"
         "illumination: {kind: full}\nbounces: 3\n"
     )
     sim = simulate_capture(path)

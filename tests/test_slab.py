@@ -284,7 +284,7 @@ def test_bad_geometry_raises_clear_errors(spec, match):
 def test_simulate_config_geometry_key():
     base = {
         "grid": {"width": 32, "height": 24},
-        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.4},
+        "medium": {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.4, "phase": "paper"},
         "illumination": {"kind": "beam", "x": 0.0, "y": 12.0},
     }
     cfg = parse_simulation_config({**base, "geometry": {"kind": "slab", "thickness": 4.0}})

@@ -186,7 +186,7 @@ def test_auto_keeps_the_plane_under_heavy_noise_and_picks_the_slab_without():
 def test_cli_fit_uses_the_capture_geometry(tmp_path):
     cfg = {
         "grid": {"width": 32, "height": 24},
-        "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4},
+        "medium": {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4, "phase": "paper"},
         "illumination": {"kind": "stripes", "period": 6, "lit": 3, "shifts": 6},
         "geometry": {
             "kind": "slab",

@@ -96,6 +96,18 @@ def test_simulate_plot_and_render_a_fit(tmp_path, capsys):
     assert np.load(out / "lightfield.npy").shape == (7, 24, 32, 16)
     about = json.loads((out / "render.json").read_text())
     assert about["illumination"] == "full, left wall, 0 deg" and about["bounces"] == 6
+    # --compact: what a user keeps of a large render or simulation (a 128x96 render of
+    # 238 bounces wrote 104 MB, its simulation 129 MB), nothing the fit needs left out.
+    small = tmp_path / "small"
+    argv = ["render", str(tmp_path / "results.json"), "--out", str(small), "--compact"]
+    assert main(argv) == 0
+    assert sorted(p.name for p in small.iterdir()) == ["bounces.npy", "render.json"]
+    np.testing.assert_array_equal(np.load(small / "bounces.npy"), bounces)
+    argv = ["simulate", str(tmp_path / "sim.yaml"), "--out", str(small / "s"), "--compact"]
+    assert main(argv) == 0
+    kept = sorted(p.name for p in (small / "s").iterdir())
+    assert kept == ["capture.yaml", "metadata.json"] + [f"shift_{i:02d}.exr" for i in range(6)]
+    assert lfj.load_capture(small / "s" / "capture.yaml").n_images == 6
 
 
 @pytest.mark.parametrize(
@@ -172,3 +184,48 @@ def test_fit_plot_shows_masked_pixels_the_crop_and_the_truth(rendered):
     shown = figure.axes[2].images[0].get_array()
     assert not shown.mask[5:8, 3:6].any() and shown.mask[12, 12]
     assert "grey: masked (1 px)" in figure.axes[2].get_title()
+
+
+@pytest.mark.parametrize("k", [32, 238])
+def test_bounce_profiles_stay_readable_at_many_bounces(tmp_path, k):
+    """Every bounce of a K 238 render had a legend entry (the legend overflowed the
+    figure, constrained layout collapsed the axes and matplotlib warned), and each
+    profile was drawn down to its own peak / 1e6 (an axis spanning ρ^238)."""
+    import warnings
+
+    s = np.arange(40.0)
+    # I_k: ratio 0.95 per bounce, peaking deeper for higher orders (the shape of a
+    # forward, high-albedo medium's profiles).
+    profiles = np.stack([0.95**j * np.exp(-((s - min(j, 30)) ** 2) / 200.0) for j in range(k)])
+    images = np.repeat(profiles[:, None, :], 8, axis=1)
+    figure = viz.plot_bounce_profiles(images)
+    absolute, normalised = figure.axes[:2]
+    entries = [t.get_text() for t in absolute.get_legend().get_texts()]
+    assert len(entries) <= viz.MAX_SHOWN_BOUNCES + 1  # and the sum
+    assert "$I_{1}$" in entries and f"$I_{{{k}}}$" in entries
+    assert len(normalised.get_legend().get_texts()) <= viz.MAX_SHOWN_BOUNCES
+    low, high = absolute.get_ylim()
+    assert high / low <= 2.1e6  # the brightest profile's dynamic range, not each one's
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        viz.plot_bounce_profiles(images, tmp_path / "profiles.png")
+    assert not [w for w in caught if "matplotlib" in str(w.filename)], caught
+
+
+def test_shown_bounces_are_the_first_and_spread_to_the_last():
+    assert viz.shown_bounces(6) == [1, 2, 3, 4, 5, 6]
+    chosen = viz.shown_bounces(238)
+    assert len(chosen) <= viz.MAX_SHOWN_BOUNCES and chosen[:4] == [1, 2, 3, 4]
+    assert chosen[-1] == 238 and chosen == sorted(set(chosen))
+
+
+def test_fit_plot_labels_the_curve_the_points_are_compared_with(rendered):
+    """At high albedo the model's pure I_1 lies far below the separated D: the legend
+    says which fitted curve the measured points are to be compared with."""
+    pattern = lfj.Stripes(6, 3, (0, 2, 4))
+    images = np.asarray(rendered[1].images).sum(axis=1)
+    figure = viz.plot_fit(images, pattern, _fit_result((0, 0, 24, 24)))
+    for ax in figure.axes[:2]:
+        labels = [t.get_text() for t in ax.get_legend().get_texts()]
+        assert any("compare with the dots" in t for t in labels), labels
+        assert any("alone (not separated)" in t for t in labels), labels

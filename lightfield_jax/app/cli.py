@@ -29,8 +29,9 @@ Conventions every command keeps:
   once, at the end, exit status 2); paths printed go through :func:`_path`.
 - Warnings print as ``lightfield-jax: warning: ...`` and are collected in
   ``args.warnings`` (e.g. for a metadata file).
-- Long work reports its stages through :func:`_progress`: a display on stderr that
-  appears when stderr is a terminal and the work takes more than two seconds.
+- Long work reports its stages through :func:`_progress`: on stderr, a display that
+  appears when stderr is a terminal and the work takes more than two seconds, else
+  one plain line per stage with the elapsed time (``--progress``, ``--quiet``).
 - Results and summaries go to stdout (silenced by ``--quiet``).
 
 This module holds the parser, :func:`main` and the helpers the commands share; the
@@ -52,9 +53,10 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from lightfield_jax.app.progress import progress
+from lightfield_jax.app.progress import MODES, progress
 
 PROG = "lightfield-jax"
+PROGRESS_ENV = "LIGHTFIELD_JAX_PROGRESS"
 USER_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,  # ConfigError, CaptureError and every validation error are ValueErrors
     FileNotFoundError,
@@ -98,7 +100,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument(
-        "-q", "--quiet", action="store_true", help="no progress display and no summary"
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="no summary, and no progress display unless --progress is given",
+    )
+    common.add_argument(
+        "--progress",
+        choices=MODES,
+        metavar="MODE",
+        help="how stages are shown on stderr: auto (a bar on a terminal, else one line "
+        "per stage with the elapsed time), bar, lines, none (default: "
+        f"${PROGRESS_ENV}, else auto; none with --quiet unless given)",
     )
     common.add_argument(
         "--debug", action="store_true", help="show a traceback for errors in the input"
@@ -272,7 +285,12 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
         repairing_compilation_cache,
     )
 
+    original = warnings.showwarning
+
     def show(message, category, filename, lineno, file=None, line=None):
+        if "matplotlib" in Path(str(filename)).parts:  # its own, not the package's
+            original(message, category, filename, lineno, file, line)
+            return
         text = _one_line(str(message))
         collected.append(text)
         print(f"{PROG}: warning: {text}", file=sys.stderr)
@@ -295,8 +313,17 @@ def _warn(args: argparse.Namespace, text: str) -> None:
 
 
 def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
-    """The stage display of a command (off with ``--quiet``)."""
-    return progress(desc, total, enabled=False if args.quiet else None)
+    """The stage display of a command: ``--progress MODE``, else ``$LIGHTFIELD_JAX_PROGRESS``,
+    else ``auto``; off with ``--quiet`` unless ``--progress`` is given."""
+    import os
+
+    given = getattr(args, "progress", None)
+    mode = given or os.environ.get(PROGRESS_ENV) or "auto"
+    if mode not in MODES:
+        raise ValueError(f"{PROGRESS_ENV}: must be one of {', '.join(MODES)}, got {mode!r}")
+    if args.quiet and not given:  # --quiet --progress lines: a log's stages, no summary
+        mode = "none"
+    return progress(desc, total, mode=mode, prefix=f"{PROG}: ")
 
 
 def _say(args: argparse.Namespace, text: str, always: bool = False) -> None:
@@ -438,6 +465,16 @@ def _positive_int(text: str) -> int:
         value = 0
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def _positive_scale(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
     return value
 
 

@@ -10,6 +10,7 @@ from lightfield_jax.app.cli import (
     _outputs,
     _path,
     _positive_int,
+    _positive_scale,
     _progress,
     _say,
     _warn,
@@ -25,8 +26,27 @@ from lightfield_jax.app.cli import (
     "write the projector's stripe images and a capture.yaml template for them",
     arg("--width", type=_positive_int, required=True, help="projector width (pixels)"),
     arg("--height", type=_positive_int, required=True, help="projector height (pixels)"),
-    arg("--period", type=_positive_int, default=6, help="stripe period (%(default)s)"),
-    arg("--lit", type=_positive_int, default=3, help="lit rows per period (%(default)s)"),
+    arg(
+        "--period",
+        type=_positive_int,
+        default=6,
+        help="stripe period in projector pixels (%(default)s)",
+    ),
+    arg(
+        "--lit",
+        type=_positive_int,
+        default=3,
+        help="lit projector rows per period (%(default)s)",
+    ),
+    arg(
+        "--camera-px-per-projector-px",
+        type=_positive_scale,
+        default=1.0,
+        metavar="S",
+        help="the stripes' size on the camera over their size on the projector, measured "
+        "on the medium (default %(default)g): capture.yaml's period and lit are in camera "
+        "pixels, the model's unit",
+    ),
     arg("--shifts", type=_positive_int, help="shifted images (default: the period)"),
     arg(
         "--orientation",
@@ -60,6 +80,7 @@ def _pattern(args: argparse.Namespace) -> None:
     from lightfield_jax.app.outputs import OutputError
     from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.pattern import (
+        camera_stripes,
         check_size,
         pattern_memory,
         pattern_phases,
@@ -81,19 +102,34 @@ def _pattern(args: argparse.Namespace) -> None:
         )
     check_size(args.width, args.height, args.period)
     phases = pattern_phases(args.period, args.lit, args.shifts)
+    scale = args.camera_px_per_projector_px
+    camera_period, camera_lit = camera_stripes(args.period, args.lit, scale)
     check_memory(
         pattern_memory(args.width, args.height, len(phases)),
         f"pattern: {len(phases) + 2} images of {args.width}x{args.height}",
     )
     with atomic_directory(out) as staging:
         files = write_patterns(
-            staging, args.width, args.height, args.period, args.lit, args.shifts, args.orientation
+            staging,
+            args.width,
+            args.height,
+            args.period,
+            args.lit,
+            args.shifts,
+            args.orientation,
+            scale,
         )
     _say(
         args,
         f"wrote {len(files)} files to {_path(out)}: {len(phases)} stripe images (period "
         f"{args.period}, lit {args.lit}, phases {list(phases)}, {args.orientation}), white.png, "
-        "black.png, capture.yaml",
+        "black.png, capture.yaml"
+        + (
+            f" (period {camera_period}, lit {camera_lit} camera px at {scale:g} camera px per "
+            "projector px)"
+            if scale != 1
+            else ""
+        ),
     )
 
 

@@ -35,29 +35,46 @@ from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
 
 
 def _fit_summary(fit) -> str:
+    return "\n".join(
+        _channel_summary(name, r) for name, r in zip(fit.channels, fit.results, strict=True)
+    )
+
+
+def _channel_summary(name: str, r) -> str:
+    """One channel's result line."""
     from lightfield_jax.inverse.trust import CONSISTENCY_P
     from lightfield_jax.scene.geometry import describe_geometry
 
-    lines = []
-    for name, r in zip(fit.channels, fit.results, strict=True):
-        u = r.uncertainty
-        split = [k for k, v in r.consistency.items() if v["p"] < CONSISTENCY_P]
-        limited = ""
-        if r.model_limited:
-            limited = "; model-limited (± is mostly the model's error" + (
-                f": the capture's {' and '.join(split)} parts disagree)" if split else ")"
-            )
-        lines.append(
-            f"[{name}] {r.method}: sigma_t {r.sigma_t:.5g} ± {u.get('sigma_t', float('nan')):.2g}, "
-            f"sigma_s {r.sigma_s:.5g} ± {u.get('sigma_s', float('nan')):.2g}, "
-            f"g {r.g:.4f} ± {u.get('g', float('nan')):.2g} (per px; albedo {r.albedo:.3f}, "
-            f"rho {r.rho:.3f}); {'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
-            f"{limited} in {r.iterations} iterations, {r.seconds['total']:.1f} s "
-            f"(compile {r.seconds['compile']:.1f} s); model {describe_geometry(r.model)}, "
-            f"{r.model['width']}x{r.model['height']}, n_theta {r.model['n_theta']}, "
-            f"K {r.model['bounces']}"
+    u = r.uncertainty
+    split = [k for k, v in r.consistency.items() if v["p"] < CONSISTENCY_P]
+    limited = ""
+    if r.model_limited:
+        limited = "; model-limited (± is mostly the model's error" + (
+            f": the capture's {' and '.join(split)} parts disagree)" if split else ")"
         )
-    return "\n".join(lines)
+    return (
+        f"[{name}] {r.method}: sigma_t {r.sigma_t:.5g} ± {u.get('sigma_t', float('nan')):.2g}, "
+        f"sigma_s {r.sigma_s:.5g} ± {u.get('sigma_s', float('nan')):.2g}, "
+        f"g {r.g:.4f} ± {u.get('g', float('nan')):.2g} (per px; albedo {r.albedo:.3f}, "
+        f"rho {r.rho:.3f}); {'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
+        f"{limited} in {r.iterations} iterations, {r.seconds['total']:.1f} s "
+        f"(compile {r.seconds['compile']:.1f} s); model {describe_geometry(r.model)}, "
+        f"{r.model['width']}x{r.model['height']}, n_theta {r.model['n_theta']}, "
+        f"K {r.model['bounces']}"
+    )
+
+
+def _say_above_progress(args: argparse.Namespace, lines: list[str]) -> None:
+    """``lines`` on stdout now (flushed: a log file shows them while the fit goes on),
+    clearing a progress bar on the terminal first."""
+    import sys
+
+    if args.quiet or not lines:
+        return
+    from tqdm import tqdm
+
+    with tqdm.external_write_mode(file=sys.stdout):
+        print("\n".join(lines), flush=True)
 
 
 def _against_truth(capture, fit, phase: str) -> list[dict]:
@@ -231,8 +248,9 @@ def _roi_record(capture) -> dict:
     arg(
         "--phase",
         choices=("paper", "normalized"),
-        default="paper",
-        help="phase convention of the model (default: %(default)s)",
+        help="phase convention of the model (default: the capture file's fit.phase, else "
+        "normalized: energy-conserving, for every medium; paper: the paper's own, which "
+        "has no answer for forward media of high albedo such as milk)",
     ),
     arg(
         "--max-steps",
@@ -258,6 +276,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.capture.keys import fit_phase
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions
 
@@ -274,6 +293,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     channels = args.channel or capture.channel_names
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
     _outputs(files=[out, *figures], inputs=inputs)
+    args.phase = args.phase or fit_phase(capture)
     if capture.truth and (note := _truth_phase_note(capture, args.phase)) is not None:
         _warn(args, note)
     h, w = capture.shape
@@ -297,12 +317,24 @@ def _fit(args: argparse.Namespace) -> int | None:
             doing[0] = message.strip()
             stage(message)
 
+        shown = []
+
+        def finished(name: str, r) -> None:
+            # Each channel's result when it is there (an RGB fit runs for minutes per
+            # channel), with the notes said while it was fitted.
+            if len(channels) < 2:
+                return
+            _say_above_progress(args, [*fit_notes, _channel_summary(name, r)])
+            fit_notes.clear()
+            shown.append(name)
+
         with stop_after(args.time_limit, PROG, "the fit", lambda: doing[0]):
             fit = fit_capture(
                 capture,
                 args.method,
                 channels=args.channel,
                 progress=staged,
+                on_result=finished,
                 phase=args.phase,
                 **limits,
             )
@@ -327,7 +359,8 @@ def _fit(args: argparse.Namespace) -> int | None:
             raise
     for note in fit_notes:
         _say(args, note)
-    _say(args, _fit_summary(fit))
+    if not shown:
+        _say(args, _fit_summary(fit))
     if compared:
         for name, e in zip(fit.channels, compared, strict=True):
             _say(

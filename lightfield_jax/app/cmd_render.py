@@ -41,6 +41,11 @@ RENDER_FILES = ("bounces.npy", "bounces.exr", "lightfield.npy", "render.json", "
         help="also write the paper's figures: bounce_images.png, bounce_profiles.png, "
         "lightfield.png",
     ),
+    arg(
+        "--compact",
+        action="store_true",
+        help="write bounces.npy and render.json only (no bounces.exr, no lightfield.npy)",
+    ),
 )
 def _render_command(args: argparse.Namespace) -> None:
     """Render the medium a fit recovered (RESULTS.json names its capture, whose entry
@@ -50,9 +55,9 @@ def _render_command(args: argparse.Namespace) -> None:
 
       bounces.npy     float32 [K, H, W] per-bounce images (index k-1 holds I_k),
                       fitted gain included
-      bounces.exr     channels I1..IK
+      bounces.exr     channels I1..IK (not with --compact)
       lightfield.npy  float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian
-                      (left out, with a warning, above 5e7 floats)
+                      (left out, with a warning, above 5e7 floats; not with --compact)
       render.json     the medium, model region, illumination; fit_converged (false,
                       with fit_warning, for a fit that did not converge: rendered
                       all the same, with a warning)
@@ -82,7 +87,13 @@ def _render_command(args: argparse.Namespace) -> None:
     out = Path(args.out)
     with _progress(args, "render") as stage, atomic_directory(out) as staging:
         files, notes = render_results(
-            data, source, staging, plot=args.plot, stage=stage, warn=lambda t: _warn(args, t)
+            data,
+            source,
+            staging,
+            plot=args.plot,
+            stage=stage,
+            warn=lambda t: _warn(args, t),
+            compact=args.compact,
         )
     for note in notes:
         _warn(args, note)

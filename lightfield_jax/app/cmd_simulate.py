@@ -54,6 +54,12 @@ SIMULATE_FILES = (
         help="also write the paper's figures of the scene into FIGDIR (created; files "
         "replaced): bounce_images.png, bounce_profiles.png, lightfield.png",
     ),
+    arg(
+        "--compact",
+        action="store_true",
+        help="leave out the per-bounce images (bounces.npy, bounces*.exr): the captured "
+        "images, capture.yaml and metadata.json only",
+    ),
 )
 def _simulate(args: argparse.Namespace) -> None:
     """Render a simulate config and write into DIR:
@@ -70,6 +76,8 @@ def _simulate(args: argparse.Namespace) -> None:
       lightfield.npy  with --lightfield: float32 [K+1, H, W, n_theta], L_0..L_K in
                       radiance per radian; stripes: [P, K+1, H, W, n_theta]
       metadata.json   config, K, rho, convergence, n_theta, refine, timings, versions
+
+    --compact leaves out bounces.npy and bounces*.exr (most of the bytes).
 
     Per-bounce images and light fields include the gain and (stripes) the black level;
     captured images add the dark level and noise. Nothing is written unless the whole
@@ -97,7 +105,9 @@ def _simulate(args: argparse.Namespace) -> None:
         stage("write files")
         # The figures are drawn inside the output's staging: a failure publishes neither.
         with atomic_directory(out) as staging:
-            files = write_simulation(sim, staging, extra_metadata={"warnings": args.warnings})
+            files = write_simulation(
+                sim, staging, extra_metadata={"warnings": args.warnings}, compact=args.compact
+            )
             if plot is not None:
                 from lightfield_jax.capture.views import plot_simulation
 

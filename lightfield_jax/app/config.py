@@ -3,7 +3,7 @@
 The ``simulate`` config (lengths in pixels, coefficients per pixel, angles in degrees)::
 
     grid: {width: 128, height: 96, n_theta: 64}     # n_theta optional: chosen from g
-    medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}  # phase optional
+    medium: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}  # phase optional: normalized
     illumination: {kind: beam, x: 0.0, y: 48.5, direction_deg: 0.0, width: 1.0}
     #   kind: stripes -> period, lit, shifts: N (phases 0..N-1) or phases: [..],
     #                    direction_deg, entry: left|right|top|bottom
@@ -74,7 +74,12 @@ from lightfield_jax.scene.illumination import (
     period_problem,
     shifts_problem,
 )
-from lightfield_jax.scene.medium import PHASE_CONVENTIONS, Medium, bounces_for_tolerance
+from lightfield_jax.scene.medium import (
+    FILE_PHASE,
+    PHASE_CONVENTIONS,
+    Medium,
+    bounces_for_tolerance,
+)
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
 _TOP_KEYS = (
@@ -537,7 +542,7 @@ def _medium(s: _Section) -> MediumConfig:
         sigma_t=s.float("sigma_t"),
         sigma_s=s.float("sigma_s"),
         g=s.float("g"),
-        phase=s.choice("phase", PHASE_CONVENTIONS, "paper"),
+        phase=s.choice("phase", PHASE_CONVENTIONS, FILE_PHASE),
     )
 
 

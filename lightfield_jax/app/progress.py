@@ -1,8 +1,10 @@
 """A stage-by-stage progress display on stderr for long commands.
 
-The display (a tqdm bar) appears only once the work has run for ``delay`` seconds, so
-quick commands print nothing; a ticker thread keeps its elapsed time moving while one
-long stage (a compile, a render) runs without reporting. tqdm is imported lazily.
+On a terminal the display (a tqdm bar) appears only once the work has run for ``delay``
+seconds, so quick commands print nothing; a ticker thread keeps its elapsed time moving
+while one long stage (a compile, a render) runs without reporting. Elsewhere (a log
+file, a pipe, where a redrawn bar is unreadable) each stage is one plain line with the
+elapsed time. tqdm is imported lazily.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import TextIO
 
@@ -21,6 +24,57 @@ def quiet(_name: str) -> None:
     """A :data:`Stage` callback that shows nothing."""
 
 
+MODES: tuple[str, ...] = ("auto", "bar", "lines", "none")
+"""How :func:`progress` shows the stages: ``bar`` (a display redrawn in place, for a
+terminal), ``lines`` (one plain line per stage with the elapsed time, for a log file or
+a pipe), ``none``; ``auto``: ``bar`` on a terminal, else ``lines``."""
+
+
+def elapsed_text(seconds: float) -> str:
+    """``12.3 s`` under a minute, else ``m:ss`` or ``h:mm:ss``."""
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    m, s = divmod(int(seconds), 60)
+    h, m = divmod(m, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
+
+
+@contextlib.contextmanager
+def _lines(desc: str, file: TextIO, prefix: str, heartbeat: float) -> Iterator[Stage]:
+    """One line per stage, ``PREFIXdesc: stage [elapsed]``; a stage still running after
+    ``heartbeat`` seconds says so again (a solve can run for an hour without a stage)."""
+    start = time.monotonic()
+    lock = threading.Lock()
+    stop = threading.Event()
+    current = [None, start]  # the stage, when it was last said
+
+    def say(text: str) -> None:
+        print(f"{prefix}{desc}: {text} [{elapsed_text(time.monotonic() - start)}]", file=file)
+        file.flush()
+
+    def stage(name: str) -> None:
+        with lock:
+            current[0], current[1] = name.strip(), time.monotonic()
+            say(current[0])
+
+    def beat() -> None:
+        while not stop.wait(min(heartbeat, 1.0)):
+            with lock:
+                if current[0] is not None and time.monotonic() - current[1] >= heartbeat:
+                    current[1] = time.monotonic()
+                    say(f"still: {current[0]}")
+
+    ticker = threading.Thread(target=beat, name="lightfield-jax-progress", daemon=True)
+    ticker.start()
+    try:
+        yield stage
+        with lock:
+            say("done")
+    finally:
+        stop.set()
+        ticker.join()
+
+
 @contextlib.contextmanager
 def progress(
     desc: str,
@@ -29,22 +83,36 @@ def progress(
     enabled: bool | None = None,
     delay: float = 2.0,
     file: TextIO | None = None,
+    mode: str | None = None,
+    prefix: str = "",
+    heartbeat: float = 60.0,
 ) -> Iterator[Stage]:
     """Show progress through named stages; yields the :data:`Stage` callback.
 
     Args:
         desc: what runs (the bar's label).
         total: the number of stages, if known (a bar), else a counter.
-        enabled: ``True``/``False`` forces the display on/off; ``None`` shows it only
-            when ``file`` is a terminal.
-        delay: seconds before the display appears.
+        enabled: ``True``/``False`` forces the bar on / the display off; ``None``
+            leaves it to ``mode``.
+        delay: seconds before the bar appears.
         file: where to draw it (default ``sys.stderr``).
+        mode: one of :data:`MODES` (``None``: ``auto``).
+        prefix: put before each plain line (``lines``).
+        heartbeat: seconds after which a running stage is said again (``lines``).
     """
     file = sys.stderr if file is None else file
-    if enabled is None:
-        enabled = bool(getattr(file, "isatty", lambda: False)())
-    if not enabled:
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"progress: mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if enabled is not None:
+        mode = "bar" if enabled else "none"
+    if mode in (None, "auto"):
+        mode = "bar" if getattr(file, "isatty", lambda: False)() else "lines"
+    if mode == "none":
         yield quiet
+        return
+    if mode == "lines":
+        with _lines(desc, file, prefix, heartbeat) as stage:
+            yield stage
         return
     from tqdm import tqdm
 

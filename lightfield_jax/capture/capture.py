@@ -18,7 +18,7 @@ inverse pipeline reads it)::
     response: srgb               # optional: linear (default), srgb or a table file
     channel: all                 # optional
     geometry: {kind: plane}      # optional
-    fit: {max_render_cells: 4000000, n_theta: 64}   # optional: FitOptions fields
+    fit: {phase: normalized, n_theta: 64}   # optional: FitOptions fields
     truth: {sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, gain: 1.0, phase: paper}  # optional
 
 Keys:
@@ -102,10 +102,14 @@ Keys:
   ``max_render_cells``; the solve's ``max_steps``, ``rtol``, ``atol``, ``start``; the
   basin search's ``basin_search``, ``max_basins``; ``model_error``, ``correct``,
   ``max_chi2`` ...; see ``help(lfj.FitOptions)``), used by ``lightfield-jax fit`` and
-  :func:`~lightfield_jax.fit_capture`. The method and the phase convention are the
-  command's options, the geometry the key above.
+  :func:`~lightfield_jax.fit_capture`; ``phase``: the model's phase convention,
+  ``normalized`` (energy-conserving, for every medium) where absent, or ``paper``
+  (the paper's own; no answer for forward media of high albedo such as milk). The
+  method is the command's option, the geometry the key above.
 - ``truth``: the true parameters of a simulated capture (``sigma_t``, ``sigma_s``,
-  ``g``, ``gain``, ``phase``, ``black_level``), for reports.
+  ``g``, ``gain``, ``phase``, ``black_level``), for reports; for several channels each
+  value may be a list of one per channel, or ``truth`` a list of one mapping per
+  channel.
 
 Measured values (``auto``). Five keys take the value ``auto``: ``medium_roi``,
 ``pattern.entry``, ``pattern.direction_deg``, ``pattern.phases`` and ``black_level``.
@@ -327,7 +331,10 @@ class Capture:
 
 
 def load_capture(path: str | os.PathLike) -> Capture:
-    """Read and validate a capture file (see the module docstring).
+    """Read and validate a capture file: its images, calibration frames and keys,
+    measured where they say ``auto``; returns a :class:`Capture` (images dark-subtracted,
+    linear, cropped to the medium) for :func:`~lightfield_jax.fit_capture`. Every key of
+    the file is described below.
 
     Raises:
         CaptureFileNotFoundError: the capture file or an image does not exist.
@@ -633,3 +640,12 @@ __all__ = [
     "load_capture",
     "write_capture_yaml",
 ]
+
+
+if load_capture.__doc__ and __doc__:  # None under python -OO
+    # help(lfj.load_capture) is where a user looks for the file's keys.
+    import inspect as _inspect
+
+    load_capture.__doc__ = (
+        _inspect.cleandoc(load_capture.__doc__) + "\n\nThe capture file\n\n" + __doc__
+    )

@@ -774,6 +774,8 @@ class Brackets:
             near black.
         dark_pixels: pixel values (shifts × pixels × channels) merged from one dark sample.
         files: the image files, one list per shift.
+        dark_frame: whether a dark frame was subtracted (near black is then judged
+            against the signal, not ``near_black``).
     """
 
     times: tuple[float, ...]
@@ -787,9 +789,15 @@ class Brackets:
     near_black_fraction: np.ndarray
     dark_pixels: int
     files: tuple[tuple[Path, ...], ...]
+    dark_frame: bool = False
 
     def summary(self) -> str:
         j = len(self.times)
+        threshold = (
+            ""
+            if self.dark_frame
+            else f"; without a dark frame z < {', '.join(f'{v:.3g}' for v in self.near_black)}"
+        )
         clipped = ", ".join(
             f"{t * 1e3:g} ms {100 * float(c.mean()):.1f}%/{100 * float(b.mean()):.1f}%"
             for t, c, b in zip(
@@ -800,8 +808,8 @@ class Brackets:
             f"HDR: {len(self.files)} brackets of {j} exposures merged, "
             f"{self.response.kind} response; samples dropped as clipped (>= {self.clip:g}) / "
             "near black (one code over 5 % of the signal the longest unclipped exposure "
-            f"predicts; without a dark frame z < {', '.join(f'{v:.3g}' for v in self.near_black)}"
-            f"): {clipped}; "
+            f"predicts{threshold}), of the whole frame's samples (pixels outside the medium "
+            f"are near black at every exposure): {clipped}; "
             f"{int(self.clipped_shifts.sum())} value(s) clipped in every exposure (masked; "
             f"{int(self.clipped.sum())} pixel(s)), "
             f"{self.dark_pixels} merged from one dark sample"
@@ -818,6 +826,7 @@ class Brackets:
             "clipped_pixels": int(self.clipped.sum()),
             "clipped_values": int(self.clipped_shifts.sum()),
             "dark_pixels": self.dark_pixels,
+            "dark_frame": self.dark_frame,
         }
 
 
@@ -848,6 +857,7 @@ def merge_capture(
         near_black_fraction=np.mean([m.near_black_samples for m in merged], axis=(0, 4)),
         dark_pixels=int(sum(m.dark.sum() for m in merged)),
         files=tuple(tuple(row) for row in files),
+        dark_frame=dark is not None,
     )
     return np.stack([m.radiance for m in merged]), record
 

@@ -16,7 +16,7 @@ from lightfield_jax.capture.detect import Geometry
 from lightfield_jax.capture.io import CaptureError
 from lightfield_jax.scene.geometry import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
-from lightfield_jax.scene.medium import PHASE_CONVENTIONS
+from lightfield_jax.scene.medium import FILE_PHASE, PHASE_CONVENTIONS
 
 CAPTURE_KEYS: tuple[str, ...] = (
     "images",
@@ -38,8 +38,8 @@ CAPTURE_KEYS: tuple[str, ...] = (
     "fit",
 )
 AUTO = "auto"
-# FitOptions a capture file may set under ``fit:`` (the method and the phase convention
-# are the command's flags, the geometry has its own key, a solver has no YAML form).
+# FitOptions a capture file may set under ``fit:`` (the method is the command's flag, the
+# geometry has its own key, a solver has no YAML form).
 _FIT_INTS = (
     "max_bounces",
     "tail_bounces",
@@ -57,6 +57,7 @@ _FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2", "off
 _FIT_OPTIONAL_FLOATS = ("rtol", "atol")
 _FIT_BOOLS = ("crop", "basin_search", "model_error", "correct")
 FIT_KEYS: tuple[str, ...] = (
+    "phase",
     "bounces",
     "tail",
     "start",
@@ -366,6 +367,8 @@ def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
             out[k] = AUTO if value == AUTO else s.int(k)
         elif k == "tail":
             out[k] = None if value is None else s.choice(k, (AUTO, *TAIL_METHODS))
+        elif k == "phase":
+            out[k] = s.choice(k, PHASE_CONVENTIONS)
         else:  # start: [sigma_s, g]
             if not (isinstance(value, list) and len(value) == 2):
                 s.fail(s.key(k), f"must be [sigma_s, g], got {brief(value)}")
@@ -377,11 +380,20 @@ def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
     return out
 
 
+def fit_phase(capture) -> str:
+    """The phase convention a capture is fitted with: its file's ``fit.phase``, else
+    :data:`~lightfield_jax.scene.medium.FILE_PHASE` (``normalized``)."""
+    return (getattr(capture, "fit_options", None) or {}).get("phase", FILE_PHASE)
+
+
 def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
     """The ``truth`` section: each number, or a list of one per channel (an RGB
     capture's media differ by channel), checked in its range."""
     if "truth" not in top.data:
         return None
+    if isinstance(top.data["truth"], list):
+        data = {**top.data, "truth": _by_key(top, n_channels)}
+        top = _Section(top.source, top.path, data, None, error=top.error)
     s = top.section("truth", _TRUTH_KEYS)
     truth: dict[str, Any] = {}
     for k in _TRUTH_FLOATS:
@@ -402,6 +414,31 @@ def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
     if "phase" in s.data:
         truth["phase"] = s.choice("phase", PHASE_CONVENTIONS)
     return truth
+
+
+def _by_key(top: _Section, n_channels: int) -> dict[str, Any]:
+    """``truth`` given as a list of one mapping per channel, as the mapping of lists
+    :func:`_truth` reads (``truth: [{sigma_t: .2, g: .8}, ...]`` for R, G, B)."""
+    given = top.data["truth"]
+    key = top.key("truth")
+    if len(given) != n_channels:
+        top.fail(key, f"a list gives one mapping per channel: {n_channels} here, got {len(given)}")
+    for i, item in enumerate(given):
+        if not isinstance(item, dict):
+            top.fail(
+                f"{key}[{i}]", f"must be a mapping (sigma_t, sigma_s, g, ...), got {brief(item)}"
+            )
+    keys = list(dict.fromkeys(k for item in given for k in item))
+    for k in keys:
+        missing = [i for i, item in enumerate(given) if k not in item]
+        if missing:
+            top.fail(f"{key}[{missing[0]}]", f"{k}: given for another channel but not this one")
+    out: dict[str, Any] = {k: [item[k] for item in given] for k in keys}
+    if "phase" in out:
+        if len(set(map(str, out["phase"]))) > 1:
+            top.fail(key, f"phase: one convention for every channel, got {out['phase']}")
+        out["phase"] = out["phase"][0]
+    return out
 
 
 def truth_for(truth: dict[str, Any] | None, channel: int) -> dict[str, Any] | None:

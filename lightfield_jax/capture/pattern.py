@@ -18,6 +18,7 @@ every key.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -96,6 +97,36 @@ def stripe_patterns(
     return phases, images
 
 
+# How far a stripe's size on the camera may be from a whole number of camera pixels.
+SCALE_TOLERANCE = 0.05
+
+
+def camera_stripes(period: int, lit: int, scale: float) -> tuple[int, int]:
+    """The stripes' period and lit width in camera pixels, the model's unit, for
+    ``scale`` camera pixels per projector pixel (measured across the stripes, on the
+    medium: e.g. the stripes' period in a camera image divided by the projector's).
+    Refused where either is not a whole number of camera pixels, or where fewer than 2
+    camera pixels make a period (the model lights whole camera rows)."""
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"--camera-px-per-projector-px: must be a number > 0, got {scale!r}")
+    out = []
+    for name, value in (("period", period), ("lit", lit)):
+        camera = value * scale
+        if abs(camera - round(camera)) > SCALE_TOLERANCE or round(camera) < 1:
+            raise ValueError(
+                f"--camera-px-per-projector-px: {scale:g} puts a {name} of {value} projector "
+                f"px on {camera:.3g} camera px, not a whole number: choose a --{name} "
+                f"whose image is a whole number of camera pixels"
+            )
+        out.append(int(round(camera)))
+    if out[0] < 2:
+        raise ValueError(
+            f"--camera-px-per-projector-px: {scale:g} puts the period of {period} projector "
+            f"px on {out[0]} camera px: at least 2 are needed"
+        )
+    return out[0], out[1]
+
+
 def capture_template(
     phases: tuple[int, ...],
     period: int,
@@ -103,8 +134,15 @@ def capture_template(
     orientation: str,
     pattern_names: list[str],
     camera_names: list[str],
+    scale: float = 1.0,
 ) -> str:
-    """The text of ``capture.yaml`` for camera images of the projected frames."""
+    """The text of ``capture.yaml`` for camera images of the projected frames, whose
+    stripes are ``scale`` camera pixels per projector pixel on the medium."""
+    camera_period, camera_lit = camera_stripes(period, lit, scale)
+    if scale == 1:
+        unit = "camera pixels (= projector pixels: one camera pixel per projector pixel)"
+    else:
+        unit = f"camera pixels ({period} projector px x {scale:g} camera px per projector px)"
     images = "\n".join(
         f"  - {c}  # camera image of {p} (projector phase {ph})"
         for c, p, ph in zip(camera_names, pattern_names, phases, strict=True)
@@ -117,8 +155,12 @@ def capture_template(
 # all with the same exposure, gain and white balance, in a linear format: 16-bit
 # TIFF or PNG from the camera's raw files (demosaiced, no gamma, no auto exposure),
 # or float EXR from an HDR merge. Replace the camera_*.tif names below by your
-# camera's files (paths relative to this file). The projector's stripes must fall
-# on the camera's rows at one camera pixel per projector pixel (docs/model.md section 3).
+# camera's files (paths relative to this file). The stripes must run along the
+# camera's rows (or columns). The model counts lengths in camera pixels: period and
+# lit below are the stripes' size on the camera image, which is the projector's size
+# times the camera pixels per projector pixel (measure it: the stripes' period in a
+# camera image over the projector's; `pattern --camera-px-per-projector-px` writes
+# it here, and loading refuses a period the images clearly do not have).
 # Then check what the pipeline sees with `lightfield-jax inspect capture.yaml`
 # and fit with `lightfield-jax fit capture.yaml`.
 
@@ -127,8 +169,8 @@ images:
 {images}
 
 pattern:
-  period: {period}          # stripe period in projector (= camera) pixels
-  lit: {lit}             # lit rows per period
+  period: {camera_period}          # stripe period in {unit}
+  lit: {camera_lit}             # lit rows per period, in camera pixels
   # `auto` measures a value from the images; give a value to override it.
   phases: auto       # where the stripes fall on the camera's rows, one per image
   entry: auto        # the wall the light enters through: left, right, top or bottom
@@ -149,6 +191,11 @@ black_level: auto    # or a number in [0, 1)
 # saturation: 0.98              # value (scaled to [0, 1]) at or above which a pixel is clipped
 # pixel_size_mm: 0.05           # camera pixel pitch on the medium, to report per-mm coefficients
 channel: all         # R, G, B, an index, or all (each channel is fitted on its own)
+
+# The model's phase convention: normalized (the default) conserves energy in the
+# plane and fits every medium; paper is the paper's own, with no answer for forward
+# media of high albedo such as milk (rho = albedo x A(g) >= 1).
+# fit: {{phase: normalized}}
 """
 
 
@@ -166,9 +213,13 @@ def write_patterns(
     lit: int = 3,
     shifts: int | None = None,
     orientation: str = "rows",
+    scale: float = 1.0,
 ) -> list[Path]:
     """Write ``stripe_XX.png`` (one per phase), ``white.png``, ``black.png`` (8-bit,
-    width × height) and ``capture.yaml`` into the folder ``out``; returns the files."""
+    width × height) and ``capture.yaml`` into the folder ``out``; returns the files.
+    ``period`` and ``lit`` are projector pixels; the capture file's are camera pixels,
+    ``scale`` camera pixels per projector pixel (:func:`camera_stripes`)."""
+    camera_stripes(period, lit, scale)  # before any file
     phases, images = stripe_patterns(width, height, period, lit, shifts, orientation)
     out = Path(out)
     files = []
@@ -178,13 +229,14 @@ def write_patterns(
     files.append(write_png(out / "white.png", np.full((height, width), 255, np.uint8)))
     files.append(write_png(out / "black.png", np.zeros((height, width), np.uint8)))
     camera = [f"camera_{Path(n).stem}.tif" for n in names]
-    text = capture_template(phases, period, lit, orientation, names, camera)
+    text = capture_template(phases, period, lit, orientation, names, camera, scale)
     files.append(atomic_write_text(out / "capture.yaml", text))
     return files
 
 
 __all__ = [
     "ORIENTATIONS",
+    "camera_stripes",
     "capture_template",
     "check_size",
     "pattern_memory",

@@ -64,17 +64,19 @@ def render_transport(
     ]
 
 
-def write_transport(result: RenderResult, folder: Path) -> dict[str, str]:
-    """``bounces.npy``/``bounces.exr`` (I_1..I_K) and ``lightfield.npy`` (L_0..L_K)."""
+def write_transport(result: RenderResult, folder: Path, compact: bool = False) -> dict[str, str]:
+    """``bounces.npy``/``bounces.exr`` (I_1..I_K) and ``lightfield.npy`` (L_0..L_K);
+    ``compact``: ``bounces.npy`` only (the EXR repeats it, the light fields are most of
+    the bytes: 104 MB for a 128x96 render of 238 bounces)."""
     from lightfield_jax.capture.io import atomic_write_npy, write_exr
 
     images = np.asarray(result.images, np.float32)
     atomic_write_npy(folder / "bounces.npy", images)
+    files = {"bounces.npy": "float32 [K, H, W] per-bounce images, index k-1 holds I_k"}
+    if compact:
+        return files
     write_exr(folder / "bounces.exr", {f"I{k + 1}": im for k, im in enumerate(images)})
-    files = {
-        "bounces.npy": "float32 [K, H, W] per-bounce images, index k-1 holds I_k",
-        "bounces.exr": f"channels I1..I{len(images)}: per-bounce images",
-    }
+    files["bounces.exr"] = f"channels I1..I{len(images)}: per-bounce images"
     if result.lightfields is not None:
         atomic_write_npy(folder / "lightfield.npy", np.asarray(result.lightfields, np.float32))
         files["lightfield.npy"] = "float32 [K+1, H, W, n_theta] L_0..L_K, radiance per radian"
@@ -267,6 +269,7 @@ def render_results(
     plot: bool,
     stage=lambda _s: None,
     warn=lambda _t: None,
+    compact: bool = False,
 ) -> tuple[dict[str, str], list[str]]:
     """Render the fitted medium of every channel of the results ``data`` (read from
     ``source`` by :func:`read_results`) into ``folder`` (one subfolder per channel when
@@ -338,7 +341,7 @@ def render_results(
         )
         notes += [f"[{name}] {n}" for n in left_out]
         target.mkdir(exist_ok=True)
-        written = write_transport(result, target)
+        written = write_transport(result, target, compact)
         about = {
             "results": str(source),
             "capture": str(capture_path),

@@ -266,9 +266,15 @@ def _bounce_channels(bounces: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def write_simulation(
-    sim: SimulatedCapture, folder: str | os.PathLike, *, extra_metadata: dict | None = None
+    sim: SimulatedCapture,
+    folder: str | os.PathLike,
+    *,
+    extra_metadata: dict | None = None,
+    compact: bool = False,
 ) -> dict[str, str]:
-    """Write a simulated capture's files into ``folder`` (which must exist).
+    """Write a simulated capture's files into ``folder`` (which must exist); with
+    ``compact``, not the per-bounce images (``bounces.npy``, ``bounces*.exr``: 129 MB
+    of a 128x96 capture of 238 bounces), only what a fit reads and ``metadata.json``.
 
     Not atomic by itself: callers stage the folder with
     :func:`~lightfield_jax.capture.io.atomic_directory`. Returns file name → description (also
@@ -293,11 +299,14 @@ def write_simulation(
     folder = Path(folder)
     k = sim.n_bounces
     shape = "[P, K, H, W]" if sim.is_stripes else "[K, H, W]"
-    files = {"bounces.npy": f"float32 {shape} per-bounce images, index k-1 holds I_k"}
-    atomic_write_npy(folder / "bounces.npy", sim.bounces)
+    files = {}
+    if not compact:
+        files["bounces.npy"] = f"float32 {shape} per-bounce images, index k-1 holds I_k"
+        atomic_write_npy(folder / "bounces.npy", sim.bounces)
     if sim.is_stripes:
         n = len(sim.images)
-        for name, bounces in zip(shift_names(n, "bounces"), sim.bounces, strict=True):
+        per_bounce = [] if compact else zip(shift_names(n, "bounces"), sim.bounces, strict=True)
+        for name, bounces in per_bounce:
             write_exr(folder / name, _bounce_channels(bounces))
             files[name] = f"channels I1..I{k}: per-bounce images of one shift"
         shifts = shift_names(n, "shift")
@@ -305,8 +314,9 @@ def write_simulation(
             write_exr(folder / name, {"Y": image})
             files[name] = "channel Y: the captured image of one shift"
     else:
-        write_exr(folder / "bounces.exr", _bounce_channels(sim.bounces))
-        files["bounces.exr"] = f"channels I1..I{k}: per-bounce images"
+        if not compact:
+            write_exr(folder / "bounces.exr", _bounce_channels(sim.bounces))
+            files["bounces.exr"] = f"channels I1..I{k}: per-bounce images"
         write_exr(folder / "total.exr", {"Y": sim.images})
         files["total.exr"] = "channel Y: the captured image (sum of bounces, dark level, noise)"
     if sim.dark is not None:
@@ -327,6 +337,9 @@ def write_simulation(
             dark_frame="dark.exr" if sim.dark is not None else None,
             black_level=sim.config.black_level,
             geometry=None if slab is None else slab.as_dict(),
+            # The fit models the light as the simulation did: a fit's phase default
+            # would otherwise compare sigma_s of two conventions.
+            fit={"phase": sim.config.medium.phase},
             truth=sim.truth(),
         )
         files["capture.yaml"] = "the shifted images as a capture (input of the inverse pipeline)"

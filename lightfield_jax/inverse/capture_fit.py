@@ -95,6 +95,7 @@ def fit_capture(
     channels: Sequence[str] | None = None,
     options: FitOptions | None = None,
     progress: Callable[[str], None] | None = None,
+    on_result: Callable[[str, FitResult], None] | None = None,
     **overrides,
 ) -> CaptureFit:
     """Fit a loaded capture (:func:`~lightfield_jax.load_capture`), channel by channel.
@@ -109,11 +110,15 @@ def fit_capture(
         channels: channel names to fit (default: every channel the capture holds; its
             file's ``channel`` key chooses which channels are loaded).
         options, overrides: see :func:`fit_images` (``options`` ``None``: the capture
-            file's ``fit:`` settings, :attr:`Capture.fit_options`).
+            file's ``fit:`` settings, :attr:`Capture.fit_options`, whose ``phase`` is
+            ``normalized`` where the file gives none).
         progress: called with a description of each stage.
+        on_result: called with each channel's name and result as soon as that channel
+            is fitted (an RGB fit takes minutes per channel).
     """
     check_options(options, "fit_capture")  # before the capture's load
     check_progress(progress, "fit_capture")
+    check_progress(on_result, "fit_capture", "on_result")
     if channels is not None and (
         isinstance(channels, (str, bytes)) or not isinstance(channels, Iterable)
     ):  # a string was split into letters ('red': 'r' is not in the capture), 0 a TypeError
@@ -146,7 +151,10 @@ def fit_capture(
     results = []
     say = progress or (lambda _m: None)
     if options is None:  # the capture file's fit: settings, under the call's own
-        options = FitOptions(**getattr(capture, "fit_options", {}))
+        from lightfield_jax.capture.keys import fit_phase
+
+        settings = getattr(capture, "fit_options", None) or {}
+        options = FitOptions(**{**settings, "phase": fit_phase(capture)})
     opts = dataclasses.replace(options, method=method, **overrides)
     if opts.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
@@ -178,6 +186,8 @@ def fit_capture(
                 floor=floor,
             )
         results.append(result)
+        if on_result is not None:
+            on_result(c, result)
         if len(chosen) > 1:
             say(f"[{c}] {_one_line(result)}")
         if floor is not None:

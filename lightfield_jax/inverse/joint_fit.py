@@ -36,8 +36,10 @@ from lightfield_jax.inverse.joint_stage import (
     joint_weights,
 )
 from lightfield_jax.inverse.model_size import (
+    RATIO_MARGIN,
     SCAN_TAIL_BOUNCES,
     _at_least,
+    _bucket_bounces,
     _by_measured_ratio,
     _covers,
     _extrapolated,
@@ -63,6 +65,7 @@ from lightfield_jax.inverse.trust import (
     untrustworthy,
 )
 from lightfield_jax.scene.grid import REFINE_LIMIT, default_refine
+from lightfield_jax.scene.medium import bounces_for_tolerance
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions
@@ -535,14 +538,16 @@ def _offset_hint_below_far(far: bool, reasons: list[str], chi2_dof: float) -> bo
     return (not far) and bool(reasons) and math.isfinite(chi2_dof) and chi2_dof >= OFFSET_HINT_CHI2
 
 
-def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
+def _cut_series(model: _Model, the_scan, v: dict, options: FitOptions) -> list[str]:
     """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
     ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1.
     That happens where the bound called the series divergent (ρ ≥ 1 at the estimate:
-    the paper's phase gains energy per bounce for g ≳ 0.7, ρ = ω·A(g)) and the march
-    stopped at ``max_bounces``, and where a count was given (``bounces: K``, or
-    ``tail: null`` capping the march at ``max_bounces``)."""
+    the paper's phase gains energy per bounce for g ≳ 0.7, ρ = ω·A(g)), where the count
+    was sized from the ratio at the estimate and the answer's is higher, and where a
+    count was given (``bounces: K``, or ``tail: null`` capping the march at
+    ``max_bounces``). The reason names the setting that sums the orders left out:
+    ``max_bounces`` changes nothing where the count was sized or given."""
     if model.tail is not None or model.extrapolate:
         return []
     r = the_scan.ratio_at(v["g"], v["sigma_s"] / v["sigma_t"])
@@ -551,16 +556,26 @@ def _cut_series(model: _Model, the_scan, v: dict) -> list[str]:
     left = math.inf if r >= 1 else r**model.bounces / (1 - r)
     if left <= CUT_LIMIT:
         return []
-    remedy = (
-        "or use phase: normalized"
-        if not model.converges
-        else "or let a tail solve sum the rest (bounces: auto, tail: auto)"
-    )
-    return [
+    cut = (
         f"the bounce series is cut at {model.bounces} bounces where it has not converged "
         f"(per-bounce ratio {r:.3f} at the answer, ρ {model.rho:.3f} at the estimate): "
-        f"the orders left out are not negligible; raise max_bounces (or bounces), {remedy}"
-    ]
+        "the orders left out are not negligible; "
+    )
+    if r >= 1 or not model.converges:
+        if options.phase == "paper":
+            return [
+                cut + "under phase: paper this medium gains light at every bounce and no "
+                "count of bounces sums it: fit with fit: {phase: normalized} (--phase "
+                "normalized), or the tank's depth (geometry: slab)"
+            ]
+        return [cut + f"fit: {{bounces: {max(2 * model.bounces, 8)}}} marches more of them"]
+    need = _bucket_bounces(
+        bounces_for_tolerance(min(r + RATIO_MARGIN, 0.995), options.tolerance, 10**9)
+    )
+    if options.tail is None:  # the march is capped at max_bounces
+        return [cut + f"fit: {{max_bounces: {need}}} marches the bounces this ratio needs"]
+    solve = "" if isinstance(options.bounces, int) else " or fit: {tail: bicgstab} (a tail solve)"
+    return [cut + f"fit: {{bounces: {need}}} marches the bounces this ratio needs{solve}"]
 
 
 def _model_shift(data: _Data, pattern, stage: _Stage, options: FitOptions) -> tuple:
@@ -588,7 +603,7 @@ def _verdict(
         reasons += _offset_reason(the_scan, last, peak)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
     reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
-    reasons += _cut_series(last.model, the_scan, v)
+    reasons += _cut_series(last.model, the_scan, v, options)
     other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
     if other is not None:
         reasons.append(

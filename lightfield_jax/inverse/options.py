@@ -430,14 +430,18 @@ def check_options(options, where: str) -> None:
         )
 
 
-def check_progress(progress, where: str) -> None:
-    """Refuse a ``progress`` that is neither callable nor ``None``
-    (``ValueError("WHERE: progress: ...")``). Before: ``progress=True`` ran until the
-    first stage, then "TypeError: 'bool' object is not callable"."""
+def check_progress(progress, where: str, name: str = "progress") -> None:
+    """Refuse a ``progress`` (or another callback, ``name``) that is neither callable
+    nor ``None`` (``ValueError("WHERE: NAME: ...")``): ``progress=True`` would run until
+    the first stage, then "TypeError: 'bool' object is not callable"."""
     if progress is not None and not callable(progress):
+        takes = (
+            "one argument (each stage's description)"
+            if name == "progress"
+            else "a channel's name and its result"
+        )
         raise ValueError(
-            f"{where}: progress: must be a function of one argument (each stage's "
-            f"description) or None, got {shown(progress)}"
+            f"{where}: {name}: must be a function of {takes} or None, got {shown(progress)}"
         )
 
 

@@ -18,6 +18,12 @@ from lightfield_jax.checks import check_number, number_problem, shown
 
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
+# The convention of the files (a capture file's ``fit.phase``, a simulate config's
+# ``medium.phase``) and of the command line where they say none: real media (milk,
+# σs near σt and g near 0.8) have ρ = ω·A(g) ≥ 1 under ``paper``, which has no finite
+# answer for them; ``normalized`` conserves energy in the plane and describes every
+# medium. The Python objects (Medium, FitOptions) keep the paper's own convention.
+FILE_PHASE = "normalized"
 
 # Nodes of the periodic trapezoid rule for A(g). The rule converges like
 # exp(-N (1 - |g|)), so 4096 nodes are exact to float64 for |g| <= 0.99.

@@ -173,7 +173,9 @@ def _plot_brackets(fig, axes, c) -> None:
         name = c.channel_names[i] if n == len(c.channel_names) else "all"
         ax.plot(z, x[:, i], color=_colour(name, i), label=f"{b.response.kind} response {name}")
     ax.axvline(b.clip, color="0.3", ls="--", lw=0.8, label=f"clipped above {b.clip:g}")
-    for i, v in enumerate(b.near_black):
+    # With a dark frame near black is judged against each sample's predicted signal,
+    # not at a fixed code: no line to draw.
+    for i, v in enumerate(() if getattr(b, "dark_frame", False) else b.near_black):
         ax.axvline(
             v,
             color="0.6",

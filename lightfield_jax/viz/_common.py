@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 from lightfield_jax.capture.io import atomic_path
@@ -19,6 +20,9 @@ def finish(fig, path):
     if path is None:
         return fig
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, warnings.catch_warnings():
+        # matplotlib's layout notes (a legend or a title that leaves an axis no room)
+        # are about drawing, not the user's data; the figure is written regardless.
+        warnings.filterwarnings("ignore", category=UserWarning, module=r"matplotlib(\.|$)")
         fig.savefig(tmp, dpi=110)
     return path

@@ -345,45 +345,90 @@ def plot_bounce_profiles(
     sel = _mask(mask, on_path)
     fig = _figure(12.0, 4.6)
     ax_abs, ax_norm = fig.subplots(1, 2)
-    peaks = []
-    for k, image in enumerate(images, start=1):
-        x, y = _profile(image, s, sel, bin_width)
-        ok = _visible(y, dynamic_range)
-        colour = f"C{(k - 1) % 10}"
+    # The y range is the brightest profile's: a high order's profile sits many decades
+    # below (ρ^k), and drawing each down to its own peak / dynamic_range collapsed the
+    # axis to a sliver at K 238. Orders wholly below it are not drawn nor listed.
+    peaks = [float(np.nanmax(_profile(im, s, sel, bin_width)[1], initial=0.0)) for im in images]
+    top = max(peaks, default=0.0)
+    seen = [k for k, p in enumerate(peaks, start=1) if top > 0 and p >= top / dynamic_range]
+    last = seen[-1] if seen else len(images)
+    drawn = shown_bounces(last)
+    colours = _bounce_colours(drawn)
+    for k in drawn:
+        x, y = _profile(images[k - 1], s, sel, bin_width)
+        ok = _visible(y, dynamic_range) & (y >= top / dynamic_range)
+        colour = colours[k]
         ax_abs.semilogy(x[ok], y[ok], "-", color=colour, label=f"$I_{{{k}}}$")
-        peak = x[ok][np.argmax(y[ok])] if ok.any() else math.nan
-        peaks.append(peak)
         if ok.any():
+            peak = x[ok][np.argmax(y[ok])]
             ax_norm.plot(
                 x[ok],
                 y[ok] / y[ok].max(),
                 "-",
                 color=colour,
-                label=f"$I_{{{k}}}$ (peak at s = {peak:.1f} px)",
+                label=f"$I_{{{k}}}$: peak {peak:.0f} px",
             )
             ax_norm.axvline(peak, color=colour, ls=":", lw=0.8)
     if total:
         x, y = _profile(images.sum(axis=0), s, sel, bin_width)
-        ok = _visible(y, dynamic_range)
-        ax_abs.semilogy(x[ok], y[ok], "k--", lw=1.2, label=r"$\Sigma_k I_k$")
+        top = max(top, float(np.nanmax(y, initial=0.0)))
+        ok = _visible(y, dynamic_range) & (y >= top / dynamic_range)
+        label = r"$\Sigma_k I_k$" + (f" (all {len(images)})" if len(drawn) < len(images) else "")
+        ax_abs.semilogy(x[ok], y[ok], "k--", lw=1.2, label=label)
+    if top > 0:
+        ax_abs.set_ylim(top / dynamic_range, top * 2)
     where = _where(illumination)
     ax_abs.set_xlabel("distance along the light s (px)")
     ax_abs.set_ylabel(f"mean intensity ({_UNITS}, log scale)")
-    ax_abs.set_title("bounce profiles (mean over the pixels on the light's path)", fontsize=10)
+    some = "" if len(drawn) == len(images) else f"; {len(drawn)} of {len(images)} bounces shown"
+    if last < len(images):
+        some += f",\nthose after {last} below {1 / dynamic_range:g} of the brightest"
+    ax_abs.set_title(
+        f"bounce profiles (mean over the pixels on the light's path{some})", fontsize=10
+    )
     ax_abs.grid(True, which="both", alpha=0.3)
     ax_norm.set_xlabel("distance along the light s (px)")
     ax_norm.set_ylabel("intensity / its peak")
     ax_norm.set_title("each normalised to its peak (dotted: peak position)", fontsize=10)
     ax_norm.grid(True, alpha=0.3)
     if sel.any():
-        ax_abs.legend(fontsize=8, ncol=2)
-        ax_norm.legend(fontsize=8)
+        ax_abs.legend(fontsize=8, ncol=2, title="bounce k", title_fontsize=8)
+        ax_norm.legend(fontsize=8, ncol=2 if len(drawn) > 6 else 1)
     else:  # light nearly along the wall: no pixel is wholly lit through it
         ax_abs.text(
             0.5, 0.5, "no pixel on the light's path", transform=ax_abs.transAxes, ha="center"
         )
     fig.suptitle(title or f"Decay of each bounce along the light {where}", fontsize=11)
     return _finish(fig, path)
+
+
+# Bounce profiles drawn at most: each has a legend entry and a colour that must stay
+# readable (every bounce of a K 238 render overflowed the legend and collapsed the axes).
+MAX_SHOWN_BOUNCES = 10
+
+
+def shown_bounces(k: int, most: int = MAX_SHOWN_BOUNCES) -> list[int]:
+    """The bounce orders 1..k to draw: all of them up to ``most``, else the first four
+    and the rest spaced evenly in log k up to k (the profiles change slowly there)."""
+    if k <= most:
+        return list(range(1, k + 1))
+    first = [1, 2, 3, 4]
+    rest = np.geomspace(5, k, most - len(first))
+    out = sorted(set(first) | {int(round(v)) for v in rest} | {k})
+    while len(out) > most:  # rounding may add one: drop from the middle of the rest
+        out.pop(len(first) + (len(out) - len(first)) // 2)
+    return out
+
+
+def _bounce_colours(drawn: list[int]) -> dict[int, object]:
+    """One colour per drawn order: the tab10 cycle for a few, viridis in log k for more."""
+    if len(drawn) <= 10 and drawn[-1] <= 10:
+        return {k: f"C{(k - 1) % 10}" for k in drawn}
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    span = max(math.log(drawn[-1]), 1e-9)
+    return {k: cmap(0.9 * math.log(k) / span) for k in drawn}
 
 
 def _where(illumination) -> str:
