@@ -76,7 +76,7 @@ class Medium(eqx.Module):
         if "g" in concrete and np.any(np.abs(concrete["g"]) >= 1.0):
             raise ValueError(f"medium.g: must satisfy -1 < g < 1, got {g!r}")
         # The values are stored in JAX's float dtype (float32 unless x64 is on): checked
-        # there too (g = 0.99999999 became 1.0, sigma_t = 1e39 inf, 1e-300 zero: NaN
+        # there too (g = 0.99999999 becomes 1.0, sigma_t = 1e39 inf, 1e-300 zero: NaN
         # renders or errors deep inside).
         work = np.dtype(jnp.result_type(float))
         with np.errstate(over="ignore"):
