@@ -60,7 +60,7 @@ from lightfield_jax.scene.illumination import Full as Full
 from lightfield_jax.scene.illumination import Stripes as Stripes
 from lightfield_jax.scene.medium import Medium as Medium
 from lightfield_jax.scene.medium import bounces_for_tolerance as bounces_for_tolerance
-from lightfield_jax.scene.medium import phase_function as phase_function
-from lightfield_jax.scene.medium import phase_integral as phase_integral
+from lightfield_jax.scene.phase import phase_function as phase_function
+from lightfield_jax.scene.phase import phase_integral as phase_integral
 
 __version__ = "0.1.0"

@@ -4,12 +4,12 @@ illumination, fit options, figures).
 A number is a Python ``int`` or ``float``, a NumPy integer or floating scalar, or a
 0-d real array (NumPy or JAX); ``True``, strings, ``None``, complex values and arrays
 of more than one value are not (``True`` is an ``int`` to Python and ``"0.2"`` a
-number to ``float()``: both were taken silently). :func:`number_problem` says what is
+number to ``float()``: neither is taken silently). :func:`number_problem` says what is
 wrong with a value (``None``: nothing), :func:`check_number` raises it as
 ``ValueError("KEY: PROBLEM")`` naming the argument, the value and the allowed range.
 JAX tracers (values under ``jit`` or ``grad``) are not numbers to check here: callers
 that take them skip the check (see :class:`~lightfield_jax.Medium`); given to one that
-does not, a tracer is named as such (it was JAX's many-line ConcretizationTypeError).
+does not, a tracer is named as such (not as JAX's many-line ConcretizationTypeError).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def number_problem(
     if isinstance(v, float) or not integer:
         try:
             f = float(v)
-        except OverflowError:  # an int beyond float64 (10**400): was a bare OverflowError
+        except OverflowError:  # an int beyond float64 (10**400): said, not a bare OverflowError
             if (low is None or v >= low) and (high is None or v <= high):
                 big = sys.float_info.max
                 return f"must be a number of magnitude at most {big:.3g}, got {shown(value)}"
@@ -145,8 +145,8 @@ def check_flag(value, key: str) -> bool:
 
 # The gain (image units per unit source irradiance) a render takes: images are float32,
 # whose normal numbers span 1.2e-38 to 3.4e38. A larger gain overflows the brightest
-# images, a smaller one underflows every image to zero (gain 1e-40 rendered all-zero
-# images, silently): per unit irradiance the single scatter is at most about 1.
+# images, a smaller one underflows every image to zero (gain 1e-40 would render
+# all-zero images, silently): per unit irradiance the single scatter is at most about 1.
 GAIN_RANGE = (1e-30, 1e30)
 
 
@@ -212,8 +212,8 @@ def as_array(values, key: str, what: str = "an array of real numbers", items: st
 
 def check_mask(mask, key: str = "mask"):
     """``mask`` as a bool array (``None`` as given), or ``ValueError("KEY: ...")``: flags
-    are bools, or numbers that are 0 or 1 (a NaN, a 2 or a string was taken as true, an
-    object array of ``None`` as false)."""
+    are bools, or numbers that are 0 or 1 (so that a NaN, a 2 or a string is not taken
+    as true, nor an object array of ``None`` as false)."""
     if mask is None:
         return None
     try:
@@ -257,8 +257,8 @@ def unmask(images, mask=None):
 def check_float_range(values, key: str) -> None:
     """Refuse concrete float values that JAX's default float (float32 unless x64 is on)
     cannot hold: whose largest magnitude overflows it, or underflows below its smallest
-    normal number (``ValueError("KEY: ...")``). Before: a float64 image of 1e300 became
-    inf (1e-300 zero) in float32 and a later step failed naming another cause."""
+    normal number (``ValueError("KEY: ...")``). Unchecked, a float64 image of 1e300
+    becomes inf (1e-300 zero) in float32 and a later step fails naming another cause."""
     jax = sys.modules.get("jax")
     if jax is None or _is_tracer(values):
         return

@@ -18,9 +18,12 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.app.config import ConfigError, parse_simulation_config
+from lightfield_jax.forward import plane as plane_module
+from lightfield_jax.forward import slab as slab_module
 from lightfield_jax.forward.render import trace_count
 from lightfield_jax.forward.slab import SlabRenderer, elevation_nodes, hg
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab, slab_single_scatter_sheet
+from lightfield_jax.scene import phase
 from lightfield_jax.scene.geometry import Slab, parse_geometry, resolve_slab_grid
 
 W, H = 48, 32
@@ -97,6 +100,27 @@ def test_first_scatter_normalisation_is_the_sphere():
             w * np.sum(hg(s[:, None] * np.cos(th)[None], g), axis=1) * 2 * np.pi / 4096
         )
         assert total == pytest.approx(1.0, rel=2e-3 if abs(g) > 0.8 else 2e-4)
+
+
+def test_slab_and_plane_share_one_phase_function_that_holds_in_float32():
+    """Both geometries evaluate the Henyey–Greenstein function of
+    lightfield_jax.scene.phase: the slab's hg at cos θ is the plane's p(θ). In float32
+    it holds at the forward (backward) peak as |g| → 1, where the direct form
+    1 + g² − 2g·cos θ cancels (hg(1, 0.9999) would be inf, hg(1, 0.999) 10 % low)."""
+    assert slab_module.hg is phase.hg
+    assert plane_module.phase_function is phase.phase_function is lfj.phase_function
+    theta = np.linspace(-np.pi, np.pi, 101)
+    for g in (-0.6, 0.4, 0.9):
+        np.testing.assert_allclose(
+            np.asarray(hg(np.cos(theta), g)), np.asarray(lfj.phase_function(theta, g)), rtol=1e-12
+        )
+    cases = ((1.0, 0.999), (1.0, 0.9999), (-1.0, -0.9999), (-1.0, 0.9999), (0.0, 0.9999))
+    with jax.enable_x64(False):
+        p32 = [float(hg(jnp.float32(c), jnp.float32(g))) for c, g in cases]
+    for (c, g), p in zip(cases, p32, strict=True):
+        g = float(np.float32(g))  # the peak's height depends on 1 − g: g as float32 has it
+        exact = (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * c) ** 1.5)
+        assert p == pytest.approx(exact, rel=1e-4), (c, g)
 
 
 def test_mirror_symmetry_in_y_with_negative_control():

@@ -374,7 +374,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     if args.method in TWO_STEP_METHODS:
         _say(args, f"note: {TWO_STEP_CAVEAT}")
     _say(args, f"wrote {', '.join(_path(f) for f in [out, *figures])}")
-    if not fit.converged:  # its reasons too (were only in the summary, which -q silences)
+    if not fit.converged:  # its reasons too (the summary has them, but -q silences it)
         why = "; ".join(
             f"[{name}] {'; '.join(r.reasons) or r.message}"
             for name, r in zip(fit.channels, fit.results, strict=True)

@@ -145,8 +145,8 @@ class _Loader(yaml.SafeLoader):
         for key_node, _ in node.value:
             if key_node.tag == "tag:yaml.org,2002:merge":
                 # ``<<: *base``: merged by SafeLoader (the keys given beside it override
-                # the merged ones); constructing it here was "could not determine a
-                # constructor for the tag 'tag:yaml.org,2002:merge'".
+                # the merged ones); constructing it here would fail with "could not
+                # determine a constructor for the tag 'tag:yaml.org,2002:merge'".
                 continue
             key = self.construct_object(key_node, deep=True)
             try:
@@ -441,8 +441,8 @@ class SimulationConfig:
     def __post_init__(self):
         object.__setattr__(self, "geometry", as_geometry(self.geometry))  # None: the plane
         # The Python API's checks of what parse_simulation_config checks in a file (a
-        # config made in code went unchecked: black_level 5 rendered negative images,
-        # gain 1e-40 zero ones).
+        # config made in code is checked too: black_level 5 would render negative
+        # images, gain 1e-40 zero ones).
         for key, value, kind in (
             ("grid", self.grid, Grid),
             ("medium", self.medium, MediumConfig),

@@ -174,7 +174,7 @@ GEOMETRY_SURE = LOW_CONFIDENCE
 # from it by more than DIRECTION_OFF degrees and DIRECTION_SIGMAS standard errors, the
 # heading measured with a direction confidence of at least GEOMETRY_SURE. The detector
 # is accurate to 0.09 deg on renders (rms 0.04; its standard error, 0.005-0.05 deg, is
-# the statistical part only, and a dense oblique medium was measured 0.21 deg off):
+# the statistical part only, and a dense oblique medium measures 0.21 deg off):
 # 2 deg leaves that bias and a real capture's lens distortion and keystone room, while a
 # stripe tilt the fit cannot absorb (4 deg: not identifiable after 30 s) is refused.
 DIRECTION_OFF, DIRECTION_SIGMAS = 2.0, 5.0

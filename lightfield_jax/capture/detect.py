@@ -414,11 +414,11 @@ def _clip01(v: float) -> float:
 
 def _checked(images, period, lit, reference, floor, roi, entry, direction_deg):
     """``(images, reference)`` as float64 arrays, every argument of
-    :func:`detect_geometry` checked (ValueError naming it). Before: period 0 raised a
-    ZeroDivisionError, 6.0 a TypeError, an unknown entry a KeyError, a NaN direction
-    "cannot convert float NaN to integer", a roi of three values an unpacking error;
-    complex or bool images, lit 0 or 10 and a floor of "0" were taken; a reference of
-    another shape ended in "no lit medium found"."""
+    :func:`detect_geometry` checked (ValueError naming it). Unchecked, period 0 would
+    raise a ZeroDivisionError, 6.0 a TypeError, an unknown entry a KeyError, a NaN
+    direction "cannot convert float NaN to integer", a roi of three values an unpacking
+    error; complex or bool images, lit 0 or 10 and a floor of "0" would be taken; a
+    reference of another shape would end in "no lit medium found"."""
     key = "detect_geometry"
     a = real_array(images, f"{key}: images", (3, 4), "(P, H, W) or (P, H, W, C)", finite="any")
     check_int(period, f"{key}: period", low=2)

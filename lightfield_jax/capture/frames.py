@@ -264,7 +264,7 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
             f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
             "they have)",
         )
-    if not np.isfinite(frame.pixels).any():  # a dark frame's was "images: no usable pixel"
+    if not np.isfinite(frame.pixels).any():  # said here, not as "images: no usable pixel"
         top.fail(key, f"{value}: every pixel value is NaN or Inf (a corrupt file?)")
     return frame
 
@@ -493,9 +493,9 @@ def _check_not_blank(top: _Section, frames: list[tuple[str, str, np.ndarray]]) -
 def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,
-    at its largest value (its slope against the white gave a black level near 0,
-    accepted), or a white frame of one value (one of zeros was blamed on the images by
-    the geometry's detection; a constant white is no measurement). Merged brackets'
+    at its largest value (its slope against the white gives a black level near 0, which
+    would be accepted), or a white frame of one value (one of zeros would be blamed on
+    the images by the geometry's detection; a constant white is no measurement). Merged brackets'
     frames are radiances: only the one-value check applies to them."""
     for key in ("white_frame", "black_frame"):
         frame = aux.get(key)

@@ -653,9 +653,9 @@ def _median_ratio(x, good, j, k) -> float | None:
 # exposure's peak at 0.5 and 1.5 of full scale, two noise draws each:
 #   brackets of one scene: 0 with 2000 photo-electrons or more, at most 0.020 with
 #     1000, at most 0.10 with 300 (these with the ratio over samples with signal in
-#     both, or the stated one; by _pair_ratio's ratio, as now, two 8-bit RGB exposures
+#     both, or the stated one; by _pair_ratio's ratio, the one used, two 8-bit RGB exposures
 #     16x apart at 300 of a scene over three decades: at most 0.023, where the ratio
-#     over both's samples gave 0.18-0.20); the test suite's brackets (tests/test_hdr.py,
+#     over both's samples gives 0.18-0.20); the test suite's brackets (tests/test_hdr.py,
 #     tests/test_hostile.py): 0. Above the threshold only the brackets of one auto curve
 #     recovered from two 8-bit exposures of sigma_t 0.03, most samples clipped (1.3-1.8x
 #     off over the top codes, so their merge is off too): 0.27-0.34;

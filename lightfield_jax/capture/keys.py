@@ -228,8 +228,8 @@ def _dark_level(
     for key, value in zip(keys, levels, strict=True):
         if not math.isfinite(value) or value < 0:
             top.fail(key, f"must be a finite value >= 0, got {brief(value)}")
-        # Before: 1e300 overflowed the float32 images to -Inf (a numpy warning and "no
-        # direct light at the entry wall", exit 1), past the pedestal check.
+        # Bounded: 1e300 would overflow the float32 images to -Inf (a numpy warning and
+        # "no direct light at the entry wall", exit 1), past the pedestal check.
         _at_most(top, key, value)
         if integer_bits is not None and value >= 1:
             top_code = (1 << integer_bits) - 1

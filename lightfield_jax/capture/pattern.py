@@ -81,7 +81,8 @@ def stripe_patterns(
             f"pattern.orientation: must be one of {', '.join(ORIENTATIONS)}, got {orientation!r}"
         )
     phases = pattern_phases(period, lit, shifts)
-    # Before: stripe_patterns(10**6, 10**6) asked numpy for 931 GiB (a MemoryError).
+    # Checked first: stripe_patterns(10**6, 10**6) would ask numpy for 931 GiB (a
+    # MemoryError).
     check_memory(
         pattern_memory(width, height, len(phases)),
         f"stripe_patterns: {len(phases) + 2} images of {width}x{height}",

@@ -42,9 +42,9 @@ def write_capture_yaml(
     capture file's folder. ``medium_roi`` and ``black_level`` may be ``"auto"``.
     """
 
-    # Before: pattern=None raised an AttributeError, images=5 "'int' object is not
-    # iterable", an array or a Slab yaml's RepresenterError, and a NaN saturation or
-    # pixel pitch was written into a file load_capture then refused.
+    # Checked here: unchecked, pattern=None raises an AttributeError, images=5 "'int'
+    # object is not iterable", an array or a Slab yaml's RepresenterError, and a NaN
+    # saturation or pixel pitch is written into a file load_capture then refuses.
     if not isinstance(pattern, Stripes):
         raise ValueError(
             f"write_capture_yaml: pattern: must be a Stripes, got {type(pattern).__name__}"

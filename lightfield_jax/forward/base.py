@@ -60,8 +60,8 @@ def trace_count() -> int:
 def check_physical(sigma_t, sigma_s, g, gain, where: str = "renderer") -> None:
     """Refuse concrete values no medium has, as :class:`~lightfield_jax.Medium` does
     (``ValueError("WHERE: medium.KEY: ...")``), and a gain that is not a finite number;
-    traced values pass unchecked. Before: a renderer called with σs > σt, g = 1, NaN or
-    a gain of -1 returned NaN or negative images, and '0.2' or None a JAX traceback."""
+    traced values pass unchecked. Unchecked, a renderer called with σs > σt, g = 1, NaN
+    or a gain of -1 returns NaN or negative images, and '0.2' or None a JAX traceback."""
     from lightfield_jax.scene.medium import Medium
 
     try:

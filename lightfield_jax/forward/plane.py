@@ -39,7 +39,8 @@ from lightfield_jax.forward.kernels import bin_pair_offsets, einsum
 from lightfield_jax.forward.transport import direction_groups, transport, transport_tables
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination
-from lightfield_jax.scene.medium import Medium, phase_function
+from lightfield_jax.scene.medium import Medium
+from lightfield_jax.scene.phase import phase_function
 
 # Sub-samples per bin of the triangle-weighted bin average of p (phase matrix).
 _PHASE_SUBSAMPLES = 16

@@ -40,12 +40,8 @@ from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, c
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
-from lightfield_jax.scene.medium import (
-    Medium,
-    bounces_for_tolerance,
-    phase_function,
-    phase_integral,
-)
+from lightfield_jax.scene.medium import Medium, bounces_for_tolerance
+from lightfield_jax.scene.phase import phase_function, phase_integral
 
 # Explicit bounces ``bounces="auto"`` keeps when a tail solve sums the rest.
 EXPLICIT_WITH_TAIL = 4

@@ -74,6 +74,7 @@ from lightfield_jax.forward.slab_layers import (
 )
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Illumination
+from lightfield_jax.scene.phase import hg
 
 if TYPE_CHECKING:
     from lightfield_jax.scene.geometry import Slab
@@ -87,11 +88,6 @@ _RING_GAUSS = 3
 # (measured, g 0.4 and 0.8, n_mu 4), so each keeps its own count.
 _PHASE_SUBSAMPLES = 8
 _BALANCE_ITERATIONS = 4
-
-
-def hg(cos_angle, g):
-    """The 3-D Henyey–Greenstein phase function, normalised on the sphere."""
-    return (1.0 - g * g) / (4.0 * math.pi * (1.0 + g * g - 2.0 * g * cos_angle) ** 1.5)
 
 
 @functools.lru_cache(maxsize=16)

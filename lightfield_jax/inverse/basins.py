@@ -38,7 +38,7 @@ import numpy as np
 from lightfield_jax.forward.kernels import matmul
 from lightfield_jax.inverse.joint import BLACK_RANGE
 from lightfield_jax.inverse.programs import jitted
-from lightfield_jax.scene.medium import phase_integral
+from lightfield_jax.scene.phase import phase_integral
 
 # ρ of the reference renders: I_k grows like ρ^k, so rendering at σs = σt (or the
 # paper's σs = 1) overflows float32 within a few dozen bounces at high albedo; at

@@ -31,8 +31,9 @@ class CaptureFit:
     results: tuple[FitResult, ...]
 
     def __post_init__(self):
-        # Before: two channels with one result wrote that result as the first channel's
-        # (to_dict), and a result of another kind failed in to_dict.
+        # One FitResult per channel: otherwise two channels with one result would write
+        # that result as the first channel's (to_dict), and a result of another kind
+        # would fail in to_dict.
         if len(self.channels) != len(self.results) or not self.results:
             raise ValueError(
                 f"CaptureFit: needs one result per channel, got {len(self.channels)} "
@@ -121,7 +122,7 @@ def fit_capture(
     check_progress(on_result, "fit_capture", "on_result")
     if channels is not None and (
         isinstance(channels, (str, bytes)) or not isinstance(channels, Iterable)
-    ):  # a string was split into letters ('red': 'r' is not in the capture), 0 a TypeError
+    ):  # a string would be split into letters ('red': 'r' is not in the capture), 0 a TypeError
         raise ValueError(
             "channels: must be a sequence of channel names (e.g. ['R', 'G']) or None, "
             f"got {shown(channels)}"

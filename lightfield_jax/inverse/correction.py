@@ -13,9 +13,9 @@ for forward scattering, the whole series) is then reached in two phases:
 2. only where those steps stop shrinking (the cheap Jacobian too far from the large
    model's): the large model's own Jacobian J by forward differences at the best
    point so far (one primal render per parameter) and Gauss–Newton steps with it.
-   Finishing every correction this way was measured worse: on a forward medium at
-   ω 0.99 (128×96, float32) the difference Jacobian moved σt from +0.6 % to +3.2 % off
-   the truth along the flat σt–g valley.
+   Not every correction finishes this way, as that measures worse: on a forward medium
+   at ω 0.99 (128×96, float32) the difference Jacobian moves σt from +0.6 % to +3.2 %
+   off the truth along the flat σt–g valley.
 
 An iteration that stops shrinking, leaves the parameters' domain, meets a non-finite
 render or a tail solve that did not converge ends without an answer; the caller then

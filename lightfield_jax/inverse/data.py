@@ -206,7 +206,7 @@ def prepare_data(
     if split is not None:
         direct, multiple, unknown = _split_images(split, images.shape[1:], images.dtype)
         mask = _excluding(mask, unknown)
-    if saturation is not None:  # 10**400 was numpy's "ufunc 'isfinite' not supported"
+    if saturation is not None:  # 10**400 is numpy's "ufunc 'isfinite' not supported"
         if number_problem(saturation, low=0.0, low_open=True) is not None:
             raise ValueError(f"saturation: must be a positive number, got {shown(saturation)}")
         saturation = float(saturation)
@@ -318,8 +318,9 @@ def _split_images(split, shape: tuple[int, int], dtype) -> tuple[np.ndarray, ...
         )
     unknown = d_unknown | m_unknown
     for name, a in (("direct", direct), ("multiple", multiple)):
-        # Before: complex values were cast to real (a warning, a fit), strings ended in
-        # numpy's DTypePromotionError, NaN in "fit_decay: ... 0 usable pixels".
+        # Refused here: otherwise complex values are cast to real (a warning, a fit),
+        # strings end in numpy's DTypePromotionError, NaN in "fit_decay: ... 0 usable
+        # pixels".
         if a.dtype.kind not in "iuf":
             raise ValueError(f"split: {name}: must be real numbers, got dtype {a.dtype}")
         bad = ~np.isfinite(a) & ~unknown

@@ -120,7 +120,8 @@ def fit_images(
     check_progress(progress, "fit_images")
     options = dataclasses.replace(options or FitOptions(), **overrides)
     if black_level is not None:
-        # Before: named "separate.black_level" (the helper's), after the images' checks.
+        # Checked here, before the images' checks, under fit_images' own name (the
+        # helper would name it "separate.black_level").
         problem = number_problem(black_level, low=0.0, high=1.0, high_open=True)
         if problem is not None:
             raise ValueError(f"fit_images: black_level: {problem}")
@@ -166,8 +167,9 @@ def _fit_one(
     except ValueError:  # ragged: prepare_data names it
         shape = ()
     if len(shape) == 3:
-        # Before: only the command line checked this; fit_images with n_theta 4096 and
-        # refine 8 on 128x96 images ran for minutes toward an allocation it cannot make.
+        # The command line's memory check, for the Python API too: unchecked, fit_images
+        # with n_theta 4096 and refine 8 on 128x96 images runs for minutes toward an
+        # allocation it cannot make.
         p, h, w = shape
         check_memory(fit_memory(p * h * w, p, h, w, options), f"the fit of {p} images of {w}x{h}")
     if as_geometry(options.geometry).chosen_by_fit:
@@ -375,8 +377,9 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     gain and black level included, over the cropped model region placed in an image of
     ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``. A model with
     a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k."""
-    # Before: another result (a to_dict()) or pattern raised an AttributeError, a shape
-    # of strings or negative sizes numpy's errors, one of 10**6 x 10**6 a MemoryError.
+    # Checked first: unchecked, another result (a to_dict()) or pattern raises an
+    # AttributeError, a shape of strings or negative sizes numpy's errors, one of
+    # 10**6 x 10**6 a MemoryError.
     if not isinstance(result, FitResult):
         raise ValueError(f"fitted_images: result: must be a FitResult, got {type(result).__name__}")
     if not isinstance(pattern, Stripes):

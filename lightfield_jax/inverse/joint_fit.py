@@ -74,7 +74,7 @@ if TYPE_CHECKING:
 # An answer whose σt is more than this factor from the scan's (the direct light's decay
 # estimate) is checked by a second scan at its σt (:func:`_rescan`). Measured on 32x24
 # captures with σs = σt/2, g 0.4 per pixel: at σt 3, 4 and 5 (mean free path 0.33-0.2
-# px) the decay estimates were 2.09, 2.55 and 2.88, the scan's only basin there at
+# px) the decay estimates are 2.09, 2.55 and 2.88, the scan's only basin there at
 # g -0.45, and its answers at g -0.89, -0.90 and -0.64 with σt 3.40, 4.41 and 3.53
 # (ratios 1.62, 1.73 and 1.22 to the estimate), each reported converged; the truth's
 # basin fits those captures with a 30-60 % smaller residual. Forward media put their
@@ -85,7 +85,7 @@ RESCAN_RATIO = 1.1
 # pixels or less), the scan is made at these multiples of it too and the scan with the
 # lowest misfit kept. The estimate runs low there (48x36 and 32x24 captures, σs = σt/2,
 # g 0.4: 0.84 of the truth at σt 1, 0.77 at 2, 0.70 at 3, 0.64 at 4, 0.58 at 5; the
-# answer from the estimate's scan at σt 5 was g -0.64, σt 3.53, reported converged).
+# answer from the estimate's scan alone at σt 5 is g -0.64, σt 3.53, reported converged).
 SHORT_DECAY = 0.5
 SIGMA_T_FACTORS = (1.3, 1.7, 2.2)
 
@@ -153,8 +153,8 @@ def _downhill_from(
     line is necessary, not sufficient, for that: a minimum off the line, within a
     grid cell of the start, would go unseen (as it does by the scan). Shot noise breaks
     the scan's flat σt–g valley into grid points that are each the lowest of their
-    neighbours: on the paper's milk with 2·10⁴ photons (128×96) the scan kept three
-    such basins and each was solved to the same answer (6, 5 and 7 solver steps). A
+    neighbours: on the paper's milk with 2·10⁴ photons (128×96) the scan keeps three
+    such basins, each of which solves to the same answer (6, 5 and 7 solver steps). A
     line that rises and falls (a barrier, or a curved valley the chord cuts across),
     or a render that fails, says nothing: the start is solved. ``origins`` keeps the
     misfit at the answer itself (t = 0) between calls, keyed by the answer's ``id``
@@ -476,7 +476,7 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
         )
     # The same bounces and, where the fit sized them, the orders past them summed
     # geometrically from the last per-bounce ratio: the series' truncation error shows
-    # in r_fine − r as it did when 1.5× + 4 bounces were marched, at the cost of the
+    # in r_fine − r as it would with 1.5× + 4 bounces marched, at the cost of the
     # bounces already marched (the dense forward medium, 128×96: 32 bounces instead of
     # 52 at 128 θ bins and refine 2).
     return dataclasses.replace(

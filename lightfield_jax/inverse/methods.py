@@ -60,8 +60,9 @@ def check_solver(solver, key: str = "solver") -> None:
 
 def check_start(start, key: str = "start") -> tuple[float, float] | None:
     """A joint start (σs > 0, |g| < 1) as a tuple of two floats (``None`` as given), or
-    ``ValueError``. Before: a list or an array was kept as given (the options then
-    unhashable, ``==`` between them an error) and strings or ``True`` taken as numbers."""
+    ``ValueError``. A tuple, so that the options stay hashable and comparable (a list or
+    an array would make them unhashable, ``==`` between them an error); strings and
+    ``True`` are not numbers here."""
     if start is None:
         return None
     refused = ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {shown(start)}")

@@ -21,7 +21,8 @@ from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
 from lightfield_jax.scene.illumination import Stripes
-from lightfield_jax.scene.medium import bounces_for_tolerance, phase_integral
+from lightfield_jax.scene.medium import bounces_for_tolerance
+from lightfield_jax.scene.phase import phase_integral
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions

@@ -36,8 +36,8 @@ _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 # bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
 MAX_TOLERANCE = 0.01
 # The most iterations a solve may be given (max_steps, tail_max_steps; past this no
-# limit): the solvers count them in int32 (max_steps 10**12 ended in "an overflow ...
-# argument path is y", after the loading and compilation, naming no key).
+# limit): the solvers count them in int32 (max_steps 10**12 would end in "an overflow
+# ... argument path is y", after the loading and compilation, naming no key).
 MAX_ITERATIONS = 10**9
 
 
@@ -208,8 +208,9 @@ class FitOptions:
         self._check_ranges()
         object.__setattr__(self, "start", check_start(self.start))  # a tuple of floats
         check_solver(self.solver)
-        # A setting the chosen method does not use was ignored silently (a start with
-        # the grid search, which searches g; a solver with it, which solves nothing).
+        # A setting the chosen method does not use is refused, not ignored silently (a
+        # start with the grid search, which searches g; a solver with it, which solves
+        # nothing).
         unused = {"start": self.start is not None and method.name != "joint"}
         unused["solver"] = self.solver is not None and method.name == "grid"
         for name, is_unused in unused.items():
@@ -420,9 +421,9 @@ class FitResult:
 
 def check_options(options, where: str) -> None:
     """Refuse ``options`` that are neither a :class:`FitOptions` nor ``None``
-    (``ValueError("WHERE: options: ...")``). Before: a dict ended in dataclasses' bare
-    "replace() should be called on dataclass instances", and a falsy value ({}, 0) was
-    taken as the defaults."""
+    (``ValueError("WHERE: options: ...")``), so that a dict does not end in dataclasses'
+    bare "replace() should be called on dataclass instances", nor a falsy value ({}, 0)
+    stand for the defaults."""
     if options is not None and not isinstance(options, FitOptions):
         raise ValueError(
             f"{where}: options: must be a FitOptions or None, got {type(options).__name__} "
@@ -432,8 +433,9 @@ def check_options(options, where: str) -> None:
 
 def check_progress(progress, where: str, name: str = "progress") -> None:
     """Refuse a ``progress`` (or another callback, ``name``) that is neither callable
-    nor ``None`` (``ValueError("WHERE: NAME: ...")``): ``progress=True`` would run until
-    the first stage, then "TypeError: 'bool' object is not callable"."""
+    nor ``None`` (``ValueError("WHERE: NAME: ...")``) at once: otherwise
+    ``progress=True`` runs until the first stage, then fails with "TypeError: 'bool'
+    object is not callable"."""
     if progress is not None and not callable(progress):
         takes = (
             "one argument (each stage's description)"

@@ -95,8 +95,8 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
     it cannot be created."""
     from jax.experimental.compilation_cache import compilation_cache
 
-    # Before: "" cached into the current folder silently, None or bytes raised Python's
-    # bare TypeError, a NUL "embedded null byte", none of them naming the argument.
+    # Checked here: unchecked, "" caches into the current folder silently, None or bytes
+    # raise Python's bare TypeError, a NUL "embedded null byte", none naming the argument.
     text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
     if not isinstance(text, str) or not text.strip() or "\0" in text:
         raise ValueError(

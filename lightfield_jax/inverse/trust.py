@@ -380,7 +380,7 @@ def error_budget(
     # term, and what the model term holds beyond it (a split's shift) as uncorrelated, so
     # that its diagonal is the total 1σ². Its correlations go with ``total``: paired with
     # the noise's correlations instead, the total 1σ of a forward medium (ω 0.8, g 0.7,
-    # its σt–g valley, |r| 0.9) gave joint regions too thin (M² above χ²₃'s 95 % point
+    # its σt–g valley, |r| 0.9) gives joint regions too thin (M² above χ²₃'s 95 % point
     # in 3 of 20 fits; 0 of 20 with these).
     m = np.array([model[k] if math.isfinite(model[k]) else 0.0 for k in names])
     rank_one = np.sign(shift) * np.minimum(np.abs(shift), m)

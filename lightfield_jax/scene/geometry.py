@@ -50,9 +50,10 @@ def _positive_finite(value, what: str) -> float:
 class Plane:
     """The paper's 2-D model: all light stays in the image plane (docs/model.md §1-4).
 
-    ``kind`` (here and on :class:`Slab`, :class:`AutoGeometry`) is not an argument:
-    ``Plane(6.4)`` was taken as a plane of kind 6.4 (a thickness meant for a slab, lost
-    silently), ``Slab(3.0, kind="plane")`` as a slab named a plane."""
+    ``kind`` (here and on :class:`Slab`, :class:`AutoGeometry`) is not an argument, so
+    that ``Plane(6.4)`` is refused rather than taken as a plane of kind 6.4 (a thickness
+    meant for a slab, lost silently), and ``Slab(3.0, kind="plane")`` is no slab named a
+    plane."""
 
     kind: Literal["plane"] = dataclasses.field(default="plane", init=False)
 
@@ -520,8 +521,9 @@ def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
 
 def parse_fitted_geometry(spec, where: str = "model.geometry"):
     """The geometry of a fit result's ``model`` (:func:`parse_geometry`). A slab with
-    ``n_z`` and no ``depth_profile`` was written before the profile existed, when every
-    layer kept its average: it is read as ``"constant"`` (the model that was fitted)."""
+    ``n_z`` and no ``depth_profile`` comes from a result file without that key, whose
+    layers each keep their average: it is read as ``"constant"`` (the model that was
+    fitted)."""
     if isinstance(spec, dict) and spec.get("kind") == "slab":
         if spec.get("n_z") is not None and "depth_profile" not in spec:
             spec = {**spec, "depth_profile": "constant"}

@@ -18,8 +18,8 @@ from lightfield_jax.checks import check_number, number_problem
 _N_THETA_RULE: tuple[tuple[float, int], ...] = ((0.5, 32), (0.85, 64), (0.93, 128))
 _N_THETA_MAX = 256
 # The most θ bins a grid takes: 16x the finest default. The renderer's direction tables
-# grow as n_theta² (Grid(2, 2, 80000) or FitOptions(n_theta=80000) ended in a 47.7 GiB
-# MemoryError, the fit's after 47 s).
+# grow as n_theta² (Grid(2, 2, 80000) or FitOptions(n_theta=80000) would end in a
+# 47.7 GiB MemoryError, the fit's after 47 s).
 N_THETA_LIMIT = 4096
 
 

@@ -59,9 +59,9 @@ def _check_direction(entry: str, direction_deg: float, what: str) -> None:
 # The widest beam (pixels) and the largest heading (degrees, either sign) taken: a beam
 # wider than any medium is full illumination (Full), and the lit length of a wall cell,
 # a difference of coordinates offset by half the width, cancels to 0 in float64 for
-# widths near 1e16 (Beam(width=1e20) rendered all-zero images); a heading past a turn
-# is a slip (1e20 degrees has no direction left in float64). The narrowest beam: the
-# lit length cancels likewise in float64 below it (width 1e-12 at y = 12 was 0.2 % off),
+# widths near 1e16 (Beam(width=1e20) would render all-zero images); a heading past a
+# turn is a slip (1e20 degrees has no direction left in float64). The narrowest beam:
+# the lit length cancels likewise in float64 below it (width 1e-12 at y = 12 is 0.2 % off),
 # and the images, proportional to the width, underflow float32 (1e-20: all zero).
 MAX_BEAM_WIDTH = 1e5
 MIN_BEAM_WIDTH = 1e-6

@@ -1,4 +1,5 @@
-"""The homogeneous medium and its in-plane phase function (docs/model.md section 2).
+"""The homogeneous medium (docs/model.md section 2); its phase function is
+:mod:`lightfield_jax.scene.phase` (re-exported here).
 
 Units: coefficients are per pixel (lengths are in pixels). Angles are radians.
 """
@@ -12,9 +13,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, Float
 
-from lightfield_jax.checks import check_number, number_problem, shown
+from lightfield_jax.checks import check_number, number_problem
+from lightfield_jax.scene.phase import phase_function as phase_function
+from lightfield_jax.scene.phase import phase_integral as phase_integral
 
 PhaseConvention = Literal["paper", "normalized"]
 PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
@@ -25,77 +28,9 @@ PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
 # medium. The Python objects (Medium, FitOptions) keep the paper's own convention.
 FILE_PHASE = "normalized"
 
-# Nodes of the periodic trapezoid rule for A(g). The rule converges like
-# exp(-N (1 - |g|)), so 4096 nodes are exact to float64 for |g| <= 0.99.
-_A_NODES = 4096
-
-
-def phase_function(theta: ArrayLike, g: ArrayLike) -> Float[Array, "..."]:
-    """The paper's phase function, eq. (2): the 3-D Henyey-Greenstein function
-    evaluated at the in-plane angle ``theta`` between incoming and outgoing direction,
-
-    p(θ) = (1/4π) (1 − g²) / (1 + g² − 2 g cos θ)^{3/2}.
-
-    It is *not* normalised in the plane: see :func:`phase_integral`.
-
-    Raises:
-        ValueError: a concrete ``g`` (not a JAX tracer: under ``jit`` or ``grad`` it is
-            not checked) with a value outside (−1, 1) or NaN (|g| ≥ 1 gave finite
-            nonsense: p(θ) ≤ 0 everywhere, or 0/0).
-    """
-    _check_asymmetry(g, "phase_function")
-    theta = jnp.asarray(theta)
-    g = jnp.asarray(g)
-    # 1 + g² − 2g·cos θ as (1 − g)² + 4g·sin²(θ/2) (g ≥ 0) or (1 + g)² − 4g·cos²(θ/2)
-    # (g < 0): equal in exact arithmetic, without the cancellation that made it 0 in
-    # float32 at the forward (backward) peak for |g| ≳ 0.9997 (p, A(g) and ρ were inf).
-    base = jnp.where(
-        g >= 0,
-        (1.0 - g) ** 2 + 4.0 * g * jnp.sin(0.5 * theta) ** 2,
-        (1.0 + g) ** 2 - 4.0 * g * jnp.cos(0.5 * theta) ** 2,
-    )
-    return (1.0 - g) * (1.0 + g) / (4.0 * jnp.pi * base**1.5)
-
-
-def phase_integral(g: ArrayLike) -> Float[Array, ""]:
-    """A(g) = ∫_{−π}^{π} p(θ) dθ, the in-plane integral of the paper's phase function.
-
-    A(0) = 0.5, A(0.4) ≈ 0.619, A(0.8) ≈ 1.622; A(−g) = A(g). Computed with the
-    periodic trapezoid rule (spectrally accurate, differentiable in g).
-    """
-    _check_asymmetry(g, "phase_integral")
-    theta = jnp.arange(_A_NODES) * (2.0 * jnp.pi / _A_NODES)
-    g = jnp.asarray(g)
-    return jnp.sum(phase_function(theta, g[..., None]), axis=-1) * (2.0 * jnp.pi / _A_NODES)
-
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
-
-
-def _check_asymmetry(g, where: str) -> None:
-    """Refuse a concrete ``g`` (a number or an array of them) with a value outside
-    (−1, 1) or NaN, as ``ValueError("WHERE: g: ...")``; a tracer passes unchecked."""
-    if not _is_concrete(g):
-        return
-    try:
-        a = np.asarray(g)
-    except (TypeError, ValueError):
-        return  # not numbers: jnp.asarray names it
-    if a.dtype.kind not in "iuf" or a.size == 0:
-        if a.dtype.kind in "bOUS" or a.dtype.kind == "c":
-            raise ValueError(f"{where}: g: must be a real number, got {shown(g)}")
-        return
-    bad = ~(np.abs(a) < 1.0)
-    if not bad.any():
-        return
-    first = float(a[bad].flat[0])
-    got = (
-        f"{first!r}"
-        if a.ndim == 0
-        else f"{int(bad.sum())} of {a.size} values outside, e.g. {first!r}"
-    )
-    raise ValueError(f"{where}: g: must satisfy -1 < g < 1, got {got}")
 
 
 class Medium(eqx.Module):
@@ -147,7 +82,7 @@ class Medium(eqx.Module):
         if "g" in concrete and np.any(np.abs(concrete["g"]) >= 1.0):
             raise ValueError(f"medium.g: must satisfy -1 < g < 1, got {g!r}")
         # The values are stored in JAX's float dtype (float32 unless x64 is on): checked
-        # there too (g = 0.99999999 became 1.0, sigma_t = 1e39 inf, 1e-300 zero: NaN
+        # there too (g = 0.99999999 becomes 1.0, sigma_t = 1e39 inf, 1e-300 zero: NaN
         # renders or errors deep inside).
         work = np.dtype(jnp.result_type(float))
         with np.errstate(over="ignore"):

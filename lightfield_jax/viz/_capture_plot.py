@@ -214,7 +214,8 @@ def plot_channels(
     fn = "plot_channels"
     _kind(fit, CaptureFit, f"{fn}.fit", "lightfield_jax.fit_capture")
     _check_common(fn, path)
-    # None: per pixel; 0 was taken as None, a negative pitch drew negative coefficients.
+    # None: per pixel; 0 is refused (not taken as None), a negative pitch too (it would
+    # draw negative coefficients).
     check_pixel_size(pixel_size_mm, f"{fn}.pixel_size_mm")
     names = list(fit.channels)
     if truth is not None:

@@ -106,8 +106,8 @@ def plot_fit(
             f"{type(result).__name__}"
         )
     for key in ("sigma_t", "sigma_s", "g", "gain"):
-        # Before: the NaN model's separation ended in "separate.images: no pixel is
-        # finite ... (NaN or Inf everywhere)", of images that were finite.
+        # Refused here: otherwise the NaN model's separation ends in "separate.images: no
+        # pixel is finite ... (NaN or Inf everywhere)", of images that are finite.
         value = getattr(result, key)
         if not (isinstance(value, (int, float, np.number)) and math.isfinite(value)):
             raise ValueError(
