@@ -913,14 +913,15 @@ def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
         two, two, np.zeros((2, 2)), np.zeros((2, 2)), (), 0.2, {}, two * 0 + ratio, two * 0 + 0.2
     )
     values = {"sigma_t": 0.2, "sigma_s": 0.2, "g": 0.8}  # albedo 1: the ratio as measured
-    reasons = _cut_series(model, scan, values)
+    options = lfj.FitOptions(phase="paper")
+    reasons = _cut_series(model, scan, values, options)
     assert bool(reasons) == cut
     if cut:
         assert "cut at 80 bounces" in reasons[0]
     converges = dataclasses.replace(model, converges=True, rho=0.95)
-    assert bool(_cut_series(converges, scan, values)) == cut
+    assert bool(_cut_series(converges, scan, values, options)) == cut
     summed = dataclasses.replace(converges, tail="bicgstab")
-    assert _cut_series(summed, scan, values) == []
+    assert _cut_series(summed, scan, values, options) == []
 
 
 def test_the_least_squares_steps_scale_their_columns():

@@ -2389,24 +2389,25 @@ def test_an_experiment_sweeping_too_many_cells_is_refused_unless_allowed(capsys,
 
     config = yaml.safe_load((ROOT / "configs" / "coverage.yaml").read_text())
     config.pop("reduced")
-    config["seeds"] = 5000  # three media x 5000 seeds
+    config["seeds"] = 5000  # every medium x 5000 seeds
     path = tmp_path / "big.yaml"
     path.write_text(yaml.safe_dump(config))
-    assert count_cells(load_experiment_config(path)) == 15000
+    cells = 5000 * len(config["media"])
+    assert count_cells(load_experiment_config(path)) == cells
     line = _refused(
-        capsys, "experiment", path, "--out", tmp_path / "o", match="sweeps about 15000 cells"
+        capsys, "experiment", path, "--out", tmp_path / "o", match=f"sweeps about {cells} cells"
     )
-    assert "more than the limit of 10000" in line and "--max-cells 15000" in line
+    assert "more than the limit of 10000" in line and f"--max-cells {cells}" in line
     assert not (tmp_path / "o").exists()
     # Allowed: counted and said before the work (here refused later, by the script's
     # own check of an unknown key).
     config["unknown_key"] = 1
     path.write_text(yaml.safe_dump(config))
     status, out, err = _run(
-        capsys, "experiment", path, "--out", tmp_path / "o", "--max-cells", "20000"
+        capsys, "experiment", path, "--out", tmp_path / "o", "--max-cells", str(cells)
     )
     assert status == 2 and "unknown_key" in err
-    assert out.splitlines()[0] == "experiment coverage: about 15000 cells of work"
+    assert out.splitlines()[0] == f"experiment coverage: about {cells} cells of work"
     # The shipped configs stay within the default limit.
     for shipped in (ROOT / "configs").glob("*.yaml"):
         data = yaml.safe_load(shipped.read_text())
