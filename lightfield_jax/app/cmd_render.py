@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from lightfield_jax.app.cli import (
+    _dask_arguments,
     _outputs,
     _progress,
     _say,
@@ -94,6 +95,7 @@ def _render_command(args: argparse.Namespace) -> None:
     arg("config", metavar="CONFIG.yaml", help="an experiment config (configs/)"),
     arg("--out", metavar="DIR", help="results folder (default: results/NAME)"),
     arg("--reduced", action="store_true", help="the config's reduced size (as the tests run)"),
+    *_dask_arguments("parallel sweeps"),
 )
 def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
@@ -120,7 +122,16 @@ def _experiment(args: argparse.Namespace) -> None:
     )
     try:
         with _progress(args, "experiment") as stage:
-            record = run_experiment(args.config, out, reduced=args.reduced, progress=stage)
+            record = run_experiment(
+                args.config,
+                out,
+                reduced=args.reduced,
+                progress=stage,
+                scheduler=args.scheduler,
+                workers=args.workers,
+                allow_large=args.allow_large,
+                say=lambda m: _say(args, m),
+            )
     except ExperimentError as e:
         if args.debug:
             raise
