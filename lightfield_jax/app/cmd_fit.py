@@ -370,6 +370,9 @@ def fit_record(capture, fit, method: str, phase: str) -> tuple[dict, list[dict]]
 
 
 def _truth_lines(fit, compared: list[dict]) -> list[str]:
+    """Each channel's errors against the truth (none without a truth)."""
+    if not compared:
+        return []
     return [
         f"[{name}] against the truth: "
         + ", ".join(
