@@ -226,14 +226,15 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         except OSError as e:
             _warn(args, f"XLA compilation cache off: cannot create {xla} ({e.strerror})")
             xla = None
+    keys = [_batch_key(fs, args) for fs in files]
     tasks = [
         Task(
-            _batch_key(fs, args),
+            key,
             str(path),
             batch_fit,
             (
                 os.path.abspath(path),  # a worker of a cluster may run elsewhere
-                _batch_key(fs, args),
+                key,
                 args.method,
                 args.channel,
                 args.phase,
@@ -241,7 +242,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
                 None if xla is None else str(xla),
             ),
         )
-        for path, fs in zip(paths, files, strict=True)
+        for path, key in zip(paths, keys, strict=True)
     ]
     where = {t.key: (name, path) for t, name, path in zip(tasks, names, paths, strict=True)}
     out.mkdir(parents=True, exist_ok=True)

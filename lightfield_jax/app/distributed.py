@@ -114,8 +114,6 @@ def cluster(
         # One task at a time per worker: a task queued on a worker that dies under
         # another's would count that death as its own.
         "distributed.scheduler.worker-saturation": 1.0,
-        "distributed.worker.daemon": False,
-        "distributed.admin.system-monitor.gil.enabled": False,
     }
     with dask.config.set(settings):
         local = LocalCluster(
