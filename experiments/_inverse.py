@@ -10,7 +10,7 @@
   (an exception becomes a record with ``error_message``), and :func:`failure`, why a fit
   failed: ``timeout``, ``exception``, ``non-finite``, ``divergent`` (ρ = ω·A(g) ≥ 1
   under ``phase: paper``), ``not converged``, ``ill-conditioned``, ``biased``, or ``ok``;
-  :func:`fit_record_limited` runs a fit in a child process with a time limit.
+  :func:`fit_record_limited` runs a fit on a Dask worker with a time limit.
 - :func:`camera`: a capture scaled to peak 1 with the package's noise model, so that
   photon counts and read noise are relative to the brightest pixel.
 - :func:`precision`: the dtype the experiment runs in, whatever the caller's x64 flag.
@@ -26,7 +26,6 @@ import dataclasses
 import functools
 import math
 import os
-import sys
 import time
 import warnings
 from collections.abc import Iterator
@@ -36,7 +35,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
-from lightfield_jax.app.experiment import child_env, child_failed
+from lightfield_jax.app.experiment import ExperimentError
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -258,73 +257,72 @@ def fit_record_limited(
     xla_cache_dir,
     **kwargs,
 ) -> dict:
-    """:func:`fit_record` in a child process killed after ``timeout`` seconds (a fit's
-    cost follows the model its start asks for and is otherwise unbounded); a killed fit
-    is recorded with ``timeout`` set. The child shares the persistent XLA cache. A
-    ``geometry`` keyword (a :class:`~lightfield_jax.Slab`) is passed as its dict."""
-    import json
-    import subprocess
-    import tempfile
-    from pathlib import Path
+    """:func:`fit_record` on a Dask worker, stopped after ``timeout`` seconds (a fit's
+    cost follows the model its start asks for and is otherwise unbounded); a stopped fit
+    is recorded with ``timeout`` set. The worker is the experiment run's cluster's
+    (:func:`~lightfield_jax.app.experiment.current_client`; outside a run, a local one
+    of one worker for this fit), and shares the persistent XLA cache. A ``geometry``
+    keyword (a :class:`~lightfield_jax.Slab`) is passed as its dict. A worker that died
+    twice under the fit, or a fit that raised, is an ``ExperimentError`` (one line)."""
+    import contextlib
+    import uuid
+
+    from lightfield_jax.app.distributed import Task, cluster, run_tasks
+    from lightfield_jax.app.experiment import current_client
 
     t = time.perf_counter()
     load = os.getloadavg()[0]
     if kwargs.get("geometry") is not None:  # a Plane or Slab travels as its dict
         kwargs = {**kwargs, "geometry": kwargs["geometry"].as_dict()}
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        np.save(tmp / "images.npy", np.asarray(images))
-        request = {
-            "images": str(tmp / "images.npy"),
-            "out": str(tmp / "record.json"),
-            "pattern": pattern.as_dict(),
-            "truth": truth,
-            "kwargs": kwargs,
-            "dtype": dtype,
-            "xla_cache_dir": None if xla_cache_dir is None else str(xla_cache_dir),
+    args = (
+        np.asarray(images),
+        pattern.as_dict(),
+        truth,
+        kwargs,
+        dtype,
+        None if xla_cache_dir is None else str(xla_cache_dir),
+    )
+    task = Task(uuid.uuid4().hex, "a fit on a Dask worker failed", _limited_fit, args)
+
+    def timed_out(_task, limit: float) -> dict:
+        return {
+            "error_message": f"timeout: no result within {limit:g} s",
+            "timeout": True,
+            "timeout_s": limit,
+            "finite": False,
+            "converged": False,
+            "errors": {k: None for k in (*PARAMS, "error")},
+            "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
         }
-        (tmp / "request.json").write_text(json.dumps(request))
-        try:
-            done = subprocess.run(
-                [sys.executable, __file__, str(tmp / "request.json")],
-                capture_output=True,
-                text=True,
-                timeout=timeout,
-                env=child_env(),
-            )
-        except subprocess.TimeoutExpired:
-            return {
-                "error_message": f"timeout: no result within {timeout:g} s",
-                "timeout": True,
-                "timeout_s": timeout,
-                "finite": False,
-                "converged": False,
-                "errors": {k: None for k in (*PARAMS, "error")},
-                "seconds": {"total": time.perf_counter() - t, "compile": None, "run": None},
-                "load_avg": load,
-            }
-        if done.returncode != 0:  # a fit that raises is recorded: this is a crash
-            raise child_failed("a fit's child process", done.returncode, done.stderr)
-        rec = json.loads((tmp / "record.json").read_text())
+
+    with contextlib.ExitStack() as stack:
+        client = current_client() or stack.enter_context(cluster(workers=1))
+        report = run_tasks(
+            [task],
+            load=lambda _t: None,
+            save=lambda _t, _v: None,
+            client=client,
+            timeout=timeout,
+            on_timeout=timed_out,
+            show_progress=False,
+        )
+    if report.failures:
+        raise ExperimentError(report.failures[task.key])
+    rec = dict(report.results[task.key])
     rec["load_avg"] = load
     return rec
 
 
-def _child(request_path: str) -> None:
-    import json
-
-    req = json.loads(open(request_path).read())
-    images = np.load(req["images"])
-    pattern = lfj.Stripes(**{**req["pattern"], "phases": tuple(req["pattern"]["phases"])})
-    kwargs = dict(req["kwargs"])
+def _limited_fit(images, pattern: dict, truth, kwargs: dict, dtype: str, xla_cache_dir):
+    """:func:`fit_record_limited`'s fit, on the worker."""
+    pattern = lfj.Stripes(**{**pattern, "phases": tuple(pattern["phases"])})
+    kwargs = dict(kwargs)
     if kwargs.get("geometry") is not None:
         from lightfield_jax.scene.geometry import parse_geometry
 
         kwargs["geometry"] = parse_geometry(kwargs["geometry"], "geometry")
-    with precision(req["dtype"]), xla_cache(req["xla_cache_dir"]):
-        rec = fit_record(images, pattern, req["truth"], **kwargs)
-    with open(req["out"], "w") as f:
-        json.dump(jsonable(rec), f)
+    with precision(dtype), xla_cache(xla_cache_dir):
+        return jsonable(fit_record(images, pattern, truth, **kwargs))
 
 
 def failure(
@@ -399,7 +397,3 @@ def log_axes(ax, x: bool = True, y: bool = True) -> None:
 def median(values) -> float:
     v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
     return float(np.median(v)) if v else math.nan
-
-
-if __name__ == "__main__":
-    _child(sys.argv[1])

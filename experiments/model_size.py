@@ -9,7 +9,7 @@ fixed one (by default 128 θ bins, 40 bounces, no crop), per scene:
 - ``gradient_split``: the two-step ``gradient`` method fed the perfect split of a
   noiseless capture: the model's own error, free of separation bias and noise;
 - ``joint``: the default method on a noisy capture (photons and read noise relative to
-  the brightest pixel), as a user runs it; in a child process stopped after
+  the brightest pixel), as a user runs it; on a Dask worker stopped after
   ``joint_timeout`` seconds (recorded as a timeout: too slow to be a usable default).
 
 Truths are rendered finer than either model: at least ``truth.n_theta_min`` θ bins,

@@ -35,8 +35,8 @@ Each fit's outcome is classified (:func:`_inverse.failure`): ``ok`` (error at mo
 ``bias_threshold``), ``biased`` (converged, finite, error above it), ``ill-conditioned``
 (biased and the unit-free condition number of JᵀJ above ``ill_conditioned``), ``not
 converged`` (the solver says so), ``divergent`` (the truth has ρ ≥ 1), ``non-finite``
-(NaN or inf returned), ``exception``, ``timeout`` (``joint`` runs in a child process
-killed after ``joint_timeout`` seconds: its cost follows the model its start asks for,
+(NaN or inf returned), ``exception``, ``timeout`` (``joint`` runs on a Dask worker
+stopped after ``joint_timeout`` seconds: its cost follows the model its start asks for,
 up to 256 θ bins, refinement 2 and 60 bounces). Error = max(|Δσt|/σt, |Δσs|/σs, |Δg|).
 
 Every fit is one cached unit (resume). With ``xla_cache`` the persistent XLA cache
@@ -389,7 +389,7 @@ def _fit(
     truth_extra=None,
 ) -> dict:
     """One fit of a cell's capture as a record, its truth (ρ, bounces, tail bound, and
-    ``truth_extra()``'s keys) and outcome; ``joint`` in a child process killed after
+    ``truth_extra()``'s keys) and outcome; ``joint`` on a Dask worker stopped after
     ``timeout`` seconds. The medium's ``phase`` and the cell's ``geometry`` (when
     given) are the fit's too."""
     medium = cell["medium"]

@@ -522,9 +522,9 @@ def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, ca
 
 
 def test_a_crashed_fit_child_is_one_line():
-    """stability_maps and model_size fit in child processes: one that crashes (not a
-    fit that fails, which is recorded) stopped the run with a RuntimeError carrying the
-    child's whole traceback; now an ExperimentError of one line (exit 1)."""
+    """stability_maps and model_size fit on Dask workers: a fit that crashes (not one
+    that fails, which is recorded) stops the run with an ExperimentError of one line
+    (exit 1), not the worker's whole traceback."""
     import lightfield_jax as lfj
 
     inv = _experiment.load_helper("_inverse")
@@ -539,7 +539,8 @@ def test_a_crashed_fit_child_is_one_line():
             xla_cache_dir=None,
         )
     assert str(info.value) == (
-        "a fit's child process failed: ValueError: dtype: must be float32 or float64, got 'float16'"
+        "a fit on a Dask worker failed: ValueError: dtype: must be float32 or float64, "
+        "got 'float16'"
     )
 
 

@@ -488,6 +488,29 @@ def _positive_seconds(text: str) -> float:
     return value
 
 
+def _dask_arguments(what: str) -> tuple:
+    """The options of work run on Dask (``what``: where they apply)."""
+    return (
+        arg(
+            "--scheduler",
+            metavar="ADDRESS",
+            help=f"{what}: the Dask scheduler to run on (e.g. tcp://host:8786; also "
+            "$LIGHTFIELD_JAX_SCHEDULER; default: a local cluster of --workers processes)",
+        ),
+        arg(
+            "--workers",
+            type=_positive_int,
+            metavar="N",
+            help=f"{what}: worker processes of the local cluster (default: one per core)",
+        ),
+        arg(
+            "--allow-large",
+            action="store_true",
+            help=f"{what}: run more than 10000 fits at once",
+        ),
+    )
+
+
 # The demo's capture (the paper's milk); bench --fits times the fits of it too.
 DEMO_CONFIG = {
     "grid": {"width": 128, "height": 96},

@@ -13,6 +13,7 @@ from lightfield_jax.app.cli import (
     DEMO_CONFIG,
     PROG,
     _about,
+    _dask_arguments,
     _outputs,
     _path,
     _positive_int,
@@ -224,7 +225,13 @@ def _roi_record(capture) -> dict:
 @command(
     "fit",
     "recover sigma_t, sigma_s and g from a stripe capture",
-    arg("capture", metavar="CAPTURE.yaml", help="a capture file (see README)"),
+    arg(
+        "capture",
+        nargs="+",
+        metavar="CAPTURE.yaml",
+        help="a capture file (see README); several, or a folder of them, are fitted in "
+        "parallel on Dask (--out is then a folder)",
+    ),
     arg(
         "--method",
         choices=("joint", "gradient", "grid"),
@@ -238,7 +245,12 @@ def _roi_record(capture) -> dict:
         help="fit only this channel of those the capture file's channel key loads "
         "(repeatable; default: all of them)",
     ),
-    arg("--out", default="results.json", metavar="FILE", help="JSON results (%(default)s)"),
+    arg(
+        "--out",
+        metavar="FILE",
+        help="JSON results (default: results.json); for several captures a folder "
+        "(default: results/) with one FILE per capture, summary.csv and summary.json",
+    ),
     arg(
         "--plot",
         metavar="FIG.png",
@@ -263,9 +275,11 @@ def _roi_record(capture) -> dict:
         type=_positive_seconds,
         metavar="SECONDS",
         help="stop the fit after this long (from its start, after loading), exit status "
-        f"{TIME_LIMIT_STATUS}, nothing written (default: no limit)",
+        f"{TIME_LIMIT_STATUS}, nothing written (default: no limit); for several captures "
+        "each capture's limit (one past it is reported failed)",
     ),
     arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
+    *_dask_arguments("several captures"),
 )
 def _fit(args: argparse.Namespace) -> int | None:
     """Fit a capture and write FILE (keys: sigma_t, sigma_s, sigma_a, g, albedo, gain,
@@ -280,6 +294,13 @@ def _fit(args: argparse.Namespace) -> int | None:
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions
 
+    if len(args.capture) > 1 or Path(args.capture[0]).is_dir():
+        from lightfield_jax.app.cmd_batch import fit_batch
+
+        return fit_batch(args)
+    _single_only(args)
+    args.capture = args.capture[0]
+    args.out = "results.json" if args.out is None else args.out
     inputs = capture_files(args.capture)
     _outputs(
         files=[args.out, args.plot],
@@ -339,14 +360,7 @@ def _fit(args: argparse.Namespace) -> int | None:
                 **limits,
             )
         figures = _figure_names(Path(args.plot), fit.channels) if args.plot else []
-        result = _label_two_step(args.method, fit.to_dict())
-        result["capture"] = os.path.abspath(capture.source)  # render finds it from anywhere
-        result["response"] = capture.response_record()
-        compared = _against_truth(capture, fit, args.phase) if capture.truth else []
-        if capture.truth:
-            result["truth"] = capture.truth
-            result["truth_error"] = compared[0] if len(compared) == 1 else compared
-        result["medium_roi"] = _roi_record(capture)
+        result, compared = fit_record(capture, fit, args.method, args.phase)
         try:
             with staged_files() as write:
                 if figures:
@@ -361,16 +375,8 @@ def _fit(args: argparse.Namespace) -> int | None:
         _say(args, note)
     if not shown:
         _say(args, _fit_summary(fit))
-    if compared:
-        for name, e in zip(fit.channels, compared, strict=True):
-            _say(
-                args,
-                f"[{name}] against the truth: "
-                + ", ".join(
-                    f"{k} {v['error']:+.3g}{_error_unit(k, v)} ({v['sigmas']:+.1f} sigma)"
-                    for k, v in e.items()
-                ),
-            )
+    for line in _truth_lines(fit, compared):
+        _say(args, line)
     if args.method in TWO_STEP_METHODS:
         _say(args, f"note: {TWO_STEP_CAVEAT}")
     _say(args, f"wrote {', '.join(_path(f) for f in [out, *figures])}")
@@ -386,6 +392,45 @@ def _fit(args: argparse.Namespace) -> int | None:
         )
         return 1
     return None
+
+
+def fit_record(capture, fit, method: str, phase: str) -> tuple[dict, list[dict]]:
+    """results.json of ``fit`` of ``capture`` (one file or one of a batch), and its
+    errors against the capture's truth (empty without one)."""
+    result = _label_two_step(method, fit.to_dict())
+    result["capture"] = os.path.abspath(capture.source)  # render finds it from anywhere
+    result["response"] = capture.response_record()
+    compared = _against_truth(capture, fit, phase) if capture.truth else []
+    if capture.truth:
+        result["truth"] = capture.truth
+        result["truth_error"] = compared[0] if len(compared) == 1 else compared
+    result["medium_roi"] = _roi_record(capture)
+    return result, compared
+
+
+def _truth_lines(fit, compared: list[dict]) -> list[str]:
+    """Each channel's errors against the truth (none without a truth)."""
+    if not compared:
+        return []
+    return [
+        f"[{name}] against the truth: "
+        + ", ".join(
+            f"{k} {v['error']:+.3g}{_error_unit(k, v)} ({v['sigmas']:+.1f} sigma)"
+            for k, v in e.items()
+        )
+        for name, e in zip(fit.channels, compared, strict=True)
+    ]
+
+
+def _single_only(args: argparse.Namespace) -> None:
+    """The options of a batch (several captures) refused for one capture file."""
+    for option, value in (
+        ("--scheduler", args.scheduler),
+        ("--workers", args.workers),
+        ("--allow-large", args.allow_large or None),
+    ):
+        if value is not None:
+            raise ValueError(f"{option}: for several captures (or a folder of them) only")
 
 
 # --------------------------------------------------------------------------- demo

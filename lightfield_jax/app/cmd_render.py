@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from lightfield_jax.app.cli import (
+    _dask_arguments,
     _outputs,
     _path,
     _positive_int,
@@ -117,6 +118,7 @@ def _render_command(args: argparse.Namespace) -> None:
         help="the most cells (units of work: the product of the config's lists' lengths) "
         "a run may sweep (default: 10000); a larger config is refused before it starts",
     ),
+    *_dask_arguments("parallel sweeps"),
 )
 def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
@@ -151,7 +153,15 @@ def _experiment(args: argparse.Namespace) -> None:
     try:
         with _progress(args, "experiment") as stage:
             record = run_experiment(
-                args.config, out, reduced=args.reduced, progress=stage, max_cells=limit
+                args.config,
+                out,
+                reduced=args.reduced,
+                progress=stage,
+                max_cells=limit,
+                scheduler=args.scheduler,
+                workers=args.workers,
+                allow_large=args.allow_large,
+                say=lambda m: _say(args, m),
             )
     except ExperimentError as e:
         if args.debug:

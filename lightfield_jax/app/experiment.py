@@ -34,6 +34,8 @@ and figures (:func:`pyplot`, :func:`save_figure`).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import csv
 import dataclasses
 import datetime
@@ -123,23 +125,42 @@ class Context:
     progress: Callable[[str], None]
     reduced: bool
     keep: Path | None = None
+    # Where parallel sweeps run (see parallel_sweep): the Dask scheduler's address
+    # (None: $LIGHTFIELD_JAX_SCHEDULER, else an embedded local cluster of ``workers``).
+    scheduler: str | None = None
+    workers: int | None = None
+    allow_large: bool = False
+    say: Callable[[str], None] = lambda _m: None
+    _resources: contextlib.ExitStack = dataclasses.field(default_factory=contextlib.ExitStack)
+    _client: Any = None
 
     def kept(self, name: str) -> Path:
         """``keep/NAME``: a folder that a failed run leaves for the next one to reuse."""
         return (self.keep or self.out) / name
 
-    def cached(self, key: str, compute: Callable[[], Any]) -> Any:
-        """``compute()``'s JSON-ready result, stored once under ``keep/cache``."""
-        safe = hashlib.sha1(key.encode()).hexdigest()[:16]
-        path = self.kept("cache") / f"{safe}.json"
+    def _entry(self, key: str) -> Path:
+        return self.kept("cache") / f"{hashlib.sha1(key.encode()).hexdigest()[:16]}.json"
+
+    def stored(self, key: str) -> Any:
+        """The value stored under ``key`` (see :meth:`cached`), or ``None``."""
         try:  # an entry that cannot be read (truncated, edited) is computed again
-            stored = json.loads(path.read_text())
+            stored = json.loads(self._entry(key).read_text())
         except (OSError, ValueError):
-            stored = None
+            return None
         if isinstance(stored, dict) and stored.get("key") == key and "value" in stored:
             return stored["value"]
+        return None
+
+    def store(self, key: str, value: Any) -> None:
+        atomic_write_json(self._entry(key), {"key": key, "value": value})
+
+    def cached(self, key: str, compute: Callable[[], Any]) -> Any:
+        """``compute()``'s JSON-ready result, stored once under ``keep/cache``."""
+        stored = self.stored(key)
+        if stored is not None:
+            return stored
         value = compute()
-        atomic_write_json(path, {"key": key, "value": value})
+        self.store(key, value)
         return value
 
     def sweep(
@@ -151,13 +172,82 @@ class Context:
         """``compute(**point)`` for every point of the Cartesian product of ``axes``
         (``(name, values)`` pairs, the first outermost), each reported through
         ``progress`` and :meth:`cached` under ``key(**point)``: a rerun resumes."""
-        names = [name for name, _ in axes]
+        from lightfield_jax.app.distributed import check_count
+
+        points = _points(axes)
+        check_count(len(points), self.allow_large, "sweep points")
         rows = []
-        for values in itertools.product(*(list(v) for _, v in axes)):
-            point = dict(zip(names, values, strict=True))
+        for point in points:
             self.progress(", ".join(f"{n} {v}" for n, v in point.items()))
             rows.append(self.cached(key(**point), lambda p=point: compute(**p)))
         return rows
+
+    def client(self):
+        """The run's Dask client, started at the first use and closed with the run."""
+        if self._client is None:
+            from lightfield_jax.app.distributed import cluster
+
+            self._client = self._resources.enter_context(
+                cluster(self.scheduler, workers=self.workers)
+            )
+        return self._client
+
+    def close(self) -> None:
+        self._resources.close()
+        self._client = None
+
+    def parallel_sweep(
+        self,
+        axes: Sequence[tuple[str, Iterable]],
+        key: Callable[..., str],
+        compute: Callable[..., Any],
+        *,
+        timeout: float | None = None,
+        on_timeout: Callable[[dict, float], Any] | None = None,
+        seconds_per_point: float = 30.0,
+    ) -> list:
+        """:meth:`sweep` with the points computed in parallel on Dask (:meth:`client`),
+        each stored as it completes (the same cache as :meth:`sweep`'s: a rerun, serial
+        or parallel, resumes). ``compute`` must be picklable (a function of the script,
+        or a lambda of its ``run``) and runs in the caller's precision (x64 or not).
+
+        ``timeout`` (s) bounds each point: its row is then ``on_timeout(point,
+        timeout)`` (stored), or without ``on_timeout`` a failure. Points that failed (a
+        worker dead twice, an exception, a timeout) are not stored: the run then raises
+        :class:`ExperimentError` naming them, after every other point is stored."""
+        from lightfield_jax.app.distributed import Task, check_count, run_tasks
+
+        points = _points(axes)
+        check_count(len(points), self.allow_large, "sweep points")  # before a cluster starts
+        tasks = [
+            Task(
+                key(**point),
+                ", ".join(f"{n} {v}" for n, v in point.items()),
+                _call_with,
+                (compute, point),
+            )
+            for point in points
+        ]
+        report = run_tasks(
+            tasks,
+            load=lambda t: self.stored(t.key),
+            save=lambda t, v: self.store(t.key, v),
+            client=self.client(),
+            timeout=timeout,
+            on_timeout=None if on_timeout is None else lambda t, s: on_timeout(t.args[1], s),
+            seconds_per_task=seconds_per_point,
+            allow_large=self.allow_large,
+            what="sweep points",
+            say=self.say,
+            desc="sweep",
+        )
+        if report.failures:
+            first = next(iter(report.failures.values()))
+            raise ExperimentError(
+                f"{len(report.failures)} of {len(tasks)} sweep points failed (first: {first}); "
+                "the others are stored, a rerun computes only the failed ones"
+            )
+        return [report.results[t.key] for t in tasks]
 
     def write_json(self, name: str, data: Any) -> Path:
         path = self.out / name
@@ -166,6 +256,19 @@ class Context:
 
     def figure_path(self, name: str) -> Path:
         return self.out / name
+
+
+def _points(axes: Sequence[tuple[str, Iterable]]) -> list[dict]:
+    """The points of the Cartesian product of ``axes`` (the first outermost)."""
+    names = [name for name, _ in axes]
+    return [
+        dict(zip(names, values, strict=True))
+        for values in itertools.product(*(list(v) for _, v in axes))
+    ]
+
+
+def _call_with(compute: Callable[..., Any], point: dict) -> Any:
+    return compute(**point)
 
 
 def check_choices(name: str, key: str, values, known) -> None:
@@ -469,10 +572,16 @@ def check_cells(config: dict, source: str | Path, limit: int | None = MAX_CELLS)
     return cells
 
 
+_SCRIPTS_PACKAGE = "lightfield_jax_experiments"
+
+
 def _exec_module(name: str, path: Path):
     """Execute ``path`` as the module ``lightfield_jax_experiments.NAME``, registered in
     ``sys.modules`` first (dataclasses in a script look their module up)."""
-    spec = importlib.util.spec_from_file_location(f"lightfield_jax_experiments.{name}", path)
+    # The scripts' package, as a module of its own: pickle finds a script's functions
+    # by importing their module's name (Dask sends them to its workers so).
+    sys.modules.setdefault(_SCRIPTS_PACKAGE, types.ModuleType(_SCRIPTS_PACKAGE))
+    spec = importlib.util.spec_from_file_location(f"{_SCRIPTS_PACKAGE}.{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     try:
@@ -544,6 +653,19 @@ def check_experiment_config(module, config: dict) -> Any:
     return typed
 
 
+_CURRENT: contextvars.ContextVar[Context | None] = contextvars.ContextVar(
+    "lightfield_jax_experiment", default=None
+)
+
+
+def current_client():
+    """The Dask client of the experiment now running (started at the first call), or
+    ``None`` outside :func:`run_experiment`: the experiments' helpers run their fits
+    on it."""
+    ctx = _CURRENT.get()
+    return None if ctx is None else ctx.client()
+
+
 def run_experiment(
     config_path: str | Path,
     out: str | Path | None = None,
@@ -551,6 +673,10 @@ def run_experiment(
     reduced: bool = False,
     progress: Callable[[str], None] = lambda _m: None,
     max_cells: int | None = MAX_CELLS,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    allow_large: bool = False,
+    say: Callable[[str], None] = lambda _m: None,
 ) -> dict:
     """Run one experiment; returns its summary (also written to ``out/summary.json``).
 
@@ -559,7 +685,11 @@ def run_experiment(
     (with ``summary.json``) only when the run succeeds: a failed run leaves no partial
     result, only ``out/cache`` (the finished units a rerun resumes from). A config
     sweeping more than ``max_cells`` cells (:func:`count_cells`) is refused before it
-    starts (``None``: no limit)."""
+    starts (``None``: no limit).
+
+    ``scheduler``, ``workers``: where the script's parallel sweeps run (a Dask cluster,
+    see :meth:`Context.parallel_sweep`); ``allow_large``: sweeps of more than 10^4
+    points are refused without it; ``say``: the messages said before a sweep."""
     config = load_experiment_config(config_path, reduced)
     check_cells(config, config_path, max_cells)
     try:
@@ -576,12 +706,25 @@ def run_experiment(
     started = datetime.datetime.now(datetime.UTC)
     try:
         with atomic_directory(out) as staging:
-            ctx = Context(out=staging, progress=progress, reduced=reduced, keep=out)
+            ctx = Context(
+                out=staging,
+                progress=progress,
+                reduced=reduced,
+                keep=out,
+                scheduler=scheduler,
+                workers=workers,
+                allow_large=allow_large,
+                say=say,
+            )
+            current = _CURRENT.set(ctx)
             try:
                 summary = module.run(config, staging, ctx)
             except ValueError as e:  # a config the script refuses late
                 e.args = (f"{config_path}: {e}",)
                 raise
+            finally:
+                _CURRENT.reset(current)
+                ctx.close()
             record = {
                 "experiment": name,
                 "config_file": str(config_path),

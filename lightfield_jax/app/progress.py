@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from typing import TextIO
+from typing import Any, TextIO
 
 Stage = Callable[[str], None]
 """Called with a stage's name when it starts; the previous stage is then done."""
@@ -153,3 +153,33 @@ def progress(
         stop.set()
         ticker.join()
         bar.close()
+
+
+@contextlib.contextmanager
+def progress_bar(
+    desc: str,
+    total: int,
+    *,
+    enabled: bool | None = None,
+    file: TextIO | None = None,
+) -> Iterator[Any]:
+    """A bar over ``total`` units of work (captures, sweep cells) on stderr: yields an
+    object with ``update(n)``; ``enabled`` as in :func:`progress`."""
+    file = sys.stderr if file is None else file
+    if enabled is None:
+        enabled = bool(getattr(file, "isatty", lambda: False)())
+    if not enabled:
+        yield _NoBar()
+        return
+    from tqdm import tqdm
+
+    bar = tqdm(desc=desc, total=total, file=file, leave=False, unit="fit")
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+class _NoBar:
+    def update(self, _n: int = 1) -> None:
+        pass
