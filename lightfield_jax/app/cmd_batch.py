@@ -95,7 +95,7 @@ def batch_fit(
     key: str,
     method: str,
     channels: list[str] | None,
-    phase: str,
+    phase: str | None,
     max_steps: int | None,
     xla_folder: str | None,
 ) -> dict:
@@ -106,6 +106,7 @@ def batch_fit(
     from lightfield_jax.app.cli import _about
     from lightfield_jax.app.cmd_fit import _fit_summary, _truth_lines, fit_record
     from lightfield_jax.capture.capture import CaptureWarning, load_capture
+    from lightfield_jax.capture.keys import fit_phase
     from lightfield_jax.forward.render import DivergentSeriesWarning
     from lightfield_jax.inverse.capture_fit import fit_capture
 
@@ -122,6 +123,7 @@ def batch_fit(
         warnings.simplefilter("ignore", CaptureWarning)  # said when the batch checked it
         warnings.simplefilter("always", DivergentSeriesWarning)
         capture = load_capture(path)
+        phase = phase or fit_phase(capture)  # --phase, else each capture's own
         with _about(capture):
             fit = fit_capture(
                 capture, method, channels=channels, progress=staged, phase=phase, **limits
