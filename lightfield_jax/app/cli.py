@@ -468,24 +468,23 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _positive_scale(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
-    return value
+def _positive_number(what: str):
+    """An argparse type: a finite number > 0, refused as "must be WHAT, got ..."."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of seconds, got {text!r}")
-    return value
+_positive_scale = _positive_number("a number > 0")
+_positive_seconds = _positive_number("a positive number of seconds")
 
 
 def _dask_arguments(what: str) -> tuple:
