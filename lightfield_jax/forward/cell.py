@@ -28,6 +28,7 @@ at the coarse resolution, instead of every shift over every row.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import equinox as eqx
@@ -413,3 +414,28 @@ class CellRenderer(AbstractRenderer):
             converged=jnp.all(jnp.stack([s.converged for s in solves])),
         )
         return images, tail
+
+
+@functools.lru_cache(maxsize=16)
+def cell_renderer_for(
+    grid: Grid,
+    illumination: Stripes,
+    bounces: int,
+    phase: str,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
+    shift_orders: int | None = SHIFT_ORDERS,
+) -> CellRenderer:
+    """A cached :class:`CellRenderer` (its tables built once per static configuration),
+    as :func:`~lightfield_jax.forward.render.renderer_for` is for the full render."""
+    return CellRenderer(
+        grid,
+        illumination,
+        bounces,
+        phase,
+        tail=tail,
+        tail_tol=tail_tol,
+        tail_max_steps=tail_max_steps,
+        shift_orders=shift_orders,
+    )

@@ -96,6 +96,11 @@ def _home_basin(scan, values: dict):
     return basin_of(scan.misfit, *p) if np.isfinite(scan.misfit[p]) else None
 
 
+# The cheap models' stripe cell: the walls' term of the shifts' mean alone (2: no order
+# of every shift's own), the fastest (docs/periodic_cell.md).
+CHEAP_CELL = 2
+
+
 def _rescan(data, pattern, scan_model, options, black, weights, the_scan, stages, say):
     """The scan held σt at the direct light's decay estimate. An answer far from it (a
     medium whose mean free path is near a pixel: that decay spans few pixels) may lie
@@ -643,8 +648,10 @@ def _joint_fit(
         f"basin scan: g x albedo on a {coarse.grid.width}x{coarse.grid.height} model, "
         f"n_theta {coarse.grid.n_theta}, {marched}"
     )
-    scan_model = coarse
-    the_scan = _run_scan(data, pattern, coarse, options, black, weights, data.sigma_t0)
+    # The scan's misfit map needs the light's shape, not the walls' last tenths of a
+    # percent: its stripes are rendered from one period, their mean's walls' term alone.
+    scan_model = dataclasses.replace(coarse, cell=CHEAP_CELL)
+    the_scan = _run_scan(data, pattern, scan_model, options, black, weights, data.sigma_t0)
     count(the_scan.seconds)
     st0 = data.sigma_t0
     from_scan = start is None and options.start is None
@@ -685,6 +692,8 @@ def _joint_fit(
     # start allows it (see _by_measured_ratio).
     ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
     coarse = _extrapolated(_by_measured_ratio(coarse, options, ratio), options)
+    if coarse.extrapolate:  # always corrected to the full final model
+        coarse = dataclasses.replace(coarse, cell=CHEAP_CELL)
     if the_scan.ratios is not None:
         say(f"  measured per-bounce ratio {ratio:.3f}")
     say(f"  the solve's model: {_orders(coarse)}")

@@ -18,6 +18,7 @@ import numpy as np
 import optimistix as optx
 
 from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.forward.cell import cell_problem, cell_renderer_for
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.basins import Scan, basins, scan
 from lightfield_jax.inverse.correction import (
@@ -73,6 +74,14 @@ def _renderer(model: _Model, illumination, phase: str):
             "tail_max_steps": model.tail_max_steps,
         }
     )
+    if (
+        model.cell is not None
+        and model.geometry is None
+        and cell_problem(model.grid, illumination) is None
+    ):
+        return cell_renderer_for(
+            model.grid, illumination, model.bounces, phase, shift_orders=model.cell, **solve
+        )
     return renderer_for(
         model.grid,
         illumination,

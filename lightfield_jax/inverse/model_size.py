@@ -47,6 +47,10 @@ class _Model:
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
     extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
     coarse_after: int | None = None  # the plane's bounces after it on its coarse grid
+    # Plane stripes rendered from one period (CellRenderer's shift_orders), or None: the
+    # full render. Only models whose answer is corrected to a full one (the scan's, an
+    # extrapolated solve's) take it.
+    cell: int | None = None
 
     @property
     def coarse(self) -> int | None:
