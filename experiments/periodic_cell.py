@@ -145,11 +145,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
 def run(config: dict, out: Path, ctx) -> dict:
     typed_config(Config, config)  # every key checked before any work
     cfg = dict(config)
-    shared = {k: v for k, v in cfg.items() if k not in ("media", "experiment")}
-    rows = []
-    for spec in cfg["media"]:
-        key = f"{sorted(spec.items())}|{sorted(shared.items())}"
-        rows += ctx.cached(key, lambda s=spec: _case(ctx, cfg, s))
+    rows = ctx.rows_per_medium(cfg, lambda spec: _case(ctx, cfg, spec))
     data = {
         "grid": {"width": cfg["width"], "height": cfg["height"]},
         "illumination": {"stripes": "left wall", "period": cfg["period"], "lit": cfg["lit"]},

@@ -163,6 +163,17 @@ class Context:
         self.store(key, value)
         return value
 
+    def rows_per_medium(self, config: dict, case: Callable[[dict], list]) -> list:
+        """The rows of ``case(spec)`` for each medium of ``config["media"]``, each
+        medium's stored under its spec and the rest of the config (a rerun with the same
+        settings reuses them)."""
+        shared = {k: v for k, v in config.items() if k not in ("media", "experiment")}
+        rows = []
+        for spec in config["media"]:
+            key = f"{sorted(spec.items())}|{sorted(shared.items())}"
+            rows += self.cached(key, lambda s=spec: case(s))
+        return rows
+
     def sweep(
         self,
         axes: Sequence[tuple[str, Iterable]],
