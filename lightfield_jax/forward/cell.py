@@ -416,26 +416,7 @@ class CellRenderer(AbstractRenderer):
         return images, tail
 
 
-@functools.lru_cache(maxsize=16)
-def cell_renderer_for(
-    grid: Grid,
-    illumination: Stripes,
-    bounces: int,
-    phase: str,
-    tail: str | None = None,
-    tail_tol: float = 1e-4,
-    tail_max_steps: int = 500,
-    shift_orders: int | None = SHIFT_ORDERS,
-) -> CellRenderer:
-    """A cached :class:`CellRenderer` (its tables built once per static configuration),
-    as :func:`~lightfield_jax.forward.render.renderer_for` is for the full render."""
-    return CellRenderer(
-        grid,
-        illumination,
-        bounces,
-        phase,
-        tail=tail,
-        tail_tol=tail_tol,
-        tail_max_steps=tail_max_steps,
-        shift_orders=shift_orders,
-    )
+
+# A cached CellRenderer (its tables built once per static configuration), as
+# renderer_for is for the full render.
+cell_renderer_for = functools.lru_cache(maxsize=16)(CellRenderer)
