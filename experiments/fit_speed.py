@@ -50,6 +50,8 @@ from lightfield_jax.app.experiment import (
     fit_keywords,
     load_helper,
     provenance,
+    pyplot,
+    save_figure,
     typed_config,
 )
 from lightfield_jax.scene.geometry import parse_geometry
@@ -83,6 +85,8 @@ class Config:
     media: tuple[Annotated[dict, MediumSpec], ...]
     fit: dict = dataclasses.field(default_factory=dict)
     timeout: Annotated[float, Range(0, 86_400, open_low=True)] = 1800.0
+    heights: tuple[Pixels, ...] = ()
+    height_media: tuple[str, ...] = ()
 
     def __post_init__(self):
         if not self.media:
@@ -98,14 +102,19 @@ class Config:
         for i, m in enumerate(self.media):
             if m.get("fit") is not None:
                 fit_keywords("fit_speed", f"media[{i}].fit", {**self.fit, **m["fit"]})
+        for name in self.height_media:
+            if name not in names:
+                raise ValueError(f"fit_speed: height_media: {name!r} is not a medium of media")
+        if self.height_media and not self.heights:
+            raise ValueError("fit_speed: height_media: needs heights (the capture heights)")
 
 
-def _capture_config(cfg: Config, medium: dict) -> dict:
+def _capture_config(cfg: Config, medium: dict, height: int | None = None) -> dict:
     inv = load_helper("_inverse")
     sim_cfg = inv.capture_config(
         {"phase": "paper", **medium},
         cfg.width,
-        cfg.height,
+        cfg.height if height is None else height,
         black_level=0.0,
         bounces="auto" if medium.get("bounces") is None else medium["bounces"],
     )
@@ -114,8 +123,9 @@ def _capture_config(cfg: Config, medium: dict) -> dict:
     return sim_cfg
 
 
-def _capture(cfg: Config, medium: dict) -> np.ndarray:
-    return np.asarray(load_helper("_inverse").simulate(_capture_config(cfg, medium)).images)
+def _capture(cfg: Config, medium: dict, height: int) -> np.ndarray:
+    config = _capture_config(cfg, medium, height)
+    return np.asarray(load_helper("_inverse").simulate(config).images)
 
 
 def _fit_kwargs(cfg: Config, medium: dict) -> dict:
@@ -208,14 +218,15 @@ def _child(request_path: str) -> None:
         Path(request_path).with_suffix(".out.json").write_text(json.dumps(inv.jsonable(out)))
 
 
-def _summary_row(name: str, rec: dict) -> dict:
+def _summary_row(name: str, height: int, rec: dict) -> dict:
     if "error_message" in rec:
-        return {"medium": name, "error_message": rec["error_message"]}
+        return {"medium": name, "height": height, "error_message": rec["error_message"]}
     cold, warm = rec["cold"], rec.get("warm", {"seconds": {"total": None}})
     model = cold["model"]
     tail = model.get("tail")
     return {
         "medium": name,
+        "height": height,
         "cold_seconds": cold["seconds"]["total"],
         "cold_compile": cold["seconds"]["compile"],
         "cold_run": cold["seconds"]["run"],
@@ -244,13 +255,18 @@ def _summary_row(name: str, rec: dict) -> dict:
 
 def _write(ctx, cfg: Config, rows: list, records: dict) -> None:
     """fit_speed.json with the rows so far, each timed also against the first medium's
-    (the milk's) cold fit."""
+    (the milk's) fit at the same height, and the chart of warm time against height."""
     inv = load_helper("_inverse")
-    first = rows[0]
+    first = {r["height"]: r for r in rows if r["medium"] == rows[0]["medium"]}
     for r in rows:
-        if "cold_seconds" in r and "cold_seconds" in first:
-            r["cold_vs_first"] = r["cold_seconds"] / first["cold_seconds"]
-            r["run_vs_first"] = r["cold_run"] / first["cold_run"]
+        base = first.get(r["height"], {})
+        if "cold_seconds" in r and "cold_seconds" in base:
+            r["cold_vs_first"] = r["cold_seconds"] / base["cold_seconds"]
+            r["run_vs_first"] = r["cold_run"] / base["cold_run"]
+        if r.get("warm_seconds") and base.get("warm_seconds"):
+            r["warm_vs_first"] = r["warm_seconds"] / base["warm_seconds"]
+    if cfg.height_media:
+        _height_figure(ctx, rows)
     data = {
         "width": cfg.width,
         "height": cfg.height,
@@ -262,17 +278,50 @@ def _write(ctx, cfg: Config, rows: list, records: dict) -> None:
     ctx.write_json("fit_speed.json", inv.jsonable(data))
 
 
+def _height_figure(ctx, rows: list) -> None:
+    """Warm and cached fit seconds against the capture's height, one line a medium."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    for name in dict.fromkeys(r["medium"] for r in rows):
+        mine = sorted((r for r in rows if r["medium"] == name), key=lambda r: r["height"])
+        if len(mine) < 2:
+            continue
+        h = [r["height"] for r in mine]
+        line = ax.plot(h, [r.get("warm_seconds") or np.nan for r in mine], "o-", label=name)
+        cached = [r.get("cached_seconds") or np.nan for r in mine]
+        ax.plot(h, cached, "s--", color=line[0].get_color(), alpha=0.6)
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(sorted({r["height"] for r in rows}))
+    ax.get_xaxis().set_major_formatter(lambda v, _: f"{v:g}")
+    ax.set_xlabel("capture height (rows; width fixed)")
+    ax.set_ylabel("joint fit (s): warm o-, cached s--")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, ctx.out / "fit_speed_height.png")
+
+
+def _units(cfg: Config) -> list[tuple[dict, int]]:
+    """(medium, capture height) of every fit: each medium at the config's height, the
+    ``height_media`` also at each of ``heights``."""
+    units = [(m, cfg.height) for m in cfg.media]
+    for m in cfg.media:
+        if m["name"] in cfg.height_media:
+            units += [(m, h) for h in cfg.heights if h != cfg.height]
+    return units
+
+
 def run(config: dict, out: Path, ctx) -> dict:
     cfg = typed_config(Config, config)
     inv = load_helper("_inverse")
     records, rows = {}, []
-    for medium in cfg.media:
+    for medium, height in _units(cfg):
         name = medium["name"]
 
-        def measure(medium=medium, name=name):
-            ctx.progress(f"{name}: capture")
-            images = _capture(cfg, medium)
-            ctx.progress(f"{name}: fits in a fresh process")
+        def measure(medium=medium, name=name, height=height):
+            ctx.progress(f"{name} ({height} rows): capture")
+            images = _capture(cfg, medium, height)
+            ctx.progress(f"{name} ({height} rows): fits in a fresh process")
             kwargs = _fit_kwargs(cfg, medium)
             try:
                 return _in_fresh_process(images, inv.truth_of(medium), kwargs, cfg.timeout)
@@ -281,13 +330,13 @@ def run(config: dict, out: Path, ctx) -> dict:
 
         # Each medium's record kept as it is measured: a failed or stopped run resumes.
         key = (
-            f"fit_speed|lib{inv.library_fingerprint()}|{cfg.width}x{cfg.height}|"
+            f"fit_speed|lib{inv.library_fingerprint()}|{cfg.width}x{height}|"
             f"{json.dumps(medium, sort_keys=True)}|{json.dumps(cfg.fit, sort_keys=True)}|"
             f"timeout{cfg.timeout}"
         )
         rec = ctx.cached(key, measure)
-        records[name] = {"medium": medium, **rec}
-        rows.append(_summary_row(name, rec))
+        records[f"{name}@{height}"] = {"medium": medium, "height": height, **rec}
+        rows.append(_summary_row(name, height, rec))
         ctx.progress(f"{name}: {json.dumps(inv.jsonable(rows[-1]))}")
     _write(ctx, cfg, rows, records)
     return {"rows": inv.jsonable(rows)}

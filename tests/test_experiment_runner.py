@@ -508,7 +508,7 @@ def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, ca
 
     def broken(name):
         module = load(name)
-        module._capture = lambda cfg, medium: np.ones((6, 8, 8), np.float32)
+        module._capture = lambda cfg, medium, height: np.ones((6, 8, 8), np.float32)
         module._fit_kwargs = lambda cfg, medium: {"no_such_option": 1}
         return module
 
