@@ -55,6 +55,19 @@ class MediumSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class CellSpec:
+    """One stripe cell: the orders whose walls' term is every shift's own (``all``: every
+    order's) and the rows next to each wall corrected to the refined grid."""
+
+    shift_orders: Annotated[int, Range(2, 1000)] | Literal["all"]
+    wall_band: Annotated[int, Range(0, 1000)] = 0
+
+
+def _label(cell: dict) -> str:
+    return f"shift_orders {cell['shift_orders']}, wall_band {cell.get('wall_band', 0)}"
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """configs/periodic_cell.yaml: the grid (pixels), the stripes (period, lit rows), the
     phase convention, the walls' terms, the media and the timing repeats."""
@@ -64,13 +77,13 @@ class Config:
     period: Annotated[int, Range(2, 64)]
     lit: Annotated[int, Range(1, 63)]
     phase: Literal["normalized", "paper"]
-    shift_orders: tuple[Annotated[int, Range(2, 1000)] | Literal["all"], ...]
+    cells: tuple[Annotated[dict, CellSpec], ...]
     media: tuple[Annotated[dict, MediumSpec], ...]
     repeats: Annotated[int, Range(1, 1000)]
 
     def __post_init__(self):
-        if not (self.media and self.shift_orders):
-            raise ValueError("periodic_cell: media, shift_orders: at least one each")
+        if not (self.media and self.cells):
+            raise ValueError("periodic_cell: media, cells: at least one each")
         for i, m in enumerate(self.media):
             try:  # the medium and the stripes as run() builds them
                 lfj.Medium(m["sigma_t"], m["sigma_s"], m["g"], self.phase)
@@ -114,10 +127,13 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
     total = ref.sum(axis=1)
     rows = [dict(base, shift_orders=None, **full)]
     middle = slice(cfg["height"] // 4, cfg["height"] - cfg["height"] // 4)
-    for walls in cfg["shift_orders"]:
-        ctx.progress(f"{spec['name']}: cell, shift_orders {walls}")
+    for scheme in cfg["cells"]:
+        ctx.progress(f"{spec['name']}: cell, {_label(scheme)}")
+        walls, band = scheme["shift_orders"], scheme.get("wall_band", 0)
         orders = None if walls == "all" else walls
-        cell = lfj.CellRenderer(grid, stripes, k, medium.phase, shift_orders=orders)
+        cell = lfj.CellRenderer(
+            grid, stripes, k, medium.phase, shift_orders=orders, wall_band=band
+        )
         timed = _timed(cell, medium, cfg["repeats"])
         images = timed.pop("out")
         row_error = np.max(np.abs(images.sum(axis=1) - total), axis=(0, 2)) / np.max(
@@ -130,6 +146,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
             dict(
                 base,
                 shift_orders=walls,
+                wall_band=band,
                 row_error=row_error.tolist(),
                 row_error_max=float(row_error.max()),
                 row_error_walls=float(max(row_error[0], row_error[-1])),
@@ -151,7 +168,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "illumination": {"stripes": "left wall", "period": cfg["period"], "lit": cfg["lit"]},
         "phase": cfg["phase"],
         "media": cfg["media"],
-        "shift_orders": cfg["shift_orders"],
+        "cells": cfg["cells"],
         "repeats": cfg["repeats"],
         "dtype": "float32",
         "load_average_1min": os.getloadavg()[0],
@@ -160,7 +177,16 @@ def run(config: dict, out: Path, ctx) -> dict:
     }
     ctx.write_json("periodic_cell.json", data)
     figure = _plot(data, ctx.figure_path("periodic_cell.png"))
-    keys = ("medium", "refine", "shift_orders", "row_error_walls", "row_error_middle", "seconds")
+    keys = (
+        "medium",
+        "refine",
+        "shift_orders",
+        "wall_band",
+        "row_error_walls",
+        "row_error_max",
+        "row_error_middle",
+        "seconds",
+    )
     return {
         "figure": str(figure),
         "table": [{k: r.get(k) for k in keys + ("speedup",)} for r in rows],
@@ -170,15 +196,17 @@ def run(config: dict, out: Path, ctx) -> dict:
 def _plot(data: dict, path: Path) -> Path:
     # One panel per walls' term: the rows' error profile of each medium (log scale),
     # with the speedup in its label.
-    walls = data["shift_orders"]
-    fig = pyplot().figure(figsize=(5.5 * len(walls), 4.2), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(1, len(walls)))
-    for ax, term in zip(axes, walls, strict=True):
+    cells = data["cells"]
+    fig = pyplot().figure(figsize=(5.5 * len(cells), 4.2), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(cells)))
+    for ax, cell in zip(axes, cells, strict=True):
         for i, spec in enumerate(data["media"]):
             row = next(
                 r
                 for r in data["rows"]
-                if r["medium"] == spec["name"] and r["shift_orders"] == term
+                if r["medium"] == spec["name"]
+                and r["shift_orders"] == cell["shift_orders"]
+                and r.get("wall_band") == cell.get("wall_band", 0)
             )
             ax.plot(
                 np.maximum(row["row_error"], 1e-7),
@@ -189,7 +217,7 @@ def _plot(data: dict, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("row (walls at both ends)")
         ax.set_ylabel("max |Δ Σ_k I_k| / row's max, over shifts")
-        ax.set_title(f"shift_orders: {term}", fontsize=9)
+        ax.set_title(_label(cell), fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     grid, ill = data["grid"], data["illumination"]

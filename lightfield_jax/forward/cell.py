@@ -10,19 +10,19 @@ walls break the repetition. :class:`CellRenderer` renders a stripe capture as
         convolution per shift;
     I_k, k ≥ 3:  the cell's I_k (one period, periodic in y, one pattern:
         :class:`PeriodicCell`), rolled to each shift's phase and tiled over the rows,
-        plus the walls' effect on the shifts' mean, a·(F_k − F̃_k): F the full light
-        (every row lit) of the tank with its walls, F̃ the same light on the periodic
-        grid, a = lit/period the pattern's mean.
+        plus the walls' term: the tank's render less the periodic grid's, both on the
+        native grid (:class:`WallsTerm`); every shift's own for the first
+        ``shift_orders`` orders, then the shifts' mean a·(F_k − F̃_k) (F the full light
+        of the tank with its walls, F̃ the same light on the periodic grid, a =
+        lit/period the pattern's mean). On refined models the ``wall_band`` rows next to
+        each wall are corrected to the refined grid on a short tank (:class:`WallBands`).
 
-The only approximation against the full-domain render is that the walls act on the
-mean of the shifts alone, not on their modulation, from the third order on: two
-scatterings have smoothed the modulation of a period of a few rows to a small part of
-those orders. F and F̃ are marched on the native grid (or ``dc_coarsen`` times coarser),
-where the smooth walls' term needs no refinement; their discretisations are the same,
-so their difference keeps little of either's error.
-
-The cost is the cell's march (P rows, one pattern) and one full-light march of the tank
-at the coarse resolution, instead of every shift over every row.
+The approximations against the full-domain render: after ``shift_orders`` the walls act
+on the shifts' mean alone (by then each shift's own deficit has spread smoothly), and on
+refined models the walls' term is the native grid's outside the wall bands (the same
+discretisation for the tank and the periodic grid, so their difference keeps little of
+either's error). The cost is the cell's march (P rows, one pattern), the native grid's
+walls' terms and the short tank's first orders, instead of every shift over every row.
 """
 
 from __future__ import annotations
@@ -182,11 +182,16 @@ def cell_problem(grid: Grid, illumination) -> str | None:
 
 
 # The orders whose walls' term is every shift's own (the later ones take the shifts'
-# mean). Measured on a dense forward medium (σt 0.2, σs 0.16, g 0.7, 128×96, 30
-# bounces): the rows' worst error of the series' image 2.7 % with the mean alone (2),
-# 0.11 % (refine 1) and 0.36 % (refine 2) with 6, 0.35 % with every order (refine 2, the
-# walls' term on the native grid), at 2.3x, 8.6x and 6x the speed of the full render.
-SHIFT_ORDERS = 6
+# mean), and the native rows next to each wall whose walls' term is corrected to the
+# refined grid (WallBands; 0: none). Measured against the full render (128×96, six
+# shifts, docs/periodic_cell.md): on a milk-like medium (σt .2, σs .19, g .8, refine 2)
+# the rows' worst error of the series' image is 0.86 % with 6 orders and no band, 0.79 %
+# with 10 and no band (the native grid's walls' term next to the walls), 0.18 % with 10
+# and a band of 2 rows; 0.3 % with 8 and a band. Each shift's walls' term keeps the
+# shift-dependent deficit the walls make in the low orders, which spreads smoothly to
+# the high orders over the whole tank: the shifts' mean alone (2) is 2–6 % off.
+SHIFT_ORDERS = 10
+WALL_BAND = 2
 
 
 class WallsTerm(eqx.Module):
@@ -237,6 +242,58 @@ class WallsTerm(eqx.Module):
         return orders, (up(tank[2].image - free[2].image[..., rows, :]), tank[2], free[2])
 
 
+def short_tank_height(height: int, period: int, band: int) -> int:
+    """The short tank's rows: at least ``2·band + period`` (its two walls' bands apart
+    by a period) and congruent to the tank's ``height`` modulo the period, so that its
+    top wall meets the stripes in the tank's phase."""
+    low = 2 * band + period
+    return low + (height - low) % period
+
+
+class WallBands(eqx.Module):
+    """The refined grid's correction of the walls' term in the ``band`` rows next to
+    each wall, for orders 3 to ``orders``: on a short tank (:func:`short_tank_height`
+    rows, every shift), its walls' term on the model's grid less its walls' term on the
+    native grid. The walls' term marched on the native grid misses the refined grid's
+    detail next to the walls (I_3 2–4 % off there on refined models); that miss is made
+    within a few rows of the wall, where the short tank's walls are the tank's."""
+
+    fine: PlaneRenderer
+    native: PlaneRenderer
+    free: PeriodicCell
+    band: int = eqx.field(static=True)
+    rows: int = eqx.field(static=True)
+
+    def __init__(self, grid: Grid, stripes: Stripes, orders: int, phase: str, band: int):
+        self.band = band
+        self.rows = short_tank_height(grid.height, stripes.period, band)
+        short = Grid(grid.width, self.rows, grid.n_theta, grid.refine)
+        self.fine = PlaneRenderer(short, stripes, orders, phase)
+        self.native = PlaneRenderer(dataclasses.replace(short, refine=1), stripes, orders, phase)
+        one = dataclasses.replace(stripes, phases=(0,))
+        self.free = PeriodicCell(
+            Grid(grid.width, stripes.period, grid.n_theta, 1),
+            one,
+            orders,
+            phase,
+            tank_height=grid.height,
+        )
+
+    def __call__(self, sigma_t, sigma_s, g, cell, rows):
+        """(patterns, orders − 2, 2·band, W): the correction of orders 3.. in the bottom
+        ``band`` rows then the top ``band`` rows; ``cell`` the refined cell's images
+        (native grid, (K, period, W)) and ``rows`` each shift's cell row of the short
+        tank's rows."""
+        k = self.fine.bounces
+        fine = self.fine.unchecked(sigma_t, sigma_s, g)[0]
+        native = self.native.unchecked(sigma_t, sigma_s, g)[0]
+        free = self.free.unchecked(sigma_t, sigma_s, g)[0][0]
+        periodic = cell[:k] - free
+        e = fine - native - jnp.moveaxis(periodic[:, rows], 0, 1)
+        b, n = self.band, self.rows
+        return jnp.concatenate([e[:, 2:, :b], e[:, 2:, n - b :]], axis=2)
+
+
 class CellRenderer(AbstractRenderer):
     """Stripes on the plane rendered from one period (the module's scheme): the call
     signature and outputs of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
@@ -244,13 +301,18 @@ class CellRenderer(AbstractRenderer):
     full-domain render: :class:`~lightfield_jax.forward.plane.PlaneRenderer`) and no
     coarse tail (the cell is marched on its refined grid throughout).
 
-    ``walls_coarsen``: the walls' term is marched on a grid this many times coarser
-    than the native one (it must divide the grid's width and height).
+    ``shift_orders``: the orders whose walls' term is every shift's own (``None``:
+    every order's); ``walls_coarsen``: the walls' term is marched on a grid this many
+    times coarser than the native one (it must divide the grid's width and height);
+    ``wall_band``: the native rows next to each wall whose walls' term is corrected to
+    the refined grid (refined grids, ``walls_coarsen`` 1, a tank at least twice the
+    short tank's height; 0: none).
     """
 
     cell: PeriodicCell
     shift_walls: WallsTerm | None
     mean_walls: WallsTerm | None
+    wall_bands: WallBands | None
     sum_index: Int[Array, "nodes 4"]
     rows: Int[Array, "patterns H"]
     shift_orders: int = eqx.field(static=True)
@@ -267,6 +329,7 @@ class CellRenderer(AbstractRenderer):
         tail_max_steps: int = 500,
         shift_orders: int | None = SHIFT_ORDERS,
         walls_coarsen: int = 1,
+        wall_band: int = WALL_BAND,
     ):
         problem = cell_problem(grid, illumination)
         if problem is not None:
@@ -305,6 +368,12 @@ class CellRenderer(AbstractRenderer):
         if marched and self.shift_orders <= k:
             full = Full(illumination.direction_deg, illumination.entry)
             self.mean_walls = WallsTerm(grid, full, k, phase, illumination.lit / period, c, solve)
+        band = check_int(wall_band, "wall_band", low=0)
+        self.wall_bands = None
+        orders = min(self.shift_orders, k)
+        if self.shift_walls is not None and self.refine > 1 and band > 0 and c == 1:
+            if 2 * short_tank_height(grid.height, period, band) <= grid.height:
+                self.wall_bands = WallBands(grid, illumination, orders, phase, band)
         # The θ-summed kernel on the whole (refined) tank: the same nodes as the cell's.
         nodes = kernel_nodes(self.width, self.height, grid.n_theta)
         self.sum_index = jnp.asarray(np.mod(nodes["index"], 4 * self.height * self.width))
@@ -400,7 +469,16 @@ class CellRenderer(AbstractRenderer):
         cell = self.cell.unchecked(sigma_t, sigma_s, g)
         walls, walls_tail = self._walls_term(sigma_t, sigma_s, g)
         later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
-        images = jnp.concatenate([first, later[:, 2:] + walls], axis=1)
+        later = later[:, 2:] + walls
+        if self.wall_bands is not None:
+            bands = self.wall_bands
+            n, b = bands.rows, bands.band
+            fix = bands(sigma_t, sigma_s, g, cell[0][0], self.rows[:, :n])
+            m = fix.shape[1]
+            later = later.at[:, :m, :b].add(fix[:, :, :b])
+            top = self.height // self.refine - b
+            later = later.at[:, :m, top:].add(fix[:, :, b:])
+        images = jnp.concatenate([first, later], axis=1)
         images = gain * images[:, : self.bounces]
         if self.tail is None:
             return images, None
