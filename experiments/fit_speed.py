@@ -105,8 +105,6 @@ class Config:
         for name in self.height_media:
             if name not in names:
                 raise ValueError(f"fit_speed: height_media: {name!r} is not a medium of media")
-        if self.height_media and not self.heights:
-            raise ValueError("fit_speed: height_media: needs heights (the capture heights)")
 
 
 def _capture_config(cfg: Config, medium: dict, height: int | None = None) -> dict:
