@@ -34,8 +34,8 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
 from lightfield_jax.app.experiment import ExperimentError
+from lightfield_jax.forward.simulate_config import NoiseConfig, parse_simulation_config
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 

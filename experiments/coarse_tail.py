@@ -42,8 +42,8 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.app.timing import repeated_calls
 from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.runtime.timing import repeated_calls
 
 
 @dataclasses.dataclass(frozen=True)

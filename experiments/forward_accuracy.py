@@ -64,8 +64,8 @@ from lightfield_jax.app.experiment import (
     typed_config,
     write_csv,
 )
-from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.internal import monte_carlo_render, renderer_for
+from lightfield_jax.runtime.timing import stopwatch
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}

@@ -77,7 +77,7 @@ from lightfield_jax.app.experiment import (
     typed_config,
     write_csv,
 )
-from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.runtime.timing import stopwatch
 
 inv = load_helper("_inverse")
 

@@ -37,8 +37,8 @@ from lightfield_jax.app.experiment import (
     save_figure,
     typed_config,
 )
-from lightfield_jax.app.timing import repeated_calls
 from lightfield_jax.forward.plane import PlaneRenderer
+from lightfield_jax.runtime.timing import repeated_calls
 
 
 @dataclasses.dataclass(frozen=True)

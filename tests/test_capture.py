@@ -9,22 +9,17 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax import Stripes
-from lightfield_jax.app.config import parse_simulation_config
 from lightfield_jax.capture.capture import (
     Capture,
     CaptureWarning,
     load_capture,
     write_capture_yaml,
 )
-from lightfield_jax.capture.io import (
-    CaptureError,
-    CaptureFileNotFoundError,
-    atomic_directory,
-    read_image,
-    write_exr,
-    write_png,
-)
+from lightfield_jax.capture.image_write import write_exr, write_png
+from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError, read_image
+from lightfield_jax.files import atomic_directory
 from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.inverse import capture_fit
 
 H, W, P = 8, 12, 3

@@ -454,7 +454,7 @@ def test_a_reduced_run_checks_the_values_its_overrides_replace(tmp_path, no_work
 
 
 def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):
-    from lightfield_jax.app.memory import MemoryLimitError, memory_limit
+    from lightfield_jax.runtime.memory import MemoryLimitError, memory_limit
 
     path = _write(tmp_path, {**_shipped("paper_figures"), "width": 2048, "height": 2048})
     with memory_limit(1 << 30), pytest.raises(MemoryLimitError, match="2048x2048 pixels needs"):

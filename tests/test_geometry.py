@@ -4,8 +4,8 @@ renderer, its ρ bound, its discretisation and its model size (no type dispatch)
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.app.config import MediumConfig
 from lightfield_jax.forward.base import AbstractRenderer
+from lightfield_jax.forward.simulate_config import MediumConfig
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry
 
 GRID = lfj.Grid(12, 8, 8, refine=1)

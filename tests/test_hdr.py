@@ -14,7 +14,6 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import main
-from lightfield_jax.app.config import parse_simulation_config
 from lightfield_jax.capture.capture import load_capture
 from lightfield_jax.capture.hdr import (
     EXPOSURE_MISMATCH_SHARE,
@@ -30,7 +29,9 @@ from lightfield_jax.capture.hdr import (
     srgb_response,
     write_response,
 )
-from lightfield_jax.capture.io import CaptureError, write_png
+from lightfield_jax.capture.image_write import write_png
+from lightfield_jax.capture.io import CaptureError
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.inverse.capture_fit import fit_capture
 
 MEDIUM = {"sigma_t": 0.1, "sigma_s": 0.05, "g": 0.3}

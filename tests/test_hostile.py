@@ -19,8 +19,9 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import XLA_CACHE_ENV, main
-from lightfield_jax.app.memory import MAX_MEMORY_ENV
-from lightfield_jax.capture.io import read_image, write_exr, write_png
+from lightfield_jax.capture.image_write import write_exr, write_png
+from lightfield_jax.capture.io import read_image
+from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
@@ -1423,7 +1424,7 @@ def test_simulate_refuses_stripes_whose_capture_the_fit_refuses(
 
 def test_simulate_keeps_repeated_phases_the_fit_takes(tmp_path):
     """With noise the images of repeated phases differ, and the fit takes them."""
-    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     config = yaml.safe_load(SIMULATE)
     config["illumination"] = {"kind": "stripes", "period": 6, "lit": 3, "phases": [0, 0, 3]}
@@ -2281,7 +2282,7 @@ def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, m
     failed (8400 requested and 7648 written): '.../.view.tmp-164f67c5/R/bounces.npy')",
     naming the temporary. Now "view: write failed (8400 requested and 7648 written)"."""
     from lightfield_jax.app.cli import _describe
-    from lightfield_jax.capture.io import atomic_directory, atomic_write_npy
+    from lightfield_jax.files import atomic_directory, atomic_write_npy
 
     def short_write(*_, **__):
         raise OSError("8400 requested and 7648 written")
@@ -2465,12 +2466,12 @@ def test_a_results_file_that_cannot_be_written_has_its_values_printed(
 ):
     import errno
 
-    import lightfield_jax.capture.io as lio
+    import lightfield_jax.files as lfiles
 
     def full(path, obj, **_):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(lio, "atomic_write_json", full)
+    monkeypatch.setattr(lfiles, "atomic_write_json", full)
     out = tmp_path / "r.json"
     status, stdout, err = _run(
         capsys, "fit", capture / "capture.yaml", "--method", "gradient", "--out", out, "-q"
@@ -2488,7 +2489,7 @@ def test_a_long_output_name_has_a_temporary_that_fits_beside_it(capture, capsys,
     folder = tmp_path / ("日" * 84)
     assert main(["render", str(results), "--out", str(folder), "-q"]) == 0
     assert (folder / "bounces.npy").is_file()
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
 
     long_suffix = tmp_path / ("r." + "a" * 240)
     atomic_write_json(long_suffix, {"a": 1})
@@ -2609,14 +2610,14 @@ def test_a_full_compilation_cache_is_one_warning():
 
 
 def test_a_staged_output_is_written_without_a_nested_temporary(tmp_path, monkeypatch):
-    import lightfield_jax.capture.io as lio
+    import lightfield_jax.files as lfiles
     from lightfield_jax.app.outputs import staged_files
 
     made = []
-    real = lio._make_file
-    monkeypatch.setattr(lio, "_make_file", lambda p: made.append(p.name) or real(p))
+    real = lfiles.make_file
+    monkeypatch.setattr(lfiles, "make_file", lambda p: made.append(p.name) or real(p))
     with staged_files() as write:
-        lio.atomic_write_json(write(tmp_path / "r.json"), {"a": 1})
+        lfiles.atomic_write_json(write(tmp_path / "r.json"), {"a": 1})
     assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1}
     assert made == [], made  # no temporary of the temporary (a name ..r.json.tmp-*.tmp-*)
 

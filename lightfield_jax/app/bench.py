@@ -238,8 +238,8 @@ def bench_fits(
     import tempfile
     from pathlib import Path
 
-    from lightfield_jax.app.config import parse_simulation_config
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     sim = simulate_capture(parse_simulation_config(config, source="bench config"))
     truth = sim.truth()

@@ -19,8 +19,8 @@ Conventions every command keeps:
   line syntax errors exit 2 the same way.
 - Validate every input before the long work starts: check every output path against
   the inputs and each other with :func:`~lightfield_jax.app.outputs.check_outputs`, and
-  the memory the work needs with :func:`~lightfield_jax.app.memory.check_memory`. Write
-  output folders through :func:`~lightfield_jax.capture.io.atomic_directory` and single files
+  the memory the work needs with :func:`~lightfield_jax.runtime.memory.check_memory`. Write
+  output folders through :func:`~lightfield_jax.files.atomic_directory` and single files
   through :func:`~lightfield_jax.app.outputs.staged_files`, so a failure leaves no
   partial output and replaces no existing file.
 - SIGINT (Ctrl-C), SIGTERM and SIGHUP end a command within a moment, with status 130,
@@ -53,7 +53,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from lightfield_jax.app.progress import MODES, progress
+from lightfield_jax.runtime.progress import MODES, progress
 
 PROG = "lightfield-jax"
 PROGRESS_ENV = "LIGHTFIELD_JAX_PROGRESS"
@@ -152,8 +152,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    from lightfield_jax.app.memory import memory_limit
     from lightfield_jax.app.signals import stop_on_signals
+    from lightfield_jax.runtime.memory import memory_limit
 
     args.warnings = []
     try:
@@ -251,7 +251,7 @@ def _path(path) -> str:
 
 
 def _memory_size(text: str) -> int:
-    from lightfield_jax.app.memory import parse_size
+    from lightfield_jax.runtime.memory import parse_size
 
     try:
         return parse_size(text)

@@ -178,10 +178,10 @@ def fit_batch(args: argparse.Namespace) -> int | None:
     failed or did not converge (the others' results written)."""
     from lightfield_jax.app.distributed import Task, check_count, default_workers, run_tasks
     from lightfield_jax.app.experiment import provenance, write_csv
-    from lightfield_jax.app.memory import check_memory, fit_memory
     from lightfield_jax.capture.capture import capture_files, load_capture
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.runtime.memory import check_memory, fit_memory
 
     if args.plot:
         raise ValueError("--plot: one capture at a time (several write results and summaries)")

@@ -76,9 +76,7 @@ def _pattern(args: argparse.Namespace) -> None:
                      images (auto); every key is explained in a comment
 
     Nothing is written unless the whole command succeeds."""
-    from lightfield_jax.app.memory import check_memory
     from lightfield_jax.app.outputs import OutputError
-    from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.pattern import (
         camera_stripes,
         check_size,
@@ -86,6 +84,8 @@ def _pattern(args: argparse.Namespace) -> None:
         pattern_phases,
         write_patterns,
     )
+    from lightfield_jax.files import atomic_directory
+    from lightfield_jax.runtime.memory import check_memory
 
     _outputs(
         folders=[args.out],
@@ -161,7 +161,7 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.inspect import inspect_capture
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
 
     _outputs(
         files=[args.plot, args.json, args.response],

@@ -26,11 +26,11 @@ from lightfield_jax.app.cli import (
     command,
     xla_cache_folder,
 )
+from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
 
 # The fit's memory estimate (fit_memory) and its constants, named here as before.
-from lightfield_jax.app.memory import FIT_N_THETA as FIT_N_THETA
-from lightfield_jax.app.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS_PER_PIXEL
-from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
+from lightfield_jax.runtime.memory import FIT_N_THETA as FIT_N_THETA
+from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS_PER_PIXEL
 
 # --------------------------------------------------------------------------- fit
 
@@ -286,13 +286,13 @@ def _fit(args: argparse.Namespace) -> int | None:
     black_level, uncertainty, correlation, method, converged, iterations, residual,
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
-    from lightfield_jax.app.memory import check_memory, fit_memory
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.capture import capture_files, load_capture
-    from lightfield_jax.capture.io import atomic_write_json
     from lightfield_jax.capture.keys import fit_phase
+    from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.runtime.memory import check_memory, fit_memory
 
     if len(args.capture) > 1 or Path(args.capture[0]).is_dir():
         from lightfield_jax.app.cmd_batch import fit_batch
@@ -451,12 +451,12 @@ def _demo(args: argparse.Namespace) -> int | None:
     time) and write DIR/results.json and
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
-    from lightfield_jax.app.config import parse_simulation_config
     from lightfield_jax.app.outputs import CAPTURE_MARKER
     from lightfield_jax.capture.capture import load_capture
-    from lightfield_jax.capture.io import atomic_directory, atomic_write_json, naming_output
     from lightfield_jax.checks import repeated
+    from lightfield_jax.files import atomic_directory, atomic_write_json, naming_output
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
     from lightfield_jax.inverse.capture_fit import fit_capture
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

@@ -66,13 +66,13 @@ def _render_command(args: argparse.Namespace) -> None:
                       the light, the light fields with direction glyphs
 
     Nothing is written unless the whole command succeeds."""
-    from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.views import (
         read_results,
         render_folders,
         render_inputs,
         render_results,
     )
+    from lightfield_jax.files import atomic_directory
 
     data, source = read_results(args.results)
     # Each channel's subfolder is checked like DIR: another command's outputs there

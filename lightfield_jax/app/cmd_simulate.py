@@ -36,7 +36,11 @@ SIMULATE_FILES = (
 @command(
     "simulate",
     "render a config into per-bounce and captured images",
-    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax.app.config)"),
+    arg(
+        "config",
+        metavar="CONFIG.yaml",
+        help="a simulate config (see lightfield_jax.forward.simulate_config)",
+    ),
     arg(
         "--out",
         metavar="DIR",
@@ -83,10 +87,10 @@ def _simulate(args: argparse.Namespace) -> None:
     captured images add the dark level and noise. Nothing is written unless the whole
     command succeeds.
     """
-    from lightfield_jax.app.config import load_simulation_config
     from lightfield_jax.app.outputs import CAPTURE_MARKER
-    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.files import atomic_directory
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.forward.simulate_config import load_simulation_config
 
     _outputs(
         folders=[args.out],
@@ -204,7 +208,7 @@ def _bench(args: argparse.Namespace) -> None:
     model against the plane (forward, derivative, joint fit). With ``--fits``: the fit
     methods' wall time, cold (a fresh process) and warm."""
     from lightfield_jax.app.bench import bench_fits, bench_slab, run_benchmark
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
 
     _outputs(files=[args.out], json=[("--out", args.out, "")])
     out = Path(args.out)
@@ -229,7 +233,7 @@ def _bench(args: argparse.Namespace) -> None:
         _say(args, f"wrote {_path(out)}")
         return
     sizes = args.sizes
-    from lightfield_jax.app.memory import check_memory, render_bytes
+    from lightfield_jax.runtime.memory import check_memory, render_bytes
 
     for w, h, n in sizes:
         # value_and_grad keeps the forward pass's fields of its 10 bounces.

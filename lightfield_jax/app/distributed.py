@@ -299,7 +299,7 @@ def _run_pending(client, pending, save, timeout, on_timeout, results, failures, 
     from distributed.client import FutureCancelledError
     from distributed.scheduler import KilledWorker
 
-    from lightfield_jax.app.progress import progress_bar
+    from lightfield_jax.runtime.progress import progress_bar
 
     x64 = _precision_x64()
     futures = {}

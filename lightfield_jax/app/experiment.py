@@ -54,8 +54,8 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from lightfield_jax.app.config import load_yaml
-from lightfield_jax.capture.io import atomic_directory, atomic_path, atomic_write_json
+from lightfield_jax.files import atomic_directory, atomic_path, atomic_write_json
+from lightfield_jax.schema import load_yaml
 
 _HERE = Path(__file__).resolve().parent.parent  # the package folder
 
@@ -450,10 +450,10 @@ def fit_keywords(where: str, key: str, value) -> dict:
     """``value``, extra :func:`~lightfield_jax.fit_images` keywords of a config's ``key``,
     checked as a capture file's ``fit:`` section is (the FitOptions fields, their types,
     then FitOptions' own checks): one-line errors naming ``where`` and ``key.FIELD``."""
-    from lightfield_jax.app.config import _Section
     from lightfield_jax.capture.keys import _fit_options
+    from lightfield_jax.schema import Section
 
-    return _fit_options(_Section(where, "", {key: value}, None), key)
+    return _fit_options(Section(where, "", {key: value}, None), key)
 
 
 def _type_name(annotation) -> str:
@@ -652,9 +652,9 @@ def child_failed(what: str, returncode: int, stderr: str) -> ExperimentError:
 def check_experiment_config(module, config: dict) -> Any:
     """The script's typed ``Config`` of ``config`` (every experiment script defines one),
     and the memory its smallest render of ``width`` × ``height`` needs (checked against
-    the machine's, see :mod:`lightfield_jax.app.memory`): a bad config is refused in a
+    the machine's, see :mod:`lightfield_jax.runtime.memory`): a bad config is refused in a
     second, before any work."""
-    from lightfield_jax.app.memory import check_memory, render_bytes
+    from lightfield_jax.runtime.memory import check_memory, render_bytes
 
     typed = typed_config(module.Config, config)
     w, h = getattr(typed, "width", None), getattr(typed, "height", None)

@@ -39,17 +39,17 @@ import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from lightfield_jax.capture.io import (
-    _fsync,
-    _make_file,
-    _reserve,
-    _write_failure,
+from lightfield_jax.capture.io import oiio_name
+from lightfield_jax.files import (
     forget_temporary,
+    fsync_path,
     keep_made_folders,
+    make_file,
     make_folders,
     naming_output,
-    oiio_name,
     remove_made_folders,
+    reserve_temporary,
+    write_failure,
 )
 
 
@@ -249,7 +249,7 @@ def _check_writable(path: Path, given: str) -> None:
     if not parent.is_dir():
         raise OutputError(f"{given}: {parent} is not a directory")
     try:
-        probe = _reserve(parent / ".lightfield-jax-probe", _make_file)
+        probe = reserve_temporary(parent / ".lightfield-jax-probe", make_file)
     except OSError as e:
         raise OutputError(f"{given}: cannot write in {parent} ({e.strerror or e})") from None
     forget_temporary(probe)
@@ -272,7 +272,7 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
     def stage(target: str | os.PathLike) -> Path:
         target = Path(target)
         made.extend(make_folders(target.parent))
-        tmp = _reserve(target, _make_file)
+        tmp = reserve_temporary(target, make_file)
         pending.append((tmp, target))
         return tmp
 
@@ -283,13 +283,13 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
         try:
             yield stage
         except OSError as e:  # a writer's failure names its output, not the temporary
-            failure = _write_failure(e, writing())
+            failure = write_failure(e, writing())
             if failure is None:
                 raise
             raise failure from e
         for tmp, target in pending:
             with naming_output(target):
-                _fsync(tmp)
+                fsync_path(tmp)
         for tmp, target in pending:
             os.replace(tmp, target)
             forget_temporary(tmp)

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section
 from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
 from lightfield_jax.capture.detect import (
     LOW_CONFIDENCE,
@@ -21,6 +20,7 @@ from lightfield_jax.capture.detect import (
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import AUTO, dark_level_text
 from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.schema import Section
 
 
 def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
@@ -50,7 +50,7 @@ DARK_BELOW, DARK_DEPTH = 0.05, 0.05
 
 
 def _check_light(
-    top: _Section,
+    top: Section,
     images: np.ndarray,
     dark: ImageData | None,
     dark_level: float | np.ndarray | None = None,

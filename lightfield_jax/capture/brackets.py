@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section
 from lightfield_jax.capture.auto import _check_light
 from lightfield_jax.capture.calibration import (
     check_sample_formats,
@@ -48,9 +47,10 @@ from lightfield_jax.capture.keys import (
     check_integer_saturation,
     dark_level_text,
 )
+from lightfield_jax.schema import Section
 
 
-def _brackets(top: _Section, base: Path, channel, notes: list[str]):
+def _brackets(top: Section, base: Path, channel, notes: list[str]):
     """Exposure brackets merged to linear radiance (:mod:`lightfield_jax.capture.hdr`):
     ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
     frame subtracted per exposure before merging (so the calibration frames hold no
@@ -312,7 +312,7 @@ def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
 EXPOSURE_RANGE = (1e-9, 1e6)
 
 
-def _exposure_times(top: _Section) -> list[float]:
+def _exposure_times(top: Section) -> list[float]:
     value = top.get("exposure_times", None)
     if not isinstance(value, list) or len(value) < 2:
         top.fail(
@@ -335,7 +335,7 @@ def _exposure_times(top: _Section) -> list[float]:
 
 
 def read_response(
-    top: _Section,
+    top: Section,
     base: Path,
     names: Sequence[str],
     images: np.ndarray | None = None,

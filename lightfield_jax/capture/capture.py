@@ -137,7 +137,7 @@ below 0.5 is also a :class:`CaptureWarning`. ``lightfield-jax inspect`` shows it
 names the key and value (or the image file). Beyond each key's type and range (phases
 in [0, period), a period no longer than the images), the images must agree with the
 file: a capture too large for the memory available is refused from the image headers
-before any pixel is read (:mod:`lightfield_jax.app.memory`); images without light (every
+before any pixel is read (:mod:`lightfield_jax.runtime.memory`); images without light (every
 value zero or negative, or darker than the dark frame) are refused; in a capture whose
 images show stripes of the period, an image without them (a white or black frame
 listed among the stripes) is refused, and given phases that the stripe detector
@@ -159,7 +159,6 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section, load_yaml
 from lightfield_jax.capture.auto import (
     _check_light,
     _check_stripes,
@@ -215,6 +214,7 @@ from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
 from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.schema import Section, load_yaml
 
 # The smallest medium (px per side, after medium_roi) a capture may have; a fit also
 # needs MIN_ALONG px along the light (inverse/trust.py).
@@ -346,7 +346,13 @@ def load_capture(path: str | os.PathLike) -> Capture:
     path = Path(path)
     if not path.exists():
         raise CaptureFileNotFoundError(f"{path}: file not found")
-    top = _Section(str(path), "", load_yaml(path, CaptureError), CAPTURE_KEYS, error=CaptureError)
+    top = Section(
+        str(path),
+        "",
+        load_yaml(path, CaptureError, CaptureFileNotFoundError),
+        CAPTURE_KEYS,
+        error=CaptureError,
+    )
     base = path.parent
     channel = _channel(top)
     fit_options = _fit_options(top)  # before any image is read
@@ -617,7 +623,7 @@ def capture_files(path: str | os.PathLike) -> list[Path]:
     YAML alone: the inputs an output must not replace. Values that are not file names
     are skipped (:func:`load_capture` reports them)."""
     path = Path(path)
-    data = load_yaml(path, CaptureError)
+    data = load_yaml(path, CaptureError, CaptureFileNotFoundError)
     if not isinstance(data, dict):
         return [path]
 

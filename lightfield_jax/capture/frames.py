@@ -13,8 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section, brief
-from lightfield_jax.app.memory import capture_bytes, check_memory
 from lightfield_jax.capture.calibration import alpha_index, sensor_top_code
 from lightfield_jax.capture.io import (
     CaptureError,
@@ -27,9 +25,11 @@ from lightfield_jax.capture.io import (
 )
 from lightfield_jax.capture.keys import _AUX_FRAMES
 from lightfield_jax.inverse.data import floor_is_cut, floor_pileup
+from lightfield_jax.runtime.memory import capture_bytes, check_memory
+from lightfield_jax.schema import Section, brief
 
 
-def _check_capture_memory(top: _Section, files: Sequence[Path]) -> None:
+def _check_capture_memory(top: Section, files: Sequence[Path]) -> None:
     """Refuse, from the files' headers, before any is decoded, an image whose size
     differs from the first's (a header claiming 20000x20000 pixels) and a capture too
     large to load (a file that cannot be read is left to the read, which names its
@@ -65,7 +65,7 @@ def _image_like(shape: tuple[int, ...]) -> bool:
     return len(shape) in (2, 3) and 0 not in shape
 
 
-def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
+def _read(top: Section, key: str, file: Path, channel) -> ImageData:
     try:
         image = read_image(file, channel)
     except CaptureFileNotFoundError as e:
@@ -79,7 +79,7 @@ def _read(top: _Section, key: str, file: Path, channel) -> ImageData:
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-def _check_float32_range(top: _Section, key: str, image: ImageData) -> None:
+def _check_float32_range(top: Section, key: str, image: ImageData) -> None:
     """Refuse double-precision samples beyond float32's range (1e300 in a .npy: before,
     numpy's overflow warnings and 'no pixel is finite ... nothing to separate')."""
     pixels = image.pixels
@@ -96,7 +96,7 @@ def _check_float32_range(top: _Section, key: str, image: ImageData) -> None:
         )
 
 
-def _file(top: _Section, key: str, value: Any, base: Path) -> Path:
+def _file(top: Section, key: str, value: Any, base: Path) -> Path:
     if not isinstance(value, str) or not value or "\0" in value:
         top.fail(key, f"must be a file path, got {brief(value)}")
     return base / value
@@ -114,7 +114,7 @@ def _file_identity(base: Path, value: str) -> Any:
     return path
 
 
-def _images_listed_twice(top: _Section, base: Path) -> str | None:
+def _images_listed_twice(top: Section, base: Path) -> str | None:
     """What to say of stripe images listed again under ``images`` (refused by the
     phases' checks where the phases are given and differ; with ``phases: auto``, a
     warning: one image counted as two shifts, its noise twice), or ``None``."""
@@ -144,7 +144,7 @@ def _images_listed_twice(top: _Section, base: Path) -> str | None:
     )
 
 
-def _distinct_files(top: _Section, base: Path) -> None:
+def _distinct_files(top: Section, base: Path) -> None:
     """Refuse one file given in two roles (a stripe image and a calibration frame, or
     two calibration frames): a user's slip that would otherwise
     run a whole fit on a wrong capture (the paths as given, resolved; a missing file is
@@ -180,7 +180,7 @@ def _distinct_files(top: _Section, base: Path) -> None:
         seen.setdefault(ident, key)
 
 
-def _frames(top: _Section, base: Path, channel) -> list[ImageData]:
+def _frames(top: Section, base: Path, channel) -> list[ImageData]:
     _distinct_files(top, base)
     value = top.get("images")
     if isinstance(value, str):
@@ -232,7 +232,7 @@ def _size(image: ImageData) -> str:
     return f"{w}x{h} pixels with {c} channel(s)"
 
 
-def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, value=None):
+def _aux_frame(top: Section, key: str, base: Path, channel, first: ImageData, value=None):
     """A calibration frame (dark, black, white, flat; ``value``: its file, default the
     key's): the images' size, and one channel or as many as they have."""
     value = top.get(key, None) if value is None else value
@@ -270,7 +270,7 @@ def _aux_frame(top: _Section, key: str, base: Path, channel, first: ImageData, v
 
 
 def _flat(
-    top: _Section,
+    top: Section,
     flat: ImageData | None,
     dark: np.ndarray | None,
     issues: list[str],
@@ -471,7 +471,7 @@ def _one_value(image: np.ndarray) -> float | None:
     return float(values[0]) if values.size and np.all(values == values[0]) else None
 
 
-def _check_not_blank(top: _Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
+def _check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
     """Refuse a stripe image (``(key, name, pixels)`` each: a single exposure or one
     exposure of a bracket) that holds no image: NaN and Inf only (checked first in every
     frame: an image of nothing else is no image), or one value ≤ 0 among frames that vary
@@ -490,7 +490,7 @@ def _check_not_blank(top: _Section, frames: list[tuple[str, str, np.ndarray]]) -
             )
 
 
-def _check_projector_frames(top: _Section, aux: dict, merged: bool) -> None:
+def _check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,
     at its largest value (its slope against the white gives a black level near 0, which

@@ -79,13 +79,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.capture.io import (
-    CaptureError,
-    _load_npy,
-    _one_line,
-    atomic_write_text,
-    require_regular_file,
-)
+from lightfield_jax.capture.io import CaptureError, _load_npy, _one_line, require_capture_file
+from lightfield_jax.files import atomic_write_text
 
 RESPONSES = ("linear", "srgb", "auto")
 CLIP = 0.98
@@ -219,7 +214,7 @@ def load_response(
     channels (also one chosen with ``channel:``), in their order."""
     path = Path(path)
     # A FIFO would block the read forever, a folder or device is no table.
-    require_regular_file(path, "a response table")
+    require_capture_file(path, "a response table")
     size = os.path.getsize(path)
     if size > MAX_RESPONSE_BYTES:  # parsed as text, it would take ten times its size
         raise CaptureError(

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.app.memory import check_memory, render_bytes, scene_render_bytes
 from lightfield_jax.checks import (
     check_flag,
     check_int,
@@ -37,6 +36,7 @@ from lightfield_jax.forward.base import (
 )
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer, coarse_plane_grid
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
+from lightfield_jax.runtime.memory import check_memory, render_bytes, scene_render_bytes
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
@@ -135,7 +135,7 @@ def make_renderer(
 
     The arguments are checked before the renderer's tables are built (ValueError: a
     grid or illumination of another type, stripes longer than the grid, or tables
-    beyond the memory limit of :mod:`lightfield_jax.app.memory`)."""
+    beyond the memory limit of :mod:`lightfield_jax.runtime.memory`)."""
     check_scene("make_renderer", grid, illumination)
     geometry = as_geometry(geometry)
     counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)

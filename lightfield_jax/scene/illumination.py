@@ -365,7 +365,7 @@ def shifts_problem(n_shifts: int, same: bool) -> str | None:
     """What a fit refuses about a stripe capture's shifts (``None``: nothing): fewer
     than 2 images, or images that are all the same (``same``: the stripes moved
     nothing). The rule of the fit (:mod:`lightfield_jax.inverse.data`), and of a
-    simulate config (:mod:`lightfield_jax.app.config`), whose capture the fit reads."""
+    simulate config (:mod:`lightfield_jax.forward.simulate_config`), whose capture the fit reads."""
     if n_shifts < 2:
         return (
             "a fit needs at least 2 shifted images (the separation of the direct light "
@@ -383,7 +383,7 @@ def period_problem(illumination, width: int, height: int, what: str = "grid") ->
     """What is wrong with stripes whose period is longer than a ``width``x``height``
     grid (``None``: nothing, or not stripes; ``illumination`` may be the period
     itself). The rule of a simulate config's ``illumination.period``
-    (:mod:`lightfield_jax.app.config`), for the Python API too: such stripes light at
+    (:mod:`lightfield_jax.forward.simulate_config`), for the Python API too: such stripes light at
     most one run of rows, and some of their shifts none at all (all-zero images)."""
     if isinstance(illumination, Stripes):
         period = illumination.period

@@ -5,7 +5,7 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from lightfield_jax.capture.io import atomic_path
+from lightfield_jax.files import atomic_path
 
 
 def new_figure(width: float, height: float):
