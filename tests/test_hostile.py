@@ -18,7 +18,8 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax.app.cli import XLA_CACHE_ENV, main
+from lightfield_jax.app.arguments import XLA_CACHE_ENV
+from lightfield_jax.app.cli import main
 from lightfield_jax.capture.image_write import write_exr, write_png
 from lightfield_jax.capture.io import read_image
 from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
@@ -1219,7 +1220,7 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
     """The estimate covers the correction's and error term's renders (larger than the
     solve's fields): a limit between the two refuses the fit before it starts."""
     import lightfield_jax as lfj
-    from lightfield_jax.app import memory
+    from lightfield_jax.runtime import memory
     from lightfield_jax.app.cmd_fit import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
 
     loaded = lfj.load_capture(capture / "capture.yaml")

@@ -8,24 +8,25 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from lightfield_jax.app.cli import (
-    _XLA_CACHE_HELP,
-    DEMO_CONFIG,
-    PROG,
-    _about,
-    _dask_arguments,
-    _outputs,
-    _path,
-    _positive_int,
-    _positive_seconds,
-    _progress,
-    _say,
-    _use_xla_cache,
-    _warn,
+from lightfield_jax.app.arguments import (
+    XLA_CACHE_HELP,
     arg,
-    command,
+    dask_arguments,
+    positive_int,
+    positive_seconds,
+    use_xla_cache,
     xla_cache_folder,
 )
+from lightfield_jax.app.cli import DEMO_CONFIG, command
+from lightfield_jax.app.messages import (
+    PROG,
+    about_capture,
+    command_progress,
+    say,
+    shown_path,
+    warn,
+)
+from lightfield_jax.app.outputs import check_command_outputs
 from lightfield_jax.app.signals import TIME_LIMIT_STATUS, stop_after
 
 # The fit's memory estimate (fit_memory) and its constants, named here as before.
@@ -35,7 +36,7 @@ from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS
 # --------------------------------------------------------------------------- fit
 
 
-def _fit_summary(fit) -> str:
+def fit_summary(fit) -> str:
     return "\n".join(
         _channel_summary(name, r) for name, r in zip(fit.channels, fit.results, strict=True)
     )
@@ -266,20 +267,20 @@ def _roi_record(capture) -> dict:
     ),
     arg(
         "--max-steps",
-        type=_positive_int,
+        type=positive_int,
         metavar="N",
         help="iteration limit of the solves (default: FitOptions.max_steps)",
     ),
     arg(
         "--time-limit",
-        type=_positive_seconds,
+        type=positive_seconds,
         metavar="SECONDS",
         help="stop the fit after this long (from its start, after loading), exit status "
         f"{TIME_LIMIT_STATUS}, nothing written (default: no limit); for several captures "
         "each capture's limit (one past it is reported failed)",
     ),
-    arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
-    *_dask_arguments("several captures"),
+    arg("--no-xla-cache", action="store_true", help=XLA_CACHE_HELP),
+    *dask_arguments("several captures"),
 )
 def _fit(args: argparse.Namespace) -> int | None:
     """Fit a capture and write FILE (keys: sigma_t, sigma_s, sigma_a, g, albedo, gain,
@@ -302,21 +303,21 @@ def _fit(args: argparse.Namespace) -> int | None:
     args.capture = args.capture[0]
     args.out = "results.json" if args.out is None else args.out
     inputs = capture_files(args.capture)
-    _outputs(
+    check_command_outputs(
         files=[args.out, args.plot],
         inputs=inputs,
         plots=[args.plot] if args.plot else [],
         json=[("--out", args.out, " (the figure: --plot FIG.png)")],
     )
     out = Path(args.out)
-    _use_xla_cache(args)
+    use_xla_cache(args)
     capture = load_capture(args.capture)
     channels = args.channel or capture.channel_names
     figures = _figure_names(Path(args.plot), channels) if args.plot else []
-    _outputs(files=[out, *figures], inputs=inputs)
+    check_command_outputs(files=[out, *figures], inputs=inputs)
     args.phase = args.phase or fit_phase(capture)
     if capture.truth and (note := _truth_phase_note(capture, args.phase)) is not None:
-        _warn(args, note)
+        warn(args, note)
     h, w = capture.shape
     defaults = FitOptions(**capture.fit_options)
     check_memory(
@@ -326,8 +327,8 @@ def _fit(args: argparse.Namespace) -> int | None:
     # What loading measured or doubted (a pattern.lit the stripes contradict makes the
     # fit slow and wrong): said before the fit's minutes, not after.
     for note in capture.notes:
-        _say(args, f"note: {note}")
-    with _progress(args, f"fit ({args.method})") as stage, _about(capture):
+        say(args, f"note: {note}")
+    with command_progress(args, f"fit ({args.method})") as stage, about_capture(capture):
         limits = {} if args.max_steps is None else {"max_steps": args.max_steps}
         doing, fit_notes = [""], []
 
@@ -369,24 +370,24 @@ def _fit(args: argparse.Namespace) -> int | None:
                 atomic_write_json(write(out), result)
         except OSError:
             # A full disk must not lose the fit's minutes: its values on the screen.
-            _say(args, f"not written: {_path(out)}; the fit:\n{_fit_summary(fit)}", always=True)
+            say(args, f"not written: {shown_path(out)}; the fit:\n{fit_summary(fit)}", always=True)
             raise
     for note in fit_notes:
-        _say(args, note)
+        say(args, note)
     if not shown:
-        _say(args, _fit_summary(fit))
-    for line in _truth_lines(fit, compared):
-        _say(args, line)
+        say(args, fit_summary(fit))
+    for line in truth_lines(fit, compared):
+        say(args, line)
     if args.method in TWO_STEP_METHODS:
-        _say(args, f"note: {TWO_STEP_CAVEAT}")
-    _say(args, f"wrote {', '.join(_path(f) for f in [out, *figures])}")
+        say(args, f"note: {TWO_STEP_CAVEAT}")
+    say(args, f"wrote {', '.join(shown_path(f) for f in [out, *figures])}")
     if not fit.converged:  # its reasons too (the summary has them, but -q silences it)
         why = "; ".join(
             f"[{name}] {'; '.join(r.reasons) or r.message}"
             for name, r in zip(fit.channels, fit.results, strict=True)
             if not r.converged
         )
-        _warn(
+        warn(
             args,
             f"the fit did not converge ({why}): results were written with converged: false",
         )
@@ -408,7 +409,7 @@ def fit_record(capture, fit, method: str, phase: str) -> tuple[dict, list[dict]]
     return result, compared
 
 
-def _truth_lines(fit, compared: list[dict]) -> list[str]:
+def truth_lines(fit, compared: list[dict]) -> list[str]:
     """Each channel's errors against the truth (none without a truth)."""
     if not compared:
         return []
@@ -441,7 +442,7 @@ def _single_only(args: argparse.Namespace) -> None:
     "simulate the paper's milk capture and recover it with every method",
     arg("--out", default="demo_out", metavar="DIR", help="output folder (%(default)s)"),
     arg("--methods", default="grid,gradient,joint", help="comma-separated (%(default)s)"),
-    arg("--no-xla-cache", action="store_true", help=_XLA_CACHE_HELP),
+    arg("--no-xla-cache", action="store_true", help=XLA_CACHE_HELP),
 )
 def _demo(args: argparse.Namespace) -> int | None:
     """Simulate the paper's milk (sigma_t 0.2051, sigma_s 0.0366, g 0.4 per pixel) as a
@@ -468,7 +469,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     twice = repeated(methods)
     if twice:  # else fitted twice, the table's rows twice, results.json's once
         raise ValueError(f"--methods: names {', '.join(twice)} more than once: {args.methods!r}")
-    _outputs(
+    check_command_outputs(
         folders=[args.out],
         folder_names=(*SIMULATE_FILES, "results.json", "demo_fit.png"),
         marker=CAPTURE_MARKER,  # the demo's folder is a simulated capture
@@ -476,8 +477,8 @@ def _demo(args: argparse.Namespace) -> int | None:
     )
     out = Path(args.out)
     config = parse_simulation_config(DEMO_CONFIG, source="demo config")
-    _use_xla_cache(args)
-    with _progress(args, "demo") as stage:
+    use_xla_cache(args)
+    with command_progress(args, "demo") as stage:
         stage("simulate the capture")
         sim = simulate_capture(config, stage=stage)
         # The capture, results.json and the figure are written into one staging folder
@@ -514,7 +515,7 @@ def _demo(args: argparse.Namespace) -> int | None:
                 atomic_write_json(staging / "results.json", {"truth": truth, "fits": results})
     if "joint" not in results and (out / "demo_fit.png").exists():
         # An earlier run's figure (kept: this run did not write it), not this run's fits.
-        _warn(
+        warn(
             args,
             f"{out / 'demo_fit.png'} is an earlier run's figure, not of this run's capture "
             "(drawn for a joint fit, which this run has not)",
@@ -548,10 +549,10 @@ def _demo(args: argparse.Namespace) -> int | None:
             else " (no compilation cache)"
         )
     )
-    _say(args, "\n".join(lines))
-    _say(
+    say(args, "\n".join(lines))
+    say(
         args,
-        f"wrote {_path(out)}/ (capture, results.json"
+        f"wrote {shown_path(out)}/ (capture, results.json"
         + (", demo_fit.png)" if "joint" in results else ")"),
     )
     return None if all(r.converged for _, r in rows) else 1

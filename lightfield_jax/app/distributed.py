@@ -172,9 +172,9 @@ def _unpickle(payload: bytes):
     for."""
     import cloudpickle
 
-    from lightfield_jax.app.experiment import _SCRIPTS_PACKAGE, load_helper
+    from lightfield_jax.app.experiment import SCRIPTS_PACKAGE, load_helper
 
-    sys.modules.setdefault(_SCRIPTS_PACKAGE, types.ModuleType(_SCRIPTS_PACKAGE))
+    sys.modules.setdefault(SCRIPTS_PACKAGE, types.ModuleType(SCRIPTS_PACKAGE))
     loaded: set[str] = set()
     while True:
         try:

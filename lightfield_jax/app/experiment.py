@@ -450,10 +450,10 @@ def fit_keywords(where: str, key: str, value) -> dict:
     """``value``, extra :func:`~lightfield_jax.fit_images` keywords of a config's ``key``,
     checked as a capture file's ``fit:`` section is (the FitOptions fields, their types,
     then FitOptions' own checks): one-line errors naming ``where`` and ``key.FIELD``."""
-    from lightfield_jax.capture.keys import _fit_options
+    from lightfield_jax.capture.keys import read_fit_options
     from lightfield_jax.schema import Section
 
-    return _fit_options(Section(where, "", {key: value}, None), key)
+    return read_fit_options(Section(where, "", {key: value}, None), key)
 
 
 def _type_name(annotation) -> str:
@@ -583,7 +583,7 @@ def check_cells(config: dict, source: str | Path, limit: int | None = MAX_CELLS)
     return cells
 
 
-_SCRIPTS_PACKAGE = "lightfield_jax_experiments"
+SCRIPTS_PACKAGE = "lightfield_jax_experiments"
 
 
 def _exec_module(name: str, path: Path):
@@ -591,8 +591,8 @@ def _exec_module(name: str, path: Path):
     ``sys.modules`` first (dataclasses in a script look their module up)."""
     # The scripts' package, as a module of its own: pickle finds a script's functions
     # by importing their module's name (Dask sends them to its workers so).
-    sys.modules.setdefault(_SCRIPTS_PACKAGE, types.ModuleType(_SCRIPTS_PACKAGE))
-    spec = importlib.util.spec_from_file_location(f"{_SCRIPTS_PACKAGE}.{name}", path)
+    sys.modules.setdefault(SCRIPTS_PACKAGE, types.ModuleType(SCRIPTS_PACKAGE))
+    spec = importlib.util.spec_from_file_location(f"{SCRIPTS_PACKAGE}.{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     try:

@@ -305,7 +305,34 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
             remove_made_folders(made)
 
 
+def check_command_outputs(
+    files=(),
+    folders=(),
+    inputs=(),
+    plots=(),
+    folder_names=(),
+    marker=None,
+    writer=None,
+    json=(),
+) -> None:
+    """Check every output of a command before its work (see
+    :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
+    ``files``, whose format is checked too; ``json``: (option, file, hint) of the JSON
+    files among them, whose names must not be an image's or a figure's;
+    ``folder_names``: the names written into ``folders``; ``marker``: the command's own
+    file (its folders are its own); ``writer``: the command's name where a folder
+    without ``marker`` is the user's."""
+    for plot in plots:
+        check_plot_format(plot)
+    files, folders = [f for f in files if f], [d for d in folders if d]
+    check_outputs(files, folders, inputs, folder_names, marker, writer)
+    for option, given, hint in json:
+        if given:
+            check_json_name(given, option, hint)
+
+
 __all__ = [
+    "check_command_outputs",
     "CAPTURE_MARKER",
     "FOLDER_MARKERS",
     "OutputError",

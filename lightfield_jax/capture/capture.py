@@ -160,12 +160,12 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.capture.auto import (
-    _check_light,
-    _check_stripes,
-    _detect,
-    _estimate_black_level,
+    check_light,
+    check_stripes,
+    detect_capture_geometry,
+    estimate_capture_black_level,
 )
-from lightfield_jax.capture.brackets import _brackets, read_response
+from lightfield_jax.capture.brackets import read_brackets, read_response
 from lightfield_jax.capture.calibration import (
     BlackLevel,
     check_not_mosaic,
@@ -175,39 +175,39 @@ from lightfield_jax.capture.calibration import (
 )
 from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry
 from lightfield_jax.capture.frames import (
-    _aux_frame,
-    _calibrate,
-    _check_not_blank,
-    _check_projector_frames,
-    _corrupt_to_nan,
-    _flat,
-    _floored,
-    _frames,
-    _images_listed_twice,
-    _inf_to_nan,
-    _nonfinite,
-    _saturated,
+    calibrate,
+    check_not_blank,
+    check_projector_frames,
+    corrupt_to_nan,
+    floored_mask,
+    images_listed_twice,
+    inf_to_nan,
+    nonfinite_mask,
+    normalized_flat,
+    read_aux_frame,
+    read_frames,
+    saturated_mask,
 )
 from lightfield_jax.capture.hdr import RESPONSES, Brackets, Response
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.keys import (
-    _AUX_FRAMES,
     AUTO,
+    AUX_FRAMES,
     CAPTURE_KEYS,
-    _black_level,
-    _channel,
-    _crop_pattern,
-    _dark_level,
-    _fit_options,
-    _geometry,
-    _pattern_spec,
-    _positive,
-    _roi,
-    _stripes,
-    _truth,
     check_integer_saturation,
+    crop_pattern,
     dark_level_text,
     pixel_size_problem,
+    read_black_level,
+    read_channel,
+    read_dark_level,
+    read_fit_options,
+    read_geometry,
+    read_pattern_spec,
+    read_positive,
+    read_roi,
+    read_stripes,
+    read_truth,
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
@@ -354,20 +354,20 @@ def load_capture(path: str | os.PathLike) -> Capture:
         error=CaptureError,
     )
     base = path.parent
-    channel = _channel(top)
-    fit_options = _fit_options(top)  # before any image is read
+    channel = read_channel(top)
+    fit_options = read_fit_options(top)  # before any image is read
     notes: list[str] = []  # what was measured or decided: Capture.notes
     issues: list[str] = []  # what the user must know: CaptureWarnings
-    merged = _brackets(top, base, channel, notes)
-    frames = _frames(top, base, channel) if merged is None else merged[0]
+    merged = read_brackets(top, base, channel, notes)
+    frames = read_frames(top, base, channel) if merged is None else merged[0]
     try:
         frames = drop_constant_alpha(frames, notes)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
     height, width, n_channels = frames[0].pixels.shape
-    spec = _pattern_spec(top, len(frames), height, width)
+    spec = read_pattern_spec(top, len(frames), height, width)
     if merged is None:
-        aux = {key: _aux_frame(top, key, base, channel, frames[0]) for key in _AUX_FRAMES}
+        aux = {key: read_aux_frame(top, key, base, channel, frames[0]) for key in AUX_FRAMES}
     else:
         aux, brackets = merged[1], merged[2]
     try:
@@ -378,24 +378,24 @@ def load_capture(path: str | os.PathLike) -> Capture:
         check_not_mosaic(frames)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: {e}") from None
-    _check_projector_frames(top, aux, merged is not None)
-    roi = _roi(top, width, height)
-    black_level = _black_level(top)
-    pixel_size = _positive(top, "pixel_size_mm")
+    check_projector_frames(top, aux, merged is not None)
+    roi = read_roi(top, width, height)
+    black_level = read_black_level(top)
+    pixel_size = read_positive(top, "pixel_size_mm")
     if (problem := pixel_size_problem(pixel_size)) is not None:
         top.fail("pixel_size_mm", problem)
-    saturation = _positive(top, "saturation") if merged is None else None
+    saturation = read_positive(top, "saturation") if merged is None else None
     check_integer_saturation(top, saturation, frames[0])
-    geometry = _geometry(top)
-    truth = _truth(top, n_channels)
+    geometry = read_geometry(top)
+    truth = read_truth(top, n_channels)
 
     names = [f.path.name for f in frames]
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
         names = [f"{frames[0].path.name}[{i}]" for i in range(len(frames))]
     raw = np.stack([f.pixels for f in frames])
-    if merged is None:  # (brackets: each exposure, by _brackets)
-        _check_not_blank(top, [("images", name, raw[i]) for i, name in enumerate(names)])
-    raw = _inf_to_nan(_corrupt_to_nan(raw, names, issues))
+    if merged is None:  # (brackets: each exposure, by read_brackets)
+        check_not_blank(top, [("images", name, raw[i]) for i, name in enumerate(names)])
+    raw = inf_to_nan(corrupt_to_nan(raw, names, issues))
     response = None if merged is not None else read_response(top, base, frames[0].channel_names)
     sensor = None if saturation is not None else sensor_top_code(raw, frames)
     # 10-14-bit data in 16-bit files: codes counted to the sensor's top code, as the
@@ -410,7 +410,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
             return None
         return linear(frame.pixels) if linear is not None and frame.is_integer else frame.pixels
 
-    aux_linear = {k: _inf_to_nan(in_linear(f)) for k, f in aux.items()}
+    aux_linear = {k: inf_to_nan(in_linear(f)) for k, f in aux.items()}
     if frames[0].is_integer and frames[0].bit_depth == 8:
         notes.append(
             "8-bit images: 256 levels quantise the light's decay; prefer 16-bit linear output"
@@ -430,7 +430,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     dark_pixels = aux_linear["dark_frame"]
     bits = frames[0].bit_depth if frames[0].is_integer else None  # a merged frame: float
     channels = tuple(frames[0].channel_names)
-    dark_level = _dark_level(top, bits, str(top.get("response", "linear")), channels)
+    dark_level = read_dark_level(top, bits, str(top.get("response", "linear")), channels)
     if dark_level is not None and merged is None:  # brackets: the merge subtracted it
         dark_pixels = np.full(raw.shape[1:], dark_level, raw.dtype)  # per channel: last axis
         notes.append(f"dark_level: {dark_level_text(dark_level)} subtracted from every image")
@@ -439,22 +439,24 @@ def load_capture(path: str | os.PathLike) -> Capture:
         or dark_level is not None
         or bool(merged and top.get("dark_frame", None) is not None)
     )
-    flat_pixels = _flat(top, aux["flat_field"], dark_pixels, issues, aux_linear["flat_field"])
+    flat_pixels = normalized_flat(
+        top, aux["flat_field"], dark_pixels, issues, aux_linear["flat_field"]
+    )
 
-    calibrated = _calibrate(raw, dark_pixels, flat_pixels, linear)
+    calibrated = calibrate(raw, dark_pixels, flat_pixels, linear)
     overview = np.mean(calibrated, axis=0)
-    _check_light(top, calibrated, dark, dark_level)
+    check_light(top, calibrated, dark, dark_level)
     detected = None
     if AUTO in (roi, spec["phases"], spec["entry"], spec["direction_deg"]):
         white = aux["white_frame"]
-        detected = _detect(
+        detected = detect_capture_geometry(
             top,
             spec,
             roi,
             calibrated,
             None
             if white is None
-            else _calibrate(aux_linear["white_frame"], dark_pixels, flat_pixels),
+            else calibrate(aux_linear["white_frame"], dark_pixels, flat_pixels),
             dark_subtracted=dark_removed,
         )
         notes.append("detected: " + detected.summary().replace("\n", "; "))
@@ -465,7 +467,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
                 "inspect, or give the values"
             )
         roi = detected.roi if roi == AUTO else roi
-    pattern = _stripes(top, spec, detected)
+    pattern = read_stripes(top, spec, detected)
 
     calibration_frames = {k: v for k, v in aux_linear.items() if v is not None}
     full_roi, full_pattern = roi, pattern
@@ -476,7 +478,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         dark_pixels = None if dark_pixels is None else dark_pixels[y0:y1, x0:x1]
         if flat_pixels is not None:
             flat_pixels = flat_pixels[y0:y1, x0:x1]
-        pattern = _crop_pattern(pattern, x0, y0)
+        pattern = crop_pattern(pattern, x0, y0)
     if min(raw.shape[1:3]) < MIN_SIDE:
         top.fail(
             "images" if roi is None else "medium_roi",
@@ -487,8 +489,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
     if flat_pixels is not None:
         checked.append((aux["flat_field"], flat_pixels, calibration_frames["flat_field"]))
     first_mask_issue = len(issues)
-    nonfinite = _nonfinite(raw, checked, names, issues)
-    saturated = _saturated(raw, frames, names, saturation, sensor, issues, merged is None)
+    nonfinite = nonfinite_mask(raw, checked, names, issues)
+    saturated = saturated_mask(raw, frames, names, saturation, sensor, issues, merged is None)
     saturated &= ~nonfinite
     exposure = None
     if merged is not None:
@@ -515,7 +517,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
         )
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
-    contradiction = _check_stripes(
+    contradiction = check_stripes(
         top, full_pattern, calibrated, full_roi, names, phases_from, dark_removed, auto, notes
     )
     if contradiction:
@@ -525,22 +527,22 @@ def load_capture(path: str | os.PathLike) -> Capture:
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     # After the phases' checks, which refuse a repeated image where phases are given.
-    if (again := _images_listed_twice(top, base)) is not None:
+    if (again := images_listed_twice(top, base)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated
-    images = _calibrate(raw, dark_pixels, flat_pixels, linear)
+    images = calibrate(raw, dark_pixels, flat_pixels, linear)
     images = np.where(np.isfinite(images), images, 0).astype(raw.dtype)
-    floored = _floored(raw, samples, frames, names, notes, images, pattern)
+    floored = floored_mask(raw, samples, frames, names, notes, images, pattern)
 
     estimate = None
     if black_level == AUTO:
         frames_used = {
-            k: _calibrate(calibration_frames[k], dark_pixels, flat_pixels)
+            k: calibrate(calibration_frames[k], dark_pixels, flat_pixels)
             for k in ("black_frame", "white_frame")
             if k in calibration_frames
         }
-        estimate = _estimate_black_level(top, images, pattern, mask, frames_used)
+        estimate = estimate_capture_black_level(top, images, pattern, mask, frames_used)
         black_level = estimate.value
         notes.append(
             f"black_level: auto: {estimate.value:.4f}"
@@ -632,7 +634,7 @@ def capture_files(path: str | os.PathLike) -> list[Path]:
             return [name for v in value for name in names(v)]
         return [value]
 
-    listed = names(data.get("images")) + names([data.get(key) for key in _AUX_FRAMES])
+    listed = names(data.get("images")) + names([data.get(key) for key in AUX_FRAMES])
     if data.get("response") not in RESPONSES:
         listed.append(data.get("response"))
     return [path] + [path.parent / v for v in listed if isinstance(v, str) and v]

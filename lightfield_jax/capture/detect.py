@@ -87,7 +87,7 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.checks import check_int, check_number, number_problem, real_array, shown
-from lightfield_jax.scene.illumination import WALLS, _check_direction, along_x
+from lightfield_jax.scene.illumination import WALLS, along_x, check_direction
 
 _OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top"}
 _ACROSS = {"left": "rows", "right": "rows", "top": "columns", "bottom": "columns"}
@@ -260,12 +260,12 @@ def _detect_roi(s: np.ndarray, floor: float | None):
     return roi, edges, (level, noise, threshold)
 
 
-def _across_first(a: np.ndarray, entry: str) -> np.ndarray:
+def across_first(a: np.ndarray, entry: str) -> np.ndarray:
     """(..., H, W) → (..., across, along): the axis along the entry wall first."""
     return a if _ACROSS[entry] == "rows" else np.swapaxes(a, -1, -2)
 
 
-def _coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
+def stripe_coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
     """Hann-windowed Fourier coefficient at ``frequency`` across axis −2 of a
     (P, across, along) stack whose first across pixel is u0: (P, along)."""
     return _spectrum(a, u0, np.array([frequency]), lambda c: c)[0]
@@ -311,7 +311,7 @@ PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
 
 def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
     """The period (px) of the clear stripes of a (P, across, along) stack
-    (:func:`_across_first`, first across pixel u0) where it contradicts the given
+    (:func:`across_first`, first across pixel u0) where it contradicts the given
     ``period`` (see PERIOD_OFF), searched between 2 px and a third of the wall;
     ``None`` where it does not, or where no stripes are clear."""
     n = stack.shape[-2]
@@ -320,7 +320,7 @@ def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
         return None
 
     def amplitude(p):
-        return np.abs(_coefficients(stack, u0, 1.0 / p)).sum(axis=-1)
+        return np.abs(stripe_coefficients(stack, u0, 1.0 / p)).sum(axis=-1)
 
     frequencies = np.linspace(1.0 / longest, 0.5, 400)
     periods = 1.0 / frequencies
@@ -346,7 +346,7 @@ def period_contradiction(stack: np.ndarray, u0: int, period: int, entry: str) ->
 
 
 def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
-    return float(np.sum(np.abs(_coefficients(a, u0, 1.0 / period)) ** 2))
+    return float(np.sum(np.abs(stripe_coefficients(a, u0, 1.0 / period)) ** 2))
 
 
 def _measured_period(a: np.ndarray, u0: int, period: int) -> float:
@@ -504,7 +504,7 @@ def detect_geometry(
     parts: dict[str, float] = {}
 
     if direction_deg is not None and entry is not None:
-        _check_direction(entry, direction_deg, "pattern")
+        check_direction(entry, direction_deg, "pattern")
     candidates = [entry] if entry is not None else list(WALLS)
     if direction_deg is not None:
         candidates = [e for e in candidates if _points_in(e, direction_deg)]
@@ -523,7 +523,7 @@ def detect_geometry(
             f"{list(roi)}; check pattern.period and the images"
         )
     pair = [e for e in candidates if _ACROSS[e] == across]
-    profile = np.mean(_signal(_across_first(crop, pair[0]), None), axis=0)
+    profile = np.mean(_signal(across_first(crop, pair[0]), None), axis=0)
     ends = {
         "left": profile[0],
         "top": profile[0],
@@ -541,11 +541,11 @@ def detect_geometry(
         near = [edges[e] for e in WALLS if e != _OPPOSITE[entry]]
         parts["roi"] = _clip01(1.0 - 0.25 * sum(e not in ("wall", "frame") for e in near))
     if direction_deg is not None:
-        _check_direction(entry, direction_deg, "pattern")
+        check_direction(entry, direction_deg, "pattern")
 
-    stack = _across_first(crop, entry)
+    stack = across_first(crop, entry)
     u0, along0 = (y0, x0) if across == "rows" else (x0, y0)
-    c = _coefficients(stack, u0, 1.0 / period)
+    c = stripe_coefficients(stack, u0, 1.0 / period)
     x = along0 + np.arange(stack.shape[-1]) + 0.5
     fixed = None
     if direction_deg is not None:
@@ -647,7 +647,7 @@ def _extend_faded(s: np.ndarray, roi, side: str, threshold: float):
 
 def _points_in(entry: str, direction_deg: float) -> bool:
     try:
-        _check_direction(entry, direction_deg, "pattern")
+        check_direction(entry, direction_deg, "pattern")
     except ValueError:
         return False
     return True

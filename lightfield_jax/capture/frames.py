@@ -18,12 +18,12 @@ from lightfield_jax.capture.io import (
     CaptureError,
     CaptureFileNotFoundError,
     ImageData,
-    _channel_index,
+    channel_index,
     image_shape,
     read_image,
     read_npy_stack,
 )
-from lightfield_jax.capture.keys import _AUX_FRAMES
+from lightfield_jax.capture.keys import AUX_FRAMES
 from lightfield_jax.inverse.data import floor_is_cut, floor_pileup
 from lightfield_jax.runtime.memory import capture_bytes, check_memory
 from lightfield_jax.schema import Section, brief
@@ -65,7 +65,7 @@ def _image_like(shape: tuple[int, ...]) -> bool:
     return len(shape) in (2, 3) and 0 not in shape
 
 
-def _read(top: Section, key: str, file: Path, channel) -> ImageData:
+def read_frame(top: Section, key: str, file: Path, channel) -> ImageData:
     try:
         image = read_image(file, channel)
     except CaptureFileNotFoundError as e:
@@ -96,7 +96,7 @@ def _check_float32_range(top: Section, key: str, image: ImageData) -> None:
         )
 
 
-def _file(top: Section, key: str, value: Any, base: Path) -> Path:
+def resolve_file(top: Section, key: str, value: Any, base: Path) -> Path:
     if not isinstance(value, str) or not value or "\0" in value:
         top.fail(key, f"must be a file path, got {brief(value)}")
     return base / value
@@ -114,7 +114,7 @@ def _file_identity(base: Path, value: str) -> Any:
     return path
 
 
-def _images_listed_twice(top: Section, base: Path) -> str | None:
+def images_listed_twice(top: Section, base: Path) -> str | None:
     """What to say of stripe images listed again under ``images`` (refused by the
     phases' checks where the phases are given and differ; with ``phases: auto``, a
     warning: one image counted as two shifts, its noise twice), or ``None``."""
@@ -144,7 +144,7 @@ def _images_listed_twice(top: Section, base: Path) -> str | None:
     )
 
 
-def _distinct_files(top: Section, base: Path) -> None:
+def check_distinct_files(top: Section, base: Path) -> None:
     """Refuse one file given in two roles (a stripe image and a calibration frame, or
     two calibration frames): a user's slip that would otherwise
     run a whole fit on a wrong capture (the paths as given, resolved; a missing file is
@@ -155,7 +155,7 @@ def _distinct_files(top: Section, base: Path) -> None:
         roles += [(f"images[{i}]", v) for i, v in enumerate(images)]
     else:  # a .npy stack (its file may also be a calibration frame's)
         roles.append(("images", images))
-    roles += [(key, top.get(key, None)) for key in _AUX_FRAMES]
+    roles += [(key, top.get(key, None)) for key in AUX_FRAMES]
     # Exposure brackets: each exposure's file (images[i][j], dark_frame[j]).
     roles = [
         item
@@ -169,7 +169,7 @@ def _distinct_files(top: Section, base: Path) -> None:
     seen: dict[Any, str] = {}
     for key, value in roles:
         if not isinstance(value, str) or not value or "\0" in value:
-            continue  # not a path: _file names its key
+            continue  # not a path: resolve_file names its key
         ident = _file_identity(base, value)
         # A stripe image listed twice is left to the phases' checks (and, within a
         # bracket, to its exposure ratios); a calibration frame repeated in its own
@@ -180,11 +180,11 @@ def _distinct_files(top: Section, base: Path) -> None:
         seen.setdefault(ident, key)
 
 
-def _frames(top: Section, base: Path, channel) -> list[ImageData]:
-    _distinct_files(top, base)
+def read_frames(top: Section, base: Path, channel) -> list[ImageData]:
+    check_distinct_files(top, base)
     value = top.get("images")
     if isinstance(value, str):
-        file = _file(top, "images", value, base)
+        file = resolve_file(top, "images", value, base)
         if file.suffix.lower() != ".npy":
             top.fail(
                 "images",
@@ -195,7 +195,7 @@ def _frames(top: Section, base: Path, channel) -> list[ImageData]:
         try:
             frames = read_npy_stack(file)
             if channel is not None:
-                index = _channel_index(frames[0].channel_names, channel, file)
+                index = channel_index(frames[0].channel_names, channel, file)
                 frames = [
                     dataclasses.replace(
                         f, pixels=f.pixels[..., [index]], channel_names=(f.channel_names[index],)
@@ -213,32 +213,32 @@ def _frames(top: Section, base: Path, channel) -> list[ImageData]:
         top.fail("images", f"must be a list of image files or one .npy stack, got {brief(value)}")
     if not value:
         top.fail("images", "the list is empty: give one image per phase")
-    files = [_file(top, f"images[{i}]", v, base) for i, v in enumerate(value)]
+    files = [resolve_file(top, f"images[{i}]", v, base) for i, v in enumerate(value)]
     _check_capture_memory(top, files)
-    frames = [_read(top, f"images[{i}]", file, channel) for i, file in enumerate(files)]
+    frames = [read_frame(top, f"images[{i}]", file, channel) for i, file in enumerate(files)]
     first = frames[0]
     for i, f in enumerate(frames[1:], start=1):
         if f.pixels.shape != first.pixels.shape:
             top.fail(
                 f"images[{i}]",
-                f"{f.path.name} is {_size(f)}, but images[0] ({first.path.name}) is "
-                f"{_size(first)}; every image must have the same size and channels",
+                f"{f.path.name} is {size_text(f)}, but images[0] ({first.path.name}) is "
+                f"{size_text(first)}; every image must have the same size and channels",
             )
     return frames
 
 
-def _size(image: ImageData) -> str:
+def size_text(image: ImageData) -> str:
     h, w, c = image.pixels.shape
     return f"{w}x{h} pixels with {c} channel(s)"
 
 
-def _aux_frame(top: Section, key: str, base: Path, channel, first: ImageData, value=None):
+def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData, value=None):
     """A calibration frame (dark, black, white, flat; ``value``: its file, default the
     key's): the images' size, and one channel or as many as they have."""
     value = top.get(key, None) if value is None else value
     if value is None:
         return None
-    frame = _read(top, key, _file(top, key, value, base), channel)
+    frame = read_frame(top, key, resolve_file(top, key, value, base), channel)
     h, w, c = first.pixels.shape
     fh, fw, fc = frame.pixels.shape
     names = frame.channel_names
@@ -260,7 +260,7 @@ def _aux_frame(top: Section, key: str, base: Path, channel, first: ImageData, va
     if (fh, fw) != (h, w) or fc not in (1, c):
         top.fail(
             key,
-            f"{value} is {_size(frame)}, but the images are {_size(first)} (a "
+            f"{value} is {size_text(frame)}, but the images are {size_text(first)} (a "
             f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
             "they have)",
         )
@@ -269,7 +269,7 @@ def _aux_frame(top: Section, key: str, base: Path, channel, first: ImageData, va
     return frame
 
 
-def _flat(
+def normalized_flat(
     top: Section,
     flat: ImageData | None,
     dark: np.ndarray | None,
@@ -295,7 +295,7 @@ def _flat(
             f"{'top code' if flat.is_integer else 'largest value'} (clipped: the vignetting "
             "there is not measured); those pixels are masked"
         )
-    f = _calibrate(values, dark, None)
+    f = calibrate(values, dark, None)
     f = np.where(clipped, np.nan, f)
     good = np.isfinite(f) & (f > 0)
     if good.mean() < 0.5:
@@ -350,7 +350,7 @@ def _flat(
 _FLAT_DIM = 1e-3
 
 
-def _calibrate(
+def calibrate(
     a: np.ndarray,
     dark: np.ndarray | None,
     flat: np.ndarray | None,
@@ -372,7 +372,7 @@ def _calibrate(
 OUTLIER = 1e4
 
 
-def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> np.ndarray:
+def corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> np.ndarray:
     """``raw`` (P, H, W, C) with values beyond :data:`OUTLIER` times the images' 99th
     percentile of |value| set to NaN (then masked as such); notes where."""
     finite = np.abs(raw[np.isfinite(raw)])
@@ -393,8 +393,8 @@ def _corrupt_to_nan(raw: np.ndarray, names: Sequence[str], notes: list[str]) -> 
     return np.where(wild, np.nan, raw).astype(raw.dtype)
 
 
-def _inf_to_nan(values: np.ndarray | None) -> np.ndarray | None:
-    """``values`` with every Inf a NaN. Both are masked alike (:func:`_nonfinite` counts
+def inf_to_nan(values: np.ndarray | None) -> np.ndarray | None:
+    """``values`` with every Inf a NaN. Both are masked alike (:func:`nonfinite_mask` counts
     them from the values as read); a NaN goes through the calibration's arithmetic and
     statistics quietly, where +Inf beside -Inf (or an Inf dark frame under an Inf image)
     made numpy warn "invalid value encountered" on the terminal."""
@@ -403,7 +403,7 @@ def _inf_to_nan(values: np.ndarray | None) -> np.ndarray | None:
     return np.where(np.isinf(values), np.nan, values).astype(values.dtype)
 
 
-def _nonfinite(
+def nonfinite_mask(
     raw: np.ndarray,
     frames: Sequence[tuple[ImageData, np.ndarray, np.ndarray]],
     names: Sequence[str],
@@ -413,7 +413,7 @@ def _nonfinite(
     each with its cropped pixels as used, unusable values NaN: the pixel in every
     image, and its cropped values as read), is NaN or Inf; notes the counts of the
     values that were NaN or Inf as read (a flat field's non-positive or clipped values
-    are masked too, and said by :func:`_flat`, not counted here as NaN or Inf)."""
+    are masked too, and said by :func:`normalized_flat`, not counted here as NaN or Inf)."""
     out = ~np.isfinite(raw)
     counts = {n: int(c) for n, c in zip(names, out.sum(axis=(1, 2, 3)), strict=True) if c}
     for image, pixels, values in frames:
@@ -471,7 +471,7 @@ def _one_value(image: np.ndarray) -> float | None:
     return float(values[0]) if values.size and np.all(values == values[0]) else None
 
 
-def _check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
+def check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
     """Refuse a stripe image (``(key, name, pixels)`` each: a single exposure or one
     exposure of a bracket) that holds no image: NaN and Inf only (checked first in every
     frame: an image of nothing else is no image), or one value ≤ 0 among frames that vary
@@ -490,7 +490,7 @@ def _check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) ->
             )
 
 
-def _check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
+def check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
     """Refuse a ``black_frame`` or ``white_frame`` that is no camera image of the
     projector's black or white: a black frame clipped at its top code or, a float file,
     at its largest value (its slope against the white gives a black level near 0, which
@@ -531,7 +531,7 @@ def _check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
             )
 
 
-def _saturated(
+def saturated_mask(
     raw: np.ndarray,
     frames: Sequence[ImageData],
     names: Sequence[str],
@@ -599,7 +599,7 @@ def _saturated(
     return hit
 
 
-def _floored(
+def floored_mask(
     raw: np.ndarray,
     usable: np.ndarray,
     frames: Sequence[ImageData],

@@ -79,7 +79,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.capture.io import CaptureError, _load_npy, _one_line, require_capture_file
+from lightfield_jax.capture.io import CaptureError, error_line, load_npy, require_capture_file
 from lightfield_jax.files import atomic_write_text
 
 RESPONSES = ("linear", "srgb", "auto")
@@ -224,7 +224,7 @@ def load_response(
     header: list[str] = []
     try:
         if path.suffix.lower() == ".npy":
-            table = _load_npy(path)  # its header checked against the memory first
+            table = load_npy(path)  # its header checked against the memory first
             if table.dtype.kind not in "iuf":
                 raise CaptureError(
                     f"{path}: a response table holds numbers, got an array of dtype {table.dtype}"
@@ -238,7 +238,7 @@ def load_response(
     except (OSError, ValueError) as e:
         if isinstance(e, CaptureError):
             raise
-        raise CaptureError(f"{path}: cannot read a response table ({_one_line(e)})") from None
+        raise CaptureError(f"{path}: cannot read a response table ({error_line(e)})") from None
     table = np.asarray(table, np.float64)
     wanted = list(names or ())
     if wanted and table.ndim == 2 and len(header) == table.shape[1] - 1 > 1:

@@ -95,7 +95,7 @@ class ImageData:
 
     def channel(self, name: str) -> np.ndarray:
         """The (height, width) plane of the channel called ``name``."""
-        return self.pixels[..., _channel_index(self.channel_names, name, self.path)]
+        return self.pixels[..., channel_index(self.channel_names, name, self.path)]
 
 
 # --------------------------------------------------------------------------- reading
@@ -140,7 +140,7 @@ def read_image(
     image = _read_npy(path, channel is None) if ext == ".npy" else _read_oiio(path)
     if channel is not None:
         wanted = [channel] if isinstance(channel, (str, int, np.integer)) else list(channel)
-        index = [_channel_index(image.channel_names, c, path) for c in wanted]
+        index = [channel_index(image.channel_names, c, path) for c in wanted]
         image = dataclasses.replace(
             image,
             pixels=np.ascontiguousarray(image.pixels[..., index]),
@@ -190,7 +190,7 @@ def image_shape(path: str | os.PathLike) -> tuple[int, ...]:
         inp.close()
 
 
-def _channel_index(names: Sequence[str], channel: str | int, path: Path) -> int:
+def channel_index(names: Sequence[str], channel: str | int, path: Path) -> int:
     if isinstance(channel, (int, np.integer)) and not isinstance(channel, bool):
         if not 0 <= channel < len(names):
             raise CaptureError(
@@ -220,7 +220,7 @@ def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
                 shape, _, dtype = np.lib.format.read_array_header_2_0(f)
             offset = f.tell()
     except (OSError, ValueError, EOFError) as e:
-        raise CaptureError(f"{path}: not a readable .npy array ({_one_line(e)})") from None
+        raise CaptureError(f"{path}: not a readable .npy array ({error_line(e)})") from None
     if dtype.hasobject:
         raise CaptureError(f"{path}: holds Python objects, not numbers")
     count = math.prod(shape)
@@ -234,7 +234,7 @@ def npy_header(path: Path) -> tuple[tuple[int, ...], np.dtype]:
     return shape, dtype
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def load_npy(path: Path) -> np.ndarray:
     shape, dtype = npy_header(path)
     check_memory(
         IMAGE_COPIES * math.prod(shape) * max(dtype.itemsize, 4),
@@ -243,13 +243,13 @@ def _load_npy(path: Path) -> np.ndarray:
     try:
         a = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as e:
-        raise CaptureError(f"{path}: not a readable .npy array ({_one_line(e)})") from None
+        raise CaptureError(f"{path}: not a readable .npy array ({error_line(e)})") from None
     if not a.dtype.isnative:  # big-endian data from another machine: native order
         a = a.astype(a.dtype.newbyteorder("="))
     return a
 
 
-def _one_line(error: BaseException) -> str:
+def error_line(error: BaseException) -> str:
     return " ".join(str(error).split())[:200]
 
 
@@ -299,7 +299,7 @@ def _integer_samples(path: Path, what: str, name: str) -> CaptureError:
 def _read_npy(path: Path, whole: bool = True) -> ImageData:
     """A ``.npy`` image; ``whole``: every channel is kept (none chosen), so that one
     with more than :data:`_MAX_CHANNELS` is taken for a stack saved as one image."""
-    a = _load_npy(path)
+    a = load_npy(path)
     shape = a.shape
     if a.ndim == 2:
         a = a[..., None]
@@ -331,7 +331,7 @@ def read_npy_stack(path: str | os.PathLike) -> list[ImageData]:
     require_capture_file(path, "a .npy stack")
     if path.suffix.lower() != ".npy":
         raise CaptureError(f"{path}: an image stack must be a .npy file")
-    a = _load_npy(path)
+    a = load_npy(path)
     if a.ndim == 3:
         a = a[..., None]
     if a.ndim != 4 or 0 in a.shape:

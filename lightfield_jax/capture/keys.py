@@ -68,13 +68,13 @@ FIT_KEYS: tuple[str, ...] = (
     *_FIT_BOOLS,
 )
 GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
-_AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
+AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
 _PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
 _TRUTH_FLOATS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 _TRUTH_KEYS = (*_TRUTH_FLOATS, "phase")
 
 
-def _channel(top: Section) -> str | int | None:
+def read_channel(top: Section) -> str | int | None:
     """The channel selection for read_image: a name, an index, or None for all."""
     value = top.get("channel", "all")
     if isinstance(value, bool) or not isinstance(value, (str, int)) or value == "":
@@ -84,7 +84,7 @@ def _channel(top: Section) -> str | int | None:
     return None if value == "all" else value
 
 
-def _pattern_spec(top: Section, n_images: int, height: int, width: int) -> dict[str, Any]:
+def read_pattern_spec(top: Section, n_images: int, height: int, width: int) -> dict[str, Any]:
     """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
     ``"auto"`` (measured from the images)."""
     s = top.section("pattern", _PATTERN_KEYS)
@@ -134,11 +134,11 @@ def _pattern_spec(top: Section, n_images: int, height: int, width: int) -> dict[
     )
     spec["entry"] = s.choice("entry", (*WALLS, AUTO), "left")
     # Validate what is given now, before any detection.
-    _stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
+    read_stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
     return spec
 
 
-def _stripes(top: Section, spec: dict[str, Any], detected: Geometry | None, check=False):
+def read_stripes(top: Section, spec: dict[str, Any], detected: Geometry | None, check=False):
     """The Stripes of a pattern spec, ``auto`` values taken from ``detected``."""
 
     def pick(key, measured):
@@ -170,14 +170,14 @@ def _any_wall(direction_deg: float) -> str:
     return "top" if s > 0 else "bottom"
 
 
-def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
+def crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
     """The pattern with wall cells counted from the ROI's edge instead of the frame's."""
     offset = y0 if pattern.along_x else x0
     phases = tuple((p + offset) % pattern.period for p in pattern.phases)
     return dataclasses.replace(pattern, phases=phases)
 
 
-def _black_level(top: Section) -> float | str | None:
+def read_black_level(top: Section) -> float | str | None:
     if top.get("black_level", None) == AUTO:
         return AUTO
     value = top.float("black_level", None)
@@ -186,7 +186,7 @@ def _black_level(top: Section) -> float | str | None:
     return value
 
 
-def _dark_level(
+def read_dark_level(
     top: Section, integer_bits: int | None, response: str, channels: tuple[str, ...] = ()
 ) -> float | np.ndarray | None:
     """``dark_level``: the camera's constant black offset (a pedestal), in the images'
@@ -257,7 +257,7 @@ def dark_level_text(level: float | np.ndarray) -> str:
     return "[" + ", ".join(f"{float(v):.6g}" for v in level) + "]"
 
 
-def _roi(top: Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
+def read_roi(top: Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
     value = top.get("medium_roi", None)
     if value is None or value == AUTO:
         return value
@@ -304,7 +304,7 @@ def check_pixel_size(value, key: str = "pixel_size_mm") -> None:
         raise ValueError(f"{key}: {problem}")
 
 
-def _positive(top: Section, key: str) -> float | None:
+def read_positive(top: Section, key: str) -> float | None:
     value = top.float(key, None)
     if value is not None and value <= 0:
         top.fail(key, f"must be > 0, got {brief(value)}")
@@ -332,7 +332,7 @@ def check_integer_saturation(top: Section, value: float | None, frame) -> None:
         )
 
 
-def _geometry(top: Section) -> dict[str, Any]:
+def read_geometry(top: Section) -> dict[str, Any]:
     """The model geometry: ``{kind: plane}`` (default) or a slab (docs/model.md §7)."""
     if "geometry" not in top.data:
         return {"kind": "plane"}
@@ -342,7 +342,7 @@ def _geometry(top: Section) -> dict[str, Any]:
         raise top.error(f"{top.source}: {err}") from None
 
 
-def _fit_options(top: Section, key: str = "fit") -> dict[str, Any]:
+def read_fit_options(top: Section, key: str = "fit") -> dict[str, Any]:
     """The ``fit:`` mapping (at ``key``): FitOptions fields (:data:`FIT_KEYS`), each
     checked for its type, then together by FitOptions itself (ranges), before any image
     is read."""
@@ -386,7 +386,7 @@ def fit_phase(capture) -> str:
     return (getattr(capture, "fit_options", None) or {}).get("phase", FILE_PHASE)
 
 
-def _truth(top: Section, n_channels: int = 1) -> dict[str, Any] | None:
+def read_truth(top: Section, n_channels: int = 1) -> dict[str, Any] | None:
     """The ``truth`` section: each number, or a list of one per channel (an RGB
     capture's media differ by channel), checked in its range."""
     if "truth" not in top.data:
@@ -418,7 +418,7 @@ def _truth(top: Section, n_channels: int = 1) -> dict[str, Any] | None:
 
 def _by_key(top: Section, n_channels: int) -> dict[str, Any]:
     """``truth`` given as a list of one mapping per channel, as the mapping of lists
-    :func:`_truth` reads (``truth: [{sigma_t: .2, g: .8}, ...]`` for R, G, B)."""
+    :func:`read_truth` reads (``truth: [{sigma_t: .2, g: .8}, ...]`` for R, G, B)."""
     given = top.data["truth"]
     key = top.key("truth")
     if len(given) != n_channels:

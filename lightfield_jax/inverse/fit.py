@@ -68,7 +68,8 @@ from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.runtime.memory import check_memory, fit_memory
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import _INWARD_DEG, Stripes
+from lightfield_jax.scene.illumination import INWARD_DEG as _INWARD_DEG
+from lightfield_jax.scene.illumination import Stripes
 
 
 def fit_images(
