@@ -1,8 +1,9 @@
 """Scene geometry: the plane (the paper's 2-D model) or a slab (the tank's depth in 3-D).
 
-A geometry knows its renderer (:meth:`Plane.renderer`, :meth:`Slab.renderer`), its
-per-bounce energy ratio bound ρ (:meth:`Plane.rho_bound`), the discretisation a medium
-needs (:meth:`Plane.resolve_model`) and the size of its light field
+A geometry is data; the forward layer builds its renderer
+(:func:`lightfield_jax.forward.render.geometry_renderer`). It knows its per-bounce
+energy ratio bound ρ (:meth:`Plane.rho_bound`), the discretisation a medium needs
+(:meth:`Plane.resolve_model`) and the size of its light field
 (:meth:`Plane.fields_per_bin`); the rest of the package asks it, never its type.
 "Plane" is written ``None``, ``Plane()`` or ``{kind: plane}`` by users:
 :func:`as_geometry` (Python values) and :func:`parse_geometry` (config and capture
@@ -22,8 +23,6 @@ from typing import Literal
 import numpy as np
 
 from lightfield_jax.checks import check_number, number_problem
-from lightfield_jax.forward.plane import PlaneRenderer
-from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.grid import Grid
 
 Boundary = Literal["absorbing", "refractive"]
@@ -93,30 +92,6 @@ class Plane:
         """Light-field values per pixel and azimuth bin of the model for a medium of
         (g, σt, ω): 1 on the plane."""
         return 1
-
-    def renderer(
-        self,
-        grid: Grid,
-        illumination,
-        bounces: int,
-        phase: str,
-        *,
-        tail: str | None = None,
-        tail_tol: float = 1e-4,
-        tail_max_steps: int = 500,
-        coarse_after: int | None = None,
-    ) -> PlaneRenderer:
-        """The compiled forward model of this geometry (``grid`` resolved)."""
-        return PlaneRenderer(
-            grid,
-            illumination,
-            bounces,
-            phase,
-            tail=tail,
-            tail_tol=tail_tol,
-            tail_max_steps=tail_max_steps,
-            coarse_after=coarse_after,
-        )
 
 
 DEPTH_PROFILES = ("constant", "linear")
@@ -283,31 +258,6 @@ class Slab:
         slab = self.resolve(g, sigma_t, albedo)
         return slab.n_mu * slab.n_z * slab.depth_coefficients
 
-    def renderer(
-        self,
-        grid: Grid,
-        illumination,
-        bounces: int,
-        phase: str,
-        *,
-        tail: str | None = None,
-        tail_tol: float = 1e-4,
-        tail_max_steps: int = 500,
-        coarse_after: int | None = None,
-    ) -> SlabRenderer:
-        """The compiled slab model (``grid``, ``n_mu`` and ``n_z`` resolved)."""
-        return SlabRenderer(
-            grid,
-            illumination,
-            bounces,
-            self,
-            phase,
-            tail=tail,
-            tail_tol=tail_tol,
-            tail_max_steps=tail_max_steps,
-            coarse_after=coarse_after,
-        )
-
 
 @dataclasses.dataclass(frozen=True)
 class AutoGeometry:
@@ -343,9 +293,6 @@ class AutoGeometry:
     @property
     def chosen_by_fit(self) -> bool:
         return True
-
-    def renderer(self, *args, **kwargs):
-        raise ValueError(f"geometry: must be None, a Plane or a Slab to render, got {self!r}")
 
     def resolve_model(self, medium, grid: Grid):
         raise ValueError(f"geometry: must be a Plane or a Slab, got {self!r}")
