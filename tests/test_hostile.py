@@ -2375,8 +2375,8 @@ def _sparse(path: Path, size: int) -> Path:
 def test_results_files_and_response_tables_are_bounded_in_size_before_the_read(
     capture, capsys, tmp_path
 ):
-    from lightfield_jax.capture.hdr import load_response
     from lightfield_jax.capture.io import CaptureError
+    from lightfield_jax.capture.response import load_response
 
     results = _sparse(tmp_path / "big.json", 20 << 20)
     line = _refused(capsys, "render", results, "--out", tmp_path / "r", match="20971520 bytes")

@@ -188,7 +188,7 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
         if out is not None:
             atomic_write_json(write(out), inspection.to_dict())
         if response is not None:
-            from lightfield_jax.capture.hdr import write_response
+            from lightfield_jax.capture.response import write_response
 
             write_response(write(response), capture.brackets.response, capture.channel_names)
     say(args, inspection.summary())

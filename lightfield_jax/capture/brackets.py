@@ -16,6 +16,16 @@ from lightfield_jax.capture.calibration import (
     drop_constant_alpha,
     sensor_top_code,
 )
+from lightfield_jax.capture.exposure_checks import (
+    EXPOSURE_MISMATCH_FACTOR,
+    EXPOSURE_MISMATCH_SHARE,
+    EXPOSURE_RATIO_TOLERANCE,
+    bracket_offset,
+    mismatch_problem_of,
+    pair_statistics,
+    ratio_problem_of,
+    ratio_within,
+)
 from lightfield_jax.capture.frames import (
     check_distinct_files,
     check_not_blank,
@@ -24,21 +34,7 @@ from lightfield_jax.capture.frames import (
     resolve_file,
     size_text,
 )
-from lightfield_jax.capture.hdr import (
-    CLIP,
-    EXPOSURE_MISMATCH_FACTOR,
-    EXPOSURE_MISMATCH_SHARE,
-    EXPOSURE_RATIO_TOLERANCE,
-    RESPONSES,
-    bracket_offset,
-    linear_response,
-    merge_bracket,
-    merge_capture,
-    mismatch_problem_of,
-    pair_statistics,
-    ratio_problem_of,
-    ratio_within,
-)
+from lightfield_jax.capture.hdr import merge_bracket, merge_capture
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import (
     AUX_FRAMES,
@@ -47,6 +43,7 @@ from lightfield_jax.capture.keys import (
     read_dark_level,
     read_positive,
 )
+from lightfield_jax.capture.response import CLIP, RESPONSES, linear_response
 from lightfield_jax.schema import Section
 
 
@@ -342,10 +339,10 @@ def read_response(
     times=None,
 ):
     """The inverse response of the ``response`` key: ``linear`` (default), ``srgb``, a
-    table file (:func:`~lightfield_jax.capture.hdr.load_response`) or, for exposure
+    table file (:func:`~lightfield_jax.capture.response.load_response`) or, for exposure
     brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto`` (refused
     without brackets by :func:`read_brackets`)."""
-    from lightfield_jax.capture.hdr import calibrate_response, load_response, srgb_response
+    from lightfield_jax.capture.response import calibrate_response, load_response, srgb_response
 
     value = top.get("response", "linear")  # a string: checked by read_brackets
     try:

@@ -47,7 +47,7 @@ Keys:
   joint fit (``Capture.exposure``); ``Capture.brackets`` says what the merge did.
 - ``response`` with one exposure per shift: ``linear`` (default; a raw converter's
   output), ``srgb`` (the sRGB curve of most 8-bit camera and phone files) or a table
-  file (:func:`~lightfield_jax.capture.hdr.load_response`, as ``lightfield-jax inspect
+  file (:func:`~lightfield_jax.capture.response.load_response`, as ``lightfield-jax inspect
   --response`` writes it from brackets; columns named in its header are taken by name,
   also for one ``channel:`` chosen from them): the integer codes of the images and
   calibration frames are mapped to linear values before the dark frame and the flat
@@ -188,7 +188,7 @@ from lightfield_jax.capture.frames import (
     read_frames,
     saturated_mask,
 )
-from lightfield_jax.capture.hdr import RESPONSES, Brackets, Response
+from lightfield_jax.capture.hdr import Brackets
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.keys import (
     AUTO,
@@ -211,6 +211,7 @@ from lightfield_jax.capture.keys import (
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
+from lightfield_jax.capture.response import RESPONSES, Response
 from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.scene.illumination import Stripes
