@@ -55,15 +55,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    Pixels,
-    Range,
-    Seed,
-    pyplot,
-    save_figure,
-    typed_config,
-    write_csv,
-)
+from lightfield_jax.app.experiment_config import Pixels, Range, Seed, typed_config
+from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
 from lightfield_jax.internal import monte_carlo_render, renderer_for
 from lightfield_jax.runtime.timing import stopwatch
 

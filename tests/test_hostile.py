@@ -2387,7 +2387,8 @@ def test_results_files_and_response_tables_are_bounded_in_size_before_the_read(
 
 
 def test_an_experiment_sweeping_too_many_cells_is_refused_unless_allowed(capsys, tmp_path):
-    from lightfield_jax.app.experiment import count_cells, load_experiment_config
+    from lightfield_jax.app.experiment import load_experiment_config
+    from lightfield_jax.app.experiment_config import count_cells
 
     config = yaml.safe_load((ROOT / "configs" / "coverage.yaml").read_text())
     config.pop("reduced")

@@ -179,7 +179,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
     """``fit`` of several captures (see the module docstring); exit status 1 when a fit
     failed or did not converge (the others' results written)."""
     from lightfield_jax.app.distributed import Task, check_count, default_workers, run_tasks
-    from lightfield_jax.app.experiment import provenance, write_csv
+    from lightfield_jax.app.experiment_records import provenance, write_csv
     from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions

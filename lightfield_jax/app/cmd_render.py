@@ -120,12 +120,11 @@ def _experiment(args: argparse.Namespace) -> None:
     status 1 when the experiment itself fails, 2 for a bad config). A rerun into the
     same DIR resumes from the work already stored in DIR/cache."""
     from lightfield_jax.app.experiment import (
-        MAX_CELLS,
         ExperimentError,
-        check_cells,
         load_experiment_config,
         run_experiment,
     )
+    from lightfield_jax.app.experiment_config import MAX_CELLS, check_cells
     from lightfield_jax.app.messages import PROG, one_line
 
     config = Path(args.config)  # a config inside DIR named like an output is kept
