@@ -1225,7 +1225,7 @@ def test_fit_images_refuses_a_period_the_images_contradict():
             lfj.fit_images(images, wrong, black_level=0.0)
         assert re.search(r"every (5\.9\d|6\.0\d) px", _one_line(err)), err.value
     # A half period (its harmonic is weak) or a period within 10 % is not refused here.
-    from lightfield_jax.capture.detect import other_period
+    from lightfield_jax.capture.stripe_phase import other_period
 
     assert other_period(images, 0, 6) is None and other_period(images, 0, 6.5) is None
 

@@ -8,17 +8,15 @@ import math
 import numpy as np
 
 from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
-from lightfield_jax.capture.detect import (
-    LOW_CONFIDENCE,
+from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry, detect_geometry
+from lightfield_jax.capture.io import CaptureError, ImageData
+from lightfield_jax.capture.keys import AUTO, dark_level_text
+from lightfield_jax.capture.stripe_phase import (
     STRIPED,
-    Geometry,
     across_first,
-    detect_geometry,
     period_contradiction,
     stripe_coefficients,
 )
-from lightfield_jax.capture.io import CaptureError, ImageData
-from lightfield_jax.capture.keys import AUTO, dark_level_text
 from lightfield_jax.scene.illumination import Stripes
 from lightfield_jax.schema import Section
 
