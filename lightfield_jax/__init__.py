@@ -9,15 +9,15 @@ from lightfield_jax.capture.calibration import BlackLevel as BlackLevel
 from lightfield_jax.capture.calibration import estimate_black_level as estimate_black_level
 from lightfield_jax.capture.capture import Capture as Capture
 from lightfield_jax.capture.capture import CaptureWarning as CaptureWarning
-from lightfield_jax.capture.capture import load_capture as load_capture
-from lightfield_jax.capture.capture import write_capture_yaml as write_capture_yaml
 from lightfield_jax.capture.detect import Geometry as Geometry
 from lightfield_jax.capture.detect import detect_geometry as detect_geometry
 from lightfield_jax.capture.inspect import Inspection as Inspection
 from lightfield_jax.capture.inspect import inspect_capture as inspect_capture
 from lightfield_jax.capture.io import CaptureError as CaptureError
+from lightfield_jax.capture.loading import load_capture as load_capture
 from lightfield_jax.capture.pattern import stripe_patterns as stripe_patterns
 from lightfield_jax.capture.pattern import write_patterns as write_patterns
+from lightfield_jax.capture.write import write_capture_yaml as write_capture_yaml
 from lightfield_jax.forward.cell import CellRenderer as CellRenderer
 from lightfield_jax.forward.render import DivergentSeriesWarning as DivergentSeriesWarning
 from lightfield_jax.forward.render import Renderer as Renderer

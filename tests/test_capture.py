@@ -9,14 +9,11 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax import Stripes
-from lightfield_jax.capture.capture import (
-    Capture,
-    CaptureWarning,
-    load_capture,
-    write_capture_yaml,
-)
+from lightfield_jax.capture.capture import Capture, CaptureWarning
 from lightfield_jax.capture.image_write import write_exr, write_png
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError, read_image
+from lightfield_jax.capture.loading import load_capture
+from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.files import atomic_directory
 from lightfield_jax.forward.simulate import simulate_capture, write_simulation
 from lightfield_jax.forward.simulate_config import parse_simulation_config

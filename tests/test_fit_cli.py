@@ -15,9 +15,9 @@ import yaml
 import lightfield_jax as lfj
 from lightfield_jax.app.arguments import XLA_CACHE_ENV, xla_cache_folder
 from lightfield_jax.app.cli import main
-from lightfield_jax.capture.capture import write_capture_yaml
 from lightfield_jax.capture.image_write import write_exr, write_png
 from lightfield_jax.capture.io import read_image
+from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.inverse.fit import clear_compiled
 
 H, W, P = 24, 32, 6

@@ -14,7 +14,6 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import main
-from lightfield_jax.capture.capture import load_capture
 from lightfield_jax.capture.exposure_checks import (
     EXPOSURE_MISMATCH_SHARE,
     exposure_mismatch_problem,
@@ -25,6 +24,7 @@ from lightfield_jax.capture.exposure_checks import (
 from lightfield_jax.capture.hdr import merge_bracket
 from lightfield_jax.capture.image_write import write_png
 from lightfield_jax.capture.io import CaptureError
+from lightfield_jax.capture.loading import load_capture
 from lightfield_jax.capture.response import (
     calibrate_response,
     linear_response,

@@ -847,7 +847,7 @@ def test_phases_that_contradict_the_images_are_refused(capture, capsys):
     status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
     assert status == 0, err
     # Phases left to their default (0..P-1) that the images contradict: a note.
-    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.loading import load_capture
 
     _edit(
         capture,
@@ -900,7 +900,7 @@ def test_images_without_light_are_refused(capture, capsys):
 
 
 def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, capsys):
-    from lightfield_jax.capture.capture import write_capture_yaml
+    from lightfield_jax.capture.write import write_capture_yaml
     from lightfield_jax.scene.illumination import Stripes
 
     names = [f"s{i}.exr" for i in range(P)]

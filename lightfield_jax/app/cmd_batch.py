@@ -107,8 +107,9 @@ def batch_fit(
 
     from lightfield_jax.app.cmd_fit import fit_record, fit_summary, truth_lines
     from lightfield_jax.app.messages import about_capture
-    from lightfield_jax.capture.capture import CaptureWarning, load_capture
+    from lightfield_jax.capture.capture import CaptureWarning
     from lightfield_jax.capture.keys import fit_phase
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.forward.render import DivergentSeriesWarning
     from lightfield_jax.inverse.capture_fit import fit_capture
 
@@ -180,7 +181,8 @@ def fit_batch(args: argparse.Namespace) -> int | None:
     failed or did not converge (the others' results written)."""
     from lightfield_jax.app.distributed import Task, check_count, default_workers, run_tasks
     from lightfield_jax.app.experiment_records import provenance, write_csv
-    from lightfield_jax.capture.capture import capture_files, load_capture
+    from lightfield_jax.capture.keys import capture_files
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions
     from lightfield_jax.runtime.memory import check_memory, fit_memory

@@ -288,8 +288,8 @@ def _fit(args: argparse.Namespace) -> int | None:
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
     from lightfield_jax.app.outputs import staged_files
-    from lightfield_jax.capture.capture import capture_files, load_capture
-    from lightfield_jax.capture.keys import fit_phase
+    from lightfield_jax.capture.keys import capture_files, fit_phase
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions
@@ -453,7 +453,7 @@ def _demo(args: argparse.Namespace) -> int | None:
     DIR/demo_fit.png (the joint fit's profiles and residuals)."""
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.outputs import CAPTURE_MARKER
-    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.checks import repeated
     from lightfield_jax.files import atomic_directory, atomic_write_json, naming_output
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation

@@ -290,7 +290,38 @@ def calibrate_response(
     return Response("auto", codes, curve)
 
 
+def frame_linearizer(top, response, frames, names, top_code: float = 1.0):
+    """Integer codes to linear values by a single exposure's ``response`` (after dividing
+    by ``top_code``, the sensor's top code of 10-14-bit data in 16-bit files); ``None``
+    for a linear one. Float images hold linear values: a curve is refused for them."""
+    if response is None or response.kind == "linear":
+        return None
+    floating = [i for i, f in enumerate(frames) if not f.is_integer]
+    if floating:
+        i = floating[0]
+        top.fail(
+            "response",
+            f"{top.get('response')} maps a camera's integer codes (8- or 16-bit files), "
+            f"but images[{i}] ({names[i]}) holds float values, which are linear: give "
+            "response: linear",
+        )
+    n_channels = frames[0].pixels.shape[-1]
+    dtype = np.float32
+
+    def linear(a: np.ndarray) -> np.ndarray:
+        a = np.broadcast_to(a, (*a.shape[:-1], n_channels))
+        if a.ndim < 4:
+            return response.linearize(a / top_code).astype(dtype, copy=False)
+        out = np.empty(a.shape, dtype)
+        for i, image in enumerate(a):  # one image at a time: float64 temporaries stay small
+            out[i] = response.linearize(image / top_code)
+        return out
+
+    return linear
+
+
 __all__ = [
+    "frame_linearizer",
     "AUTO_CLIP",
     "CLIP",
     "MAX_QUANTISATION",

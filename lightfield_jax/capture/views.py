@@ -254,7 +254,7 @@ def render_inputs(data: dict[str, Any], source: Path) -> list[Path]:
     """The capture file that the results ``data`` (read from ``source``) name and every
     file it lists (the inputs render's outputs must not replace); none for results or a
     capture that :func:`render_results` cannot use (it says why)."""
-    from lightfield_jax.capture.capture import capture_files
+    from lightfield_jax.capture.keys import capture_files
 
     try:
         return capture_files(_capture_path(data, source))
@@ -277,7 +277,7 @@ def render_results(
     there are several): the files written and notes.
     ``warn`` is told at once of a channel whose fit did not converge (rendered all
     the same; its ``render.json`` says so)."""
-    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.files import atomic_write_json
 
     channels = _channel_results(data, source)

@@ -293,8 +293,8 @@ def write_simulation(
     - ``metadata.json``: :meth:`SimulatedCapture.metadata`, the file list and
       ``extra_metadata``.
     """
-    from lightfield_jax.capture.capture import write_capture_yaml
     from lightfield_jax.capture.image_write import write_exr
+    from lightfield_jax.capture.write import write_capture_yaml
     from lightfield_jax.files import atomic_write_json, atomic_write_npy
 
     folder = Path(folder)

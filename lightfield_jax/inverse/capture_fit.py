@@ -128,7 +128,7 @@ def fit_capture(
             f"got {shown(channels)}"
         )
     if isinstance(capture, (str, os.PathLike)):
-        from lightfield_jax.capture.capture import load_capture
+        from lightfield_jax.capture.loading import load_capture
 
         capture = load_capture(capture)
     elif not hasattr(capture, "channel_names"):
