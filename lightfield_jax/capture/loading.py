@@ -177,18 +177,11 @@ from lightfield_jax.capture.capture import (
 )
 from lightfield_jax.capture.detect import LOW_CONFIDENCE
 from lightfield_jax.capture.frames import (
-    calibrate,
     check_not_blank,
     check_projector_frames,
-    corrupt_to_nan,
-    floored_mask,
     images_listed_twice,
-    inf_to_nan,
-    nonfinite_mask,
-    normalized_flat,
     read_aux_frame,
     read_frames,
-    saturated_mask,
 )
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.keys import (
@@ -212,6 +205,15 @@ from lightfield_jax.capture.keys import (
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
+from lightfield_jax.capture.pixels import (
+    calibrate,
+    corrupt_to_nan,
+    floored_mask,
+    inf_to_nan,
+    nonfinite_mask,
+    normalized_flat,
+    saturated_mask,
+)
 from lightfield_jax.capture.response import frame_linearizer
 from lightfield_jax.inverse.trust import MIN_ALONG
 from lightfield_jax.schema import Section, load_yaml
