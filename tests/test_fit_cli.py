@@ -664,12 +664,12 @@ def test_a_channel_name_with_a_separator_cannot_name_a_figure():
     channel); one channel at a time plots to FIG.png alone."""
     from pathlib import Path
 
-    from lightfield_jax.app.cmd_fit import _figure_names
+    from lightfield_jax.app.fit_report import figure_names
 
     with pytest.raises(ValueError, match=r"^--plot: the images' channel 'a/b' cannot name"):
-        _figure_names(Path("out/fit.png"), ["R", "a/b"])
-    assert _figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
-    assert _figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")
+        figure_names(Path("out/fit.png"), ["R", "a/b"])
+    assert figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
+    assert figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")
 
 
 @pytest.mark.slow  # about 30 s: run by make test-slow

@@ -1220,8 +1220,8 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
     """The estimate covers the correction's and error term's renders (larger than the
     solve's fields): a limit between the two refuses the fit before it starts."""
     import lightfield_jax as lfj
-    from lightfield_jax.app.cmd_fit import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
     from lightfield_jax.runtime import memory
+    from lightfield_jax.runtime.memory import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
 
     loaded = lfj.load_capture(capture / "capture.yaml")
     h, w = loaded.shape

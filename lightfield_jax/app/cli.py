@@ -39,7 +39,7 @@ Conventions every command keeps:
 This module holds the parser and :func:`main`; the helpers the commands share are in
 :mod:`~lightfield_jax.app.messages` (what they print) and
 :mod:`~lightfield_jax.app.arguments` (argument types, the XLA cache); the
-commands live in ``cmd_simulate`` (simulate, bench), ``cmd_fit`` (fit, demo),
+commands live in ``cmd_simulate`` (simulate, bench), ``cmd_fit`` (fit), ``cmd_demo`` (demo),
 ``cmd_capture`` (pattern, inspect) and ``cmd_render`` (render, experiment), imported at
 the end of this module.
 """
@@ -277,7 +277,7 @@ DEMO_CONFIG = {
 if __name__ != "__main__":
     import importlib
 
-    for _module in ("cmd_simulate", "cmd_fit", "cmd_capture", "cmd_render"):
+    for _module in ("cmd_simulate", "cmd_fit", "cmd_demo", "cmd_capture", "cmd_render"):
         importlib.import_module(f"lightfield_jax.app.{_module}")
 
 

@@ -105,7 +105,7 @@ def batch_fit(
     the summary lines, the notes and the package's warnings of the fit)."""
     import warnings
 
-    from lightfield_jax.app.cmd_fit import fit_record, fit_summary, truth_lines
+    from lightfield_jax.app.fit_report import fit_record, fit_summary, truth_lines
     from lightfield_jax.app.messages import about_capture
     from lightfield_jax.capture.capture import CaptureWarning
     from lightfield_jax.capture.keys import fit_phase
