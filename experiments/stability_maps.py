@@ -68,7 +68,7 @@ from lightfield_jax.app.experiment_config import (
 )
 from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
 from lightfield_jax.inverse.methods import METHODS
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 
 inv = load_helper("_inverse")
 batch = load_helper("_batch")

@@ -7,7 +7,8 @@ import lightfield_jax as lfj
 from lightfield_jax.forward.base import AbstractRenderer
 from lightfield_jax.forward.render import geometry_renderer
 from lightfield_jax.forward.simulate_config import MediumConfig
-from lightfield_jax.scene.geometry import as_geometry, parse_geometry
+from lightfield_jax.scene.geometry import as_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 
 GRID = lfj.Grid(12, 8, 8, refine=1)
 BEAM = lfj.Beam(0.0, 4.0)

@@ -24,7 +24,8 @@ from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.forward.slab import SlabRenderer, elevation_nodes, hg
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab, slab_single_scatter_sheet
 from lightfield_jax.scene import phase
-from lightfield_jax.scene.geometry import Slab, parse_geometry, resolve_slab_grid
+from lightfield_jax.scene.geometry import Slab, resolve_slab_grid
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.schema import ConfigError
 
 W, H = 48, 32

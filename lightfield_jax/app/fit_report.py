@@ -22,7 +22,7 @@ def fit_summary(fit) -> str:
 def channel_summary(name: str, r) -> str:
     """One channel's result line."""
     from lightfield_jax.inverse.trust import CONSISTENCY_P
-    from lightfield_jax.scene.geometry import describe_geometry
+    from lightfield_jax.scene.geometry_spec import describe_geometry
 
     u = r.uncertainty
     split = [k for k, v in r.consistency.items() if v["p"] < CONSISTENCY_P]

@@ -16,7 +16,7 @@ import numpy as np
 from lightfield_jax.capture.detect import Geometry
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.response import RESPONSES
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
 from lightfield_jax.scene.medium import FILE_PHASE, PHASE_CONVENTIONS
 from lightfield_jax.schema import REQUIRED, Section, as_float, as_int, at_most, brief, load_yaml

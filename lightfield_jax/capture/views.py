@@ -25,7 +25,7 @@ import numpy as np
 
 from lightfield_jax.checks import gain_problem, one_path_part, shown
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
-from lightfield_jax.scene.geometry import parse_fitted_geometry
+from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 from lightfield_jax.scene.medium import Medium

@@ -53,7 +53,8 @@ import numpy as np
 
 from lightfield_jax.checks import check_int, check_number, gain_problem
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, rho_bound
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
     WALLS,

@@ -66,7 +66,8 @@ from lightfield_jax.inverse.programs import forget_if_crowded, repairing_compila
 from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.runtime.memory import check_memory, fit_memory
-from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
+from lightfield_jax.scene.geometry import AutoGeometry, as_geometry
+from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import INWARD_DEG as _INWARD_DEG
 from lightfield_jax.scene.illumination import Stripes

@@ -13,7 +13,7 @@ from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.fit import fitted_images
 from lightfield_jax.inverse.options import FitResult
 from lightfield_jax.inverse.separate import separate
-from lightfield_jax.scene.geometry import describe_geometry
+from lightfield_jax.scene.geometry_spec import describe_geometry
 from lightfield_jax.scene.illumination import Stripes
 
 from ._common import check_common, finish, new_figure
