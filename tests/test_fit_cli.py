@@ -468,11 +468,11 @@ def _quick_demo(monkeypatch, sigma_t: float, draw) -> None:
     milk's sigma_s and g) and its figure drawn by ``draw``."""
     import types
 
-    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.app.cmd_demo as cmd_demo
     import lightfield_jax.inverse.capture_fit as capture_fit
     import lightfield_jax.viz as viz
 
-    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
+    monkeypatch.setattr(cmd_demo, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
     values = {**MILK, "sigma_t": sigma_t}
     fit = types.SimpleNamespace(
         **values, converged=True, seconds={"total": 0.0}, to_dict=lambda: dict(values)
@@ -549,9 +549,9 @@ def test_a_demo_stopped_in_its_fit_leaves_no_capture_and_the_old_run_whole(
     # A rerun with another capture (its noise's seed) that fails in its fit.
     config = yaml.safe_load(SIMULATE)
     config["noise"] = {**config.get("noise", {"photons": 1e5}), "seed": 99}
-    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.app.cmd_demo as cmd_demo
 
-    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", config)
+    monkeypatch.setattr(cmd_demo, "DEMO_CONFIG", config)
     monkeypatch.setattr(capture_fit, "fit_capture", broken)
     status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
     assert status != 0, err

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 from lightfield_jax.app.messages import warn
+from lightfield_jax.runtime.memory import parse_size
 
 
 def arg(*flags: str, **options: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
@@ -18,7 +20,6 @@ def arg(*flags: str, **options: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
 
 
 def memory_size(text: str) -> int:
-    from lightfield_jax.runtime.memory import parse_size
 
     try:
         return parse_size(text)
@@ -91,7 +92,6 @@ def xla_cache_folder(environ=None) -> Path | None:
     """Where ``fit`` and ``demo`` keep compiled XLA programs: ``$LIGHTFIELD_JAX_XLA_CACHE``,
     else ``$XDG_CACHE_HOME/lightfield_jax/xla`` (``~/.cache/lightfield_jax/xla``);
     ``None`` when that variable is ``off``, ``0`` or empty."""
-    import os
 
     env = os.environ if environ is None else environ
     value = env.get(XLA_CACHE_ENV)

@@ -57,6 +57,7 @@ from typing import Any, NoReturn
 
 from lightfield_jax.app.arguments import memory_size
 from lightfield_jax.app.messages import PROG, PROGRESS_ENV, one_line
+from lightfield_jax.runtime.memory import memory_limit
 from lightfield_jax.runtime.progress import MODES
 
 USER_ERRORS: tuple[type[BaseException], ...] = (
@@ -149,7 +150,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as e:  # --help, --version, syntax errors
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
     from lightfield_jax.app.signals import stop_on_signals
-    from lightfield_jax.runtime.memory import memory_limit
 
     args.warnings = []
     try:

@@ -25,6 +25,7 @@ from lightfield_jax.app.messages import (
     warn,
 )
 from lightfield_jax.app.outputs import check_command_outputs
+from lightfield_jax.checks import repeated
 
 # The fit's memory estimate (fit_memory) and its constants, named here as before.
 from lightfield_jax.runtime.memory import FIT_N_THETA as FIT_N_THETA
@@ -48,7 +49,6 @@ def _demo(args: argparse.Namespace) -> int | None:
     from lightfield_jax.app.cmd_simulate import SIMULATE_FILES
     from lightfield_jax.app.outputs import CAPTURE_MARKER
     from lightfield_jax.capture.loading import load_capture
-    from lightfield_jax.checks import repeated
     from lightfield_jax.files import atomic_directory, atomic_write_json, naming_output
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
     from lightfield_jax.forward.simulate_config import parse_simulation_config

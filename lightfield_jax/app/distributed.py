@@ -31,10 +31,13 @@ import math
 import os
 import sys
 import threading
+import time
 import types
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
+
+import numpy as np
 
 SCHEDULER_ENV = "LIGHTFIELD_JAX_SCHEDULER"
 MAX_TASKS = 10_000
@@ -139,7 +142,6 @@ def _precision_x64() -> bool:
     """Whether JAX computes in float64 here (the global flag or an ``enable_x64``
     block)."""
     import jax
-    import numpy as np
 
     return jax.dtypes.canonicalize_dtype(np.float64) == np.float64
 
@@ -255,7 +257,6 @@ def run_tasks(
     (stored like a result: a timeout is data to an experiment), or, without
     ``on_timeout``, a failure. A task whose worker died twice, or which raised, is a
     failure (``Report.failures``, one line each), not stored."""
-    import time
 
     check_count(len(tasks), allow_large, what)
     keys = [t.key for t in tasks]

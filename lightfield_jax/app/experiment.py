@@ -60,6 +60,7 @@ from lightfield_jax.app.experiment_records import (
     versions,
 )
 from lightfield_jax.files import atomic_directory, atomic_write_json
+from lightfield_jax.runtime.memory import check_memory, render_bytes
 from lightfield_jax.schema import load_yaml
 
 _HERE = Path(__file__).resolve().parent.parent  # the package folder
@@ -351,7 +352,6 @@ def check_experiment_config(module, config: dict) -> Any:
     and the memory its smallest render of ``width`` × ``height`` needs (checked against
     the machine's, see :mod:`lightfield_jax.runtime.memory`): a bad config is refused in a
     second, before any work."""
-    from lightfield_jax.runtime.memory import check_memory, render_bytes
 
     typed = typed_config(module.Config, config)
     w, h = getattr(typed, "width", None), getattr(typed, "height", None)

@@ -13,6 +13,8 @@ import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+from lightfield_jax.schema import Section
+
 
 def check_choices(name: str, key: str, values, known) -> None:
     """Refuse a value of the list ``values`` (config key ``key``) outside ``known``."""
@@ -191,7 +193,6 @@ def fit_keywords(where: str, key: str, value) -> dict:
     checked as a capture file's ``fit:`` section is (the FitOptions fields, their types,
     then FitOptions' own checks): one-line errors naming ``where`` and ``key.FIELD``."""
     from lightfield_jax.capture.keys import read_fit_options
-    from lightfield_jax.schema import Section
 
     return read_fit_options(Section(where, "", {key: value}, None), key)
 

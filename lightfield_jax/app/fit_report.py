@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
+
+from lightfield_jax.checks import one_path_part
 
 # The fit's memory estimate (fit_memory) and its constants, named here as before.
 from lightfield_jax.runtime.memory import FIT_N_THETA as FIT_N_THETA
@@ -46,7 +49,6 @@ def channel_summary(name: str, r) -> str:
 def say_above_progress(args: argparse.Namespace, lines: list[str]) -> None:
     """``lines`` on stdout now (flushed: a log file shows them while the fit goes on),
     clearing a progress bar on the terminal first."""
-    import sys
 
     if args.quiet or not lines:
         return
@@ -116,7 +118,6 @@ def figure_names(plot: Path, channels: Sequence[str]) -> list[Path]:
     """FIG.png for one channel; FIG.png and FIG_<channel>.png each for several."""
     if len(channels) == 1:
         return [plot]
-    from lightfield_jax.checks import one_path_part
 
     for name in channels:  # else pathlib's "Invalid name 'fit_a/b.png'", naming nothing
         if not one_path_part(name):

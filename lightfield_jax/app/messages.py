@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import sys
 import unicodedata
 from collections.abc import Iterator
@@ -61,7 +62,6 @@ def warn(args: argparse.Namespace, text: str) -> None:
 def command_progress(args: argparse.Namespace, desc: str, total: int | None = None):
     """The stage display of a command: ``--progress MODE``, else ``$LIGHTFIELD_JAX_PROGRESS``,
     else ``auto``; off with ``--quiet`` unless ``--progress`` is given."""
-    import os
 
     given = getattr(args, "progress", None)
     mode = given or os.environ.get(PROGRESS_ENV) or "auto"
@@ -89,7 +89,6 @@ def say(args: argparse.Namespace, text: str, always: bool = False) -> None:
 def _drop_stdout() -> None:
     """Send what is left in stdout's buffer to /dev/null: the interpreter's flush at
     exit would fail again ("Exception ignored ... BrokenPipeError")."""
-    import os
 
     try:
         fd = sys.stdout.fileno()

@@ -35,11 +35,12 @@ from __future__ import annotations
 import contextlib
 import fnmatch
 import os
+import shutil
 import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from lightfield_jax.capture.io import oiio_name
+from lightfield_jax.capture.io import IMAGE_EXTENSIONS, oiio_name
 from lightfield_jax.files import (
     forget_temporary,
     fsync_path,
@@ -81,7 +82,6 @@ def plot_formats() -> tuple[str, ...]:
 
 def _tex_system() -> str | None:
     """The TeX program matplotlib's pgf backend runs, where it is missing."""
-    import shutil
 
     import matplotlib
 
@@ -114,7 +114,6 @@ def check_json_name(given: str, option: str, hint: str = "") -> None:
     """Refuse a JSON output (``option``, e.g. ``--out``) named like an image, an array
     or a figure (``results.png``: the figure was meant, or the file would be misread as
     an image); ``hint`` is added to the message (where the figure goes)."""
-    from lightfield_jax.capture.io import IMAGE_EXTENSIONS
 
     suffix = Path(given).suffix.lower()
     if suffix in IMAGE_EXTENSIONS or suffix.lstrip(".") in plot_formats():

@@ -43,7 +43,14 @@ from lightfield_jax.capture.keys import (
     read_dark_level,
     read_positive,
 )
-from lightfield_jax.capture.response import CLIP, RESPONSES, linear_response
+from lightfield_jax.capture.response import (
+    CLIP,
+    RESPONSES,
+    calibrate_response,
+    linear_response,
+    load_response,
+    srgb_response,
+)
 from lightfield_jax.schema import Section
 
 
@@ -342,7 +349,6 @@ def read_response(
     table file (:func:`~lightfield_jax.capture.response.load_response`) or, for exposure
     brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto`` (refused
     without brackets by :func:`read_brackets`)."""
-    from lightfield_jax.capture.response import calibrate_response, load_response, srgb_response
 
     value = top.get("response", "linear")  # a string: checked by read_brackets
     try:
