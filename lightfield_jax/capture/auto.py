@@ -185,7 +185,7 @@ LIT_OFF = 0.6
 
 def _check_period(top, pattern: Stripes, stack, u0: int) -> None:
     """Refuse a ``pattern.period`` the images' stripes do not have, where they show
-    clear stripes of another period (:func:`~lightfield_jax.capture.detect.other_period`)."""
+    clear stripes of another period (:func:`~lightfield_jax.capture.stripe_phase.other_period`)."""
     if (problem := period_contradiction(stack, u0, pattern.period, pattern.entry)) is not None:
         top.fail("pattern.period", problem)
 
