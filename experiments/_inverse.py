@@ -34,8 +34,8 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.config import NoiseConfig, parse_simulation_config
 from lightfield_jax.app.experiment import ExperimentError
+from lightfield_jax.forward.simulate_config import NoiseConfig, parse_simulation_config
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -318,7 +318,7 @@ def _limited_fit(images, pattern: dict, truth, kwargs: dict, dtype: str, xla_cac
     pattern = lfj.Stripes(**{**pattern, "phases": tuple(pattern["phases"])})
     kwargs = dict(kwargs)
     if kwargs.get("geometry") is not None:
-        from lightfield_jax.scene.geometry import parse_geometry
+        from lightfield_jax.scene.geometry_spec import parse_geometry
 
         kwargs["geometry"] = parse_geometry(kwargs["geometry"], "geometry")
     with precision(dtype), xla_cache(xla_cache_dir):

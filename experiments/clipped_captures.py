@@ -36,15 +36,9 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    Pixels,
-    Positive,
-    Range,
-    Seed,
-    load_helper,
-    provenance,
-    typed_config,
-)
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import Pixels, Positive, Range, Seed, typed_config
+from lightfield_jax.app.experiment_records import provenance
 
 inv = load_helper("_inverse")
 

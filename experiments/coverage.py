@@ -29,18 +29,9 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    Count,
-    Pixels,
-    Positive,
-    Range,
-    Seed,
-    load_helper,
-    provenance,
-    pyplot,
-    save_figure,
-    typed_config,
-)
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import Count, Pixels, Positive, Range, Seed, typed_config
+from lightfield_jax.app.experiment_records import provenance, pyplot, save_figure
 
 inv = load_helper("_inverse")
 

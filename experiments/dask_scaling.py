@@ -25,19 +25,17 @@ import time
 from pathlib import Path
 from typing import Annotated
 
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Count,
     Dtype,
     Pixels,
     Positive,
     Range,
     Seed,
-    load_helper,
-    provenance,
-    pyplot,
-    save_figure,
     typed_config,
 )
+from lightfield_jax.app.experiment_records import provenance, pyplot, save_figure
 
 inv = load_helper("_inverse")
 

@@ -41,20 +41,10 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    ExperimentError,
-    Pixels,
-    Range,
-    child_env,
-    child_failed,
-    fit_keywords,
-    load_helper,
-    provenance,
-    pyplot,
-    save_figure,
-    typed_config,
-)
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.app.experiment import ExperimentError, child_env, child_failed, load_helper
+from lightfield_jax.app.experiment_config import Pixels, Range, fit_keywords, typed_config
+from lightfield_jax.app.experiment_records import provenance, pyplot, save_figure
+from lightfield_jax.scene.geometry_spec import parse_geometry
 
 
 @dataclasses.dataclass(frozen=True)

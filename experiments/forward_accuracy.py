@@ -55,17 +55,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    Pixels,
-    Range,
-    Seed,
-    pyplot,
-    save_figure,
-    typed_config,
-    write_csv,
-)
-from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.app.experiment_config import Pixels, Range, Seed, typed_config
+from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
 from lightfield_jax.internal import monte_carlo_render, renderer_for
+from lightfield_jax.runtime.timing import stopwatch
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}

@@ -64,20 +64,18 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import internal as lfi
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Count,
     Dtype,
     Pixels,
     Positive,
     Range,
     check_choices,
-    load_helper,
-    pyplot,
-    save_figure,
     typed_config,
-    write_csv,
 )
-from lightfield_jax.app.timing import stopwatch
+from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
+from lightfield_jax.runtime.timing import stopwatch
 
 inv = load_helper("_inverse")
 

@@ -33,7 +33,8 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Dtype,
     Pixels,
     Positive,
@@ -41,11 +42,9 @@ from lightfield_jax.app.experiment import (
     Seed,
     check_choices,
     fit_keywords,
-    load_helper,
-    pyplot,
-    save_figure,
     typed_config,
 )
+from lightfield_jax.app.experiment_records import pyplot, save_figure
 
 inv = load_helper("_inverse")
 

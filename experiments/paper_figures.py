@@ -30,7 +30,7 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import viz
-from lightfield_jax.app.experiment import Count, Pixels, Positive, Range, typed_config
+from lightfield_jax.app.experiment_config import Count, Pixels, Positive, Range, typed_config
 
 
 @dataclasses.dataclass(frozen=True)

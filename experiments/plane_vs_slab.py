@@ -26,17 +26,16 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Dtype,
     Pixels,
     Positive,
     Range,
     check_choices,
-    load_helper,
-    pyplot,
-    save_figure,
     typed_config,
 )
+from lightfield_jax.app.experiment_records import pyplot, save_figure
 from lightfield_jax.scene.geometry import BOUNDARIES
 
 inv = load_helper("_inverse")

@@ -28,18 +28,17 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax import internal as lfi
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Dtype,
     Pixels,
     Positive,
     Range,
     Seed,
     check_choices,
-    load_helper,
-    pyplot,
-    save_figure,
     typed_config,
 )
+from lightfield_jax.app.experiment_records import pyplot, save_figure
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.geometry import BOUNDARIES, resolve_slab_grid
 

@@ -27,14 +27,14 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Count,
     Dtype,
     Pixels,
     Positive,
     Range,
     Seed,
-    load_helper,
     typed_config,
 )
 

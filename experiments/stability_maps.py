@@ -57,20 +57,18 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
+from lightfield_jax.app.experiment import load_helper
+from lightfield_jax.app.experiment_config import (
     Dtype,
     Pixels,
     Positive,
     Range,
     check_choices,
-    load_helper,
-    pyplot,
-    save_figure,
     typed_config,
-    write_csv,
 )
+from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
 from lightfield_jax.inverse.methods import METHODS
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 
 inv = load_helper("_inverse")
 batch = load_helper("_batch")

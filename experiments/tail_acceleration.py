@@ -43,17 +43,10 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    Pixels,
-    Positive,
-    Range,
-    provenance,
-    pyplot,
-    save_figure,
-    typed_config,
-)
-from lightfield_jax.app.timing import repeated_calls
+from lightfield_jax.app.experiment_config import Pixels, Positive, Range, typed_config
+from lightfield_jax.app.experiment_records import provenance, pyplot, save_figure
 from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.runtime.timing import repeated_calls
 from lightfield_jax.scene.medium import bounces_for_tolerance
 
 _METHODS = ("series_auto", "series_needed", "gmres", "bicgstab")

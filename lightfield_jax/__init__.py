@@ -5,22 +5,19 @@ Media" (CVPR 2010) in JAX. Pipeline: medium & grid → illumination → render
 (bounce propagator) → separate → fit → report.
 """
 
-from lightfield_jax.app.config import ConfigError as ConfigError
-from lightfield_jax.app.config import SimulationConfig as SimulationConfig
-from lightfield_jax.app.config import load_simulation_config as load_simulation_config
 from lightfield_jax.capture.calibration import BlackLevel as BlackLevel
 from lightfield_jax.capture.calibration import estimate_black_level as estimate_black_level
 from lightfield_jax.capture.capture import Capture as Capture
 from lightfield_jax.capture.capture import CaptureWarning as CaptureWarning
-from lightfield_jax.capture.capture import load_capture as load_capture
-from lightfield_jax.capture.capture import write_capture_yaml as write_capture_yaml
 from lightfield_jax.capture.detect import Geometry as Geometry
 from lightfield_jax.capture.detect import detect_geometry as detect_geometry
 from lightfield_jax.capture.inspect import Inspection as Inspection
 from lightfield_jax.capture.inspect import inspect_capture as inspect_capture
 from lightfield_jax.capture.io import CaptureError as CaptureError
+from lightfield_jax.capture.loading import load_capture as load_capture
 from lightfield_jax.capture.pattern import stripe_patterns as stripe_patterns
 from lightfield_jax.capture.pattern import write_patterns as write_patterns
+from lightfield_jax.capture.write import write_capture_yaml as write_capture_yaml
 from lightfield_jax.forward.cell import CellRenderer as CellRenderer
 from lightfield_jax.forward.render import DivergentSeriesWarning as DivergentSeriesWarning
 from lightfield_jax.forward.render import Renderer as Renderer
@@ -30,6 +27,8 @@ from lightfield_jax.forward.render import render as render
 from lightfield_jax.forward.render import single_scatter_closed_form as single_scatter_closed_form
 from lightfield_jax.forward.simulate import SimulatedCapture as SimulatedCapture
 from lightfield_jax.forward.simulate import simulate_capture as simulate_capture
+from lightfield_jax.forward.simulate_config import SimulationConfig as SimulationConfig
+from lightfield_jax.forward.simulate_config import load_simulation_config as load_simulation_config
 from lightfield_jax.forward.slab import SlabRenderer as SlabRenderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning as TailNotConvergedWarning
 from lightfield_jax.forward.tail import TailSolution as TailSolution
@@ -62,5 +61,6 @@ from lightfield_jax.scene.medium import Medium as Medium
 from lightfield_jax.scene.medium import bounces_for_tolerance as bounces_for_tolerance
 from lightfield_jax.scene.phase import phase_function as phase_function
 from lightfield_jax.scene.phase import phase_integral as phase_integral
+from lightfield_jax.schema import ConfigError as ConfigError
 
 __version__ = "0.1.0"

@@ -173,7 +173,8 @@ def test_a_gain_that_underflows_the_images_is_refused():
         "illumination": {"kind": "stripes", "period": 6, "lit": 3},
         "bounces": 2,
     }
-    from lightfield_jax.app.config import ConfigError, MediumConfig, parse_simulation_config
+    from lightfield_jax.forward.simulate_config import MediumConfig, parse_simulation_config
+    from lightfield_jax.schema import ConfigError
 
     with pytest.raises(ConfigError, match=r"gain: must be a number in \[1e-30, 1e\+30\]"):
         parse_simulation_config({**config, "gain": 1e-40})
@@ -403,7 +404,7 @@ def test_render_refuses_sizes_from_a_typo_before_the_work(monkeypatch):
     string illumination failed deep inside."""
     import time
 
-    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
     monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
     medium = lfj.Medium(0.2, 0.1, 0.3)
@@ -504,7 +505,7 @@ def test_stripes_longer_than_the_grid_are_refused_by_the_api():
     """Before: only a simulate config refused them; render drew all-zero images for the
     shifts whose stripe missed the 16x12 grid, and a SimulationConfig made in code
     simulated them."""
-    from lightfield_jax.app.config import SimulationConfig, parse_simulation_config
+    from lightfield_jax.forward.simulate_config import SimulationConfig, parse_simulation_config
 
     medium, grid = lfj.Medium(0.2, 0.03, 0.4), lfj.Grid(16, 12, 8, 1)
     stripes = lfj.Stripes(period=40, lit=3, phases=(0, 10, 20, 30))
@@ -659,7 +660,7 @@ def test_make_renderer_checks_its_arguments_before_the_tables(monkeypatch):
     """Before: make_renderer(Grid(30000, 30000, 8, 1), ...) tried to allocate 429 GiB (a
     MemoryError from numpy), a string illumination or a tuple grid failed in an
     AttributeError, and stripes longer than the grid were rendered (all-zero shifts)."""
-    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
     monkeypatch.setenv(MAX_MEMORY_ENV, "4G")
     grid = lfj.Grid(16, 12, 8, 1)
@@ -777,7 +778,7 @@ def test_a_grid_of_very_many_directions_is_refused_by_its_memory(monkeypatch):
     """Before: Grid(2, 2, 80000) passed the memory check (its fields are small) and the
     renderer's n_theta x n_theta direction table ended in a MemoryError (47.7 GiB)
     after 11 s; FitOptions(n_theta=80000) in a fit, after 47 s."""
-    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
     monkeypatch.setenv(MAX_MEMORY_ENV, "256M")
     grid = lfj.Grid(2, 2, 4096, 1)  # the most bins a grid takes: 400 MB of tables
@@ -945,7 +946,7 @@ def test_inspect_capture_takes_a_path_and_names_other_things(tmp_path):
     images = np.asarray(
         lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
     )
-    from lightfield_jax.capture.io import write_exr
+    from lightfield_jax.capture.image_write import write_exr
 
     names = []
     for i, image in enumerate(images):
@@ -1008,8 +1009,8 @@ def test_fit_decay_names_an_image_beyond_float32():
 def test_fitted_images_checks_its_arguments_before_rendering(monkeypatch):
     """Before: a result's to_dict() or pattern=None raised an AttributeError, shape
     'ab' or (-1, 3) numpy's errors, (10**6, 10**6) a MemoryError for 306 TiB."""
-    from lightfield_jax.app.memory import MAX_MEMORY_ENV
     from lightfield_jax.inverse.options import FitResult
+    from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
     model = {"width": 32, "height": 24, "n_theta": 8, "refine": 1, "bounces": 2,
              "crop": [0, 0, 32, 24]}  # fmt: skip
@@ -1152,7 +1153,7 @@ def test_a_capture_fit_pairs_one_result_with_each_channel():
 def test_a_fit_too_large_for_memory_is_refused_by_the_python_api(monkeypatch):
     """Before: only the command line estimated a fit's memory: fit_images with n_theta
     4096 and refine 8 on six 128x96 images (8.4 TiB) ran for minutes toward it."""
-    from lightfield_jax.app.memory import MAX_MEMORY_ENV
+    from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
     monkeypatch.setenv(MAX_MEMORY_ENV, "2G")
     images = np.random.default_rng(0).random((6, 96, 128))
@@ -1224,7 +1225,7 @@ def test_fit_images_refuses_a_period_the_images_contradict():
             lfj.fit_images(images, wrong, black_level=0.0)
         assert re.search(r"every (5\.9\d|6\.0\d) px", _one_line(err)), err.value
     # A half period (its harmonic is weak) or a period within 10 % is not refused here.
-    from lightfield_jax.capture.detect import other_period
+    from lightfield_jax.capture.stripe_phase import other_period
 
     assert other_period(images, 0, 6) is None and other_period(images, 0, 6.5) is None
 

@@ -145,7 +145,7 @@ def test_a_later_basin_worse_than_the_answer_found_is_not_refined():
     misfit. Both its cheap misfit and the misfit one Gauss-Newton step predicts on that
     model exceed the first answer's, so it is recorded and not refined; the answer is
     the first basin's."""
-    from lightfield_jax.app.config import NoiseConfig
+    from lightfield_jax.forward.simulate_config import NoiseConfig
 
     clean = _milk_capture()
     images = NoiseConfig(read=0.003, seed=2).apply(clean, np.random.default_rng(2))
@@ -340,7 +340,7 @@ def test_consistency_adds_a_model_term_only_where_the_parts_disagree():
 def _noisy_32x24(medium: dict) -> np.ndarray:
     """A 32x24 six-shift stripe capture of ``medium`` (paper phase) as simulate makes
     it: gain 400, black level 0.01, 2·10⁴ photons and read noise 5·10⁻⁴, seed 0."""
-    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     config = {
         "grid": {"width": 32, "height": 24},

@@ -9,22 +9,14 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax import Stripes
-from lightfield_jax.app.config import parse_simulation_config
-from lightfield_jax.capture.capture import (
-    Capture,
-    CaptureWarning,
-    load_capture,
-    write_capture_yaml,
-)
-from lightfield_jax.capture.io import (
-    CaptureError,
-    CaptureFileNotFoundError,
-    atomic_directory,
-    read_image,
-    write_exr,
-    write_png,
-)
+from lightfield_jax.capture.capture import Capture, CaptureWarning
+from lightfield_jax.capture.image_write import write_exr, write_png
+from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError, read_image
+from lightfield_jax.capture.loading import load_capture
+from lightfield_jax.capture.write import write_capture_yaml
+from lightfield_jax.files import atomic_directory
 from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.inverse import capture_fit
 
 H, W, P = 8, 12, 3
@@ -571,7 +563,7 @@ def test_truth_as_a_list_of_one_medium_per_channel(tmp_path):
 def _srgb_capture(folder, response=None, flat=None):
     """Three 16-bit PNGs written through the sRGB curve (with a dark frame and, where
     given, a flat field's vignetting) and their capture file; returns the linear light."""
-    from lightfield_jax.capture.hdr import srgb_response
+    from lightfield_jax.capture.response import srgb_response
 
     encode = srgb_response().encode
     rng = np.random.default_rng(3)
@@ -620,7 +612,7 @@ def test_a_float_flat_field_is_linear_under_a_response(tmp_path):
 
 
 def test_a_response_table_linearises_single_exposures(tmp_path):
-    from lightfield_jax.capture.hdr import srgb_response, write_response
+    from lightfield_jax.capture.response import srgb_response, write_response
 
     light, text = _srgb_capture(tmp_path, "curve.csv")
     write_response(tmp_path / "curve.csv", srgb_response(), ["Y"])
@@ -656,7 +648,7 @@ def test_fit_of_an_srgb_encoded_8bit_capture(tmp_path):
     """A noisy capture of the paper's milk written as 8-bit sRGB PNGs (a phone's files):
     with `response: srgb` the fit recovers the medium; read as linear the same files are
     reported not trustworthy, never a converged wrong answer."""
-    from lightfield_jax.capture.hdr import srgb_response
+    from lightfield_jax.capture.response import srgb_response
 
     truth = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}
     config = {
@@ -741,7 +733,7 @@ def test_black_level_auto_against_a_uniform_white_frame_is_refused(tmp_path):
 def test_a_table_of_every_channel_serves_one_chosen_channel(tmp_path):
     """`inspect --response` on RGB brackets writes one column per channel, named in its
     header; a capture that chooses one channel (`channel: G`) takes that column."""
-    from lightfield_jax.capture.hdr import Response, srgb_response, write_response
+    from lightfield_jax.capture.response import Response, srgb_response, write_response
 
     srgb = srgb_response()
     codes = np.linspace(0, 1, 257)
@@ -766,7 +758,7 @@ def test_a_table_of_every_channel_serves_one_chosen_channel(tmp_path):
 def test_a_response_counts_12_bit_codes_to_their_top_code(tmp_path):
     """12-bit data in 16-bit files: the response maps codes counted to 4095, as the
     brackets' merge and the tables it writes count them."""
-    from lightfield_jax.capture.hdr import srgb_response
+    from lightfield_jax.capture.response import srgb_response
 
     rng = np.random.default_rng(2)
     codes = rng.integers(50, 4000, (P, H, W)).astype(np.uint16)
@@ -786,7 +778,7 @@ def test_a_response_counts_12_bit_codes_to_their_top_code(tmp_path):
 def test_a_response_table_header_orders_its_columns(tmp_path):
     """Columns named in a table's header are taken by name, whatever their order; a
     header naming other channels is refused."""
-    from lightfield_jax.capture.hdr import Response, srgb_response, write_response
+    from lightfield_jax.capture.response import Response, srgb_response, write_response
 
     codes = np.linspace(0, 1, 257)
     curves = srgb_response().linearize(codes[:, None]) * np.array([0.5, 2.0, 1.0])

@@ -17,8 +17,8 @@ import pytest
 import lightfield_jax.forward.simulate as simulate_module
 from lightfield_jax import phase_function
 from lightfield_jax.app.cli import main
-from lightfield_jax.app.progress import progress
 from lightfield_jax.capture.io import read_image
+from lightfield_jax.runtime.progress import progress
 
 GRID = "grid: {width: 24, height: 16, n_theta: 16, refine: 1}\n"
 MEDIUM = "medium: {sigma_t: 0.2, sigma_s: 0.1, g: 0.3, phase: paper}\n"

@@ -8,14 +8,13 @@ import numpy as np
 import pytest
 
 from lightfield_jax import Beam, Full, Grid, Medium, Stripes
-from lightfield_jax.app.config import (
-    ConfigError,
+from lightfield_jax.forward.simulate_config import (
     MediumConfig,
     SimulationConfig,
     load_simulation_config,
-    load_yaml,
     parse_simulation_config,
 )
+from lightfield_jax.schema import ConfigError, load_yaml
 
 PAPER_YAML = """\
 grid: {width: 128, height: 96, n_theta: 64}

@@ -14,7 +14,8 @@ import pytest
 
 from lightfield_jax.app import distributed as dist
 from lightfield_jax.app import experiment as _experiment
-from lightfield_jax.app.cli import XLA_CACHE_ENV, main
+from lightfield_jax.app.arguments import XLA_CACHE_ENV
+from lightfield_jax.app.cli import main
 
 SIMULATE = """\
 grid: {{width: 32, height: 24, n_theta: 16, refine: 1}}

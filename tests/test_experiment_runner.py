@@ -12,6 +12,8 @@ import pytest
 import yaml
 
 from lightfield_jax.app import experiment as _experiment
+from lightfield_jax.app.experiment_config import typed_config
+from lightfield_jax.app.experiment_records import write_csv
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -68,17 +70,17 @@ def _plane_vs_slab_config():
 def test_a_typed_config_names_the_bad_key(change, message):
     raw = _experiment.load_experiment_config(ROOT / "configs" / "plane_vs_slab.yaml")
     with pytest.raises(ValueError, match=message):
-        _experiment.typed_config(_plane_vs_slab_config(), {**raw, **change})
+        typed_config(_plane_vs_slab_config(), {**raw, **change})
     missing = {k: v for k, v in raw.items() if k != "sigma_t"}
     with pytest.raises(ValueError, match="plane_vs_slab: missing config key 'sigma_t'"):
-        _experiment.typed_config(_plane_vs_slab_config(), missing)
+        typed_config(_plane_vs_slab_config(), missing)
 
 
 def test_a_typed_config_is_frozen_with_tuples():
     import dataclasses
 
     raw = _experiment.load_experiment_config(ROOT / "configs" / "plane_vs_slab.yaml")
-    config = _experiment.typed_config(_plane_vs_slab_config(), raw)
+    config = typed_config(_plane_vs_slab_config(), raw)
     assert config.albedo == tuple(raw["albedo"]) and config.width == raw["width"]
     with pytest.raises(dataclasses.FrozenInstanceError):
         config.width = 1
@@ -92,7 +94,7 @@ def test_an_experiment_refuses_an_unknown_config_key(name, tmp_path):
     ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=False)
     for reduced in (False, True):  # the shipped config, full and reduced, is valid
         raw = _experiment.load_experiment_config(ROOT / "configs" / f"{name}.yaml", reduced)
-        config = _experiment.typed_config(script.Config, raw)
+        config = typed_config(script.Config, raw)
         assert config.width == raw["width"]
     with pytest.raises(ValueError, match=rf"^{name}: unknown config keys \['widht'\]$"):
         script.run({**raw, "widht": 32}, tmp_path, ctx)  # refused before any work
@@ -142,7 +144,7 @@ def test_an_unreadable_cache_entry_is_computed_again(tmp_path):
 def test_write_csv_is_one_table(tmp_path):
     import csv
 
-    path = _experiment.write_csv(tmp_path / "t.csv", ["x", "y"], ([i, i * i] for i in range(3)))
+    path = write_csv(tmp_path / "t.csv", ["x", "y"], ([i, i * i] for i in range(3)))
     with open(path, newline="") as f:
         assert list(csv.reader(f)) == [["x", "y"], ["0", "0"], ["1", "1"], ["2", "4"]]
 
@@ -454,7 +456,7 @@ def test_a_reduced_run_checks_the_values_its_overrides_replace(tmp_path, no_work
 
 
 def test_a_grid_past_the_memory_is_refused_before_any_work(tmp_path, no_work):
-    from lightfield_jax.app.memory import MemoryLimitError, memory_limit
+    from lightfield_jax.runtime.memory import MemoryLimitError, memory_limit
 
     path = _write(tmp_path, {**_shipped("paper_figures"), "width": 2048, "height": 2048})
     with memory_limit(1 << 30), pytest.raises(MemoryLimitError, match="2048x2048 pixels needs"):

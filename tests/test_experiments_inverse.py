@@ -13,12 +13,8 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.app.experiment import (
-    load_experiment_config,
-    load_helper,
-    run_experiment,
-    typed_config,
-)
+from lightfield_jax.app.experiment import load_experiment_config, load_helper, run_experiment
+from lightfield_jax.app.experiment_config import typed_config
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

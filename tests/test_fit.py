@@ -949,7 +949,7 @@ def test_a_noisy_capture_in_large_units_gives_the_same_answer():
     """The capture the scaling was found on: the paper's milk, 48x36, noisy (2e4
     photons, read noise 5e-4, seed 5; float32, the defect correction to 64 θ bins),
     fitted as it is and in units 10^6x larger."""
-    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     config = {
         "grid": {"width": 48, "height": 36},
@@ -1051,7 +1051,7 @@ def test_a_cut_series_names_a_setting_that_sums_the_orders_left_out():
     the default already, and max_bounces does not move a count that was given or sized
     from the scan (measured: the same K and verdict at max_bounces 160). The setting
     the reason names, applied, must clear it."""
-    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     config = {
         "grid": {"width": 24, "height": 16},

@@ -13,9 +13,11 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax.app.cli import XLA_CACHE_ENV, main, xla_cache_folder
-from lightfield_jax.capture.capture import write_capture_yaml
-from lightfield_jax.capture.io import read_image, write_exr, write_png
+from lightfield_jax.app.arguments import XLA_CACHE_ENV, xla_cache_folder
+from lightfield_jax.app.cli import main
+from lightfield_jax.capture.image_write import write_exr, write_png
+from lightfield_jax.capture.io import read_image
+from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.inverse.fit import clear_compiled
 
 H, W, P = 24, 32, 6
@@ -466,11 +468,11 @@ def _quick_demo(monkeypatch, sigma_t: float, draw) -> None:
     milk's sigma_s and g) and its figure drawn by ``draw``."""
     import types
 
-    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.app.cmd_demo as cmd_demo
     import lightfield_jax.inverse.capture_fit as capture_fit
     import lightfield_jax.viz as viz
 
-    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
+    monkeypatch.setattr(cmd_demo, "DEMO_CONFIG", yaml.safe_load(SIMULATE))
     values = {**MILK, "sigma_t": sigma_t}
     fit = types.SimpleNamespace(
         **values, converged=True, seconds={"total": 0.0}, to_dict=lambda: dict(values)
@@ -547,9 +549,9 @@ def test_a_demo_stopped_in_its_fit_leaves_no_capture_and_the_old_run_whole(
     # A rerun with another capture (its noise's seed) that fails in its fit.
     config = yaml.safe_load(SIMULATE)
     config["noise"] = {**config.get("noise", {"photons": 1e5}), "seed": 99}
-    import lightfield_jax.app.cmd_fit as cmd_fit
+    import lightfield_jax.app.cmd_demo as cmd_demo
 
-    monkeypatch.setattr(cmd_fit, "DEMO_CONFIG", config)
+    monkeypatch.setattr(cmd_demo, "DEMO_CONFIG", config)
     monkeypatch.setattr(capture_fit, "fit_capture", broken)
     status, _, err = _run(capsys, "demo", "--out", out, "--methods", "joint")
     assert status != 0, err
@@ -662,12 +664,12 @@ def test_a_channel_name_with_a_separator_cannot_name_a_figure():
     channel); one channel at a time plots to FIG.png alone."""
     from pathlib import Path
 
-    from lightfield_jax.app.cmd_fit import _figure_names
+    from lightfield_jax.app.fit_report import figure_names
 
     with pytest.raises(ValueError, match=r"^--plot: the images' channel 'a/b' cannot name"):
-        _figure_names(Path("out/fit.png"), ["R", "a/b"])
-    assert _figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
-    assert _figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")
+        figure_names(Path("out/fit.png"), ["R", "a/b"])
+    assert figure_names(Path("out/fit.png"), ["a/b"]) == [Path("out/fit.png")]
+    assert figure_names(Path("out/fit.png"), ["R", "G"])[1] == Path("out/fit_R.png")
 
 
 @pytest.mark.slow  # about 30 s: run by make test-slow

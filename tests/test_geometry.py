@@ -4,9 +4,11 @@ renderer, its ρ bound, its discretisation and its model size (no type dispatch)
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.app.config import MediumConfig
 from lightfield_jax.forward.base import AbstractRenderer
-from lightfield_jax.scene.geometry import as_geometry, parse_geometry
+from lightfield_jax.forward.render import geometry_renderer
+from lightfield_jax.forward.simulate_config import MediumConfig
+from lightfield_jax.scene.geometry import as_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 
 GRID = lfj.Grid(12, 8, 8, refine=1)
 BEAM = lfj.Beam(0.0, 4.0)
@@ -29,7 +31,8 @@ def test_each_geometry_gives_its_renderer_bound_and_size():
     plane, slab = lfj.Plane(), lfj.Slab(4.0, "refractive", n_mu=4, n_z=2)
     medium = lfj.Medium(0.3, 0.27, 0.7)  # phase paper: rho = omega * A(0.7) > 1 on the plane
     renderers = [
-        geometry.renderer(GRID, BEAM, 2, "paper", tail="gmres") for geometry in (plane, slab)
+        geometry_renderer(geometry, GRID, BEAM, 2, "paper", tail="gmres")
+        for geometry in (plane, slab)
     ]
     assert type(renderers[0]) is lfj.Renderer and type(renderers[1]) is lfj.SlabRenderer
     assert all(isinstance(r, AbstractRenderer) and r.tail == "gmres" for r in renderers)
@@ -50,4 +53,4 @@ def test_auto_is_chosen_by_a_fit_and_does_not_render():
     assert auto.chosen_by_fit and not lfj.Plane().chosen_by_fit
     assert auto.slab_or_none is None
     with pytest.raises(ValueError, match="geometry: must be None, a Plane or a Slab"):
-        auto.renderer(GRID, BEAM, 2, "paper")
+        geometry_renderer(auto, GRID, BEAM, 2, "paper")

@@ -14,23 +14,26 @@ import yaml
 
 import lightfield_jax as lfj
 from lightfield_jax.app.cli import main
-from lightfield_jax.app.config import parse_simulation_config
-from lightfield_jax.capture.capture import load_capture
-from lightfield_jax.capture.hdr import (
+from lightfield_jax.capture.exposure_checks import (
     EXPOSURE_MISMATCH_SHARE,
-    _srgb_encode,
-    calibrate_response,
     exposure_mismatch_problem,
     exposure_mismatches,
     exposure_ratio_problem,
     exposure_ratios,
+)
+from lightfield_jax.capture.hdr import merge_bracket
+from lightfield_jax.capture.image_write import write_png
+from lightfield_jax.capture.io import CaptureError
+from lightfield_jax.capture.loading import load_capture
+from lightfield_jax.capture.response import (
+    calibrate_response,
     linear_response,
     load_response,
-    merge_bracket,
+    srgb_encode,
     srgb_response,
     write_response,
 )
-from lightfield_jax.capture.io import CaptureError, write_png
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.inverse.capture_fit import fit_capture
 
 MEDIUM = {"sigma_t": 0.1, "sigma_s": 0.05, "g": 0.3}
@@ -312,7 +315,7 @@ def test_noisy_brackets_of_one_scene_agree_pixel_by_pixel(radiance, response):
     next shift do not."""
     rng = np.random.default_rng(3)
     times = [0.001, 0.004, 0.016]
-    encode = {"linear": lambda x: x, "srgb": _srgb_encode, "auto": lambda x: x ** (1 / 2.2)}
+    encode = {"linear": lambda x: x, "srgb": srgb_encode, "auto": lambda x: x ** (1 / 2.2)}
     z = _noisy_brackets(radiance, times, 1000, rng, encode=encode[response])
     if response == "auto":
         curve = calibrate_response(np.moveaxis(z, 1, 0).reshape(3, -1, 1), times)

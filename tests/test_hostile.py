@@ -18,9 +18,11 @@ import pytest
 import yaml
 
 import lightfield_jax as lfj
-from lightfield_jax.app.cli import XLA_CACHE_ENV, main
-from lightfield_jax.app.memory import MAX_MEMORY_ENV
-from lightfield_jax.capture.io import read_image, write_exr, write_png
+from lightfield_jax.app.arguments import XLA_CACHE_ENV
+from lightfield_jax.app.cli import main
+from lightfield_jax.capture.image_write import write_exr, write_png
+from lightfield_jax.capture.io import read_image
+from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
 H, W, P = 24, 32, 6
 SIMULATE = f"""\
@@ -845,7 +847,7 @@ def test_phases_that_contradict_the_images_are_refused(capture, capsys):
     status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
     assert status == 0, err
     # Phases left to their default (0..P-1) that the images contradict: a note.
-    from lightfield_jax.capture.capture import load_capture
+    from lightfield_jax.capture.loading import load_capture
 
     _edit(
         capture,
@@ -898,7 +900,7 @@ def test_images_without_light_are_refused(capture, capsys):
 
 
 def test_inspect_warns_and_exits_1_on_a_capture_without_direct_light(tmp_path, capsys):
-    from lightfield_jax.capture.capture import write_capture_yaml
+    from lightfield_jax.capture.write import write_capture_yaml
     from lightfield_jax.scene.illumination import Stripes
 
     names = [f"s{i}.exr" for i in range(P)]
@@ -1218,8 +1220,8 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
     """The estimate covers the correction's and error term's renders (larger than the
     solve's fields): a limit between the two refuses the fit before it starts."""
     import lightfield_jax as lfj
-    from lightfield_jax.app import memory
-    from lightfield_jax.app.cmd_fit import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
+    from lightfield_jax.runtime import memory
+    from lightfield_jax.runtime.memory import FIT_N_THETA, RENDER_CELLS_PER_PIXEL
 
     loaded = lfj.load_capture(capture / "capture.yaml")
     h, w = loaded.shape
@@ -1423,7 +1425,7 @@ def test_simulate_refuses_stripes_whose_capture_the_fit_refuses(
 
 def test_simulate_keeps_repeated_phases_the_fit_takes(tmp_path):
     """With noise the images of repeated phases differ, and the fit takes them."""
-    from lightfield_jax.app.config import parse_simulation_config
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     config = yaml.safe_load(SIMULATE)
     config["illumination"] = {"kind": "stripes", "period": 6, "lit": 3, "phases": [0, 0, 3]}
@@ -2281,7 +2283,7 @@ def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, m
     failed (8400 requested and 7648 written): '.../.view.tmp-164f67c5/R/bounces.npy')",
     naming the temporary. Now "view: write failed (8400 requested and 7648 written)"."""
     from lightfield_jax.app.cli import _describe
-    from lightfield_jax.capture.io import atomic_directory, atomic_write_npy
+    from lightfield_jax.files import atomic_directory, atomic_write_npy
 
     def short_write(*_, **__):
         raise OSError("8400 requested and 7648 written")
@@ -2373,8 +2375,8 @@ def _sparse(path: Path, size: int) -> Path:
 def test_results_files_and_response_tables_are_bounded_in_size_before_the_read(
     capture, capsys, tmp_path
 ):
-    from lightfield_jax.capture.hdr import load_response
     from lightfield_jax.capture.io import CaptureError
+    from lightfield_jax.capture.response import load_response
 
     results = _sparse(tmp_path / "big.json", 20 << 20)
     line = _refused(capsys, "render", results, "--out", tmp_path / "r", match="20971520 bytes")
@@ -2385,7 +2387,8 @@ def test_results_files_and_response_tables_are_bounded_in_size_before_the_read(
 
 
 def test_an_experiment_sweeping_too_many_cells_is_refused_unless_allowed(capsys, tmp_path):
-    from lightfield_jax.app.experiment import count_cells, load_experiment_config
+    from lightfield_jax.app.experiment import load_experiment_config
+    from lightfield_jax.app.experiment_config import count_cells
 
     config = yaml.safe_load((ROOT / "configs" / "coverage.yaml").read_text())
     config.pop("reduced")
@@ -2465,12 +2468,12 @@ def test_a_results_file_that_cannot_be_written_has_its_values_printed(
 ):
     import errno
 
-    import lightfield_jax.capture.io as lio
+    import lightfield_jax.files as lfiles
 
     def full(path, obj, **_):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(lio, "atomic_write_json", full)
+    monkeypatch.setattr(lfiles, "atomic_write_json", full)
     out = tmp_path / "r.json"
     status, stdout, err = _run(
         capsys, "fit", capture / "capture.yaml", "--method", "gradient", "--out", out, "-q"
@@ -2488,7 +2491,7 @@ def test_a_long_output_name_has_a_temporary_that_fits_beside_it(capture, capsys,
     folder = tmp_path / ("日" * 84)
     assert main(["render", str(results), "--out", str(folder), "-q"]) == 0
     assert (folder / "bounces.npy").is_file()
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
 
     long_suffix = tmp_path / ("r." + "a" * 240)
     atomic_write_json(long_suffix, {"a": 1})
@@ -2609,14 +2612,14 @@ def test_a_full_compilation_cache_is_one_warning():
 
 
 def test_a_staged_output_is_written_without_a_nested_temporary(tmp_path, monkeypatch):
-    import lightfield_jax.capture.io as lio
+    import lightfield_jax.files as lfiles
     from lightfield_jax.app.outputs import staged_files
 
     made = []
-    real = lio._make_file
-    monkeypatch.setattr(lio, "_make_file", lambda p: made.append(p.name) or real(p))
+    real = lfiles.make_file
+    monkeypatch.setattr(lfiles, "make_file", lambda p: made.append(p.name) or real(p))
     with staged_files() as write:
-        lio.atomic_write_json(write(tmp_path / "r.json"), {"a": 1})
+        lfiles.atomic_write_json(write(tmp_path / "r.json"), {"a": 1})
     assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1}
     assert made == [], made  # no temporary of the temporary (a name ..r.json.tmp-*.tmp-*)
 

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from lightfield_jax.reference.montecarlo import _launch, _source
+from lightfield_jax.reference.montecarlo import launch_photons, wall_source
 from lightfield_jax.reference.montecarlo_slab import (
     _fly,
     _Slab,
@@ -223,11 +223,11 @@ def test_next_event_camera_matches_analog_exits():
     illum, cone, batch, batches = Full(), math.radians(12.0), 300_000, 7
     res = monte_carlo_slab(width, height, depth, st, ss, g, illum, k, photons=500_000)
     slab = _Slab(width, height, depth, "absorbing", 1.0)
-    src = _source(illum, width, height)
+    src = wall_source(illum, width, height)
     rng = np.random.default_rng(1)
     exits = np.zeros(k)
     for _ in range(batches):
-        x, y, _ = _launch(src, batch, width, height, rng)
+        x, y, _ = launch_photons(src, batch, width, height, rng)
         pos = np.stack([x, y, depth * rng.random(batch)])
         u = np.repeat([[1.0], [0.0], [0.0]], batch, axis=1)
         for j in range(k + 1):  # flight j: light scattered j times (weight 1: σs = σt)

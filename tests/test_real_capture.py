@@ -27,10 +27,12 @@ import lightfield_jax.inverse.capture_fit as capture_fit_module
 import lightfield_jax.viz as viz
 from lightfield_jax.app.cli import main
 from lightfield_jax.capture.calibration import mosaic_score
-from lightfield_jax.capture.capture import CaptureWarning, load_capture
+from lightfield_jax.capture.capture import CaptureWarning
 from lightfield_jax.capture.detect import detect_geometry
+from lightfield_jax.capture.image_write import write_exr, write_png, write_tiff
 from lightfield_jax.capture.inspect import inspect_capture
-from lightfield_jax.capture.io import CaptureError, read_image, write_exr, write_png, write_tiff
+from lightfield_jax.capture.io import CaptureError, read_image
+from lightfield_jax.capture.loading import load_capture
 from lightfield_jax.capture.pattern import pattern_phases, stripe_patterns
 
 # The medium: a W x H rectangle at (X0, Y0) of a FRAME_H x FRAME_W camera frame.

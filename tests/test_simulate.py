@@ -3,8 +3,8 @@
 import numpy as np
 
 from lightfield_jax import Full, Grid, Medium, render
-from lightfield_jax.app.config import parse_simulation_config
 from lightfield_jax.forward.simulate import simulate_capture
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 
 BASE = {
     "grid": {"width": 24, "height": 18, "n_theta": 16, "refine": 1},

@@ -17,14 +17,16 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.app.config import ConfigError, parse_simulation_config
 from lightfield_jax.forward import plane as plane_module
 from lightfield_jax.forward import slab as slab_module
 from lightfield_jax.forward.render import trace_count
+from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.forward.slab import SlabRenderer, elevation_nodes, hg
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab, slab_single_scatter_sheet
 from lightfield_jax.scene import phase
-from lightfield_jax.scene.geometry import Slab, parse_geometry, resolve_slab_grid
+from lightfield_jax.scene.geometry import Slab, resolve_slab_grid
+from lightfield_jax.scene.geometry_spec import parse_geometry
+from lightfield_jax.schema import ConfigError
 
 W, H = 48, 32
 BEAM = lfj.Beam(0.0, 16.0, 0.0, 1.0)

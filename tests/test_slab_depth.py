@@ -19,13 +19,8 @@ from lightfield_jax.forward.render import trace_count
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.forward.slab_layers import camera_integrals, transport_weights
 from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
-from lightfield_jax.scene.geometry import (
-    Slab,
-    default_n_z,
-    describe_geometry,
-    parse_geometry,
-    resolve_slab_grid,
-)
+from lightfield_jax.scene.geometry import Slab, default_n_z, resolve_slab_grid
+from lightfield_jax.scene.geometry_spec import describe_geometry, parse_geometry
 
 FULL = lfj.Full(0.0, "left")
 
@@ -328,7 +323,7 @@ def test_layer_count_follows_the_scene_and_is_reported():
     text = describe_geometry({"geometry": slab.as_dict()})
     assert f"n_z {slab.n_z} (linear in depth)" in text
     # A fit result written before the profile existed kept layer averages: read so.
-    from lightfield_jax.scene.geometry import parse_fitted_geometry
+    from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 
     old = {"kind": "slab", "thickness": 6.4, "boundary": "absorbing", "n_mu": 4, "n_z": 8}
     assert parse_fitted_geometry(old).profile == "constant"

@@ -10,7 +10,12 @@ import json
 import os
 import platform
 import resource
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -232,14 +237,9 @@ def bench_fits(
     tracing, XLA compilation and the run), then once more in that process (``warm``:
     its compiled programs reused, as for a second channel or the next capture of the
     size). Medians over ``repeats`` processes; errors against the simulated truth."""
-    import statistics
-    import subprocess
-    import sys
-    import tempfile
-    from pathlib import Path
 
-    from lightfield_jax.app.config import parse_simulation_config
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.forward.simulate_config import parse_simulation_config
 
     sim = simulate_capture(parse_simulation_config(config, source="bench config"))
     truth = sim.truth()

@@ -19,23 +19,27 @@ Conventions every command keeps:
   line syntax errors exit 2 the same way.
 - Validate every input before the long work starts: check every output path against
   the inputs and each other with :func:`~lightfield_jax.app.outputs.check_outputs`, and
-  the memory the work needs with :func:`~lightfield_jax.app.memory.check_memory`. Write
-  output folders through :func:`~lightfield_jax.capture.io.atomic_directory` and single files
+  the memory the work needs with :func:`~lightfield_jax.runtime.memory.check_memory`. Write
+  output folders through :func:`~lightfield_jax.files.atomic_directory` and single files
   through :func:`~lightfield_jax.app.outputs.staged_files`, so a failure leaves no
   partial output and replaces no existing file.
 - SIGINT (Ctrl-C), SIGTERM and SIGHUP end a command within a moment, with status 130,
   143 or 129 and nothing written (:mod:`lightfield_jax.app.signals`).
-- Results and summaries go to stdout through :func:`_say` (a stdout that fails is said
-  once, at the end, exit status 2); paths printed go through :func:`_path`.
+- Results and summaries go to stdout through :func:`~lightfield_jax.app.messages.say`
+  (a stdout that fails is said once, at the end, exit status 2); paths printed go
+  through :func:`~lightfield_jax.app.messages.shown_path`.
 - Warnings print as ``lightfield-jax: warning: ...`` and are collected in
   ``args.warnings`` (e.g. for a metadata file).
-- Long work reports its stages through :func:`_progress`: on stderr, a display that
+- Long work reports its stages through
+  :func:`~lightfield_jax.app.messages.command_progress`: on stderr, a display that
   appears when stderr is a terminal and the work takes more than two seconds, else
   one plain line per stage with the elapsed time (``--progress``, ``--quiet``).
 - Results and summaries go to stdout (silenced by ``--quiet``).
 
-This module holds the parser, :func:`main` and the helpers the commands share; the
-commands live in ``cmd_simulate`` (simulate, bench), ``cmd_fit`` (fit, demo),
+This module holds the parser and :func:`main`; the helpers the commands share are in
+:mod:`~lightfield_jax.app.messages` (what they print) and
+:mod:`~lightfield_jax.app.arguments` (argument types, the XLA cache); the
+commands live in ``cmd_simulate`` (simulate, bench), ``cmd_fit`` (fit), ``cmd_demo`` (demo),
 ``cmd_capture`` (pattern, inspect) and ``cmd_render`` (render, experiment), imported at
 the end of this module.
 """
@@ -45,18 +49,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import inspect
-import math
 import sys
-import unicodedata
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from lightfield_jax.app.progress import MODES, progress
+from lightfield_jax.app.arguments import memory_size
+from lightfield_jax.app.messages import PROG, PROGRESS_ENV, one_line
+from lightfield_jax.runtime.memory import memory_limit
+from lightfield_jax.runtime.progress import MODES
 
-PROG = "lightfield-jax"
-PROGRESS_ENV = "LIGHTFIELD_JAX_PROGRESS"
 USER_ERRORS: tuple[type[BaseException], ...] = (
     ValueError,  # ConfigError, CaptureError and every validation error are ValueErrors
     FileNotFoundError,
@@ -67,12 +70,6 @@ USER_ERRORS: tuple[type[BaseException], ...] = (
 
 Handler = Callable[[argparse.Namespace], "int | None"]
 _COMMANDS: dict[str, tuple[str, tuple, Handler]] = {}
-
-
-def arg(*flags: str, **options: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
-    """One argument of a subcommand, as :meth:`argparse.ArgumentParser.add_argument`
-    takes it."""
-    return flags, options
 
 
 def command(name: str, help: str, *arguments: tuple[tuple[str, ...], dict[str, Any]]):
@@ -91,7 +88,7 @@ class _Parser(argparse.ArgumentParser):
     """An argument parser whose syntax errors are one line on stderr, status 2."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -118,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     common.add_argument(
         "--max-memory",
-        type=_memory_size,
+        type=memory_size,
         metavar="SIZE",
         help="memory the command may use (e.g. 16G; default: the machine's available "
         "memory); work estimated to need more is refused before it starts",
@@ -152,7 +149,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:  # --help, --version, syntax errors
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
-    from lightfield_jax.app.memory import memory_limit
     from lightfield_jax.app.signals import stop_on_signals
 
     args.warnings = []
@@ -191,7 +187,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if failed is not None:
         why = failed.strerror or type(failed).__name__
         print(
-            f"{PROG}: error: standard output: {_one_line(why)}: the command finished (its "
+            f"{PROG}: error: standard output: {one_line(why)}: the command finished (its "
             "files written), but its report there is incomplete",
             file=sys.stderr,
         )
@@ -217,61 +213,19 @@ def _refuse_empty_paths(args: argparse.Namespace) -> None:
             )
 
 
-# Escaped in a message line: control characters, format characters (a right-to-left
-# override reorders what the terminal shows), and the surrogates a file name in another
-# encoding than UTF-8 holds (which a strict stream cannot print).
-CONTROLS = ("Cc", "Cf", "Cs")
-
-
-def _one_line(text: str) -> str:
-    """``text`` on one line: whitespace runs (newlines too) as one space, and other
-    control characters and surrogates escaped (``\\x1b``, ``\\udcff``): a file name in a
-    capture file holding a terminal escape sequence printed it raw, recolouring or
-    rewriting the terminal."""
-    flat = " ".join(str(text).split())
-    if flat.isprintable():
-        return flat
-    return "".join(
-        c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROLS else c
-        for c in flat
-    )
-
-
-def _path(path) -> str:
-    """A path as a message prints it: as given, its control characters escaped (a
-    newline in a file name would split the line, an escape sequence recolour the
-    terminal)."""
-    text = str(path)
-    if text.isprintable():
-        return text
-    return "".join(
-        c.encode("unicode_escape").decode("ascii") if unicodedata.category(c) in CONTROLS else c
-        for c in text
-    )
-
-
-def _memory_size(text: str) -> int:
-    from lightfield_jax.app.memory import parse_size
-
-    try:
-        return parse_size(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
 def _describe_limit(error: BaseException) -> str:
     """A resource limit met despite the checks, as one line (no traceback)."""
     if isinstance(error, RecursionError):
         return "an input is nested too deeply to process (RecursionError)"
     if isinstance(error, OverflowError):
-        return f"a value in the input is too large ({_one_line(error)[:200]})"
+        return f"a value in the input is too large ({one_line(error)[:200]})"
     return "out of memory (MemoryError): reduce the input's size, or free memory"
 
 
 def _describe(error: BaseException) -> str:
     if isinstance(error, OSError) and error.filename is not None and error.strerror:
-        return _one_line(f"{error.filename}: {error.strerror}")
-    return _one_line(str(error)) or type(error).__name__
+        return one_line(f"{error.filename}: {error.strerror}")
+    return one_line(str(error)) or type(error).__name__
 
 
 @contextlib.contextmanager
@@ -291,7 +245,7 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
         if "matplotlib" in Path(str(filename)).parts:  # its own, not the package's
             original(message, category, filename, lineno, file, line)
             return
-        text = _one_line(str(message))
+        text = one_line(str(message))
         collected.append(text)
         print(f"{PROG}: warning: {text}", file=sys.stderr)
 
@@ -301,213 +255,6 @@ def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
         warnings.showwarning = show
         with repairing_compilation_cache():
             yield
-
-
-def _warn(args: argparse.Namespace, text: str) -> None:
-    """A warning of the command itself: one line on stderr, collected like the
-    package's, whatever the Python warning filters are (``-W error`` must not turn an
-    exit status 1 into a traceback)."""
-    text = _one_line(text)
-    args.warnings.append(text)
-    print(f"{PROG}: warning: {text}", file=sys.stderr)
-
-
-def _progress(args: argparse.Namespace, desc: str, total: int | None = None):
-    """The stage display of a command: ``--progress MODE``, else ``$LIGHTFIELD_JAX_PROGRESS``,
-    else ``auto``; off with ``--quiet`` unless ``--progress`` is given."""
-    import os
-
-    given = getattr(args, "progress", None)
-    mode = given or os.environ.get(PROGRESS_ENV) or "auto"
-    if mode not in MODES:
-        raise ValueError(f"{PROGRESS_ENV}: must be one of {', '.join(MODES)}, got {mode!r}")
-    if args.quiet and not given:  # --quiet --progress lines: a log's stages, no summary
-        mode = "none"
-    return progress(desc, total, mode=mode, prefix=f"{PROG}: ")
-
-
-def _say(args: argparse.Namespace, text: str, always: bool = False) -> None:
-    """``text`` on stdout (silenced by ``--quiet`` unless ``always``). A stdout that
-    cannot take it (a full disk, a closed pipe) is noted in ``args.stdout_failed`` and
-    not written to again: the command finishes its files, and :func:`main` says it."""
-    if (args.quiet and not always) or getattr(args, "stdout_failed", None) is not None:
-        return
-    try:
-        print(text)
-        sys.stdout.flush()
-    except OSError as e:
-        args.stdout_failed = e
-        _drop_stdout()
-
-
-def _drop_stdout() -> None:
-    """Send what is left in stdout's buffer to /dev/null: the interpreter's flush at
-    exit would fail again ("Exception ignored ... BrokenPipeError")."""
-    import os
-
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # not a file (a test's capture)
-        return
-    null = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(null, fd)
-    finally:
-        os.close(null)
-
-
-# ------------------------------------------------------------------ compilation cache
-
-XLA_CACHE_ENV = "LIGHTFIELD_JAX_XLA_CACHE"
-_XLA_CACHE_HELP = (
-    "do not use the persistent XLA compilation cache (also: "
-    f"{XLA_CACHE_ENV}=off; {XLA_CACHE_ENV}=DIR moves it)"
-)
-
-
-def xla_cache_folder(environ=None) -> Path | None:
-    """Where ``fit`` and ``demo`` keep compiled XLA programs: ``$LIGHTFIELD_JAX_XLA_CACHE``,
-    else ``$XDG_CACHE_HOME/lightfield_jax/xla`` (``~/.cache/lightfield_jax/xla``);
-    ``None`` when that variable is ``off``, ``0`` or empty."""
-    import os
-
-    env = os.environ if environ is None else environ
-    value = env.get(XLA_CACHE_ENV)
-    if value is not None:
-        return None if value.strip().lower() in ("", "0", "off", "no", "false") else Path(value)
-    base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "lightfield_jax" / "xla"
-
-
-def _use_xla_cache(args: argparse.Namespace) -> None:
-    """Turn on JAX's persistent compilation cache (every program, however small or
-    quick to compile) unless ``--no-xla-cache`` or the environment turns it off. A fit
-    spends most of its time on a CPU compiling; a later fit of a capture of the same
-    shape and model size loads the programs instead (a warm start). A folder that cannot
-    be created leaves the cache off, with a warning."""
-    folder = None if args.no_xla_cache else xla_cache_folder()
-    if folder is None:
-        return
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        _warn(args, f"XLA compilation cache off: cannot create {folder} ({e.strerror})")
-        return
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    compilation_cache.reset_cache()  # set up once per process, at the first compilation
-
-
-def _outputs(
-    files=(),
-    folders=(),
-    inputs=(),
-    plots=(),
-    folder_names=(),
-    marker=None,
-    writer=None,
-    json=(),
-) -> None:
-    """Check every output of a command before its work (see
-    :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
-    ``files``, whose format is checked too; ``json``: (option, file, hint) of the JSON
-    files among them, whose names must not be an image's or a figure's;
-    ``folder_names``: the names written into ``folders``; ``marker``: the command's own
-    file (its folders are its own); ``writer``: the command's name where a folder
-    without ``marker`` is the user's."""
-    from lightfield_jax.app.outputs import check_json_name, check_outputs, check_plot_format
-
-    for plot in plots:
-        check_plot_format(plot)
-    files, folders = [f for f in files if f], [d for d in folders if d]
-    check_outputs(files, folders, inputs, folder_names, marker, writer)
-    for option, given, hint in json:
-        if given:
-            check_json_name(given, option, hint)
-
-
-@contextlib.contextmanager
-def _about(capture) -> Iterator[None]:
-    """Errors of the work on ``capture`` name its file, and a numerical library's
-    failure (a singular or non-finite solve) is said in the user's terms."""
-    import equinox as eqx
-    import numpy as np
-
-    from lightfield_jax.capture.io import CaptureError
-
-    source = str(capture.source)
-    try:
-        with np.errstate(all="ignore"):
-            yield
-    except (eqx.EquinoxRuntimeError, np.linalg.LinAlgError, FloatingPointError) as e:
-        raise CaptureError(
-            f"{source}: the solve met a singular or non-finite system: the images do not "
-            "determine sigma_t, sigma_s and g (check the capture with lightfield-jax "
-            "inspect; --debug shows the library's message)"
-        ) from e
-    except ValueError as e:
-        if source in str(e):
-            raise
-        raise CaptureError(f"{source}: {_one_line(e)}") from e
-
-
-# --------------------------------------------------------------------------- shared
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
-
-
-def _positive_number(what: str):
-    """An argparse type: a finite number > 0, refused as "must be WHAT, got ..."."""
-
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and value > 0):
-            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
-        return value
-
-    return parse
-
-
-_positive_scale = _positive_number("a number > 0")
-_positive_seconds = _positive_number("a positive number of seconds")
-
-
-def _dask_arguments(what: str) -> tuple:
-    """The options of work run on Dask (``what``: where they apply)."""
-    return (
-        arg(
-            "--scheduler",
-            metavar="ADDRESS",
-            help=f"{what}: the Dask scheduler to run on (e.g. tcp://host:8786; also "
-            "$LIGHTFIELD_JAX_SCHEDULER; default: a local cluster of --workers processes)",
-        ),
-        arg(
-            "--workers",
-            type=_positive_int,
-            metavar="N",
-            help=f"{what}: worker processes of the local cluster (default: one per core)",
-        ),
-        arg(
-            "--allow-large",
-            action="store_true",
-            help=f"{what}: run more than 10000 fits at once",
-        ),
-    )
 
 
 # The demo's capture (the paper's milk); bench --fits times the fits of it too.
@@ -530,7 +277,7 @@ DEMO_CONFIG = {
 if __name__ != "__main__":
     import importlib
 
-    for _module in ("cmd_simulate", "cmd_fit", "cmd_capture", "cmd_render"):
+    for _module in ("cmd_simulate", "cmd_fit", "cmd_demo", "cmd_capture", "cmd_render"):
         importlib.import_module(f"lightfield_jax.app.{_module}")
 
 

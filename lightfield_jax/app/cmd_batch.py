@@ -17,7 +17,9 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from lightfield_jax.app.cli import _outputs, _say, _warn, xla_cache_folder
+from lightfield_jax.app.arguments import xla_cache_folder
+from lightfield_jax.app.messages import say, warn
+from lightfield_jax.app.outputs import check_command_outputs
 
 SUMMARY_COLUMNS = (
     "name",
@@ -103,10 +105,11 @@ def batch_fit(
     the summary lines, the notes and the package's warnings of the fit)."""
     import warnings
 
-    from lightfield_jax.app.cli import _about
-    from lightfield_jax.app.cmd_fit import _fit_summary, _truth_lines, fit_record
-    from lightfield_jax.capture.capture import CaptureWarning, load_capture
+    from lightfield_jax.app.fit_report import fit_record, fit_summary, truth_lines
+    from lightfield_jax.app.messages import about_capture
+    from lightfield_jax.capture.capture import CaptureWarning
     from lightfield_jax.capture.keys import fit_phase
+    from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.forward.render import DivergentSeriesWarning
     from lightfield_jax.inverse.capture_fit import fit_capture
 
@@ -124,14 +127,14 @@ def batch_fit(
         warnings.simplefilter("always", DivergentSeriesWarning)
         capture = load_capture(path)
         phase = phase or fit_phase(capture)  # --phase, else each capture's own
-        with _about(capture):
+        with about_capture(capture):
             fit = fit_capture(
                 capture, method, channels=channels, progress=staged, phase=phase, **limits
             )
     result, compared = fit_record(capture, fit, method, phase)
     result["batch"] = {
         "key": key,
-        "summary": [_fit_summary(fit), *_truth_lines(fit, compared)],
+        "summary": [fit_summary(fit), *truth_lines(fit, compared)],
         "notes": notes,
         "warnings": [" ".join(str(w.message).split()) for w in caught],
     }
@@ -177,11 +180,12 @@ def fit_batch(args: argparse.Namespace) -> int | None:
     """``fit`` of several captures (see the module docstring); exit status 1 when a fit
     failed or did not converge (the others' results written)."""
     from lightfield_jax.app.distributed import Task, check_count, default_workers, run_tasks
-    from lightfield_jax.app.experiment import provenance, write_csv
-    from lightfield_jax.app.memory import check_memory, fit_memory
-    from lightfield_jax.capture.capture import capture_files, load_capture
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.app.experiment_records import provenance, write_csv
+    from lightfield_jax.capture.keys import capture_files
+    from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.runtime.memory import check_memory, fit_memory
 
     if args.plot:
         raise ValueError("--plot: one capture at a time (several write results and summaries)")
@@ -195,7 +199,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         )
     names = result_names(paths)
     files = [capture_files(p) for p in paths]
-    _outputs(
+    check_command_outputs(
         folders=[out],
         inputs=[f for fs in files for f in fs],
         folder_names=("*.json", "*.csv"),
@@ -218,7 +222,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
             f"{capture.source}: the fit",
         )
         for note in capture.notes:
-            _say(args, f"note: {path}: {note}")
+            say(args, f"note: {path}: {note}")
         values.append(capture.images.size)
         del capture
     xla = None if args.no_xla_cache else xla_cache_folder()
@@ -226,7 +230,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         try:
             xla.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            _warn(args, f"XLA compilation cache off: cannot create {xla} ({e.strerror})")
+            warn(args, f"XLA compilation cache off: cannot create {xla} ({e.strerror})")
             xla = None
     keys = [_batch_key(fs, args) for fs in files]
     tasks = [
@@ -274,7 +278,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         seconds_per_task=max(5.0, DEMO_FIT_SECONDS * mean / DEMO_VALUES),
         allow_large=True,  # counted above
         what="captures",
-        say=lambda m: _say(args, m),
+        say=lambda m: say(args, m),
         show_progress=False if args.quiet else None,
         desc="fits",
     )
@@ -298,9 +302,9 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         )
         if record is not None and task.key in report.computed:
             for line in record["batch"]["notes"]:
-                _say(args, f"{path}: {line}")
+                say(args, f"{path}: {line}")
             for line in record["batch"]["warnings"]:
-                _warn(args, f"{path}: {line}")
+                warn(args, f"{path}: {line}")
     write_csv(
         out / "summary.csv",
         SUMMARY_COLUMNS,
@@ -324,18 +328,18 @@ def fit_batch(args: argparse.Namespace) -> int | None:
     )
     for row in rows:
         if row["status"] != "failed":
-            _say(
+            say(
                 args,
                 f"{row['name']} [{row['channel']}]: sigma_t {row['sigma_t']:.5g}, sigma_s "
                 f"{row['sigma_s']:.5g}, g {row['g']:.4f} ({row['status']})",
             )
-    _say(args, f"wrote {len(report.results)} results, summary.csv and summary.json to {out}")
+    say(args, f"wrote {len(report.results)} results, summary.csv and summary.json to {out}")
     for task in tasks:
         if task.key in report.failures:
-            _warn(args, f"failed: {report.failures[task.key]}")
+            warn(args, f"failed: {report.failures[task.key]}")
     bad = [c for c in captures if c["status"] == "not converged"]
     if bad:
-        _warn(
+        warn(
             args,
             f"{len(bad)} fit(s) did not converge ({', '.join(c['name'] for c in bad)}): "
             "their results were written with converged: false",

@@ -5,18 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lightfield_jax.app.cli import (
-    _about,
-    _outputs,
-    _path,
-    _positive_int,
-    _positive_scale,
-    _progress,
-    _say,
-    _warn,
-    arg,
-    command,
-)
+from lightfield_jax.app.arguments import arg, positive_int, positive_scale
+from lightfield_jax.app.cli import command
+from lightfield_jax.app.messages import about_capture, command_progress, say, shown_path, warn
+from lightfield_jax.app.outputs import check_command_outputs
 
 # --------------------------------------------------------------------------- pattern
 
@@ -24,30 +16,30 @@ from lightfield_jax.app.cli import (
 @command(
     "pattern",
     "write the projector's stripe images and a capture.yaml template for them",
-    arg("--width", type=_positive_int, required=True, help="projector width (pixels)"),
-    arg("--height", type=_positive_int, required=True, help="projector height (pixels)"),
+    arg("--width", type=positive_int, required=True, help="projector width (pixels)"),
+    arg("--height", type=positive_int, required=True, help="projector height (pixels)"),
     arg(
         "--period",
-        type=_positive_int,
+        type=positive_int,
         default=6,
         help="stripe period in projector pixels (%(default)s)",
     ),
     arg(
         "--lit",
-        type=_positive_int,
+        type=positive_int,
         default=3,
         help="lit projector rows per period (%(default)s)",
     ),
     arg(
         "--camera-px-per-projector-px",
-        type=_positive_scale,
+        type=positive_scale,
         default=1.0,
         metavar="S",
         help="the stripes' size on the camera over their size on the projector, measured "
         "on the medium (default %(default)g): capture.yaml's period and lit are in camera "
         "pixels, the model's unit",
     ),
-    arg("--shifts", type=_positive_int, help="shifted images (default: the period)"),
+    arg("--shifts", type=positive_int, help="shifted images (default: the period)"),
     arg(
         "--orientation",
         choices=("rows", "columns"),
@@ -76,9 +68,7 @@ def _pattern(args: argparse.Namespace) -> None:
                      images (auto); every key is explained in a comment
 
     Nothing is written unless the whole command succeeds."""
-    from lightfield_jax.app.memory import check_memory
     from lightfield_jax.app.outputs import OutputError
-    from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.pattern import (
         camera_stripes,
         check_size,
@@ -86,8 +76,10 @@ def _pattern(args: argparse.Namespace) -> None:
         pattern_phases,
         write_patterns,
     )
+    from lightfield_jax.files import atomic_directory
+    from lightfield_jax.runtime.memory import check_memory
 
-    _outputs(
+    check_command_outputs(
         folders=[args.out],
         folder_names=("stripe_*.png", "white.png", "black.png", "capture.yaml"),
         marker="capture.yaml",  # without its template, a folder's frames are a camera's
@@ -119,9 +111,9 @@ def _pattern(args: argparse.Namespace) -> None:
             args.orientation,
             scale,
         )
-    _say(
+    say(
         args,
-        f"wrote {len(files)} files to {_path(out)}: {len(phases)} stripe images (period "
+        f"wrote {len(files)} files to {shown_path(out)}: {len(phases)} stripe images (period "
         f"{args.period}, lit {args.lit}, phases {list(phases)}, {args.orientation}), white.png, "
         "black.png, capture.yaml"
         + (
@@ -159,11 +151,12 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     status 1, with a warning, when a channel is unusable for a fit (no direct light at
     the entry wall, or its SNR never usable)."""
     from lightfield_jax.app.outputs import staged_files
-    from lightfield_jax.capture.capture import capture_files, load_capture
     from lightfield_jax.capture.inspect import inspect_capture
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.capture.keys import capture_files
+    from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.files import atomic_write_json
 
-    _outputs(
+    check_command_outputs(
         files=[args.plot, args.json, args.response],
         inputs=capture_files(args.capture),
         plots=[args.plot] if args.plot else [],
@@ -181,7 +174,11 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     capture = load_capture(args.capture)
     if response is not None and capture.brackets is None:
         raise ValueError(f"--response: {args.capture} has no exposure brackets")
-    with _progress(args, "inspect") as stage, _about(capture), staged_files() as write:
+    with (
+        command_progress(args, "inspect") as stage,
+        about_capture(capture),
+        staged_files() as write,
+    ):
         stage("separate")
         inspection = inspect_capture(capture)
         if plot is not None:
@@ -192,14 +189,14 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
         if out is not None:
             atomic_write_json(write(out), inspection.to_dict())
         if response is not None:
-            from lightfield_jax.capture.hdr import write_response
+            from lightfield_jax.capture.response import write_response
 
             write_response(write(response), capture.brackets.response, capture.channel_names)
-    _say(args, inspection.summary())
+    say(args, inspection.summary())
     written = [f for f in (plot, out, response) if f is not None]
     if written:
-        _say(args, f"wrote {', '.join(_path(f) for f in written)}")
+        say(args, f"wrote {', '.join(shown_path(f) for f in written)}")
     problems = inspection.problems()
     for problem in problems:
-        _warn(args, f"{capture.source}: {problem}")
+        warn(args, f"{capture.source}: {problem}")
     return 1 if problems else None

@@ -7,17 +7,10 @@ import json
 import sys
 from pathlib import Path
 
-from lightfield_jax.app.cli import (
-    _dask_arguments,
-    _outputs,
-    _path,
-    _positive_int,
-    _progress,
-    _say,
-    _warn,
-    arg,
-    command,
-)
+from lightfield_jax.app.arguments import arg, dask_arguments, positive_int
+from lightfield_jax.app.cli import command
+from lightfield_jax.app.messages import command_progress, say, shown_path, warn
+from lightfield_jax.app.outputs import check_command_outputs
 
 # --------------------------------------------------------------------------- render
 
@@ -66,19 +59,19 @@ def _render_command(args: argparse.Namespace) -> None:
                       the light, the light fields with direction glyphs
 
     Nothing is written unless the whole command succeeds."""
-    from lightfield_jax.capture.io import atomic_directory
     from lightfield_jax.capture.views import (
         read_results,
         render_folders,
         render_inputs,
         render_results,
     )
+    from lightfield_jax.files import atomic_directory
 
     data, source = read_results(args.results)
     # Each channel's subfolder is checked like DIR: another command's outputs there
     # (simulate's bounces.npy beside its metadata.json) would be replaced, and so would
     # the capture's own files (a stack named lightfield.npy).
-    _outputs(
+    check_command_outputs(
         folders=[args.out, *render_folders(data, source, Path(args.out))],
         inputs=[args.results, *render_inputs(data, source)],
         folder_names=RENDER_FILES,
@@ -86,19 +79,19 @@ def _render_command(args: argparse.Namespace) -> None:
         writer="render",  # a folder without render.json holds the user's own files
     )
     out = Path(args.out)
-    with _progress(args, "render") as stage, atomic_directory(out) as staging:
+    with command_progress(args, "render") as stage, atomic_directory(out) as staging:
         files, notes = render_results(
             data,
             source,
             staging,
             plot=args.plot,
             stage=stage,
-            warn=lambda t: _warn(args, t),
+            warn=lambda t: warn(args, t),
             compact=args.compact,
         )
     for note in notes:
-        _warn(args, note)
-    _say(args, f"wrote {len(files)} files to {_path(out)}: {', '.join(map(_path, files))}")
+        warn(args, note)
+    say(args, f"wrote {len(files)} files to {shown_path(out)}: {', '.join(map(shown_path, files))}")
 
 
 # --------------------------------------------------------------------------- experiment
@@ -112,13 +105,13 @@ def _render_command(args: argparse.Namespace) -> None:
     arg("--reduced", action="store_true", help="the config's reduced size (as the tests run)"),
     arg(
         "--max-cells",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         metavar="N",
         help="the most cells (units of work: the product of the config's lists' lengths) "
         "a run may sweep (default: 10000); a larger config is refused before it starts",
     ),
-    *_dask_arguments("parallel sweeps"),
+    *dask_arguments("parallel sweeps"),
 )
 def _experiment(args: argparse.Namespace) -> None:
     """Run an experiment: it writes data (JSON/CSV) and figures (PNG) into DIR, plus
@@ -126,14 +119,13 @@ def _experiment(args: argparse.Namespace) -> None:
     checked whole before any work; a run that fails publishes nothing into DIR (exit
     status 1 when the experiment itself fails, 2 for a bad config). A rerun into the
     same DIR resumes from the work already stored in DIR/cache."""
-    from lightfield_jax.app.cli import PROG, _one_line
     from lightfield_jax.app.experiment import (
-        MAX_CELLS,
         ExperimentError,
-        check_cells,
         load_experiment_config,
         run_experiment,
     )
+    from lightfield_jax.app.experiment_config import MAX_CELLS, check_cells
+    from lightfield_jax.app.messages import PROG, one_line
 
     config = Path(args.config)  # a config inside DIR named like an output is kept
     data = load_experiment_config(config, args.reduced)
@@ -142,16 +134,16 @@ def _experiment(args: argparse.Namespace) -> None:
     out = args.out
     if out is None:  # the default folder is checked like one given
         out = str(Path("results") / str(data["experiment"]))
-    _outputs(
+    check_command_outputs(
         folders=[out],
         inputs=[config] if config.is_file() else [],
         folder_names=("*.json", "*.csv", "*.png", "*.npz"),
         marker="summary.json",
         writer="experiment",  # a folder without summary.json holds the user's own files
     )
-    _say(args, f"experiment {data['experiment']}: about {cells} cells of work")
+    say(args, f"experiment {data['experiment']}: about {cells} cells of work")
     try:
-        with _progress(args, "experiment") as stage:
+        with command_progress(args, "experiment") as stage:
             record = run_experiment(
                 args.config,
                 out,
@@ -161,12 +153,12 @@ def _experiment(args: argparse.Namespace) -> None:
                 scheduler=args.scheduler,
                 workers=args.workers,
                 allow_large=args.allow_large,
-                say=lambda m: _say(args, m),
+                say=lambda m: say(args, m),
             )
     except ExperimentError as e:
         if args.debug:
             raise
-        print(f"{PROG}: error: {args.config}: {_one_line(str(e))}", file=sys.stderr)
+        print(f"{PROG}: error: {args.config}: {one_line(str(e))}", file=sys.stderr)
         return 1
-    _say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
-    _say(args, f"experiment {record['experiment']} done in {record['seconds']:.1f} s")
+    say(args, json.dumps(record["summary"], indent=1, default=str)[:4000])
+    say(args, f"experiment {record['experiment']} done in {record['seconds']:.1f} s")

@@ -5,17 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lightfield_jax.app.cli import (
-    DEMO_CONFIG,
-    _outputs,
-    _path,
-    _positive_int,
-    _progress,
-    _say,
-    _warn,
-    arg,
-    command,
-)
+from lightfield_jax.app.arguments import arg, positive_int
+from lightfield_jax.app.cli import DEMO_CONFIG, command
+from lightfield_jax.app.messages import command_progress, say, shown_path, warn
+from lightfield_jax.app.outputs import check_command_outputs
 
 # --------------------------------------------------------------------------- simulate
 
@@ -36,7 +29,11 @@ SIMULATE_FILES = (
 @command(
     "simulate",
     "render a config into per-bounce and captured images",
-    arg("config", metavar="CONFIG.yaml", help="a simulate config (see lightfield_jax.app.config)"),
+    arg(
+        "config",
+        metavar="CONFIG.yaml",
+        help="a simulate config (see lightfield_jax.forward.simulate_config)",
+    ),
     arg(
         "--out",
         metavar="DIR",
@@ -83,12 +80,12 @@ def _simulate(args: argparse.Namespace) -> None:
     captured images add the dark level and noise. Nothing is written unless the whole
     command succeeds.
     """
-    from lightfield_jax.app.config import load_simulation_config
     from lightfield_jax.app.outputs import CAPTURE_MARKER
-    from lightfield_jax.capture.io import atomic_directory
+    from lightfield_jax.files import atomic_directory
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
+    from lightfield_jax.forward.simulate_config import load_simulation_config
 
-    _outputs(
+    check_command_outputs(
         folders=[args.out],
         inputs=[args.config],
         folder_names=(*SIMULATE_FILES, "*.png"),
@@ -96,11 +93,11 @@ def _simulate(args: argparse.Namespace) -> None:
         writer="simulate",
     )
     if args.plot:  # a figures folder: its figures are replaced (no capture there)
-        _outputs(folders=[args.plot], inputs=[args.config], folder_names=("*.png",))
+        check_command_outputs(folders=[args.plot], inputs=[args.config], folder_names=("*.png",))
     config = load_simulation_config(args.config)
     out = Path(args.out)
     plot = Path(args.plot) if args.plot else None
-    with _progress(args, "simulate") as stage:
+    with command_progress(args, "simulate") as stage:
         sim = simulate_capture(config, lightfield=args.lightfield, stage=stage)
         stage("write files")
         # The figures are drawn inside the output's staging: a failure publishes neither.
@@ -115,12 +112,12 @@ def _simulate(args: argparse.Namespace) -> None:
                     figures, notes = plot_simulation(sim, figures_staging, stage=stage)
         if plot is not None:
             for note in notes:
-                _warn(args, note)
-            _say(args, f"wrote {', '.join(figures)} to {_path(plot)}")
+                warn(args, note)
+            say(args, f"wrote {', '.join(figures)} to {shown_path(plot)}")
     converges = "converges" if sim.converges else "DOES NOT CONVERGE (truncated)"
-    _say(
+    say(
         args,
-        f"wrote {len(files)} files to {_path(out)}: K = {sim.n_bounces} bounces, rho = "
+        f"wrote {len(files)} files to {shown_path(out)}: K = {sim.n_bounces} bounces, rho = "
         f"{sim.rho:.4f} ({converges}), n_theta = {sim.n_theta}, refine = {sim.refine}; "
         f"compile {sim.timing['compile']:.2f} s, run {sim.timing['run']:.2f} s",
     )
@@ -158,7 +155,7 @@ MAX_REPEATS = 1000
 
 
 def _repeats(text: str) -> int:
-    value = _positive_int(text)
+    value = positive_int(text)
     if value > MAX_REPEATS:
         raise argparse.ArgumentTypeError(f"must be at most {MAX_REPEATS}, got {text!r}")
     return value
@@ -204,46 +201,46 @@ def _bench(args: argparse.Namespace) -> None:
     model against the plane (forward, derivative, joint fit). With ``--fits``: the fit
     methods' wall time, cold (a fresh process) and warm."""
     from lightfield_jax.app.bench import bench_fits, bench_slab, run_benchmark
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.files import atomic_write_json
 
-    _outputs(files=[args.out], json=[("--out", args.out, "")])
+    check_command_outputs(files=[args.out], json=[("--out", args.out, "")])
     out = Path(args.out)
     if args.fits and args.slab:
         raise ValueError("bench: --fits and --slab are separate benchmarks: give one")
     if args.fits:
-        with _progress(args, "bench", 1) as stage:
+        with command_progress(args, "bench", 1) as stage:
             stage("fit methods, each in a fresh process")
             result = bench_fits(
-                DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: _say(args, m)
+                DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: say(args, m)
             )
         atomic_write_json(out, result)
-        _say(args, f"wrote {_path(out)}")
+        say(args, f"wrote {shown_path(out)}")
         return
     if args.slab:
-        with _progress(args, "bench", 3) as stage:
+        with command_progress(args, "bench", 3) as stage:
             stage("slab vs plane")
             result = bench_slab(
-                repeats=args.repeats or 5, fits=not args.no_fits, progress=lambda m: _say(args, m)
+                repeats=args.repeats or 5, fits=not args.no_fits, progress=lambda m: say(args, m)
             )
         atomic_write_json(out, result)
-        _say(args, f"wrote {_path(out)}")
+        say(args, f"wrote {shown_path(out)}")
         return
     sizes = args.sizes
-    from lightfield_jax.app.memory import check_memory, render_bytes
+    from lightfield_jax.runtime.memory import check_memory, render_bytes
 
     for w, h, n in sizes:
         # value_and_grad keeps the forward pass's fields of its 10 bounces.
         check_memory(render_bytes(10, h, w, n), f"bench --sizes {w}x{h}x{n}")
-    with _progress(args, "bench", len(sizes)) as stage:
+    with command_progress(args, "bench", len(sizes)) as stage:
         names = iter(f"{w}x{h}x{n}" for w, h, n in sizes[1:])
         stage(f"{sizes[0][0]}x{sizes[0][1]}x{sizes[0][2]}")
 
         def report(line: str) -> None:
-            _say(args, line)
+            say(args, line)
             following = next(names, None)
             if following is not None:
                 stage(following)
 
         result = run_benchmark(sizes, args.repeats or 5, progress=report)
     atomic_write_json(out, result)
-    _say(args, f"wrote {_path(out)}")
+    say(args, f"wrote {shown_path(out)}")

@@ -31,10 +31,13 @@ import math
 import os
 import sys
 import threading
+import time
 import types
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
+
+import numpy as np
 
 SCHEDULER_ENV = "LIGHTFIELD_JAX_SCHEDULER"
 MAX_TASKS = 10_000
@@ -139,7 +142,6 @@ def _precision_x64() -> bool:
     """Whether JAX computes in float64 here (the global flag or an ``enable_x64``
     block)."""
     import jax
-    import numpy as np
 
     return jax.dtypes.canonicalize_dtype(np.float64) == np.float64
 
@@ -172,9 +174,9 @@ def _unpickle(payload: bytes):
     for."""
     import cloudpickle
 
-    from lightfield_jax.app.experiment import _SCRIPTS_PACKAGE, load_helper
+    from lightfield_jax.app.experiment import SCRIPTS_PACKAGE, load_helper
 
-    sys.modules.setdefault(_SCRIPTS_PACKAGE, types.ModuleType(_SCRIPTS_PACKAGE))
+    sys.modules.setdefault(SCRIPTS_PACKAGE, types.ModuleType(SCRIPTS_PACKAGE))
     loaded: set[str] = set()
     while True:
         try:
@@ -255,7 +257,6 @@ def run_tasks(
     (stored like a result: a timeout is data to an experiment), or, without
     ``on_timeout``, a failure. A task whose worker died twice, or which raised, is a
     failure (``Report.failures``, one line each), not stored."""
-    import time
 
     check_count(len(tasks), allow_large, what)
     keys = [t.key for t in tasks]
@@ -299,7 +300,7 @@ def _run_pending(client, pending, save, timeout, on_timeout, results, failures, 
     from distributed.client import FutureCancelledError
     from distributed.scheduler import KilledWorker
 
-    from lightfield_jax.app.progress import progress_bar
+    from lightfield_jax.runtime.progress import progress_bar
 
     x64 = _precision_x64()
     futures = {}

@@ -35,21 +35,22 @@ from __future__ import annotations
 import contextlib
 import fnmatch
 import os
+import shutil
 import stat
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-from lightfield_jax.capture.io import (
-    _fsync,
-    _make_file,
-    _reserve,
-    _write_failure,
+from lightfield_jax.capture.io import IMAGE_EXTENSIONS, oiio_name
+from lightfield_jax.files import (
     forget_temporary,
+    fsync_path,
     keep_made_folders,
+    make_file,
     make_folders,
     naming_output,
-    oiio_name,
     remove_made_folders,
+    reserve_temporary,
+    write_failure,
 )
 
 
@@ -81,7 +82,6 @@ def plot_formats() -> tuple[str, ...]:
 
 def _tex_system() -> str | None:
     """The TeX program matplotlib's pgf backend runs, where it is missing."""
-    import shutil
 
     import matplotlib
 
@@ -114,7 +114,6 @@ def check_json_name(given: str, option: str, hint: str = "") -> None:
     """Refuse a JSON output (``option``, e.g. ``--out``) named like an image, an array
     or a figure (``results.png``: the figure was meant, or the file would be misread as
     an image); ``hint`` is added to the message (where the figure goes)."""
-    from lightfield_jax.capture.io import IMAGE_EXTENSIONS
 
     suffix = Path(given).suffix.lower()
     if suffix in IMAGE_EXTENSIONS or suffix.lstrip(".") in plot_formats():
@@ -249,7 +248,7 @@ def _check_writable(path: Path, given: str) -> None:
     if not parent.is_dir():
         raise OutputError(f"{given}: {parent} is not a directory")
     try:
-        probe = _reserve(parent / ".lightfield-jax-probe", _make_file)
+        probe = reserve_temporary(parent / ".lightfield-jax-probe", make_file)
     except OSError as e:
         raise OutputError(f"{given}: cannot write in {parent} ({e.strerror or e})") from None
     forget_temporary(probe)
@@ -272,7 +271,7 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
     def stage(target: str | os.PathLike) -> Path:
         target = Path(target)
         made.extend(make_folders(target.parent))
-        tmp = _reserve(target, _make_file)
+        tmp = reserve_temporary(target, make_file)
         pending.append((tmp, target))
         return tmp
 
@@ -283,13 +282,13 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
         try:
             yield stage
         except OSError as e:  # a writer's failure names its output, not the temporary
-            failure = _write_failure(e, writing())
+            failure = write_failure(e, writing())
             if failure is None:
                 raise
             raise failure from e
         for tmp, target in pending:
             with naming_output(target):
-                _fsync(tmp)
+                fsync_path(tmp)
         for tmp, target in pending:
             os.replace(tmp, target)
             forget_temporary(tmp)
@@ -305,7 +304,34 @@ def staged_files() -> Iterator[Callable[[str | os.PathLike], Path]]:
             remove_made_folders(made)
 
 
+def check_command_outputs(
+    files=(),
+    folders=(),
+    inputs=(),
+    plots=(),
+    folder_names=(),
+    marker=None,
+    writer=None,
+    json=(),
+) -> None:
+    """Check every output of a command before its work (see
+    :func:`~lightfield_jax.app.outputs.check_outputs`); ``plots`` are figures among
+    ``files``, whose format is checked too; ``json``: (option, file, hint) of the JSON
+    files among them, whose names must not be an image's or a figure's;
+    ``folder_names``: the names written into ``folders``; ``marker``: the command's own
+    file (its folders are its own); ``writer``: the command's name where a folder
+    without ``marker`` is the user's."""
+    for plot in plots:
+        check_plot_format(plot)
+    files, folders = [f for f in files if f], [d for d in folders if d]
+    check_outputs(files, folders, inputs, folder_names, marker, writer)
+    for option, given, hint in json:
+        if given:
+            check_json_name(given, option, hint)
+
+
 __all__ = [
+    "check_command_outputs",
     "CAPTURE_MARKER",
     "FOLDER_MARKERS",
     "OutputError",

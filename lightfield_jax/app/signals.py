@@ -7,7 +7,7 @@ waits in the XLA client for the computation to finish, minutes for a fit. Here t
 signal is seen by a watcher thread instead: Python's C-level handler writes the
 signal's number to a pipe (:func:`signal.set_wakeup_fd`) at once, the thread removes
 the command's unpublished temporary files and folders
-(:func:`~lightfield_jax.capture.io.remove_temporaries`) and ends the process with
+(:func:`~lightfield_jax.files.remove_temporaries`) and ends the process with
 :func:`os._exit` (status 130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP, as shells
 report them), which does not wait for the computation. Nothing was published: outputs replace their
 targets only when a command succeeds, so no output is left.
@@ -22,7 +22,7 @@ import sys
 import threading
 from collections.abc import Iterator
 
-from lightfield_jax.capture.io import remove_temporaries
+from lightfield_jax.files import remove_temporaries
 
 # SIGHUP: the terminal went away (an ssh connection dropped); ended like SIGTERM.
 EXIT_STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}

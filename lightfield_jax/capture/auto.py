@@ -7,23 +7,21 @@ import math
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section
 from lightfield_jax.capture.calibration import BlackLevel, estimate_black_level
-from lightfield_jax.capture.detect import (
-    LOW_CONFIDENCE,
-    STRIPED,
-    Geometry,
-    _across_first,
-    _coefficients,
-    detect_geometry,
-    period_contradiction,
-)
+from lightfield_jax.capture.detect import LOW_CONFIDENCE, Geometry, detect_geometry
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import AUTO, dark_level_text
+from lightfield_jax.capture.stripe_phase import (
+    STRIPED,
+    across_first,
+    period_contradiction,
+    stripe_coefficients,
+)
 from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.schema import Section
 
 
-def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
+def detect_capture_geometry(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry:
     """Measure what the capture leaves ``auto`` (see :mod:`lightfield_jax.capture.detect`)."""
     asked = [k for k in ("phases", "entry", "direction_deg") if spec[k] == AUTO]
     asked = (["medium_roi"] if roi == AUTO else []) + [f"pattern.{k}" for k in asked]
@@ -49,8 +47,8 @@ def _detect(top, spec, roi, images, white, *, dark_subtracted: bool) -> Geometry
 DARK_BELOW, DARK_DEPTH = 0.05, 0.05
 
 
-def _check_light(
-    top: _Section,
+def check_light(
+    top: Section,
     images: np.ndarray,
     dark: ImageData | None,
     dark_level: float | np.ndarray | None = None,
@@ -108,7 +106,7 @@ _UNSTRIPED = 0.1
 _SURE_PHASES = 0.8
 
 
-def _check_stripes(
+def check_stripes(
     top, pattern, images, roi, names, phases_from: str, dark_removed: bool, auto=(), notes=None
 ) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
@@ -120,11 +118,11 @@ def _check_stripes(
     measured (see :func:`_check_geometry_seen`, run after the period's check)."""
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
-    stack = _across_first(crop, pattern.entry)
+    stack = across_first(crop, pattern.entry)
     u0 = y0 if pattern.along_x else x0
 
     def amplitude(period):
-        return np.abs(_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
+        return np.abs(stripe_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
     _check_period(top, pattern, stack, u0)
     if len(names) >= 2:
@@ -187,7 +185,7 @@ LIT_OFF = 0.6
 
 def _check_period(top, pattern: Stripes, stack, u0: int) -> None:
     """Refuse a ``pattern.period`` the images' stripes do not have, where they show
-    clear stripes of another period (:func:`~lightfield_jax.capture.detect.other_period`)."""
+    clear stripes of another period (:func:`~lightfield_jax.capture.stripe_phase.other_period`)."""
     if (problem := period_contradiction(stack, u0, pattern.period, pattern.entry)) is not None:
         top.fail("pattern.period", problem)
 
@@ -262,7 +260,7 @@ def _check_geometry_seen(
         )
 
 
-def _estimate_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:
+def estimate_capture_black_level(top, images, pattern: Stripes, mask, frames) -> BlackLevel:
     black, white = frames.get("black_frame"), frames.get("white_frame")
     tiles = sorted(p % pattern.period for p in pattern.phases) == list(range(pattern.period))
     try:

@@ -10,47 +10,51 @@ from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.app.config import _Section
-from lightfield_jax.capture.auto import _check_light
+from lightfield_jax.capture.auto import check_light
 from lightfield_jax.capture.calibration import (
     check_sample_formats,
     drop_constant_alpha,
     sensor_top_code,
 )
-from lightfield_jax.capture.frames import (
-    _aux_frame,
-    _check_not_blank,
-    _distinct_files,
-    _file,
-    _read,
-    _size,
-)
-from lightfield_jax.capture.hdr import (
-    CLIP,
+from lightfield_jax.capture.exposure_checks import (
     EXPOSURE_MISMATCH_FACTOR,
     EXPOSURE_MISMATCH_SHARE,
     EXPOSURE_RATIO_TOLERANCE,
-    RESPONSES,
     bracket_offset,
-    linear_response,
-    merge_bracket,
-    merge_capture,
     mismatch_problem_of,
     pair_statistics,
     ratio_problem_of,
     ratio_within,
 )
+from lightfield_jax.capture.frames import (
+    check_distinct_files,
+    check_not_blank,
+    read_aux_frame,
+    read_frame,
+    resolve_file,
+    size_text,
+)
+from lightfield_jax.capture.hdr import merge_bracket, merge_capture
 from lightfield_jax.capture.io import CaptureError, ImageData
 from lightfield_jax.capture.keys import (
-    _AUX_FRAMES,
-    _dark_level,
-    _positive,
+    AUX_FRAMES,
     check_integer_saturation,
     dark_level_text,
+    read_dark_level,
+    read_positive,
 )
+from lightfield_jax.capture.response import (
+    CLIP,
+    RESPONSES,
+    calibrate_response,
+    linear_response,
+    load_response,
+    srgb_response,
+)
+from lightfield_jax.schema import Section
 
 
-def _brackets(top: _Section, base: Path, channel, notes: list[str]):
+def read_brackets(top: Section, base: Path, channel, notes: list[str]):
     """Exposure brackets merged to linear radiance (:mod:`lightfield_jax.capture.hdr`):
     ``(frames, calibration frames, Brackets)``, one merged frame per shift, the dark
     frame subtracted per exposure before merging (so the calibration frames hold no
@@ -85,8 +89,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
 
     def read(key, file, first=None):
         if first is not None:
-            return _aux_frame(top, key, base, channel, first, value=file)
-        return _read(top, key, _file(top, key, file, base), channel)
+            return read_aux_frame(top, key, base, channel, first, value=file)
+        return read_frame(top, key, resolve_file(top, key, file, base), channel)
 
     shifts = []
     for i, row in enumerate(value):
@@ -103,8 +107,8 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         if f.pixels.shape != first.pixels.shape:
             top.fail(
                 key,
-                f"{f.path.name} is {_size(f)}, but images[0][0] ({first.path.name}) is "
-                f"{_size(first)}; every image must have the same size and channels",
+                f"{f.path.name} is {size_text(f)}, but images[0][0] ({first.path.name}) is "
+                f"{size_text(first)}; every image must have the same size and channels",
             )
     try:
         kept = iter(drop_constant_alpha([f for _, f in listed], notes))
@@ -115,7 +119,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     # shift's image without a word, near 0 where the longer exposures clipped.
     frames = [f for row in shifts for f in row]
     keys = [key for key, _ in listed]
-    _check_not_blank(top, [(k, f.path.name, f.pixels) for k, f in zip(keys, frames, strict=True)])
+    check_not_blank(top, [(k, f.path.name, f.pixels) for k, f in zip(keys, frames, strict=True)])
     bad = {f.path.name: int(np.sum(~np.isfinite(f.pixels))) for f in frames}
     if bad := {name: n for name, n in bad.items() if n}:
         notes.append(
@@ -124,7 +128,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
             "merge (a pixel with no other sample is masked)"
         )
     first = shifts[0][0]
-    for key in _AUX_FRAMES:
+    for key in AUX_FRAMES:
         files = top.get(key, None)
         if files is not None and (not isinstance(files, list) or len(files) != len(times)):
             top.fail(
@@ -132,9 +136,9 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
                 f"with bracketed images give one file per exposure time ({len(times)}), in "
                 f"their order, got {files!r}",
             )
-    _distinct_files(top, base)
+    check_distinct_files(top, base)
     aux: dict[str, list[ImageData] | None] = {}
-    for key in _AUX_FRAMES:
+    for key in AUX_FRAMES:
         files = top.get(key, None)
         aux[key] = (
             None if files is None else [read(f"{key}[{j}]", f, first) for j, f in enumerate(files)]
@@ -156,7 +160,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         )
     levels = (1 << first.bit_depth) if first.is_integer else None
     images = np.stack([[f.pixels for f in row] for row in shifts])  # [P, J, H, W, C]
-    clip = _positive(top, "saturation")
+    clip = read_positive(top, "saturation")
     check_integer_saturation(top, clip, first)
     # 10-14-bit data in 16-bit files: samples rescaled so that the sensor's top code is 1.
     sensor = None
@@ -170,7 +174,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
     response = read_response(top, base, first.channel_names, images, times)
     clip = clip or CLIP
     dark = None if aux["dark_frame"] is None else np.stack([f.pixels for f in aux["dark_frame"]])
-    level = _dark_level(
+    level = read_dark_level(
         top,
         first.bit_depth if first.is_integer else None,
         str(response_key),
@@ -187,7 +191,7 @@ def _brackets(top: _Section, base: Path, channel, notes: list[str]):
         files=[[f.path for f in row] for row in shifts],
     )  # fmt: skip
     frames = [_merged_frame(r, row[-1]) for r, row in zip(radiance, shifts, strict=True)]
-    merged: dict[str, ImageData | None] = dict.fromkeys(_AUX_FRAMES)
+    merged: dict[str, ImageData | None] = dict.fromkeys(AUX_FRAMES)
     for key in ("black_frame", "white_frame", "flat_field"):
         if aux[key] is not None:
             stack = np.stack([f.pixels for f in aux[key]]) / full
@@ -256,7 +260,7 @@ def _check_exposure_ratios(
         if level is not None:
             # A dark_level above the pedestal pushes the dark values below zero, which
             # no exposure predicts: refused as for single exposures, naming dark_level.
-            _check_light(top, bracket - dark, None, level)
+            check_light(top, bracket - dark, None, level)
         cause = _MISMATCH_CAUSE
         p = bracket_offset(bracket, times, response, (j, k), **kw)
         if math.isfinite(p):  # one constant in every value, where it explains them
@@ -312,7 +316,7 @@ def _merged_frame(radiance: np.ndarray, longest: ImageData) -> ImageData:
 EXPOSURE_RANGE = (1e-9, 1e6)
 
 
-def _exposure_times(top: _Section) -> list[float]:
+def _exposure_times(top: Section) -> list[float]:
     value = top.get("exposure_times", None)
     if not isinstance(value, list) or len(value) < 2:
         top.fail(
@@ -335,19 +339,18 @@ def _exposure_times(top: _Section) -> list[float]:
 
 
 def read_response(
-    top: _Section,
+    top: Section,
     base: Path,
     names: Sequence[str],
     images: np.ndarray | None = None,
     times=None,
 ):
     """The inverse response of the ``response`` key: ``linear`` (default), ``srgb``, a
-    table file (:func:`~lightfield_jax.capture.hdr.load_response`) or, for exposure
+    table file (:func:`~lightfield_jax.capture.response.load_response`) or, for exposure
     brackets (``images`` [P, J, H, W, C] and their ``times``), ``auto`` (refused
-    without brackets by :func:`_brackets`)."""
-    from lightfield_jax.capture.hdr import calibrate_response, load_response, srgb_response
+    without brackets by :func:`read_brackets`)."""
 
-    value = top.get("response", "linear")  # a string: checked by _brackets
+    value = top.get("response", "linear")  # a string: checked by read_brackets
     try:
         if value == "linear":
             return linear_response()
@@ -357,6 +360,6 @@ def read_response(
             p, j, h, w, c = images.shape
             pooled = np.moveaxis(images, 1, 0).reshape(j, p * h * w, c)
             return calibrate_response(pooled, times)
-        return load_response(_file(top, "response", value, base), len(names), names)
+        return load_response(resolve_file(top, "response", value, base), len(names), names)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: response: {e}") from None

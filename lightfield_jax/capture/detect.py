@@ -86,11 +86,30 @@ from typing import Any
 
 import numpy as np
 
+from lightfield_jax.capture.detect_roi import (
+    detect_roi,
+    extend_faded,
+    noise_floor,
+    stripe_free_signal,
+)
+from lightfield_jax.capture.stripe_phase import (
+    ACROSS,
+    across_first,
+    direction_from_slope,
+    measured_lit,
+    measured_period,
+    phase_line,
+    points_in,
+    slope_from_direction,
+    stripe_coefficients,
+    stripe_power,
+)
 from lightfield_jax.checks import check_int, check_number, number_problem, real_array, shown
-from lightfield_jax.scene.illumination import WALLS, _check_direction, along_x
+from lightfield_jax.scene.illumination import WALLS, along_x, check_direction
 
 _OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top"}
-_ACROSS = {"left": "rows", "right": "rows", "top": "columns", "bottom": "columns"}
+
+
 LOW_CONFIDENCE = 0.5
 
 
@@ -177,239 +196,8 @@ class Geometry:
         return d
 
 
-# --------------------------------------------------------------------------- helpers
-
-
-def _mad_sigma(values: np.ndarray) -> float:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return 0.0
-    return 1.4826 * float(np.median(np.abs(v - np.median(v))))
-
-
-def _signal(images: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
-    """The unstriped signal S (H, W): the all-white frame, or the mean over the shifts,
-    summed over the channels; non-finite pixels count as 0."""
-    s = np.mean(images, axis=0) if reference is None else reference
-    s = np.where(np.isfinite(s), s, 0.0)
-    return s.sum(axis=-1) if s.ndim == 3 else s
-
-
-def _floor(s: np.ndarray, floor: float | None) -> tuple[float, float]:
-    """(floor, noise) of the signal: the dimmest border band's median (or the given
-    floor) and the noise of that band, from differences between neighbouring pixels
-    along it (so a slow variation, the medium's own light, does not count as noise)."""
-    h, w = s.shape
-    k = max(1, min(2, h // 8, w // 8))
-    bands = [s[:k], s[-k:], s[:, :k].T, s[:, -k:].T]  # each (k, length)
-    dim = min(bands, key=lambda b: float(np.median(b)))
-    level = float(np.median(dim)) if floor is None else float(floor)
-    return level, _mad_sigma(np.diff(dim, axis=1).ravel()) / math.sqrt(2.0)
-
-
-def _edge_kind(s: np.ndarray, region: np.ndarray, roi, side: str, level: float, threshold: float):
-    x0, y0, x1, y1 = roi
-    h, w = s.shape
-    if side == "left":
-        at_frame, inside = x0 == 0, (s[y0:y1, x0], region[y0:y1, x0])
-        outside = None if at_frame else s[y0:y1, x0 - 1]
-    elif side == "right":
-        at_frame, inside = x1 == w, (s[y0:y1, x1 - 1], region[y0:y1, x1 - 1])
-        outside = None if at_frame else s[y0:y1, x1]
-    elif side == "top":
-        at_frame, inside = y0 == 0, (s[y0, x0:x1], region[y0, x0:x1])
-        outside = None if at_frame else s[y0 - 1, x0:x1]
-    else:
-        at_frame, inside = y1 == h, (s[y1 - 1, x0:x1], region[y1 - 1, x0:x1])
-        outside = None if at_frame else s[y1, x0:x1]
-    if at_frame:
-        return "frame"
-    values, lit = inside
-    # The lit part of the band (light may reach only part of a side wall).
-    step = float(np.percentile(values[lit], 90)) if lit.any() else level
-    dark = float(np.percentile(outside[lit], 50)) if lit.any() else math.inf
-    return "wall" if step - level > 4.0 * (threshold - level) and dark <= threshold else "faded"
-
-
-def _detect_roi(s: np.ndarray, floor: float | None):
-    from skimage.measure import label
-    from skimage.morphology import opening
-
-    level, noise = _floor(s, floor)
-    peak = float(np.percentile(s, 99.5))
-    threshold = level + max(8.0 * noise, 2e-3 * (peak - level), np.finfo(float).tiny)
-    lit = s > threshold
-    cleaned = opening(lit, np.ones((3, 3), bool))
-    labels = label(cleaned if cleaned.any() else lit, connectivity=2)
-    if labels.max() == 0:
-        raise ValueError(
-            "detect_geometry: no lit medium found: no pixel stands above the noise floor "
-            f"{level:.4g} (scatter {noise:.3g}) of the images' dimmest border"
-        )
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
-    region = labels == int(np.argmax(sizes))
-    rows, cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
-    roi = (int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1)
-    if roi[2] - roi[0] < 4 or roi[3] - roi[1] < 4:
-        raise ValueError(
-            f"detect_geometry: the lit region {list(roi)} is smaller than 4x4 pixels; "
-            "give medium_roi"
-        )
-    edges = {side: _edge_kind(s, region, roi, side, level, threshold) for side in WALLS}
-    return roi, edges, (level, noise, threshold)
-
-
-def _across_first(a: np.ndarray, entry: str) -> np.ndarray:
-    """(..., H, W) → (..., across, along): the axis along the entry wall first."""
-    return a if _ACROSS[entry] == "rows" else np.swapaxes(a, -1, -2)
-
-
-def _coefficients(a: np.ndarray, u0: int, frequency: float) -> np.ndarray:
-    """Hann-windowed Fourier coefficient at ``frequency`` across axis −2 of a
-    (P, across, along) stack whose first across pixel is u0: (P, along)."""
-    return _spectrum(a, u0, np.array([frequency]), lambda c: c)[0]
-
-
-# Frequencies per matrix product in _spectrum: bounds its (F, P, along) block.
-_SPECTRUM_CHUNK = 32
-
-
-def _spectrum(a: np.ndarray, u0: int, frequencies: np.ndarray, reduce) -> np.ndarray:
-    """``reduce`` of the Hann-windowed Fourier coefficients (F, P, along) at each of
-    ``frequencies`` across axis −2 of a (P, across, along) stack whose first across
-    pixel is u0, stacked over the frequencies: one matrix product per block of
-    frequencies, not a pass over the stack per frequency."""
-    n = a.shape[-2]
-    w = np.hanning(n + 2)[1:-1]
-    u = u0 + np.arange(n) + 0.5
-    mean = np.einsum("u,puj->pj", w, a) / w.sum()
-    p, _, along = a.shape
-    # (across, P·along), windowed: real matrix products with the cosines and sines.
-    centred = (w[:, None] * np.moveaxis(a - mean[:, None, :], 1, 0).reshape(n, -1)).astype(float)
-    out = []
-    for i in range(0, len(frequencies), _SPECTRUM_CHUNK):
-        f = np.asarray(frequencies[i : i + _SPECTRUM_CHUNK], float)
-        phase = 2 * np.pi * f[:, None] * u  # (F, across)
-        c = (np.cos(phase) @ centred) - 1j * (np.sin(phase) @ centred)
-        out.append(reduce(c.reshape(len(f), p, along)))
-    return np.concatenate(out)
-
-
-# Stripe contrast of an image: its Fourier amplitude across the stripes at the period
-# against that at 1.5 times it (not a harmonic of the stripes: noise alone gives about
-# 1, a 24-row crop of rendered stripes about 4, the window's leakage included). Images
-# whose median contrast reaches STRIPED have stripes.
-STRIPED = 2.5
-# A given period contradicts the images where their stripes' strongest period differs
-# from it by more than PERIOD_OFF and the given one's stripe amplitude is below
-# PERIOD_WEAK of that one's (a stripe pattern's harmonics are weaker than its
-# fundamental: a half or a double period has little amplitude; a small capture cannot
-# tell 6 from 8 px apart better than 0.47, measured on 24 rows).
-PERIOD_OFF, PERIOD_WEAK = 0.1, 0.6
-
-
-def other_period(stack: np.ndarray, u0: int, period: float) -> float | None:
-    """The period (px) of the clear stripes of a (P, across, along) stack
-    (:func:`_across_first`, first across pixel u0) where it contradicts the given
-    ``period`` (see PERIOD_OFF), searched between 2 px and a third of the wall;
-    ``None`` where it does not, or where no stripes are clear."""
-    n = stack.shape[-2]
-    longest = n / 3.0
-    if longest <= 2.0:
-        return None
-
-    def amplitude(p):
-        return np.abs(_coefficients(stack, u0, 1.0 / p)).sum(axis=-1)
-
-    frequencies = np.linspace(1.0 / longest, 0.5, 400)
-    periods = 1.0 / frequencies
-    power = np.median(_spectrum(stack, u0, frequencies, lambda c: np.abs(c).sum(axis=-1)), 1)
-    best = float(periods[int(np.argmax(power))])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        seen = np.median(amplitude(best) / amplitude(1.5 * best)) >= STRIPED
-        weak = np.median(amplitude(period)) < PERIOD_WEAK * np.max(power)
-    return best if seen and weak and abs(best / period - 1.0) > PERIOD_OFF else None
-
-
-def period_contradiction(stack: np.ndarray, u0: int, period: int, entry: str) -> str | None:
-    """What to say of a given stripe ``period`` the stack's clear stripes contradict
-    (:func:`other_period`), after its key (``pattern.period``); ``None`` where they do
-    not. The capture file's check and ``fit_images``' say it alike."""
-    best = other_period(stack, u0, period)
-    if best is None:
-        return None
-    return (
-        f"{period} contradicts the images, whose stripes repeat every {best:.2f} px across "
-        f"the {entry} wall (measured); correct it"
-    )
-
-
-def _stripe_power(a: np.ndarray, u0: int, period: float) -> float:
-    return float(np.sum(np.abs(_coefficients(a, u0, 1.0 / period)) ** 2))
-
-
-def _measured_period(a: np.ndarray, u0: int, period: int) -> float:
-    freqs = np.linspace(1.0 / (1.5 * period), 1.5 / period, 301)
-    power = _spectrum(a, u0, freqs, lambda c: np.sum(np.abs(c) ** 2, axis=(1, 2)))
-    return float(1.0 / freqs[int(np.argmax(power))])
-
-
-def _phase_line(c: np.ndarray, x: np.ndarray, slope: float | None):
-    """Common slope k and per-image intercepts α_p of arg c_p(x) ≈ α_p + k·x, weights
-    |c|²; returns (k, stderr of k, α_p, fraction of lines kept)."""
-    weight = np.abs(c) ** 2
-    keep = weight > 1e-6 * weight.max()
-    fixed = slope is not None
-    if not fixed:
-        z = np.sum(c[:, 1:] * np.conj(c[:, :-1]))
-        slope = float(np.angle(z))
-    stderr = 0.0
-    for _ in range(3):
-        detrended = c * np.exp(-1j * slope * x)[None]
-        alpha = np.angle(np.sum(np.where(keep, detrended, 0.0), axis=1))
-        resid = np.angle(detrended * np.exp(-1j * alpha)[:, None])
-        if fixed:
-            break
-        w = np.where(keep, weight, 0.0)
-        sw = w.sum(axis=1, keepdims=True)
-        xm = (w * x).sum(axis=1, keepdims=True) / np.where(sw > 0, sw, 1.0)
-        dx = x[None] - xm
-        den = float(np.sum(w * dx**2))
-        if den <= 0:
-            raise ValueError("detect_geometry: the stripes are not visible along the light")
-        delta = float(np.sum(w * dx * resid)) / den
-        slope += delta
-        e = (resid - delta * dx) * np.sqrt(w)
-        n, p = int(keep.sum()), c.shape[0] + 1
-        s2 = float(np.sum(np.where(keep, e, 0.0) ** 2)) / max(n - p, 1)
-        stderr = math.sqrt(s2 / den)
-        scatter = _mad_sigma(e[keep])
-        if scatter > 0:
-            keep = keep & (np.abs(e) <= 4.0 * scatter)
-    detrended = c * np.exp(-1j * slope * x)[None]
-    alpha = np.angle(np.sum(np.where(keep, detrended, 0.0), axis=1))
-    total = (weight > 1e-6 * weight.max()).sum()
-    return slope, stderr, alpha, float(keep.sum()) / max(int(total), 1)
-
-
-def _direction_from_slope(entry: str, t: float) -> float:
-    a = math.degrees(math.atan(t))
-    return {"left": a, "right": 180.0 + a, "top": 90.0 - a, "bottom": 270.0 - a}[entry]
-
-
-def _slope_from_direction(entry: str, direction_deg: float) -> float:
-    t = math.radians(direction_deg)
-    if _ACROSS[entry] == "rows":
-        return math.tan(t)
-    return math.cos(t) / math.sin(t)
-
-
 def _clip01(v: float) -> float:
     return float(min(max(v, 0.0), 1.0))
-
-
-# --------------------------------------------------------------------------- detection
 
 
 def _checked(images, period, lit, reference, floor, roi, entry, direction_deg):
@@ -489,30 +277,30 @@ def detect_geometry(
     if a.ndim == 4:
         a = np.where(np.isfinite(a), a, 0.0).sum(axis=-1)
     a = np.where(np.isfinite(a), a, 0.0)
-    s = _signal(a, reference)
+    s = stripe_free_signal(a, reference)
     given = []
     if roi is None:
-        roi, edges, (level, noise, threshold) = _detect_roi(s, floor)
+        roi, edges, (level, noise, threshold) = detect_roi(s, floor)
     else:
         given.append("roi")
         roi = tuple(int(v) for v in roi)
         edges = dict.fromkeys(WALLS, "given")
-        level, noise = _floor(s, floor)
+        level, noise = noise_floor(s, floor)
         threshold = math.nan
     x0, y0, x1, y1 = roi
     crop = a[:, y0:y1, x0:x1]
     parts: dict[str, float] = {}
 
     if direction_deg is not None and entry is not None:
-        _check_direction(entry, direction_deg, "pattern")
+        check_direction(entry, direction_deg, "pattern")
     candidates = [entry] if entry is not None else list(WALLS)
     if direction_deg is not None:
-        candidates = [e for e in candidates if _points_in(e, direction_deg)]
-    axes = sorted({_ACROSS[e] for e in candidates})
+        candidates = [e for e in candidates if points_in(e, direction_deg)]
+    axes = sorted({ACROSS[e] for e in candidates})
     power = {}
     for ax in axes:
         stack = crop if ax == "rows" else np.swapaxes(crop, 1, 2)
-        power[ax] = _stripe_power(stack, y0 if ax == "rows" else x0, period)
+        power[ax] = stripe_power(stack, y0 if ax == "rows" else x0, period)
     across = max(power, key=power.get)
     if len(power) == 2:
         weaker = min(power.values()) / max(max(power.values()), np.finfo(float).tiny)
@@ -522,8 +310,8 @@ def detect_geometry(
             f"detect_geometry: no stripes of period {period} px are visible in the ROI "
             f"{list(roi)}; check pattern.period and the images"
         )
-    pair = [e for e in candidates if _ACROSS[e] == across]
-    profile = np.mean(_signal(_across_first(crop, pair[0]), None), axis=0)
+    pair = [e for e in candidates if ACROSS[e] == across]
+    profile = np.mean(stripe_free_signal(across_first(crop, pair[0]), None), axis=0)
     ends = {
         "left": profile[0],
         "top": profile[0],
@@ -541,20 +329,20 @@ def detect_geometry(
         near = [edges[e] for e in WALLS if e != _OPPOSITE[entry]]
         parts["roi"] = _clip01(1.0 - 0.25 * sum(e not in ("wall", "frame") for e in near))
     if direction_deg is not None:
-        _check_direction(entry, direction_deg, "pattern")
+        check_direction(entry, direction_deg, "pattern")
 
-    stack = _across_first(crop, entry)
+    stack = across_first(crop, entry)
     u0, along0 = (y0, x0) if across == "rows" else (x0, y0)
-    c = _coefficients(stack, u0, 1.0 / period)
+    c = stripe_coefficients(stack, u0, 1.0 / period)
     x = along0 + np.arange(stack.shape[-1]) + 0.5
     fixed = None
     if direction_deg is not None:
-        fixed = -2.0 * math.pi * _slope_from_direction(entry, direction_deg) / period
+        fixed = -2.0 * math.pi * slope_from_direction(entry, direction_deg) / period
         given.append("direction")
-    slope, slope_err, alpha, kept = _phase_line(c, x, fixed)
+    slope, slope_err, alpha, kept = phase_line(c, x, fixed)
     t = -slope * period / (2.0 * math.pi)
     if direction_deg is None:
-        direction_deg = _direction_from_slope(entry, t)
+        direction_deg = direction_from_slope(entry, t)
         # d(angle)/d(t) = 1/(1 + t²), in degrees.
         stderr = math.degrees(slope_err * period / (2.0 * math.pi) / (1.0 + t * t))
         parts["direction"] = 1.0 / (1.0 + (stderr / 0.5) ** 2) * _clip01(kept / 0.8)
@@ -567,12 +355,12 @@ def detect_geometry(
     offset = float(np.max(np.abs(raw - whole))) if raw.size else 0.0
     phases = tuple(int(v) % period for v in whole)
     parts["phases"] = _clip01(1.0 - 2.0 * offset)
-    period_px = _measured_period(stack, u0, period)
+    period_px = measured_period(stack, u0, period)
     parts["period"] = _clip01(1.0 - abs(period_px / period - 1.0) / 0.1)
-    lit_px = _measured_lit(stack, entry, period)
+    lit_px = measured_lit(stack, entry, period)
     faded = None
     if "roi" not in given and edges[_OPPOSITE[entry]] == "faded":
-        roi, faded = _extend_faded(s, roi, _OPPOSITE[entry], threshold)
+        roi, faded = extend_faded(s, roi, _OPPOSITE[entry], threshold)
     return Geometry(
         roi=roi,
         entry=entry,
@@ -593,71 +381,8 @@ def detect_geometry(
     )
 
 
-def _measured_lit(stack: np.ndarray, entry: str, period: int) -> float:
-    """Lit width of the stripes along the wall (pixels per period), measured on the
-    lines along the light next to the entry wall, where the direct light keeps the
-    projector's sharp stripes: the fraction of pixels above the midpoint of the local
-    extremes over one period (a sliding window, so a slow variation along the wall
-    does not count), times the period. The line at the wall itself is skipped where
-    there are enough (it may be cut by the wall's edge)."""
-    if entry in ("right", "bottom"):
-        stack = stack[..., ::-1]
-    n = stack.shape[-1]
-    lines = stack[..., 1:4] if n >= 8 else stack[..., : max(1, n // 2)]
-    lines = np.moveaxis(lines, -2, -1)  # (P, lines, across)
-    if lines.shape[-1] < 2 * period + 1:
-        return math.nan
-    window = np.lib.stride_tricks.sliding_window_view(lines, period + 1, axis=-1)
-    middle = 0.5 * (window.max(axis=-1) + window.min(axis=-1))
-    h = period // 2
-    centre = lines[..., h : h + middle.shape[-1]]
-    spread = window.max(axis=-1) - window.min(axis=-1)
-    counted = spread > 0
-    if not counted.any():
-        return math.nan
-    return float(np.mean((centre > middle)[counted]) * period)
-
-
-def _extend_faded(s: np.ndarray, roi, side: str, threshold: float):
-    """The ROI extended beyond a faded ``side`` through the frame while the signal S,
-    averaged across the light over the ROI, stays below the lit threshold."""
-    x0, y0, x1, y1 = roi
-    h, w = s.shape
-    if along_x(side):
-        profile = s[y0:y1].mean(axis=0)
-        start, stop, step = (x1, w, 1) if side == "right" else (x0 - 1, -1, -1)
-    else:
-        profile = s[:, x0:x1].mean(axis=1)
-        start, stop, step = (y1, h, 1) if side == "bottom" else (y0 - 1, -1, -1)
-    end, until = stop, "frame"
-    for i in range(start, stop, step):
-        if profile[i] > threshold:
-            end, until = i, "lit"
-            break
-    edge = end if step > 0 else end + 1  # exclusive on the far side, inclusive on the near
-    at = {"left": x0, "right": x1, "top": y0, "bottom": y1}[side]
-    extended = {
-        "left": (edge, y0, x1, y1),
-        "right": (x0, y0, edge, y1),
-        "top": (x0, edge, x1, y1),
-        "bottom": (x0, y0, x1, edge),
-    }[side]
-    return extended, {"side": side, "at": at, "extended_to": edge, "until": until}
-
-
-def _points_in(entry: str, direction_deg: float) -> bool:
-    try:
-        _check_direction(entry, direction_deg, "pattern")
-    except ValueError:
-        return False
-    return True
-
-
 __all__ = [
-    "Geometry",
     "LOW_CONFIDENCE",
-    "STRIPED",
+    "Geometry",
     "detect_geometry",
-    "other_period",
-    "period_contradiction",
 ]

@@ -21,7 +21,8 @@ import os
 
 import numpy as np
 
-from lightfield_jax.capture.capture import Capture, load_capture
+from lightfield_jax.capture.capture import Capture
+from lightfield_jax.capture.loading import load_capture
 from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.separate import separate
 

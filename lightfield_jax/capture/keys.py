@@ -7,16 +7,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from lightfield_jax.app.config import _REQUIRED, _as_float, _as_int, _at_most, _Section, brief
 from lightfield_jax.capture.detect import Geometry
-from lightfield_jax.capture.io import CaptureError
-from lightfield_jax.scene.geometry import parse_geometry
+from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
+from lightfield_jax.capture.response import RESPONSES
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
 from lightfield_jax.scene.medium import FILE_PHASE, PHASE_CONVENTIONS
+from lightfield_jax.schema import REQUIRED, Section, as_float, as_int, at_most, brief, load_yaml
 
 CAPTURE_KEYS: tuple[str, ...] = (
     "images",
@@ -68,13 +71,13 @@ FIT_KEYS: tuple[str, ...] = (
     *_FIT_BOOLS,
 )
 GEOMETRY_KINDS: tuple[str, ...] = ("plane", "slab")
-_AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
+AUX_FRAMES = ("dark_frame", "black_frame", "white_frame", "flat_field")
 _PATTERN_KEYS = ("period", "lit", "phases", "direction_deg", "entry")
 _TRUTH_FLOATS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 _TRUTH_KEYS = (*_TRUTH_FLOATS, "phase")
 
 
-def _channel(top: _Section) -> str | int | None:
+def read_channel(top: Section) -> str | int | None:
     """The channel selection for read_image: a name, an index, or None for all."""
     value = top.get("channel", "all")
     if isinstance(value, bool) or not isinstance(value, (str, int)) or value == "":
@@ -84,7 +87,7 @@ def _channel(top: _Section) -> str | int | None:
     return None if value == "all" else value
 
 
-def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict[str, Any]:
+def read_pattern_spec(top: Section, n_images: int, height: int, width: int) -> dict[str, Any]:
     """The pattern's keys, validated; ``phases``, ``entry`` and ``direction_deg`` may be
     ``"auto"`` (measured from the images)."""
     s = top.section("pattern", _PATTERN_KEYS)
@@ -115,7 +118,7 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
             s.key("phases"), f"must be a non-empty list of integers or 'auto', got {brief(phases)}"
         )
     else:
-        phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+        phases = [as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
         outside = [p for p in phases if not 0 <= p < spec["period"]]
         if outside:
             s.fail(
@@ -134,11 +137,11 @@ def _pattern_spec(top: _Section, n_images: int, height: int, width: int) -> dict
     )
     spec["entry"] = s.choice("entry", (*WALLS, AUTO), "left")
     # Validate what is given now, before any detection.
-    _stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
+    read_stripes(top, {**spec, "phases": phases if phases != AUTO else [0]}, None, check=True)
     return spec
 
 
-def _stripes(top: _Section, spec: dict[str, Any], detected: Geometry | None, check=False):
+def read_stripes(top: Section, spec: dict[str, Any], detected: Geometry | None, check=False):
     """The Stripes of a pattern spec, ``auto`` values taken from ``detected``."""
 
     def pick(key, measured):
@@ -170,14 +173,14 @@ def _any_wall(direction_deg: float) -> str:
     return "top" if s > 0 else "bottom"
 
 
-def _crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
+def crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
     """The pattern with wall cells counted from the ROI's edge instead of the frame's."""
     offset = y0 if pattern.along_x else x0
     phases = tuple((p + offset) % pattern.period for p in pattern.phases)
     return dataclasses.replace(pattern, phases=phases)
 
 
-def _black_level(top: _Section) -> float | str | None:
+def read_black_level(top: Section) -> float | str | None:
     if top.get("black_level", None) == AUTO:
         return AUTO
     value = top.float("black_level", None)
@@ -186,8 +189,8 @@ def _black_level(top: _Section) -> float | str | None:
     return value
 
 
-def _dark_level(
-    top: _Section, integer_bits: int | None, response: str, channels: tuple[str, ...] = ()
+def read_dark_level(
+    top: Section, integer_bits: int | None, response: str, channels: tuple[str, ...] = ()
 ) -> float | np.ndarray | None:
     """``dark_level``: the camera's constant black offset (a pedestal), in the images'
     values after integer scaling (``integer_bits``: the files' bits, ``None`` for float
@@ -216,7 +219,7 @@ def _dark_level(
                 f"{', '.join(channels)}, or one value for all)",
             )
         keys = [f"dark_level.{c}" for c in channels]
-        levels = [_as_float(top, k, given[c]) for k, c in zip(keys, channels, strict=True)]
+        levels = [as_float(top, k, given[c]) for k, c in zip(keys, channels, strict=True)]
     elif isinstance(given, list):
         top.fail(
             "dark_level",
@@ -230,7 +233,7 @@ def _dark_level(
             top.fail(key, f"must be a finite value >= 0, got {brief(value)}")
         # Bounded: 1e300 would overflow the float32 images to -Inf (a numpy warning and
         # "no direct light at the entry wall", exit 1), past the pedestal check.
-        _at_most(top, key, value)
+        at_most(top, key, value)
         if integer_bits is not None and value >= 1:
             top_code = (1 << integer_bits) - 1
             top.fail(
@@ -257,7 +260,7 @@ def dark_level_text(level: float | np.ndarray) -> str:
     return "[" + ", ".join(f"{float(v):.6g}" for v in level) + "]"
 
 
-def _roi(top: _Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
+def read_roi(top: Section, width: int, height: int) -> tuple[int, int, int, int] | str | None:
     value = top.get("medium_roi", None)
     if value is None or value == AUTO:
         return value
@@ -304,16 +307,16 @@ def check_pixel_size(value, key: str = "pixel_size_mm") -> None:
         raise ValueError(f"{key}: {problem}")
 
 
-def _positive(top: _Section, key: str) -> float | None:
+def read_positive(top: Section, key: str) -> float | None:
     value = top.float(key, None)
     if value is not None and value <= 0:
         top.fail(key, f"must be > 0, got {brief(value)}")
     if value is not None:
-        _at_most(top, key, value)
+        at_most(top, key, value)
     return value
 
 
-def check_integer_saturation(top: _Section, value: float | None, frame) -> None:
+def check_integer_saturation(top: Section, value: float | None, frame) -> None:
     """``saturation`` above 1 with integer images (``frame``), whose samples are scaled
     to [0, 1], would mask nothing: a threshold given in codes (65000 of 65535) kept
     every clipped value in the fit, without a word."""
@@ -332,7 +335,7 @@ def check_integer_saturation(top: _Section, value: float | None, frame) -> None:
         )
 
 
-def _geometry(top: _Section) -> dict[str, Any]:
+def read_geometry(top: Section) -> dict[str, Any]:
     """The model geometry: ``{kind: plane}`` (default) or a slab (docs/model.md §7)."""
     if "geometry" not in top.data:
         return {"kind": "plane"}
@@ -342,7 +345,7 @@ def _geometry(top: _Section) -> dict[str, Any]:
         raise top.error(f"{top.source}: {err}") from None
 
 
-def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
+def read_fit_options(top: Section, key: str = "fit") -> dict[str, Any]:
     """The ``fit:`` mapping (at ``key``): FitOptions fields (:data:`FIT_KEYS`), each
     checked for its type, then together by FitOptions itself (ranges), before any image
     is read."""
@@ -356,9 +359,9 @@ def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
     for k in s.data:
         value = s.data[k]
         if k in _FIT_INTS or k in _FIT_OPTIONAL_INTS:
-            out[k] = s.int(k, None if k in _FIT_OPTIONAL_INTS else _REQUIRED)
+            out[k] = s.int(k, None if k in _FIT_OPTIONAL_INTS else REQUIRED)
         elif k in _FIT_FLOATS or k in _FIT_OPTIONAL_FLOATS:
-            out[k] = s.float(k, None if k in _FIT_OPTIONAL_FLOATS else _REQUIRED)
+            out[k] = s.float(k, None if k in _FIT_OPTIONAL_FLOATS else REQUIRED)
         elif k in _FIT_BOOLS:
             if not isinstance(value, bool):
                 s.fail(s.key(k), f"must be true or false, got {brief(value)}")
@@ -372,7 +375,7 @@ def _fit_options(top: _Section, key: str = "fit") -> dict[str, Any]:
         else:  # start: [sigma_s, g]
             if not (isinstance(value, list) and len(value) == 2):
                 s.fail(s.key(k), f"must be [sigma_s, g], got {brief(value)}")
-            out[k] = tuple(_as_float(s, s.key(k), v) for v in value)
+            out[k] = tuple(as_float(s, s.key(k), v) for v in value)
     try:
         FitOptions(**out)
     except ValueError as err:
@@ -386,14 +389,14 @@ def fit_phase(capture) -> str:
     return (getattr(capture, "fit_options", None) or {}).get("phase", FILE_PHASE)
 
 
-def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
+def read_truth(top: Section, n_channels: int = 1) -> dict[str, Any] | None:
     """The ``truth`` section: each number, or a list of one per channel (an RGB
     capture's media differ by channel), checked in its range."""
     if "truth" not in top.data:
         return None
     if isinstance(top.data["truth"], list):
         data = {**top.data, "truth": _by_key(top, n_channels)}
-        top = _Section(top.source, top.path, data, None, error=top.error)
+        top = Section(top.source, top.path, data, None, error=top.error)
     s = top.section("truth", _TRUTH_KEYS)
     truth: dict[str, Any] = {}
     for k in _TRUTH_FLOATS:
@@ -406,7 +409,7 @@ def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
                     s.key(k),
                     f"a list gives one value per channel: {n_channels} here, got {len(value)}",
                 )
-            truth[k] = [_as_float(s, f"{s.key(k)}[{i}]", v) for i, v in enumerate(value)]
+            truth[k] = [as_float(s, f"{s.key(k)}[{i}]", v) for i, v in enumerate(value)]
         else:
             truth[k] = s.float(k)
     for c in range(n_channels):
@@ -416,9 +419,9 @@ def _truth(top: _Section, n_channels: int = 1) -> dict[str, Any] | None:
     return truth
 
 
-def _by_key(top: _Section, n_channels: int) -> dict[str, Any]:
+def _by_key(top: Section, n_channels: int) -> dict[str, Any]:
     """``truth`` given as a list of one mapping per channel, as the mapping of lists
-    :func:`_truth` reads (``truth: [{sigma_t: .2, g: .8}, ...]`` for R, G, B)."""
+    :func:`read_truth` reads (``truth: [{sigma_t: .2, g: .8}, ...]`` for R, G, B)."""
     given = top.data["truth"]
     key = top.key("truth")
     if len(given) != n_channels:
@@ -448,7 +451,7 @@ def truth_for(truth: dict[str, Any] | None, channel: int) -> dict[str, Any] | No
     return {k: v[channel] if isinstance(v, list) else v for k, v in truth.items()}
 
 
-def _check_truth(s: _Section, truth: dict[str, Any]) -> None:
+def _check_truth(s: Section, truth: dict[str, Any]) -> None:
     """The ranges of a medium (a report compares the fit with these)."""
     t, v = truth.get("sigma_t"), truth.get("sigma_s")
     if t is not None and t <= 0:
@@ -462,3 +465,23 @@ def _check_truth(s: _Section, truth: dict[str, Any]) -> None:
         s.fail(s.key("gain"), f"must be > 0, got {truth['gain']!r}")
     if "black_level" in truth and not 0 <= truth["black_level"] < 1:
         s.fail(s.key("black_level"), f"must lie in [0, 1), got {truth['black_level']!r}")
+
+
+def capture_files(path: str | os.PathLike) -> list[Path]:
+    """The capture file and every file it lists (images, calibration frames), from the
+    YAML alone: the inputs an output must not replace. Values that are not file names
+    are skipped (:func:`~lightfield_jax.capture.loading.load_capture` reports them)."""
+    path = Path(path)
+    data = load_yaml(path, CaptureError, CaptureFileNotFoundError)
+    if not isinstance(data, dict):
+        return [path]
+
+    def names(value) -> list:  # a file, a list of files, or brackets (lists of lists)
+        if isinstance(value, list):
+            return [name for v in value for name in names(v)]
+        return [value]
+
+    listed = names(data.get("images")) + names([data.get(key) for key in AUX_FRAMES])
+    if data.get("response") not in RESPONSES:
+        listed.append(data.get("response"))
+    return [path] + [path.parent / v for v in listed if isinstance(v, str) and v]

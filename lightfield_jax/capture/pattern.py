@@ -24,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lightfield_jax.app.memory import check_memory
-from lightfield_jax.capture.io import atomic_write_text, write_png
+from lightfield_jax.capture.image_write import write_png
+from lightfield_jax.files import atomic_write_text
+from lightfield_jax.runtime.memory import check_memory
 
 ORIENTATIONS: tuple[str, ...] = ("rows", "columns")
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from lightfield_jax.checks import gain_problem, one_path_part, shown
 from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
-from lightfield_jax.scene.geometry import parse_fitted_geometry
+from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 from lightfield_jax.scene.medium import Medium
@@ -47,8 +47,8 @@ def render_transport(
 ) -> tuple[RenderResult, list[str]]:
     """Per-bounce images and (memory allowing) light fields of a scene; notes say what
     was left out. A render estimated to need more memory than the limit is refused
-    (:func:`~lightfield_jax.app.memory.check_memory`, naming ``what``)."""
-    from lightfield_jax.app.memory import check_memory, scene_render_bytes
+    (:func:`~lightfield_jax.runtime.memory.check_memory`, naming ``what``)."""
+    from lightfield_jax.runtime.memory import check_memory, scene_render_bytes
 
     resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces)
@@ -68,7 +68,8 @@ def write_transport(result: RenderResult, folder: Path, compact: bool = False) -
     """``bounces.npy``/``bounces.exr`` (I_1..I_K) and ``lightfield.npy`` (L_0..L_K);
     ``compact``: ``bounces.npy`` only (the EXR repeats it, the light fields are most of
     the bytes: 104 MB for a 128x96 render of 238 bounces)."""
-    from lightfield_jax.capture.io import atomic_write_npy, write_exr
+    from lightfield_jax.capture.image_write import write_exr
+    from lightfield_jax.files import atomic_write_npy
 
     images = np.asarray(result.images, np.float32)
     atomic_write_npy(folder / "bounces.npy", images)
@@ -180,7 +181,7 @@ def unconverged_fit(fit: dict[str, Any]) -> str | None:
 def _results_text(source: Path) -> str:
     """The text of a results file, refused before the read where it is no regular file
     (a FIFO would block the read forever)."""
-    from lightfield_jax.capture.io import require_regular_file
+    from lightfield_jax.files import require_regular_file
 
     require_regular_file(source, "a results file", ValueError)
     size = os.path.getsize(source)
@@ -253,7 +254,7 @@ def render_inputs(data: dict[str, Any], source: Path) -> list[Path]:
     """The capture file that the results ``data`` (read from ``source``) name and every
     file it lists (the inputs render's outputs must not replace); none for results or a
     capture that :func:`render_results` cannot use (it says why)."""
-    from lightfield_jax.capture.capture import capture_files
+    from lightfield_jax.capture.keys import capture_files
 
     try:
         return capture_files(_capture_path(data, source))
@@ -276,8 +277,8 @@ def render_results(
     there are several): the files written and notes.
     ``warn`` is told at once of a channel whose fit did not converge (rendered all
     the same; its ``render.json`` says so)."""
-    from lightfield_jax.capture.capture import load_capture
-    from lightfield_jax.capture.io import atomic_write_json
+    from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.files import atomic_write_json
 
     channels = _channel_results(data, source)
     capture_path = _capture_path(data, source)

@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from lightfield_jax.capture.io import atomic_write_text
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import check_number, shown
+from lightfield_jax.files import atomic_write_text
 from lightfield_jax.scene.geometry import Plane, Slab
 from lightfield_jax.scene.illumination import Stripes
 

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.app.memory import check_memory, render_bytes, scene_render_bytes
 from lightfield_jax.checks import (
     check_flag,
     check_int,
@@ -36,8 +35,10 @@ from lightfield_jax.forward.base import (
     trace_count,
 )
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer, coarse_plane_grid
+from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
-from lightfield_jax.scene.geometry import as_geometry
+from lightfield_jax.runtime.memory import check_memory, render_bytes, scene_render_bytes
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
 from lightfield_jax.scene.medium import Medium, bounces_for_tolerance
@@ -112,6 +113,32 @@ def check_scene(where: str, grid, illumination) -> None:
         raise ValueError(f"{where}: illumination.period: {problem}")
 
 
+def geometry_renderer(
+    geometry: Plane | Slab,
+    grid: Grid,
+    illumination: Illumination,
+    bounces: int,
+    phase: str,
+    *,
+    tail: str | None = None,
+    tail_tol: float = 1e-4,
+    tail_max_steps: int = 500,
+    coarse_after: int | None = None,
+) -> AbstractRenderer:
+    """The compiled forward model of a geometry (``grid``, and a slab's ``n_mu`` and
+    ``n_z``, resolved): a :class:`PlaneRenderer` for a :class:`~lightfield_jax.Plane`,
+    a :class:`~lightfield_jax.SlabRenderer` for a :class:`~lightfield_jax.Slab`. The
+    scene's geometry is data; the forward layer builds its renderer."""
+    options = dict(
+        tail=tail, tail_tol=tail_tol, tail_max_steps=tail_max_steps, coarse_after=coarse_after
+    )
+    if isinstance(geometry, Slab):
+        return SlabRenderer(grid, illumination, bounces, geometry, phase, **options)
+    if isinstance(geometry, Plane):
+        return PlaneRenderer(grid, illumination, bounces, phase, **options)
+    raise ValueError(f"geometry: must be None, a Plane or a Slab to render, got {geometry!r}")
+
+
 def make_renderer(
     grid: Grid,
     illumination: Illumination,
@@ -124,8 +151,8 @@ def make_renderer(
     tail_max_steps: int = 500,
     coarse_after: int | None = None,
 ) -> AbstractRenderer:
-    """The compiled forward model of a scene, the geometry's own renderer
-    (:meth:`~lightfield_jax.Plane.renderer`): a :class:`Renderer` for the plane (the
+    """The compiled forward model of a scene, built by
+    :func:`geometry_renderer`: a :class:`Renderer` for the plane (the
     paper's 2-D model, ``geometry`` ``None`` or :class:`~lightfield_jax.Plane`) or a
     :class:`~lightfield_jax.SlabRenderer` for a :class:`~lightfield_jax.Slab`. Both
     have the same call signature and outputs; ``grid`` (and the slab's ``n_mu``,
@@ -135,7 +162,7 @@ def make_renderer(
 
     The arguments are checked before the renderer's tables are built (ValueError: a
     grid or illumination of another type, stripes longer than the grid, or tables
-    beyond the memory limit of :mod:`lightfield_jax.app.memory`)."""
+    beyond the memory limit of :mod:`lightfield_jax.runtime.memory`)."""
     check_scene("make_renderer", grid, illumination)
     geometry = as_geometry(geometry)
     counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)
@@ -156,7 +183,8 @@ def make_renderer(
             f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
             f"refine {grid.refine}, {bounces} bounces, {illumination.n_patterns} patterns)",
         )
-    return geometry.renderer(
+    return geometry_renderer(
+        geometry,
         grid,
         illumination,
         bounces,
@@ -182,7 +210,8 @@ def renderer_for(
 ) -> AbstractRenderer:
     """A cached renderer (its tables are built once per static configuration; not
     checked as :func:`make_renderer`'s arguments are: the fit sizes its own models)."""
-    return as_geometry(geometry).renderer(
+    return geometry_renderer(
+        as_geometry(geometry),
         grid,
         illumination,
         bounces,
@@ -400,6 +429,7 @@ __all__ = [
     "TailNotConvergedWarning",
     "Renderer",
     "RenderResult",
+    "geometry_renderer",
     "make_renderer",
     "render",
     "renderer_for",

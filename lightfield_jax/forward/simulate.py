@@ -2,7 +2,7 @@
 
 :func:`simulate_capture` renders the per-bounce images of a config and turns them into
 captured images: gain c, the projector's black level b (stripes), the camera's dark
-level and noise (see :mod:`lightfield_jax.app.config` for the keys).
+level and noise (see :mod:`lightfield_jax.forward.simulate_config` for the keys).
 :func:`write_simulation` writes the result into a folder (the ``simulate`` command).
 
 Per-bounce images are noise-free and exclude the dark level; they include the gain
@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.app.config import SimulationConfig, load_simulation_config
-from lightfield_jax.app.memory import check_memory, scene_render_bytes
-from lightfield_jax.app.progress import Stage, quiet
-from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.checks import check_flag
 from lightfield_jax.forward.render import RenderResult, render
+from lightfield_jax.forward.simulate_config import SimulationConfig, load_simulation_config
+from lightfield_jax.runtime.memory import check_memory, scene_render_bytes
+from lightfield_jax.runtime.progress import Stage, quiet
+from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.illumination import Full, Stripes
 
 _VERSIONED = ("jax", "jaxlib", "equinox", "optimistix", "numpy", "lightfield_jax")
@@ -169,7 +169,7 @@ def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: S
 
 def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
-    :func:`~lightfield_jax.app.memory.render_bytes`), from the sizes alone."""
+    :func:`~lightfield_jax.runtime.memory.render_bytes`), from the sizes alone."""
     grid = config.grid.resolve(config.medium.g)
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
     return scene_render_bytes(patterns, grid, config.geometry, config.medium, k, lightfield)
@@ -277,7 +277,7 @@ def write_simulation(
     of a 128x96 capture of 238 bounces), only what a fit reads and ``metadata.json``.
 
     Not atomic by itself: callers stage the folder with
-    :func:`~lightfield_jax.capture.io.atomic_directory`. Returns file name → description (also
+    :func:`~lightfield_jax.files.atomic_directory`. Returns file name → description (also
     recorded in ``metadata.json``). The files:
 
     - ``bounces.npy``: float32 per-bounce images, [K, H, W] (index k−1 holds I_k), or
@@ -293,8 +293,9 @@ def write_simulation(
     - ``metadata.json``: :meth:`SimulatedCapture.metadata`, the file list and
       ``extra_metadata``.
     """
-    from lightfield_jax.capture.capture import write_capture_yaml
-    from lightfield_jax.capture.io import atomic_write_json, atomic_write_npy, write_exr
+    from lightfield_jax.capture.image_write import write_exr
+    from lightfield_jax.capture.write import write_capture_yaml
+    from lightfield_jax.files import atomic_write_json, atomic_write_npy
 
     folder = Path(folder)
     k = sim.n_bounces

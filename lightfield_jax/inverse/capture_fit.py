@@ -19,7 +19,8 @@ from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.methods import FitMethod
 from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
 from lightfield_jax.inverse.options import FitOptions, FitResult, check_options, check_progress
-from lightfield_jax.scene.geometry import as_geometry, parse_geometry
+from lightfield_jax.scene.geometry import as_geometry
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
 
 
@@ -128,7 +129,7 @@ def fit_capture(
             f"got {shown(channels)}"
         )
     if isinstance(capture, (str, os.PathLike)):
-        from lightfield_jax.capture.capture import load_capture
+        from lightfield_jax.capture.loading import load_capture
 
         capture = load_capture(capture)
     elif not hasattr(capture, "channel_names"):

@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.capture.detect import _across_first, period_contradiction
+from lightfield_jax.capture.stripe_phase import across_first as _across_first
+from lightfield_jax.capture.stripe_phase import period_contradiction
 from lightfield_jax.checks import (
     as_array,
     check_float_range,

@@ -47,12 +47,18 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from lightfield_jax.checks import check_float_range, check_number, masked_to_nan, number_problem
 from lightfield_jax.inverse.separate import real_dtype
 from lightfield_jax.scene.illumination import (
-    _INWARD_DEG,
+    INWARD_DEG as _INWARD_DEG,
+)
+from lightfield_jax.scene.illumination import (
     WALLS,
     Wall,
-    _check_direction,
-    _direction,
     along_x,
+)
+from lightfield_jax.scene.illumination import (
+    check_direction as _check_direction,
+)
+from lightfield_jax.scene.illumination import (
+    checked_direction as _direction,
 )
 from lightfield_jax.scene.medium import _is_concrete
 

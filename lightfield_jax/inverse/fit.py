@@ -47,7 +47,6 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lightfield_jax.app.memory import check_memory, fit_memory
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
@@ -66,9 +65,12 @@ from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import forget_if_crowded, repairing_compilation_cache
 from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
-from lightfield_jax.scene.geometry import AutoGeometry, as_geometry, parse_fitted_geometry
+from lightfield_jax.runtime.memory import check_memory, fit_memory
+from lightfield_jax.scene.geometry import AutoGeometry, as_geometry
+from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import _INWARD_DEG, Stripes
+from lightfield_jax.scene.illumination import INWARD_DEG as _INWARD_DEG
+from lightfield_jax.scene.illumination import Stripes
 
 
 def fit_images(

@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.inverse.basins import Scan, basin_of, nearest_point, worse_basin
 from lightfield_jax.inverse.correction import correct, projected
 from lightfield_jax.inverse.data import FitData as _Data
@@ -64,6 +63,7 @@ from lightfield_jax.inverse.trust import (
     tail_unconverged,
     untrustworthy,
 )
+from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.grid import REFINE_LIMIT, default_refine
 from lightfield_jax.scene.medium import bounces_for_tolerance
 

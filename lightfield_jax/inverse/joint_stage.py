@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.forward.cell import cell_problem, cell_renderer_for
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.basins import Scan, basins, scan
@@ -35,6 +34,7 @@ from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, _Model, _phase_integral
 from lightfield_jax.inverse.trust import noise_scale, scaled_lstsq
 from lightfield_jax.inverse.two_step import full_for as _full_for
+from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:

@@ -150,7 +150,7 @@ def _beam_wall(beam: Beam, width: int, height: int) -> str:
     )
 
 
-def _source(illumination, width: int, height: int) -> _Source:
+def wall_source(illumination, width: int, height: int) -> _Source:
     if isinstance(illumination, Beam):
         wall = _beam_wall(illumination, width, height)
     elif isinstance(illumination, (Stripes, Full)):
@@ -180,7 +180,7 @@ def _source(illumination, width: int, height: int) -> _Source:
     return _Source(wall, theta0, 0.0, extent, power, period, lit, input_power)
 
 
-def _distance_to_wall(x, y, c, s, width: int, height: int) -> np.ndarray:
+def distance_to_wall(x, y, c, s, width: int, height: int) -> np.ndarray:
     """Distance from (x, y) along (c, s) to the rectangle's boundary."""
     with np.errstate(divide="ignore", invalid="ignore"):
         dx = np.where(c > 0, (width - x) / c, np.where(c < 0, -x / c, np.inf))
@@ -188,11 +188,11 @@ def _distance_to_wall(x, y, c, s, width: int, height: int) -> np.ndarray:
     return np.maximum(np.minimum(dx, dy), 0.0)
 
 
-def _pixel(p: np.ndarray, n: int) -> np.ndarray:
+def pixel_index(p: np.ndarray, n: int) -> np.ndarray:
     return np.clip(np.floor(p).astype(np.int64), 0, n - 1)
 
 
-def _add(tally: np.ndarray, pixel: np.ndarray, score: np.ndarray) -> None:
+def add_tally(tally: np.ndarray, pixel: np.ndarray, score: np.ndarray) -> None:
     """Add per-photon scores to the flat tallies: Σ X, Σ X², number of X > 0."""
     size = tally.shape[1]
     tally[0] += np.bincount(pixel, score, minlength=size)
@@ -204,12 +204,12 @@ def _tally_tracks(x, y, c, s, length, score, slot, width, height, tally) -> None
     """Add score × (length inside pixel) of each segment to every pixel it crosses.
 
     ``slot`` is the offset of the segment's image in the flat ``tally`` (see
-    :func:`_add`). Vectorised Amanatides–Woo traversal: one loop step moves every
+    :func:`add_tally`). Vectorised Amanatides–Woo traversal: one loop step moves every
     unfinished segment into its next pixel.
     """
     # A start on a grid line may pick the cell behind it: its piece is then empty.
-    ix = _pixel(x, width)
-    iy = _pixel(y, height)
+    ix = pixel_index(x, width)
+    iy = pixel_index(y, height)
     step_x = np.where(c > 0, 1, -1)
     step_y = np.where(s > 0, 1, -1)
     t = np.zeros_like(length)
@@ -225,7 +225,7 @@ def _tally_tracks(x, y, c, s, length, score, slot, width, height, tally) -> None
         t_next = np.minimum(np.minimum(tx, ty), length)
         piece = score * (t_next - t)
         pixel = slot + np.clip(iy, 0, height - 1) * width + np.clip(ix, 0, width - 1)
-        _add(tally, pixel, piece)
+        add_tally(tally, pixel, piece)
         go = t_next < length
         move_x = tx <= ty
         ix = np.where(move_x, ix + step_x, ix)
@@ -243,7 +243,7 @@ def _sample_deflection(rng, n: int, nodes: np.ndarray, cdf: np.ndarray) -> np.nd
     return np.interp(rng.random(n), cdf, nodes)
 
 
-def _launch(src: _Source, n: int, width: int, height: int, rng: np.random.Generator):
+def launch_photons(src: _Source, n: int, width: int, height: int, rng: np.random.Generator):
     u = src.lo + (src.hi - src.lo) * rng.random(n)
     klass = np.mod(np.floor(u).astype(np.int64), src.period)
     if src.wall == "left":
@@ -257,12 +257,12 @@ def _launch(src: _Source, n: int, width: int, height: int, rng: np.random.Genera
     return x, y, klass
 
 
-def _positive_int(name: str, v) -> None:
+def positive_int(name: str, v) -> None:
     if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
         raise ValueError(f"{name}: must be a positive integer, got {v!r}")
 
 
-def _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch) -> None:
+def check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch) -> None:
     """The checks both oracles share: positive integer sizes and counts, the medium."""
     for name, v in (
         ("width", width),
@@ -271,7 +271,7 @@ def _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch) ->
         ("photons", photons),
         ("batch", batch),
     ):
-        _positive_int(name, v)
+        positive_int(name, v)
     if not (math.isfinite(sigma_t) and sigma_t > 0):
         raise ValueError(f"sigma_t: must be finite and > 0 per pixel, got {sigma_t!r}")
     if not (0 <= sigma_s <= sigma_t):
@@ -281,7 +281,7 @@ def _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch) ->
 
 
 def _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator):
-    _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
+    check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
     if phase not in ("paper", "normalized"):
         raise ValueError(f"phase: must be 'paper' or 'normalized', got {phase!r}")
     if estimator not in ("track", "collision"):
@@ -322,7 +322,7 @@ def monte_carlo_render(
     section 2), but every single I_k is still finite and is what this returns.
     """
     _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator)
-    src = _source(illumination, width, height)
+    src = wall_source(illumination, width, height)
     nodes, cdf, a_g = _phase_table(g)
     factor = sigma_s / sigma_t * (a_g if phase == "paper" else 1.0)
     camera = sigma_s * float(phase_function(math.pi / 2, g))
@@ -335,12 +335,12 @@ def monte_carlo_render(
     while done < photons:
         n = min(batch, photons - done)
         done += n
-        x, y, klass = _launch(src, n, width, height, rng)
+        x, y, klass = launch_photons(src, n, width, height, rng)
         theta = np.full(n, src.theta0)
         w = np.ones(n)
         for j in range(bounces):  # flight j carries light scattered exactly j times
             c, s = np.cos(theta), np.sin(theta)
-            d = _distance_to_wall(x, y, c, s, width, height)
+            d = distance_to_wall(x, y, c, s, width, height)
             t = rng.standard_exponential(x.size) / sigma_t
             hit = t < d
             slot = j * n_slots + klass * n_px
@@ -350,8 +350,8 @@ def monte_carlo_render(
             else:
                 xc, yc = x[hit] + t[hit] * c[hit], y[hit] + t[hit] * s[hit]
                 score = w[hit] * camera / sigma_t
-                pixel = slot[hit] + _pixel(yc, height) * width + _pixel(xc, width)
-                _add(tally, pixel, score)
+                pixel = slot[hit] + pixel_index(yc, height) * width + pixel_index(xc, width)
+                add_tally(tally, pixel, score)
             escaped[j] += np.bincount(klass[~hit], w[~hit], minlength=src.period)
             if j + 1 == bounces:
                 break

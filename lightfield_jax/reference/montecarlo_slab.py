@@ -2,7 +2,7 @@
 
 Like :mod:`lightfield_jax.reference.montecarlo` (the 2-D oracle) this is plain numpy and shares
 no code with any propagator. It reuses the 2-D oracle's launch geometry along the entry
-wall (``_source``, ``_launch``), side-wall distance and tally helpers, which are
+wall (``wall_source``, ``launch_photons``), side-wall distance and tally helpers, which are
 themselves independent of the propagators.
 
 The medium. It fills [0, W] × [0, H] × [0, h] (pixels; x right, y down as in the image
@@ -79,14 +79,14 @@ from typing import Literal
 import numpy as np
 
 from lightfield_jax.reference.montecarlo import (
-    _add,
-    _check_scene,
-    _distance_to_wall,
-    _launch,
-    _pixel,
-    _positive_int,
-    _source,
+    add_tally,
+    check_scene,
+    distance_to_wall,
+    launch_photons,
     phase_function,
+    pixel_index,
+    positive_int,
+    wall_source,
 )
 from lightfield_jax.scene.geometry import fresnel_reflectance
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
@@ -230,7 +230,7 @@ def _fly(slab: _Slab, pos, u, w, free, klass, escaped, escaped_faces):
     period = escaped.size
     while active.size:
         p, d, t = pos[:, active], u[:, active], free[active]
-        side = _distance_to_wall(p[0], p[1], d[0], d[1], slab.width, slab.height)
+        side = distance_to_wall(p[0], p[1], d[0], d[1], slab.width, slab.height)
         face = _distance_to_face(p[2], d[2], slab.thickness)
         ends = t < np.minimum(side, face)
         stop = active[ends]
@@ -262,7 +262,7 @@ def _fly(slab: _Slab, pos, u, w, free, klass, escaped, escaped_faces):
 
 
 def _check(width, height, thickness, sigma_t, sigma_s, g, bounces, boundary, n, photons, batch):
-    _check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
+    check_scene(width, height, sigma_t, sigma_s, g, bounces, photons, batch)
     if not (math.isfinite(thickness) and thickness > 0):
         raise ValueError(f"thickness: must be finite and > 0 pixels, got {thickness!r}")
     if boundary not in ("absorbing", "refractive"):
@@ -323,11 +323,11 @@ def monte_carlo_slab(
     """
     _check(width, height, thickness, sigma_t, sigma_s, g, bounces, boundary, n, photons, batch)
     if depth_layers is not None:
-        _positive_int("depth_layers", depth_layers)
+        positive_int("depth_layers", depth_layers)
     if not 0.0 <= camera_sampling < 1.0:
         raise ValueError(f"camera_sampling: must be in [0, 1), got {camera_sampling!r}")
     slab = _Slab(width, height, float(thickness), boundary, float(n))
-    src = _source(illumination, width, height)
+    src = wall_source(illumination, width, height)
     power = src.power * slab.thickness
     albedo = sigma_s / sigma_t
     camera = albedo * _camera_transmission(boundary, n)  # × p(μ_in) e^{−σt(h − z)}
@@ -343,7 +343,7 @@ def monte_carlo_slab(
     while done < photons:
         m = min(batch, photons - done)
         done += m
-        x, y, klass = _launch(src, m, width, height, rng)
+        x, y, klass = launch_photons(src, m, width, height, rng)
         pos = np.stack([x, y, slab.thickness * rng.random(m)])
         u = np.repeat(direction[:, None], m, axis=1)
         w = np.ones(m)
@@ -358,8 +358,8 @@ def monte_carlo_slab(
                 * phase_function_cos(u[2], g)
                 * np.exp(-sigma_t * (slab.thickness - pos[2]))
             )
-            pixel = j * n_slots + klass * n_px + _pixel(pos[1], height) * width
-            _add(tally, pixel + _pixel(pos[0], width), score)
+            pixel = j * n_slots + klass * n_px + pixel_index(pos[1], height) * width
+            add_tally(tally, pixel + pixel_index(pos[0], width), score)
             if j + 1 == bounces:
                 break
             w = w * albedo

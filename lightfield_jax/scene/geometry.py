@@ -1,16 +1,18 @@
 """Scene geometry: the plane (the paper's 2-D model) or a slab (the tank's depth in 3-D).
 
-A geometry knows its renderer (:meth:`Plane.renderer`, :meth:`Slab.renderer`), its
-per-bounce energy ratio bound ρ (:meth:`Plane.rho_bound`), the discretisation a medium
-needs (:meth:`Plane.resolve_model`) and the size of its light field
+A geometry is data; the forward layer builds its renderer
+(:func:`lightfield_jax.forward.render.geometry_renderer`). It knows its per-bounce
+energy ratio bound ρ (:meth:`Plane.rho_bound`), the discretisation a medium needs
+(:meth:`Plane.resolve_model`) and the size of its light field
 (:meth:`Plane.fields_per_bin`); the rest of the package asks it, never its type.
 "Plane" is written ``None``, ``Plane()`` or ``{kind: plane}`` by users:
-:func:`as_geometry` (Python values) and :func:`parse_geometry` (config and capture
-files) turn each into one object.
+:func:`as_geometry` (Python values) and
+:func:`~lightfield_jax.scene.geometry_spec.parse_geometry` (config and capture files)
+turn each into one object.
 
 Also here: the slab's discretisation defaults (:func:`default_n_mu`,
-:func:`default_n_z`, :func:`default_slab_n_theta`), the Fresnel reflectance of its faces
-and :func:`describe_geometry` (a fit result's model in words).
+:func:`default_n_z`, :func:`default_slab_n_theta`) and the Fresnel reflectance of its
+faces.
 """
 
 from __future__ import annotations
@@ -22,24 +24,32 @@ from typing import Literal
 import numpy as np
 
 from lightfield_jax.checks import check_number, number_problem
-from lightfield_jax.forward.plane import PlaneRenderer
-from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.grid import Grid
 
 Boundary = Literal["absorbing", "refractive"]
+
+
 BOUNDARIES = ("absorbing", "refractive")
+
+
 # The most depth layers a slab model may use (Slab.n_z).
 MAX_LAYERS = 16
+
+
 # The deepest tank (px) and the largest refractive index a slab takes: beyond them
 # float32 loses the depth's exponentials (renders drift at 1e8 px) or the faces trap all
 # light (NaN at n 1e9); no real tank or medium comes near either.
 MAX_THICKNESS = 1e5
+
+
 MAX_INDEX = 4.0
+
+
 # Below this albedo the orders a depth average gets wrong (k ≥ 3) carry little light.
 DIM_ALBEDO = 0.3
 
 
-def _positive_finite(value, what: str) -> float:
+def positive_finite(value, what: str) -> float:
     v = check_number(value, what)
     if v <= 0:
         raise ValueError(f"{what}: must be a finite number > 0, got {value!r}")
@@ -94,30 +104,6 @@ class Plane:
         (g, σt, ω): 1 on the plane."""
         return 1
 
-    def renderer(
-        self,
-        grid: Grid,
-        illumination,
-        bounces: int,
-        phase: str,
-        *,
-        tail: str | None = None,
-        tail_tol: float = 1e-4,
-        tail_max_steps: int = 500,
-        coarse_after: int | None = None,
-    ) -> PlaneRenderer:
-        """The compiled forward model of this geometry (``grid`` resolved)."""
-        return PlaneRenderer(
-            grid,
-            illumination,
-            bounces,
-            phase,
-            tail=tail,
-            tail_tol=tail_tol,
-            tail_max_steps=tail_max_steps,
-            coarse_after=coarse_after,
-        )
-
 
 DEPTH_PROFILES = ("constant", "linear")
 
@@ -152,7 +138,7 @@ class Slab:
     kind: Literal["slab"] = dataclasses.field(default="slab", init=False)
 
     def __post_init__(self):
-        thickness = _positive_finite(self.thickness, "geometry.thickness")
+        thickness = positive_finite(self.thickness, "geometry.thickness")
         if thickness > MAX_THICKNESS:
             raise ValueError(
                 f"geometry.thickness: must be at most {MAX_THICKNESS:g} px (a thin tank; "
@@ -163,7 +149,7 @@ class Slab:
             raise ValueError(
                 f"geometry.boundary: must be one of {', '.join(BOUNDARIES)}, got {self.boundary!r}"
             )
-        n = _positive_finite(self.n, "geometry.n")
+        n = positive_finite(self.n, "geometry.n")
         if not 1.0 <= n <= MAX_INDEX:
             raise ValueError(
                 f"geometry.n: must lie in [1, {MAX_INDEX:g}] (the medium's refractive index, "
@@ -283,31 +269,6 @@ class Slab:
         slab = self.resolve(g, sigma_t, albedo)
         return slab.n_mu * slab.n_z * slab.depth_coefficients
 
-    def renderer(
-        self,
-        grid: Grid,
-        illumination,
-        bounces: int,
-        phase: str,
-        *,
-        tail: str | None = None,
-        tail_tol: float = 1e-4,
-        tail_max_steps: int = 500,
-        coarse_after: int | None = None,
-    ) -> SlabRenderer:
-        """The compiled slab model (``grid``, ``n_mu`` and ``n_z`` resolved)."""
-        return SlabRenderer(
-            grid,
-            illumination,
-            bounces,
-            self,
-            phase,
-            tail=tail,
-            tail_tol=tail_tol,
-            tail_max_steps=tail_max_steps,
-            coarse_after=coarse_after,
-        )
-
 
 @dataclasses.dataclass(frozen=True)
 class AutoGeometry:
@@ -325,9 +286,7 @@ class AutoGeometry:
                 f"geometry.slab: must be a Slab (the model where the plane's misfit is too "
                 f"large), got {self.slab!r}"
             )
-        object.__setattr__(
-            self, "threshold", _positive_finite(self.threshold, "geometry.threshold")
-        )
+        object.__setattr__(self, "threshold", positive_finite(self.threshold, "geometry.threshold"))
 
     def as_dict(self) -> dict:
         d = {**self.slab.as_dict(), "kind": "auto"}
@@ -343,9 +302,6 @@ class AutoGeometry:
     @property
     def chosen_by_fit(self) -> bool:
         return True
-
-    def renderer(self, *args, **kwargs):
-        raise ValueError(f"geometry: must be None, a Plane or a Slab to render, got {self!r}")
 
     def resolve_model(self, medium, grid: Grid):
         raise ValueError(f"geometry: must be a Plane or a Slab, got {self!r}")
@@ -465,71 +421,6 @@ def default_n_z(
     return 4 if boundary == "absorbing" else 2
 
 
-def parse_geometry(spec, where: str = "geometry", allow_auto: bool = False):
-    """``geometry:`` of a simulate config or a capture file (absent: the plane).
-
-    ``kind: auto`` (captures only, ``allow_auto``) takes the slab's keys and an
-    optional ``threshold``; the fit chooses plane or slab (:class:`AutoGeometry`)."""
-    if spec is None:
-        return Plane()
-    if not isinstance(spec, dict):
-        raise ValueError(f"{where}: must be a mapping with 'kind', got {spec!r}")
-    kind = spec.get("kind", "plane")
-    if not isinstance(kind, str):
-        raise ValueError(f"{where}.kind: must be a string (plane, slab), got {kind!r}")
-    if "kind" not in spec and "thickness" in spec:
-        raise ValueError(f"{where}.kind: missing (a slab needs kind: slab with its thickness)")
-    slab_keys = {"kind", "thickness", "boundary", "n", "n_mu", "n_z", "depth_profile"}
-    allowed = {"plane": {"kind"}, "slab": slab_keys}
-    if allow_auto:
-        allowed["auto"] = slab_keys | {"threshold"}
-    if kind not in allowed:
-        raise ValueError(
-            f"{where}.kind: must be {' or '.join(repr(k) for k in allowed)}, got {kind!r}"
-            + ("" if allow_auto or kind != "auto" else " (auto is for fits: a capture file)")
-        )
-    unknown = sorted(set(spec) - allowed[kind])
-    if unknown:
-        raise ValueError(
-            f"{where}.{unknown[0]}: unknown key for kind {kind!r}; allowed keys: "
-            f"{', '.join(sorted(allowed[kind]))}"
-        )
-    if kind == "plane":
-        return Plane()
-    if "thickness" not in spec:
-        why = "the slab it may choose" if kind == "auto" else "kind 'slab'"
-        raise ValueError(f"{where}.thickness: required for {why} (the tank's depth in pixels)")
-    boundary = spec.get("boundary", "absorbing")
-    if "n" in spec and boundary != "refractive":
-        raise ValueError(f"{where}.n: only meaningful with boundary 'refractive'")
-    try:
-        slab = Slab(
-            thickness=spec["thickness"],
-            boundary=boundary,
-            n=spec.get("n", 1.33),
-            n_mu=spec.get("n_mu"),
-            n_z=spec.get("n_z"),
-            depth_profile=spec.get("depth_profile"),
-        )
-    except ValueError as err:
-        raise ValueError(str(err).replace("geometry", where, 1)) from None
-    if kind == "slab":
-        return slab
-    threshold = _positive_finite(spec.get("threshold", 1.0), f"{where}.threshold")
-    return AutoGeometry(slab, threshold)
-
-
-def parse_fitted_geometry(spec, where: str = "model.geometry"):
-    """The geometry of a fit result's ``model`` (:func:`parse_geometry`). A slab with
-    ``n_z`` and no ``depth_profile`` comes from a result file without that key, whose
-    layers each keep their average: it is read as ``"constant"`` (the model that was
-    fitted)."""
-    if isinstance(spec, dict) and spec.get("kind") == "slab":
-        if spec.get("n_z") is not None and "depth_profile" not in spec:
-            spec = {**spec, "depth_profile": "constant"}
-    return parse_geometry(spec, where)
-
-
 def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarray:
     """Unpolarised Fresnel reflectance of a face seen from inside the slab.
 
@@ -555,38 +446,17 @@ def fresnel_reflectance(cos_incidence: np.ndarray | float, n: float) -> np.ndarr
     return np.where(tir, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
-def describe_geometry(model: dict) -> str:
-    """A short description of a fit result's ``model`` geometry (and auto's choice)."""
-    geo = model.get("geometry") or {"kind": "plane"}
-    if geo.get("kind") == "slab":
-        text = f"slab h {geo['thickness']:g} px {geo['boundary']}"
-        if geo["boundary"] == "refractive":
-            text += f" n {geo['n']:g}"
-        text += f", n_mu {geo.get('n_mu')}, n_z {geo.get('n_z', 1)}"
-        if geo.get("depth_profile") == "linear":
-            text += " (linear in depth)"
-    else:
-        text = "plane"
-    choice = model.get("geometry_choice")
-    if choice and "reason" in choice:
-        text += f" (auto: {choice['reason']})"
-    elif choice:
-        text += f" (auto: plane error {choice['plane_error']:.2g} vs noise {choice['noise']:.2g})"
-    return text
-
-
 __all__ = [
-    "AutoGeometry",
     "BOUNDARIES",
+    "AutoGeometry",
     "Plane",
     "Slab",
     "as_geometry",
     "default_n_mu",
     "default_n_z",
     "default_slab_n_theta",
-    "describe_geometry",
     "fresnel_reflectance",
-    "parse_geometry",
+    "positive_finite",
     "resolve_slab_grid",
     "rho_bound",
 ]

@@ -31,7 +31,7 @@ from lightfield_jax.checks import check_int, check_number, number_problem, shown
 Wall = Literal["left", "right", "top", "bottom"]
 WALLS: tuple[str, ...] = ("left", "right", "top", "bottom")
 # Inward normal direction (degrees) of each wall: the default heading of light entering it.
-_INWARD_DEG = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}
+INWARD_DEG = {"left": 0.0, "right": 180.0, "top": 90.0, "bottom": 270.0}
 
 
 def along_x(wall: str) -> bool:
@@ -40,7 +40,7 @@ def along_x(wall: str) -> bool:
     return wall in ("left", "right")
 
 
-def _check_direction(entry: str, direction_deg: float, what: str) -> None:
+def check_direction(entry: str, direction_deg: float, what: str) -> None:
     t = math.radians(direction_deg)
     inward = {
         "left": math.cos(t),
@@ -52,7 +52,7 @@ def _check_direction(entry: str, direction_deg: float, what: str) -> None:
         raise ValueError(
             f"{what}.direction_deg: {direction_deg!r} degrees does not point into the medium "
             f"from the {entry} wall (light entering the {entry} wall must head within 90 "
-            f"degrees of {_INWARD_DEG[entry]:g})"
+            f"degrees of {INWARD_DEG[entry]:g})"
         )
 
 
@@ -68,7 +68,7 @@ MIN_BEAM_WIDTH = 1e-6
 MAX_DIRECTION_DEG = 360.0
 
 
-def _direction(value, what: str) -> float:
+def checked_direction(value, what: str) -> float:
     return check_number(
         value, what, low=-MAX_DIRECTION_DEG, high=MAX_DIRECTION_DEG, unit=" degrees"
     )
@@ -97,7 +97,7 @@ class Beam:
             object.__setattr__(
                 self, name, check_number(getattr(self, name), f"illumination.{name}")
             )
-        direction = _direction(self.direction_deg, "illumination.direction_deg")
+        direction = checked_direction(self.direction_deg, "illumination.direction_deg")
         object.__setattr__(self, "direction_deg", direction)
         width = check_number(self.width, "illumination.width")
         if width <= 0:
@@ -280,9 +280,9 @@ def _check_entry(entry) -> None:
 
 def _direction_for(entry: str, direction_deg) -> float:
     if direction_deg is None:
-        return _INWARD_DEG[entry]
-    d = _direction(direction_deg, "illumination.direction_deg")
-    _check_direction(entry, d, "illumination")
+        return INWARD_DEG[entry]
+    d = checked_direction(direction_deg, "illumination.direction_deg")
+    check_direction(entry, d, "illumination")
     return d
 
 
@@ -365,7 +365,7 @@ def shifts_problem(n_shifts: int, same: bool) -> str | None:
     """What a fit refuses about a stripe capture's shifts (``None``: nothing): fewer
     than 2 images, or images that are all the same (``same``: the stripes moved
     nothing). The rule of the fit (:mod:`lightfield_jax.inverse.data`), and of a
-    simulate config (:mod:`lightfield_jax.app.config`), whose capture the fit reads."""
+    simulate config (:mod:`lightfield_jax.forward.simulate_config`), whose capture the fit reads."""
     if n_shifts < 2:
         return (
             "a fit needs at least 2 shifted images (the separation of the direct light "
@@ -383,7 +383,7 @@ def period_problem(illumination, width: int, height: int, what: str = "grid") ->
     """What is wrong with stripes whose period is longer than a ``width``x``height``
     grid (``None``: nothing, or not stripes; ``illumination`` may be the period
     itself). The rule of a simulate config's ``illumination.period``
-    (:mod:`lightfield_jax.app.config`), for the Python API too: such stripes light at
+    (:mod:`lightfield_jax.forward.simulate_config`), for the Python API too: such stripes light at
     most one run of rows, and some of their shifts none at all (all-zero images)."""
     if isinstance(illumination, Stripes):
         period = illumination.period

@@ -16,12 +16,12 @@
 
 from ._capture_plot import plot_channels as plot_channels
 from ._capture_plot import plot_inspect as plot_inspect
+from ._common import light_path_coordinates as light_path_coordinates
+from ._fields import plot_bounce_images as plot_bounce_images
+from ._fields import plot_lightfield as plot_lightfield
 from ._fit_plot import plot_fit as plot_fit
 from ._paper import MAX_SHOWN_BOUNCES as MAX_SHOWN_BOUNCES
-from ._paper import light_path_coordinates as light_path_coordinates
-from ._paper import plot_bounce_images as plot_bounce_images
 from ._paper import plot_bounce_profiles as plot_bounce_profiles
 from ._paper import plot_direct_decay as plot_direct_decay
-from ._paper import plot_lightfield as plot_lightfield
 from ._paper import shown_bounces as shown_bounces
 from ._transport import plot_transport as plot_transport

@@ -18,9 +18,9 @@ from lightfield_jax.checks import check_number
 from lightfield_jax.checks import shown as brief
 from lightfield_jax.inverse.capture_fit import CaptureFit
 
+from ._common import check_common
 from ._common import finish as _finish
 from ._common import new_figure as _figure
-from ._paper import _check_common
 
 _CHANNEL_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue", "Y": "0.2"}
 
@@ -71,7 +71,7 @@ def plot_inspect(inspection: Inspection, path=None):
     from matplotlib.patches import Rectangle
 
     _kind(inspection, Inspection, "plot_inspect.inspection", "lightfield_jax.inspect_capture")
-    _check_common("plot_inspect", path)
+    check_common("plot_inspect", path)
     c = inspection.capture
     p, h, w, n = c.images.shape
     rows = 2 if c.brackets is None else 3
@@ -213,7 +213,7 @@ def plot_channels(
     mm with ``pixel_size_mm``); ``truth`` adds one mapping of true values per channel."""
     fn = "plot_channels"
     _kind(fit, CaptureFit, f"{fn}.fit", "lightfield_jax.fit_capture")
-    _check_common(fn, path)
+    check_common(fn, path)
     # None: per pixel; 0 is refused (not taken as None), a negative pitch too (it would
     # draw negative coefficients).
     check_pixel_size(pixel_size_mm, f"{fn}.pixel_size_mm")

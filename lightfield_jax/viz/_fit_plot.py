@@ -13,11 +13,10 @@ from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.fit import fitted_images
 from lightfield_jax.inverse.options import FitResult
 from lightfield_jax.inverse.separate import separate
-from lightfield_jax.scene.geometry import describe_geometry
+from lightfield_jax.scene.geometry_spec import describe_geometry
 from lightfield_jax.scene.illumination import Stripes
 
-from ._common import finish, new_figure
-from ._paper import _check_common
+from ._common import check_common, finish, new_figure
 
 # What the measured points are compared with: the fitted model's stripe images put
 # through the capture's own separation.
@@ -97,7 +96,7 @@ def plot_fit(
     from matplotlib.patches import Rectangle
 
     fn = "plot_fit"
-    _check_common(fn, path, title=title)
+    check_common(fn, path, title=title)
     if not isinstance(pattern, Stripes):
         raise ValueError(f"{fn}.pattern: must be a Stripes, got {type(pattern).__name__}")
     if not isinstance(result, FitResult):

@@ -9,13 +9,12 @@ from lightfield_jax.checks import shown as brief
 from lightfield_jax.forward.render import RenderResult
 from lightfield_jax.scene.illumination import Illumination
 
-from ._paper import (
-    _check_common,
-    _illumination,
-    plot_bounce_images,
-    plot_bounce_profiles,
-    plot_lightfield,
+from ._common import (
+    check_common,
+    check_illumination,
 )
+from ._fields import plot_bounce_images, plot_lightfield
+from ._paper import plot_bounce_profiles
 
 
 def plot_transport(
@@ -42,8 +41,8 @@ def plot_transport(
         )
     if not isinstance(folder, (str, os.PathLike)) or not Path(folder).is_dir():
         raise ValueError(f"plot_transport.folder: must be an existing folder, got {brief(folder)}")
-    _illumination(illumination, "plot_transport")
-    _check_common("plot_transport", None, title=title)
+    check_illumination(illumination, "plot_transport")
+    check_common("plot_transport", None, title=title)
     folder = Path(folder)
     prefix = f"{title}: " if title else ""
     k = result.bounces

@@ -1,4 +1,5 @@
-"""YAML configs parsed into typed, validated, frozen objects.
+"""The ``simulate`` config parsed into a typed, validated, frozen :class:`SimulationConfig`
+(through :mod:`lightfield_jax.schema`).
 
 The ``simulate`` config (lengths in pixels, coefficients per pixel, angles in degrees)::
 
@@ -36,34 +37,24 @@ Every error is a :class:`ConfigError` whose message starts with the file name, t
 the key's path (``medium.sigma_t``) and the offending value (its text bounded in
 size). Stripe phases lie in [0, period), ``shifts`` in [1, period], and the period is
 no longer than the grid; stripes whose capture a fit refuses (one shift, or phases that
-all light the same rows without noise: identical images) are refused too. A YAML file
-must be a regular file of at most 16 MiB whose aliases expand to at most
-:data:`MAX_YAML_VALUES` values (an "alias bomb" is refused
-before it is built), nested less deeply than Python's recursion limit. Unknown keys, duplicate
-keys, wrong types and out-of-range values are all errors. Float keys accept the
-strings YAML 1.1 leaves unread (``1e-4``), no other string (a quoted ``'0.01'``);
-integer keys accept only integers.
+all light the same rows without noise: identical images) are refused too. What a YAML
+file may hold is :mod:`lightfield_jax.schema`'s rule.
 """
 
 from __future__ import annotations
 
 import copy
 import dataclasses
-import difflib
-import math
 import os
-import re
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import yaml
 
-from lightfield_jax.capture.io import require_regular_file
-from lightfield_jax.checks import check_int, check_number, gain_problem, shown
+from lightfield_jax.checks import check_int, check_number, gain_problem
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, parse_geometry, rho_bound
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, rho_bound
+from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
     WALLS,
@@ -79,6 +70,16 @@ from lightfield_jax.scene.medium import (
     PHASE_CONVENTIONS,
     Medium,
     bounces_for_tolerance,
+)
+from lightfield_jax.schema import (
+    MAX_VALUE,
+    ConfigError,
+    Section,
+    as_int,
+    at_most,
+    brief,
+    load_yaml,
+    show,
 )
 
 ILLUMINATION_KINDS: tuple[str, ...] = ("beam", "stripes", "full")
@@ -102,249 +103,8 @@ _ILLUMINATION_KEYS = {
     "stripes": ("kind", "period", "lit", "shifts", "phases", "direction_deg", "entry"),
     "full": ("kind", "direction_deg", "entry"),
 }
-_REQUIRED = object()
-
-
-class ConfigError(ValueError):
-    """An invalid config. The message starts with the file name and names the key."""
-
-
-# --------------------------------------------------------------------------- YAML
-
-
-# A config or capture file is a few hundred values; these bound what a hostile file
-# (an alias bomb: a few lines whose aliases expand to billions of values) can cost.
-MAX_YAML_BYTES = 1 << 24
-MAX_YAML_VALUES = 100_000
-
-
-class _Loader(yaml.SafeLoader):
-    """Safe YAML with duplicate keys refused, YAML 1.2 floats (``1e-4`` is a float) and
-    documents whose aliases expand past :data:`MAX_YAML_VALUES` values refused before
-    they are built."""
-
-    def get_single_data(self):
-        node = self.get_single_node()
-        if node is None:
-            return None
-        size, written = _expanded_size(node)
-        if size > MAX_YAML_VALUES and written <= MAX_YAML_VALUES:
-            raise yaml.YAMLError(
-                f"its aliases expand to more than {MAX_YAML_VALUES} values (an alias "
-                "bomb?); a config holds a few hundred"
-            )
-        if size > MAX_YAML_VALUES:  # written out: a long list, no aliases
-            raise yaml.YAMLError(
-                f"it holds more than {MAX_YAML_VALUES} values; a config holds a few "
-                "hundred (many images: give them as one .npy stack)"
-            )
-        return self.construct_document(node)
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            if key_node.tag == "tag:yaml.org,2002:merge":
-                # ``<<: *base``: merged by SafeLoader (the keys given beside it override
-                # the merged ones); constructing it here would fail with "could not
-                # determine a constructor for the tag 'tag:yaml.org,2002:merge'".
-                continue
-            key = self.construct_object(key_node, deep=True)
-            try:
-                hash(key)
-            except TypeError:  # a complex key ("? [a, b]"): before, a TypeError traceback
-                mark = key_node.start_mark
-                raise yaml.constructor.ConstructorError(
-                    None,
-                    None,
-                    f"a key must be a string, got a {type(key).__name__} (line {mark.line + 1})",
-                    mark,
-                ) from None
-            if key in seen:
-                mark = key_node.start_mark
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (line {mark.line + 1})", mark
-                )
-            seen.add(key)
-        return super().construct_mapping(node, deep)
-
-
-def _expanded_size(root: yaml.Node) -> tuple[int, int]:
-    """The number of values ``root`` holds with every alias expanded, counted once per
-    distinct node (memoised, without recursion) and capped just past the limit; and the
-    number of distinct nodes (as written, without the aliases' expansion)."""
-    sizes: dict[int, int] = {}
-    on_path: set[int] = set()
-    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
-    while stack:
-        node, finished = stack.pop()
-        key = id(node)
-        children = _children(node)
-        if finished:
-            on_path.discard(key)
-            sizes[key] = min(1 + sum(sizes[id(c)] for c in children), MAX_YAML_VALUES + 1)
-        elif key in on_path:
-            raise yaml.YAMLError("an alias refers to a value that contains it (a cycle)")
-        elif key not in sizes:
-            on_path.add(key)
-            stack.append((node, True))
-            stack.extend((c, False) for c in children if id(c) not in sizes)
-    return sizes[id(root)], len(sizes)
-
-
-def _children(node: yaml.Node) -> list[yaml.Node]:
-    if isinstance(node, yaml.MappingNode):
-        return [n for pair in node.value for n in pair]
-    if isinstance(node, yaml.SequenceNode):
-        return list(node.value)
-    return []
-
-
-# The floats YAML 1.1 (PyYAML's default loader) reads as strings: 1e-4, 2E5.
-_YAML11_FLOAT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
-_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML11_FLOAT, list("-+0123456789"))
-
-
-def load_yaml(path: str | os.PathLike, error: type[ValueError] = ConfigError) -> dict:
-    """Parse a YAML file whose top level is a mapping; errors are ``error`` (a
-    :class:`ConfigError` unless the caller reads another kind of file)."""
-    path = Path(path)
-    require_regular_file(path, "a YAML file", error)
-    if os.path.getsize(path) > MAX_YAML_BYTES:
-        raise error(
-            f"{path}: {os.path.getsize(path)} bytes is too large for a YAML config "
-            f"(at most {MAX_YAML_BYTES})"
-        )
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise error(f"{path}: cannot read ({e})") from None
-    try:
-        data = yaml.load(text, Loader=_Loader)  # noqa: S506 (a SafeLoader subclass)
-    except yaml.YAMLError as e:
-        raise error(f"{path}: invalid YAML: {' '.join(str(e).split())[:300]}") from None
-    except RecursionError:
-        raise error(f"{path}: invalid YAML: nested too deeply") from None
-    if not isinstance(data, dict):
-        raise error(f"{path}: the top level must be a mapping of keys, got {type(data).__name__}")
-    return data
-
-
-# --------------------------------------------------------------------------- typed values
-
-
-class _Section:
-    """One mapping of a config, at a key path, checked against its allowed keys.
-
-    Failures raise ``error`` (:class:`ConfigError` unless the file is of another kind,
-    e.g. a capture file's ``CaptureError``)."""
-
-    def __init__(
-        self,
-        source: str,
-        path: str,
-        value: Any,
-        allowed: tuple[str, ...] | None,
-        label: str = "",
-        error: type[ValueError] = ConfigError,
-    ):
-        self.source = source
-        self.path = path
-        self.error = error
-        if not isinstance(value, Mapping):
-            self.fail(path, f"must be a mapping of keys, got {_show(value)}")
-        self.data = dict(value)
-        for key in self.data:
-            if not isinstance(key, str):
-                self.fail(self.key(str(key)), f"keys must be strings, got {brief(key)}")
-            if allowed is not None and key not in allowed:
-                near = difflib.get_close_matches(key, allowed, n=1)
-                hint = f" (did you mean {near[0]!r}?)" if near else ""
-                self.fail(
-                    self.key(key),
-                    f"unknown key{hint}; allowed keys{label}: {', '.join(allowed)}",
-                )
-
-    def key(self, name: str) -> str:
-        return f"{self.path}.{name}" if self.path else name
-
-    def section(self, name: str, allowed: tuple[str, ...] | None, label: str = "") -> _Section:
-        """The mapping under key ``name`` (required), checked against ``allowed``."""
-        return _Section(self.source, self.key(name), self.get(name), allowed, label, self.error)
-
-    def fail(self, where: str, message: str):
-        raise self.error(f"{self.source}: {where}: {message}")
-
-    def get(self, name: str, default: Any = _REQUIRED) -> Any:
-        if name not in self.data:
-            if default is _REQUIRED:
-                self.fail(self.key(name), "required key is missing")
-            return default
-        return self.data[name]
-
-    def float(self, name: str, default: Any = _REQUIRED) -> float | None:
-        """A number; a null value only where the default is None."""
-        if name not in self.data or (self.data[name] is None and default is None):
-            return self.get(name, default)
-        return _as_float(self, self.key(name), self.data[name])
-
-    def int(self, name: str, default: Any = _REQUIRED) -> int | None:
-        """An integer; a null value only where the default is None."""
-        if name not in self.data or (self.data[name] is None and default is None):
-            return self.get(name, default)
-        return _as_int(self, self.key(name), self.data[name])
-
-    def choice(self, name: str, choices: tuple[str, ...], default: Any = _REQUIRED) -> str:
-        if name not in self.data and default is _REQUIRED:
-            self.fail(self.key(name), f"required key is missing; one of {', '.join(choices)}")
-        value = self.get(name, default)
-        if value not in choices:
-            self.fail(self.key(name), f"must be one of {', '.join(choices)}, got {_show(value)}")
-        return value
-
-
-def brief(value: Any, limit: int = 80) -> str:
-    """``repr(value)`` bounded in size (and in the work to build it) for an error
-    message: a rejected value may be huge (:func:`lightfield_jax.checks.shown`)."""
-    return shown(value, limit)
-
-
-def _show(value: Any) -> str:
-    return f"{brief(value)} ({type(value).__name__})"
-
-
-def _as_float(section: _Section, where: str, value: Any) -> float:
-    # A string is a number only in the form YAML 1.1 leaves unread (a config parsed by
-    # PyYAML's default loader); a quoted '0.01' is a string, refused as integer keys
-    # refuse a quoted '6'.
-    if isinstance(value, str) and not _YAML11_FLOAT.match(value):
-        section.fail(
-            where, f"must be a number, got {_show(value)} (a quoted number: remove the quotes)"
-        )
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-        section.fail(where, f"must be a number, got {_show(value)}")
-    try:
-        v = float(value)
-    except ValueError:
-        section.fail(where, f"must be a number, got {_show(value)}")
-    if not math.isfinite(v):
-        section.fail(where, f"must be finite, got {brief(value)}")
-    return v
-
-
-def _as_int(section: _Section, where: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        section.fail(where, f"must be an integer, got {_show(value)}")
-    return value
-
-
-# --------------------------------------------------------------------------- simulate
-
-
-# Images are rendered and written in float32 (at most 3.4e38): image-unit values (gain,
-# dark level, read noise) and σt are kept far inside its range; the shot-noise draw
-# counts photons in 64-bit integers (at most 9.2e18), so photons × (gain + dark level),
-# about the largest count, is kept below MAX_PHOTONS.
-MAX_VALUE = 1e30
+# The shot-noise draw counts photons in 64-bit integers (at most 9.2e18), so photons ×
+# (gain + dark level), about the largest count, is kept below MAX_PHOTONS.
 MAX_PHOTONS = 1e15
 
 
@@ -491,9 +251,9 @@ def load_simulation_config(path: str | os.PathLike) -> SimulationConfig:
 
 def parse_simulation_config(data: Mapping, source: str = "<dict>") -> SimulationConfig:
     """Validate an already parsed ``simulate`` config; errors name ``source``."""
-    top = _Section(source, "", data, _TOP_KEYS)
-    grid = _grid(_Section(source, "grid", top.get("grid"), _GRID_KEYS))
-    medium = _medium(_Section(source, "medium", top.get("medium"), _MEDIUM_KEYS))
+    top = Section(source, "", data, _TOP_KEYS)
+    grid = _grid(Section(source, "grid", top.get("grid"), _GRID_KEYS))
+    medium = _medium(Section(source, "medium", top.get("medium"), _MEDIUM_KEYS))
     illumination = _illumination(source, top.get("illumination"), grid)
     geometry = _geometry(top)
     bounces, tolerance = _bounces(top, medium, geometry)
@@ -512,7 +272,7 @@ def parse_simulation_config(data: Mapping, source: str = "<dict>") -> Simulation
     )
 
 
-def _geometry(top: _Section) -> Plane | Slab:
+def _geometry(top: Section) -> Plane | Slab:
     if "geometry" not in top.data:
         return Plane()
     try:
@@ -521,7 +281,7 @@ def _geometry(top: _Section) -> Plane | Slab:
         raise top.error(f"{top.source}: {err}") from None
 
 
-def _build(section: _Section, make, *args, **kwargs):
+def _build(section: Section, make, *args, **kwargs):
     """Call a validating constructor, turning its ``ValueError`` into a ConfigError."""
     try:
         return make(*args, **kwargs)
@@ -529,13 +289,13 @@ def _build(section: _Section, make, *args, **kwargs):
         raise ConfigError(f"{section.source}: {e}") from None
 
 
-def _grid(s: _Section) -> Grid:
+def _grid(s: Section) -> Grid:
     return _build(
         s, Grid, s.int("width"), s.int("height"), s.int("n_theta", None), s.int("refine", None)
     )
 
 
-def _medium(s: _Section) -> MediumConfig:
+def _medium(s: Section) -> MediumConfig:
     return _build(
         s,
         MediumConfig,
@@ -547,8 +307,8 @@ def _medium(s: _Section) -> MediumConfig:
 
 
 def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
-    kind = _Section(source, "illumination", value, None).choice("kind", ILLUMINATION_KINDS)
-    s = _Section(source, "illumination", value, _ILLUMINATION_KEYS[kind], f" for kind {kind}")
+    kind = Section(source, "illumination", value, None).choice("kind", ILLUMINATION_KINDS)
+    s = Section(source, "illumination", value, _ILLUMINATION_KEYS[kind], f" for kind {kind}")
     direction = s.float("direction_deg", None)
     if kind == "beam":
         beam = _build(
@@ -574,8 +334,8 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     if "phases" in s.data:
         phases = s.get("phases")
         if not isinstance(phases, list) or not phases:
-            s.fail(s.key("phases"), f"must be a non-empty list of integers, got {_show(phases)}")
-        phases = [_as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
+            s.fail(s.key("phases"), f"must be a non-empty list of integers, got {show(phases)}")
+        phases = [as_int(s, f"{s.key('phases')}[{i}]", p) for i, p in enumerate(phases)]
         outside = [p for p in phases if not 0 <= p < period]
         if outside:
             s.fail(s.key("phases"), f"{brief(outside)} outside [0, period) = [0, {period})")
@@ -588,7 +348,7 @@ def _illumination(source: str, value: Any, grid: Grid) -> Illumination:
     )
 
 
-def _check_shifts(top: _Section, illumination: Illumination, noise) -> None:
+def _check_shifts(top: Section, illumination: Illumination, noise) -> None:
     """Refuse stripes whose capture the fit refuses (the fit's rule,
     :func:`~lightfield_jax.scene.illumination.shifts_problem`): one shift, or shifts
     whose noise-free images are all the same (every phase the same): refused here, before
@@ -609,23 +369,18 @@ def _check_shifts(top: _Section, illumination: Illumination, noise) -> None:
     top.fail(key, problem)
 
 
-def _at_most(s: _Section, key: str, value: float, limit: float = MAX_VALUE) -> None:
-    if value > limit:
-        s.fail(key, f"must be at most {limit:g} (images are float32), got {value!r}")
-
-
-def _camera(top: _Section, illumination: Illumination) -> dict:
+def _camera(top: Section, illumination: Illumination) -> dict:
     """The optional gain, noise, black-level and dark-level keys."""
     gain = top.float("gain", 1.0)
     if gain <= 0:
         top.fail("gain", f"must be > 0, got {gain!r}")
-    _at_most(top, "gain", gain)
+    at_most(top, "gain", gain)
     if gain_problem(gain) is not None:
         top.fail("gain", gain_problem(gain))
     dark_level = top.float("dark_level", None)
     if dark_level is not None and dark_level < 0:
         top.fail("dark_level", f"must be >= 0 (image units), got {dark_level!r}")
-    _at_most(top, "dark_level", dark_level or 0.0)
+    at_most(top, "dark_level", dark_level or 0.0)
     noise = None
     if "noise" in top.data:
         s = top.section("noise", _NOISE_KEYS)
@@ -644,7 +399,7 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
         read = s.float("read", 0.0)
         if read < 0:
             s.fail(s.key("read"), f"must be >= 0 (image units), got {read!r}")
-        _at_most(s, s.key("read"), read)
+        at_most(s, s.key("read"), read)
         seed = s.int("seed", 0)
         if seed < 0:
             s.fail(s.key("seed"), f"must be a non-negative integer, got {seed!r}")
@@ -658,12 +413,12 @@ def _camera(top: _Section, illumination: Illumination) -> dict:
     return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
 
 
-def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | str, float]:
+def _bounces(top: Section, medium: MediumConfig, geometry=None) -> tuple[int | str, float]:
     bounces = top.get("bounces", "auto")
     if bounces != "auto":
         if isinstance(bounces, str):
             top.fail("bounces", f"must be a positive integer or 'auto', got {brief(bounces)}")
-        bounces = _as_int(top, "bounces", bounces)
+        bounces = as_int(top, "bounces", bounces)
         if bounces < 1:
             top.fail("bounces", f"must be a positive integer or 'auto', got {brief(bounces)}")
         if bounces > MAX_BOUNCES:  # the renderer's own check did not name the file
@@ -683,11 +438,9 @@ def _bounces(top: _Section, medium: MediumConfig, geometry=None) -> tuple[int | 
 
 __all__ = [
     "ILLUMINATION_KINDS",
-    "ConfigError",
     "MediumConfig",
     "NoiseConfig",
     "SimulationConfig",
     "load_simulation_config",
-    "load_yaml",
     "parse_simulation_config",
 ]

@@ -1,0 +1,1 @@
+"""Process resources below every layer: memory estimates and limits, timing, progress lines."""
