@@ -427,10 +427,11 @@ def _corrected(data: _Data, pattern, first: _Stage, target: _Model, options, bla
 def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
     """A finer model than ``model`` for its error term, never coarser in any dimension.
 
-    - The plane: one spatial refinement more than the model's (or the size rule's at
-      the answer's ``g``, the larger), within twice ``max_render_cells`` (the memory a
-      render may take), and twice the θ bins (past 256 only within that cap; dropped
-      first where both do not fit). Its error is first order in the cell size
+    - The plane: one spatial refinement more than a refined model's (the size rule's
+      at the answer's ``g`` where larger, as for an unrefined one), within twice
+      ``max_render_cells`` (the memory a render may take), and twice the θ bins (past
+      256 only within that cap; dropped first where both do not fit); where neither
+      changes, one more refinement if it fits. Its error is first order in the cell size
       (:func:`~lightfield_jax.inverse.model_size.richardson_factor`): a term that kept
       the model's refinement did not see the dense forward medium's (64 θ bins, refine
       2, Monte Carlo capture: σt +2.5 % reported as ± 0.2 %).
@@ -468,15 +469,19 @@ def _finer(model: _Model, options: FitOptions, g: float) -> _Model:
             return grid.width * grid.height * n_theta * refine**2
 
         n_theta = 2 * grid.n_theta
-        # Space first: one refinement more than the model (or the size rule's at g),
-        # within the cap with the θ bins doubled, else with the model's own bins.
-        refine = min(max(grid.refine + 1, default_refine(g)), REFINE_LIMIT)
-        if cells(n_theta, refine) > cap and cells(grid.n_theta, refine) <= cap:
+        # A refined model (a forward medium's) one refinement more, an unrefined one the
+        # size rule's at g; space first where both do not fit with the θ bins doubled.
+        refine = max(grid.refine + 1 if grid.refine > 1 else 1, default_refine(g))
+        refine = min(refine, REFINE_LIMIT)
+        if refine > grid.refine and cells(n_theta, refine) > cap >= cells(grid.n_theta, refine):
             n_theta = grid.n_theta
         if cells(n_theta, refine) > cap:
             refine = grid.refine  # at most twice the model's cells (memory)
         if n_theta > 256 and cells(n_theta, refine) > cap:
             n_theta = grid.n_theta
+        same = (n_theta, refine) == (grid.n_theta, grid.refine)
+        if same and refine < REFINE_LIMIT and cells(n_theta, refine + 1) <= cap:
+            refine += 1
         grid = dataclasses.replace(grid, n_theta=n_theta, refine=refine)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
