@@ -883,7 +883,7 @@ def test_the_model_size_chooses_a_march_or_the_tail():
 def test_the_error_terms_plane_model_is_finer_past_256_bins():
     """At g 0.9 the fit's model has 256 θ bins and refine 2 on a small capture; the error
     term's model doubles the bins where memory allows (it stopped at 256: the same
-    discretisation, a model term of zero)."""
+    discretisation, a model term of zero), and refines space once more."""
     from lightfield_jax.inverse.joint_fit import _finer
     from lightfield_jax.inverse.model_size import size_model
 
@@ -891,7 +891,7 @@ def test_the_error_terms_plane_model_is_finer_past_256_bins():
     model = size_model(np.zeros((6, 24, 32)), lfj.Stripes(), 0.98, 0.9, opts, 1.03, 0.05)
     assert (model.grid.n_theta, model.grid.refine) == (256, 2)
     fine = _finer(model, opts, 0.9)
-    assert (fine.grid.n_theta, fine.grid.refine) == (512, 2)
+    assert (fine.grid.n_theta, fine.grid.refine) == (512, 3)
     capped = lfj.FitOptions(phase="normalized", max_cells=10**5, max_render_cells=10**5)
     assert _finer(model, capped, 0.9).grid == model.grid  # nothing finer fits
 

@@ -290,6 +290,10 @@ def scan(
     cost[invalid] = np.inf
     offset_cost[invalid | ~np.isfinite(offset_cost)] = np.inf
     ratios, refs = np.asarray(ratios, np.float64), np.asarray(refs, np.float64)
+    # A ratio of light sums is never negative: one that is (−1.9e34 on a 48×36 Monte
+    # Carlo capture of the dense forward medium, whose last bounce summed below zero
+    # over the second last's ~0) was not measured, and sized no march from garbage.
+    ratios = np.where(ratios >= 0.0, ratios, np.nan)
     offset = ScanOffset.of(cost, offset_cost, np.asarray(offset, np.float64))
     return cost, black, gs, albedos, ratios, refs, offset
 

@@ -481,3 +481,18 @@ def discretisation(model: _Model) -> dict[str, int]:
             depth_order=model.geometry.depth_coefficients - 1,
         )
     return sizes
+
+
+def richardson_factor(model: _Model, fine: _Model) -> float | None:
+    """How far past ``fine`` (the error term's finer model) the continuum lies, in units
+    of the step from ``model`` to it: r_f/(r_f − r) for a plane ``fine`` refined in
+    space from r to r_f (``None``: not refined in space, or a slab). The plane's
+    discretisation error is first order in the cell size 1/r: images of the dense
+    forward medium (σt .2, σs .16, g .7, 128×96, 64 θ bins, 60 bounces) at refine 1, 2
+    and 3 differ as I_1 − I_2 = 3.2 (I_2 − I_3) (weighted, correlation 0.99; first order
+    gives 3), so the model at refine 2 is three times its step to refine 3 from the
+    continuum (the Monte Carlo's), not one."""
+    r, r_f = model.grid.refine, fine.grid.refine
+    if model.geometry is not None or fine.geometry is not None or r_f <= r:
+        return None
+    return r_f / (r_f - r)

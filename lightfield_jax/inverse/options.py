@@ -114,6 +114,12 @@ class FitOptions:
             with the cheap model's Jacobian, its own by forward differences where
             those steps stop shrinking) instead of solving on it; where the iteration does not
             converge the fit solves on that model as capped by ``max_cells``.
+        extrapolate: (``joint``, plane) where the error term's finer model is finer in
+            space, report the answer extrapolated to the continuum: the model's
+            discretisation error is first order in the cell size, so the answer steps
+            r_f/(r_f − r) times the finer model's shift (Richardson) and the model term
+            is that shift; ``False``: the model's own answer, with that whole step as
+            its model term.
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
             for primal renders, which need no tangents).
         correction_renders: at most this many renders at iterates in the correction
@@ -157,6 +163,7 @@ class FitOptions:
     start: tuple[float, float] | None = None
     model_error: bool = True
     correct: bool = True
+    extrapolate: bool = False
     max_render_cells: int = 8_000_000
     correction_renders: int = 16
     max_chi2: float = 100.0
@@ -196,7 +203,7 @@ class FitOptions:
         check_int(self.g_grid, "g_grid", low=3, high=MAX_G_VALUES)
         check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
         check_number(self.offset_stop, "offset_stop", low=0.0, high=OFFSET_EXPLAINS)
-        for name in ("crop", "basin_search", "model_error", "correct"):
+        for name in ("crop", "basin_search", "model_error", "correct", "extrapolate"):
             check_flag(getattr(self, name), name)
         if self.geometry is not None:
             as_geometry(self.geometry)
