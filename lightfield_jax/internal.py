@@ -36,7 +36,7 @@ from lightfield_jax.inverse.joint import pack as pack
 from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.joint import unit_model as unit_model
 from lightfield_jax.inverse.joint import unpack as unpack
-from lightfield_jax.inverse.joint_stage import joint_weights as joint_weights
+from lightfield_jax.inverse.joint_fit.stage import joint_weights as joint_weights
 from lightfield_jax.inverse.model_size import size_model as size_model
 from lightfield_jax.inverse.two_step import TwoStepSettings as TwoStepSettings
 from lightfield_jax.inverse.two_step import TwoStepSolution as TwoStepSolution

@@ -354,12 +354,12 @@ def test_the_error_terms_slab_model_is_finer_and_never_coarser(slab, n_theta, fi
     """The model error term's model doubles the layers, then the nodes, then the bins,
     each within the memory cap, and never goes below the fit's model (it capped layers at
     8 and nodes at 32: the depth error of an 8-layer model went unseen)."""
-    from lightfield_jax.inverse.joint_fit import _finer
+    from lightfield_jax.inverse.joint_fit.finer import finer
     from lightfield_jax.inverse.model_size import size_model
 
     opts = FitOptions(geometry=slab, phase="normalized", n_theta=n_theta)
     model = size_model(np.zeros((6, 24, 32)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, (0, 0, 32, 24))
-    fine = _finer(model, opts, 0.9)
+    fine = finer(model, opts, 0.9)
     assert (fine.grid.n_theta, fine.geometry.n_mu, fine.geometry.n_z) == finer
     assert fine.grid.n_theta >= model.grid.n_theta
     assert fine.geometry.n_mu >= model.geometry.n_mu and fine.geometry.n_z >= model.geometry.n_z

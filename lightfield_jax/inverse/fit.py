@@ -9,8 +9,8 @@ it also chooses the geometry under ``geometry: auto`` and renders a result's fit
 images (:func:`fitted_images`). The parts live beside it: the settings and the result
 (:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`,
 the model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
-:mod:`lightfield_jax.inverse.joint_fit` (its single solves and shared pieces in
-:mod:`lightfield_jax.inverse.joint_stage`); the fit of a whole capture, channel by
+:mod:`lightfield_jax.inverse.joint_fit` (a subpackage: its single solves and shared
+pieces in :mod:`lightfield_jax.inverse.joint_fit.stage`); the fit of a whole capture, channel by
 channel, is :mod:`lightfield_jax.inverse.capture_fit`. The methods, all on the same
 forward model (:class:`~lightfield_jax.Renderer`):
 
@@ -51,7 +51,7 @@ from lightfield_jax.app.memory import check_memory, fit_memory
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
-from lightfield_jax.inverse.joint_stage import _renderer
+from lightfield_jax.inverse.joint_fit.stage import model_renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import _Model, over_cap_note, size_model
@@ -404,7 +404,7 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     )
 
     def render(illumination):
-        renderer = _renderer(model, illumination, result.phase)
+        renderer = model_renderer(model, illumination, result.phase)
         out = renderer.unchecked(result.sigma_t, result.sigma_s, result.g)
         if model.tail is None:
             return np.asarray(out[0])

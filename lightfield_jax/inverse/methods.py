@@ -34,7 +34,11 @@ import optimistix as optx
 from lightfield_jax.checks import check_int, number_problem, shown
 from lightfield_jax.inverse.data import FitProblem, FitSolution
 from lightfield_jax.inverse.joint_fit import joint_fit
-from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
+from lightfield_jax.inverse.joint_fit.stage import (
+    least_squares_solver,
+    model_renderer,
+    result_message,
+)
 from lightfield_jax.inverse.model_size import _at_least, size_model
 from lightfield_jax.inverse.trust import untrustworthy
 from lightfield_jax.inverse.two_step import (
@@ -138,7 +142,7 @@ class TwoStep(FitMethod):
 
     def solve(self, problem, options, say):
         options = _with_solver(options, self.solver)
-        solver = _solver(options, jnp.result_type(float))
+        solver = least_squares_solver(options, jnp.result_type(float))
         say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
         n_g = self.start_grid or options.start_grid
         return _two_step_fit(self.name, problem, options, say, solver, n_g)
@@ -242,7 +246,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
 
     def on(model, settings=settings, start=None):
-        renderer = _renderer(model, full_for(problem.pattern), options.phase)
+        renderer = model_renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g, start)
 
     model = _marched(_at_least(problem.model, problem.floor))
@@ -257,7 +261,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         else:
             sol = on(model, dataclasses.replace(settings, search=False), (sol.sigma_s, sol.g))
         compile_s += sol.compile
-    ok, msg = _result_message(sol.result)
+    ok, msg = result_message(sol.result)
     if solver is None:
         msg = f"grid search over {n_g} values of g"
     truncated = model.tail_bound
