@@ -856,7 +856,7 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     """``tail: auto``: the tail bound's count where it is at most max_bounces (the milk);
     beyond it K0 and BiCGStab (albedo 0.99), unless the scan's measured per-bounce
     ratio asks for a march within max_bounces; ``tail: None`` marches, capped."""
-    from lightfield_jax.inverse.model_size import _by_measured_ratio, size_model
+    from lightfield_jax.inverse.model_size import by_measured_ratio, size_model
 
     images = np.zeros((6, 24, 32))
     crop = (0, 0, 32, 24)
@@ -871,10 +871,10 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     assert (high.tail, high.bounces) == ("bicgstab", opts.tail_bounces)
     assert high.as_dict()["tail"]["K0"] == opts.tail_bounces
     assert high.as_dict()["tail_bound"] is None
-    marched = _by_measured_ratio(high, opts, 0.75)
+    marched = by_measured_ratio(high, opts, 0.75)
     assert marched.tail is None and 32 <= marched.bounces <= opts.max_bounces
     assert marched.as_dict()["ratio_measured"] == 0.75
-    assert _by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
+    assert by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
     capped, opts = sized(0.99, tail=None)
     assert capped.tail is None and capped.bounces == opts.max_bounces
     forced, opts = sized(0.3, tail="gmres")
@@ -906,9 +906,9 @@ def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
     count (``tail: null`` caps it at ``max_bounces``) is judged alike."""
     from lightfield_jax.inverse.basins import Scan
     from lightfield_jax.inverse.joint_fit.verdict import cut_series
-    from lightfield_jax.inverse.model_size import _Model
+    from lightfield_jax.inverse.model_size import ModelSpec
 
-    model = _Model(lfj.Grid(32, 24, 32, 1), 80, (0, 0, 32, 24), converges=False, rho=1.3)
+    model = ModelSpec(lfj.Grid(32, 24, 32, 1), 80, (0, 0, 32, 24), converges=False, rho=1.3)
     two = np.array([-0.9, 0.9])
     scan = Scan(
         two, two, np.zeros((2, 2)), np.zeros((2, 2)), (), 0.2, {}, two * 0 + ratio, two * 0 + 0.2

@@ -32,7 +32,7 @@ from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
 from lightfield_jax.scene.illumination import Stripes, period_problem, shifts_problem
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.model_size import _Model
+    from lightfield_jax.inverse.model_size import ModelSpec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -476,9 +476,9 @@ class FitProblem:
     images: np.ndarray
     pattern: Stripes
     black_level: float | None
-    model: _Model
+    model: ModelSpec
     rho0: float
-    floor: _Model | None = None
+    floor: ModelSpec | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -487,7 +487,7 @@ class FitSolution:
     running its programs, and the values the result is built from (σt, σs, g, gain,
     black level, error budget, convergence and its message, iterations, residual)."""
 
-    model: _Model
+    model: ModelSpec
     seconds: dict
     values: dict
 

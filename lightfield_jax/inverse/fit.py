@@ -51,10 +51,11 @@ from lightfield_jax.app.memory import check_memory, fit_memory
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
+from lightfield_jax.inverse.geometry_model import geometry_model
 from lightfield_jax.inverse.joint_fit.stage import model_renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
-from lightfield_jax.inverse.model_size import _Model, over_cap_note, size_model
+from lightfield_jax.inverse.model_size import ModelSpec, over_cap_note, size_model
 from lightfield_jax.inverse.options import (
     _PARAMS,
     FitOptions,
@@ -154,7 +155,7 @@ def _fit_one(
     pixel_size_mm=None,
     split=None,
     exposure=None,
-    floor: _Model | None = None,
+    floor: ModelSpec | None = None,
     clipped=None,
     floored=None,
 ) -> FitResult:
@@ -249,7 +250,7 @@ def _fit_one(
     )
 
 
-def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, **values):
+def _finish(options: FitOptions, t_start: float, seconds: dict, model: ModelSpec, **values):
     """The :class:`FitResult`, with total time, the model used and the error budget."""
     seconds = dict(seconds)
     seconds["total"] = time.perf_counter() - t_start
@@ -351,18 +352,18 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     return chose(dataclasses.replace(result, seconds=seconds), decision.as_dict())
 
 
-def _model_from(d: dict) -> _Model:
-    """The :class:`_Model` of a result's ``model`` dict (one written without the series'
+def _model_from(d: dict) -> ModelSpec:
+    """The :class:`ModelSpec` of a result's ``model`` dict (one written without the series'
     estimate, e.g. by an earlier version, renders alike: what is not given is unknown)."""
-    geometry = parse_fitted_geometry(d.get("geometry"), "model.geometry")
+    geometry = geometry_model(parse_fitted_geometry(d.get("geometry"), "model.geometry"))
     tail = d.get("tail") or {}
-    return _Model(
+    return ModelSpec(
         grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),
         bounces=d["bounces"],
         crop=tuple(d["crop"]),
         converges=d.get("series_converges", True),
         rho=d.get("rho_estimate", math.nan),
-        geometry=geometry.slab_or_none,
+        geometry=geometry,
         tail=tail.get("method"),
         tail_tol=tail.get("tol", 1e-4),
         tail_max_steps=tail.get("max_steps", 200),

@@ -39,7 +39,7 @@ from lightfield_jax.inverse.joint_fit.stage import (
     model_renderer,
     result_message,
 )
-from lightfield_jax.inverse.model_size import _at_least, size_model
+from lightfield_jax.inverse.model_size import at_least, size_model
 from lightfield_jax.inverse.trust import untrustworthy
 from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
@@ -215,25 +215,20 @@ def _grown(problem: FitProblem, options, model, sigma_s: float, g: float):
         sigma_t=data.sigma_t0,
         crop=model.crop,
     )
-    # A slab's depth layers and elevation nodes too (g decides the nodes, the albedo
-    # the layers).
-    deeper = need.geometry is not None and (
-        need.geometry.n_z > model.geometry.n_z or need.geometry.n_mu >= 2 * model.geometry.n_mu
-    )
+    deeper = need.geometry.deeper(model.geometry)
     if (
         need.grid.n_theta >= 4 * model.grid.n_theta
         or need.grid.refine > model.grid.refine
         or need.bounces > model.bounces
         or deeper
     ):
-        return _marched(_at_least(need, model))
+        return _marched(at_least(need, model))
     return None
 
 
 def _model_words(model) -> str:
-    slab = model.geometry
     words = f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces"
-    return words + (f", n_mu {slab.n_mu}, n_z {slab.n_z}" if slab is not None else "")
+    return words + model.geometry.words()
 
 
 def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
@@ -249,7 +244,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         renderer = model_renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g, start)
 
-    model = _marched(_at_least(problem.model, problem.floor))
+    model = _marched(at_least(problem.model, problem.floor))
     sol = on(model)
     compile_s = sol.compile
     bigger = _grown(problem, options, model, sol.sigma_s, sol.g)

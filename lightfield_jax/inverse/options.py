@@ -23,7 +23,7 @@ from lightfield_jax.inverse.methods import (
     check_start,
     method_for,
 )
-from lightfield_jax.inverse.model_size import _phase_integral
+from lightfield_jax.inverse.model_size import phase_integral_at
 from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
@@ -350,7 +350,7 @@ class FitResult:
     def rho(self) -> float:
         if not math.isfinite(self.g):
             return math.nan
-        a = float(_phase_integral(self.g)) if self.phase == "paper" else 1.0
+        a = float(phase_integral_at(self.g)) if self.phase == "paper" else 1.0
         return self.albedo * a
 
     def to_dict(self) -> dict:

@@ -11,7 +11,7 @@ import numpy as np
 
 from lightfield_jax.inverse.data import FitData
 from lightfield_jax.inverse.joint import BLACK_RANGE
-from lightfield_jax.inverse.model_size import _Model
+from lightfield_jax.inverse.model_size import ModelSpec
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:
@@ -39,7 +39,7 @@ class FitContext:
     black: float | None
     weights: np.ndarray
     images: np.ndarray
-    floor: _Model | None
+    floor: ModelSpec | None
     say: Callable[[str], None]
 
     @property

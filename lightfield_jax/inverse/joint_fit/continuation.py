@@ -25,12 +25,12 @@ from lightfield_jax.inverse.joint_fit.stage import (
     usable_render,
 )
 from lightfield_jax.inverse.model_size import (
-    _at_least,
-    _by_measured_ratio,
-    _covers,
-    _finer_cheap,
-    _Model,
-    _orders,
+    ModelSpec,
+    at_least,
+    by_measured_ratio,
+    covers,
+    finer_cheap,
+    orders,
     size_model,
 )
 from lightfield_jax.inverse.trust import at_bound, noise_scale, scaled_lstsq
@@ -41,7 +41,7 @@ from lightfield_jax.inverse.trust import at_bound, noise_scale, scaled_lstsq
 HOPELESS_MARGIN = 0.25
 
 
-def cannot_win(ctx: FitContext, first: Stage, target: _Model, best) -> str | None:
+def cannot_win(ctx: FitContext, first: Stage, target: ModelSpec, best) -> str | None:
     """A reason where ``first`` (a later start's cheap answer) is not worth taking to
     ``target``, else ``None``. ``best`` is the best (cheap stage, final stage) so far.
     In the data's weights: the cheap misfit exceeds the best cheap misfit, and the
@@ -92,7 +92,7 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
         return first
     ratio = the_scan.ratio_at(v["g"], albedo)
 
-    def needed(max_cells: int) -> _Model:
+    def needed(max_cells: int) -> ModelSpec:
         model = size_model(
             ctx.images,
             ctx.pattern,
@@ -103,11 +103,11 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
             sigma_t=v["sigma_t"],
             crop=coarse.crop,
         )
-        return _by_measured_ratio(model, options, ratio)
+        return by_measured_ratio(model, options, ratio)
 
     # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
     # the corrected one, reached by primal renders, by max_render_cells.
-    need = _at_least(needed(options.max_cells), ctx.floor)
+    need = at_least(needed(options.max_cells), ctx.floor)
     if not first.ok and not tail_failed(first) and not need.converges:
         # Measured: the stability map's divergent truth (ω 0.8, g 0.85 under paper, an
         # explicit 12-bounce truncation, 48×36): the cheap solve ran out of steps at
@@ -119,8 +119,8 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
         )
         return first
     correct = options.correct and first.ok
-    target = _at_least(needed(options.max_render_cells), need) if correct else need
-    if _covers(coarse, target):
+    target = at_least(needed(options.max_render_cells), need) if correct else need
+    if covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
         return refit(ctx, first)
@@ -133,19 +133,17 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
     if correct:
         say(
             f"  defect correction to the final model n_theta {target.grid.n_theta}, refine "
-            f"{target.grid.refine}, {_orders(target)}"
+            f"{target.grid.refine}, {orders(target)}"
         )
         done, record = corrected(ctx, first, target)
         if done is not None:
             return done
         spent = record["seconds"]
         say(f"  the correction stopped ({record['stopped']}): solving on the final model")
-    if _covers(coarse, need):
+    if covers(coarse, need):
         last = refit(ctx, first)
     else:
-        say(
-            f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {_orders(need)}"
-        )
+        say(f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {orders(need)}")
         mid = solve_stage(ctx, need, first.weights, first.y)
         last = refit(ctx, mid)
         last.steps += mid.steps
@@ -169,24 +167,24 @@ def runaway(stage: Stage) -> bool:
     return (not stage.ok and not tail_failed(stage)) or bool(at_bound(stage.values))
 
 
-def cheap_solve(ctx: FitContext, coarse: _Model, y0) -> tuple[Stage, list[Stage], dict | None]:
+def cheap_solve(ctx: FitContext, coarse: ModelSpec, y0) -> tuple[Stage, list[Stage], dict | None]:
     """The cheap model's solve from ``y0``; a slab's that ran away (:func:`runaway`) is
-    solved again on :func:`_finer_cheap`'s model, kept where it converged off the
+    solved again on :func:`finer_cheap`'s model, kept where it converged off the
     bounds or fits better. Returns the stage kept, every stage run (for their seconds)
     and the retry's record (``None`` without one)."""
     first = solve_stage(ctx, coarse, ctx.weights, y0)
-    retry = _finer_cheap(coarse, ctx.options)
+    retry = finer_cheap(coarse, ctx.options)
     if retry is None or not runaway(first):
         return first, [first], None
     ctx.say(
         "  the cheap model's solve did not converge or ended at a bound: again on "
-        f"n_theta {retry.grid.n_theta}, n_mu {retry.geometry.n_mu}"
+        f"n_theta {retry.grid.n_theta}, n_mu {retry.geometry.discretisation()['n_mu']}"
     )
     again = solve_stage(ctx, retry, ctx.weights, y0)
     kept = not runaway(again) or again.rms < first.rms
     record = {
         "n_theta": retry.grid.n_theta,
-        "n_mu": retry.geometry.n_mu,
+        "n_mu": retry.geometry.discretisation()["n_mu"],
         "first": {k: first.values[k] for k in ("sigma_t", "sigma_s", "g")},
         "first_converged": first.ok,
         "converged": again.ok,
@@ -200,7 +198,7 @@ def cheap_solve(ctx: FitContext, coarse: _Model, y0) -> tuple[Stage, list[Stage]
     return first, ran, record
 
 
-def corrected(ctx: FitContext, first: Stage, target: _Model) -> tuple[Stage | None, dict]:
+def corrected(ctx: FitContext, first: Stage, target: ModelSpec) -> tuple[Stage | None, dict]:
     """``target``'s answer by defect correction from ``first`` (the cheap model's solve:
     its answer and Jacobian, model weights from its answer; :mod:`.correction`): the
     stage (``None`` where the iteration did not converge) and its record."""

@@ -11,65 +11,25 @@ import jax.numpy as jnp
 from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.inverse.joint_fit.context import FitContext
 from lightfield_jax.inverse.joint_fit.stage import Stage, joint_parts, render_model
-from lightfield_jax.inverse.model_size import _Model, _slab_over_cap
-from lightfield_jax.scene.grid import REFINE_LIMIT, default_refine
+from lightfield_jax.inverse.model_size import ModelSpec
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions
 
 
-def finer(model: _Model, options: FitOptions, g: float) -> _Model:
-    """A finer model than ``model`` for its error term, never coarser in any dimension.
-
-    - The plane: twice the θ bins (past 256 only within twice ``max_render_cells``,
-      the memory a render may take) and the spatial refinement the size rule asks for
-      at the answer's ``g`` where the fit's model stayed below it (the cell cap sized
-      it down: a forward medium's model error is then mostly spatial, and a term that
-      did not see it would report the fit as noise-limited), within that cap; where
-      neither fits (256 θ bins and refine 2 already), one more refinement if it does.
-    - The slab: twice its depth layers (at most 16), elevation nodes (64) and azimuth
-      bins (128), in that order of priority, each only within four times
-      ``max_render_cells`` (the slab's cell count, :func:`_slab_over_cap`).
+def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
+    """A finer model than ``model`` for its error term, never coarser in any dimension:
+    its geometry's finer discretisation
+    (:meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer`: the plane's
+    θ bins and refinement, the slab's depth layers, elevation nodes and azimuth bins,
+    each within a multiple of ``max_render_cells``).
 
     Then the same bounces with the rest of the series extrapolated geometrically or,
     with a tail, the same K0 and a tail tolerance ten times as tight; with a coarse
     tail (the plane's ``coarse_after``), twice as many bounces on the refined grid
     before it, so that the term also sees the coarse grid's error where most of the
     coarse bounces' light is."""
-    grid = model.grid
-    geometry = model.geometry
-    if geometry is not None:
-
-        def doubled(n: int, limit: int) -> int:
-            return max(n, min(2 * n, limit))  # never below the model's own
-
-        cap = 4 * options.max_render_cells
-        for name, limit in (("n_z", 16), ("n_mu", 64), ("n_theta", 128)):
-            g2, s2 = grid, geometry
-            if name == "n_theta":
-                g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limit))
-            else:
-                s2 = dataclasses.replace(
-                    geometry, **{name: doubled(getattr(geometry, name), limit)}
-                )
-            if not _slab_over_cap(g2.width, g2.height, g2.n_theta, g2.refine, s2, cap):
-                grid, geometry = g2, s2
-    else:
-        cap = 2 * options.max_render_cells
-
-        def cells(n_theta: int, refine: int) -> int:
-            return grid.width * grid.height * n_theta * refine**2
-
-        n_theta = 2 * grid.n_theta
-        refine = max(grid.refine, default_refine(g))
-        if cells(n_theta, refine) > cap:
-            refine = grid.refine  # at most twice the model's cells (memory)
-        if n_theta > 256 and cells(n_theta, refine) > cap:
-            n_theta = grid.n_theta
-        same = (n_theta, refine) == (grid.n_theta, grid.refine)
-        if same and refine < REFINE_LIMIT and cells(n_theta, refine + 1) <= cap:
-            refine += 1
-        grid = dataclasses.replace(grid, n_theta=n_theta, refine=refine)
+    grid, geometry = model.geometry.finer(model.grid, options, g)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
             model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10

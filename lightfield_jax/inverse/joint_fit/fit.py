@@ -19,12 +19,12 @@ from lightfield_jax.inverse.joint_fit.stage import Stage, joint_weights
 from lightfield_jax.inverse.joint_fit.verdict import offset_stop, verdict
 from lightfield_jax.inverse.model_size import (
     SCAN_TAIL_BOUNCES,
-    _by_measured_ratio,
-    _extrapolated,
-    _Model,
-    _orders,
-    _scan_model,
+    ModelSpec,
+    by_measured_ratio,
     discretisation,
+    extrapolated,
+    orders,
+    scan_model,
 )
 from lightfield_jax.inverse.trust import error_budget, noise_floor, noise_scale, split_groups
 
@@ -42,7 +42,7 @@ class Answer:
     result is built from (:class:`~lightfield_jax.inverse.data.FitSolution`'s) and the
     last stage (its render, weights and residual)."""
 
-    model: _Model
+    model: ModelSpec
     seconds: dict
     values: dict
     last: Stage
@@ -53,7 +53,7 @@ def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start
     basin kept (or the given ``start`` = (σt, σs, g, b), else ``options.start`` =
     (σs, g)), keep the best; then the error budget and the verdict."""
     seconds = Seconds()
-    coarse = _scan_model(problem.model.crop, options, problem.rho0)
+    coarse = scan_model(problem.model.crop, options, problem.rho0)
     if data.exposure is None:  # merged brackets: the variance follows T, not I alone
         data = dataclasses.replace(
             data, noise_floor=noise_floor(data.images, data.mask, problem.pattern)
@@ -81,9 +81,9 @@ def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start
     )
     # The scan's misfit map needs the light's shape, not the walls' last tenths of a
     # percent: its stripes are rendered from one period, their mean's walls' term alone.
-    scan_model = dataclasses.replace(coarse, cell=CHEAP_CELL)
+    scan_cheap = dataclasses.replace(coarse, cell=CHEAP_CELL)
     from_scan = start is None and options.start is None
-    the_scan, scanned = basin_scan(ctx, scan_model, seconds, widen=from_scan)
+    the_scan, scanned = basin_scan(ctx, scan_cheap, seconds, widen=from_scan)
     peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
     # Not in the censoring refit from an answer (``start``): joint_fit does not refit
     # a fit that stopped, and one that did not is refined as it was.
@@ -92,20 +92,20 @@ def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start
         say(f"  {stop[0]}")
     starts = starts_for(ctx, the_scan, start, stop)
     # One cheap model for every start: marched where the scan's measured ratio at each
-    # start allows it (see _by_measured_ratio).
+    # start allows it (see by_measured_ratio).
     ratio = max(the_scan.ratio_at(s[2], s[1] / s[0]) for _, s in starts)
-    coarse = _extrapolated(_by_measured_ratio(coarse, options, ratio), options)
+    coarse = extrapolated(by_measured_ratio(coarse, options, ratio), options)
     if coarse.extrapolate:  # always corrected to the full final model
         coarse = dataclasses.replace(coarse, cell=CHEAP_CELL)
     if the_scan.ratios is not None:
         say(f"  measured per-bounce ratio {ratio:.3f}")
-    say(f"  the solve's model: {_orders(coarse)}")
+    say(f"  the solve's model: {orders(coarse)}")
     rescans = from_scan and options.basin_search and not stop
     search = search_basins(
         ctx,
         Search(scan=the_scan, coarse=coarse, stop=stop),
         starts,
-        scan_model if rescans else None,
+        scan_cheap if rescans else None,
         seconds,
     )
     return _answer(ctx, search, scanned, peak, seconds)
@@ -166,7 +166,7 @@ def _answer(ctx: FitContext, search: Search, scanned: list, peak: float, seconds
     )
 
 
-def _model_record(data: FitData, last: Stage, fine: _Model | None, fine_tail) -> dict:
+def _model_record(data: FitData, last: Stage, fine: ModelSpec | None, fine_tail) -> dict:
     """The record of the answer's model: its size, tail, correction and refit, the
     noise floor of its weights and the finer model of its error term."""
     model_dict = last.model.as_dict()
@@ -189,15 +189,7 @@ def _model_record(data: FitData, last: Stage, fine: _Model | None, fine_tail) ->
             "bounces": fine.bounces,
             "extrapolated": fine.extrapolate,
             "coarse_after": fine.coarse,
-            **(
-                {
-                    "n_mu": fine.geometry.n_mu,
-                    "n_z": fine.geometry.n_z,
-                    "depth_profile": fine.geometry.profile,
-                }
-                if fine.geometry is not None
-                else {}
-            ),
+            **fine.geometry.record(),
             **(
                 {"tail": {"method": fine.tail, "tol": fine.tail_tol, **fine_tail}}
                 if fine_tail is not None

@@ -15,7 +15,7 @@ from lightfield_jax.app.timing import stopwatch
 from lightfield_jax.inverse.basins import Scan, basin_of, basins, nearest_point, scan
 from lightfield_jax.inverse.joint_fit.context import FitContext, Seconds
 from lightfield_jax.inverse.joint_fit.stage import joint_parts
-from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, _Model, _phase_integral
+from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, ModelSpec, phase_integral_at
 
 # An answer whose σt is more than this factor from the scan's (the direct light's decay
 # estimate) is checked by a second scan at its σt (:func:`rescan`). Measured on 32x24
@@ -40,13 +40,13 @@ def rho_of(phase: str):
     """ρ(g, albedos) of the model's phase convention (ω for the slab and ``normalized``)."""
 
     def rho(g: float, albedos):
-        a = float(_phase_integral(g)) if phase == "paper" else 1.0
+        a = float(phase_integral_at(g)) if phase == "paper" else 1.0
         return np.asarray(albedos) * a
 
     return rho
 
 
-def run_scan(ctx: FitContext, model: _Model, sigma_t0: float) -> Scan:
+def run_scan(ctx: FitContext, model: ModelSpec, sigma_t0: float) -> Scan:
     """The basin scan of ``model`` at σt = ``sigma_t0`` with the data's weights."""
     options = ctx.options
     extrapolate = model.tail is not None
@@ -83,7 +83,7 @@ def run_scan(ctx: FitContext, model: _Model, sigma_t0: float) -> Scan:
 
 
 def basin_scan(
-    ctx: FitContext, model: _Model, seconds: Seconds, widen: bool
+    ctx: FitContext, model: ModelSpec, seconds: Seconds, widen: bool
 ) -> tuple[Scan, list[float]]:
     """The scan at the data's decay estimate of σt and, where ``widen`` and that
     estimate is at least :data:`SHORT_DECAY`, at :data:`SIGMA_T_FACTORS` times it too:
@@ -127,7 +127,7 @@ def starts_of(label: str, scan: Scan, found, black: float | None) -> list:
     ]
 
 
-def rescan(ctx: FitContext, model: _Model, the_scan: Scan, found: dict, n_found: int):
+def rescan(ctx: FitContext, model: ModelSpec, the_scan: Scan, found: dict, n_found: int):
     """The scan held σt at the direct light's decay estimate. An answer far from it (a
     medium whose mean free path is near a pixel: that decay spans few pixels) may lie
     in a basin the scan at the estimate never saw: where the best answer ``found``'s σt

@@ -18,7 +18,7 @@ from lightfield_jax.inverse.joint_fit.continuation import cheap_solve, continuat
 from lightfield_jax.inverse.joint_fit.scan import rescan, starts_of
 from lightfield_jax.inverse.joint_fit.slope import anchors, downhill_from, same_answer
 from lightfield_jax.inverse.joint_fit.stage import Stage
-from lightfield_jax.inverse.model_size import _Model
+from lightfield_jax.inverse.model_size import ModelSpec
 
 PARAMS = ("sigma_t", "sigma_s", "g")
 
@@ -40,7 +40,7 @@ class Search:
     """
 
     scan: Scan
-    coarse: _Model
+    coarse: ModelSpec
     stop: list[str]
     tried: list[dict] = dataclasses.field(default_factory=list)
     stages: list[tuple[Stage, Stage]] = dataclasses.field(default_factory=list)
@@ -151,18 +151,18 @@ def search_basins(
     ctx: FitContext,
     search: Search,
     starts: list,
-    scan_model: _Model | None,
+    scan_cheap: ModelSpec | None,
     seconds: Seconds,
 ) -> Search:
-    """Every start of ``starts`` tried (:func:`try_start`); then, with a ``scan_model``
+    """Every start of ``starts`` tried (:func:`try_start`); then, with a ``scan_cheap``
     (the starts came from the scan, ``basin_search`` is on and the fit goes on past the
     cheap solve) and an answer found, the rescan's starts where its σt asks for one
     (:func:`~.scan.rescan`)."""
     for label, start in starts:
         try_start(ctx, search, label, start, seconds)
-    if scan_model is None or not search.stages:
+    if scan_cheap is None or not search.stages:
         return search
-    more, again = rescan(ctx, scan_model, search.scan, search.best()[1].values, len(search.stages))
+    more, again = rescan(ctx, scan_cheap, search.scan, search.best()[1].values, len(search.stages))
     if again is None:
         return search
     seconds.add(**again.seconds)

@@ -13,7 +13,7 @@ from lightfield_jax.inverse.basins import Scan, worse_basin
 from lightfield_jax.inverse.correction import projected
 from lightfield_jax.inverse.joint_fit.context import FitContext
 from lightfield_jax.inverse.joint_fit.stage import Stage, usable_render
-from lightfield_jax.inverse.model_size import _Model
+from lightfield_jax.inverse.model_size import ModelSpec
 from lightfield_jax.inverse.trust import at_bound
 
 
@@ -30,7 +30,7 @@ def same_answer(a: dict, b: dict) -> bool:
 LINE_POINTS = (0.0, 0.25, 0.5, 0.75, 0.9, 1.0)
 
 
-def downhill_from(ctx: FitContext, coarse: _Model, start, answer: dict, origins=None) -> bool:
+def downhill_from(ctx: FitContext, coarse: ModelSpec, start, answer: dict, origins=None) -> bool:
     """Whether the cheap model's misfit (the gain projected out) rises monotonically
     along the straight line in (albedo, g, b) at the answer's σt from a solved
     ``answer`` to ``start`` (one primal render per point of :data:`LINE_POINTS`; the

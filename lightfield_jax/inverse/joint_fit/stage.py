@@ -17,14 +17,12 @@ import numpy as np
 import optimistix as optx
 
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.forward.cell import cell_problem, cell_renderer_for
-from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.correction import design, projected
 from lightfield_jax.inverse.data import FitData
 from lightfield_jax.inverse.joint import JointSettings, model_at, unpack
 from lightfield_jax.inverse.joint import solve as solve_joint
 from lightfield_jax.inverse.joint_fit.context import FitContext
-from lightfield_jax.inverse.model_size import _Model
+from lightfield_jax.inverse.model_size import ModelSpec
 from lightfield_jax.inverse.two_step import full_for
 from lightfield_jax.scene.illumination import Stripes
 
@@ -55,7 +53,9 @@ def result_message(result) -> tuple[bool, str]:
     return False, text.split(". ")[0].rstrip(".") or "failed"
 
 
-def model_renderer(model: _Model, illumination, phase: str):
+def model_renderer(model: ModelSpec, illumination, phase: str):
+    """``model``'s renderer for ``illumination``, with its tail solve: its geometry's
+    choice (the plane's stripes from one period where ``model.cell`` is set)."""
     solve = (
         {}
         if model.tail is None
@@ -65,26 +65,10 @@ def model_renderer(model: _Model, illumination, phase: str):
             "tail_max_steps": model.tail_max_steps,
         }
     )
-    if (
-        model.cell is not None
-        and model.geometry is None
-        and cell_problem(model.grid, illumination) is None
-    ):
-        return cell_renderer_for(
-            model.grid, illumination, model.bounces, phase, shift_orders=model.cell, **solve
-        )
-    return renderer_for(
-        model.grid,
-        illumination,
-        model.bounces,
-        phase,
-        model.geometry,
-        coarse_after=model.coarse,
-        **solve,
-    )
+    return model.geometry.renderer(model, illumination, phase, **solve)
 
 
-def joint_parts(pattern: Stripes, model: _Model, phase: str):
+def joint_parts(pattern: Stripes, model: ModelSpec, phase: str):
     """The stripes' renderer and, when the phases do not tile the period, full
     illumination's (else ``None``)."""
     renderer = model_renderer(model, pattern, phase)
@@ -112,7 +96,7 @@ def joint_weights(images, mask, exposure=None, floor=None):
 class Stage:
     """One joint solve: the model, the answer and what the error budget needs."""
 
-    model: _Model
+    model: ModelSpec
     values: dict  # sigma_t, sigma_s, g, black_level, gain
     y: jax.Array
     ok: bool
@@ -132,7 +116,7 @@ class Stage:
     unrefined: str | None = None  # why a cheap solve was not taken to its model
 
 
-def solve_stage(ctx: FitContext, model: _Model, weights, y0) -> Stage:
+def solve_stage(ctx: FitContext, model: ModelSpec, weights, y0) -> Stage:
     """One compiled joint solve (:func:`lightfield_jax.inverse.joint.solve`) of ``model``
     from ``y0`` with ``weights``."""
     data, pattern, options, black = ctx.data, ctx.pattern, ctx.options, ctx.black
@@ -223,7 +207,7 @@ def model_weights(data: FitData, stage: Stage):
     )
 
 
-def usable_render(ctx: FitContext, model: _Model, v: dict, dtype):
+def usable_render(ctx: FitContext, model: ModelSpec, v: dict, dtype):
     """:func:`render_model` of ``model`` at ``v`` (its renderers for the fit's pattern),
     or ``None`` where its tail solve did not converge or the render is not finite."""
     renderer, full = joint_parts(ctx.pattern, model, ctx.options.phase)
@@ -233,7 +217,7 @@ def usable_render(ctx: FitContext, model: _Model, v: dict, dtype):
     return unit, tail
 
 
-def render_model(renderer, full, pattern, model: _Model, v: dict, dtype):
+def render_model(renderer, full, pattern, model: ModelSpec, v: dict, dtype):
     """``model``'s render at unit gain at ``v`` (σt, σs, g, black level), as float64
     numpy, and its tail solve's ``{"steps", "converged"}`` (``None`` without a tail)."""
     unit, tail = model_at(

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 from lightfield_jax.inverse.basins import Scan, worse_basin
 from lightfield_jax.inverse.joint_fit.context import FitContext
 from lightfield_jax.inverse.joint_fit.stage import Stage
-from lightfield_jax.inverse.model_size import RATIO_MARGIN, _bucket_bounces, _Model
+from lightfield_jax.inverse.model_size import RATIO_MARGIN, ModelSpec, bucket_bounces
 from lightfield_jax.inverse.trust import (
     OFFSET_EXPLAINS,
     constant_offset,
@@ -75,7 +75,7 @@ def offset_hint_below_far(far: bool, reasons: list[str], chi2_dof: float) -> boo
     return (not far) and bool(reasons) and math.isfinite(chi2_dof) and chi2_dof >= OFFSET_HINT_CHI2
 
 
-def cut_series(model: _Model, the_scan, v: dict, options: FitOptions) -> list[str]:
+def cut_series(model: ModelSpec, the_scan, v: dict, options: FitOptions) -> list[str]:
     """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
     ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1.
@@ -106,7 +106,7 @@ def cut_series(model: _Model, the_scan, v: dict, options: FitOptions) -> list[st
                 "normalized), or the tank's depth (geometry: slab)"
             ]
         return [cut + f"fit: {{bounces: {max(2 * model.bounces, 8)}}} marches more of them"]
-    need = _bucket_bounces(
+    need = bucket_bounces(
         bounces_for_tolerance(min(r + RATIO_MARGIN, 0.995), options.tolerance, 10**9)
     )
     if options.tail is None:  # the march is capped at max_bounces
