@@ -17,7 +17,7 @@ import numpy as np
 from lightfield_jax.checks import repeated, shown
 from lightfield_jax.inverse.fit import _fit_one, _model_from
 from lightfield_jax.inverse.geometry_model import geometry_model
-from lightfield_jax.inverse.methods import FitMethod
+from lightfield_jax.inverse.method_base import FitMethod
 from lightfield_jax.inverse.model_size import ModelSpec, at_least, signal_crop
 from lightfield_jax.inverse.options import FitOptions, FitResult, check_options, check_progress
 from lightfield_jax.scene.geometry import as_geometry, parse_geometry

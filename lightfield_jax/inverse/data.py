@@ -459,7 +459,7 @@ def _clip_level(
 
 @dataclasses.dataclass(frozen=True)
 class FitProblem:
-    """What a fit method solves (:meth:`~lightfield_jax.inverse.methods.FitMethod.solve`).
+    """What a fit method solves (:meth:`~lightfield_jax.inverse.method_base.FitMethod.solve`).
 
     Attributes:
         data: the capture inside ``model``'s crop.

@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
 
-import jax
 import numpy as np
 
 from lightfield_jax.forward.plane import coarse_plane_grid
@@ -23,18 +21,10 @@ from lightfield_jax.inverse.geometry_model import (
     PlaneModel,
     geometry_model,
 )
+from lightfield_jax.inverse.options import FitOptions, phase_integral_at
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Stripes
 from lightfield_jax.scene.medium import bounces_for_tolerance
-from lightfield_jax.scene.phase import phase_integral
-
-if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
-
-
-# A(g) of a Python float, compiled once (op by op, its dozen operations would each
-# compile on first use).
-phase_integral_at = jax.jit(phase_integral)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -414,7 +404,6 @@ __all__ = [
     "finer_cheap",
     "orders",
     "over_cap_note",
-    "phase_integral_at",
     "scan_model",
     "signal_crop",
     "size_model",
