@@ -183,6 +183,16 @@ def test_bad_method_settings_are_refused():
         lfj.Joint(start=(0.03, 1.2))
 
 
+def test_the_options_know_every_method_by_its_name():
+    # The options check a method's name below the methods (method_base): every method
+    # is known there under its own name, and nothing else is.
+    from lightfield_jax.inverse.method_base import METHOD_NAMES
+    from lightfield_jax.inverse.methods import METHODS
+
+    assert tuple(METHODS) == METHOD_NAMES
+    assert all(method.name == name for name, method in METHODS.items())
+
+
 def test_prepared_data_are_frozen_and_cropped_alike():
     exposure = np.ones_like(_images())
     data = prepare_data(_images(), lfj.Stripes(), black_level=0.0, exposure=exposure)
