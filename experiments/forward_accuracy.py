@@ -65,7 +65,8 @@ from lightfield_jax.app.experiment import (
     write_csv,
 )
 from lightfield_jax.app.timing import stopwatch
-from lightfield_jax.internal import monte_carlo_render, renderer_for
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.reference.montecarlo import monte_carlo_render
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}
 _BEAM_KEYS = {"x", "y", "direction_deg", "width"}

@@ -11,7 +11,7 @@ import optimistix as optx
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.internal import prepare_data
+from lightfield_jax.inverse.data import prepare_data
 
 MILK = lfj.Medium(0.2051, 0.0366, 0.4)
 GRID = lfj.Grid(32, 24, 16, 1)
