@@ -54,7 +54,7 @@ from lightfield_jax.inverse.two_step import (
 )
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    pass
 
 
 class GridSearch(FitMethod):
@@ -70,7 +70,7 @@ class GridSearch(FitMethod):
             check_int(self.g_values, "g_values", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        n_g = self.g_values or options.g_grid
+        n_g = _own(self.g_values, options.g_grid)
         say(f"{self.name}: search over g")
         return _two_step_fit(self.name, problem, options, say, None, n_g)
 
@@ -90,10 +90,10 @@ class TwoStep(FitMethod):
             check_int(self.start_grid, "start_grid", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        options = _with_solver(options, self.solver)
-        solver = least_squares_solver(options, jnp.result_type(float))
+        own = _own(self.solver, options.solver)
+        solver = least_squares_solver(own, options, jnp.result_type(float))
         say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
-        n_g = self.start_grid or options.start_grid
+        n_g = _own(self.start_grid, options.start_grid)
         return _two_step_fit(self.name, problem, options, say, solver, n_g)
 
 
@@ -111,10 +111,8 @@ class Joint(FitMethod):
         check_start(self.start)
 
     def solve(self, problem, options, say):
-        options = _with_solver(options, self.solver)
-        if self.start is not None:
-            options = dataclasses.replace(options, start=self.start)
-        model, seconds, values = joint_fit(problem, options, say)
+        solver, start = _own(self.solver, options.solver), _own(self.start, options.start)
+        model, seconds, values = joint_fit(problem, options, say, solver, start)
         return FitSolution(model=model, seconds=seconds, values=values)
 
 
@@ -128,8 +126,9 @@ def method_for(method: str | FitMethod) -> FitMethod:
     return METHODS[check_method(method)]
 
 
-def _with_solver(options: FitOptions, solver) -> FitOptions:
-    return options if solver is None else dataclasses.replace(options, solver=solver)
+def _own(setting, default):
+    """A method's own setting, else (``None``) the options' ``default``."""
+    return default if setting is None else setting
 
 
 # The two-step methods march at most ``max_bounces``; orders left out that sum to more

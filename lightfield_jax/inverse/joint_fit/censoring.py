@@ -57,15 +57,17 @@ def stage_sigma(stage: Stage, noise: float) -> np.ndarray:
         return np.sqrt(noise) / np.where(stage.weights > 0, stage.weights, np.nan)
 
 
-def joint_fit(problem, options: FitOptions, say):
+def joint_fit(problem, options: FitOptions, say, solver=None, start=None):
     """The joint fit of a :class:`~lightfield_jax.inverse.data.FitProblem`: the model,
     the seconds and the values of its :class:`~lightfield_jax.inverse.data.FitSolution`.
     Where values were clipped, the values the answer puts within ``CLIP_SIGMAS`` of the
     clip are masked and the fit solved once more from its answer; the first answer is
     kept where that one fails or is not trusted (``model.censoring`` in the result says
-    what was done)."""
+    what was done). ``solver`` and ``start``: the joint method's (``None``:
+    Levenberg-Marquardt, the basin scan's starts)."""
 
-    answer = fit_once(problem, problem.data, options, say)
+    chosen = {"solver": solver, "given": start}
+    answer = fit_once(problem, problem.data, options, say, **chosen)
     model, seconds, values, last = answer.model, answer.seconds, answer.values, answer.last
     noise = values["budget"].noise
     if not math.isfinite(noise) or "stopped" in values["basins"]:
@@ -100,7 +102,12 @@ def joint_fit(problem, options: FitOptions, say):
     first = {k: float(v[k]) for k in ("sigma_t", "sigma_s", "g")}
     try:
         again = fit_once(
-            problem, censored, options, say, (v["sigma_t"], v["sigma_s"], v["g"], v["black_level"])
+            problem,
+            censored,
+            options,
+            say,
+            (v["sigma_t"], v["sigma_s"], v["g"], v["black_level"]),
+            **chosen,
         )
     except ValueError as e:
         failed = f"failed ({e})"

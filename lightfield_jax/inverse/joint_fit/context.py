@@ -8,6 +8,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
+import optimistix as optx
 
 from lightfield_jax.inverse.data import FitData
 from lightfield_jax.inverse.joint import BLACK_RANGE
@@ -31,6 +32,9 @@ class FitContext:
         images: the whole masked images (the final model is sized on them anew).
         floor: the smallest model to use, or ``None``.
         say: the progress printer.
+        solver: the joint method's optimistix least-squares solver, or ``None``:
+            Levenberg-Marquardt with the options' tolerances.
+        start: the joint method's start (σs, g), or ``None``: the basin scan's.
     """
 
     data: FitData
@@ -41,6 +45,8 @@ class FitContext:
     images: np.ndarray
     floor: ModelSpec | None
     say: Callable[[str], None]
+    solver: optx.AbstractLeastSquaresSolver | None = None
+    start: tuple[float, float] | None = None
 
     @property
     def fit_black(self) -> bool:

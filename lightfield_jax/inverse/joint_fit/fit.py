@@ -48,10 +48,20 @@ class Answer:
     last: Stage
 
 
-def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start=None) -> Answer:
+def fit_once(
+    problem: FitProblem,
+    data: FitData,
+    options: FitOptions,
+    say,
+    start=None,
+    *,
+    solver=None,
+    given=None,
+) -> Answer:
     """The joint fit of ``data`` (``problem``'s, or a censored copy): scan, solve every
-    basin kept (or the given ``start`` = (σt, σs, g, b), else ``options.start`` =
-    (σs, g)), keep the best; then the error budget and the verdict."""
+    basin kept (or the given ``start`` = (σt, σs, g, b), else the method's ``given``
+    start = (σs, g)), keep the best; then the error budget and the verdict. ``solver``:
+    the method's optimistix least-squares solver (``None``: Levenberg-Marquardt)."""
     seconds = Seconds()
     coarse = scan_model(problem.model.crop, options, problem.rho0)
     if data.exposure is None:  # merged brackets: the variance follows T, not I alone
@@ -69,6 +79,8 @@ def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start
         images=problem.images,
         floor=problem.floor,
         say=say,
+        solver=solver,
+        start=given,
     )
     marched = (
         f"{coarse.bounces} bounces"
@@ -82,12 +94,12 @@ def fit_once(problem: FitProblem, data: FitData, options: FitOptions, say, start
     # The scan's misfit map needs the light's shape, not the walls' last tenths of a
     # percent: its stripes are rendered from one period, their mean's walls' term alone.
     scan_cheap = dataclasses.replace(coarse, cell=CHEAP_CELL)
-    from_scan = start is None and options.start is None
+    from_scan = start is None and given is None
     the_scan, scanned = basin_scan(ctx, scan_cheap, seconds, widen=from_scan)
     peak = float(np.max(np.where(data.valid, data.images, -np.inf)))
     # Not in the censoring refit from an answer (``start``): joint_fit does not refit
     # a fit that stopped, and one that did not is refined as it was.
-    stop = [] if start is not None else offset_stop(the_scan, options, peak)
+    stop = [] if start is not None else offset_stop(the_scan, options, peak, given is not None)
     if stop:
         say(f"  {stop[0]}")
     starts = starts_for(ctx, the_scan, start, stop)

@@ -56,13 +56,13 @@ class Search:
 
 def starts_for(ctx: FitContext, the_scan: Scan, start, stop: list[str]) -> list:
     """The starts ``(label, (σt, σs, g, b))``: the given ``start`` (σt, σs, g, b), else
-    ``options.start`` (σs, g) at the scan's σt, else every basin the scan kept (its
+    the method's ``start`` (σs, g) at the scan's σt, else every basin the scan kept (its
     best alone without ``basin_search`` or where the fit ``stop``s after it)."""
     black = ctx.black
     if start is not None:
         return [("given", tuple(start) if black is None else (*start[:3], black))]
-    if ctx.options.start is not None:
-        ss, g = ctx.options.start
+    if ctx.start is not None:
+        ss, g = ctx.start
         return [("given", (ctx.data.sigma_t0, ss, g, 0.0 if black is None else black))]
     found = the_scan.basins if ctx.options.basin_search else the_scan.basins[:1]
     if not found:

@@ -30,11 +30,11 @@ if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions
 
 
-def least_squares_solver(options: FitOptions, dtype):
-    """The optimistix least-squares solver: ``options.solver``, else Levenberg-Marquardt
-    with tolerances from ``options`` or the dtype."""
-    if options.solver is not None:
-        return options.solver
+def least_squares_solver(solver, options: FitOptions, dtype):
+    """The optimistix least-squares solver: ``solver`` (a fit method's, or the options'),
+    else Levenberg-Marquardt with tolerances from ``options`` or the dtype."""
+    if solver is not None:
+        return solver
     wide = jnp.finfo(dtype).bits > 32
     rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
     atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
@@ -142,7 +142,7 @@ def solve_stage(ctx: FitContext, model: ModelSpec, weights, y0) -> Stage:
                 y, result, steps, unit, jac_r, tail = jax.block_until_ready(
                     solve_joint(
                         settings,
-                        least_squares_solver(options, dtype),
+                        least_squares_solver(ctx.solver, options, dtype),
                         renderer,
                         full,
                         obs,

@@ -31,19 +31,22 @@ if TYPE_CHECKING:
 CUT_LIMIT = 0.01
 
 
-def offset_stop(the_scan: Scan, options: FitOptions, peak: float) -> list[str]:
+def offset_stop(
+    the_scan: Scan, options: FitOptions, peak: float, from_start: bool = False
+) -> list[str]:
     """The reason to stop after the basin scan (``[]``: go on): a constant offset in
     every image value leaves less than ``options.offset_stop`` of the scan's best
     misfit. The scan's misfit then is mostly that constant, many times the noise and the
     cheap model's own error, and the full model's solves would chase it (g toward its
-    bound, the model growing with it) for minutes to end not trusted."""
+    bound, the model growing with it) for minutes to end not trusted. ``from_start``:
+    the fit solves a start it was given, not the scan's basins."""
     found = the_scan.offset
     if found is None or not found.fraction < options.offset_stop:
         return []
     hint = offset_hint(found.value, found.fraction, "basin scan's", peak)
     if not hint:
         return []
-    solved = "the given start's" if options.start is not None else "its best basin's"
+    solved = "the given start's" if from_start else "its best basin's"
     return [
         f"{hint[0]}; the fit stopped after the scan and {solved} cheap solve "
         f"(offset_stop: {options.offset_stop:g})"
