@@ -551,16 +551,16 @@ def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
 
     cost = _two_wells(depth_ratio=1.5)
 
-    def stop(fraction, value=0.02, **options):
+    def stop(fraction, value=0.02, from_start=False, **options):
         scanned = dataclasses.replace(
             _scan_of(cost), offset=ScanOffset(fraction * cost.min(), value, fraction)
         )
-        return offset_stop(scanned, lfj.FitOptions(**options), 1.0)
+        return offset_stop(scanned, lfj.FitOptions(**options), 1.0, from_start)
 
     (reason,) = stop(0.01)
     assert "+0.02 in every image value" in reason and "offset_stop: 0.05" in reason
     assert "its best basin's cheap solve" in reason
-    assert "the given start's cheap solve" in stop(0.01, start=(0.03, 0.4))[0]
+    assert "the given start's cheap solve" in stop(0.01, from_start=True)[0]
     assert "subtracts too much" in stop(0.01, value=-0.02)[0]
     assert stop(0.06) == [] and stop(0.01, offset_stop=0.0) == [] and stop(0.0, offset_stop=0) == []
     assert stop(0.2, offset_stop=0.25)
