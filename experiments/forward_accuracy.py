@@ -57,7 +57,8 @@ import numpy as np
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment_config import Pixels, Range, Seed, typed_config
 from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
-from lightfield_jax.internal import monte_carlo_render, renderer_for
+from lightfield_jax.forward.render import renderer_for
+from lightfield_jax.reference.montecarlo import monte_carlo_render
 from lightfield_jax.runtime.timing import stopwatch
 
 _SCENE_KEYS = {"name", "sigma_t", "sigma_s", "g", "beam", "phase", "label"}

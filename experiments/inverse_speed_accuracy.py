@@ -63,7 +63,6 @@ import jax
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax import internal as lfi
 from lightfield_jax.app.experiment import load_helper
 from lightfield_jax.app.experiment_config import (
     Count,
@@ -75,6 +74,8 @@ from lightfield_jax.app.experiment_config import (
     typed_config,
 )
 from lightfield_jax.app.experiment_records import pyplot, save_figure, write_csv
+from lightfield_jax.inverse import two_step
+from lightfield_jax.inverse.data import prepare_data
 from lightfield_jax.runtime.timing import stopwatch
 
 inv = load_helper("_inverse")
@@ -176,15 +177,15 @@ def _import_jaxopt():
 def _jaxopt_run(solver: str, max_steps: int, renderer, sigma_t, d, m, mask, gs, scale):
     """The two-step problem in jaxopt: the package's search over ``gs`` and its start,
     then jaxopt's solver on the package's two-step residual in the package's
-    parametrisation (:mod:`lightfield_jax.internal`)."""
+    parametrisation (:mod:`lightfield_jax.inverse.two_step`)."""
     jaxopt = _import_jaxopt()
-    s_all, cost = lfi.search_g(renderer, sigma_t, d, m, mask, gs, "paper")
-    start = lfi.search_start(gs, s_all, cost, sigma_t, "paper")
-    slope = lfi.rendered_and_g_slope(renderer, sigma_t, "paper")
+    s_all, cost = two_step.search_g(renderer, sigma_t, d, m, mask, gs, "paper")
+    start = two_step.search_start(gs, s_all, cost, sigma_t, "paper")
+    slope = two_step.rendered_and_g_slope(renderer, sigma_t, "paper")
 
     def residual(y):
-        p = lfi.to_params(y, sigma_t, "paper")
-        return lfi.two_step_residual(slope, sigma_t, d, m, mask, scale, "paper", p)[0]
+        p = two_step.to_params(y, sigma_t, "paper")
+        return two_step.two_step_residual(slope, sigma_t, d, m, mask, scale, "paper", p)[0]
 
     if solver == "lm":
         opt = jaxopt.LevenbergMarquardt(
@@ -199,7 +200,7 @@ def _jaxopt_run(solver: str, max_steps: int, renderer, sigma_t, d, m, mask, gs, 
     else:
         opt = jaxopt.GaussNewton(residual_fun=residual, maxiter=max_steps, tol=1e-4)
     sol = opt.run(start)
-    s, g = lfi.to_params(sol.params, sigma_t, "paper")
+    s, g = two_step.to_params(sol.params, sigma_t, "paper")
     return s, g, sol.state.iter_num, sol.state.error
 
 
@@ -210,7 +211,7 @@ _jaxopt_jitted = jax.jit(_jaxopt_run, static_argnames=("solver", "max_steps"))
 def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: Config) -> dict:
     """The ``gradient`` method's two-step problem solved by jaxopt (``lm`` or ``gn``).
 
-    Same pieces as the package's two-step solve (:mod:`lightfield_jax.internal`): σt
+    Same pieces as the package's two-step solve (:mod:`lightfield_jax.inverse.two_step`): σt
     from the decay of D, the model size the package chose (``model``: crop, θ bins,
     refinement, bounces), the residual (M − a Σ_{k≥2} σs^{k−1} I_k)/rms(M) with the gain
     from the single scatter, the parametrisation (σs = σs_max(g)·sigmoid(y₀),
@@ -220,11 +221,11 @@ def jaxopt_two_step(images, pattern, model: dict, solver: str, split, config: Co
     """
     load = os.getloadavg()[0]
     t_start = time.perf_counter()
-    data = lfi.prepare_data(images, pattern, black_level=0.0, split=split)
+    data = prepare_data(images, pattern, black_level=0.0, split=split)
     data = data.cropped(tuple(model["crop"]))
     grid = lfj.Grid(*data.mask.shape[::-1], model["n_theta"], model["refine"])
-    renderer = lfj.Renderer(grid, lfi.full_for(pattern), model["bounces"], "paper")
-    args = lfi.problem_arrays(data, renderer, config.start_grid)
+    renderer = lfj.Renderer(grid, two_step.full_for(pattern), model["bounces"], "paper")
+    args = two_step.problem_arrays(data, renderer, config.start_grid)
     with warnings.catch_warnings(), stopwatch() as timing:
         warnings.filterwarnings("ignore", category=DeprecationWarning, module="jaxopt")
         out = _jaxopt_jitted(solver, config.max_steps, *args)

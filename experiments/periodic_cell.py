@@ -124,9 +124,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
         ctx.progress(f"{spec['name']}: cell, {_label(scheme)}")
         walls, band = scheme["shift_orders"], scheme.get("wall_band", 0)
         orders = None if walls == "all" else walls
-        cell = lfj.CellRenderer(
-            grid, stripes, k, medium.phase, shift_orders=orders, wall_band=band
-        )
+        cell = lfj.CellRenderer(grid, stripes, k, medium.phase, shift_orders=orders, wall_band=band)
         timed = _timed(cell, medium, cfg["repeats"])
         images = timed.pop("out")
         row_error = np.max(np.abs(images.sum(axis=1) - total), axis=(0, 2)) / np.max(

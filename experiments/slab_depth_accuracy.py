@@ -27,7 +27,6 @@ from typing import Annotated
 import numpy as np
 
 import lightfield_jax as lfj
-from lightfield_jax import internal as lfi
 from lightfield_jax.app.experiment import load_helper
 from lightfield_jax.app.experiment_config import (
     Dtype,
@@ -40,6 +39,7 @@ from lightfield_jax.app.experiment_config import (
 )
 from lightfield_jax.app.experiment_records import pyplot, save_figure
 from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.reference.montecarlo_slab import monte_carlo_slab
 from lightfield_jax.scene.geometry import BOUNDARIES, resolve_slab_grid
 
 inv = load_helper("_inverse")
@@ -102,7 +102,7 @@ def _cell(config: Config, tau: float, g: float, boundary: str) -> dict:
     top = max(config.albedo)
     width, height = config.width, config.height
     t0 = time.perf_counter()
-    mc = lfi.monte_carlo_slab(
+    mc = monte_carlo_slab(
         width,
         height,
         h,

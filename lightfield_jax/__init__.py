@@ -38,7 +38,7 @@ from lightfield_jax.inverse.decay import DecayFit as DecayFit
 from lightfield_jax.inverse.decay import fit_decay as fit_decay
 from lightfield_jax.inverse.fit import fit_images as fit_images
 from lightfield_jax.inverse.fit import fitted_images as fitted_images
-from lightfield_jax.inverse.methods import FitMethod as FitMethod
+from lightfield_jax.inverse.method_base import FitMethod as FitMethod
 from lightfield_jax.inverse.methods import GridSearch as GridSearch
 from lightfield_jax.inverse.methods import Joint as Joint
 from lightfield_jax.inverse.methods import TwoStep as TwoStep

@@ -599,7 +599,7 @@ def _decaying_stripes(pattern, height=12, width=32) -> np.ndarray:
 def test_masked_exposure_and_split_values_are_not_used():
     # Before: np.asarray dropped their masks, and the fill values entered the fit (a
     # masked T's fill as the exposure, a masked direct value as the direct light).
-    from lightfield_jax.internal import prepare_data
+    from lightfield_jax.inverse.data import prepare_data
 
     pattern = lfj.Stripes()
     images = _decaying_stripes(pattern)

@@ -462,7 +462,7 @@ def test_the_offset_linearised_at_an_answer_and_its_hint():
 
 
 def test_the_offset_reason_takes_the_scans_constant_else_the_answers():
-    """_offset_reason: the scan's offset where it leaves at most OFFSET_EXPLAINS of the
+    """offset_reason: the scan's offset where it leaves at most OFFSET_EXPLAINS of the
     scan's misfit; else the offset linearised at the answer (its Jacobian, residual and
     weights); nothing where neither explains the misfit. ScanOffset.of picks the best
     point of the offset's map and its share of the best misfit without it."""
@@ -470,7 +470,7 @@ def test_the_offset_reason_takes_the_scans_constant_else_the_answers():
     import types
 
     from lightfield_jax.inverse.basins import ScanOffset
-    from lightfield_jax.inverse.joint_fit import _offset_reason
+    from lightfield_jax.inverse.joint_fit.verdict import offset_reason
 
     cost = _two_wells(depth_ratio=1.5)
     with_offset = np.full_like(cost, np.inf)
@@ -485,12 +485,12 @@ def test_the_offset_reason_takes_the_scans_constant_else_the_answers():
     plain = types.SimpleNamespace(jac=jac, residual=1e-3 * rng.standard_normal(300), weights=w)
     pedestal = types.SimpleNamespace(**{**vars(plain), "residual": plain.residual - 0.02 * w})
     scanned = dataclasses.replace(_scan_of(cost), offset=found)
-    (reason,) = _offset_reason(scanned, plain, 1.0)
+    (reason,) = offset_reason(scanned, plain, 1.0)
     assert "+0.031" in reason and "basin scan's misfit" in reason, reason
     unexplained = dataclasses.replace(scanned, offset=ScanOffset(1.0, 0.031, 0.9))
-    (reason,) = _offset_reason(unexplained, pedestal, 1.0)
+    (reason,) = offset_reason(unexplained, pedestal, 1.0)
     assert "+0.02" in reason and "answer's misfit" in reason, reason
-    assert _offset_reason(unexplained, plain, 1.0) == []
+    assert offset_reason(unexplained, plain, 1.0) == []
 
 
 def test_an_untrusted_fit_near_the_noise_still_looks_for_an_offset():
@@ -498,14 +498,14 @@ def test_an_untrusted_fit_near_the_noise_still_looks_for_an_offset():
     looks for the constant offset too (a dark level 0.4 % of the peak too high: χ² 14,
     σs 27 % off, before without a word of it); a trusted fit, one at the noise, or one
     far above it (already looked) does not again."""
-    from lightfield_jax.inverse.joint_fit import OFFSET_HINT_CHI2, _offset_hint_below_far
+    from lightfield_jax.inverse.joint_fit.verdict import OFFSET_HINT_CHI2, offset_hint_below_far
 
     bound = ["albedo = 0.0000 is at its bound"]
-    assert _offset_hint_below_far(False, bound, 13.9)
-    assert not _offset_hint_below_far(False, bound, 1.03)
-    assert not _offset_hint_below_far(False, [], 13.9)
-    assert not _offset_hint_below_far(True, bound, 419.0)
-    assert not _offset_hint_below_far(False, bound, math.nan)
+    assert offset_hint_below_far(False, bound, 13.9)
+    assert not offset_hint_below_far(False, bound, 1.03)
+    assert not offset_hint_below_far(False, [], 13.9)
+    assert not offset_hint_below_far(True, bound, 419.0)
+    assert not offset_hint_below_far(False, bound, math.nan)
     assert OFFSET_HINT_CHI2 <= 13.9
 
 
@@ -547,20 +547,20 @@ def test_offset_stop_is_a_share_of_the_scans_misfit_and_zero_never_stops():
     import dataclasses
 
     from lightfield_jax.inverse.basins import ScanOffset
-    from lightfield_jax.inverse.joint_fit import _offset_stop
+    from lightfield_jax.inverse.joint_fit.verdict import offset_stop
 
     cost = _two_wells(depth_ratio=1.5)
 
-    def stop(fraction, value=0.02, **options):
+    def stop(fraction, value=0.02, from_start=False, **options):
         scanned = dataclasses.replace(
             _scan_of(cost), offset=ScanOffset(fraction * cost.min(), value, fraction)
         )
-        return _offset_stop(scanned, lfj.FitOptions(**options), 1.0)
+        return offset_stop(scanned, lfj.FitOptions(**options), 1.0, from_start)
 
     (reason,) = stop(0.01)
     assert "+0.02 in every image value" in reason and "offset_stop: 0.05" in reason
     assert "its best basin's cheap solve" in reason
-    assert "the given start's cheap solve" in stop(0.01, start=(0.03, 0.4))[0]
+    assert "the given start's cheap solve" in stop(0.01, from_start=True)[0]
     assert "subtracts too much" in stop(0.01, value=-0.02)[0]
     assert stop(0.06) == [] and stop(0.01, offset_stop=0.0) == [] and stop(0.0, offset_stop=0) == []
     assert stop(0.2, offset_stop=0.25)

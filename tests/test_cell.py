@@ -43,9 +43,7 @@ def test_periodic_cell_is_the_tank_far_from_its_walls():
     grid = Grid(32, 60, 16, 1)
     stripes = Stripes(6, 2, (0, 1, 2, 3, 4, 5))
     full = np.asarray(PlaneRenderer(grid, stripes, 5, "normalized")(0.8, 0.4, 0.3)[0])
-    cell = PeriodicCell(
-        Grid(32, 6, 16, 1), Stripes(6, 2, (0,)), 5, "normalized", tank_height=60
-    )
+    cell = PeriodicCell(Grid(32, 6, 16, 1), Stripes(6, 2, (0,)), 5, "normalized", tank_height=60)
     one = np.asarray(cell(0.8, 0.4, 0.3)[0])[0]  # (K, 6, W)
     for s in range(6):
         rolled = one[:, (np.arange(60) + s) % 6]
@@ -170,17 +168,18 @@ def test_the_fits_cheap_models_render_stripes_from_one_period():
     import dataclasses
 
     from lightfield_jax import Slab
-    from lightfield_jax.inverse.joint_stage import _renderer
-    from lightfield_jax.inverse.model_size import _Model
+    from lightfield_jax.inverse.geometry_model import SlabModel
+    from lightfield_jax.inverse.joint_fit.stage import model_renderer
+    from lightfield_jax.inverse.model_size import ModelSpec
     from lightfield_jax.scene.illumination import Full
 
     stripes = Stripes(6, 3, (0, 1, 2, 3, 4, 5))
-    model = _Model(Grid(24, 18, 8, 1), 4, (0, 0, 24, 18), converges=True, rho=0.5)
-    assert type(_renderer(model, stripes, "paper")) is PlaneRenderer
+    model = ModelSpec(Grid(24, 18, 8, 1), 4, (0, 0, 24, 18), converges=True, rho=0.5)
+    assert type(model_renderer(model, stripes, "paper")) is PlaneRenderer
     cheap = dataclasses.replace(model, cell=2)
-    cell = _renderer(cheap, stripes, "paper")
+    cell = model_renderer(cheap, stripes, "paper")
     assert isinstance(cell, CellRenderer) and cell.shift_orders == 2
-    assert type(_renderer(cheap, Full(), "paper")) is PlaneRenderer
+    assert type(model_renderer(cheap, Full(), "paper")) is PlaneRenderer
     slab = Slab(3.0, "absorbing", n_mu=4, n_z=1)
-    on_slab = _renderer(dataclasses.replace(cheap, geometry=slab), stripes, "paper")
+    on_slab = model_renderer(dataclasses.replace(cheap, geometry=SlabModel(slab)), stripes, "paper")
     assert not isinstance(on_slab, CellRenderer)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.inverse.joint_fit import _finer
+from lightfield_jax.inverse.joint_fit.finer import finer
 from lightfield_jax.inverse.model_size import richardson_factor, size_model
 from lightfield_jax.inverse.trust import error_budget
 from lightfield_jax.reference.montecarlo import monte_carlo_render
@@ -32,15 +32,15 @@ def test_the_error_terms_finer_model_refines_space_and_extrapolates():
     need = lfj.FitOptions(phase="normalized", max_cells=opts.max_render_cells)
     model = size_model(np.zeros((6, 96, 120)), lfj.Stripes(), 0.8, 0.7, need, 1.03, 0.2)
     assert (model.grid.n_theta, model.grid.refine) == (64, 2)
-    fine = _finer(model, opts, 0.7)
+    fine = finer(model, opts, 0.7)
     assert (fine.grid.n_theta, fine.grid.refine) == (128, 3)
     assert richardson_factor(model, fine) == 3.0
     # Room for space or θ, not both: space first.
     tight = lfj.FitOptions(phase="normalized", max_render_cells=4_000_000)
-    spatial = _finer(model, tight, 0.7).grid
+    spatial = finer(model, tight, 0.7).grid
     assert (spatial.n_theta, spatial.refine) == (64, 3)
     small = lfj.FitOptions(phase="normalized", max_cells=10**5, max_render_cells=10**5)
-    capped = _finer(model, small, 0.7)
+    capped = finer(model, small, 0.7)
     assert capped.grid.refine == 2 and richardson_factor(model, capped) is None
 
 

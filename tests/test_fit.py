@@ -252,11 +252,11 @@ def test_the_linearised_refit_lands_where_a_solve_with_the_model_weights_does(mo
     """The refit with the model's weights is done on the model linearised at the first
     stage's answer; solved instead (the linearisation switched off), the answer is the
     same to a small fraction of its 1σ, so the shortcut costs no accuracy."""
-    import lightfield_jax.inverse.joint_stage as joint_stage
+    import lightfield_jax.inverse.joint_fit.refit as refit
 
     linear, _ = _noisy_fit(SMALL, 0)
     assert linear.model["refit"] == "linearised"
-    monkeypatch.setattr(joint_stage, "_linear_refit", lambda *args: None)
+    monkeypatch.setattr(refit, "linear_refit", lambda *args: None)
     solved, _ = _noisy_fit(SMALL, 0)
     assert solved.model["refit"] == "solved"
     for key in ("sigma_t", "sigma_s", "g"):
@@ -427,8 +427,8 @@ def test_a_start_forced_into_the_wrong_basin_is_not_trusted():
     from types import SimpleNamespace
 
     from lightfield_jax.inverse.fit import _model_from
-    from lightfield_jax.inverse.joint_fit import _downhill_from
-    from lightfield_jax.inverse.joint_stage import joint_weights
+    from lightfield_jax.inverse.joint_fit import FitContext, joint_weights
+    from lightfield_jax.inverse.joint_fit.slope import downhill_from
 
     scan = wrong.to_dict()["basins"]
     best = scan["basins"][0]
@@ -440,7 +440,8 @@ def test_a_start_forced_into_the_wrong_basin_is_not_trusted():
     answer = {k: getattr(wrong, k) for k in ("sigma_t", "sigma_s", "g", "black_level")}
     start = (scan["sigma_t"], best["albedo"] * scan["sigma_t"], best["g"], 0.0)
     options = lfj.FitOptions(geometry=REFRACTIVE)
-    assert not _downhill_from(data, lfj.Stripes(), model, options, weights, start, answer)
+    ctx = FitContext(data, lfj.Stripes(), options, 0.0, weights, images, None, print)
+    assert not downhill_from(ctx, model, start, answer)
 
 
 @pytest.mark.slow  # ~30 s (two noisy 64x48 fits); the line's own rule is tested above
@@ -448,7 +449,7 @@ def test_basins_on_the_slope_of_an_answer_found_are_not_solved_again(monkeypatch
     """Shot noise breaks the scan's flat σt–g valley into several grid minima; those
     whose line to the first answer rises all the way are not solved (the answer is the
     one solving each of them gives)."""
-    import lightfield_jax.inverse.joint_fit as joint_fit
+    import lightfield_jax.inverse.joint_fit.search as search
 
     clean = _stripe_images("milk", lfj.Grid(64, 48))
     clean = clean / clean.max()
@@ -461,7 +462,7 @@ def test_basins_on_the_slope_of_an_answer_found_are_not_solved_again(monkeypatch
     skipping, tried = fit()
     skipped = [t for t in tried if t.get("by") == "a line downhill to it"]
     assert skipping.converged and skipped, tried
-    monkeypatch.setattr(joint_fit, "_downhill_from", lambda *args: False)
+    monkeypatch.setattr(search, "downhill_from", lambda *args: False)
     solving, tried = fit()
     assert all("by" not in t for t in tried)
     assert {t["label"] for t in skipped} <= {t["label"] for t in tried if "same_as" in t}
@@ -855,7 +856,7 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     """``tail: auto``: the tail bound's count where it is at most max_bounces (the milk);
     beyond it K0 and BiCGStab (albedo 0.99), unless the scan's measured per-bounce
     ratio asks for a march within max_bounces; ``tail: None`` marches, capped."""
-    from lightfield_jax.inverse.model_size import _by_measured_ratio, size_model
+    from lightfield_jax.inverse.model_size import by_measured_ratio, size_model
 
     images = np.zeros((6, 24, 32))
     crop = (0, 0, 32, 24)
@@ -870,10 +871,10 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     assert (high.tail, high.bounces) == ("bicgstab", opts.tail_bounces)
     assert high.as_dict()["tail"]["K0"] == opts.tail_bounces
     assert high.as_dict()["tail_bound"] is None
-    marched = _by_measured_ratio(high, opts, 0.75)
+    marched = by_measured_ratio(high, opts, 0.75)
     assert marched.tail is None and 32 <= marched.bounces <= opts.max_bounces
     assert marched.as_dict()["ratio_measured"] == 0.75
-    assert _by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
+    assert by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
     capped, opts = sized(0.99, tail=None)
     assert capped.tail is None and capped.bounces == opts.max_bounces
     forced, opts = sized(0.3, tail="gmres")
@@ -884,16 +885,16 @@ def test_the_error_terms_plane_model_is_finer_past_256_bins():
     """At g 0.9 the fit's model has 256 θ bins and refine 2 on a small capture; the error
     term's model doubles the bins where memory allows (it stopped at 256: the same
     discretisation, a model term of zero), and refines space once more."""
-    from lightfield_jax.inverse.joint_fit import _finer
+    from lightfield_jax.inverse.joint_fit.finer import finer
     from lightfield_jax.inverse.model_size import size_model
 
     opts = lfj.FitOptions(phase="normalized")
     model = size_model(np.zeros((6, 24, 32)), lfj.Stripes(), 0.98, 0.9, opts, 1.03, 0.05)
     assert (model.grid.n_theta, model.grid.refine) == (256, 2)
-    fine = _finer(model, opts, 0.9)
+    fine = finer(model, opts, 0.9)
     assert (fine.grid.n_theta, fine.grid.refine) == (512, 3)
     capped = lfj.FitOptions(phase="normalized", max_cells=10**5, max_render_cells=10**5)
-    assert _finer(model, capped, 0.9).grid == model.grid  # nothing finer fits
+    assert finer(model, capped, 0.9).grid == model.grid  # nothing finer fits
 
 
 @pytest.mark.parametrize("ratio, cut", [(0.999, True), (1.2, True), (0.9, False)])
@@ -904,24 +905,24 @@ def test_a_divergent_bound_marched_to_a_cut_series_is_not_converged(ratio, cut):
     (0.9^80) gives none. A series the bound called convergent but marched to a given
     count (``tail: null`` caps it at ``max_bounces``) is judged alike."""
     from lightfield_jax.inverse.basins import Scan
-    from lightfield_jax.inverse.joint_fit import _cut_series
-    from lightfield_jax.inverse.model_size import _Model
+    from lightfield_jax.inverse.joint_fit.verdict import cut_series
+    from lightfield_jax.inverse.model_size import ModelSpec
 
-    model = _Model(lfj.Grid(32, 24, 32, 1), 80, (0, 0, 32, 24), converges=False, rho=1.3)
+    model = ModelSpec(lfj.Grid(32, 24, 32, 1), 80, (0, 0, 32, 24), converges=False, rho=1.3)
     two = np.array([-0.9, 0.9])
     scan = Scan(
         two, two, np.zeros((2, 2)), np.zeros((2, 2)), (), 0.2, {}, two * 0 + ratio, two * 0 + 0.2
     )
     values = {"sigma_t": 0.2, "sigma_s": 0.2, "g": 0.8}  # albedo 1: the ratio as measured
     options = lfj.FitOptions(phase="paper")
-    reasons = _cut_series(model, scan, values, options)
+    reasons = cut_series(model, scan, values, options)
     assert bool(reasons) == cut
     if cut:
         assert "cut at 80 bounces" in reasons[0]
     converges = dataclasses.replace(model, converges=True, rho=0.95)
-    assert bool(_cut_series(converges, scan, values, options)) == cut
+    assert bool(cut_series(converges, scan, values, options)) == cut
     summed = dataclasses.replace(converges, tail="bicgstab")
-    assert _cut_series(summed, scan, values, options) == []
+    assert cut_series(summed, scan, values, options) == []
 
 
 def test_the_least_squares_steps_scale_their_columns():

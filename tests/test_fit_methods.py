@@ -11,7 +11,7 @@ import optimistix as optx
 import pytest
 
 import lightfield_jax as lfj
-from lightfield_jax.internal import prepare_data
+from lightfield_jax.inverse.data import prepare_data
 
 MILK = lfj.Medium(0.2051, 0.0366, 0.4)
 GRID = lfj.Grid(32, 24, 16, 1)
@@ -181,6 +181,16 @@ def test_bad_method_settings_are_refused():
         lfj.TwoStep(start_grid=10**7)
     with pytest.raises(ValueError, match="start: must be"):
         lfj.Joint(start=(0.03, 1.2))
+
+
+def test_the_options_know_every_method_by_its_name():
+    # The options check a method's name below the methods (method_base): every method
+    # is known there under its own name, and nothing else is.
+    from lightfield_jax.inverse.method_base import METHOD_NAMES
+    from lightfield_jax.inverse.methods import METHODS
+
+    assert tuple(METHODS) == METHOD_NAMES
+    assert all(method.name == name for name, method in METHODS.items())
 
 
 def test_prepared_data_are_frozen_and_cropped_alike():

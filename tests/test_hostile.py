@@ -936,15 +936,15 @@ def test_inspect_of_a_capture_clipped_at_its_entry_wall_measures_past_it(
     assert "the wall's pixels are masked" in out and "no direct light" not in out
     # The fit masks those values one shift at a time; the capture's clip flags and
     # levels (after the dark frame) reach the joint fit's censoring check.
-    import lightfield_jax.inverse.joint_fit as joint_fit
+    import lightfield_jax.inverse.joint_fit.censoring as censoring
 
-    seen, check = [], joint_fit.near_the_clip
+    seen, check = [], censoring.near_the_clip
 
     def spy(data, fitted, sigma, floor=None):
         seen.append((int(data.clipped.sum()), float(np.min(data.clip_level))))
         return check(data, fitted, sigma, floor)
 
-    monkeypatch.setattr(joint_fit, "near_the_clip", spy)
+    monkeypatch.setattr(censoring, "near_the_clip", spy)
     out = capture / "r.json"
     status, _, err = _run(capsys, "fit", capture / "capture.yaml", "--out", out)
     assert status == 0, err

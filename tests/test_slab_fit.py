@@ -20,8 +20,9 @@ import lightfield_jax as lfj
 from lightfield_jax.app.experiment import load_helper, run_experiment
 from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.inverse.fit import fit_images
+from lightfield_jax.inverse.geometry_model import SlabModel
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
-from lightfield_jax.inverse.model_size import _finer_cheap, _scan_model
+from lightfield_jax.inverse.model_size import finer_cheap, scan_model
 from lightfield_jax.inverse.options import FitOptions
 from lightfield_jax.scene.geometry import AutoGeometry, Slab
 
@@ -49,25 +50,26 @@ def test_a_one_layer_model_does_not_cover_a_need_of_four():
     """The cheap slab model (8 bins, 4 nodes, 1 constant layer) stands in for the model
     the answer needs only where it is as large in every dimension: behind absorbing faces
     at ω 0.8, g 0.4 the need is 8 bins (what it has) but 4 layers, linear in depth."""
-    from lightfield_jax.inverse.model_size import _covers, size_model
+    from lightfield_jax.inverse.model_size import covers, size_model
 
     opts = FitOptions(geometry=Slab(6.4), phase="normalized")
     crop = (0, 0, 32, 24)
-    cheap = dataclasses.replace(_scan_model(crop, opts, 0.5), extrapolate=False)
+    cheap = dataclasses.replace(scan_model(crop, opts, 0.5), extrapolate=False)
     need = size_model(np.zeros((6, 24, 32)), PATTERN, 0.8, 0.4, opts, 1.03, 0.2, crop)
-    assert (need.grid.n_theta, need.geometry.n_z, need.geometry.profile) == (8, 4, "linear")
-    assert cheap.grid.n_theta == 8 and cheap.geometry.n_z == 1
+    depth = (need.grid.n_theta, need.geometry.slab.n_z, need.geometry.slab.profile)
+    assert depth == (8, 4, "linear")
+    assert cheap.grid.n_theta == 8 and cheap.geometry.slab.n_z == 1
     bounces = dataclasses.replace(cheap, bounces=need.bounces)
-    assert not _covers(bounces, need)
+    assert not covers(bounces, need)
     layered = dataclasses.replace(bounces, geometry=need.geometry)
-    assert _covers(layered, need)
+    assert covers(layered, need)
     # As many layers, but each one's average only: not the need either.
-    constant = dataclasses.replace(need.geometry, depth_profile="constant")
-    assert not _covers(dataclasses.replace(bounces, geometry=constant), need)
+    constant = dataclasses.replace(need.geometry.slab, depth_profile="constant")
+    assert not covers(dataclasses.replace(bounces, geometry=SlabModel(constant)), need)
     # The cheap model's one layer is its average whatever profile the user asks of the
     # answer's model (a linear one would double the cheap solve's cost).
     linear = FitOptions(geometry=Slab(6.4, depth_profile="linear"), phase="normalized")
-    assert _scan_model(crop, linear, 0.5).geometry.profile == "constant"
+    assert scan_model(crop, linear, 0.5).geometry.slab.profile == "constant"
 
 
 @pytest.mark.slow  # a minute on 2 cores
@@ -315,17 +317,17 @@ def test_the_second_cheap_slab_model_is_finer_and_within_the_users_settings():
     nodes, never on the plane, and not against the user's fixed bins, nodes or cell cap."""
     crop = (0, 0, 32, 24)
     slab = Slab(6.4, "refractive", 1.33)
-    cheap = _scan_model(crop, FitOptions(geometry=slab), 0.5)
-    assert (cheap.grid.n_theta, cheap.geometry.n_mu) == (8, 4)
-    finer = _finer_cheap(cheap, FitOptions(geometry=slab))
-    assert (finer.grid.n_theta, finer.geometry.n_mu) == (16, 8)
-    assert finer.geometry.n_z == cheap.geometry.n_z and finer.bounces == cheap.bounces
-    assert _finer_cheap(finer, FitOptions(geometry=slab)) is None
-    assert _finer_cheap(_scan_model(crop, FitOptions(), 0.5), FitOptions()) is None
-    assert _finer_cheap(cheap, FitOptions(geometry=slab, n_theta=8)) is None
+    cheap = scan_model(crop, FitOptions(geometry=slab), 0.5)
+    assert (cheap.grid.n_theta, cheap.geometry.slab.n_mu) == (8, 4)
+    finer = finer_cheap(cheap, FitOptions(geometry=slab))
+    assert (finer.grid.n_theta, finer.geometry.slab.n_mu) == (16, 8)
+    assert finer.geometry.slab.n_z == cheap.geometry.slab.n_z and finer.bounces == cheap.bounces
+    assert finer_cheap(finer, FitOptions(geometry=slab)) is None
+    assert finer_cheap(scan_model(crop, FitOptions(), 0.5), FitOptions()) is None
+    assert finer_cheap(cheap, FitOptions(geometry=slab, n_theta=8)) is None
     fixed = Slab(6.4, "refractive", 1.33, n_mu=4)
-    assert _finer_cheap(cheap, FitOptions(geometry=fixed)) is None
-    assert _finer_cheap(cheap, FitOptions(geometry=slab, max_cells=32 * 24 * 16)) is None
+    assert finer_cheap(cheap, FitOptions(geometry=fixed)) is None
+    assert finer_cheap(cheap, FitOptions(geometry=slab, max_cells=32 * 24 * 16)) is None
 
 
 def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
@@ -337,7 +339,7 @@ def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
     opts = FitOptions(geometry=Slab(6.4, "refractive", 1.33), phase="normalized")
     crop = (0, 0, 128, 96)
     model = size_model(np.zeros((6, 96, 128)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, crop)
-    assert model.geometry.n_mu == 4 and model.geometry.n_z == 2
+    assert model.geometry.slab.n_mu == 4 and model.geometry.slab.n_z == 2
 
 
 @pytest.mark.parametrize(
@@ -354,12 +356,13 @@ def test_the_error_terms_slab_model_is_finer_and_never_coarser(slab, n_theta, fi
     """The model error term's model doubles the layers, then the nodes, then the bins,
     each within the memory cap, and never goes below the fit's model (it capped layers at
     8 and nodes at 32: the depth error of an 8-layer model went unseen)."""
-    from lightfield_jax.inverse.joint_fit import _finer
+    from lightfield_jax.inverse.joint_fit import finer as error_term
     from lightfield_jax.inverse.model_size import size_model
 
     opts = FitOptions(geometry=slab, phase="normalized", n_theta=n_theta)
     model = size_model(np.zeros((6, 24, 32)), PATTERN, 0.98, 0.9, opts, 1.03, 0.2, (0, 0, 32, 24))
-    fine = _finer(model, opts, 0.9)
-    assert (fine.grid.n_theta, fine.geometry.n_mu, fine.geometry.n_z) == finer
+    fine = error_term.finer(model, opts, 0.9)
+    assert (fine.grid.n_theta, fine.geometry.slab.n_mu, fine.geometry.slab.n_z) == finer
     assert fine.grid.n_theta >= model.grid.n_theta
-    assert fine.geometry.n_mu >= model.geometry.n_mu and fine.geometry.n_z >= model.geometry.n_z
+    assert fine.geometry.slab.n_mu >= model.geometry.slab.n_mu
+    assert fine.geometry.slab.n_z >= model.geometry.slab.n_z

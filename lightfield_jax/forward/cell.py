@@ -117,9 +117,7 @@ class PeriodicCell(PlaneRenderer):
         if moments is None:
             moments = _cell_moments(scaled(illumination, f), self.width, self.height)
         cov, mean, var = moments
-        self.coverage, self.mean_depth, self.var_depth = (
-            jnp.asarray(a) for a in (cov, mean, var)
-        )
+        self.coverage, self.mean_depth, self.var_depth = (jnp.asarray(a) for a in (cov, mean, var))
         theta0 = math.radians(illumination.direction_deg)
         self.theta0_bin = int(round(theta0 / grid.dtheta)) % grid.n_theta
         tank = max(tank_height, grid.height) * f
@@ -492,7 +490,6 @@ class CellRenderer(AbstractRenderer):
             converged=jnp.all(jnp.stack([s.converged for s in solves])),
         )
         return images, tail
-
 
 
 # A cached CellRenderer (its tables built once per static configuration), as

@@ -311,9 +311,7 @@ class PlaneRenderer(AbstractRenderer):
             bounces.append(image[None])
 
             def bounce(q, _):
-                q_next, image = scatter(
-                    transport(q, sigma_t, groups, self.tables, self.periods)
-                )
+                q_next, image = scatter(transport(q, sigma_t, groups, self.tables, self.periods))
                 return q_next, image
 
             if self.bounces > 2:

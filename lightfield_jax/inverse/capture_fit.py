@@ -16,8 +16,9 @@ import numpy as np
 
 from lightfield_jax.checks import repeated, shown
 from lightfield_jax.inverse.fit import _fit_one, _model_from
-from lightfield_jax.inverse.methods import FitMethod
-from lightfield_jax.inverse.model_size import _at_least, _Model, _signal_crop
+from lightfield_jax.inverse.geometry_model import geometry_model
+from lightfield_jax.inverse.method_base import FitMethod
+from lightfield_jax.inverse.model_size import ModelSpec, at_least, signal_crop
 from lightfield_jax.inverse.options import FitOptions, FitResult, check_options, check_progress
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.geometry_spec import parse_geometry
@@ -195,7 +196,7 @@ def fit_capture(
         if floor is not None:
             # The next channel's model is at least this one's: one compiled program
             # serves every channel whose need it covers.
-            floor = _at_least(floor, _model_from(result.model))
+            floor = at_least(floor, _model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
 
 
@@ -244,7 +245,7 @@ def _one_line(result: FitResult) -> str:
     )
 
 
-def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model | None:
+def _capture_floor(capture, channels: list[int], options: FitOptions) -> ModelSpec | None:
     """The smallest model every channel of ``capture`` is fitted with: the union of the
     channels' signal crops (one shape for all), the cheapest discretisation (grown to
     each channel's model as the channels are fitted). ``None`` under geometry auto."""
@@ -260,21 +261,18 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> _Model 
             keep = np.broadcast_to(_channel_mask(capture, i), images[..., i].shape)
             keep = keep & np.isfinite(images[..., i])
             crops.append(
-                _signal_crop(
+                signal_crop(
                     np.where(keep, images[..., i], 0.0),
                     capture.pattern,
                     options.crop_fraction,
                 )
             )
         crop = tuple(f(c[k] for c in crops) for k, f in enumerate((min, min, max, max)))
-    slab = as_geometry(options.geometry).slab_or_none
-    return _Model(
+    return ModelSpec(
         grid=Grid(crop[2] - crop[0], crop[3] - crop[1], 8, 1),
         bounces=2,
         crop=crop,
         converges=True,
         rho=0.0,
-        geometry=None
-        if slab is None
-        else dataclasses.replace(slab, n_mu=slab.n_mu or 4, n_z=slab.n_z or 1),
+        geometry=geometry_model(options.geometry).smallest(),
     )

@@ -33,7 +33,7 @@ from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
 from lightfield_jax.scene.illumination import Stripes, period_problem, shifts_problem
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.model_size import _Model
+    from lightfield_jax.inverse.model_size import ModelSpec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -460,7 +460,7 @@ def _clip_level(
 
 @dataclasses.dataclass(frozen=True)
 class FitProblem:
-    """What a fit method solves (:meth:`~lightfield_jax.inverse.methods.FitMethod.solve`).
+    """What a fit method solves (:meth:`~lightfield_jax.inverse.method_base.FitMethod.solve`).
 
     Attributes:
         data: the capture inside ``model``'s crop.
@@ -477,9 +477,9 @@ class FitProblem:
     images: np.ndarray
     pattern: Stripes
     black_level: float | None
-    model: _Model
+    model: ModelSpec
     rho0: float
-    floor: _Model | None = None
+    floor: ModelSpec | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -488,7 +488,7 @@ class FitSolution:
     running its programs, and the values the result is built from (σt, σs, g, gain,
     black level, error budget, convergence and its message, iterations, residual)."""
 
-    model: _Model
+    model: ModelSpec
     seconds: dict
     values: dict
 

@@ -47,9 +47,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from lightfield_jax.checks import check_float_range, check_number, masked_to_nan, number_problem
 from lightfield_jax.inverse.separate import real_dtype
 from lightfield_jax.scene.illumination import (
-    INWARD_DEG as _INWARD_DEG,
-)
-from lightfield_jax.scene.illumination import (
+    INWARD_DEG,
     WALLS,
     Wall,
     along_x,
@@ -283,7 +281,7 @@ def fit_decay(
     if not isinstance(entry, str) or entry not in WALLS:
         raise ValueError(f"fit_decay.entry: must be one of {', '.join(WALLS)}, got {entry!r}")
     if direction_deg is None:
-        direction_deg = _INWARD_DEG[entry]
+        direction_deg = INWARD_DEG[entry]
     direction_deg = _direction(direction_deg, "fit_decay.direction_deg")
     _check_direction(entry, direction_deg, "fit_decay")
     direct = masked_to_nan(direct)

@@ -9,8 +9,8 @@ it also chooses the geometry under ``geometry: auto`` and renders a result's fit
 images (:func:`fitted_images`). The parts live beside it: the settings and the result
 (:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`,
 the model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
-:mod:`lightfield_jax.inverse.joint_fit` (its single solves and shared pieces in
-:mod:`lightfield_jax.inverse.joint_stage`); the fit of a whole capture, channel by
+:mod:`lightfield_jax.inverse.joint_fit` (a subpackage: its single solves and shared
+pieces in :mod:`lightfield_jax.inverse.joint_fit.stage`); the fit of a whole capture, channel by
 channel, is :mod:`lightfield_jax.inverse.capture_fit`. The methods, all on the same
 forward model (:class:`~lightfield_jax.Renderer`):
 
@@ -50,10 +50,11 @@ import numpy as np
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import number_problem, shown, unmask
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
-from lightfield_jax.inverse.joint_stage import _renderer
+from lightfield_jax.inverse.geometry_model import geometry_model
+from lightfield_jax.inverse.joint_fit.stage import model_renderer
 from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
-from lightfield_jax.inverse.model_size import _Model, over_cap_note, size_model
+from lightfield_jax.inverse.model_size import ModelSpec, over_cap_note, size_model
 from lightfield_jax.inverse.options import (
     _PARAMS,
     FitOptions,
@@ -69,8 +70,7 @@ from lightfield_jax.runtime.memory import check_memory, fit_memory
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry
 from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import INWARD_DEG as _INWARD_DEG
-from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.scene.illumination import INWARD_DEG, Stripes
 
 
 def fit_images(
@@ -156,7 +156,7 @@ def _fit_one(
     pixel_size_mm=None,
     split=None,
     exposure=None,
-    floor: _Model | None = None,
+    floor: ModelSpec | None = None,
     clipped=None,
     floored=None,
 ) -> FitResult:
@@ -251,7 +251,7 @@ def _fit_one(
     )
 
 
-def _finish(options: FitOptions, t_start: float, seconds: dict, model: _Model, **values):
+def _finish(options: FitOptions, t_start: float, seconds: dict, model: ModelSpec, **values):
     """The :class:`FitResult`, with total time, the model used and the error budget."""
     seconds = dict(seconds)
     seconds["total"] = time.perf_counter() - t_start
@@ -306,7 +306,7 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     def chose(result: FitResult, choice: dict) -> FitResult:
         return dataclasses.replace(result, model={**result.model, "geometry_choice": choice})
 
-    if abs((pattern.direction_deg - _INWARD_DEG[pattern.entry] + 180.0) % 360.0 - 180.0) > 1e-6:
+    if abs((pattern.direction_deg - INWARD_DEG[pattern.entry] + 180.0) % 360.0 - 180.0) > 1e-6:
         # The model-free noise estimate differences along a pixel axis; oblique stripes
         # put their edges into it. Without a measurable noise, the slab (always valid).
         say("geometry auto: oblique stripes, the noise is not measurable: slab")
@@ -353,18 +353,18 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     return chose(dataclasses.replace(result, seconds=seconds), decision.as_dict())
 
 
-def _model_from(d: dict) -> _Model:
-    """The :class:`_Model` of a result's ``model`` dict (one written without the series'
+def _model_from(d: dict) -> ModelSpec:
+    """The :class:`ModelSpec` of a result's ``model`` dict (one written without the series'
     estimate, e.g. by an earlier version, renders alike: what is not given is unknown)."""
-    geometry = parse_fitted_geometry(d.get("geometry"), "model.geometry")
+    geometry = geometry_model(parse_fitted_geometry(d.get("geometry"), "model.geometry"))
     tail = d.get("tail") or {}
-    return _Model(
+    return ModelSpec(
         grid=Grid(d["width"], d["height"], d["n_theta"], d["refine"]),
         bounces=d["bounces"],
         crop=tuple(d["crop"]),
         converges=d.get("series_converges", True),
         rho=d.get("rho_estimate", math.nan),
-        geometry=geometry.slab_or_none,
+        geometry=geometry,
         tail=tail.get("method"),
         tail_tol=tail.get("tol", 1e-4),
         tail_max_steps=tail.get("max_steps", 200),
@@ -406,7 +406,7 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     )
 
     def render(illumination):
-        renderer = _renderer(model, illumination, result.phase)
+        renderer = model_renderer(model, illumination, result.phase)
         out = renderer.unchecked(result.sigma_t, result.sigma_s, result.g)
         if model.tail is None:
             return np.asarray(out[0])

@@ -21,21 +21,30 @@ least-squares problems.
 
 from __future__ import annotations
 
-import abc
 import dataclasses
 import math
-from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 import optimistix as optx
 
-from lightfield_jax.checks import check_int, number_problem, shown
+from lightfield_jax.checks import check_int
 from lightfield_jax.inverse.data import FitProblem, FitSolution
 from lightfield_jax.inverse.joint_fit import joint_fit
-from lightfield_jax.inverse.joint_stage import _renderer, _result_message, _solver
-from lightfield_jax.inverse.model_size import _at_least, size_model
+from lightfield_jax.inverse.joint_fit.stage import (
+    least_squares_solver,
+    model_renderer,
+    result_message,
+)
+from lightfield_jax.inverse.method_base import (
+    MAX_G_VALUES,
+    FitMethod,
+    check_method,
+    check_solver,
+    check_start,
+)
+from lightfield_jax.inverse.model_size import at_least, size_model
 from lightfield_jax.inverse.trust import untrustworthy
 from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
@@ -45,63 +54,7 @@ from lightfield_jax.inverse.two_step import (
 )
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
-
-
-def check_solver(solver, key: str = "solver") -> None:
-    """Refuse anything but ``None`` or an optimistix least-squares solver."""
-    if solver is not None and not isinstance(solver, optx.AbstractLeastSquaresSolver):
-        raise ValueError(
-            f"{key}: must be an optimistix least-squares solver (e.g. "
-            f"optx.LevenbergMarquardt, optx.Dogleg, optx.GaussNewton), got "
-            f"{type(solver).__name__}"
-        )
-
-
-def check_start(start, key: str = "start") -> tuple[float, float] | None:
-    """A joint start (σs > 0, |g| < 1) as a tuple of two floats (``None`` as given), or
-    ``ValueError``. A tuple, so that the options stay hashable and comparable (a list or
-    an array would make them unhashable, ``==`` between them an error); strings and
-    ``True`` are not numbers here."""
-    if start is None:
-        return None
-    refused = ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {shown(start)}")
-    if isinstance(start, (str, bytes)):
-        raise refused
-    try:
-        items = tuple(start)
-    except TypeError:
-        raise refused from None
-    if len(items) != 2 or any(number_problem(v) is not None for v in items):
-        raise refused
-    ss, g = (float(v) for v in items)
-    if not (0 < ss < math.inf and abs(g) < 1):
-        raise refused
-    return ss, g
-
-
-class FitMethod(eqx.Module):
-    """A fit method: :meth:`solve` turns a prepared capture into fitted values."""
-
-    name: eqx.AbstractClassVar[str]
-    # Whether the method needs every bounce's image (the two-step residual is a
-    # polynomial in σs over them): its models march at most ``max_bounces``, never a
-    # tail solve (the fit sizes them with ``tail: None``).
-    per_bounce: ClassVar[bool] = False
-
-    @abc.abstractmethod
-    def solve(
-        self, problem: FitProblem, options: FitOptions, say: Callable[[str], None]
-    ) -> FitSolution:
-        """Fit ``problem`` with the model settings of ``options``; ``say`` reports each
-        stage. Returns the model used, the seconds (``compile``, ``run``) and the values
-        the :class:`~lightfield_jax.FitResult` is built from."""
-
-
-# The most g values a search takes (g_grid, start_grid, g_values): 5 times the densest
-# grid the experiments run (20481, configs/inverse_speed_accuracy.yaml); g_grid 10**9
-# (a billion g values) would run until killed.
-MAX_G_VALUES = 100_000
+    pass
 
 
 class GridSearch(FitMethod):
@@ -117,7 +70,7 @@ class GridSearch(FitMethod):
             check_int(self.g_values, "g_values", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        n_g = self.g_values or options.g_grid
+        n_g = _own(self.g_values, options.g_grid)
         say(f"{self.name}: search over g")
         return _two_step_fit(self.name, problem, options, say, None, n_g)
 
@@ -137,10 +90,10 @@ class TwoStep(FitMethod):
             check_int(self.start_grid, "start_grid", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        options = _with_solver(options, self.solver)
-        solver = _solver(options, jnp.result_type(float))
+        own = _own(self.solver, options.solver)
+        solver = least_squares_solver(own, options, jnp.result_type(float))
         say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
-        n_g = self.start_grid or options.start_grid
+        n_g = _own(self.start_grid, options.start_grid)
         return _two_step_fit(self.name, problem, options, say, solver, n_g)
 
 
@@ -158,10 +111,8 @@ class Joint(FitMethod):
         check_start(self.start)
 
     def solve(self, problem, options, say):
-        options = _with_solver(options, self.solver)
-        if self.start is not None:
-            options = dataclasses.replace(options, start=self.start)
-        model, seconds, values = joint_fit(problem, options, say)
+        solver, start = _own(self.solver, options.solver), _own(self.start, options.start)
+        model, seconds, values = joint_fit(problem, options, say, solver, start)
         return FitSolution(model=model, seconds=seconds, values=values)
 
 
@@ -172,15 +123,12 @@ def method_for(method: str | FitMethod) -> FitMethod:
     """The :class:`FitMethod` of ``FitOptions.method`` (a name or a method)."""
     if isinstance(method, FitMethod):
         return method
-    if method not in METHODS:
-        raise ValueError(
-            f"method: must be one of {', '.join(METHODS)} or a FitMethod, got {method!r}"
-        )
-    return METHODS[method]
+    return METHODS[check_method(method)]
 
 
-def _with_solver(options: FitOptions, solver) -> FitOptions:
-    return options if solver is None else dataclasses.replace(options, solver=solver)
+def _own(setting, default):
+    """A method's own setting, else (``None``) the options' ``default``."""
+    return default if setting is None else setting
 
 
 # The two-step methods march at most ``max_bounces``; orders left out that sum to more
@@ -211,25 +159,20 @@ def _grown(problem: FitProblem, options, model, sigma_s: float, g: float):
         sigma_t=data.sigma_t0,
         crop=model.crop,
     )
-    # A slab's depth layers and elevation nodes too (g decides the nodes, the albedo
-    # the layers).
-    deeper = need.geometry is not None and (
-        need.geometry.n_z > model.geometry.n_z or need.geometry.n_mu >= 2 * model.geometry.n_mu
-    )
+    deeper = need.geometry.deeper(model.geometry)
     if (
         need.grid.n_theta >= 4 * model.grid.n_theta
         or need.grid.refine > model.grid.refine
         or need.bounces > model.bounces
         or deeper
     ):
-        return _marched(_at_least(need, model))
+        return _marched(at_least(need, model))
     return None
 
 
 def _model_words(model) -> str:
-    slab = model.geometry
     words = f"n_theta {model.grid.n_theta}, refine {model.grid.refine}, {model.bounces} bounces"
-    return words + (f", n_mu {slab.n_mu}, n_z {slab.n_z}" if slab is not None else "")
+    return words + model.geometry.words()
 
 
 def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int) -> FitSolution:
@@ -242,10 +185,10 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
 
     def on(model, settings=settings, start=None):
-        renderer = _renderer(model, full_for(problem.pattern), options.phase)
+        renderer = model_renderer(model, full_for(problem.pattern), options.phase)
         return solve_two_step(data, renderer, solver, settings, n_g, start)
 
-    model = _marched(_at_least(problem.model, problem.floor))
+    model = _marched(at_least(problem.model, problem.floor))
     sol = on(model)
     compile_s = sol.compile
     bigger = _grown(problem, options, model, sol.sigma_s, sol.g)
@@ -257,7 +200,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
         else:
             sol = on(model, dataclasses.replace(settings, search=False), (sol.sigma_s, sol.g))
         compile_s += sol.compile
-    ok, msg = _result_message(sol.result)
+    ok, msg = result_message(sol.result)
     if solver is None:
         msg = f"grid search over {n_g} values of g"
     truncated = model.tail_bound
@@ -306,13 +249,4 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     )
 
 
-__all__ = [
-    "METHODS",
-    "FitMethod",
-    "GridSearch",
-    "Joint",
-    "TwoStep",
-    "check_solver",
-    "check_start",
-    "method_for",
-]
+__all__ = ["METHODS", "GridSearch", "Joint", "TwoStep", "method_for"]

@@ -1,5 +1,6 @@
-"""The model-sizing rules of a fit: :class:`_Model` (the grid, bounces, crop, geometry and
-tail solve of one forward model) and :func:`size_model` (the smallest model a capture
+"""The model-sizing rules of a fit: :class:`ModelSpec` (the grid, bounces, crop, geometry and
+tail solve of one forward model; what the plane and the slab do differently is theirs,
+:mod:`lightfield_jax.inverse.geometry_model`) and :func:`size_model` (the smallest model a capture
 needs at an estimate: bounces from the tail bound, θ bins and refinement from g, the crop
 from the signal, all capped by ``max_cells``); the tail rule and the march sized from a
 measured per-bounce ratio; the buckets of bounce counts that let nearby needs share
@@ -11,36 +12,33 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
 
-import jax
 import numpy as np
 
 from lightfield_jax.forward.plane import coarse_plane_grid
-from lightfield_jax.forward.slab import slab_bounce_ratio
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
-from lightfield_jax.scene.grid import Grid, default_n_theta, default_refine
+from lightfield_jax.inverse.geometry_model import (
+    GeometryModel,
+    PlaneModel,
+    geometry_model,
+)
+from lightfield_jax.inverse.options import FitOptions, phase_integral_at
+from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Stripes
 from lightfield_jax.scene.medium import bounces_for_tolerance
-from lightfield_jax.scene.phase import phase_integral
-
-if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
-
-
-# A(g) of a Python float, compiled once (op by op, its dozen operations would each
-# compile on first use).
-_phase_integral = jax.jit(phase_integral)
 
 
 @dataclasses.dataclass(frozen=True)
-class _Model:
+class ModelSpec:
+    """One forward model of a fit: its grid, bounces (and how the series past them is
+    summed), crop and geometry (:class:`~lightfield_jax.inverse.geometry_model.GeometryModel`),
+    and the estimate it was sized for."""
+
     grid: Grid
     bounces: int
     crop: tuple[int, int, int, int]  # x0, y0, x1, y1 inside the image
     converges: bool
     rho: float  # ρ at the estimate the model was sized for
-    geometry: Slab | None = None  # resolved (n_mu set); None: the plane
+    geometry: GeometryModel = PlaneModel()  # a slab's resolved (n_mu, n_z set)
     tail: str | None = None  # the tail solve after ``bounces`` = K0, or None: marched
     tail_tol: float = 1e-4
     tail_max_steps: int = 200
@@ -56,12 +54,9 @@ class _Model:
     def coarse(self) -> int | None:
         """K0 of the coarse tail where it applies (the plane, a march of more bounces,
         a grid coarser than the model's), else ``None``."""
-        k0 = self.coarse_after
-        if k0 is None or self.geometry is not None or self.tail is not None:
+        if self.tail is not None:
             return None
-        if self.bounces <= k0 or coarse_plane_grid(self.grid) is None:
-            return None
-        return k0
+        return self.geometry.coarse(self.grid, self.bounces, self.coarse_after)
 
     @property
     def tail_bound(self) -> float | None:
@@ -75,7 +70,7 @@ class _Model:
 
     def as_dict(self) -> dict:
         return {
-            "geometry": (self.geometry or Plane()).as_dict(),
+            "geometry": self.geometry.scene.as_dict(),
             "width": self.grid.width,
             "height": self.grid.height,
             "n_theta": self.grid.n_theta,
@@ -105,7 +100,7 @@ class _Model:
         }
 
 
-def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple[int, ...]:
+def signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple[int, ...]:
     """Crop along the propagation direction to where the signal stands out: Imax,
     averaged across the light, must exceed its noise floor (the median of the farthest
     tenth) by ``fraction`` of the peak and by three times the floor's scatter. The entry
@@ -138,10 +133,6 @@ def _signal_crop(images: np.ndarray, pattern: Stripes, fraction: float) -> tuple
     return (lo, 0, hi, h) if along_x else (0, lo, w, hi)
 
 
-# The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
-MIN_CAPPED_MU = 4
-
-
 def size_model(
     images: np.ndarray,
     pattern: Stripes,
@@ -151,28 +142,15 @@ def size_model(
     margin: float = 1.15,
     sigma_t: float | None = None,
     crop: tuple[int, int, int, int] | None = None,
-) -> _Model:
+) -> ModelSpec:
     """The smallest model the capture needs: bounces from the tail bound at the estimate
     (ρ × ``margin``, capped below 1; rounded up to a bucket), θ bins and refinement from
     g, crop from the signal (or ``crop``). ``series_converges`` is judged at the
     estimate itself."""
     p, h, w = images.shape
     if crop is None:
-        crop = (
-            _signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
-        )
-    gw = min(0.99, abs(g) + 0.1)
-    slab = as_geometry(options.geometry).slab_or_none
-    if slab is not None:  # less sensitive to g than the plane: a smaller margin
-        # Depth layers, elevation nodes and azimuth bins from the estimate (the albedo
-        # and σt·h decide how much the depth must be resolved).
-        g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
-        n_theta = options.n_theta or default_slab_n_theta(g_slab, slab.boundary, albedo_slab)
-        refine = options.refine or 1
-        slab = slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
-    else:
-        n_theta = options.n_theta or default_n_theta(gw)
-        refine = options.refine or default_refine(abs(g))
+        crop = signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
+    n_theta, refine, geometry = geometry_model(options.geometry).sized(options, g, albedo, sigma_t)
     width, height = crop[2] - crop[0], crop[3] - crop[1]
     while width * height * n_theta * refine**2 > options.max_cells:
         if refine > 1 and options.refine is None:
@@ -181,45 +159,31 @@ def size_model(
             n_theta //= 2
         else:
             break
-    if slab is not None:
-        # A slab works on azimuth × elevation fields over the 2H × 2W FFT domain.
-        user_mu = options.geometry.n_mu is not None
-        while _slab_over_cap(width, height, n_theta, refine, slab, options.max_cells):
-            if n_theta > 8 and options.n_theta is None:
-                n_theta //= 2
-            elif slab.n_mu > MIN_CAPPED_MU and not user_mu:
-                # Never below 4 nodes: refractive faces need 2 on each side of the
-                # critical angle (24 halves to 12, 6, then 4).
-                slab = dataclasses.replace(slab, n_mu=max(MIN_CAPPED_MU, slab.n_mu // 2))
-            else:
-                break
+    n_theta, geometry = geometry.capped(width, height, n_theta, refine, options)
     grid = Grid(width, height, n_theta, refine)
-    a = float(_phase_integral(g)) if options.phase == "paper" else 1.0
-    rho = min(albedo, 1.0) * a
-    if slab is not None and sigma_t is not None:
-        # Light leaves through the faces: the slab's measured per-bounce ratio, not ω.
-        rho = min(rho, slab_bounce_ratio(slab, sigma_t, min(albedo, 1.0), g, width, height))
+    a = float(phase_integral_at(g)) if options.phase == "paper" else 1.0
+    rho = geometry.bounce_ratio(min(albedo, 1.0) * a, sigma_t, albedo, g, width, height)
     converges = rho < 1.0
     if isinstance(options.bounces, int):
         k = options.bounces
     elif converges:
         bound = min(max(rho * margin + 0.01, 0.0), 0.995)
-        k = _bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
+        k = bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
     else:
         k = options.max_bounces
-    model = _Model(
+    model = ModelSpec(
         grid=grid,
         bounces=max(k, 2),
         crop=crop,
         converges=converges,
         rho=rho,
-        geometry=slab,
-        coarse_after=options.coarse_after if slab is None else None,
+        geometry=geometry,
+        coarse_after=geometry.coarse_after(options),
     )
     return _with_tail(model, options)
 
 
-def _tail_for(options: FitOptions, model: _Model) -> str | None:
+def _tail_for(options: FitOptions, model: ModelSpec) -> str | None:
     """The tail solve of a model that would march ``model.bounces`` (``None``: it marches
     them): under ``tail: auto`` with ``bounces: auto``, BiCGStab once they exceed
     ``max_bounces`` (measured on the dense forward medium, 128×96, 32 θ bins, six
@@ -238,7 +202,7 @@ def _tail_for(options: FitOptions, model: _Model) -> str | None:
 RATIO_MARGIN = 0.02
 
 
-def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Model:
+def by_measured_ratio(model: ModelSpec, options: FitOptions, ratio: float) -> ModelSpec:
     """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
     below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) where that is fewer than the
     albedo's bound asked for: instead of its automatic tail where the count is at most
@@ -252,7 +216,7 @@ def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Mod
     if not (auto and model.converges and math.isfinite(ratio)):
         return model
     bound = min(max(ratio + RATIO_MARGIN, 0.0), 0.995)  # a measured ratio, never below 0
-    k = max(_bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
+    k = max(bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
     if model.tail is not None and k <= options.max_bounces:
         return dataclasses.replace(model, bounces=k, tail=None, ratio=ratio)
     if model.tail is None and k < model.bounces:
@@ -260,7 +224,7 @@ def _by_measured_ratio(model: _Model, options: FitOptions, ratio: float) -> _Mod
     return model
 
 
-def _with_tail(model: _Model, options: FitOptions) -> _Model:
+def _with_tail(model: ModelSpec, options: FitOptions) -> ModelSpec:
     """``model`` with a tail and K0 explicit bounces where it gets one, else with its
     bounces capped at ``max_bounces`` (``bounces: auto``; the model's tail bound is
     reported with the result)."""
@@ -282,14 +246,14 @@ def _bucket(n: int, step: int) -> int:
     return -(-n // step) * step
 
 
-def _bucket_bounces(k: int) -> int:
+def bucket_bounces(k: int) -> int:
     """Bounce counts above 8 rounded up to a few buckets (every 4 to 32, every 8 beyond),
     so captures and stages of nearby needs share a compiled program (compiling costs
     seconds, a few more bounces a fraction of the run)."""
     return k if k <= 8 else _bucket(k, 4) if k <= 32 else _bucket(k, 8)
 
 
-def _at_least(model: _Model, floor: _Model | None) -> _Model:
+def at_least(model: ModelSpec, floor: ModelSpec | None) -> ModelSpec:
     """``model`` grown to ``floor`` (bounces, θ bins, refinement, elevation nodes)."""
     if floor is None:
         return model
@@ -298,43 +262,28 @@ def _at_least(model: _Model, floor: _Model | None) -> _Model:
         n_theta=max(model.grid.n_theta, floor.grid.n_theta),
         refine=max(model.grid.refine, floor.grid.refine),
     )
-    geometry = model.geometry
-    if geometry is not None and floor.geometry is not None:
-        geometry = dataclasses.replace(
-            geometry,
-            n_mu=max(geometry.n_mu, floor.geometry.n_mu),
-            n_z=max(geometry.n_z, floor.geometry.n_z),
-        )
-        if floor.geometry.profile == "linear" and geometry.profile != "linear":
-            geometry = dataclasses.replace(geometry, depth_profile="linear")
     return dataclasses.replace(
-        model, grid=grid, bounces=max(model.bounces, floor.bounces), geometry=geometry
+        model,
+        grid=grid,
+        bounces=max(model.bounces, floor.bounces),
+        geometry=model.geometry.at_least(floor.geometry),
     )
 
 
-def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
-    """The cheap model of the basin scan (and, through :func:`_extrapolated`, of the
+def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
+    """The cheap model of the basin scan (and, through :func:`extrapolated`, of the
     joint fit's first solve): 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one constant depth
     layer),
     the bounces the capture's brightness ratio calls for (tail below 1e-3 at
     ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
-    n_theta, geometry = min(options.n_theta or 32, 32), None
-    slab = as_geometry(options.geometry).slab_or_none
-    if slab is not None:
-        n_theta = min(options.n_theta or 8, 8)
-        geometry = dataclasses.replace(
-            slab,
-            n_mu=min(slab.n_mu or MIN_CAPPED_MU, MIN_CAPPED_MU),
-            n_z=1,
-            depth_profile=None,  # one layer, its average: the user's profile is the need's
-        )
+    n_theta, geometry = geometry_model(options.geometry).cheap(options)
     rho = min(max(rho0, 0.3), 0.95)
-    k = _bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
+    k = bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
     if isinstance(options.bounces, int):
         k = options.bounces
-    model = _Model(
+    model = ModelSpec(
         grid=Grid(width, height, n_theta, 1),
         bounces=max(k, 2),
         crop=crop,
@@ -345,23 +294,16 @@ def _scan_model(crop, options: FitOptions, rho0: float) -> _Model:
     return _with_tail(model, options)
 
 
-def over_cap_note(model: _Model, options: FitOptions) -> str | None:
+def over_cap_note(model: ModelSpec, options: FitOptions) -> str | None:
     """A note where :func:`size_model`'s ``model`` is larger than ``max_cells`` allows
     (``None``: it is not): θ bins or a refinement the options fix are never lowered,
     and θ bins not below 32 on the plane (8, with 4 elevation nodes, on the slab).
     A ``max_cells`` below the smallest model, or fixed bins beyond it, are used with
     this note, not silently."""
-    g, slab = model.grid, model.geometry
-    cells = g.width * g.height * g.n_theta * g.refine**2
-    if slab is None:
-        if cells <= options.max_cells:
-            return None
-        size = f"{cells} cells"
-    else:
-        if not _slab_over_cap(g.width, g.height, g.n_theta, g.refine, slab, options.max_cells):
-            return None
-        slab_cells = cells * 4 * slab.n_mu * slab.n_z * slab.depth_coefficients
-        size = f"{slab.n_mu} elevation nodes: {slab_cells} slab cells, 4 x max_cells allowed"
+    g = model.grid
+    size = model.geometry.over_cap(g, options.max_cells)
+    if size is None:
+        return None
     fixed = [
         f"{name} {value}"
         for name, value, given in (
@@ -370,16 +312,13 @@ def over_cap_note(model: _Model, options: FitOptions) -> str | None:
         )
         if given is not None
     ]
-    user_slab = as_geometry(options.geometry).slab_or_none
-    if slab is not None and user_slab is not None and user_slab.n_mu is not None:
-        fixed.append(f"{slab.n_mu} elevation nodes")
+    fixed += model.geometry.fixed_by(options)
     why = []
     if fixed:
         are = "is" if len(fixed) == 1 else "are"
         why.append(f"{' and '.join(fixed)} {are} fixed by the fit options, never lowered")
     if options.n_theta is None:
-        least = "32" if slab is None else f"8 (nor elevation nodes below {MIN_CAPPED_MU})"
-        why.append(f"n_theta is not lowered below {least}")
+        why.append(f"n_theta is not lowered below {model.geometry.least}")
     return (
         f"max_cells {options.max_cells} is below the model's size ({g.width}x{g.height} "
         f"px, n_theta {g.n_theta}, refine {g.refine}, {size}): {'; '.join(why)}; the fit "
@@ -387,47 +326,19 @@ def over_cap_note(model: _Model, options: FitOptions) -> str | None:
     )
 
 
-# The slab's cheap model for a second try (:func:`_finer_cheap`): azimuth bins and
-# elevation nodes.
-RETRY_SLAB = (16, 8)
-
-
-def _slab_over_cap(width, height, n_theta, refine, slab: Slab, max_cells: int) -> bool:
-    """Whether a slab model passes a cap of ``max_cells`` (a plane's cell count): it
-    works on azimuth × elevation × depth fields over the 2H × 2W FFT domain, allowed
-    4 × ``max_cells``."""
-    cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
-    cells *= slab.depth_coefficients
-    return cells > 4 * max_cells
-
-
-def _finer_cheap(model: _Model, options: FitOptions) -> _Model | None:
-    """The slab's cheap model with 16 azimuth bins and 8 elevation nodes, for a solve
-    that did not converge or ran to a bound on the 8 × 4 one: a forward medium's lobe
-    is not resolved there. Measured on the 3-D Monte Carlo's capture of ω 0.99, g 0.9
-    behind refractive faces (32×24): on 8 × 4 the solve ran its 100 steps to albedo
-    1.0000 (σt −15 %); on 16 × 8 it converged and the correction reached σt +1.8 %, σs
-    +1.7 %, g +0.011. ``None`` on the plane, where the model has them already, where
-    the user fixed the bins or nodes, or where it would pass ``max_cells`` (the cap of
-    :func:`size_model`)."""
-    slab = model.geometry
-    user_slab = as_geometry(options.geometry).slab_or_none
-    n_theta, n_mu = RETRY_SLAB
-    if (
-        slab is None
-        or options.n_theta is not None
-        or (user_slab is not None and user_slab.n_mu is not None)
-        or (model.grid.n_theta >= n_theta and slab.n_mu >= n_mu)
-    ):
+def finer_cheap(model: ModelSpec, options: FitOptions) -> ModelSpec | None:
+    """The cheap model with more azimuth bins and elevation nodes for a solve that did
+    not converge or ran to a bound (the slab's:
+    :meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer_cheap`), or
+    ``None``."""
+    finer = model.geometry.finer_cheap(model.grid, options)
+    if finer is None:
         return None
-    grid = dataclasses.replace(model.grid, n_theta=max(model.grid.n_theta, n_theta))
-    slab = dataclasses.replace(slab, n_mu=max(slab.n_mu, n_mu))
-    if _slab_over_cap(grid.width, grid.height, grid.n_theta, grid.refine, slab, options.max_cells):
-        return None
-    return dataclasses.replace(model, grid=grid, geometry=slab)
+    grid, geometry = finer
+    return dataclasses.replace(model, grid=grid, geometry=geometry)
 
 
-def _extrapolated(model: _Model, options: FitOptions) -> _Model:
+def extrapolated(model: ModelSpec, options: FitOptions) -> ModelSpec:
     """The cheap model of the solve: where the fit corrects its answer to the model it
     needs (``correct``) and sizes the series itself, a long series (a tail, or more
     than :data:`SCAN_TAIL_BOUNCES` bounces) becomes that many bounces and a geometric
@@ -445,7 +356,7 @@ def _extrapolated(model: _Model, options: FitOptions) -> _Model:
 SCAN_TAIL_BOUNCES = 24
 
 
-def _orders(model: _Model) -> str:
+def orders(model: ModelSpec) -> str:
     coarse = "" if model.coarse is None else f" (after {model.coarse} on the coarse grid)"
     if model.extrapolate:
         return f"{model.bounces} bounces{coarse} and a geometric tail"
@@ -454,45 +365,55 @@ def _orders(model: _Model) -> str:
     return f"K0 = {model.bounces} and a {model.tail} tail"
 
 
-def _covers(have: _Model, need: _Model) -> bool:
+def covers(have: ModelSpec, need: ModelSpec) -> bool:
     # A tail sums every order past K0: it covers any bounce count, a march only its own;
     # an extrapolated series (the cheap solve's) covers none (it is always corrected).
     if have.extrapolate:
         return False
     if need.tail is not None:
-        orders = have.tail == need.tail and have.bounces >= need.bounces
+        summed = have.tail == need.tail and have.bounces >= need.bounces
     else:
-        orders = have.tail is not None or have.bounces >= need.bounces
+        summed = have.tail is not None or have.bounces >= need.bounces
     # Every dimension of the discretisation, a slab's depth layers and elevation nodes
     # included: a cheap model of one layer does not cover a need of eight.
     sizes = discretisation(have)
     finer = all(sizes.get(k, 0) >= v for k, v in discretisation(need).items())
-    return have.crop == need.crop and orders and finer
+    return have.crop == need.crop and summed and finer
 
 
-def discretisation(model: _Model) -> dict[str, int]:
+def discretisation(model: ModelSpec) -> dict[str, int]:
     """The model's discretisation: θ bins and refinement; a slab's elevation nodes,
     depth layers and the order of its depth profile (0 constant, 1 linear) too."""
-    sizes = {"n_theta": model.grid.n_theta, "refine": model.grid.refine}
-    if model.geometry is not None:
-        sizes.update(
-            n_mu=model.geometry.n_mu,
-            n_z=model.geometry.n_z,
-            depth_order=model.geometry.depth_coefficients - 1,
-        )
-    return sizes
+    return {
+        "n_theta": model.grid.n_theta,
+        "refine": model.grid.refine,
+        **model.geometry.discretisation(),
+    }
 
 
-def richardson_factor(model: _Model, fine: _Model) -> float | None:
+def richardson_factor(model: ModelSpec, fine: ModelSpec) -> float | None:
     """How far past ``fine`` (the error term's finer model) the continuum lies, in units
-    of the step from ``model`` to it: r_f/(r_f − r) for a plane ``fine`` refined in
-    space from r to r_f (``None``: not refined in space, or a slab). The plane's
-    discretisation error is first order in the cell size 1/r: images of the dense
-    forward medium (σt .2, σs .16, g .7, 128×96, 64 θ bins, 60 bounces) at refine 1, 2
-    and 3 differ as I_1 − I_2 = 3.2 (I_2 − I_3) (weighted, correlation 0.99; first order
-    gives 3), so the model at refine 2 is three times its step to refine 3 from the
-    continuum (the Monte Carlo's), not one."""
-    r, r_f = model.grid.refine, fine.grid.refine
-    if model.geometry is not None or fine.geometry is not None or r_f <= r:
-        return None
-    return r_f / (r_f - r)
+    of the step from ``model`` to it (its geometry's
+    :meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.richardson_factor`:
+    r_f/(r_f − r) for a plane refined in space from r to r_f), or ``None``."""
+    return model.geometry.richardson_factor(model.grid, fine.grid)
+
+
+__all__ = [
+    "RATIO_MARGIN",
+    "SCAN_TAIL_BOUNCES",
+    "ModelSpec",
+    "at_least",
+    "bucket_bounces",
+    "by_measured_ratio",
+    "covers",
+    "discretisation",
+    "extrapolated",
+    "finer_cheap",
+    "orders",
+    "over_cap_note",
+    "richardson_factor",
+    "scan_model",
+    "signal_crop",
+    "size_model",
+]

@@ -10,26 +10,31 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax
 import numpy as np
 import optimistix as optx
 
 from lightfield_jax.checks import check_flag, check_int, check_number, number_problem, shown
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS
-from lightfield_jax.inverse.methods import (
+from lightfield_jax.inverse.method_base import (
     MAX_G_VALUES,
     FitMethod,
+    check_method,
     check_solver,
     check_start,
-    method_for,
 )
-from lightfield_jax.inverse.model_size import _phase_integral
 from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
+from lightfield_jax.scene.phase import phase_integral
 
 _PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
+
+# A(g) of a Python float, compiled once (op by op, its dozen operations would each
+# compile on first use).
+phase_integral_at = jax.jit(phase_integral)
 
 
 # The loosest solver tolerance (looser ones stop the solve where it starts). The most
@@ -171,7 +176,7 @@ class FitOptions:
     solver: optx.AbstractLeastSquaresSolver | None = None
 
     def __post_init__(self):
-        method = method_for(self.method)  # a known name or a FitMethod
+        method = check_method(self.method)  # a known name or a FitMethod's
         if self.tail is not None and not (
             isinstance(self.tail, str) and (self.tail == "auto" or self.tail in TAIL_METHODS)
         ):
@@ -218,12 +223,12 @@ class FitOptions:
         # A setting the chosen method does not use is refused, not ignored silently (a
         # start with the grid search, which searches g; a solver with it, which solves
         # nothing).
-        unused = {"start": self.start is not None and method.name != "joint"}
-        unused["solver"] = self.solver is not None and method.name == "grid"
+        unused = {"start": self.start is not None and method != "joint"}
+        unused["solver"] = self.solver is not None and method == "grid"
         for name, is_unused in unused.items():
             if is_unused:
                 raise ValueError(
-                    f"{name}: the {method.name} method does not use it (start: the joint "
+                    f"{name}: the {method} method does not use it (start: the joint "
                     "fit's; solver: the joint and gradient fits'): drop it, or choose a "
                     "method that does"
                 )
@@ -357,7 +362,7 @@ class FitResult:
     def rho(self) -> float:
         if not math.isfinite(self.g):
             return math.nan
-        a = float(_phase_integral(self.g)) if self.phase == "paper" else 1.0
+        a = float(phase_integral_at(self.g)) if self.phase == "paper" else 1.0
         return self.albedo * a
 
     def to_dict(self) -> dict:

@@ -350,6 +350,7 @@ __all__ = [
     "full_for",
     "masked_dot",
     "poly_fit_sigma_s",
+    "problem_arrays",
     "rendered_and_g_slope",
     "search_g",
     "search_start",

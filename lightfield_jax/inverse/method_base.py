@@ -1,0 +1,103 @@
+"""What fit methods share below them and the options: the abstract
+:class:`FitMethod` (one :meth:`~FitMethod.solve` signature), the method names
+(:func:`check_method`) and the checks of their settings (:func:`check_solver`,
+:func:`check_start`, :data:`MAX_G_VALUES`). The methods themselves are
+:mod:`lightfield_jax.inverse.methods`.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING, ClassVar
+
+import equinox as eqx
+import optimistix as optx
+
+from lightfield_jax.checks import number_problem, shown
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.data import FitProblem, FitSolution
+    from lightfield_jax.inverse.options import FitOptions
+
+# The names of the methods (:data:`lightfield_jax.inverse.methods.METHODS`'s keys).
+METHOD_NAMES = ("joint", "gradient", "grid")
+
+
+def check_solver(solver, key: str = "solver") -> None:
+    """Refuse anything but ``None`` or an optimistix least-squares solver."""
+    if solver is not None and not isinstance(solver, optx.AbstractLeastSquaresSolver):
+        raise ValueError(
+            f"{key}: must be an optimistix least-squares solver (e.g. "
+            f"optx.LevenbergMarquardt, optx.Dogleg, optx.GaussNewton), got "
+            f"{type(solver).__name__}"
+        )
+
+
+def check_start(start, key: str = "start") -> tuple[float, float] | None:
+    """A joint start (σs > 0, |g| < 1) as a tuple of two floats (``None`` as given), or
+    ``ValueError``. A tuple, so that the options stay hashable and comparable (a list or
+    an array would make them unhashable, ``==`` between them an error); strings and
+    ``True`` are not numbers here."""
+    if start is None:
+        return None
+    refused = ValueError(f"{key}: must be (sigma_s > 0, |g| < 1), got {shown(start)}")
+    if isinstance(start, (str, bytes)):
+        raise refused
+    try:
+        items = tuple(start)
+    except TypeError:
+        raise refused from None
+    if len(items) != 2 or any(number_problem(v) is not None for v in items):
+        raise refused
+    ss, g = (float(v) for v in items)
+    if not (0 < ss < math.inf and abs(g) < 1):
+        raise refused
+    return ss, g
+
+
+class FitMethod(eqx.Module):
+    """A fit method: :meth:`solve` turns a prepared capture into fitted values."""
+
+    name: eqx.AbstractClassVar[str]
+    # Whether the method needs every bounce's image (the two-step residual is a
+    # polynomial in σs over them): its models march at most ``max_bounces``, never a
+    # tail solve (the fit sizes them with ``tail: None``).
+    per_bounce: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def solve(
+        self, problem: FitProblem, options: FitOptions, say: Callable[[str], None]
+    ) -> FitSolution:
+        """Fit ``problem`` with the model settings of ``options``; ``say`` reports each
+        stage. Returns the model used, the seconds (``compile``, ``run``) and the values
+        the :class:`~lightfield_jax.FitResult` is built from."""
+
+
+# The most g values a search takes (g_grid, start_grid, g_values): 5 times the densest
+# grid the experiments run (20481, configs/inverse_speed_accuracy.yaml); g_grid 10**9
+# (a billion g values) would run until killed.
+MAX_G_VALUES = 100_000
+
+
+def check_method(method) -> str:
+    """The name of ``FitOptions.method`` (a known name or a :class:`FitMethod`), or
+    ``ValueError``."""
+    if isinstance(method, FitMethod):
+        return method.name
+    if method not in METHOD_NAMES:
+        raise ValueError(
+            f"method: must be one of {', '.join(METHOD_NAMES)} or a FitMethod, got {method!r}"
+        )
+    return method
+
+
+__all__ = [
+    "MAX_G_VALUES",
+    "METHOD_NAMES",
+    "FitMethod",
+    "check_method",
+    "check_solver",
+    "check_start",
+]
