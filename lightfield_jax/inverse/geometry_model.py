@@ -12,7 +12,7 @@ import abc
 import dataclasses
 from typing import TYPE_CHECKING
 
-from lightfield_jax.forward.cell import cell_problem, cell_renderer_for
+from lightfield_jax.forward.cell import SHIFT_ORDERS, cell_problem, cell_renderer_for
 from lightfield_jax.forward.plane import coarse_plane_grid
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.forward.slab import slab_bounce_ratio
@@ -123,6 +123,12 @@ class GeometryModel(abc.ABC):
         """This geometry's discretisation in a progress line (``""``: none)."""
         return ""
 
+    def stripe_cell(self, grid: Grid) -> int | None:
+        """The stripe cell's ``shift_orders`` a model on ``grid`` renders stripes with
+        (:class:`~lightfield_jax.forward.cell.CellRenderer`), or ``None``: the full
+        render."""
+        return None
+
     def renderer(self, model, illumination, phase: str, **solve):
         """``model``'s renderer for ``illumination`` (its cell where ``model.cell``)."""
         return renderer_for(
@@ -205,6 +211,13 @@ class PlaneModel(GeometryModel):
         refine 3 from the continuum (the Monte Carlo's), not one."""
         r, r_f = grid.refine, fine_grid.refine
         return None if r_f <= r else r_f / (r_f - r)
+
+    def stripe_cell(self, grid):
+        """On a refined grid, the cell with its defaults: within 0.2 % of the full
+        render in every row and several times faster (docs/periodic_cell.md), where the
+        model's own discretisation error is percents (the error term's refine + 1). On
+        the native grid it is no faster than the full render."""
+        return SHIFT_ORDERS if grid.refine > 1 else None
 
     def renderer(self, model, illumination, phase, **solve):
         if model.cell is not None and cell_problem(model.grid, illumination) is None:

@@ -45,9 +45,9 @@ class ModelSpec:
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
     extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
     coarse_after: int | None = None  # the plane's bounces after it on its coarse grid
-    # Plane stripes rendered from one period (CellRenderer's shift_orders), or None: the
-    # full render. Only models whose answer is corrected to a full one (the scan's, an
-    # extrapolated solve's) take it.
+    # Plane stripes rendered from one period (CellRenderer's shift_orders; its geometry's
+    # stripe_cell for a sized model, the shifts' mean alone for the scan's and an
+    # extrapolated solve's, whose answers are corrected), or None: the full render.
     cell: int | None = None
 
     @property
@@ -82,6 +82,8 @@ class ModelSpec:
             "ratio_measured": self.ratio,
             "tail_bound": self.tail_bound,
             "extrapolated": self.extrapolate,
+            # Stripes entering a side wall, rendered from one period (CellRenderer).
+            "stripe_cell": None if self.cell is None else {"shift_orders": self.cell},
             "coarse_tail": None
             if self.coarse is None
             else {
@@ -179,6 +181,7 @@ def size_model(
         rho=rho,
         geometry=geometry,
         coarse_after=geometry.coarse_after(options),
+        cell=geometry.stripe_cell(grid),
     )
     return _with_tail(model, options)
 
@@ -357,7 +360,14 @@ SCAN_TAIL_BOUNCES = 24
 
 
 def orders(model: ModelSpec) -> str:
-    coarse = "" if model.coarse is None else f" (after {model.coarse} on the coarse grid)"
+    """The model's bounce series in a progress line (stripes from one period, where it
+    renders them so, march every order on the refined grid: no coarse tail)."""
+    if model.cell is not None:
+        coarse = f" (side-wall stripes from one period: shift_orders {model.cell})"
+    elif model.coarse is not None:
+        coarse = f" (after {model.coarse} on the coarse grid)"
+    else:
+        coarse = ""
     if model.extrapolate:
         return f"{model.bounces} bounces{coarse} and a geometric tail"
     if model.tail is None:

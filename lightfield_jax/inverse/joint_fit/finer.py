@@ -30,9 +30,12 @@ def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
     before it, so that the term also sees the coarse grid's error where most of the
     coarse bounces' light is."""
     grid, geometry = model.geometry.finer(model.grid, options, g)
+    # Rendered as its geometry renders a sized model on that grid (the stripe cell on a
+    # refined plane): the cell's own error, 0.2 % at most, is a tenth of the term's.
+    cell = geometry.stripe_cell(grid)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
-            model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10
+            model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10, cell=cell
         )
     # The same bounces and, where the fit sized them, the orders past them summed
     # geometrically from the last per-bounce ratio: the series' truncation error shows
@@ -45,6 +48,7 @@ def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
         geometry=geometry,
         extrapolate=not isinstance(options.bounces, int),
         coarse_after=None if model.coarse is None else 2 * model.coarse,
+        cell=cell,
     )
 
 
