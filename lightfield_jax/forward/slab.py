@@ -56,6 +56,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from lightfield_jax.forward.base import AbstractRenderer, FirstOrders
+from lightfield_jax.forward.tail import TailSolution
 from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import (
     bin_pair_offsets,
@@ -64,6 +65,7 @@ from lightfield_jax.forward.kernels import (
     padded_spectrum,
     splat,
 )
+from lightfield_jax.forward.slab_memory import slab_blocks
 from lightfield_jax.forward.slab_layers import (
     PAIRS,
     TERMS,
@@ -145,6 +147,8 @@ class SlabRenderer(AbstractRenderer):
     n_m: int = eqx.field(static=True)  # depth profile coefficients per layer: 1 or 2
     thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
     camera_t: float = eqx.field(static=True)
+    pattern_block: int = eqx.field(static=True)  # patterns marched at once
+    mu_block: int = eqx.field(static=True)  # μ nodes transported at once
     t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
     cam_u: Float[Array, "n_mu nodes q"]  # vertical travel u = tμ
     w_over_s: Float[Array, "n_mu nodes q"]  # ring weight / s
@@ -196,6 +200,15 @@ class SlabRenderer(AbstractRenderer):
         self.mu = jnp.asarray(mu)
         self.w_mu = jnp.asarray(w_mu)
         self.refl = jnp.asarray(slab.reflectance(mu))
+        self.pattern_block, self.mu_block = slab_blocks(
+            self.n_patterns,
+            self.height,
+            self.width,
+            self.n_theta,
+            self.n_mu,
+            self.n_z,
+            self.n_m,
+        )
 
     # σ/f and h·f on the refined grid: images (ratios like σs/σt) are unchanged; the
     # depth-integrated fields are in refined pixels of depth: divided by f.
@@ -227,6 +240,12 @@ class SlabRenderer(AbstractRenderer):
         kernels = splat(self.index, self.splat, values.reshape((-1, values.shape[-1])), size)
         kernels = kernels.reshape(-1, self.n_theta, 2 * self.height, 2 * self.width)
         return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
+
+    def _mu_blocks(self, values):
+        """values (…, n_mu, N) → (blocks, …, mu_block, N): the μ nodes in blocks."""
+        blocks = self.n_mu // self.mu_block
+        split = values.reshape(values.shape[:-2] + (blocks, self.mu_block, values.shape[-1]))
+        return jnp.moveaxis(split, -3, 0)
 
     def _phase_matrices(self, g, dtype):
         """(M⁺, M⁻), each (n_mu·n_theta) square: from stored up-going directions into
@@ -336,23 +355,81 @@ class SlabRenderer(AbstractRenderer):
                 if b == 0
             ]
         )
-        k1_f = self._kernels_f(p1 * first)  # (n_m·n_z, n_mu, n_theta, 2H, W+1)
-        k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), axis=(0, 1))
         src_f = padded_spectrum(source)
-        l1 = sigma_s * clip_averages(
-            fft_convolve(src_f[:, None, None, None], k1_f, height, width), n_z
+
+        def block(values):
+            """One block of μ nodes: its kernels' spectra, its part of L_1 and of the
+            first scatter's camera kernel."""
+            transport_v, camera_v, first_v, p1_v = values
+            k1_f = self._kernels_f(p1_v * first_v)
+            k1_cam_f = jnp.sum(self._kernels_f(p1_v * jnp.sum(camera_v[:n_z], axis=0)), (0, 1))
+            l1 = fft_convolve(src_f[:, None, None, None], k1_f, height, width)
+            kernels = (self._kernels_f(transport_v), sigma_s * self._kernels_f(camera_v))
+            return kernels, l1, k1_cam_f
+
+        values = tuple(self._mu_blocks(v) for v in (transport, camera, first, p1))
+        if self.mu_block == self.n_mu:
+            kernels, l1, k1_cam_f = jax.tree_util.tree_map(
+                lambda a: a[None], block(tuple(v[0] for v in values))
+            )
+        else:
+            kernels, l1, k1_cam_f = jax.lax.map(block, values)
+        # (blocks, patterns, n_m·n_z, mu_block, …) → (patterns, n_m·n_z, n_mu, …)
+        l1 = jnp.moveaxis(l1, 0, 2)
+        l1 = sigma_s * clip_averages(l1.reshape(l1.shape[:2] + (self.n_mu,) + l1.shape[4:]), n_z)
+        i2 = sigma_s**2 * jnp.maximum(
+            fft_convolve(src_f, jnp.sum(k1_cam_f, axis=0), height, width), 0.0
         )
-        i2 = sigma_s**2 * jnp.maximum(fft_convolve(src_f, k1_cam_f, height, width), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(
-            transport_f=self._kernels_f(transport),
-            camera_f=sigma_s * self._kernels_f(camera),
+            transport_f=kernels[0],
+            camera_f=kernels[1],
             mix_even=0.5 * sigma_s * (plus + minus),
             mix_odd=0.5 * sigma_s * (plus - minus),
             height=height,
             width=width,
         )
         return FirstOrders(image, bounce, i2, l1, bounce.scatter(l1))
+
+    def _march(self, sigma_t, sigma_s, g, gain, lightfield: bool):
+        """The march of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
+        ``pattern_block`` patterns at a time (each block builds its own kernels: only one
+        block's fields are alive at once)."""
+        n, size = self.n_patterns, self.pattern_block
+        if size == n:
+            return super()._march(sigma_t, sigma_s, g, gain, lightfield)
+        moments = tuple(
+            a.reshape((n // size, size) + a.shape[1:])
+            for a in (self.coverage, self.mean_depth, self.var_depth)
+        )
+
+        def block(part):
+            renderer = eqx.tree_at(lambda r: (r.coverage, r.mean_depth, r.var_depth), self, part)
+            return AbstractRenderer._march(renderer, sigma_t, sigma_s, g, gain, lightfield)
+
+        out = jax.lax.map(block, moments)
+
+        def patterns_first(a):  # (blocks, size, …) → (n, …)
+            return a.reshape((n,) + a.shape[2:])
+
+        images = patterns_first(out[0])
+        fields = None
+        if out[1] is not None:  # (blocks, K+1, size, …) → (K+1, n, …)
+            fields = jnp.moveaxis(out[1], 0, 1)
+            fields = fields.reshape((fields.shape[0], n) + fields.shape[3:])
+        if len(out) == 2:
+            return images, fields
+        tail = out[2]
+        return (
+            images,
+            fields,
+            TailSolution(
+                image=patterns_first(tail.image),
+                lightfield=None if tail.lightfield is None else patterns_first(tail.lightfield),
+                steps=jnp.max(tail.steps),
+                converged=jnp.all(tail.converged),
+            ),
+        )
 
 
 @functools.lru_cache(maxsize=64)
