@@ -36,6 +36,7 @@ from lightfield_jax.forward.base import (
     trace_count,
 )
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer, coarse_plane_grid
+from lightfield_jax.forward.slab_memory import slab_render_bytes
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.grid import Grid
@@ -142,17 +143,30 @@ def make_renderer(
     if grid.n_theta is not None and grid.refine is not None and counted and bounces >= 1:
         # Before the tables: Grid(30000, 30000, 8, 1) allocated 429 GiB (a MemoryError).
         slab = geometry.slab_or_none
-        resolved = slab is None or (slab.n_mu is not None and slab.n_z is not None)
-        check_memory(
-            render_bytes(
+        if slab is None or slab.n_mu is None or slab.n_z is None:
+            nbytes = render_bytes(
                 illumination.n_patterns,
                 grid.height,
                 grid.width,
                 grid.n_theta,
                 refine=grid.refine,
-                n_mu=geometry.fields_per_bin(0.0, 1.0, 0.5) if resolved else 1,
                 bounces=int(bounces),
-            ),
+            )
+        else:
+            nbytes = slab_render_bytes(
+                illumination.n_patterns,
+                grid.height,
+                grid.width,
+                grid.n_theta,
+                slab.n_mu,
+                slab.n_z,
+                slab.depth_coefficients,
+                refine=grid.refine,
+                bounces=int(bounces),
+                tail=tail is not None,
+            )
+        check_memory(
+            nbytes,
             f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
             f"refine {grid.refine}, {bounces} bounces, {illumination.n_patterns} patterns)",
         )
@@ -203,6 +217,40 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     energy ratio bound (the slab's 3-D phase function is normalised on the sphere:
     ρ = ω)."""
     return as_geometry(geometry).resolve_model(medium, grid)
+
+
+def render_memory(
+    n_patterns: int,
+    grid: Grid,
+    geometry,
+    medium: Medium,
+    bounces: int,
+    lightfield: bool = False,
+    tail: bool = False,
+) -> int:
+    """Bytes a render of ``n_patterns`` illuminations needs (an upper bound from the
+    sizes alone), on the discretisation the geometry resolves for ``medium``
+    (:func:`resolve_model`): a slab's
+    :func:`~lightfield_jax.forward.slab_memory.slab_render_bytes` (its kernels, its
+    blocks' fields and spectra, the images), the plane's
+    :func:`~lightfield_jax.app.memory.scene_render_bytes`."""
+    grid, geometry, _ = resolve_model(medium, grid, geometry)
+    slab = geometry.slab_or_none
+    if slab is None:
+        return scene_render_bytes(n_patterns, grid, geometry, medium, bounces, lightfield)
+    return slab_render_bytes(
+        n_patterns,
+        grid.height,
+        grid.width,
+        grid.n_theta,
+        slab.n_mu,
+        slab.n_z,
+        slab.depth_coefficients,
+        refine=grid.refine,
+        bounces=bounces,
+        lightfield=lightfield,
+        tail=tail,
+    )
 
 
 def resolve_bounces(
@@ -316,7 +364,7 @@ def render(
     # Before the renderer's tables: a typo in the grid (Grid(32000, 24000)) or the
     # bounces asked for terabytes, found by a MemoryError or the OOM killer minutes later.
     check_memory(
-        scene_render_bytes(illumination.n_patterns, grid, geometry, medium, k, lightfield),
+        render_memory(illumination.n_patterns, grid, geometry, medium, k, lightfield, tail is not None),
         f"render: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, refine "
         f"{grid.refine}, {k} bounces, {illumination.n_patterns} patterns"
         f"{', light fields' if lightfield else ''})",
@@ -402,6 +450,7 @@ __all__ = [
     "RenderResult",
     "make_renderer",
     "render",
+    "render_memory",
     "renderer_for",
     "resolve_model",
     "resolve_bounces",

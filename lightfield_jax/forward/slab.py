@@ -149,10 +149,12 @@ class SlabRenderer(AbstractRenderer):
     camera_t: float = eqx.field(static=True)
     pattern_block: int = eqx.field(static=True)  # patterns marched at once
     mu_block: int = eqx.field(static=True)  # μ nodes transported at once
-    t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
-    cam_u: Float[Array, "n_mu nodes q"]  # vertical travel u = tμ
-    w_over_s: Float[Array, "n_mu nodes q"]  # ring weight / s
-    node_cos: Float[Array, "n_mu nodes"]  # ω_node·ω0 = s_j cos(φ − θ0)
+    # Per node and Gauss point across its ring: the in-plane distance r and the ring
+    # weight (a node's path length is t = r/s, its vertical travel tμ, s = √(1 − μ²)).
+    r_sub: Float[Array, "nodes q"]
+    w_sub: Float[Array, "nodes q"]
+    cos_phi: Float[Array, " nodes"]  # cos(φ − θ0): ω_node·ω0 = s_j cos(φ − θ0)
+    sin_mu: Float[Array, " n_mu"]  # s_j
     index: Array
     splat: Array
     mu: Float[Array, " n_mu"]
@@ -190,11 +192,10 @@ class SlabRenderer(AbstractRenderer):
         mu, w_mu = elevation_nodes(self.n_mu, slab.critical_cosine)
         s = np.sqrt(1.0 - mu * mu)
         nodes = _slab_nodes(self.width, self.height, self.n_theta)
-        t = nodes["r_sub"][None] / s[:, None, None]  # (n_mu, N, q)
-        self.t_sub = jnp.asarray(t)
-        self.cam_u = jnp.asarray(t * mu[:, None, None])
-        self.w_over_s = jnp.asarray(nodes["w_sub"][None] / s[:, None, None])
-        self.node_cos = jnp.asarray(s[:, None] * np.cos(nodes["phi"] - theta0)[None, :])
+        self.r_sub = jnp.asarray(nodes["r_sub"])
+        self.w_sub = jnp.asarray(nodes["w_sub"])
+        self.cos_phi = jnp.asarray(np.cos(nodes["phi"] - theta0))
+        self.sin_mu = jnp.asarray(s)
         self.index = jnp.asarray(nodes["index"])
         self.splat = jnp.asarray(nodes["splat"])
         self.mu = jnp.asarray(mu)
@@ -241,12 +242,6 @@ class SlabRenderer(AbstractRenderer):
         kernels = kernels.reshape(-1, self.n_theta, 2 * self.height, 2 * self.width)
         return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
 
-    def _mu_blocks(self, values):
-        """values (…, n_mu, N) → (blocks, …, mu_block, N): the μ nodes in blocks."""
-        blocks = self.n_mu // self.mu_block
-        split = values.reshape(values.shape[:-2] + (blocks, self.mu_block, values.shape[-1]))
-        return jnp.moveaxis(split, -3, 0)
-
     def _phase_matrices(self, g, dtype):
         """(M⁺, M⁻), each (n_mu·n_theta) square: from stored up-going directions into
         up-going (M⁺) and down-going (M⁻) ones, so Q(+μ) = σs (M⁺ L(+μ) + M⁻ L(−μ)).
@@ -284,15 +279,23 @@ class SlabRenderer(AbstractRenderer):
         scale = scale / col[None, :] * domega[None, :]
         return plus * scale, minus * scale
 
-    def _transport_and_camera(self, sigma_t, g, dtype):
+    def _elevation_parts(self):
+        """The per-μ-node tables, each with the μ nodes as its first axis."""
+        return (self.sin_mu, self.mu, self.w_mu, self.refl)
+
+    def _transport_and_camera(self, sigma_t, g, dtype, parts):
         """Node values of the layer-to-layer transport kernels W^{ab}_δ per distinct
-        profile pair, δ = −(n_z−1)..n_z−1 (pairs, 2 n_z − 1, n_mu, N), and of the camera
-        kernels per source coefficient and layer (n_m·n_z, n_mu, N):
-        T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart)."""
+        profile pair, δ = −(n_z−1)..n_z−1 (pairs, 2 n_z − 1, μ nodes, N), and of the
+        camera kernels per source coefficient and layer (n_m·n_z, μ nodes, N):
+        T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart), for the μ nodes of ``parts``
+        (:meth:`_elevation_parts`, or a block of them)."""
+        sin_mu, mu, w_mu, refl = parts
         h, n_z = self.thickness, self.n_z
-        u = jax.lax.stop_gradient(self.cam_u.astype(dtype))
-        refl = jax.lax.stop_gradient(self.refl.astype(dtype))[:, None, None]
-        att = jnp.exp(-sigma_t * self.t_sub.astype(dtype)) * self.w_over_s.astype(dtype)
+        inv_s = 1.0 / sin_mu.astype(dtype)[:, None, None]
+        t = self.r_sub.astype(dtype)[None] * inv_s  # (μ nodes, N, q)
+        u = jax.lax.stop_gradient(t * mu.astype(dtype)[:, None, None])
+        refl = jax.lax.stop_gradient(refl.astype(dtype))[:, None, None]
+        att = jnp.exp(-sigma_t * t) * (self.w_sub.astype(dtype)[None] * inv_s)
         v = u / (h / n_z)
         transport = jnp.stack(
             [
@@ -305,8 +308,8 @@ class SlabRenderer(AbstractRenderer):
                 for pair in PAIRS[self.n_m]
             ]
         )
-        mu = self.mu.astype(dtype)
-        weight = (self.w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
+        mu = mu.astype(dtype)
+        weight = (w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
         camera = []
         for moment in range(self.n_m):
             for layer in range(n_z):
@@ -315,25 +318,26 @@ class SlabRenderer(AbstractRenderer):
                 camera.append(weight * (hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down))
         return transport, jnp.stack(camera)
 
-    def _first_phase(self, g, dtype):
-        """p(ω_node·ω0) at the kernels' nodes (n_mu, N), normalised on the discrete
-        sphere (so the first bounce conserves ω·energy)."""
+    def _first_phase_norm(self, g, dtype):
+        """The discrete sphere integral of p(ω·ω0) that normalises the first scatter's
+        phase at the kernels' nodes (so the first bounce conserves ω·energy)."""
         n = self.n_theta
         dtheta = 2 * math.pi / n
         mu = self.mu.astype(dtype)
-        p1 = hg(self.node_cos.astype(dtype), g)
         fine = (np.arange(n * 16) + 0.5) * (dtheta / 16)
         ring = jnp.sum(
             hg(jnp.sqrt(1 - mu * mu)[:, None] * jnp.asarray(np.cos(fine), dtype)[None], g),
             axis=1,
         ) * (dtheta / 16)
-        return p1 / (2.0 * jnp.sum(self.w_mu.astype(dtype) * ring))
+        return 2.0 * jnp.sum(self.w_mu.astype(dtype) * ring)
 
     def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
         """I_1 = T σs p(cos 90°) (1 − e^{−σt h})/σt · S (docs/model.md §7) and, when
         ``scattered``, the bounce step with I_2, the layered light field L_1 and source
         Q_2 (patterns, n_m·n_z, n_mu, n_theta, H, W). I_2 comes straight from the
-        first-scatter kernels (the first source is uniform in depth: exact)."""
+        first-scatter kernels (the first source is uniform in depth: exact). The kernels
+        are built ``mu_block`` μ nodes at a time (their node values are as large as the
+        kernels' spectra)."""
         dtype = sigma_t.dtype
         t_cam = jnp.asarray(self.camera_t, dtype)
         depth_factor = -jnp.expm1(-sigma_t * self.thickness) / sigma_t
@@ -341,39 +345,47 @@ class SlabRenderer(AbstractRenderer):
         if not scattered:
             return FirstOrders(image)
         n_z, height, width = self.n_z, self.height, self.width
-        transport, camera = self._transport_and_camera(sigma_t, g, dtype)
-        p1 = self._first_phase(g, dtype)
-        # The first source is uniform in depth (its average alone): coefficient a of layer
-        # l receives Σ_l' W^{a0}_{l−l'}, and only the average's camera kernels see it.
-        first = jnp.concatenate(
-            [
-                factor
-                * jnp.stack(
-                    [jnp.sum(transport[pair, layer : layer + n_z], axis=0) for layer in range(n_z)]
-                )
-                for _, b, pair, factor in TERMS[self.n_m]
-                if b == 0
-            ]
-        )
+        norm = self._first_phase_norm(g, dtype)
         src_f = padded_spectrum(source)
 
-        def block(values):
+        def block(parts):
             """One block of μ nodes: its kernels' spectra, its part of L_1 and of the
             first scatter's camera kernel."""
-            transport_v, camera_v, first_v, p1_v = values
-            k1_f = self._kernels_f(p1_v * first_v)
-            k1_cam_f = jnp.sum(self._kernels_f(p1_v * jnp.sum(camera_v[:n_z], axis=0)), (0, 1))
+            transport, camera = self._transport_and_camera(sigma_t, g, dtype, parts)
+            node_cos = parts[0].astype(dtype)[:, None] * self.cos_phi.astype(dtype)[None]
+            p1 = hg(node_cos, g) / norm  # p(ω_node·ω0) at the kernels' nodes
+            # The first source is uniform in depth (its average alone): coefficient a of
+            # layer l receives Σ_l' W^{a0}_{l−l'}, and only the average's camera kernels
+            # see it.
+            first = jnp.concatenate(
+                [
+                    factor
+                    * jnp.stack(
+                        [
+                            jnp.sum(transport[pair, layer : layer + n_z], axis=0)
+                            for layer in range(n_z)
+                        ]
+                    )
+                    for _, b, pair, factor in TERMS[self.n_m]
+                    if b == 0
+                ]
+            )
+            k1_f = self._kernels_f(p1 * first)
+            k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), (0, 1))
             l1 = fft_convolve(src_f[:, None, None, None], k1_f, height, width)
-            kernels = (self._kernels_f(transport_v), sigma_s * self._kernels_f(camera_v))
+            kernels = (self._kernels_f(transport), sigma_s * self._kernels_f(camera))
             return kernels, l1, k1_cam_f
 
-        values = tuple(self._mu_blocks(v) for v in (transport, camera, first, p1))
-        if self.mu_block == self.n_mu:
+        blocks = self.n_mu // self.mu_block
+        parts = tuple(
+            a.reshape((blocks, self.mu_block) + a.shape[1:]) for a in self._elevation_parts()
+        )
+        if blocks == 1:
             kernels, l1, k1_cam_f = jax.tree_util.tree_map(
-                lambda a: a[None], block(tuple(v[0] for v in values))
+                lambda a: a[None], block(tuple(a[0] for a in parts))
             )
         else:
-            kernels, l1, k1_cam_f = jax.lax.map(block, values)
+            kernels, l1, k1_cam_f = jax.lax.map(block, parts)
         # (blocks, patterns, n_m·n_z, mu_block, …) → (patterns, n_m·n_z, n_mu, …)
         l1 = jnp.moveaxis(l1, 0, 2)
         l1 = sigma_s * clip_averages(l1.reshape(l1.shape[:2] + (self.n_mu,) + l1.shape[4:]), n_z)
