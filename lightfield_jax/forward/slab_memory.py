@@ -34,7 +34,7 @@ from lightfield_jax.forward.tail import GMRES_RESTART
 SLAB_WORKING_SET = 768 << 20
 # Layered fields of a pattern alive at once in a bounce (Q_k, Q_{k+1}, L_k, the scatter's
 # mirror sums and products, the μ-major copy of a blocked source, XLA's temporaries).
-FIELD_COPIES = 8
+FIELD_COPIES = 6
 # Spectra of a μ block alive at once (the source's, the transported field's accumulator,
 # a product, the inverse FFT's padded output counted as one).
 SPECTRUM_COPIES = 4
@@ -120,22 +120,23 @@ def slab_render_bytes(
     tail: bool = False,
 ) -> int:
     """The memory of a slab render, an upper bound from the sizes alone: the kernels'
-    spectra, the blocked working set (:func:`slab_blocks`), the per-bounce images
-    (float64, three copies), with ``lightfield`` the stored depth-integrated fields
-    ((K+1) × patterns × H × W × n_theta float32, two copies) and with ``tail`` the
-    Krylov vectors of a pattern block (GMRES's restart and three more, layered
-    fields). Sizes are those of the working grid (× ``refine``)."""
+    spectra, the blocked working set (:func:`slab_blocks`) and the march's per-bounce
+    images (float32), with ``lightfield`` the stored depth-integrated fields ((K+1) ×
+    patterns × H × W × n_theta float32, two copies) and with ``tail`` the Krylov vectors
+    of a pattern block (GMRES's restart and three more, layered fields); or, where it is
+    more, the images' copies after the render (float64, two, and the march's): the
+    kernels are gone by then. Sizes are those of the working grid (× ``refine``)."""
     h, w = height * refine, width * refine
     patterns, mu = slab_blocks(n_patterns, h, w, n_theta, n_mu, n_z, n_m)
     c = n_m * n_z
     kernels = KERNEL_COPIES * kernel_count(n_z, n_m) * spectrum_bytes(h, w, n_theta, n_mu, 1)
     working = working_bytes(patterns, mu, h, w, n_theta, n_mu, n_z, n_m)
-    images = 3 * bounces * n_patterns * height * width * 8
+    images = bounces * n_patterns * height * width * 4
     stored = 2 * (bounces + 1) * n_patterns * h * w * n_theta * 4 if lightfield else 0
     krylov = 0
     if tail:
         krylov = (GMRES_RESTART + 3) * patterns * field_bytes(h, w, n_theta, n_mu, c)
-    return kernels + working + images + stored + krylov
+    return max(kernels + working + images + stored + krylov, 5 * images + stored)
 
 
 __all__ = [
