@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.app.memory import check_memory, render_bytes, scene_render_bytes
+from lightfield_jax.app.memory import check_memory, render_bytes
 from lightfield_jax.checks import (
     check_flag,
     check_int,
@@ -142,29 +142,9 @@ def make_renderer(
     counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)
     if grid.n_theta is not None and grid.refine is not None and counted and bounces >= 1:
         # Before the tables: Grid(30000, 30000, 8, 1) allocated 429 GiB (a MemoryError).
-        slab = geometry.slab_or_none
-        if slab is None or slab.n_mu is None or slab.n_z is None:
-            nbytes = render_bytes(
-                illumination.n_patterns,
-                grid.height,
-                grid.width,
-                grid.n_theta,
-                refine=grid.refine,
-                bounces=int(bounces),
-            )
-        else:
-            nbytes = slab_render_bytes(
-                illumination.n_patterns,
-                grid.height,
-                grid.width,
-                grid.n_theta,
-                slab.n_mu,
-                slab.n_z,
-                slab.depth_coefficients,
-                refine=grid.refine,
-                bounces=int(bounces),
-                tail=tail is not None,
-            )
+        nbytes = model_memory(
+            illumination.n_patterns, grid, geometry, int(bounces), tail=tail is not None
+        )
         check_memory(
             nbytes,
             f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
@@ -219,25 +199,30 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     return as_geometry(geometry).resolve_model(medium, grid)
 
 
-def render_memory(
+def model_memory(
     n_patterns: int,
     grid: Grid,
     geometry,
-    medium: Medium,
     bounces: int,
     lightfield: bool = False,
     tail: bool = False,
 ) -> int:
-    """Bytes a render of ``n_patterns`` illuminations needs (an upper bound from the
-    sizes alone), on the discretisation the geometry resolves for ``medium``
-    (:func:`resolve_model`): a slab's
+    """Bytes a render of ``n_patterns`` illuminations on a resolved ``grid`` needs (an
+    upper bound from the sizes alone): a resolved slab's
     :func:`~lightfield_jax.forward.slab_memory.slab_render_bytes` (its kernels, its
-    blocks' fields and spectra, the images), the plane's
-    :func:`~lightfield_jax.app.memory.scene_render_bytes`."""
-    grid, geometry, _ = resolve_model(medium, grid, geometry)
-    slab = geometry.slab_or_none
-    if slab is None:
-        return scene_render_bytes(n_patterns, grid, geometry, medium, bounces, lightfield)
+    blocks' fields and spectra, the images), else the plane's
+    :func:`~lightfield_jax.app.memory.render_bytes`."""
+    slab = as_geometry(geometry).slab_or_none
+    if slab is None or slab.n_mu is None or slab.n_z is None:
+        return render_bytes(
+            n_patterns,
+            grid.height,
+            grid.width,
+            grid.n_theta,
+            refine=grid.refine,
+            bounces=bounces,
+            lightfield=lightfield,
+        )
     return slab_render_bytes(
         n_patterns,
         grid.height,
@@ -251,6 +236,21 @@ def render_memory(
         lightfield=lightfield,
         tail=tail,
     )
+
+
+def render_memory(
+    n_patterns: int,
+    grid: Grid,
+    geometry,
+    medium: Medium,
+    bounces: int,
+    lightfield: bool = False,
+    tail: bool = False,
+) -> int:
+    """:func:`model_memory` of the discretisation the geometry resolves for ``medium``
+    (:func:`resolve_model`)."""
+    grid, geometry, _ = resolve_model(medium, grid, geometry)
+    return model_memory(n_patterns, grid, geometry, bounces, lightfield, tail)
 
 
 def resolve_bounces(
@@ -450,6 +450,7 @@ __all__ = [
     "RenderResult",
     "make_renderer",
     "render",
+    "model_memory",
     "render_memory",
     "renderer_for",
     "resolve_model",
