@@ -61,8 +61,6 @@ from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import (
     bin_pair_offsets,
     einsum,
-    fft_convolve,
-    padded_spectrum,
     splat,
 )
 from lightfield_jax.forward.slab_memory import slab_blocks
@@ -112,7 +110,7 @@ def elevation_nodes(n_mu: int, split: float | None = None) -> tuple[np.ndarray, 
 
 
 @functools.lru_cache(maxsize=8)
-def _slab_nodes(width: int, height: int, n_theta: int):
+def slab_nodes(width: int, height: int, n_theta: int):
     """The plane kernel's polar nodes, with Gauss points across each ring."""
     nodes = kernel_nodes(width, height, n_theta)
     xg, wg = np.polynomial.legendre.leggauss(_RING_GAUSS)
@@ -147,6 +145,7 @@ class SlabRenderer(AbstractRenderer):
     n_m: int = eqx.field(static=True)  # depth profile coefficients per layer: 1 or 2
     thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
     camera_t: float = eqx.field(static=True)
+    fft_rows: int = eqx.field(static=True)  # 2H: zero-padded in y (a periodic cell: H)
     pattern_block: int = eqx.field(static=True)  # patterns marched at once
     mu_block: int = eqx.field(static=True)  # μ nodes transported at once
     # Per node and Gauss point across its ring: the in-plane distance r and the ring
@@ -173,13 +172,22 @@ class SlabRenderer(AbstractRenderer):
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
         coarse_after: int | None = None,
+        moments=None,
     ):
         if grid.n_theta is not None and (slab.n_mu is None or slab.n_z is None):
             raise ValueError("SlabRenderer needs slab.n_mu and slab.n_z: call Slab.resolve first")
         if phase not in ("paper", "normalized"):
             raise ValueError(f"phase: must be paper or normalized, got {phase!r}")
         self._setup(
-            grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps, coarse_after
+            grid,
+            illumination,
+            bounces,
+            phase,
+            tail,
+            tail_tol,
+            tail_max_steps,
+            coarse_after,
+            moments,
         )
         f = self.refine
         self.n_mu = int(slab.n_mu)
@@ -191,7 +199,7 @@ class SlabRenderer(AbstractRenderer):
 
         mu, w_mu = elevation_nodes(self.n_mu, slab.critical_cosine)
         s = np.sqrt(1.0 - mu * mu)
-        nodes = _slab_nodes(self.width, self.height, self.n_theta)
+        nodes = slab_nodes(self.width, self.height, self.n_theta)
         self.r_sub = jnp.asarray(nodes["r_sub"])
         self.w_sub = jnp.asarray(nodes["w_sub"])
         self.cos_phi = jnp.asarray(np.cos(nodes["phi"] - theta0))
@@ -201,6 +209,7 @@ class SlabRenderer(AbstractRenderer):
         self.mu = jnp.asarray(mu)
         self.w_mu = jnp.asarray(w_mu)
         self.refl = jnp.asarray(slab.reflectance(mu))
+        self.fft_rows = 2 * self.height
         self.pattern_block, self.mu_block = slab_blocks(
             self.n_patterns,
             self.height,
@@ -237,10 +246,19 @@ class SlabRenderer(AbstractRenderer):
     def _kernels_f(self, values):
         """values (…, n_mu, N) → rfft2 of their kernels (…, n_mu, n_theta, 2H, W + 1)."""
         lead = values.shape[:-1]
-        size = self.n_theta * 2 * self.height * 2 * self.width
+        size = self.n_theta * self.fft_rows * 2 * self.width
         kernels = splat(self.index, self.splat, values.reshape((-1, values.shape[-1])), size)
-        kernels = kernels.reshape(-1, self.n_theta, 2 * self.height, 2 * self.width)
-        return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
+        kernels = kernels.reshape(-1, self.n_theta, self.fft_rows, 2 * self.width)
+        return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, self.fft_rows, -1))
+
+    def _spectrum(self, a):
+        """rfft2 of ``a`` (…, H, W) on the FFT domain (fft_rows, 2W)."""
+        return jnp.fft.rfft2(a, s=(self.fft_rows, 2 * self.width))
+
+    def _convolve(self, source_f, kernel_f):
+        """The convolution of two spectra of the FFT domain, cropped to (H, W)."""
+        field = jnp.fft.irfft2(source_f * kernel_f, s=(self.fft_rows, 2 * self.width))
+        return field[..., : self.height, : self.width]
 
     def _phase_matrices(self, g, dtype):
         """(M⁺, M⁻), each (n_mu·n_theta) square: from stored up-going directions into
@@ -346,7 +364,7 @@ class SlabRenderer(AbstractRenderer):
             return FirstOrders(image)
         n_z, height, width = self.n_z, self.height, self.width
         norm = self._first_phase_norm(g, dtype)
-        src_f = padded_spectrum(source)
+        src_f = self._spectrum(source)
 
         def block(parts):
             """One block of μ nodes: its kernels' spectra, its part of L_1 and of the
@@ -372,7 +390,7 @@ class SlabRenderer(AbstractRenderer):
             )
             k1_f = self._kernels_f(p1 * first)
             k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), (0, 1))
-            l1 = fft_convolve(src_f[:, None, None, None], k1_f, height, width)
+            l1 = self._convolve(src_f[:, None, None, None], k1_f)
             kernels = (self._kernels_f(transport), sigma_s * self._kernels_f(camera))
             return kernels, l1, k1_cam_f
 
@@ -390,7 +408,7 @@ class SlabRenderer(AbstractRenderer):
         l1 = jnp.moveaxis(l1, 0, 2)
         l1 = sigma_s * clip_averages(l1.reshape(l1.shape[:2] + (self.n_mu,) + l1.shape[4:]), n_z)
         i2 = sigma_s**2 * jnp.maximum(
-            fft_convolve(src_f, jnp.sum(k1_cam_f, axis=0), height, width), 0.0
+            self._convolve(src_f, jnp.sum(k1_cam_f, axis=0)), 0.0
         )
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(
@@ -400,6 +418,7 @@ class SlabRenderer(AbstractRenderer):
             mix_odd=0.5 * sigma_s * (plus - minus),
             height=height,
             width=width,
+            fft_rows=self.fft_rows,
         )
         return FirstOrders(image, bounce, i2, l1, bounce.scatter(l1))
 
@@ -477,4 +496,5 @@ __all__ = [
     "elevation_nodes",
     "hg",
     "slab_bounce_ratio",
+    "slab_nodes",
 ]

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
 
-from lightfield_jax.forward.kernels import einsum, padded_spectrum
+from lightfield_jax.forward.kernels import einsum
 
 _GAUSS4 = tuple(tuple(float(v) for v in a) for a in np.polynomial.legendre.leggauss(4))
 
@@ -182,6 +182,8 @@ class SlabBounce(eqx.Module):
             nodes: (blocks, pairs, 2 n_z − 1, mu_block, n_theta, 2H, W + 1).
         camera_f: rfft2 of the camera kernels per source coefficient and layer
             (blocks, n_m·n_z, mu_block, n_theta, 2H, W + 1), σs and T included.
+        fft_rows: the rows of the FFT domain: 2H (zero-padded: the tank's walls), or H
+            (a grid periodic in y: :mod:`lightfield_jax.forward.slab_cell`).
         mix_even, mix_odd: ½(M⁺ ± M⁻) (σs included), M^± the discrete phase matrices
             from up-going directions into up-going (⁺) and down-going (⁻) ones.
         clip: whether images and fields are clipped at 0 (FFT round-off of non-negative
@@ -194,6 +196,7 @@ class SlabBounce(eqx.Module):
     mix_odd: Float[Array, "a a"]
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
+    fft_rows: int = eqx.field(static=True)  # 2H (zero-padded), or H on a grid periodic in y
     clip: bool = eqx.field(static=True, default=True)
 
     @property
@@ -220,7 +223,7 @@ class SlabBounce(eqx.Module):
     def step(self, q):
         """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
         field, image_f = self._transport_blocks(q)
-        image = jnp.fft.irfft2(image_f, s=(2 * self.height, 2 * self.width))
+        image = jnp.fft.irfft2(image_f, s=(self.fft_rows, 2 * self.width))
         return self.scatter(field), self._clipped(image[..., : self.height, : self.width]), field
 
     def transport(self, q):
@@ -241,7 +244,7 @@ class SlabBounce(eqx.Module):
             return image_f + more, field
 
         image_f = jnp.zeros(
-            (p, 2 * self.height, self.width + 1), jnp.result_type(q.dtype, jnp.complex64)
+            (p, self.fft_rows, self.width + 1), jnp.result_type(q.dtype, jnp.complex64)
         )
         image_f, fields = jax.lax.scan(
             block, image_f, (jnp.moveaxis(split, 2, 0), self.transport_f, self.camera_f)
@@ -250,7 +253,7 @@ class SlabBounce(eqx.Module):
 
     def _block(self, q, transport_f, camera_f):
         """(field, image spectrum) of the μ nodes of ``q`` with their kernels."""
-        q_f = padded_spectrum(q)
+        q_f = jnp.fft.rfft2(q, s=(self.fft_rows, 2 * self.width))
         image_f = einsum("plmnyx,lmnyx->pyx", q_f, camera_f)
         return self._transport_f(q_f, transport_f), image_f
 
@@ -268,7 +271,7 @@ class SlabBounce(eqx.Module):
                 out = out.at[:, a * n_z + lo : a * n_z + hi].add(
                     k * source[:, lo - delta : hi - delta]
                 )
-        field = jnp.fft.irfft2(out, s=(2 * self.height, 2 * self.width))
+        field = jnp.fft.irfft2(out, s=(self.fft_rows, 2 * self.width))
         field = field[..., : self.height, : self.width]
         return clip_averages(field, n_z) if self.clip else field
 
