@@ -364,7 +364,9 @@ def render(
     # Before the renderer's tables: a typo in the grid (Grid(32000, 24000)) or the
     # bounces asked for terabytes, found by a MemoryError or the OOM killer minutes later.
     check_memory(
-        render_memory(illumination.n_patterns, grid, geometry, medium, k, lightfield, tail is not None),
+        render_memory(
+            illumination.n_patterns, grid, geometry, medium, k, lightfield, tail is not None
+        ),
         f"render: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, refine "
         f"{grid.refine}, {k} bounces, {illumination.n_patterns} patterns"
         f"{', light fields' if lightfield else ''})",

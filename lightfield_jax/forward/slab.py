@@ -56,14 +56,12 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from lightfield_jax.forward.base import AbstractRenderer, FirstOrders
-from lightfield_jax.forward.tail import TailSolution
 from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import (
     bin_pair_offsets,
     einsum,
     splat,
 )
-from lightfield_jax.forward.slab_memory import slab_blocks
 from lightfield_jax.forward.slab_layers import (
     PAIRS,
     TERMS,
@@ -72,6 +70,8 @@ from lightfield_jax.forward.slab_layers import (
     clip_averages,
     transport_weights,
 )
+from lightfield_jax.forward.slab_memory import slab_blocks
+from lightfield_jax.forward.tail import TailSolution
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Illumination
 from lightfield_jax.scene.phase import hg
@@ -407,9 +407,7 @@ class SlabRenderer(AbstractRenderer):
         # (blocks, patterns, n_m·n_z, mu_block, …) → (patterns, n_m·n_z, n_mu, …)
         l1 = jnp.moveaxis(l1, 0, 2)
         l1 = sigma_s * clip_averages(l1.reshape(l1.shape[:2] + (self.n_mu,) + l1.shape[4:]), n_z)
-        i2 = sigma_s**2 * jnp.maximum(
-            self._convolve(src_f, jnp.sum(k1_cam_f, axis=0)), 0.0
-        )
+        i2 = sigma_s**2 * jnp.maximum(self._convolve(src_f, jnp.sum(k1_cam_f, axis=0)), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(
             transport_f=kernels[0],
