@@ -57,7 +57,7 @@ from lightfield_jax.scene.illumination import Full, Stripes, along_x, scaled, so
 from lightfield_jax.scene.medium import Medium
 
 
-def _folded_index(index: np.ndarray, height: int, width: int, rows: int) -> np.ndarray:
+def folded_index(index: np.ndarray, height: int, width: int, rows: int) -> np.ndarray:
     """Flat kernel indices into (J, 2·height, 2·width) (offsets stored modulo the size)
     as indices into (J, rows, 2·width): the y offsets folded modulo ``rows`` (the
     periodic images of a source ``rows`` apart add up)."""
@@ -68,7 +68,7 @@ def _folded_index(index: np.ndarray, height: int, width: int, rows: int) -> np.n
     return ((j * rows + np.mod(dy, rows)) * 2 * width + tx).astype(np.int32)
 
 
-def _cell_moments(illumination, width: int, rows: int):
+def cell_moments(illumination, width: int, rows: int):
     """Source moments of one period of ``illumination`` (phase 0, working grid) on a
     grid periodic in y: those of the last ``rows`` rows of a grid tall enough that no
     pixel there sees the top wall (an oblique sheet's backward ray climbs |tan θ0| rows
@@ -115,7 +115,7 @@ class PeriodicCell(PlaneRenderer):
         self.phase = phase
         self.coarse_after = None
         if moments is None:
-            moments = _cell_moments(scaled(illumination, f), self.width, self.height)
+            moments = cell_moments(scaled(illumination, f), self.width, self.height)
         cov, mean, var = moments
         self.coverage, self.mean_depth, self.var_depth = (jnp.asarray(a) for a in (cov, mean, var))
         theta0 = math.radians(illumination.direction_deg)
@@ -126,7 +126,7 @@ class PeriodicCell(PlaneRenderer):
             "r": jnp.asarray(nodes["r"]),
             "weight": jnp.asarray(nodes["weight"]),
             "splat": jnp.asarray(nodes["splat"]),
-            "index": jnp.asarray(_folded_index(nodes["index"], tank, self.width, self.height)),
+            "index": jnp.asarray(folded_index(nodes["index"], tank, self.width, self.height)),
         }
         self.node_angle = jnp.asarray(nodes["phi"] - theta0)
         self.tables = transport_tables(_groups(grid.n_theta))
@@ -211,7 +211,7 @@ class WallsTerm(eqx.Module):
         self.tank = PlaneRenderer(coarse, light, bounces, phase, moments=tank, **solve)
         rows = math.lcm(getattr(light, "period", 1), c)
         rows *= 2 if rows == c else 1
-        free = restrict_moments(*_cell_moments(light, grid.width, rows), c)
+        free = restrict_moments(*cell_moments(light, grid.width, rows), c)
         self.unwalled = PeriodicCell(
             Grid(grid.width // c, rows // c, grid.n_theta, 1),
             light,

@@ -36,8 +36,9 @@ from lightfield_jax.forward.base import (
 )
 from lightfield_jax.forward.plane import BounceStep, PlaneRenderer, Renderer, coarse_plane_grid
 from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.forward.slab_memory import slab_render_bytes
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
-from lightfield_jax.runtime.memory import check_memory, render_bytes, scene_render_bytes
+from lightfield_jax.runtime.memory import check_memory, render_bytes
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
@@ -168,18 +169,11 @@ def make_renderer(
     counted = isinstance(bounces, (int, np.integer)) and not isinstance(bounces, bool)
     if grid.n_theta is not None and grid.refine is not None and counted and bounces >= 1:
         # Before the tables: Grid(30000, 30000, 8, 1) allocated 429 GiB (a MemoryError).
-        slab = geometry.slab_or_none
-        resolved = slab is None or (slab.n_mu is not None and slab.n_z is not None)
+        nbytes = model_memory(
+            illumination.n_patterns, grid, geometry, int(bounces), tail=tail is not None
+        )
         check_memory(
-            render_bytes(
-                illumination.n_patterns,
-                grid.height,
-                grid.width,
-                grid.n_theta,
-                refine=grid.refine,
-                n_mu=geometry.fields_per_bin(0.0, 1.0, 0.5) if resolved else 1,
-                bounces=int(bounces),
-            ),
+            nbytes,
             f"make_renderer: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, "
             f"refine {grid.refine}, {bounces} bounces, {illumination.n_patterns} patterns)",
         )
@@ -232,6 +226,60 @@ def resolve_model(medium: Medium, grid: Grid, geometry=None):
     energy ratio bound (the slab's 3-D phase function is normalised on the sphere:
     ρ = ω)."""
     return as_geometry(geometry).resolve_model(medium, grid)
+
+
+def model_memory(
+    n_patterns: int,
+    grid: Grid,
+    geometry,
+    bounces: int,
+    lightfield: bool = False,
+    tail: bool = False,
+) -> int:
+    """Bytes a render of ``n_patterns`` illuminations on a resolved ``grid`` needs (an
+    upper bound from the sizes alone): a resolved slab's
+    :func:`~lightfield_jax.forward.slab_memory.slab_render_bytes` (its kernels, its
+    blocks' fields and spectra, the images), else the plane's
+    :func:`~lightfield_jax.runtime.memory.render_bytes`."""
+    slab = as_geometry(geometry).slab_or_none
+    if slab is None or slab.n_mu is None or slab.n_z is None:
+        return render_bytes(
+            n_patterns,
+            grid.height,
+            grid.width,
+            grid.n_theta,
+            refine=grid.refine,
+            bounces=bounces,
+            lightfield=lightfield,
+        )
+    return slab_render_bytes(
+        n_patterns,
+        grid.height,
+        grid.width,
+        grid.n_theta,
+        slab.n_mu,
+        slab.n_z,
+        slab.depth_coefficients,
+        refine=grid.refine,
+        bounces=bounces,
+        lightfield=lightfield,
+        tail=tail,
+    )
+
+
+def render_memory(
+    n_patterns: int,
+    grid: Grid,
+    geometry,
+    medium: Medium,
+    bounces: int,
+    lightfield: bool = False,
+    tail: bool = False,
+) -> int:
+    """:func:`model_memory` of the discretisation the geometry resolves for ``medium``
+    (:func:`resolve_model`)."""
+    grid, geometry, _ = resolve_model(medium, grid, geometry)
+    return model_memory(n_patterns, grid, geometry, bounces, lightfield, tail)
 
 
 def resolve_bounces(
@@ -345,7 +393,9 @@ def render(
     # Before the renderer's tables: a typo in the grid (Grid(32000, 24000)) or the
     # bounces asked for terabytes, found by a MemoryError or the OOM killer minutes later.
     check_memory(
-        scene_render_bytes(illumination.n_patterns, grid, geometry, medium, k, lightfield),
+        render_memory(
+            illumination.n_patterns, grid, geometry, medium, k, lightfield, tail is not None
+        ),
         f"render: the {grid.width}x{grid.height} grid ({grid.n_theta} directions, refine "
         f"{grid.refine}, {k} bounces, {illumination.n_patterns} patterns"
         f"{', light fields' if lightfield else ''})",
@@ -432,6 +482,8 @@ __all__ = [
     "geometry_renderer",
     "make_renderer",
     "render",
+    "model_memory",
+    "render_memory",
     "renderer_for",
     "resolve_model",
     "resolve_bounces",

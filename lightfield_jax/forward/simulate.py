@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.checks import check_flag
-from lightfield_jax.forward.render import RenderResult, render
+from lightfield_jax.forward.render import RenderResult, render, render_memory
 from lightfield_jax.forward.simulate_config import SimulationConfig, load_simulation_config
-from lightfield_jax.runtime.memory import check_memory, scene_render_bytes
+from lightfield_jax.runtime.memory import check_memory
 from lightfield_jax.runtime.progress import Stage, quiet
 from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.illumination import Full, Stripes
@@ -169,10 +169,11 @@ def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: S
 
 def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     """Bytes a render of ``config`` with ``k`` bounces needs (an upper bound, see
-    :func:`~lightfield_jax.runtime.memory.render_bytes`), from the sizes alone."""
-    grid = config.grid.resolve(config.medium.g)
+    :func:`~lightfield_jax.forward.render.render_memory`), from the sizes alone."""
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
-    return scene_render_bytes(patterns, grid, config.geometry, config.medium, k, lightfield)
+    return render_memory(
+        patterns, config.grid, config.geometry, config.medium.medium(), k, lightfield
+    )
 
 
 def simulate_capture(

@@ -60,8 +60,6 @@ from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import (
     bin_pair_offsets,
     einsum,
-    fft_convolve,
-    padded_spectrum,
     splat,
 )
 from lightfield_jax.forward.slab_layers import (
@@ -72,6 +70,8 @@ from lightfield_jax.forward.slab_layers import (
     clip_averages,
     transport_weights,
 )
+from lightfield_jax.forward.slab_memory import slab_blocks
+from lightfield_jax.forward.tail import TailSolution
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Illumination
 from lightfield_jax.scene.phase import hg
@@ -110,7 +110,7 @@ def elevation_nodes(n_mu: int, split: float | None = None) -> tuple[np.ndarray, 
 
 
 @functools.lru_cache(maxsize=8)
-def _slab_nodes(width: int, height: int, n_theta: int):
+def slab_nodes(width: int, height: int, n_theta: int):
     """The plane kernel's polar nodes, with Gauss points across each ring."""
     nodes = kernel_nodes(width, height, n_theta)
     xg, wg = np.polynomial.legendre.leggauss(_RING_GAUSS)
@@ -145,10 +145,15 @@ class SlabRenderer(AbstractRenderer):
     n_m: int = eqx.field(static=True)  # depth profile coefficients per layer: 1 or 2
     thickness: float = eqx.field(static=True)  # on the working grid (pixels × refine)
     camera_t: float = eqx.field(static=True)
-    t_sub: Float[Array, "n_mu nodes q"]  # path length t = r/s at the Gauss points
-    cam_u: Float[Array, "n_mu nodes q"]  # vertical travel u = tμ
-    w_over_s: Float[Array, "n_mu nodes q"]  # ring weight / s
-    node_cos: Float[Array, "n_mu nodes"]  # ω_node·ω0 = s_j cos(φ − θ0)
+    fft_rows: int = eqx.field(static=True)  # 2H: zero-padded in y (a periodic cell: H)
+    pattern_block: int = eqx.field(static=True)  # patterns marched at once
+    mu_block: int = eqx.field(static=True)  # μ nodes transported at once
+    # Per node and Gauss point across its ring: the in-plane distance r and the ring
+    # weight (a node's path length is t = r/s, its vertical travel tμ, s = √(1 − μ²)).
+    r_sub: Float[Array, "nodes q"]
+    w_sub: Float[Array, "nodes q"]
+    cos_phi: Float[Array, " nodes"]  # cos(φ − θ0): ω_node·ω0 = s_j cos(φ − θ0)
+    sin_mu: Float[Array, " n_mu"]  # s_j
     index: Array
     splat: Array
     mu: Float[Array, " n_mu"]
@@ -167,13 +172,22 @@ class SlabRenderer(AbstractRenderer):
         tail_tol: float = 1e-4,
         tail_max_steps: int = 500,
         coarse_after: int | None = None,
+        moments=None,
     ):
         if grid.n_theta is not None and (slab.n_mu is None or slab.n_z is None):
             raise ValueError("SlabRenderer needs slab.n_mu and slab.n_z: call Slab.resolve first")
         if phase not in ("paper", "normalized"):
             raise ValueError(f"phase: must be paper or normalized, got {phase!r}")
         self._setup(
-            grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps, coarse_after
+            grid,
+            illumination,
+            bounces,
+            phase,
+            tail,
+            tail_tol,
+            tail_max_steps,
+            coarse_after,
+            moments,
         )
         f = self.refine
         self.n_mu = int(slab.n_mu)
@@ -185,17 +199,26 @@ class SlabRenderer(AbstractRenderer):
 
         mu, w_mu = elevation_nodes(self.n_mu, slab.critical_cosine)
         s = np.sqrt(1.0 - mu * mu)
-        nodes = _slab_nodes(self.width, self.height, self.n_theta)
-        t = nodes["r_sub"][None] / s[:, None, None]  # (n_mu, N, q)
-        self.t_sub = jnp.asarray(t)
-        self.cam_u = jnp.asarray(t * mu[:, None, None])
-        self.w_over_s = jnp.asarray(nodes["w_sub"][None] / s[:, None, None])
-        self.node_cos = jnp.asarray(s[:, None] * np.cos(nodes["phi"] - theta0)[None, :])
+        nodes = slab_nodes(self.width, self.height, self.n_theta)
+        self.r_sub = jnp.asarray(nodes["r_sub"])
+        self.w_sub = jnp.asarray(nodes["w_sub"])
+        self.cos_phi = jnp.asarray(np.cos(nodes["phi"] - theta0))
+        self.sin_mu = jnp.asarray(s)
         self.index = jnp.asarray(nodes["index"])
         self.splat = jnp.asarray(nodes["splat"])
         self.mu = jnp.asarray(mu)
         self.w_mu = jnp.asarray(w_mu)
         self.refl = jnp.asarray(slab.reflectance(mu))
+        self.fft_rows = 2 * self.height
+        self.pattern_block, self.mu_block = slab_blocks(
+            self.n_patterns,
+            self.height,
+            self.width,
+            self.n_theta,
+            self.n_mu,
+            self.n_z,
+            self.n_m,
+        )
 
     # σ/f and h·f on the refined grid: images (ratios like σs/σt) are unchanged; the
     # depth-integrated fields are in refined pixels of depth: divided by f.
@@ -223,10 +246,19 @@ class SlabRenderer(AbstractRenderer):
     def _kernels_f(self, values):
         """values (…, n_mu, N) → rfft2 of their kernels (…, n_mu, n_theta, 2H, W + 1)."""
         lead = values.shape[:-1]
-        size = self.n_theta * 2 * self.height * 2 * self.width
+        size = self.n_theta * self.fft_rows * 2 * self.width
         kernels = splat(self.index, self.splat, values.reshape((-1, values.shape[-1])), size)
-        kernels = kernels.reshape(-1, self.n_theta, 2 * self.height, 2 * self.width)
-        return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, 2 * self.height, -1))
+        kernels = kernels.reshape(-1, self.n_theta, self.fft_rows, 2 * self.width)
+        return jnp.fft.rfft2(kernels).reshape(lead + (self.n_theta, self.fft_rows, -1))
+
+    def _spectrum(self, a):
+        """rfft2 of ``a`` (…, H, W) on the FFT domain (fft_rows, 2W)."""
+        return jnp.fft.rfft2(a, s=(self.fft_rows, 2 * self.width))
+
+    def _convolve(self, source_f, kernel_f):
+        """The convolution of two spectra of the FFT domain, cropped to (H, W)."""
+        field = jnp.fft.irfft2(source_f * kernel_f, s=(self.fft_rows, 2 * self.width))
+        return field[..., : self.height, : self.width]
 
     def _phase_matrices(self, g, dtype):
         """(M⁺, M⁻), each (n_mu·n_theta) square: from stored up-going directions into
@@ -265,15 +297,23 @@ class SlabRenderer(AbstractRenderer):
         scale = scale / col[None, :] * domega[None, :]
         return plus * scale, minus * scale
 
-    def _transport_and_camera(self, sigma_t, g, dtype):
+    def _elevation_parts(self):
+        """The per-μ-node tables, each with the μ nodes as its first axis."""
+        return (self.sin_mu, self.mu, self.w_mu, self.refl)
+
+    def _transport_and_camera(self, sigma_t, g, dtype, parts):
         """Node values of the layer-to-layer transport kernels W^{ab}_δ per distinct
-        profile pair, δ = −(n_z−1)..n_z−1 (pairs, 2 n_z − 1, n_mu, N), and of the camera
-        kernels per source coefficient and layer (n_m·n_z, n_mu, N):
-        T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart)."""
+        profile pair, δ = −(n_z−1)..n_z−1 (pairs, 2 n_z − 1, μ nodes, N), and of the
+        camera kernels per source coefficient and layer (n_m·n_z, μ nodes, N):
+        T dΩ_j [p(μ_j)·A + p(−μ_j)·B] (σs apart), for the μ nodes of ``parts``
+        (:meth:`_elevation_parts`, or a block of them)."""
+        sin_mu, mu, w_mu, refl = parts
         h, n_z = self.thickness, self.n_z
-        u = jax.lax.stop_gradient(self.cam_u.astype(dtype))
-        refl = jax.lax.stop_gradient(self.refl.astype(dtype))[:, None, None]
-        att = jnp.exp(-sigma_t * self.t_sub.astype(dtype)) * self.w_over_s.astype(dtype)
+        inv_s = 1.0 / sin_mu.astype(dtype)[:, None, None]
+        t = self.r_sub.astype(dtype)[None] * inv_s  # (μ nodes, N, q)
+        u = jax.lax.stop_gradient(t * mu.astype(dtype)[:, None, None])
+        refl = jax.lax.stop_gradient(refl.astype(dtype))[:, None, None]
+        att = jnp.exp(-sigma_t * t) * (self.w_sub.astype(dtype)[None] * inv_s)
         v = u / (h / n_z)
         transport = jnp.stack(
             [
@@ -286,8 +326,8 @@ class SlabRenderer(AbstractRenderer):
                 for pair in PAIRS[self.n_m]
             ]
         )
-        mu = self.mu.astype(dtype)
-        weight = (self.w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
+        mu = mu.astype(dtype)
+        weight = (w_mu.astype(dtype) * (2 * math.pi / self.n_theta) * self.camera_t)[:, None]
         camera = []
         for moment in range(self.n_m):
             for layer in range(n_z):
@@ -296,25 +336,26 @@ class SlabRenderer(AbstractRenderer):
                 camera.append(weight * (hg(mu, g)[:, None] * up + hg(-mu, g)[:, None] * down))
         return transport, jnp.stack(camera)
 
-    def _first_phase(self, g, dtype):
-        """p(ω_node·ω0) at the kernels' nodes (n_mu, N), normalised on the discrete
-        sphere (so the first bounce conserves ω·energy)."""
+    def _first_phase_norm(self, g, dtype):
+        """The discrete sphere integral of p(ω·ω0) that normalises the first scatter's
+        phase at the kernels' nodes (so the first bounce conserves ω·energy)."""
         n = self.n_theta
         dtheta = 2 * math.pi / n
         mu = self.mu.astype(dtype)
-        p1 = hg(self.node_cos.astype(dtype), g)
         fine = (np.arange(n * 16) + 0.5) * (dtheta / 16)
         ring = jnp.sum(
             hg(jnp.sqrt(1 - mu * mu)[:, None] * jnp.asarray(np.cos(fine), dtype)[None], g),
             axis=1,
         ) * (dtheta / 16)
-        return p1 / (2.0 * jnp.sum(self.w_mu.astype(dtype) * ring))
+        return 2.0 * jnp.sum(self.w_mu.astype(dtype) * ring)
 
     def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
         """I_1 = T σs p(cos 90°) (1 − e^{−σt h})/σt · S (docs/model.md §7) and, when
         ``scattered``, the bounce step with I_2, the layered light field L_1 and source
         Q_2 (patterns, n_m·n_z, n_mu, n_theta, H, W). I_2 comes straight from the
-        first-scatter kernels (the first source is uniform in depth: exact)."""
+        first-scatter kernels (the first source is uniform in depth: exact). The kernels
+        are built ``mu_block`` μ nodes at a time (their node values are as large as the
+        kernels' spectra)."""
         dtype = sigma_t.dtype
         t_cam = jnp.asarray(self.camera_t, dtype)
         depth_factor = -jnp.expm1(-sigma_t * self.thickness) / sigma_t
@@ -322,37 +363,102 @@ class SlabRenderer(AbstractRenderer):
         if not scattered:
             return FirstOrders(image)
         n_z, height, width = self.n_z, self.height, self.width
-        transport, camera = self._transport_and_camera(sigma_t, g, dtype)
-        p1 = self._first_phase(g, dtype)
-        # The first source is uniform in depth (its average alone): coefficient a of layer
-        # l receives Σ_l' W^{a0}_{l−l'}, and only the average's camera kernels see it.
-        first = jnp.concatenate(
-            [
-                factor
-                * jnp.stack(
-                    [jnp.sum(transport[pair, layer : layer + n_z], axis=0) for layer in range(n_z)]
-                )
-                for _, b, pair, factor in TERMS[self.n_m]
-                if b == 0
-            ]
+        norm = self._first_phase_norm(g, dtype)
+        src_f = self._spectrum(source)
+
+        def block(parts):
+            """One block of μ nodes: its kernels' spectra, its part of L_1 and of the
+            first scatter's camera kernel."""
+            transport, camera = self._transport_and_camera(sigma_t, g, dtype, parts)
+            node_cos = parts[0].astype(dtype)[:, None] * self.cos_phi.astype(dtype)[None]
+            p1 = hg(node_cos, g) / norm  # p(ω_node·ω0) at the kernels' nodes
+            # The first source is uniform in depth (its average alone): coefficient a of
+            # layer l receives Σ_l' W^{a0}_{l−l'}, and only the average's camera kernels
+            # see it.
+            first = jnp.concatenate(
+                [
+                    factor
+                    * jnp.stack(
+                        [
+                            jnp.sum(transport[pair, layer : layer + n_z], axis=0)
+                            for layer in range(n_z)
+                        ]
+                    )
+                    for _, b, pair, factor in TERMS[self.n_m]
+                    if b == 0
+                ]
+            )
+            k1_f = self._kernels_f(p1 * first)
+            k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), (0, 1))
+            l1 = self._convolve(src_f[:, None, None, None], k1_f)
+            kernels = (self._kernels_f(transport), sigma_s * self._kernels_f(camera))
+            return kernels, l1, k1_cam_f
+
+        blocks = self.n_mu // self.mu_block
+        parts = tuple(
+            a.reshape((blocks, self.mu_block) + a.shape[1:]) for a in self._elevation_parts()
         )
-        k1_f = self._kernels_f(p1 * first)  # (n_m·n_z, n_mu, n_theta, 2H, W+1)
-        k1_cam_f = jnp.sum(self._kernels_f(p1 * jnp.sum(camera[:n_z], axis=0)), axis=(0, 1))
-        src_f = padded_spectrum(source)
-        l1 = sigma_s * clip_averages(
-            fft_convolve(src_f[:, None, None, None], k1_f, height, width), n_z
-        )
-        i2 = sigma_s**2 * jnp.maximum(fft_convolve(src_f, k1_cam_f, height, width), 0.0)
+        if blocks == 1:
+            kernels, l1, k1_cam_f = jax.tree_util.tree_map(
+                lambda a: a[None], block(tuple(a[0] for a in parts))
+            )
+        else:
+            kernels, l1, k1_cam_f = jax.lax.map(block, parts)
+        # (blocks, patterns, n_m·n_z, mu_block, …) → (patterns, n_m·n_z, n_mu, …)
+        l1 = jnp.moveaxis(l1, 0, 2)
+        l1 = sigma_s * clip_averages(l1.reshape(l1.shape[:2] + (self.n_mu,) + l1.shape[4:]), n_z)
+        i2 = sigma_s**2 * jnp.maximum(self._convolve(src_f, jnp.sum(k1_cam_f, axis=0)), 0.0)
         plus, minus = self._phase_matrices(g, dtype)
         bounce = SlabBounce(
-            transport_f=self._kernels_f(transport),
-            camera_f=sigma_s * self._kernels_f(camera),
+            transport_f=kernels[0],
+            camera_f=kernels[1],
             mix_even=0.5 * sigma_s * (plus + minus),
             mix_odd=0.5 * sigma_s * (plus - minus),
             height=height,
             width=width,
+            fft_rows=self.fft_rows,
         )
         return FirstOrders(image, bounce, i2, l1, bounce.scatter(l1))
+
+    def _march(self, sigma_t, sigma_s, g, gain, lightfield: bool):
+        """The march of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
+        ``pattern_block`` patterns at a time (each block builds its own kernels: only one
+        block's fields are alive at once)."""
+        n, size = self.n_patterns, self.pattern_block
+        if size == n:
+            return super()._march(sigma_t, sigma_s, g, gain, lightfield)
+        moments = tuple(
+            a.reshape((n // size, size) + a.shape[1:])
+            for a in (self.coverage, self.mean_depth, self.var_depth)
+        )
+
+        def block(part):
+            renderer = eqx.tree_at(lambda r: (r.coverage, r.mean_depth, r.var_depth), self, part)
+            return AbstractRenderer._march(renderer, sigma_t, sigma_s, g, gain, lightfield)
+
+        out = jax.lax.map(block, moments)
+
+        def patterns_first(a):  # (blocks, size, …) → (n, …)
+            return a.reshape((n,) + a.shape[2:])
+
+        images = patterns_first(out[0])
+        fields = None
+        if out[1] is not None:  # (blocks, K+1, size, …) → (K+1, n, …)
+            fields = jnp.moveaxis(out[1], 0, 1)
+            fields = fields.reshape((fields.shape[0], n) + fields.shape[3:])
+        if len(out) == 2:
+            return images, fields
+        tail = out[2]
+        return (
+            images,
+            fields,
+            TailSolution(
+                image=patterns_first(tail.image),
+                lightfield=None if tail.lightfield is None else patterns_first(tail.lightfield),
+                steps=jnp.max(tail.steps),
+                converged=jnp.all(tail.converged),
+            ),
+        )
 
 
 @functools.lru_cache(maxsize=64)
@@ -388,4 +494,5 @@ __all__ = [
     "elevation_nodes",
     "hg",
     "slab_bounce_ratio",
+    "slab_nodes",
 ]

@@ -33,11 +33,12 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
 
-from lightfield_jax.forward.kernels import einsum, padded_spectrum
+from lightfield_jax.forward.kernels import einsum
 
 _GAUSS4 = tuple(tuple(float(v) for v in a) for a in np.polynomial.legendre.leggauss(4))
 
@@ -170,34 +171,42 @@ class SlabBounce(eqx.Module):
     only); :attr:`linear` is the same step without it, exactly linear (the operator of a
     Krylov solve, whose vectors have signs).
 
+    The elevation nodes are transported in blocks of ``mu_block`` (the kernels' leading
+    axis; one block: every node at once): a block's spectra are all a bounce holds at
+    once, beside the source, its field and the kernels (a 128×128 tank of 16 θ bins,
+    16 μ nodes and 2 linear layers: 270 MB of spectra per pattern in one block).
+
     Attributes:
         transport_f: rfft2 of the kernels of W^{ab}_δ, δ = −(n_z−1)..n_z−1 (index
-            δ + n_z − 1), per distinct profile pair (:data:`PAIRS`),
-            (pairs, 2 n_z − 1, n_mu, n_theta, 2H, W + 1).
+            δ + n_z − 1), per distinct profile pair (:data:`PAIRS`), per block of μ
+            nodes: (blocks, pairs, 2 n_z − 1, mu_block, n_theta, 2H, W + 1).
         camera_f: rfft2 of the camera kernels per source coefficient and layer
-            (n_m·n_z, n_mu, n_theta, 2H, W + 1), σs and T included.
+            (blocks, n_m·n_z, mu_block, n_theta, 2H, W + 1), σs and T included.
+        fft_rows: the rows of the FFT domain: 2H (zero-padded: the tank's walls), or H
+            (a grid periodic in y: :mod:`lightfield_jax.forward.slab_cell`).
         mix_even, mix_odd: ½(M⁺ ± M⁻) (σs included), M^± the discrete phase matrices
             from up-going directions into up-going (⁺) and down-going (⁻) ones.
         clip: whether images and fields are clipped at 0 (FFT round-off of non-negative
             sources).
     """
 
-    transport_f: Complex[Array, "pairs kernels n_mu n_theta fy fx"]
-    camera_f: Complex[Array, "n_m_z n_mu n_theta fy fx"]
+    transport_f: Complex[Array, "blocks pairs kernels mu_block n_theta fy fx"]
+    camera_f: Complex[Array, "blocks n_m_z mu_block n_theta fy fx"]
     mix_even: Float[Array, "a a"]
     mix_odd: Float[Array, "a a"]
     height: int = eqx.field(static=True)
     width: int = eqx.field(static=True)
+    fft_rows: int = eqx.field(static=True)  # 2H (zero-padded), or H on a grid periodic in y
     clip: bool = eqx.field(static=True, default=True)
 
     @property
     def n_m(self) -> int:
         """Coefficients of the depth profile per layer (1 constant, 2 linear)."""
-        return 2 if self.transport_f.shape[0] == len(PAIRS[2]) else 1
+        return 2 if self.transport_f.shape[1] == len(PAIRS[2]) else 1
 
     @property
     def n_z(self) -> int:
-        return self.camera_f.shape[0] // self.n_m
+        return self.camera_f.shape[1] // self.n_m
 
     @property
     def linear(self) -> SlabBounce:
@@ -213,18 +222,43 @@ class SlabBounce(eqx.Module):
 
     def step(self, q):
         """(Q_{k+1}, I_{k+1}, L_k) from Q_k."""
-        q_f = padded_spectrum(q)
-        image_f = einsum("plmnyx,lmnyx->pyx", q_f, self.camera_f)
-        image = jnp.fft.irfft2(image_f, s=(2 * self.height, 2 * self.width))
-        field = self._transport_f(q_f)
+        field, image_f = self._transport_blocks(q)
+        image = jnp.fft.irfft2(image_f, s=(self.fft_rows, 2 * self.width))
         return self.scatter(field), self._clipped(image[..., : self.height, : self.width]), field
 
     def transport(self, q):
         """L_l = Σ_l' K_{l−l'} ⊛ Q_l' (patterns, n_m·n_z, n_mu, n_theta, H, W)."""
-        return self._transport_f(padded_spectrum(q))
+        return self._transport_blocks(q)[0]
 
-    def _transport_f(self, q_f):
-        """:meth:`transport` from the sources' rfft2."""
+    def _transport_blocks(self, q):
+        """(L_k, the image's spectrum) from Q_k, one block of μ nodes at a time."""
+        blocks = self.transport_f.shape[0]
+        if blocks == 1:
+            return self._block(q, self.transport_f[0], self.camera_f[0])
+        p, coefficients, n_mu = q.shape[:3]
+        size = n_mu // blocks
+        split = q.reshape((p, coefficients, blocks, size) + q.shape[3:])
+
+        def block(image_f, parts):
+            field, more = self._block(*parts)
+            return image_f + more, field
+
+        image_f = jnp.zeros(
+            (p, self.fft_rows, self.width + 1), jnp.result_type(q.dtype, jnp.complex64)
+        )
+        image_f, fields = jax.lax.scan(
+            block, image_f, (jnp.moveaxis(split, 2, 0), self.transport_f, self.camera_f)
+        )
+        return jnp.moveaxis(fields, 0, 2).reshape(q.shape), image_f
+
+    def _block(self, q, transport_f, camera_f):
+        """(field, image spectrum) of the μ nodes of ``q`` with their kernels."""
+        q_f = jnp.fft.rfft2(q, s=(self.fft_rows, 2 * self.width))
+        image_f = einsum("plmnyx,lmnyx->pyx", q_f, camera_f)
+        return self._transport_f(q_f, transport_f), image_f
+
+    def _transport_f(self, q_f, transport_f):
+        """The transported field from the sources' rfft2 and one block's kernels."""
         n_z = self.n_z
         out = jnp.zeros_like(q_f)
         for a, b, pair, factor in TERMS[self.n_m]:
@@ -233,11 +267,11 @@ class SlabBounce(eqx.Module):
                 source = factor * source  # once per bounce, not per kernel
             for delta in range(-(n_z - 1), n_z):
                 lo, hi = max(delta, 0), n_z + min(delta, 0)  # receiving layers
-                k = self.transport_f[pair, delta + n_z - 1]
+                k = transport_f[pair, delta + n_z - 1]
                 out = out.at[:, a * n_z + lo : a * n_z + hi].add(
                     k * source[:, lo - delta : hi - delta]
                 )
-        field = jnp.fft.irfft2(out, s=(2 * self.height, 2 * self.width))
+        field = jnp.fft.irfft2(out, s=(self.fft_rows, 2 * self.width))
         field = field[..., : self.height, : self.width]
         return clip_averages(field, n_z) if self.clip else field
 

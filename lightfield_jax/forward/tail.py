@@ -57,7 +57,7 @@ from lightfield_jax.checks import number_problem
 
 TAIL_METHODS: tuple[str, ...] = ("gmres", "bicgstab")
 # Krylov vectors kept by GMRES between restarts (memory: this many copies of Q).
-_GMRES_RESTART = 10
+GMRES_RESTART = 10
 
 
 class TailNotConvergedWarning(RuntimeWarning):
@@ -98,7 +98,7 @@ def _solver(method: str, tol: float, max_steps: int):
     # where the source is ~0 far from the light; _ScaleFree normalises the right-hand
     # side to max|b| = 1 instead, and atol = tol is relative to it.
     if method == "gmres":
-        return lx.GMRES(rtol=0.0, atol=tol, max_steps=max_steps, restart=_GMRES_RESTART)
+        return lx.GMRES(rtol=0.0, atol=tol, max_steps=max_steps, restart=GMRES_RESTART)
     return _BiCGStab(tol=tol, max_steps=max_steps)
 
 

@@ -239,8 +239,8 @@ def prepare_data(
         )
     if split is None:
         # Fewer than 2: named as such, not as "the 1 shifts are the same image". A simulate
-        # config is refused by the same rule (app.config): simulate writes no capture that
-        # is refused here.
+        # config is refused by the same rule (forward.simulate_config): simulate writes no
+        # capture that is refused here.
         n_shifts = images.shape[0]
         same = n_shifts >= 2 and bool(np.all(images[:, pixels] == images[:1, pixels]))
         if (problem := shifts_problem(n_shifts, same)) is not None:
