@@ -555,7 +555,7 @@ def test_a_masked_arrays_mask_is_honoured_by_fit_images(monkeypatch):
     import lightfield_jax.inverse.fit as fit_module
 
     seen = {}
-    monkeypatch.setattr(fit_module, "_fit_one", lambda images, *a, mask, **k: seen.update(
+    monkeypatch.setattr(fit_module, "fit_one", lambda images, *a, mask, **k: seen.update(
         images=images, mask=mask))  # fmt: skip
     images = np.ones((3, 4, 5))
     bad = np.zeros(images.shape, bool)

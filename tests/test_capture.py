@@ -288,7 +288,7 @@ def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
         raise StopIteration
 
     monkeypatch.setattr(capture_fit, "_capture_floor", lambda *a: None)
-    monkeypatch.setattr(capture_fit, "_fit_one", fake_fit)
+    monkeypatch.setattr(capture_fit, "fit_one", fake_fit)
     with pytest.raises(StopIteration):
         lfj.fit_capture(capture, max_steps=7)
     assert seen[0].n_theta == 64 and seen[0].start == (0.03, 0.4) and not seen[0].correct
@@ -310,7 +310,7 @@ def test_a_capture_is_fitted_in_its_files_phase_convention_normalized_by_default
         raise StopIteration
 
     monkeypatch.setattr(capture_fit, "_capture_floor", lambda *a: None)
-    monkeypatch.setattr(capture_fit, "_fit_one", fake_fit)
+    monkeypatch.setattr(capture_fit, "fit_one", fake_fit)
     with pytest.raises(StopIteration):
         lfj.fit_capture(capture)
     assert seen[0].phase == phase

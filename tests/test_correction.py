@@ -8,7 +8,7 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.inverse.correction import correct, in_domain
-from lightfield_jax.inverse.fit import _model_from
+from lightfield_jax.inverse.fit import model_from
 
 X = np.arange(12.0)[None, None, :] + np.arange(3.0)[None, :, None]
 SHIFTS = np.array([0.0, 1.0])[:, None, None]
@@ -204,7 +204,7 @@ def test_a_dense_forward_capture_is_recovered_through_the_correction():
     fine = result.model["finer_model"]
     assert fine["coarse_after"] == (16 if fine["bounces"] > 16 else None)
     # The model a result names renders as fitted (fitted_images), coarse tail included.
-    assert _model_from(result.model).coarse == 8
+    assert model_from(result.model).coarse == 8
     assert result.converged, result.message
     st, ss, g = DENSE
     assert abs(result.sigma_t / st - 1) < 0.005

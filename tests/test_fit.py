@@ -426,13 +426,13 @@ def test_a_start_forced_into_the_wrong_basin_is_not_trusted():
     # skipped as the same basin otherwise).
     from types import SimpleNamespace
 
-    from lightfield_jax.inverse.fit import _model_from
+    from lightfield_jax.inverse.fit import model_from
     from lightfield_jax.inverse.joint_fit import FitContext, joint_weights
     from lightfield_jax.inverse.joint_fit.slope import downhill_from
 
     scan = wrong.to_dict()["basins"]
     best = scan["basins"][0]
-    model = _model_from(wrong.model)
+    model = model_from(wrong.model)
     x0, y0, x1, y1 = model.crop
     cropped = images[:, y0:y1, x0:x1]
     data = SimpleNamespace(images=cropped)

@@ -173,13 +173,13 @@ def test_fit_per_channel_results(tmp_path, capsys, monkeypatch):
         fit={"phase": "paper"},  # the convention the channels were rendered in
     )
     printed = []  # stdout as each channel's fit starts
-    fit_one = capture_fit._fit_one
+    fit_one = capture_fit.fit_one
 
     def watched(*args, **kwargs):
         printed.append(capsys.readouterr().out)
         return fit_one(*args, **kwargs)
 
-    monkeypatch.setattr(capture_fit, "_fit_one", watched)
+    monkeypatch.setattr(capture_fit, "fit_one", watched)
     out = tmp_path / "r.json"
     status, stdout, err = _run(
         capsys, "fit", capture, "--method", "grid", "--channel", "R", "--channel", "B", "--out", out

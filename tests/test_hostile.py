@@ -383,7 +383,7 @@ def test_a_dark_channel_is_named_before_any_fit(capture, capsys, monkeypatch):
     def no_fit(*_args, **_kwargs):
         raise AssertionError("a channel was fitted before the dark one was refused")
 
-    monkeypatch.setattr(capture_fit, "_fit_one", no_fit)
+    monkeypatch.setattr(capture_fit, "fit_one", no_fit)
     _refused(capsys, "fit", capture / "capture.yaml", match="channel B: no light")
 
 

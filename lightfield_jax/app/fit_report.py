@@ -160,9 +160,9 @@ def fit_figures(capture, fit, figures: list[Path], write) -> None:
 def _shown(capture, i: int) -> dict:
     """What plot_fit shows beside the fit: channel i's mask and the capture's truth."""
     from lightfield_jax.capture.keys import truth_for
-    from lightfield_jax.inverse.capture_fit import _channel_mask
+    from lightfield_jax.inverse.capture_fit import channel_mask
 
-    return {"mask": _channel_mask(capture, i), "truth": truth_for(capture.truth, i)}
+    return {"mask": channel_mask(capture, i), "truth": truth_for(capture.truth, i)}
 
 
 # The two-step methods separate the direct light first; on stripe captures the

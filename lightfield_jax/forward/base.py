@@ -46,7 +46,7 @@ from lightfield_jax.scene.illumination import Illumination, scaled, source_momen
 _TRACES = {"renderer": 0}
 
 
-def _count_trace() -> None:
+def count_trace() -> None:
     """Called once per trace of a render (a Python side effect that runs at trace time
     only): tests use it to prove new values never recompile."""
     _TRACES["renderer"] += 1
@@ -381,7 +381,7 @@ class AbstractRenderer(eqx.Module):
         return self._march(sigma_t, sigma_s, g, gain, lightfield)
 
     def _march(self, sigma_t, sigma_s, g, gain, lightfield: bool):
-        _count_trace()
+        count_trace()
         source = self.unscattered(sigma_t)
         # With a tail one more bounce is marched: its source Q_{K0+1} and image
         # I_{K0+1} seed the tail's solve.

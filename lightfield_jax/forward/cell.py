@@ -41,15 +41,15 @@ from lightfield_jax.checks import check_int
 from lightfield_jax.forward.base import (
     AbstractRenderer,
     FirstOrders,
-    _count_trace,
     as_physical,
     block_mean,
     check_bounces,
+    count_trace,
     restrict_moments,
 )
 from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import fft_convolve, padded_spectrum, splat
-from lightfield_jax.forward.plane import PlaneRenderer, _groups
+from lightfield_jax.forward.plane import PlaneRenderer, theta_groups
 from lightfield_jax.forward.tail import TailSolution, check_tail
 from lightfield_jax.forward.transport import transport_tables
 from lightfield_jax.scene.grid import Grid
@@ -129,7 +129,7 @@ class PeriodicCell(PlaneRenderer):
             "index": jnp.asarray(folded_index(nodes["index"], tank, self.width, self.height)),
         }
         self.node_angle = jnp.asarray(nodes["phi"] - theta0)
-        self.tables = transport_tables(_groups(grid.n_theta))
+        self.tables = transport_tables(theta_groups(grid.n_theta))
         j = np.arange(grid.n_theta)
         self.circulant = jnp.asarray((j[:, None] - j[None, :]) % grid.n_theta, dtype=jnp.int32)
         self.separable, self.across, self.along_at = None, None, None
@@ -460,7 +460,7 @@ class CellRenderer(AbstractRenderer):
         return jnp.concatenate(terms, axis=1), tail
 
     def _compose(self, sigma_t, sigma_s, g, gain):
-        _count_trace()
+        count_trace()
         first = self._first_two(sigma_t, sigma_s, g)
         if self.bounces <= 2 and self.tail is None:
             return gain * first[:, : self.bounces], None

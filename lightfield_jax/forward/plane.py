@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from lightfield_jax.forward.base import AbstractRenderer, FirstOrders, _count_trace, block_mean
+from lightfield_jax.forward.base import AbstractRenderer, FirstOrders, block_mean, count_trace
 from lightfield_jax.forward.first_scatter import (
     convolve_kernels,
     convolve_separable,
@@ -47,7 +47,7 @@ _PHASE_SUBSAMPLES = 16
 
 
 @functools.lru_cache(maxsize=8)
-def _groups(n_theta: int):
+def theta_groups(n_theta: int):
     return direction_groups(n_theta)
 
 
@@ -94,7 +94,7 @@ class BounceStep(eqx.Module):
 
     def transport(self, q):
         """L = T[Q] on the grid (:func:`lightfield_jax.forward.transport.transport`)."""
-        return transport(q, self.sigma_t, _groups(self.n_theta), self.tables, self.periods)
+        return transport(q, self.sigma_t, theta_groups(self.n_theta), self.tables, self.periods)
 
     def scatter(self, field):
         """(Q_next, image) of a light field: rows 0..n−1 and row n of the mixing matmul."""
@@ -162,7 +162,7 @@ class PlaneRenderer(AbstractRenderer):
         nodes = kernel_nodes(self.width, self.height, grid.n_theta)
         self.nodes = {k: jnp.asarray(v) for k, v in nodes.items() if k not in ("phi", "dr")}
         self.node_angle = jnp.asarray(nodes["phi"] - theta0)
-        self.tables = transport_tables(_groups(grid.n_theta))
+        self.tables = transport_tables(theta_groups(grid.n_theta))
         j = np.arange(grid.n_theta)
         self.circulant = jnp.asarray((j[:, None] - j[None, :]) % grid.n_theta, dtype=jnp.int32)
         split = separable_source(self.coverage, self.mean_depth, self.var_depth)
@@ -277,8 +277,8 @@ class PlaneRenderer(AbstractRenderer):
         if self.coarse_after is not None:  # the march's later bounces are the coarse grid's
             return self._march_g_jvp(sigma_t, sigma_s, g, gain)
         n = self.n_theta
-        groups = _groups(n)
-        _count_trace()
+        groups = theta_groups(n)
+        count_trace()
         source = self.unscattered(sigma_t)
         (p_camera, node_p, mixing), (dp_camera, dnode_p, dmixing) = jax.jvp(
             self._phase_parts, (g,), (jnp.ones_like(g),)

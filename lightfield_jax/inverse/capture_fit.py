@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from lightfield_jax.checks import repeated, shown
-from lightfield_jax.inverse.fit import _fit_one, _model_from
+from lightfield_jax.inverse.fit import fit_one, model_from
 from lightfield_jax.inverse.geometry_model import geometry_model
 from lightfield_jax.inverse.method_base import FitMethod
 from lightfield_jax.inverse.model_size import ModelSpec, at_least, signal_crop
@@ -165,7 +165,7 @@ def fit_capture(
     for c in chosen:  # a dark channel, before any fit runs
         i = names.index(c)
         images = np.asarray(capture.images[..., i])
-        valid = np.broadcast_to(_channel_mask(capture, i), images.shape) & np.isfinite(images)
+        valid = np.broadcast_to(channel_mask(capture, i), images.shape) & np.isfinite(images)
         if not np.any(images[valid] > 0):
             with _naming(c, chosen):
                 raise ValueError(f"channel {c}: no light (no valid value above 0)")
@@ -173,14 +173,14 @@ def fit_capture(
     for c in chosen:
         i = names.index(c)
         with _naming(c, chosen):
-            result = _fit_one(
+            result = fit_one(
                 capture.images[..., i],
                 capture.pattern,
                 opts,
                 (lambda m, c=c: say(f"[{c}] {m}")) if len(chosen) > 1 else say,
                 # Per value: a pixel clipped in some shifts keeps its others. The capture
                 # masked saturated values in raw units already (before the dark frame).
-                mask=_channel_mask(capture, i),
+                mask=channel_mask(capture, i),
                 clipped=_channel(capture, "clipped", i),
                 floored=_channel(capture, "floored", i),
                 black_level=capture.black_level,
@@ -196,7 +196,7 @@ def fit_capture(
         if floor is not None:
             # The next channel's model is at least this one's: one compiled program
             # serves every channel whose need it covers.
-            floor = at_least(floor, _model_from(result.model))
+            floor = at_least(floor, model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
 
 
@@ -223,7 +223,7 @@ def _naming(channel: str, chosen) -> Iterator[None]:
         raise named from e
 
 
-def _channel_mask(capture, i: int) -> np.ndarray:
+def channel_mask(capture, i: int) -> np.ndarray:
     """Channel i's valid values, (P, H, W) (a capture without per-value masks: its
     per-pixel mask, (H, W))."""
     samples = getattr(capture, "sample_mask", None)
@@ -258,7 +258,7 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> ModelSp
         crops = []
         for i in channels:
             # The values the fit keeps (per value, as fit_images crops them).
-            keep = np.broadcast_to(_channel_mask(capture, i), images[..., i].shape)
+            keep = np.broadcast_to(channel_mask(capture, i), images[..., i].shape)
             keep = keep & np.isfinite(images[..., i])
             crops.append(
                 signal_crop(

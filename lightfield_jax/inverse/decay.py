@@ -58,7 +58,7 @@ from lightfield_jax.scene.illumination import (
 from lightfield_jax.scene.illumination import (
     checked_direction as _direction,
 )
-from lightfield_jax.scene.medium import _is_concrete
+from lightfield_jax.scene.medium import is_concrete
 
 # A log-linear start below this (data that do not decay) is raised to it: far smaller
 # than any σt whose decay a frame can resolve, and still positive for the log.
@@ -340,7 +340,7 @@ def fit_decay(
         n_lines,
         max_steps,
     )
-    if _is_concrete(fit.n_pixels) and int(fit.n_pixels) <= int(fit.n_lines):
+    if is_concrete(fit.n_pixels) and int(fit.n_pixels) <= int(fit.n_lines):
         raise ValueError(
             f"fit_decay: sigma_t is not identifiable: {int(fit.n_pixels)} usable pixels on "
             f"{int(fit.n_lines)} lines of propagation from the {entry} wall; at least one "

@@ -56,7 +56,7 @@ from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import ModelSpec, over_cap_note, size_model
 from lightfield_jax.inverse.options import (
-    _PARAMS,
+    PARAMS,
     FitOptions,
     FitResult,
     check_options,
@@ -129,7 +129,7 @@ def fit_images(
             raise ValueError(f"fit_images: black_level: {problem}")
     check_pixel_size(pixel_size_mm)
     images, mask = unmask(images, mask)
-    return _fit_one(
+    return fit_one(
         images,
         pattern,
         options,
@@ -144,7 +144,7 @@ def fit_images(
 
 
 @repairing_compilation_cache()
-def _fit_one(
+def fit_one(
     images,
     pattern: Stripes,
     options: FitOptions,
@@ -260,7 +260,7 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: ModelSpec
     budget: Uncertainty = values.pop("budget")
 
     def per_param(d):
-        return {k: d.get(k, math.nan) for k in _PARAMS if k in d or k != "black_level"}
+        return {k: d.get(k, math.nan) for k in PARAMS if k in d or k != "black_level"}
 
     black = values.pop("black_level")
     numbers = ("sigma_t", "sigma_s", "g", "gain", "residual")
@@ -301,7 +301,7 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
 
     def fit_with(geometry) -> FitResult:
         opts = dataclasses.replace(options, geometry=geometry)
-        return _fit_one(images, pattern, opts, progress, **kwargs)
+        return fit_one(images, pattern, opts, progress, **kwargs)
 
     def chose(result: FitResult, choice: dict) -> FitResult:
         return dataclasses.replace(result, model={**result.model, "geometry_choice": choice})
@@ -353,7 +353,7 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     return chose(dataclasses.replace(result, seconds=seconds), decision.as_dict())
 
 
-def _model_from(d: dict) -> ModelSpec:
+def model_from(d: dict) -> ModelSpec:
     """The :class:`ModelSpec` of a result's ``model`` dict (one written without the series'
     estimate, e.g. by an earlier version, renders alike: what is not given is unknown)."""
     geometry = geometry_model(parse_fitted_geometry(d.get("geometry"), "model.geometry"))
@@ -386,7 +386,7 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
         raise ValueError(f"fitted_images: result: must be a FitResult, got {type(result).__name__}")
     if not isinstance(pattern, Stripes):
         raise ValueError(f"fitted_images: pattern: must be a Stripes, got {type(pattern).__name__}")
-    model = _model_from(result.model)
+    model = model_from(result.model)
     x0, y0, x1, y1 = model.crop
     dims = () if isinstance(shape, (str, bytes)) or not np.iterable(shape) else tuple(shape)
     if not (

@@ -30,7 +30,7 @@ from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
 from lightfield_jax.scene.phase import phase_integral
 
-_PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
+PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
 # A(g) of a Python float, compiled once (op by op, its dozen operations would each
 # compile on first use).

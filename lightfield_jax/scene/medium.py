@@ -29,7 +29,7 @@ PHASE_CONVENTIONS: tuple[str, ...] = ("paper", "normalized")
 FILE_PHASE = "normalized"
 
 
-def _is_concrete(x) -> bool:
+def is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
@@ -67,7 +67,7 @@ class Medium(eqx.Module):
         given = {"sigma_t": sigma_t, "sigma_s": sigma_s, "g": g}
         concrete = {}
         for name, value in given.items():
-            if _is_concrete(value):
+            if is_concrete(value):
                 check_number(value, f"medium.{name}")
                 concrete[name] = np.asarray(value, dtype=np.float64)
         if "sigma_t" in concrete and float(np.min(concrete["sigma_t"])) <= 0.0:
