@@ -9,15 +9,9 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.inverse.basins import Scan, basin_of, basins, local_minima, worse_basin
-from lightfield_jax.inverse.trust import (
-    CONSISTENCY_P,
-    FLOOR_UNIFORM,
-    error_budget,
-    noise_floor,
-    noise_scale,
-    split_groups,
-    untrustworthy,
-)
+from lightfield_jax.inverse.budget import CONSISTENCY_P, error_budget, split_groups
+from lightfield_jax.inverse.noise import FLOOR_UNIFORM, noise_floor, noise_scale
+from lightfield_jax.inverse.verdict import untrustworthy
 
 
 def _two_wells(deep=(10, 28), shallow=(2, 4), depth_ratio=3.0):
@@ -395,7 +389,7 @@ def test_two_step_answers_at_a_bound_or_undetermined_are_not_trusted(method):
 
 def test_the_grid_end_in_float32_is_at_the_g_bound():
     """The two-step grid's last g is float32's 0.95, 0.949999988: at its bound."""
-    from lightfield_jax.inverse.trust import at_bound
+    from lightfield_jax.inverse.verdict import at_bound
 
     g = float(np.linspace(-0.95, 0.95, 39, dtype=np.float32)[-1])
     assert g < 0.95
@@ -410,7 +404,7 @@ def test_the_scan_measures_a_constant_offset_left_in_the_images(black_level):
     without, at the pedestal's value; without a pedestal the offset explains little."""
     from lightfield_jax.forward.render import renderer_for
     from lightfield_jax.inverse.basins import scan
-    from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
+    from lightfield_jax.inverse.verdict import OFFSET_EXPLAINS
 
     st, ss, g = 0.2051, 0.0366, 0.4
     grid = lfj.Grid(32, 24, 16, 1)
@@ -443,7 +437,7 @@ def test_the_offset_linearised_at_an_answer_and_its_hint():
     """constant_offset: the residual r = w·(model − images) of images holding a constant
     d beyond what the parameters' columns absorb gives d back; the hint names it where it
     leaves at most OFFSET_EXPLAINS of the misfit, and says nothing otherwise."""
-    from lightfield_jax.inverse.trust import constant_offset, offset_hint
+    from lightfield_jax.inverse.verdict import constant_offset, offset_hint
 
     rng = np.random.default_rng(1)
     w = rng.uniform(0.5, 2.0, 400)

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import lightfield_jax as lfj
+from lightfield_jax.inverse.budget import error_budget
 from lightfield_jax.inverse.joint_fit.finer import finer
 from lightfield_jax.inverse.model_size import richardson_factor, size_model
-from lightfield_jax.inverse.trust import error_budget
 from lightfield_jax.reference.montecarlo import monte_carlo_render
 
 DENSE = (0.2, 0.16, 0.7)

@@ -930,7 +930,7 @@ def test_the_least_squares_steps_scale_their_columns():
     Gauss-Newton steps and covariances scale the columns before solving. Unscaled,
     lstsq's relative cutoff drops a column that small (it dropped the gain's direction
     for images in units 10^6x larger, and σs moved by 0.8σ on a noisy 48x36 milk)."""
-    from lightfield_jax.inverse.trust import gram_inverse, scaled_lstsq
+    from lightfield_jax.inverse.lstsq import gram_inverse, scaled_lstsq
 
     rng = np.random.default_rng(0)
     jac = rng.normal(size=(500, 4))
@@ -974,7 +974,7 @@ def test_the_correlations_go_with_the_total_uncertainty():
     """``correlation`` is the total covariance's: the noise's plus the finer model's
     signed shift (rank one) and any further model term (uncorrelated), so its diagonal
     is the total 1σ²; ``correlation_statistical`` is the noise's alone."""
-    from lightfield_jax.inverse.trust import error_budget
+    from lightfield_jax.inverse.budget import error_budget
 
     rng = np.random.default_rng(1)
     jac = rng.normal(size=(400, 3))
@@ -1002,7 +1002,8 @@ def test_a_finer_model_that_is_not_finite_leaves_the_misfit_judged_against_the_n
     """A finer model's render that is not finite (a solve at a bound) measures no model
     error: chi2_model is the noise's χ² and the misfit rule still fires, instead of a
     NaN that hid a misfit 400 times the noise (an over-subtracted dark frame)."""
-    from lightfield_jax.inverse.trust import error_budget, untrustworthy
+    from lightfield_jax.inverse.budget import error_budget
+    from lightfield_jax.inverse.verdict import untrustworthy
 
     rng = np.random.default_rng(2)
     jac = rng.normal(size=(300, 3))
@@ -1020,7 +1021,8 @@ def test_a_finer_model_that_is_not_finite_leaves_the_misfit_judged_against_the_n
 def test_a_misfit_judged_against_the_noise_alone_says_only_the_noise(shift):
     """Before: with the model's own error not measured (chi2_model the noise's χ²), the
     reason still said 'far above the capture's noise and the model's own error'."""
-    from lightfield_jax.inverse.trust import error_budget, untrustworthy
+    from lightfield_jax.inverse.budget import error_budget
+    from lightfield_jax.inverse.verdict import untrustworthy
 
     rng = np.random.default_rng(2)
     jac = rng.normal(size=(300, 3))

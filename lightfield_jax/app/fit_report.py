@@ -24,7 +24,7 @@ def fit_summary(fit) -> str:
 
 def channel_summary(name: str, r) -> str:
     """One channel's result line."""
-    from lightfield_jax.inverse.trust import CONSISTENCY_P
+    from lightfield_jax.inverse.budget import CONSISTENCY_P
     from lightfield_jax.scene.geometry_spec import describe_geometry
 
     u = r.uncertainty

@@ -21,7 +21,7 @@ from lightfield_jax.capture.response import Response
 from lightfield_jax.scene.illumination import Stripes
 
 # The smallest medium (px per side, after medium_roi) a capture may have; a fit also
-# needs MIN_ALONG px along the light (inverse/trust.py).
+# needs MIN_ALONG px along the light (inverse/noise.py).
 MIN_SIDE = 6
 
 

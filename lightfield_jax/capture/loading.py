@@ -215,7 +215,7 @@ from lightfield_jax.capture.pixels import (
     saturated_mask,
 )
 from lightfield_jax.capture.response import frame_linearizer
-from lightfield_jax.inverse.trust import MIN_ALONG
+from lightfield_jax.inverse.noise import MIN_ALONG
 from lightfield_jax.schema import Section, load_yaml
 
 

@@ -1,1 +1,2 @@
-"""The inverse pipeline: separation, decay fit, basin scan, joint fit, trust, model size."""
+"""The inverse pipeline: separation, decay fit, basin scan, joint fit, trust
+(noise, error budget, verdict), model size."""

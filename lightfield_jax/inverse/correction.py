@@ -30,7 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from lightfield_jax.inverse.trust import gram_inverse, scaled_lstsq
+from lightfield_jax.inverse.lstsq import gram_inverse, scaled_lstsq
 
 # A step below this (relative on σt and σs, absolute on g and b), or below
 # NOISE_FRACTION of the parameter's statistical 1σ, ends the iteration.

@@ -28,8 +28,8 @@ from lightfield_jax.checks import (
     unmasked,
 )
 from lightfield_jax.inverse.decay import fit_decay
+from lightfield_jax.inverse.noise import MIN_ALONG, noise_floor
 from lightfield_jax.inverse.separate import real_dtype, separate
-from lightfield_jax.inverse.trust import MIN_ALONG, noise_floor
 from lightfield_jax.scene.illumination import Stripes, period_problem, shifts_problem
 
 if TYPE_CHECKING:
@@ -63,7 +63,7 @@ class FitData:
         exposure: merged exposure brackets' effective exposure T (s), ``(P, h, w)``,
             or ``None``.
         noise_floor: the read-noise floor of the joint fit's weights, in image units
-            (:func:`~lightfield_jax.inverse.trust.noise_floor`; ``None``: the
+            (:func:`~lightfield_jax.inverse.noise.noise_floor`; ``None``: the
             shot-noise weights' own, 1e-3 of the peak).
     """
 
@@ -395,7 +395,7 @@ def floor_is_cut(images, above: np.ndarray, usable: np.ndarray, pattern: Stripes
     """Whether values at a floor were cut there: the capture shows an additive noise that
     could take values below it, as values above the floor that vary continuously (its
     200 lowest nearly all distinct) or as read noise (:func:`~lightfield_jax.inverse.
-    trust.noise_floor`). Counts of shot noise alone (a lattice of values) cannot fall
+    noise.noise_floor`). Counts of shot noise alone (a lattice of values) cannot fall
     below 0: their zeros are measured, not cut."""
     lowest = np.sort(images[above])[:200]
     if lowest.size >= 20 and np.unique(lowest).size > 0.9 * lowest.size:

@@ -31,7 +31,7 @@ forward model (:class:`~lightfield_jax.Renderer`):
 
 Every result carries 1σ uncertainties from the Jacobian (the joint fit: statistical
 from the capture's measured noise, a model term from a finer model's residual, and
-their total; :mod:`lightfield_jax.inverse.trust`), χ²/dof, correlations, the solver's
+their total; :mod:`lightfield_jax.inverse.budget`), χ²/dof, correlations, the solver's
 convergence status (never swallowed; false with the reasons for a solution that is not
 trustworthy), iterations, residual, wall time split into compile and run, and the model
 used. Programs are compiled once per static settings and shape bucket
@@ -49,6 +49,7 @@ import numpy as np
 
 from lightfield_jax.capture.keys import check_pixel_size
 from lightfield_jax.checks import number_problem, shown, unmask
+from lightfield_jax.inverse.budget import Uncertainty
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.geometry_model import geometry_model
 from lightfield_jax.inverse.joint_fit.stage import model_renderer
@@ -64,7 +65,6 @@ from lightfield_jax.inverse.options import (
 )
 from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import forget_if_crowded, repairing_compilation_cache
-from lightfield_jax.inverse.trust import Uncertainty
 from lightfield_jax.inverse.two_step import full_for as _full_for
 from lightfield_jax.runtime.memory import check_memory, fit_memory
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry

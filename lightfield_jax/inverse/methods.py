@@ -45,13 +45,13 @@ from lightfield_jax.inverse.method_base import (
     check_start,
 )
 from lightfield_jax.inverse.model_size import at_least, size_model
-from lightfield_jax.inverse.trust import untrustworthy
 from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
     full_for,
     sigma_s_max,
     solve_two_step,
 )
+from lightfield_jax.inverse.verdict import untrustworthy
 
 if TYPE_CHECKING:
     pass

@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from lightfield_jax.inverse.trust import MIN_ALONG, five_point, stencil_centre
+from lightfield_jax.inverse.noise import MIN_ALONG, five_point, stencil_centre
 from lightfield_jax.scene.illumination import Stripes
 
 

@@ -24,7 +24,7 @@ from lightfield_jax.inverse.method_base import (
     check_solver,
     check_start,
 )
-from lightfield_jax.inverse.trust import OFFSET_EXPLAINS
+from lightfield_jax.inverse.verdict import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS

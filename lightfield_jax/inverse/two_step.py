@@ -26,10 +26,10 @@ import optimistix as optx
 
 from lightfield_jax.forward.kernels import einsum, matmul
 from lightfield_jax.inverse.basins import reference_sigma_s
+from lightfield_jax.inverse.budget import Uncertainty, error_budget
 from lightfield_jax.inverse.data import FitData
 from lightfield_jax.inverse.jacobian import with_jacobian
 from lightfield_jax.inverse.programs import jitted
-from lightfield_jax.inverse.trust import Uncertainty, error_budget
 from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.illumination import Full, Stripes
 

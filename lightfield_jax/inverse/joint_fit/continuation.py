@@ -23,6 +23,7 @@ from lightfield_jax.inverse.joint_fit.stage import (
     solve_stage,
     usable_render,
 )
+from lightfield_jax.inverse.lstsq import scaled_lstsq
 from lightfield_jax.inverse.model_size import (
     ModelSpec,
     at_least,
@@ -32,7 +33,8 @@ from lightfield_jax.inverse.model_size import (
     orders,
     size_model,
 )
-from lightfield_jax.inverse.trust import at_bound, noise_scale, scaled_lstsq
+from lightfield_jax.inverse.noise import noise_scale
+from lightfield_jax.inverse.verdict import at_bound
 from lightfield_jax.runtime.timing import stopwatch
 
 # A later start's answer is not taken to its model where both its cheap misfit and the

@@ -1,7 +1,7 @@
 """One joint fit with its global start (:func:`fit_once`): the basin scan on a cheap
 model, the search over its basins (:mod:`.search`), then the error term from a finer
 model's residual at the best answer (:mod:`.finer`), the error budget and the verdict
-(:mod:`.verdict`, :mod:`lightfield_jax.inverse.trust`), gathered in :class:`Answer`."""
+(:mod:`lightfield_jax.inverse.budget`, :mod:`.verdict`), gathered in :class:`Answer`."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lightfield_jax.inverse.budget import error_budget, split_groups
 from lightfield_jax.inverse.data import FitData, FitProblem
 from lightfield_jax.inverse.joint_fit.context import FitContext, Seconds
 from lightfield_jax.inverse.joint_fit.finer import model_shift
@@ -27,7 +28,7 @@ from lightfield_jax.inverse.model_size import (
     richardson_factor,
     scan_model,
 )
-from lightfield_jax.inverse.trust import error_budget, noise_floor, noise_scale, split_groups
+from lightfield_jax.inverse.noise import noise_floor, noise_scale
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.options import FitOptions

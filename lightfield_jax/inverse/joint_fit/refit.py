@@ -24,7 +24,8 @@ from lightfield_jax.inverse.joint_fit.stage import (
     solve_stage,
     usable_render,
 )
-from lightfield_jax.inverse.trust import noise_scale, scaled_lstsq
+from lightfield_jax.inverse.lstsq import scaled_lstsq
+from lightfield_jax.inverse.noise import noise_scale
 
 # The linearised refit (:func:`linear_refit`) is kept where it moves every parameter by
 # at most this much (relative on σt and σs, absolute on g and b): the model's second

@@ -14,7 +14,7 @@ from lightfield_jax.inverse.correction import projected
 from lightfield_jax.inverse.joint_fit.context import FitContext
 from lightfield_jax.inverse.joint_fit.stage import Stage, usable_render
 from lightfield_jax.inverse.model_size import ModelSpec
-from lightfield_jax.inverse.trust import at_bound
+from lightfield_jax.inverse.verdict import at_bound
 
 
 def same_answer(a: dict, b: dict) -> bool:

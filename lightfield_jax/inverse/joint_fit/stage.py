@@ -79,7 +79,7 @@ def joint_parts(pattern: Stripes, model: ModelSpec, phase: str):
 def joint_weights(images, mask, exposure=None, floor=None):
     """Noise weights of the raw images, 1/√(I + floor): shot noise (variance ∝ I) and
     read noise (constant, ``floor`` in units of the shot noise's I: the capture's
-    :func:`~lightfield_jax.inverse.trust.noise_floor`), the floor at least 1e-3 of the
+    :func:`~lightfield_jax.inverse.noise.noise_floor`), the floor at least 1e-3 of the
     peak; 0 outside ``mask`` (per pixel, ``(h, w)``, or per sample, like ``images``);
     times √(T/max T) for merged exposure brackets of effective exposure T (their
     variance is ∝ I/T, :mod:`lightfield_jax.capture.hdr`)."""

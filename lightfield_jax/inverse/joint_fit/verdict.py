@@ -12,7 +12,7 @@ from lightfield_jax.inverse.basins import Scan, worse_basin
 from lightfield_jax.inverse.joint_fit.context import FitContext
 from lightfield_jax.inverse.joint_fit.stage import Stage
 from lightfield_jax.inverse.model_size import RATIO_MARGIN, ModelSpec, bucket_bounces
-from lightfield_jax.inverse.trust import (
+from lightfield_jax.inverse.verdict import (
     OFFSET_EXPLAINS,
     constant_offset,
     offset_hint,
