@@ -220,7 +220,7 @@ def test_a_killed_worker_is_retried_once_then_a_failure(tmp_path, client):
     assert (tmp_path / "died_2").read_text() == "xx"  # retried once, not more
     assert ctx.stored("a0") == {"a": 0} and ctx.stored("a1") == {"a": 1}
     assert ctx.stored("a2") is None  # a failure is never stored as a result
-    client.wait_for_workers(2, timeout=300)  # a restarted worker, on a loaded machine  # (the nannies restart the dead ones)
+    client.wait_for_workers(2, timeout=300)  # the nannies restart the dead ones (slow when loaded)
 
 
 def _sleeps(seconds):
