@@ -183,3 +183,22 @@ def test_the_fits_cheap_models_render_stripes_from_one_period():
     slab = Slab(3.0, "absorbing", n_mu=4, n_z=1)
     on_slab = model_renderer(dataclasses.replace(cheap, geometry=SlabModel(slab)), stripes, "paper")
     assert not isinstance(on_slab, CellRenderer)
+
+
+@pytest.mark.parametrize(
+    ("stripe_cell", "refine", "expected"), [(True, 2, 10), (False, 2, None), (True, 1, None)]
+)
+def test_sized_refined_plane_models_render_side_wall_stripes_from_one_period(
+    stripe_cell, refine, expected
+):
+    # The final model and the error term's finer model: the cell with its defaults on a
+    # refined grid unless the fit option turns it off; the native grid renders the tank.
+    import lightfield_jax as lfj
+    from lightfield_jax.inverse.joint_fit.finer import finer
+    from lightfield_jax.inverse.model_size import size_model
+
+    options = lfj.FitOptions(phase="normalized", refine=refine, stripe_cell=stripe_cell)
+    model = size_model(np.zeros((6, 18, 24)), Stripes(), 0.8, 0.7, options, 1.03, 0.2)
+    assert model.cell == expected
+    assert model.as_dict()["stripe_cell"] == (None if expected is None else {"shift_orders": 10})
+    assert finer(model, options, 0.7).cell == (10 if stripe_cell else None)

@@ -58,7 +58,7 @@ _FIT_INTS = (
 _FIT_OPTIONAL_INTS = ("n_theta", "refine", "coarse_after")
 _FIT_FLOATS = ("tolerance", "crop_fraction", "basin_tolerance", "max_chi2", "offset_stop")
 _FIT_OPTIONAL_FLOATS = ("rtol", "atol")
-_FIT_BOOLS = ("crop", "basin_search", "model_error", "correct", "extrapolate")
+_FIT_BOOLS = ("crop", "basin_search", "model_error", "correct", "extrapolate", "stripe_cell")
 FIT_KEYS: tuple[str, ...] = (
     "phase",
     "bounces",

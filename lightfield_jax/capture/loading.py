@@ -100,7 +100,8 @@ Keys:
 - ``fit``: settings of the fit (:class:`~lightfield_jax.FitOptions` fields: the
   model's ``n_theta``, ``refine``, ``bounces``, ``tail``, ``max_cells``,
   ``max_render_cells``; the solve's ``max_steps``, ``rtol``, ``atol``, ``start``; the
-  basin search's ``basin_search``, ``max_basins``; ``model_error``, ``correct``, ``extrapolate``,
+  basin search's ``basin_search``, ``max_basins``; ``model_error``, ``correct``,
+  ``extrapolate``, ``stripe_cell``,
   ``max_chi2`` ...; see ``help(lfj.FitOptions)``), used by ``lightfield-jax fit`` and
   :func:`~lightfield_jax.fit_capture`; ``phase``: the model's phase convention,
   ``normalized`` (energy-conserving, for every medium) where absent, or ``paper``

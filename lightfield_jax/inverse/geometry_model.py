@@ -123,7 +123,7 @@ class GeometryModel(abc.ABC):
         """This geometry's discretisation in a progress line (``""``: none)."""
         return ""
 
-    def stripe_cell(self, grid: Grid) -> int | None:
+    def stripe_cell(self, grid: Grid, options: FitOptions) -> int | None:
         """The stripe cell's ``shift_orders`` a model on ``grid`` renders stripes with
         (:class:`~lightfield_jax.forward.cell.CellRenderer`), or ``None``: the full
         render."""
@@ -212,12 +212,12 @@ class PlaneModel(GeometryModel):
         r, r_f = grid.refine, fine_grid.refine
         return None if r_f <= r else r_f / (r_f - r)
 
-    def stripe_cell(self, grid):
+    def stripe_cell(self, grid, options):
         """On a refined grid, the cell with its defaults: within 0.2 % of the full
         render in every row and several times faster (docs/periodic_cell.md), where the
         model's own discretisation error is percents (the error term's refine + 1). On
         the native grid it is no faster than the full render."""
-        return SHIFT_ORDERS if grid.refine > 1 else None
+        return SHIFT_ORDERS if options.stripe_cell and grid.refine > 1 else None
 
     def renderer(self, model, illumination, phase, **solve):
         if model.cell is not None and cell_problem(model.grid, illumination) is None:

@@ -181,7 +181,7 @@ def size_model(
         rho=rho,
         geometry=geometry,
         coarse_after=geometry.coarse_after(options),
-        cell=geometry.stripe_cell(grid),
+        cell=geometry.stripe_cell(grid, options),
     )
     return _with_tail(model, options)
 

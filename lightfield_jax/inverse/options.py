@@ -119,6 +119,12 @@ class FitOptions:
             with the cheap model's Jacobian, its own by forward differences where
             those steps stop shrinking) instead of solving on it; where the iteration does not
             converge the fit solves on that model as capped by ``max_cells``.
+        stripe_cell: (``joint``, plane) render stripes entering a side wall from one
+            stripe period (:class:`~lightfield_jax.forward.cell.CellRenderer`, within
+            0.2 % of the full render) in the final model and the error term where they
+            are refined (refine ≥ 2): a warm fit of a dense forward capture about 3×
+            faster; the first fit of a process compiles more (docs/periodic_cell.md).
+            ``False``: those models render the whole tank.
         extrapolate: (``joint``, plane) where the error term's finer model is finer in
             space, report the answer extrapolated to the continuum: the model's
             discretisation error is first order in the cell size, so the answer steps
@@ -169,6 +175,7 @@ class FitOptions:
     model_error: bool = True
     correct: bool = True
     extrapolate: bool = False
+    stripe_cell: bool = True
     max_render_cells: int = 8_000_000
     correction_renders: int = 16
     max_chi2: float = 100.0
@@ -208,7 +215,8 @@ class FitOptions:
         check_int(self.g_grid, "g_grid", low=3, high=MAX_G_VALUES)
         check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
         check_number(self.offset_stop, "offset_stop", low=0.0, high=OFFSET_EXPLAINS)
-        for name in ("crop", "basin_search", "model_error", "correct", "extrapolate"):
+        flags = ("crop", "basin_search", "model_error", "correct", "extrapolate", "stripe_cell")
+        for name in flags:
             check_flag(getattr(self, name), name)
         if self.geometry is not None:
             as_geometry(self.geometry)

@@ -32,7 +32,7 @@ def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
     grid, geometry = model.geometry.finer(model.grid, options, g)
     # Rendered as its geometry renders a sized model on that grid (the stripe cell on a
     # refined plane): the cell's own error, 0.2 % at most, is a tenth of the term's.
-    cell = geometry.stripe_cell(grid)
+    cell = geometry.stripe_cell(grid, options)
     if model.tail is not None:  # the same K0, a tail ten times as tight
         return dataclasses.replace(
             model, grid=grid, geometry=geometry, tail_tol=model.tail_tol / 10, cell=cell
