@@ -1,5 +1,6 @@
 """The tail of the bounce series from one Krylov solve: equal to the long series, exact
-explicit bounces, derivatives, no recompiles, reported non-convergence."""
+explicit bounces, reported non-convergence (its derivatives and no recompiles: with the
+other renderers' in test_renderers.py)."""
 
 import json
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import run_experiment
-from lightfield_jax.forward.render import EXPLICIT_WITH_TAIL, Renderer, renderer_for, trace_count
+from lightfield_jax.forward.render import EXPLICIT_WITH_TAIL, Renderer, renderer_for
 from lightfield_jax.forward.tail import TailNotConvergedWarning
 
 # A small scene that leaks little per bounce: 24x16 px at sigma_t 0.6 (14 x 10 mean
@@ -88,30 +89,6 @@ def test_slab_tail_equals_the_long_series(boundary, method):
     assert _relative_l1(res.tail_lightfield, lf_ref[k0 + 1 :].sum(axis=0)) < 20 * tol
 
 
-def test_forward_jacobian_through_the_slab_tail_matches_central_differences():
-    slab = lfj.Slab(3.0, "refractive", n_mu=4, n_z=1)
-    renderer = lfj.make_renderer(
-        lfj.Grid(10, 8, 8, refine=1),
-        lfj.Beam(0.0, 4.0, 10.0, 1.0),
-        2,
-        "normalized",
-        slab,
-        tail="bicgstab",
-        tail_tol=1e-11,
-    )
-    weights = jnp.asarray(np.random.default_rng(1).random((1, 8, 10)))
-    loss = _loss_of(renderer, weights)
-    x0 = jnp.array([0.4, 0.36, 0.4, 1.3])  # (sigma_t, sigma_s, g, gain): albedo 0.9
-    # One direction that moves every parameter (a vmap over the four unit tangents costs
-    # a second compile of the slab's tail; the plane's test above runs that one).
-    e = jnp.array([0.7, -0.4, 1.0, 0.5])
-    value, slope = jax.jvp(loss, (x0,), (e,))
-    h = 1e-6
-    fd = (float(loss(x0 + h * e)) - float(loss(x0 - h * e))) / (2 * h)
-    assert float(value) == pytest.approx(float(loss(x0)), rel=1e-12)
-    assert float(slope) == pytest.approx(fd, rel=1e-6)
-
-
 def test_auto_keeps_a_few_explicit_bounces_and_paper_phase_works():
     # phase paper with rho = omega * A(0.8) = 0.95 < 1
     g = 0.8
@@ -122,60 +99,6 @@ def test_auto_keeps_a_few_explicit_bounces_and_paper_phase_works():
     assert res.bounces == EXPLICIT_WITH_TAIL
     ref = lfj.render(medium, grid, lfj.Beam(0.0, 8.0), LONG)
     assert _relative_l1(res.total, ref.total) < 2e-7
-
-
-def _loss_of(renderer, weights):
-    def loss(p):
-        images, _, tail = renderer(p[0], p[1], p[2], p[3])
-        return 100.0 * jnp.sum(weights * (images.sum(axis=1) + tail.image))
-
-    return loss
-
-
-def _central_differences(loss, x0, h=1e-6):
-    out = []
-    for i in range(x0.shape[0]):
-        e = np.zeros(x0.shape[0])
-        e[i] = h
-        out.append((float(loss(x0 + e)) - float(loss(x0 - e))) / (2 * h))
-    return np.array(out)
-
-
-def _gradient_case():
-    grid = lfj.Grid(14, 10, 16)
-    renderer = Renderer(
-        grid, lfj.Beam(0.0, 5.0, 10.0, 1.0), 2, "normalized", tail="bicgstab", tail_tol=1e-11
-    )
-    weights = jnp.asarray(np.random.default_rng(0).random((1, 10, 14)))
-    # (sigma_t, sigma_s, g, gain): albedo 0.95
-    return _loss_of(renderer, weights), jnp.array([0.4, 0.38, 0.5, 1.3])
-
-
-def test_gradient_through_the_tail_matches_central_differences():
-    loss, x0 = _gradient_case()
-    grad = np.asarray(jax.grad(loss)(x0))
-    np.testing.assert_allclose(grad, _central_differences(loss, x0), rtol=1e-6)
-
-
-def test_forward_jacobian_through_the_tail_matches_central_differences():
-    # The joint fit differentiates with jax.jvp vmapped over unit tangents (the gain's
-    # tangent gives the tail's solve a zero right-hand side).
-    loss, x0 = _gradient_case()
-    value, jac = jax.vmap(lambda e: jax.jvp(loss, (x0,), (e,)), out_axes=(None, 0))(jnp.eye(4))
-    assert float(value) == pytest.approx(float(loss(x0)), rel=1e-12)
-    np.testing.assert_allclose(np.asarray(jac), _central_differences(loss, x0), rtol=1e-6)
-
-
-def test_new_values_never_recompile_with_a_tail():
-    grid = lfj.Grid(18, 12, 16, refine=1)
-    illum = lfj.Beam(0.0, 6.0)
-    kw = dict(bounces=2, tail="bicgstab", tail_tol=1e-4)
-    lfj.render(lfj.Medium(0.2, 0.1, 0.3, "normalized"), grid, illum, **kw)
-    before = trace_count()
-    for st, ss, g in ((0.3, 0.29, 0.5), (0.1, 0.05, -0.4), (0.5, 0.01, 0.9)):
-        res = lfj.render(lfj.Medium(st, ss, g, "normalized"), grid, illum, gain=2 * st, **kw)
-        assert res.tail_converged
-    assert trace_count() == before
 
 
 def test_float32_tail_converges_without_x64():
@@ -291,16 +214,6 @@ def test_the_coarse_tail_keeps_the_explicit_bounces_and_the_series_within_its_er
     assert np.abs(coarse.sum(axis=1) - full.sum(axis=1)).max() < 1e-3 * peak
     per_bounce = coarse.sum(axis=(0, 2, 3)) / full.sum(axis=(0, 2, 3))
     np.testing.assert_allclose(per_bounce[k0:], 1.0, atol=1e-2)
-
-
-def test_new_values_never_recompile_with_a_coarse_tail():
-    grid, illum = _COARSE_SCENE["grid"], _COARSE_SCENE["illumination"]
-    renderer = renderer_for(grid, illum, 10, "normalized", None, coarse_after=4)
-    renderer(0.2, 0.1, 0.7)
-    before = trace_count()
-    for st, ss, g in ((0.3, 0.29, 0.5), (0.1, 0.05, -0.4)):
-        renderer(st, ss, g)
-    assert trace_count() == before
 
 
 @pytest.mark.parametrize(
