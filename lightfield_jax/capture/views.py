@@ -24,7 +24,13 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.checks import gain_problem, one_path_part, shown
-from lightfield_jax.forward.render import RenderResult, render, resolve_bounces, resolve_model
+from lightfield_jax.forward.render import (
+    RenderResult,
+    model_memory,
+    render,
+    resolve_bounces,
+    resolve_model,
+)
 from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
@@ -48,13 +54,13 @@ def render_transport(
     """Per-bounce images and (memory allowing) light fields of a scene; notes say what
     was left out. A render estimated to need more memory than the limit is refused
     (:func:`~lightfield_jax.runtime.memory.check_memory`, naming ``what``)."""
-    from lightfield_jax.runtime.memory import check_memory, scene_render_bytes
+    from lightfield_jax.runtime.memory import check_memory
 
     resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
     k = resolve_bounces(float(rho), bounces)
     size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
     fields = size <= MAX_LIGHTFIELD_FLOATS
-    check_memory(scene_render_bytes(1, resolved, model_geometry, medium, k, fields), what)
+    check_memory(model_memory(1, resolved, model_geometry, k, fields), what)
     result = render(medium, grid, light, k, gain=gain, lightfield=fields, geometry=geometry)
     if fields:
         return result, []

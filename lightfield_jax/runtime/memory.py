@@ -147,26 +147,6 @@ def render_bytes(
     return fields + images + stored + tables
 
 
-def scene_render_bytes(
-    n_patterns: int, grid, geometry, medium, bounces: int, lightfield: bool
-) -> int:
-    """:func:`render_bytes` of a scene: ``grid`` resolved (width, height, n_theta,
-    refine), the elevations per azimuth bin from ``geometry`` at ``medium``'s g, σt and
-    albedo (1 on the plane)."""
-    g, sigma_t = float(medium.g), float(medium.sigma_t)
-    n_mu = geometry.fields_per_bin(g, sigma_t, float(medium.sigma_s) / sigma_t)
-    return render_bytes(
-        n_patterns,
-        grid.height,
-        grid.width,
-        grid.n_theta,
-        refine=grid.refine,
-        n_mu=n_mu,
-        bounces=bounces,
-        lightfield=lightfield,
-    )
-
-
 def fit_bytes(samples: int, n_images: int, cells: int) -> int:
     """A fit: the capture's ``samples`` loaded, and per image the model's ``cells``
     (W·H·n_theta·refine², capped by the fit's ``max_cells``) for the fields and the
@@ -237,6 +217,5 @@ __all__ = [
     "memory_limit",
     "parse_size",
     "render_bytes",
-    "scene_render_bytes",
     "series_bytes",
 ]
