@@ -223,8 +223,9 @@ class WallsTerm(eqx.Module):
         )
 
     def __call__(self, sigma_t, sigma_s, g):
-        """(per-order term (patterns or 1, K, H, W), and with a tail solve, (its tail's
-        term, the two tail solutions))."""
+        """(per-order term (patterns or 1, K, H, W); with a tail solve, (its tail's term,
+        the two tail solutions), else ``None``; the periodic grid's own images (patterns
+        or 1, K, its rows, W; on the coarse grid, unit weight))."""
         c = self.coarsen
         tank = self.tank.unchecked(sigma_t * c, sigma_s * c, g)
         free = self.unwalled.unchecked(sigma_t * c, sigma_s * c, g)
@@ -236,8 +237,9 @@ class WallsTerm(eqx.Module):
 
         orders = up(tank[0] - free[0][..., rows, :])
         if len(tank) == 2:
-            return orders, None
-        return orders, (up(tank[2].image - free[2].image[..., rows, :]), tank[2], free[2])
+            return orders, None, free[0]
+        tail = (up(tank[2].image - free[2].image[..., rows, :]), tank[2], free[2])
+        return orders, tail, free[0]
 
 
 def short_tank_height(height: int, period: int, band: int) -> int:
@@ -258,7 +260,6 @@ class WallBands(eqx.Module):
 
     fine: PlaneRenderer
     native: PlaneRenderer
-    free: PeriodicCell
     band: int = eqx.field(static=True)
     rows: int = eqx.field(static=True)
 
@@ -268,27 +269,19 @@ class WallBands(eqx.Module):
         short = Grid(grid.width, self.rows, grid.n_theta, grid.refine)
         self.fine = PlaneRenderer(short, stripes, orders, phase)
         self.native = PlaneRenderer(dataclasses.replace(short, refine=1), stripes, orders, phase)
-        one = dataclasses.replace(stripes, phases=(0,))
-        self.free = PeriodicCell(
-            Grid(grid.width, stripes.period, grid.n_theta, 1),
-            one,
-            orders,
-            phase,
-            tank_height=grid.height,
-        )
 
-    def __call__(self, sigma_t, sigma_s, g, cell, rows):
+    def __call__(self, sigma_t, sigma_s, g, cell, free, rows):
         """(patterns, orders − 2, 2·band, W): the correction of orders 3.. in the bottom
         ``band`` rows then the top ``band`` rows; ``cell`` the refined cell's images
-        (native grid, (K, period, W)) and ``rows`` each shift's cell row of the short
-        tank's rows."""
-        k = self.fine.bounces
+        (native grid, (K, period, W)), ``rows`` each shift's cell row of the short tank's
+        rows, ``free`` every shift's periodic grid on the native grid (the shifts' walls'
+        term's, (patterns, K, period, W))."""
+        k, b, n = self.fine.bounces, self.band, self.rows
         fine = self.fine.unchecked(sigma_t, sigma_s, g)[0]
         native = self.native.unchecked(sigma_t, sigma_s, g)[0]
-        free = self.free.unchecked(sigma_t, sigma_s, g)[0][0]
-        periodic = cell[:k] - free
-        e = fine - native - jnp.moveaxis(periodic[:, rows], 0, 1)
-        b, n = self.band, self.rows
+        refined = jnp.moveaxis(cell[:k][:, rows], 0, 1)
+        unrefined = free[:, :k][:, :, np.arange(n) % free.shape[2]]
+        e = fine - native - (refined - unrefined)
         return jnp.concatenate([e[:, 2:, :b], e[:, 2:, n - b :]], axis=2)
 
 
@@ -448,16 +441,17 @@ class CellRenderer(AbstractRenderer):
 
     def _walls_term(self, sigma_t, sigma_s, g):
         """The walls' term per shift and order ≥ 3 (native grid, unit gain): every
-        shift's own up to ``shift_orders``, the shifts' mean after; and the tail's."""
-        terms, tail = [], None
+        shift's own up to ``shift_orders``, the shifts' mean after; the tail's; and every
+        shift's periodic grid on the native grid (``None`` without the shifts' own)."""
+        terms, tail, free = [], None, None
         if self.shift_walls is not None:
-            own, tail = self.shift_walls(sigma_t, sigma_s, g)
+            own, tail, free = self.shift_walls(sigma_t, sigma_s, g)
             terms.append(own[:, 2 : self.shift_orders])
         if self.mean_walls is not None:
-            mean, tail = self.mean_walls(sigma_t, sigma_s, g)
+            mean, tail, _ = self.mean_walls(sigma_t, sigma_s, g)
             n = self.n_patterns
             terms.append(jnp.broadcast_to(mean, (n,) + mean.shape[1:])[:, self.shift_orders :])
-        return jnp.concatenate(terms, axis=1), tail
+        return jnp.concatenate(terms, axis=1), tail, free
 
     def _compose(self, sigma_t, sigma_s, g, gain):
         count_trace()
@@ -465,13 +459,13 @@ class CellRenderer(AbstractRenderer):
         if self.bounces <= 2 and self.tail is None:
             return gain * first[:, : self.bounces], None
         cell = self.cell.unchecked(sigma_t, sigma_s, g)
-        walls, walls_tail = self._walls_term(sigma_t, sigma_s, g)
+        walls, walls_tail, free = self._walls_term(sigma_t, sigma_s, g)
         later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
         later = later[:, 2:] + walls
         if self.wall_bands is not None:
             bands = self.wall_bands
             n, b = bands.rows, bands.band
-            fix = bands(sigma_t, sigma_s, g, cell[0][0], self.rows[:, :n])
+            fix = bands(sigma_t, sigma_s, g, cell[0][0], free, self.rows[:, :n])
             m = fix.shape[1]
             later = later.at[:, :m, :b].add(fix[:, :, :b])
             top = self.height // self.refine - b
