@@ -192,8 +192,10 @@ def _dense_fit(**kwargs) -> lfj.FitResult:
 
 def test_a_dense_forward_capture_is_recovered_through_the_correction():
     """The default fit solves on a cheap model (32 θ bins, native grid, 24 bounces and a
-    geometric tail) and corrects its answer to the model the capture needs."""
-    result = _dense_fit()
+    geometric tail) and corrects its answer to the model the capture needs. The capture
+    is rendered on that model's own grid, which is its truth: the model's own answer
+    (``extrapolate`` off; the default steps on to the continuum's, tests/test_dense_media.py)."""
+    result = _dense_fit(extrapolate=False)
     correction = result.model["correction"]
     assert correction["converged"] and correction["renders"] >= 2, correction
     assert result.model["refine"] == 2 and result.model["n_theta"] >= 64
