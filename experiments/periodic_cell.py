@@ -54,10 +54,13 @@ class CellSpec:
 
     shift_orders: Annotated[int, Range(2, 1000)] | Literal["all"]
     wall_band: Annotated[int, Range(0, 1000)] = 0
+    band_orders: Annotated[int, Range(3, 1000)] | None = None
 
 
 def _label(cell: dict) -> str:
-    return f"shift_orders {cell['shift_orders']}, wall_band {cell.get('wall_band', 0)}"
+    label = f"shift_orders {cell['shift_orders']}, wall_band {cell.get('wall_band', 0)}"
+    orders = cell.get("band_orders")
+    return label if orders is None else f"{label}, band_orders {orders}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,7 +127,16 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
         ctx.progress(f"{spec['name']}: cell, {_label(scheme)}")
         walls, band = scheme["shift_orders"], scheme.get("wall_band", 0)
         orders = None if walls == "all" else walls
-        cell = lfj.CellRenderer(grid, stripes, k, medium.phase, shift_orders=orders, wall_band=band)
+        band_orders = scheme.get("band_orders")
+        cell = lfj.CellRenderer(
+            grid,
+            stripes,
+            k,
+            medium.phase,
+            shift_orders=orders,
+            wall_band=band,
+            band_orders=band_orders,
+        )
         timed = _timed(cell, medium, cfg["repeats"])
         images = timed.pop("out")
         row_error = np.max(np.abs(images.sum(axis=1) - total), axis=(0, 2)) / np.max(
@@ -138,6 +150,7 @@ def _case(ctx, cfg: dict, spec: dict) -> list[dict]:
                 base,
                 shift_orders=walls,
                 wall_band=band,
+                band_orders=band_orders,
                 row_error=row_error.tolist(),
                 row_error_max=float(row_error.max()),
                 row_error_walls=float(max(row_error[0], row_error[-1])),
@@ -173,6 +186,7 @@ def run(config: dict, out: Path, ctx) -> dict:
         "refine",
         "shift_orders",
         "wall_band",
+        "band_orders",
         "row_error_walls",
         "row_error_max",
         "row_error_middle",
@@ -198,6 +212,7 @@ def _plot(data: dict, path: Path) -> Path:
                 if r["medium"] == spec["name"]
                 and r["shift_orders"] == cell["shift_orders"]
                 and r.get("wall_band") == cell.get("wall_band", 0)
+                and r.get("band_orders") == cell.get("band_orders")
             )
             ax.plot(
                 np.maximum(row["row_error"], 1e-7),
