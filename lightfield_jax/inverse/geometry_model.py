@@ -4,13 +4,16 @@ sizing from an estimate and under the cell cap, its cheap model, its finer model
 discretisation and its renderer (the plane's stripes from one period, the periodic
 cell, where the model allows it). :func:`geometry_model` is the one place a scene
 geometry picks its strategy.
+
+``options`` is the fit's :class:`~lightfield_jax.FitOptions`, read for its model settings
+only (this module lies below it: the options hold a fit method, whose fit sizes models
+here).
 """
 
 from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import TYPE_CHECKING
 
 from lightfield_jax.forward.cell import SHIFT_ORDERS, cell_problem, cell_renderer_for
 from lightfield_jax.forward.plane import coarse_plane_grid
@@ -18,9 +21,6 @@ from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import REFINE_LIMIT, Grid, default_n_theta, default_refine
-
-if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
 
 # The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
 MIN_CAPPED_MU = 4
@@ -44,12 +44,12 @@ class GeometryModel(abc.ABC):
 
     @abc.abstractmethod
     def sized(
-        self, options: FitOptions, g: float, albedo: float, sigma_t: float | None
+        self, options, g: float, albedo: float, sigma_t: float | None
     ) -> tuple[int, int, GeometryModel]:
         """θ bins, refinement and this geometry resolved for an estimate (g, albedo,
         σt), before the cell cap."""
 
-    def capped(self, width: int, height: int, n_theta: int, refine: int, options: FitOptions):
+    def capped(self, width: int, height: int, n_theta: int, refine: int, options):
         """``(n_theta, geometry)`` within ``max_cells`` where the plane's cap
         (θ bins and refinement) left it above (the slab's fields are larger)."""
         return n_theta, self
@@ -58,7 +58,7 @@ class GeometryModel(abc.ABC):
         """The per-bounce ratio of the series at the estimate (``rho``: ω·A(g))."""
         return rho
 
-    def coarse_after(self, options: FitOptions) -> int | None:
+    def coarse_after(self, options) -> int | None:
         """The bounces after which the series continues on a coarser grid, or ``None``."""
         return None
 
@@ -67,7 +67,7 @@ class GeometryModel(abc.ABC):
         return None
 
     @abc.abstractmethod
-    def cheap(self, options: FitOptions) -> tuple[int, GeometryModel]:
+    def cheap(self, options) -> tuple[int, GeometryModel]:
         """θ bins and the geometry of the basin scan's cheap model."""
 
     def smallest(self) -> GeometryModel:
@@ -87,13 +87,13 @@ class GeometryModel(abc.ABC):
     def over_cap(self, grid: Grid, max_cells: int) -> str | None:
         """The model's size where it passes ``max_cells``, else ``None``."""
 
-    def fixed_by(self, options: FitOptions) -> list[str]:
+    def fixed_by(self, options) -> list[str]:
         """What the user fixed beyond θ bins and refinement (never lowered by the cap)."""
         return []
 
     least = "32"  # the fewest θ bins the cap leaves, in words
 
-    def finer_cheap(self, grid: Grid, options: FitOptions) -> tuple[Grid, GeometryModel] | None:
+    def finer_cheap(self, grid: Grid, options) -> tuple[Grid, GeometryModel] | None:
         """A finer cheap model for a solve that ran away, or ``None``."""
         return None
 
@@ -102,7 +102,7 @@ class GeometryModel(abc.ABC):
         return {}
 
     @abc.abstractmethod
-    def finer(self, grid: Grid, options: FitOptions, g: float) -> tuple[Grid, GeometryModel]:
+    def finer(self, grid: Grid, options, g: float) -> tuple[Grid, GeometryModel]:
         """The grid and geometry of the error term's finer model, never coarser."""
 
     def richardson_factor(self, grid: Grid, fine_grid: Grid) -> float | None:
@@ -123,7 +123,7 @@ class GeometryModel(abc.ABC):
         """This geometry's discretisation in a progress line (``""``: none)."""
         return ""
 
-    def stripe_cell(self, grid: Grid, options: FitOptions) -> int | None:
+    def stripe_cell(self, grid: Grid, options) -> int | None:
         """The stripe cell's ``shift_orders`` a model on ``grid`` renders stripes with
         (:class:`~lightfield_jax.forward.cell.CellRenderer`), or ``None``: the full
         render."""

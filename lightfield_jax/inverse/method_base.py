@@ -19,7 +19,6 @@ from lightfield_jax.checks import number_problem, shown
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.data import FitProblem, FitSolution
-    from lightfield_jax.inverse.options import FitOptions
 
 # The names of the methods (:data:`lightfield_jax.inverse.methods.METHODS`'s keys).
 METHOD_NAMES = ("joint", "gradient", "grid")
@@ -67,10 +66,10 @@ class FitMethod(eqx.Module):
     per_bounce: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def solve(
-        self, problem: FitProblem, options: FitOptions, say: Callable[[str], None]
-    ) -> FitSolution:
-        """Fit ``problem`` with the model settings of ``options``; ``say`` reports each
+    def solve(self, problem: FitProblem, options, say: Callable[[str], None]) -> FitSolution:
+        """Fit ``problem`` with the settings of ``options`` (the fit's
+        :class:`~lightfield_jax.FitOptions`, which lie above this module: they hold the
+        method); ``say`` reports each
         stage. Returns the model used, the seconds (``compile``, ``run``) and the values
         the :class:`~lightfield_jax.FitResult` is built from."""
 

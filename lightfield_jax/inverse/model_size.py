@@ -6,6 +6,9 @@ from the signal, all capped by ``max_cells``); the tail rule and the march sized
 measured per-bounce ratio; the buckets of bounce counts that let nearby needs share
 compiled programs; the basin scan's cheap model and the joint solve's extrapolated one;
 and whether one model covers another.
+
+``options`` is the fit's :class:`~lightfield_jax.FitOptions`, read for its model settings
+only (this module lies below it).
 """
 
 from __future__ import annotations
@@ -21,10 +24,10 @@ from lightfield_jax.inverse.geometry_model import (
     PlaneModel,
     geometry_model,
 )
-from lightfield_jax.inverse.options import FitOptions, phase_integral_at
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Stripes
 from lightfield_jax.scene.medium import bounces_for_tolerance
+from lightfield_jax.scene.phase import phase_integral_at
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,7 +143,7 @@ def size_model(
     pattern: Stripes,
     albedo: float,
     g: float,
-    options: FitOptions,
+    options,
     margin: float = 1.15,
     sigma_t: float | None = None,
     crop: tuple[int, int, int, int] | None = None,
@@ -186,7 +189,7 @@ def size_model(
     return _with_tail(model, options)
 
 
-def _tail_for(options: FitOptions, model: ModelSpec) -> str | None:
+def _tail_for(options, model: ModelSpec) -> str | None:
     """The tail solve of a model that would march ``model.bounces`` (``None``: it marches
     them): under ``tail: auto`` with ``bounces: auto``, BiCGStab once they exceed
     ``max_bounces`` (measured on the dense forward medium, 128×96, 32 θ bins, six
@@ -205,7 +208,7 @@ def _tail_for(options: FitOptions, model: ModelSpec) -> str | None:
 RATIO_MARGIN = 0.02
 
 
-def by_measured_ratio(model: ModelSpec, options: FitOptions, ratio: float) -> ModelSpec:
+def by_measured_ratio(model: ModelSpec, options, ratio: float) -> ModelSpec:
     """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
     below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) where that is fewer than the
     albedo's bound asked for: instead of its automatic tail where the count is at most
@@ -227,7 +230,7 @@ def by_measured_ratio(model: ModelSpec, options: FitOptions, ratio: float) -> Mo
     return model
 
 
-def _with_tail(model: ModelSpec, options: FitOptions) -> ModelSpec:
+def _with_tail(model: ModelSpec, options) -> ModelSpec:
     """``model`` with a tail and K0 explicit bounces where it gets one, else with its
     bounces capped at ``max_bounces`` (``bounces: auto``; the model's tail bound is
     reported with the result)."""
@@ -273,7 +276,7 @@ def at_least(model: ModelSpec, floor: ModelSpec | None) -> ModelSpec:
     )
 
 
-def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
+def scan_model(crop, options, rho0: float) -> ModelSpec:
     """The cheap model of the basin scan (and, through :func:`extrapolated`, of the
     joint fit's first solve): 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one constant depth
@@ -297,7 +300,7 @@ def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
     return _with_tail(model, options)
 
 
-def over_cap_note(model: ModelSpec, options: FitOptions) -> str | None:
+def over_cap_note(model: ModelSpec, options) -> str | None:
     """A note where :func:`size_model`'s ``model`` is larger than ``max_cells`` allows
     (``None``: it is not): θ bins or a refinement the options fix are never lowered,
     and θ bins not below 32 on the plane (8, with 4 elevation nodes, on the slab).
@@ -329,7 +332,7 @@ def over_cap_note(model: ModelSpec, options: FitOptions) -> str | None:
     )
 
 
-def finer_cheap(model: ModelSpec, options: FitOptions) -> ModelSpec | None:
+def finer_cheap(model: ModelSpec, options) -> ModelSpec | None:
     """The cheap model with more azimuth bins and elevation nodes for a solve that did
     not converge or ran to a bound (the slab's:
     :meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer_cheap`), or
@@ -341,7 +344,7 @@ def finer_cheap(model: ModelSpec, options: FitOptions) -> ModelSpec | None:
     return dataclasses.replace(model, grid=grid, geometry=geometry)
 
 
-def extrapolated(model: ModelSpec, options: FitOptions) -> ModelSpec:
+def extrapolated(model: ModelSpec, options) -> ModelSpec:
     """The cheap model of the solve: where the fit corrects its answer to the model it
     needs (``correct``) and sizes the series itself, a long series (a tail, or more
     than :data:`SCAN_TAIL_BOUNCES` bounces) becomes that many bounces and a geometric

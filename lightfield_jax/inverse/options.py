@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
 import numpy as np
 import optimistix as optx
 
@@ -28,14 +27,9 @@ from lightfield_jax.inverse.verdict import OFFSET_EXPLAINS
 from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
 from lightfield_jax.scene.grid import check_n_theta, check_refine
 from lightfield_jax.scene.medium import PHASE_CONVENTIONS
-from lightfield_jax.scene.phase import phase_integral
+from lightfield_jax.scene.phase import phase_integral_at
 
 PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
-
-# A(g) of a Python float, compiled once (op by op, its dozen operations would each
-# compile on first use).
-phase_integral_at = jax.jit(phase_integral)
-
 
 # The loosest solver tolerance (looser ones stop the solve where it starts). The most
 # bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).

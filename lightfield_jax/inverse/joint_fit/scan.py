@@ -15,8 +15,8 @@ from lightfield_jax.inverse.basins import Scan, basin_of, basins, nearest_point,
 from lightfield_jax.inverse.joint_fit.context import FitContext, Seconds
 from lightfield_jax.inverse.joint_fit.stage import joint_parts
 from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, ModelSpec
-from lightfield_jax.inverse.options import phase_integral_at
 from lightfield_jax.runtime.timing import stopwatch
+from lightfield_jax.scene.phase import phase_integral_at
 
 # An answer whose σt is more than this factor from the scan's (the direct light's decay
 # estimate) is checked by a second scan at its σt (:func:`rescan`). Measured on 32x24
