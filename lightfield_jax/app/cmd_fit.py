@@ -89,7 +89,7 @@ from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS
         "--max-steps",
         type=positive_int,
         metavar="N",
-        help="iteration limit of the solves (default: FitOptions.max_steps)",
+        help="iteration limit of the solves (default: the fit setting max_steps)",
     ),
     arg(
         "--time-limit",
