@@ -7,8 +7,9 @@ fit method (:mod:`lightfield_jax.inverse.methods`: ``GridSearch``, ``TwoStep``,
 ``Joint``, each taking any optimistix least-squares solver), then finishes the result;
 it also chooses the geometry under ``geometry: auto`` and renders a result's fitted
 images (:func:`fitted_images`). The parts live beside it: the settings and the result
-(:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`,
-the model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
+(:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`
+(the settings' groups by concern in :mod:`lightfield_jax.inverse.settings`), the
+model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
 :mod:`lightfield_jax.inverse.joint_fit` (a subpackage: its single solves and shared
 pieces in :mod:`lightfield_jax.inverse.joint_fit.stage`); the fit of a whole capture, channel by
 channel, is :mod:`lightfield_jax.inverse.capture_fit`. The methods, all on the same

@@ -279,7 +279,7 @@ def check_options(options, where: str) -> None:
     if options is not None and not isinstance(options, FitOptions):
         raise ValueError(
             f"{where}: options: must be a FitOptions or None, got {type(options).__name__} "
-            f"(its fields can also be given as keywords: {where}(..., max_steps=20))"
+            f"(its settings can also be given as keywords: {where}(..., max_steps=20))"
         )
 
 
