@@ -174,7 +174,9 @@ def fit_one(
         # with n_theta 4096 and refine 8 on 128x96 images runs for minutes toward an
         # allocation it cannot make.
         p, h, w = shape
-        check_memory(fit_memory(p * h * w, p, h, w, options), f"the fit of {p} images of {w}x{h}")
+        check_memory(
+            fit_memory(p * h * w, p, h, w, options.model), f"the fit of {p} images of {w}x{h}"
+        )
     if as_geometry(options.model.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,

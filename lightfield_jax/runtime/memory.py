@@ -177,15 +177,15 @@ FIT_N_THETA = 32
 RENDER_CELLS_PER_PIXEL = 128 * 2**2
 
 
-def fit_memory(samples: int, n_images: int, height: int, width: int, options) -> int:
+def fit_memory(samples: int, n_images: int, height: int, width: int, model) -> int:
     """The memory a fit of ``n_images`` images of ``height`` × ``width`` (``samples``
-    values loaded, every channel) needs under ``options`` (a FitOptions; its ``model``
-    settings are read): the larger of
-    the solve (:func:`fit_bytes` and a fixed series' :func:`series_bytes`) and the
-    primal renders (:func:`correction_bytes`)."""
+    values loaded, every channel) needs under the fit's ``model`` settings (a
+    :class:`~lightfield_jax.ModelOptions`): the larger of the solve (:func:`fit_bytes`
+    and a fixed series' :func:`series_bytes`) and the primal renders
+    (:func:`correction_bytes`)."""
     # θ bins or a refinement fixed by the options are never lowered to max_cells, so
     # they bound the model from below.
-    h, w, model = height, width, options.model
+    h, w = height, width
     fixed = 0
     if model.n_theta is not None or model.refine is not None:
         fixed = h * w * (model.n_theta or FIT_N_THETA) * (model.refine or 1) ** 2
