@@ -17,7 +17,7 @@ on small simulated stripe captures (``width`` × ``height``), over:
 - ``black_level``: the projector's dark-stripe level b, given to the fit (``known``)
   or not (two-step methods then assume 0; ``joint`` estimates it).
 - ``start`` (``joint`` only): the joint fit started away from the truth, σs × a
-  factor, g + an offset (``FitOptions.start``; σt comes from the decay fit: it has no
+  factor, g + an offset (``Joint.start``; σt comes from the decay fit: it has no
   start), the basin search off.
 - ``high_albedo``: albedo × g near ω = 1 under ``phase: normalized`` (captures and
   fits), where ρ = ω < 1: the series converges but slowly. Truths are marched to the
@@ -25,7 +25,7 @@ on small simulated stripe captures (``width`` × ``height``), over:
   keeps the a-priori tail bound ρ^K/(1 − ρ) and the tail measured on the render (the
   last bounce's energy extrapolated geometrically with its ratio to the one before).
 - ``refractive_slab``: media captured by the slab model with refractive faces (the
-  row's ``geometry``) and fitted with the same slab (``FitOptions.geometry``).
+  row's ``geometry``) and fitted with the same slab (the fit setting ``geometry``).
 
 Both rows take their own ``methods`` (default: the config's) and ``joint_timeout``
 (default: the config's), and report each fit's time (``high_albedo.png``,
@@ -663,7 +663,7 @@ def _starts(config: Config, ctx) -> list[dict]:
         cell = _cell(config, medium=m)
         images = functools.cache(lambda c=cell: inv.camera(_simulated(c, config), None, 0))
         # σt is not a start: the fit takes it from the direct light's decay (a start is
-        # σs and g, FitOptions.start); σs's start is kept below 0.98·σt.
+        # σs and g, Joint.start); σs's start is kept below 0.98·σt.
         offsets = [(fs, dg) for fs in spec["sigma_s_factor"] for dg in spec["g_offset"]]
         for i, (fs, dg) in enumerate(offsets):
             ctx.progress(f"start {medium['name']} {i + 1}/{len(offsets)}")

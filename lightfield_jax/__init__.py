@@ -48,6 +48,9 @@ from lightfield_jax.inverse.programs import clear_compiled as clear_compiled
 from lightfield_jax.inverse.programs import enable_compilation_cache as enable_compilation_cache
 from lightfield_jax.inverse.separate import Separation as Separation
 from lightfield_jax.inverse.separate import separate as separate
+from lightfield_jax.inverse.settings import ModelOptions as ModelOptions
+from lightfield_jax.inverse.settings import SolverOptions as SolverOptions
+from lightfield_jax.inverse.settings import TrustOptions as TrustOptions
 from lightfield_jax.scene.geometry import AutoGeometry as AutoGeometry
 from lightfield_jax.scene.geometry import Plane as Plane
 from lightfield_jax.scene.geometry import Slab as Slab

@@ -900,9 +900,12 @@ def test_numpy_numbers_in_fit_options_are_stored_as_python_numbers():
     """Before: FitOptions(max_steps=np.int64(2)) passed its check and the fit ended
     seconds in, after the scan, in optimistix's "`max_steps` must be a Python integer"."""
     options = lfj.FitOptions(max_steps=np.int64(2), tolerance=np.array(1e-4), n_theta=np.int32(16))
-    assert type(options.max_steps) is int and type(options.n_theta) is int
-    assert type(options.tolerance) is float
-    assert type(dataclasses.replace(options, tail_max_steps=np.int64(5)).tail_max_steps) is int
+    assert type(options.solve.max_steps) is int and type(options.model.n_theta) is int
+    assert type(options.model.tolerance) is float
+    assert type(options.replace(tail_max_steps=np.int64(5)).model.tail_max_steps) is int
+    assert (
+        type(dataclasses.replace(options, tail_max_steps=np.int64(5)).model.tail_max_steps) is int
+    )
     images = np.asarray(
         lfj.render(lfj.Medium(0.2051, 0.0366, 0.4), lfj.Grid(32, 24, 8, 1), lfj.Stripes(), 6).total
     )
@@ -918,8 +921,8 @@ def test_a_start_given_as_a_list_or_an_array_is_stored_as_a_tuple():
     and start=('0.03', '0.4') or (True, 0.4) was taken as numbers."""
     for given in ([0.03, 0.4], np.array([0.03, 0.4]), (np.float32(0.03), 0.4)):
         options, method = lfj.FitOptions(start=given), lfj.Joint(start=given)
-        assert options.start == method.start == pytest.approx((0.03, 0.4))
-        assert type(options.start) is tuple and type(options.start[0]) is float
+        assert options.method.start == method.start == pytest.approx((0.03, 0.4))
+        assert type(options.method.start) is tuple and type(options.method.start[0]) is float
         assert options == lfj.FitOptions(start=given) and hash(options) and hash(method)
     for bad in (("0.03", "0.4"), (True, 0.4), "ab"):
         for make in (lfj.FitOptions, lfj.Joint):
@@ -1090,9 +1093,9 @@ def test_a_setting_the_chosen_method_does_not_use_is_refused():
         with pytest.raises(ValueError, match=match):
             lfj.FitOptions(**kwargs)
     with pytest.raises(ValueError, match="^start: the grid method does not use it"):
-        dataclasses.replace(lfj.FitOptions(start=(0.03, 0.4)), method="grid")
-    assert lfj.FitOptions(method="gradient", solver=solver).solver is solver
-    assert lfj.FitOptions(method=lfj.Joint(), start=(0.03, 0.4)).start == (0.03, 0.4)
+        lfj.FitOptions(start=(0.03, 0.4)).replace(method="grid")
+    assert lfj.FitOptions(method="gradient", solver=solver).method.solver is solver
+    assert lfj.FitOptions(method=lfj.Joint(), start=(0.03, 0.4)).method.start == (0.03, 0.4)
 
 
 def test_fit_images_under_a_transformation_names_the_traced_images():

@@ -532,7 +532,7 @@ def test_the_fit_stops_after_the_scan_where_a_constant_offset_explains_its_misfi
     (reason,) = res.reasons
     assert "stopped after the scan" in reason and "camera pedestal" in reason, reason
     assert float(reason.split("a constant ")[1].split()[0]) == pytest.approx(0.01, rel=0.1)
-    assert res.basins["offset"]["fraction"] < lfj.FitOptions().offset_stop
+    assert res.basins["offset"]["fraction"] < lfj.FitOptions().trust.offset_stop
     assert "stopped" in res.basins and len(res.basins["tried"]) == 1
     assert "finer_model" not in res.model and "correction" not in res.model
 

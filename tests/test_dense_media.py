@@ -29,7 +29,7 @@ def test_the_error_terms_finer_model_refines_space_and_extrapolates():
     lies r_f/(r_f − r) = 3 of its step away; without room for more cells, nothing."""
     opts = lfj.FitOptions(phase="normalized")
     # The corrected model, sized within max_render_cells (as the fit sizes it).
-    need = lfj.FitOptions(phase="normalized", max_cells=opts.max_render_cells)
+    need = lfj.FitOptions(phase="normalized", max_cells=opts.model.max_render_cells)
     model = size_model(np.zeros((6, 96, 120)), lfj.Stripes(), 0.8, 0.7, need, 1.03, 0.2)
     assert (model.grid.n_theta, model.grid.refine) == (64, 2)
     fine = finer(model, opts, 0.7)

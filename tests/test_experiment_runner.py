@@ -14,6 +14,7 @@ import yaml
 from lightfield_jax.app import experiment as _experiment
 from lightfield_jax.app.experiment_config import typed_config
 from lightfield_jax.app.experiment_records import write_csv
+from lightfield_jax.app.experiment_scripts import load_script, tree_or_packaged
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -46,15 +47,15 @@ def test_an_empty_name_or_a_config_that_is_no_file_is_named(monkeypatch, tmp_pat
 def test_packaged_copies_used_outside_a_checkout(monkeypatch, tmp_path):
     package = tmp_path / "site" / "lightfield_jax"
     (package / "_experiments").mkdir(parents=True)
-    monkeypatch.setattr(_experiment, "_HERE", package)
-    assert _experiment._tree_or_packaged("experiments", "_experiments") == package / "_experiments"
-    monkeypatch.setattr(_experiment, "_HERE", ROOT / "lightfield_jax")
-    assert _experiment._tree_or_packaged("experiments", "_experiments") == ROOT / "experiments"
+    assert tree_or_packaged("experiments", "_experiments", package) == package / "_experiments"
+    checkout = ROOT / "lightfield_jax"
+    assert tree_or_packaged("experiments", "_experiments", checkout) == ROOT / "experiments"
+    assert _experiment.EXPERIMENTS_DIR == ROOT / "experiments"  # this checkout's
 
 
 def _plane_vs_slab_config():
     """plane_vs_slab's typed config class (the script loaded as the runner loads it)."""
-    return _experiment._load_script("plane_vs_slab").Config
+    return load_script("plane_vs_slab").Config
 
 
 @pytest.mark.parametrize(
@@ -90,7 +91,7 @@ def test_a_typed_config_is_frozen_with_tuples():
     "name", ["inverse_speed_accuracy", "stability_maps", "forward_accuracy", "fit_speed"]
 )
 def test_an_experiment_refuses_an_unknown_config_key(name, tmp_path):
-    script = _experiment._load_script(name)
+    script = load_script(name)
     ctx = _experiment.Context(out=tmp_path, progress=lambda _m: None, reduced=False)
     for reduced in (False, True):  # the shipped config, full and reduced, is valid
         raw = _experiment.load_experiment_config(ROOT / "configs" / f"{name}.yaml", reduced)
@@ -154,7 +155,7 @@ def test_every_experiment_script_loads_and_every_config_names_one():
     long run) and each shipped config names a script that exists."""
     names = sorted(p.stem for p in _experiment.EXPERIMENTS_DIR.glob("*.py") if p.stem[0] != "_")
     for name in names:
-        assert callable(_experiment._load_script(name).run), name
+        assert callable(load_script(name).run), name
     configs = _experiment.EXPERIMENTS_DIR.parent / "configs"
     for path in sorted(configs.glob("*.yaml")):
         experiment = yaml.safe_load(path.read_text()).get("experiment")
@@ -173,7 +174,7 @@ def test_every_shipped_experiment_config_is_valid_in_full_and_reduced():
         name = data.get("experiment")
         if name is None:
             continue
-        script = _experiment._load_script(name)
+        script = load_script(name)
         for reduced in (False, True) if data.get("reduced") else (False,):
             raw = _experiment.load_experiment_config(path, reduced)
             _experiment.check_experiment_config(script, raw)  # every script has a Config
@@ -217,7 +218,7 @@ def test_reduced_needs_a_reduced_section(tmp_path):
 @pytest.fixture
 def no_work(monkeypatch):
     """A script's run() fails the test: a bad config must be refused before it starts."""
-    load = _experiment._load_script
+    load = load_script
 
     def guarded(name):
         module = load(name)
@@ -228,7 +229,7 @@ def no_work(monkeypatch):
         module.run = run
         return module
 
-    monkeypatch.setattr(_experiment, "_load_script", guarded)
+    monkeypatch.setattr(_experiment, "load_script", guarded)
 
 
 def _shipped(name: str, reduced: bool = True) -> dict:
@@ -285,7 +286,7 @@ def test_every_required_key_of_every_experiment_is_checked(tmp_path):
         if "experiment" not in raw:
             continue
         raw.pop("reduced", None)
-        script = _experiment._load_script(raw["experiment"])
+        script = load_script(raw["experiment"])
         fields = {f.name: f for f in dataclasses.fields(script.Config)}
         for key in set(raw) - {"experiment"}:
             partial = {k: v for k, v in raw.items() if k != key}
@@ -476,8 +477,8 @@ def test_a_failed_run_publishes_nothing_but_its_cache(tmp_path, monkeypatch):
             raise RuntimeError("failed after its first figure")
         return {"value": value}
 
-    script = types.SimpleNamespace(Config=_experiment._load_script("paper_figures").Config, run=run)
-    monkeypatch.setattr(_experiment, "_load_script", lambda _name: script)
+    script = types.SimpleNamespace(Config=load_script("paper_figures").Config, run=run)
+    monkeypatch.setattr(_experiment, "load_script", lambda _name: script)
     path, out = _write(tmp_path, _shipped("paper_figures")), tmp_path / "out"
     with pytest.raises(RuntimeError, match="first figure"):
         _experiment.run_experiment(path, out)
@@ -506,7 +507,7 @@ def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, ca
     traceback as 'error_message') and exit 0; now exit 1 with its last line."""
     from lightfield_jax.app.cli import main
 
-    load = _experiment._load_script
+    load = load_script
 
     def broken(name):
         module = load(name)
@@ -514,7 +515,7 @@ def test_a_failed_fit_speed_child_fails_the_experiment(tmp_path, monkeypatch, ca
         module._fit_kwargs = lambda cfg, medium: {"no_such_option": 1}
         return module
 
-    monkeypatch.setattr(_experiment, "_load_script", broken)
+    monkeypatch.setattr(_experiment, "load_script", broken)
     path, out = _write(tmp_path, _shipped("fit_speed")), tmp_path / "out"
     assert main(["experiment", str(path), "--out", str(out), "-q"]) == 1
     err = capsys.readouterr().err.strip()

@@ -36,7 +36,7 @@ SMALL_FORWARD = lfj.Grid(32, 24, 16, 1)  # its 60-bounce model is the costly one
 # forward one's default, 64 bins on a 2x grid, makes its 60-bounce joint fit take hours
 # on a CPU; a round trip is self-consistent either way).
 FULL = lfj.Grid(128, 96, 32, 1)
-G_GRID = lfj.FitOptions().g_grid
+G_GRID = lfj.GridSearch().g_values
 G_SPACING = 1.9 / (G_GRID - 1)  # the grid method searches linspace(-0.95, 0.95, g_grid)
 
 
@@ -868,17 +868,17 @@ def test_the_model_size_chooses_a_march_or_the_tail():
     low, _ = sized(0.3)
     assert low.tail is None and low.bounces <= 16
     high, opts = sized(0.99)
-    assert (high.tail, high.bounces) == ("bicgstab", opts.tail_bounces)
-    assert high.as_dict()["tail"]["K0"] == opts.tail_bounces
+    assert (high.tail, high.bounces) == ("bicgstab", opts.model.tail_bounces)
+    assert high.as_dict()["tail"]["K0"] == opts.model.tail_bounces
     assert high.as_dict()["tail_bound"] is None
     marched = by_measured_ratio(high, opts, 0.75)
-    assert marched.tail is None and 32 <= marched.bounces <= opts.max_bounces
+    assert marched.tail is None and 32 <= marched.bounces <= opts.model.max_bounces
     assert marched.as_dict()["ratio_measured"] == 0.75
     assert by_measured_ratio(high, opts, 0.97).tail == "bicgstab"
     capped, opts = sized(0.99, tail=None)
-    assert capped.tail is None and capped.bounces == opts.max_bounces
+    assert capped.tail is None and capped.bounces == opts.model.max_bounces
     forced, opts = sized(0.3, tail="gmres")
-    assert (forced.tail, forced.bounces) == ("gmres", opts.tail_bounces)
+    assert (forced.tail, forced.bounces) == ("gmres", opts.model.tail_bounces)
 
 
 def test_the_error_terms_plane_model_is_finer_past_256_bins():

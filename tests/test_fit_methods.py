@@ -183,6 +183,34 @@ def test_bad_method_settings_are_refused():
         lfj.Joint(start=(0.03, 1.2))
 
 
+def test_flat_settings_go_to_their_group_or_to_the_method_that_owns_them():
+    options = lfj.FitOptions(method="grid", g_grid=21, n_theta=32, max_chi2=50.0, max_steps=7)
+    assert options.method == lfj.GridSearch(21)
+    assert (options.model.n_theta, options.trust.max_chi2, options.solve.max_steps) == (32, 50.0, 7)
+    assert options == lfj.FitOptions(**options.flat())
+    slab = lfj.FitOptions(geometry=lfj.Slab(6.4))
+    assert slab.replace(n_theta=16).model.geometry == lfj.Slab(6.4)
+    # A method's setting lives in the method only: the same fit however it is given.
+    assert lfj.FitOptions(method="gradient", start_grid=5).method == lfj.TwoStep(start_grid=5)
+    assert lfj.FitOptions(start=(0.03, 0.4)).method == lfj.Joint(start=(0.03, 0.4))
+    # A method given as a value keeps its own setting; a name takes the one it replaces.
+    assert lfj.FitOptions(method=lfj.GridSearch(9), g_grid=21).method == lfj.GridSearch(9)
+    joint = lfj.FitOptions(solver=optx.Dogleg(rtol=1e-6, atol=1e-8), max_steps=7)
+    assert joint.replace(method="gradient").method.solver == joint.method.solver
+    assert joint.replace(method="gradient").solve.max_steps == 7
+    # g_grid / start_grid are checked for every method (a capture file's fit: keys are
+    # read before the command chooses one), then apply to the method that takes them.
+    assert lfj.FitOptions(g_grid=21).method == lfj.Joint()
+    with pytest.raises(ValueError, match=r"^g_grid: must be an integer in \[3, 100000\]"):
+        lfj.FitOptions(g_grid=2)
+    with pytest.raises(
+        TypeError, match=r"^FitOptions: unknown setting 'n_thetas' \(the settings: "
+    ):
+        lfj.FitOptions(n_thetas=32)
+    with pytest.raises(ValueError, match="^model: must be a ModelOptions or None, got dict"):
+        lfj.FitOptions(model={"n_theta": 32})
+
+
 def test_the_options_know_every_method_by_its_name():
     # The options check a method's name below the methods (method_base): every method
     # is known there under its own name, and nothing else is.

@@ -1227,9 +1227,9 @@ def test_a_fit_whose_primal_renders_need_more_than_the_limit_is_refused(capture,
     h, w = loaded.shape
     options = lfj.FitOptions()
     samples, n = loaded.images.size, loaded.n_images
-    solve = memory.fit_bytes(samples, n, min(h * w * FIT_N_THETA, options.max_cells))
+    solve = memory.fit_bytes(samples, n, min(h * w * FIT_N_THETA, options.model.max_cells))
     renders = memory.correction_bytes(
-        samples, n, min(h * w * RENDER_CELLS_PER_PIXEL, 2 * options.max_render_cells)
+        samples, n, min(h * w * RENDER_CELLS_PER_PIXEL, 2 * options.model.max_render_cells)
     )
     assert renders > solve
     limit = str((solve + renders) // 2)

@@ -218,7 +218,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         h, w = capture.shape
         options = FitOptions(**capture.fit_options)
         check_memory(
-            fit_memory(capture.images.size, capture.n_images, h, w, options),
+            fit_memory(capture.images.size, capture.n_images, h, w, options.model),
             f"{capture.source}: the fit",
         )
         for note in capture.notes:

@@ -89,7 +89,7 @@ from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS
         "--max-steps",
         type=positive_int,
         metavar="N",
-        help="iteration limit of the solves (default: FitOptions.max_steps)",
+        help="iteration limit of the solves (default: the fit setting max_steps)",
     ),
     arg(
         "--time-limit",
@@ -141,7 +141,7 @@ def _fit(args: argparse.Namespace) -> int | None:
     h, w = capture.shape
     defaults = FitOptions(**capture.fit_options)
     check_memory(
-        fit_memory(capture.images.size, capture.n_images, h, w, defaults),
+        fit_memory(capture.images.size, capture.n_images, h, w, defaults.model),
         f"{capture.source}: the fit",
     )
     # What loading measured or doubted (a pattern.lit the stripes contradict makes the

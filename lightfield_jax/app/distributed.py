@@ -39,13 +39,15 @@ from typing import Any
 
 import numpy as np
 
+from lightfield_jax.app.experiment_scripts import SCRIPTS_PACKAGE, load_helper
+
 SCHEDULER_ENV = "LIGHTFIELD_JAX_SCHEDULER"
 MAX_TASKS = 10_000
 """A sweep or batch above this many fits is refused unless asked for explicitly."""
 
 # Module prefix of the experiment scripts and their helpers (loaded by path, see
-# lightfield_jax.app.experiment): a worker loads those a task refers to.
-_SCRIPTS = "lightfield_jax_experiments."
+# lightfield_jax.app.experiment_scripts): a worker loads those a task refers to.
+_SCRIPTS = f"{SCRIPTS_PACKAGE}."
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,8 +175,6 @@ def _unpickle(payload: bytes):
     loaded by path, which no import finds) are loaded on the way, as they are asked
     for."""
     import cloudpickle
-
-    from lightfield_jax.app.experiment import SCRIPTS_PACKAGE, load_helper
 
     sys.modules.setdefault(SCRIPTS_PACKAGE, types.ModuleType(SCRIPTS_PACKAGE))
     loaded: set[str] = set()

@@ -40,16 +40,14 @@ import contextvars
 import dataclasses
 import datetime
 import hashlib
-import importlib.util
 import itertools
 import json
 import os
-import sys
-import types
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from lightfield_jax.app.distributed import Task, check_count, cluster, run_tasks
 from lightfield_jax.app.experiment_config import (
     MAX_CELLS,
     check_cells,
@@ -59,23 +57,13 @@ from lightfield_jax.app.experiment_records import (
     machine,
     versions,
 )
+from lightfield_jax.app.experiment_scripts import CONFIGS_DIR as CONFIGS_DIR
+from lightfield_jax.app.experiment_scripts import EXPERIMENTS_DIR as EXPERIMENTS_DIR
+from lightfield_jax.app.experiment_scripts import load_helper as load_helper
+from lightfield_jax.app.experiment_scripts import load_script
 from lightfield_jax.files import atomic_directory, atomic_write_json
 from lightfield_jax.runtime.memory import check_memory, render_bytes
 from lightfield_jax.schema import load_yaml
-
-_HERE = Path(__file__).resolve().parent.parent  # the package folder
-
-
-def _tree_or_packaged(tree: str, packaged: str) -> Path:
-    """The source tree's folder when running from a checkout, else the wheel's copy."""
-    source = _HERE.parent / tree
-    return source if source.is_dir() else _HERE / packaged
-
-
-EXPERIMENTS_DIR = _tree_or_packaged("experiments", "_experiments")
-
-
-CONFIGS_DIR = _tree_or_packaged("configs", "_configs")
 
 
 @dataclasses.dataclass
@@ -149,8 +137,6 @@ class Context:
         """``compute(**point)`` for every point of the Cartesian product of ``axes``
         (``(name, values)`` pairs, the first outermost), each reported through
         ``progress`` and :meth:`cached` under ``key(**point)``: a rerun resumes."""
-        from lightfield_jax.app.distributed import check_count
-
         points = _points(axes)
         check_count(len(points), self.allow_large, "sweep points")
         rows = []
@@ -162,8 +148,6 @@ class Context:
     def client(self):
         """The run's Dask client, started at the first use and closed with the run."""
         if self._client is None:
-            from lightfield_jax.app.distributed import cluster
-
             self._client = self._resources.enter_context(
                 cluster(self.scheduler, workers=self.workers)
             )
@@ -192,8 +176,6 @@ class Context:
         timeout)`` (stored), or without ``on_timeout`` a failure. Points that failed (a
         worker dead twice, an exception, a timeout) are not stored: the run then raises
         :class:`ExperimentError` naming them, after every other point is stored."""
-        from lightfield_jax.app.distributed import Task, check_count, run_tasks
-
         points = _points(axes)
         check_count(len(points), self.allow_large, "sweep points")  # before a cluster starts
         tasks = [
@@ -281,58 +263,12 @@ def load_experiment_config(path: str | Path, reduced: bool = False) -> dict:
     return data
 
 
-SCRIPTS_PACKAGE = "lightfield_jax_experiments"
-
-
-def _exec_module(name: str, path: Path):
-    """Execute ``path`` as the module ``lightfield_jax_experiments.NAME``, registered in
-    ``sys.modules`` first (dataclasses in a script look their module up)."""
-    # The scripts' package, as a module of its own: pickle finds a script's functions
-    # by importing their module's name (Dask sends them to its workers so).
-    sys.modules.setdefault(SCRIPTS_PACKAGE, types.ModuleType(SCRIPTS_PACKAGE))
-    spec = importlib.util.spec_from_file_location(f"{SCRIPTS_PACKAGE}.{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        del sys.modules[spec.name]
-        raise
-    return module
-
-
 def child_env() -> dict[str, str]:
     """The environment of an experiment's child process: the parent's, with JAX's GPU
     memory preallocation off unless set (parent and children share one accelerator;
     each would otherwise take 75 % of its memory at its first array, and a child ran
     out of memory on an H200)."""
     return {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **os.environ}
-
-
-def load_helper(name: str):
-    """A helper module shared by the experiment scripts, ``experiments/NAME.py`` (e.g.
-    ``_inverse``, ``_batch``): loaded once per process, then the same module object.
-    The scripts are loaded by path, not from a package, so they import helpers this way:
-    ``inv = load_helper("_inverse")``."""
-    full = f"lightfield_jax_experiments.{name}"
-    if full in sys.modules:
-        return sys.modules[full]
-    path = EXPERIMENTS_DIR / f"{name}.py"
-    if not path.is_file():
-        raise ValueError(f"experiment: no helper module {path}")
-    return _exec_module(name, path)
-
-
-def _load_script(name):
-    # Only the shipped experiments: a config is data and never names a file to run.
-    known = sorted(p.stem for p in EXPERIMENTS_DIR.glob("*.py") if not p.stem.startswith("_"))
-    if not isinstance(name, str) or name not in known:
-        raise ValueError(f"experiment: unknown experiment {name!r} (known: {', '.join(known)})")
-    script = EXPERIMENTS_DIR / f"{name}.py"
-    module = _exec_module(name, script)
-    if not hasattr(module, "run"):
-        raise ValueError(f"experiment: {script} defines no run(config, out, ctx)")
-    return module
 
 
 class ExperimentError(RuntimeError):
@@ -401,7 +337,7 @@ def run_experiment(
     config = load_experiment_config(config_path, reduced)
     check_cells(config, config_path, max_cells)
     try:
-        module = _load_script(config["experiment"])
+        module = load_script(config["experiment"])
         check_experiment_config(module, config)
         if reduced:  # the values reduced: replaces too: a trial run vouches for the config
             typed_config(module.Config, load_experiment_config(config_path))

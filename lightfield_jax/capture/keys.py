@@ -346,11 +346,13 @@ def read_geometry(top: Section) -> dict[str, Any]:
 
 
 def read_fit_options(top: Section, key: str = "fit") -> dict[str, Any]:
-    """The ``fit:`` mapping (at ``key``): FitOptions fields (:data:`FIT_KEYS`), each
-    checked for its type, then together by FitOptions itself (ranges), before any image
-    is read."""
+    """The ``fit:`` mapping (at ``key``): FitOptions settings (:data:`FIT_KEYS`), each
+    checked for its type, then as FitOptions checks them (ranges: each group of
+    settings, :mod:`lightfield_jax.inverse.settings`, and the methods' own), before any
+    image is read and before the command chooses the method."""
     from lightfield_jax.forward.tail import TAIL_METHODS
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.method_base import METHOD_KEYS, check_method_setting
+    from lightfield_jax.inverse.settings import grouped
 
     if key not in top.data or top.data[key] is None:
         return {}
@@ -377,7 +379,10 @@ def read_fit_options(top: Section, key: str = "fit") -> dict[str, Any]:
                 s.fail(s.key(k), f"must be [sigma_s, g], got {brief(value)}")
             out[k] = tuple(as_float(s, s.key(k), v) for v in value)
     try:
-        FitOptions(**out)
+        grouped({k: v for k, v in out.items() if k not in METHOD_KEYS})
+        for k in METHOD_KEYS:
+            if k in out:
+                check_method_setting(k, out[k])
     except ValueError as err:
         s.fail(key, str(err))
     return out

@@ -158,10 +158,10 @@ def fit_capture(
 
         settings = getattr(capture, "fit_options", None) or {}
         options = FitOptions(**{**settings, "phase": fit_phase(capture)})
-    opts = dataclasses.replace(options, method=method, **overrides)
-    if opts.geometry is None and "geometry" not in overrides:
+    opts = options.replace(method=method, **overrides)
+    if opts.model.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)
-        opts = dataclasses.replace(opts, geometry=geometry)
+        opts = opts.replace(geometry=geometry)
     for c in chosen:  # a dark channel, before any fit runs
         i = names.index(c)
         images = np.asarray(capture.images[..., i])
@@ -249,12 +249,12 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> ModelSp
     """The smallest model every channel of ``capture`` is fitted with: the union of the
     channels' signal crops (one shape for all), the cheapest discretisation (grown to
     each channel's model as the channels are fitted). ``None`` under geometry auto."""
-    if as_geometry(options.geometry).chosen_by_fit:
+    if as_geometry(options.model.geometry).chosen_by_fit:
         return None
     images = np.asarray(capture.images)
     p, h, w = images.shape[:3]
     crop = (0, 0, w, h)
-    if options.crop:
+    if options.model.crop:
         crops = []
         for i in channels:
             # The values the fit keeps (per value, as fit_images crops them).
@@ -264,7 +264,7 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> ModelSp
                 signal_crop(
                     np.where(keep, images[..., i], 0.0),
                     capture.pattern,
-                    options.crop_fraction,
+                    options.model.crop_fraction,
                 )
             )
         crop = tuple(f(c[k] for c in crops) for k, f in enumerate((min, min, max, max)))
@@ -274,5 +274,5 @@ def _capture_floor(capture, channels: list[int], options: FitOptions) -> ModelSp
         crop=crop,
         converges=True,
         rho=0.0,
-        geometry=geometry_model(options.geometry).smallest(),
+        geometry=geometry_model(options.model.geometry).smallest(),
     )

@@ -7,8 +7,9 @@ fit method (:mod:`lightfield_jax.inverse.methods`: ``GridSearch``, ``TwoStep``,
 ``Joint``, each taking any optimistix least-squares solver), then finishes the result;
 it also chooses the geometry under ``geometry: auto`` and renders a result's fitted
 images (:func:`fitted_images`). The parts live beside it: the settings and the result
-(:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`,
-the model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
+(:class:`FitOptions`, :class:`FitResult`) in :mod:`lightfield_jax.inverse.options`
+(the settings' groups by concern in :mod:`lightfield_jax.inverse.settings`), the
+model-sizing rules in :mod:`lightfield_jax.inverse.model_size`, the joint fit in
 :mod:`lightfield_jax.inverse.joint_fit` (a subpackage: its single solves and shared
 pieces in :mod:`lightfield_jax.inverse.joint_fit.stage`); the fit of a whole capture, channel by
 channel, is :mod:`lightfield_jax.inverse.capture_fit`. The methods, all on the same
@@ -53,7 +54,6 @@ from lightfield_jax.inverse.budget import Uncertainty
 from lightfield_jax.inverse.data import FitProblem, prepare_data, valid_values
 from lightfield_jax.inverse.geometry_model import geometry_model
 from lightfield_jax.inverse.joint_fit.stage import model_renderer
-from lightfield_jax.inverse.methods import method_for
 from lightfield_jax.inverse.model_choice import choose, misfit, relative_noise
 from lightfield_jax.inverse.model_size import ModelSpec, over_cap_note, size_model
 from lightfield_jax.inverse.options import (
@@ -108,7 +108,8 @@ def fit_images(
             joint fit also masks the values its answer puts within 3σ of it and solves
             again (``model["censoring"]``; docs/model.md §6).
         pixel_size_mm: to report coefficients in mm⁻¹ as well.
-        options: :class:`FitOptions`; keyword ``overrides`` replace its fields.
+        options: :class:`FitOptions`; keyword ``overrides`` replace its settings (its
+            flat keywords, :meth:`FitOptions.replace`).
         progress: called with a short description of each stage.
         split: ``(direct, multiple)`` images to use instead of separating the capture
             (e.g. a perfect split from a renderer: I_1 and Σ_{k≥2} I_k under full
@@ -120,7 +121,7 @@ def fit_images(
     """
     check_options(options, "fit_images")
     check_progress(progress, "fit_images")
-    options = dataclasses.replace(options or FitOptions(), **overrides)
+    options = (options or FitOptions()).replace(**overrides)
     if black_level is not None:
         # Checked here, before the images' checks, under fit_images' own name (the
         # helper would name it "separate.black_level").
@@ -173,8 +174,10 @@ def fit_one(
         # with n_theta 4096 and refine 8 on 128x96 images runs for minutes toward an
         # allocation it cannot make.
         p, h, w = shape
-        check_memory(fit_memory(p * h * w, p, h, w, options), f"the fit of {p} images of {w}x{h}")
-    if as_geometry(options.geometry).chosen_by_fit:
+        check_memory(
+            fit_memory(p * h * w, p, h, w, options.model), f"the fit of {p} images of {w}x{h}"
+        )
+    if as_geometry(options.model.geometry).chosen_by_fit:
         return _fit_auto_geometry(
             images,
             pattern,
@@ -191,16 +194,15 @@ def fit_one(
         )
     # The plane is None from here on; the slab's 3-D Henyey–Greenstein is normalised on
     # the sphere (ρ = ω): its phase convention is "normalized".
-    geometry = as_geometry(options.geometry)
-    options = dataclasses.replace(
-        options,
+    geometry = as_geometry(options.model.geometry)
+    options = options.replace(
         geometry=geometry.slab_or_none,
-        phase=geometry.phase_convention(options.phase),
+        phase=geometry.phase_convention(options.model.phase),
     )
     say = progress or (lambda _msg: None)
-    method = method_for(options.method)
+    method = options.method
     if method.per_bounce:
-        options = dataclasses.replace(options, tail=None)
+        options = options.replace(tail=None)
     forget_if_crowded(say)
     t_start = time.perf_counter()
     say("separating direct and multiple scattering")
@@ -287,7 +289,7 @@ def _finish(options: FitOptions, t_start: float, seconds: dict, model: ModelSpec
         iterations=int(values.pop("iterations")),
         seconds=seconds,
         model=model_dict,
-        phase=options.phase,
+        phase=options.model.phase,
         **values,
     )
 
@@ -297,10 +299,10 @@ def _fit_auto_geometry(images, pattern: Stripes, options: FitOptions, progress, 
     capture's relative noise; the slab's fit otherwise. The result carries the choice
     and its evidence in ``model["geometry_choice"]``."""
     say = progress or (lambda _msg: None)
-    auto: AutoGeometry = options.geometry
+    auto: AutoGeometry = options.model.geometry
 
     def fit_with(geometry) -> FitResult:
-        opts = dataclasses.replace(options, geometry=geometry)
+        opts = options.replace(geometry=geometry)
         return fit_one(images, pattern, opts, progress, **kwargs)
 
     def chose(result: FitResult, choice: dict) -> FitResult:

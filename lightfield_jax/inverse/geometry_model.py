@@ -4,23 +4,23 @@ sizing from an estimate and under the cell cap, its cheap model, its finer model
 discretisation and its renderer (the plane's stripes from one period, the periodic
 cell, where the model allows it). :func:`geometry_model` is the one place a scene
 geometry picks its strategy.
+
+``options`` is a fit's :class:`~lightfield_jax.inverse.settings.FitSettings` (a
+:class:`~lightfield_jax.FitOptions`), read for its model settings.
 """
 
 from __future__ import annotations
 
 import abc
 import dataclasses
-from typing import TYPE_CHECKING
 
 from lightfield_jax.forward.cell import SHIFT_ORDERS, cell_problem, cell_renderer_for
 from lightfield_jax.forward.plane import coarse_plane_grid
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.forward.slab import slab_bounce_ratio
+from lightfield_jax.inverse.settings import FitSettings
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import REFINE_LIMIT, Grid, default_n_theta, default_refine
-
-if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
 
 # The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
 MIN_CAPPED_MU = 4
@@ -44,12 +44,12 @@ class GeometryModel(abc.ABC):
 
     @abc.abstractmethod
     def sized(
-        self, options: FitOptions, g: float, albedo: float, sigma_t: float | None
+        self, options: FitSettings, g: float, albedo: float, sigma_t: float | None
     ) -> tuple[int, int, GeometryModel]:
         """θ bins, refinement and this geometry resolved for an estimate (g, albedo,
         σt), before the cell cap."""
 
-    def capped(self, width: int, height: int, n_theta: int, refine: int, options: FitOptions):
+    def capped(self, width: int, height: int, n_theta: int, refine: int, options: FitSettings):
         """``(n_theta, geometry)`` within ``max_cells`` where the plane's cap
         (θ bins and refinement) left it above (the slab's fields are larger)."""
         return n_theta, self
@@ -58,7 +58,7 @@ class GeometryModel(abc.ABC):
         """The per-bounce ratio of the series at the estimate (``rho``: ω·A(g))."""
         return rho
 
-    def coarse_after(self, options: FitOptions) -> int | None:
+    def coarse_after(self, options: FitSettings) -> int | None:
         """The bounces after which the series continues on a coarser grid, or ``None``."""
         return None
 
@@ -67,7 +67,7 @@ class GeometryModel(abc.ABC):
         return None
 
     @abc.abstractmethod
-    def cheap(self, options: FitOptions) -> tuple[int, GeometryModel]:
+    def cheap(self, options: FitSettings) -> tuple[int, GeometryModel]:
         """θ bins and the geometry of the basin scan's cheap model."""
 
     def smallest(self) -> GeometryModel:
@@ -87,13 +87,13 @@ class GeometryModel(abc.ABC):
     def over_cap(self, grid: Grid, max_cells: int) -> str | None:
         """The model's size where it passes ``max_cells``, else ``None``."""
 
-    def fixed_by(self, options: FitOptions) -> list[str]:
+    def fixed_by(self, options: FitSettings) -> list[str]:
         """What the user fixed beyond θ bins and refinement (never lowered by the cap)."""
         return []
 
     least = "32"  # the fewest θ bins the cap leaves, in words
 
-    def finer_cheap(self, grid: Grid, options: FitOptions) -> tuple[Grid, GeometryModel] | None:
+    def finer_cheap(self, grid: Grid, options: FitSettings) -> tuple[Grid, GeometryModel] | None:
         """A finer cheap model for a solve that ran away, or ``None``."""
         return None
 
@@ -102,7 +102,7 @@ class GeometryModel(abc.ABC):
         return {}
 
     @abc.abstractmethod
-    def finer(self, grid: Grid, options: FitOptions, g: float) -> tuple[Grid, GeometryModel]:
+    def finer(self, grid: Grid, options: FitSettings, g: float) -> tuple[Grid, GeometryModel]:
         """The grid and geometry of the error term's finer model, never coarser."""
 
     def richardson_factor(self, grid: Grid, fine_grid: Grid) -> float | None:
@@ -123,7 +123,7 @@ class GeometryModel(abc.ABC):
         """This geometry's discretisation in a progress line (``""``: none)."""
         return ""
 
-    def stripe_cell(self, grid: Grid, options: FitOptions) -> int | None:
+    def stripe_cell(self, grid: Grid, options: FitSettings) -> int | None:
         """The stripe cell's ``shift_orders`` a model on ``grid`` renders stripes with
         (:class:`~lightfield_jax.forward.cell.CellRenderer`), or ``None``: the full
         render."""
@@ -153,13 +153,13 @@ class PlaneModel(GeometryModel):
     def sized(self, options, g, albedo, sigma_t):
         gw = min(0.99, abs(g) + 0.1)
         return (
-            options.n_theta or default_n_theta(gw),
-            options.refine or default_refine(abs(g)),
+            options.model.n_theta or default_n_theta(gw),
+            options.model.refine or default_refine(abs(g)),
             self,
         )
 
     def coarse_after(self, options):
-        return options.coarse_after
+        return options.model.coarse_after
 
     def coarse(self, grid, bounces, after):
         if after is None or bounces <= after or coarse_plane_grid(grid) is None:
@@ -167,7 +167,7 @@ class PlaneModel(GeometryModel):
         return after
 
     def cheap(self, options):
-        return min(options.n_theta or 32, 32), self
+        return min(options.model.n_theta or 32, 32), self
 
     def over_cap(self, grid, max_cells):
         cells = plane_cells(grid)
@@ -182,7 +182,7 @@ class PlaneModel(GeometryModel):
         cell size (:meth:`richardson_factor`): a term that kept the model's refinement
         did not see the dense forward medium's (64 θ bins, refine 2, Monte Carlo
         capture: σt +2.5 % reported as ± 0.2 %)."""
-        cap = 2 * options.max_render_cells
+        cap = 2 * options.model.max_render_cells
 
         def cells(n_theta: int, refine: int) -> int:
             return grid.width * grid.height * n_theta * refine**2
@@ -217,7 +217,7 @@ class PlaneModel(GeometryModel):
         render in every row and several times faster (docs/periodic_cell.md), where the
         model's own discretisation error is percents (the error term's refine + 1). On
         the native grid it is no faster than the full render."""
-        return SHIFT_ORDERS if options.stripe_cell and grid.refine > 1 else None
+        return SHIFT_ORDERS if options.model.stripe_cell and grid.refine > 1 else None
 
     def renderer(self, model, illumination, phase, **solve):
         if model.cell is not None and cell_problem(model.grid, illumination) is None:
@@ -243,9 +243,11 @@ class SlabModel(GeometryModel):
         # nodes and azimuth bins from the estimate (the albedo and σt·h decide how much
         # the depth must be resolved).
         g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
-        n_theta = options.n_theta or default_slab_n_theta(g_slab, self.slab.boundary, albedo_slab)
+        n_theta = options.model.n_theta or default_slab_n_theta(
+            g_slab, self.slab.boundary, albedo_slab
+        )
         slab = self.slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
-        return n_theta, options.refine or 1, SlabModel(slab)
+        return n_theta, options.model.refine or 1, SlabModel(slab)
 
     def over(self, width, height, n_theta, refine, max_cells: int) -> bool:
         """Whether the slab passes a cap of ``max_cells`` (a plane's cell count): it
@@ -257,10 +259,10 @@ class SlabModel(GeometryModel):
         return cells > 4 * max_cells
 
     def capped(self, width, height, n_theta, refine, options):
-        user_mu = options.geometry.n_mu is not None
+        user_mu = options.model.geometry.n_mu is not None
         model = self
-        while model.over(width, height, n_theta, refine, options.max_cells):
-            if n_theta > 8 and options.n_theta is None:
+        while model.over(width, height, n_theta, refine, options.model.max_cells):
+            if n_theta > 8 and options.model.n_theta is None:
                 n_theta //= 2
             elif model.slab.n_mu > MIN_CAPPED_MU and not user_mu:
                 # Never below 4 nodes: refractive faces need 2 on each side of the
@@ -284,7 +286,7 @@ class SlabModel(GeometryModel):
             n_z=1,
             depth_profile=None,  # one layer, its average: the user's profile is the need's
         )
-        return min(options.n_theta or 8, 8), SlabModel(slab)
+        return min(options.model.n_theta or 8, 8), SlabModel(slab)
 
     def smallest(self):
         slab = self.slab
@@ -312,7 +314,7 @@ class SlabModel(GeometryModel):
         return f"{slab.n_mu} elevation nodes: {slab_cells} slab cells, 4 x max_cells allowed"
 
     def fixed_by(self, options):
-        user_slab = as_geometry(options.geometry).slab_or_none
+        user_slab = as_geometry(options.model.geometry).slab_or_none
         if user_slab is not None and user_slab.n_mu is not None:
             return [f"{self.slab.n_mu} elevation nodes"]
         return []
@@ -327,17 +329,17 @@ class SlabModel(GeometryModel):
         on 16 × 8 it converged and the correction reached σt +1.8 %, σs +1.7 %, g
         +0.011. ``None`` where the user fixed the bins or nodes, where the model has them
         already, or where it would pass ``max_cells``."""
-        user_slab = as_geometry(options.geometry).slab_or_none
+        user_slab = as_geometry(options.model.geometry).slab_or_none
         n_theta, n_mu = RETRY_SLAB
         if (
-            options.n_theta is not None
+            options.model.n_theta is not None
             or (user_slab is not None and user_slab.n_mu is not None)
             or (grid.n_theta >= n_theta and self.slab.n_mu >= n_mu)
         ):
             return None
         grid = dataclasses.replace(grid, n_theta=max(grid.n_theta, n_theta))
         retry = SlabModel(dataclasses.replace(self.slab, n_mu=max(self.slab.n_mu, n_mu)))
-        if retry.over(grid.width, grid.height, grid.n_theta, grid.refine, options.max_cells):
+        if retry.over(grid.width, grid.height, grid.n_theta, grid.refine, options.model.max_cells):
             return None
         return grid, retry
 
@@ -353,7 +355,7 @@ class SlabModel(GeometryModel):
         def doubled(n: int, limit: int) -> int:
             return max(n, min(2 * n, limit))  # never below the model's own
 
-        cap = 4 * options.max_render_cells
+        cap = 4 * options.model.max_render_cells
         model = self
         for name, limit in (("n_z", 16), ("n_mu", 64), ("n_theta", 128)):
             g2, m2 = grid, model

@@ -2,7 +2,9 @@
 small module with one :meth:`FitMethod.solve` signature, passed to a fit as
 ``fit_images(..., method=Joint(solver=optx.Dogleg(1e-8, 1e-10)))`` or
 ``FitOptions(method=TwoStep())``. The names ``"grid"``, ``"gradient"`` and ``"joint"``
-map onto them with every setting taken from :class:`~lightfield_jax.FitOptions`.
+map onto them with their default settings (:data:`METHODS`); each method owns its
+settings, and reads the others (model, trust, solver limits) from the
+:class:`~lightfield_jax.inverse.settings.FitSettings` its :meth:`FitMethod.solve` gets.
 
 - :class:`GridSearch` (the paper's baseline): σt from the decay of the separated direct
   image, then g searched on a grid with σs from eq. 10 at each g
@@ -14,8 +16,8 @@ map onto them with every setting taken from :class:`~lightfield_jax.FitOptions`.
   :mod:`lightfield_jax.inverse.joint`).
 
 ``solver`` is any optimistix least-squares solver (Levenberg-Marquardt, ``Dogleg``,
-``GaussNewton``, ...); ``None`` takes ``FitOptions.solver``, else Levenberg-Marquardt
-with the options' tolerances. A minimiser (``BFGS``) is refused: the residuals are
+``GaussNewton``, ...); ``None`` is Levenberg-Marquardt with the tolerances of the
+settings' ``solve`` group. A minimiser (``BFGS``) is refused: the residuals are
 least-squares problems.
 """
 
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -53,66 +55,64 @@ from lightfield_jax.inverse.two_step import (
 )
 from lightfield_jax.inverse.verdict import untrustworthy
 
-if TYPE_CHECKING:
-    pass
+# The default numbers of g values of the grid search (the paper's method) and of the
+# coarse search that starts the gradient method.
+G_VALUES = 39
+START_GRID = 9
 
 
 class GridSearch(FitMethod):
-    """The paper's method: g searched on ``g_values`` points of (−0.95, 0.95) (``None``:
-    ``FitOptions.g_grid``), σs from eq. 10 at each."""
+    """The paper's method: g searched on ``g_values`` points of (−0.95, 0.95) (the flat
+    setting ``g_grid``), σs from eq. 10 at each."""
 
-    g_values: int | None = None
+    g_values: int = G_VALUES
     name: ClassVar[str] = "grid"
     per_bounce: ClassVar[bool] = True
+    option_names: ClassVar[dict[str, str]] = {"g_grid": "g_values"}
 
     def __check_init__(self):
-        if self.g_values is not None:
-            check_int(self.g_values, "g_values", low=3, high=MAX_G_VALUES)
+        check_int(self.g_values, "g_values", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        n_g = _own(self.g_values, options.g_grid)
         say(f"{self.name}: search over g")
-        return _two_step_fit(self.name, problem, options, say, None, n_g)
+        return _two_step_fit(self.name, problem, options, say, None, self.g_values)
 
 
 class TwoStep(FitMethod):
     """The two-step residual solved over (σs, g) by ``solver`` (see the module), started
-    from a search over ``start_grid`` values of g (``None``: ``FitOptions.start_grid``)."""
+    from a search over ``start_grid`` values of g."""
 
     solver: optx.AbstractLeastSquaresSolver | None = None
-    start_grid: int | None = None
+    start_grid: int = START_GRID
     name: ClassVar[str] = "gradient"
     per_bounce: ClassVar[bool] = True
+    option_names: ClassVar[dict[str, str]] = {"solver": "solver", "start_grid": "start_grid"}
 
     def __check_init__(self):
         check_solver(self.solver)
-        if self.start_grid is not None:
-            check_int(self.start_grid, "start_grid", low=3, high=MAX_G_VALUES)
+        check_int(self.start_grid, "start_grid", low=3, high=MAX_G_VALUES)
 
     def solve(self, problem, options, say):
-        own = _own(self.solver, options.solver)
-        solver = least_squares_solver(own, options, jnp.result_type(float))
+        solver = least_squares_solver(self.solver, options.solve, jnp.result_type(float))
         say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
-        n_g = _own(self.start_grid, options.start_grid)
-        return _two_step_fit(self.name, problem, options, say, solver, n_g)
+        return _two_step_fit(self.name, problem, options, say, solver, self.start_grid)
 
 
 class Joint(FitMethod):
     """The joint fit to the raw images by ``solver`` (see the module), from ``start`` =
-    (σs, g) (σt from the decay fit) instead of the basin scan's starts when given
-    (``None``: ``FitOptions.start``)."""
+    (σs, g) (σt from the decay fit) instead of the basin scan's starts when given."""
 
     solver: optx.AbstractLeastSquaresSolver | None = None
     start: tuple[float, float] | None = eqx.field(default=None, converter=check_start)
     name: ClassVar[str] = "joint"
+    option_names: ClassVar[dict[str, str]] = {"solver": "solver", "start": "start"}
 
     def __check_init__(self):
         check_solver(self.solver)
         check_start(self.start)
 
     def solve(self, problem, options, say):
-        solver, start = _own(self.solver, options.solver), _own(self.start, options.start)
-        model, seconds, values = joint_fit(problem, options, say, solver, start)
+        model, seconds, values = joint_fit(problem, options, say, self.solver, self.start)
         return FitSolution(model=model, seconds=seconds, values=values)
 
 
@@ -120,15 +120,11 @@ METHODS: dict[str, FitMethod] = {"joint": Joint(), "gradient": TwoStep(), "grid"
 
 
 def method_for(method: str | FitMethod) -> FitMethod:
-    """The :class:`FitMethod` of ``FitOptions.method`` (a name or a method)."""
+    """The :class:`FitMethod` of a method's name (its default settings), or ``method``
+    itself."""
     if isinstance(method, FitMethod):
         return method
     return METHODS[check_method(method)]
-
-
-def _own(setting, default):
-    """A method's own setting, else (``None``) the options' ``default``."""
-    return default if setting is None else setting
 
 
 # The two-step methods march at most ``max_bounces``; orders left out that sum to more
@@ -182,10 +178,10 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     answer without the search (its program then holds one copy of the render, not two,
     and renders no search on the larger model)."""
     data = problem.data
-    settings = TwoStepSettings(solver is not None, options.phase, options.max_steps)
+    settings = TwoStepSettings(solver is not None, options.model.phase, options.solve.max_steps)
 
     def on(model, settings=settings, start=None):
-        renderer = model_renderer(model, full_for(problem.pattern), options.phase)
+        renderer = model_renderer(model, full_for(problem.pattern), options.model.phase)
         return solve_two_step(data, renderer, solver, settings, n_g, start)
 
     model = _marched(at_least(problem.model, problem.floor))
@@ -221,7 +217,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     # capture does not determine, a gain that is not positive); no misfit test here.
     found = {"sigma_t": data.sigma_t0, "sigma_s": sol.sigma_s, "g": sol.g, "gain": sol.gain}
     reasons = untrustworthy(found, budget, math.inf)
-    cap = float(sigma_s_max(data.sigma_t0, sol.g, options.phase))
+    cap = float(sigma_s_max(data.sigma_t0, sol.g, options.model.phase))
     if math.isfinite(sol.g) and sol.sigma_s >= (1 - 1e-3) * cap:
         reasons.append(
             f"sigma_s = {sol.sigma_s:.4g} is at the two-step's bound {cap:.4g} (sigma_t, "

@@ -6,6 +6,9 @@ from the signal, all capped by ``max_cells``); the tail rule and the march sized
 measured per-bounce ratio; the buckets of bounce counts that let nearby needs share
 compiled programs; the basin scan's cheap model and the joint solve's extrapolated one;
 and whether one model covers another.
+
+``options`` is a fit's :class:`~lightfield_jax.inverse.settings.FitSettings` (a
+:class:`~lightfield_jax.FitOptions`), read for its model settings.
 """
 
 from __future__ import annotations
@@ -21,10 +24,11 @@ from lightfield_jax.inverse.geometry_model import (
     PlaneModel,
     geometry_model,
 )
-from lightfield_jax.inverse.options import FitOptions, phase_integral_at
+from lightfield_jax.inverse.settings import FitSettings
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Stripes
 from lightfield_jax.scene.medium import bounces_for_tolerance
+from lightfield_jax.scene.phase import phase_integral_at
 
 
 @dataclasses.dataclass(frozen=True)
@@ -140,7 +144,7 @@ def size_model(
     pattern: Stripes,
     albedo: float,
     g: float,
-    options: FitOptions,
+    options: FitSettings,
     margin: float = 1.15,
     sigma_t: float | None = None,
     crop: tuple[int, int, int, int] | None = None,
@@ -151,28 +155,34 @@ def size_model(
     estimate itself."""
     p, h, w = images.shape
     if crop is None:
-        crop = signal_crop(images, pattern, options.crop_fraction) if options.crop else (0, 0, w, h)
-    n_theta, refine, geometry = geometry_model(options.geometry).sized(options, g, albedo, sigma_t)
+        crop = (
+            signal_crop(images, pattern, options.model.crop_fraction)
+            if options.model.crop
+            else (0, 0, w, h)
+        )
+    n_theta, refine, geometry = geometry_model(options.model.geometry).sized(
+        options, g, albedo, sigma_t
+    )
     width, height = crop[2] - crop[0], crop[3] - crop[1]
-    while width * height * n_theta * refine**2 > options.max_cells:
-        if refine > 1 and options.refine is None:
+    while width * height * n_theta * refine**2 > options.model.max_cells:
+        if refine > 1 and options.model.refine is None:
             refine -= 1
-        elif n_theta > 32 and options.n_theta is None:
+        elif n_theta > 32 and options.model.n_theta is None:
             n_theta //= 2
         else:
             break
     n_theta, geometry = geometry.capped(width, height, n_theta, refine, options)
     grid = Grid(width, height, n_theta, refine)
-    a = float(phase_integral_at(g)) if options.phase == "paper" else 1.0
+    a = float(phase_integral_at(g)) if options.model.phase == "paper" else 1.0
     rho = geometry.bounce_ratio(min(albedo, 1.0) * a, sigma_t, albedo, g, width, height)
     converges = rho < 1.0
-    if isinstance(options.bounces, int):
-        k = options.bounces
+    if isinstance(options.model.bounces, int):
+        k = options.model.bounces
     elif converges:
         bound = min(max(rho * margin + 0.01, 0.0), 0.995)
-        k = bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9))
+        k = bucket_bounces(bounces_for_tolerance(bound, options.model.tolerance, max_bounces=10**9))
     else:
-        k = options.max_bounces
+        k = options.model.max_bounces
     model = ModelSpec(
         grid=grid,
         bounces=max(k, 2),
@@ -186,18 +196,18 @@ def size_model(
     return _with_tail(model, options)
 
 
-def _tail_for(options: FitOptions, model: ModelSpec) -> str | None:
+def _tail_for(options: FitSettings, model: ModelSpec) -> str | None:
     """The tail solve of a model that would march ``model.bounces`` (``None``: it marches
     them): under ``tail: auto`` with ``bounces: auto``, BiCGStab once they exceed
     ``max_bounces`` (measured on the dense forward medium, 128×96, 32 θ bins, six
     patterns: the value and Jacobian of K0 = 8 bounces and the BiCGStab tail cost what
     80 marched bounces do); under a named method always; never for a divergent series."""
-    if not model.converges or options.tail is None:
+    if not model.converges or options.model.tail is None:
         return None
-    if options.tail == "auto":
-        auto = options.bounces == "auto" and model.bounces > options.max_bounces
+    if options.model.tail == "auto":
+        auto = options.model.bounces == "auto" and model.bounces > options.model.max_bounces
         return "bicgstab" if auto else None
-    return options.tail
+    return options.model.tail
 
 
 # Added to a measured per-bounce ratio before sizing a march from it (the ratio of the
@@ -205,7 +215,7 @@ def _tail_for(options: FitOptions, model: ModelSpec) -> str | None:
 RATIO_MARGIN = 0.02
 
 
-def by_measured_ratio(model: ModelSpec, options: FitOptions, ratio: float) -> ModelSpec:
+def by_measured_ratio(model: ModelSpec, options: FitSettings, ratio: float) -> ModelSpec:
     """``model`` marching the bounces the measured per-bounce ``ratio`` asks for (tail
     below ``tolerance`` at ratio + :data:`RATIO_MARGIN`) where that is fewer than the
     albedo's bound asked for: instead of its automatic tail where the count is at most
@@ -215,33 +225,35 @@ def by_measured_ratio(model: ModelSpec, options: FitOptions, ratio: float) -> Mo
     of 160 bounces'), whose value and Jacobian cost 0.4× the tail's (measured at 32 θ
     bins); a ratio near 1 still gets the tail. The error term's finer model marches
     bounces plus a geometric sum of the rest, so a count too short shows there."""
-    auto = options.tail == "auto" and options.bounces == "auto"
+    auto = options.model.tail == "auto" and options.model.bounces == "auto"
     if not (auto and model.converges and math.isfinite(ratio)):
         return model
     bound = min(max(ratio + RATIO_MARGIN, 0.0), 0.995)  # a measured ratio, never below 0
-    k = max(bucket_bounces(bounces_for_tolerance(bound, options.tolerance, max_bounces=10**9)), 2)
-    if model.tail is not None and k <= options.max_bounces:
+    k = max(
+        bucket_bounces(bounces_for_tolerance(bound, options.model.tolerance, max_bounces=10**9)), 2
+    )
+    if model.tail is not None and k <= options.model.max_bounces:
         return dataclasses.replace(model, bounces=k, tail=None, ratio=ratio)
     if model.tail is None and k < model.bounces:
         return dataclasses.replace(model, bounces=k, ratio=ratio)
     return model
 
 
-def _with_tail(model: ModelSpec, options: FitOptions) -> ModelSpec:
+def _with_tail(model: ModelSpec, options: FitSettings) -> ModelSpec:
     """``model`` with a tail and K0 explicit bounces where it gets one, else with its
     bounces capped at ``max_bounces`` (``bounces: auto``; the model's tail bound is
     reported with the result)."""
     tail = _tail_for(options, model)
     if tail is None:
-        if options.bounces == "auto":
-            return dataclasses.replace(model, bounces=min(model.bounces, options.max_bounces))
+        if options.model.bounces == "auto":
+            return dataclasses.replace(model, bounces=min(model.bounces, options.model.max_bounces))
         return model
     return dataclasses.replace(
         model,
-        bounces=options.tail_bounces,
+        bounces=options.model.tail_bounces,
         tail=tail,
-        tail_tol=options.tolerance,
-        tail_max_steps=options.tail_max_steps,
+        tail_tol=options.model.tolerance,
+        tail_max_steps=options.model.tail_max_steps,
     )
 
 
@@ -273,7 +285,7 @@ def at_least(model: ModelSpec, floor: ModelSpec | None) -> ModelSpec:
     )
 
 
-def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
+def scan_model(crop, options: FitSettings, rho0: float) -> ModelSpec:
     """The cheap model of the basin scan (and, through :func:`extrapolated`, of the
     joint fit's first solve): 32 θ bins
     on the native grid (the slab: 8 azimuth bins, 4 elevation nodes, one constant depth
@@ -281,11 +293,11 @@ def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
     the bounces the capture's brightness ratio calls for (tail below 1e-3 at
     ρ = max(ρ0, 0.3), ρ0 the separation's estimate with its margin)."""
     width, height = crop[2] - crop[0], crop[3] - crop[1]
-    n_theta, geometry = geometry_model(options.geometry).cheap(options)
+    n_theta, geometry = geometry_model(options.model.geometry).cheap(options)
     rho = min(max(rho0, 0.3), 0.95)
     k = bucket_bounces(bounces_for_tolerance(rho, 1e-3, max_bounces=10**9))
-    if isinstance(options.bounces, int):
-        k = options.bounces
+    if isinstance(options.model.bounces, int):
+        k = options.model.bounces
     model = ModelSpec(
         grid=Grid(width, height, n_theta, 1),
         bounces=max(k, 2),
@@ -297,21 +309,21 @@ def scan_model(crop, options: FitOptions, rho0: float) -> ModelSpec:
     return _with_tail(model, options)
 
 
-def over_cap_note(model: ModelSpec, options: FitOptions) -> str | None:
+def over_cap_note(model: ModelSpec, options: FitSettings) -> str | None:
     """A note where :func:`size_model`'s ``model`` is larger than ``max_cells`` allows
     (``None``: it is not): θ bins or a refinement the options fix are never lowered,
     and θ bins not below 32 on the plane (8, with 4 elevation nodes, on the slab).
     A ``max_cells`` below the smallest model, or fixed bins beyond it, are used with
     this note, not silently."""
     g = model.grid
-    size = model.geometry.over_cap(g, options.max_cells)
+    size = model.geometry.over_cap(g, options.model.max_cells)
     if size is None:
         return None
     fixed = [
         f"{name} {value}"
         for name, value, given in (
-            ("n_theta", g.n_theta, options.n_theta),
-            ("refine", g.refine, options.refine),
+            ("n_theta", g.n_theta, options.model.n_theta),
+            ("refine", g.refine, options.model.refine),
         )
         if given is not None
     ]
@@ -320,16 +332,16 @@ def over_cap_note(model: ModelSpec, options: FitOptions) -> str | None:
     if fixed:
         are = "is" if len(fixed) == 1 else "are"
         why.append(f"{' and '.join(fixed)} {are} fixed by the fit options, never lowered")
-    if options.n_theta is None:
+    if options.model.n_theta is None:
         why.append(f"n_theta is not lowered below {model.geometry.least}")
     return (
-        f"max_cells {options.max_cells} is below the model's size ({g.width}x{g.height} "
+        f"max_cells {options.model.max_cells} is below the model's size ({g.width}x{g.height} "
         f"px, n_theta {g.n_theta}, refine {g.refine}, {size}): {'; '.join(why)}; the fit "
         "solves on that model"
     )
 
 
-def finer_cheap(model: ModelSpec, options: FitOptions) -> ModelSpec | None:
+def finer_cheap(model: ModelSpec, options: FitSettings) -> ModelSpec | None:
     """The cheap model with more azimuth bins and elevation nodes for a solve that did
     not converge or ran to a bound (the slab's:
     :meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer_cheap`), or
@@ -341,15 +353,15 @@ def finer_cheap(model: ModelSpec, options: FitOptions) -> ModelSpec | None:
     return dataclasses.replace(model, grid=grid, geometry=geometry)
 
 
-def extrapolated(model: ModelSpec, options: FitOptions) -> ModelSpec:
+def extrapolated(model: ModelSpec, options: FitSettings) -> ModelSpec:
     """The cheap model of the solve: where the fit corrects its answer to the model it
     needs (``correct``) and sizes the series itself, a long series (a tail, or more
     than :data:`SCAN_TAIL_BOUNCES` bounces) becomes that many bounces and a geometric
     tail (:func:`lightfield_jax.inverse.joint.unit_model`); its Jacobian only guides the
     correction, which renders the series in full."""
-    auto = options.bounces == "auto" and options.tail == "auto"
+    auto = options.model.bounces == "auto" and options.model.tail == "auto"
     long = model.tail is not None or model.bounces > SCAN_TAIL_BOUNCES
-    if not (options.correct and auto and long and model.converges):
+    if not (options.trust.correct and auto and long and model.converges):
         return model
     return dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None, extrapolate=True)
 

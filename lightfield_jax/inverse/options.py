@@ -1,8 +1,10 @@
 """The settings and the result of a fit: :class:`FitOptions` (every setting of
-:func:`~lightfield_jax.fit_images`, checked when made) and :class:`FitResult` (the fitted
-values, their 1σ uncertainties and correlations, the verdict, the timings and the model
-used), with the helpers of its ``results.json`` form (:meth:`FitResult.to_dict`: strict
-JSON, σa's and the albedo's errors from the correlations).
+:func:`~lightfield_jax.fit_images`, checked when made: the fit method with its own
+settings, and the others by concern, :mod:`lightfield_jax.inverse.settings`, made from
+flat keywords) and :class:`FitResult` (the fitted values, their 1σ uncertainties and
+correlations, the verdict, the timings and the model used), with the helpers of its
+``results.json`` form (:meth:`FitResult.to_dict`: strict JSON, σa's and the albedo's
+errors from the correlations).
 """
 
 from __future__ import annotations
@@ -10,299 +12,127 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
 import numpy as np
-import optimistix as optx
 
-from lightfield_jax.checks import check_flag, check_int, check_number, number_problem, shown
-from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
-from lightfield_jax.forward.tail import TAIL_METHODS
-from lightfield_jax.inverse.method_base import (
-    MAX_G_VALUES,
-    FitMethod,
-    check_method,
-    check_solver,
-    check_start,
+from lightfield_jax.checks import shown
+from lightfield_jax.inverse.method_base import METHOD_KEYS, FitMethod, check_method_setting
+from lightfield_jax.inverse.methods import METHODS, method_for
+from lightfield_jax.inverse.settings import (
+    GROUP_OF,
+    GROUPS,
+    FitSettings,
+    ModelOptions,
+    SolverOptions,
+    TrustOptions,
+    grouped,
 )
-from lightfield_jax.inverse.verdict import OFFSET_EXPLAINS
-from lightfield_jax.scene.geometry import AutoGeometry, Plane, Slab, as_geometry
-from lightfield_jax.scene.grid import check_n_theta, check_refine
-from lightfield_jax.scene.medium import PHASE_CONVENTIONS
-from lightfield_jax.scene.phase import phase_integral
+from lightfield_jax.scene.phase import phase_integral_at
 
 PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 
-# A(g) of a Python float, compiled once (op by op, its dozen operations would each
-# compile on first use).
-phase_integral_at = jax.jit(phase_integral)
+# Every flat setting, in the order documented.
+FLAT_KEYS = ("method", *GROUP_OF, *METHOD_KEYS)
 
 
-# The loosest solver tolerance (looser ones stop the solve where it starts). The most
-# bounces a fit marches is the renderer's MAX_BOUNCES (each bounce's images are kept).
-MAX_TOLERANCE = 0.01
-# The most iterations a solve may be given (max_steps, tail_max_steps; past this no
-# limit): the solvers count them in int32 (max_steps 10**12 would end in "an overflow
-# ... argument path is y", after the loading and compilation, naming no key).
-MAX_ITERATIONS = 10**9
+@dataclasses.dataclass(frozen=True, init=False)
+class FitOptions(FitSettings):
+    """Settings of a fit (all optional): the fit ``method`` with its own settings, and
+    the settings of every method by concern (:mod:`lightfield_jax.inverse.settings`):
+    ``model`` (:class:`~lightfield_jax.inverse.settings.ModelOptions`), ``trust``
+    (:class:`~lightfield_jax.inverse.settings.TrustOptions`) and ``solve``
+    (:class:`~lightfield_jax.inverse.settings.SolverOptions`).
 
-
-@dataclasses.dataclass(frozen=True)
-class FitOptions:
-    """Settings of a fit (all optional).
+    Made from flat keywords, as a capture file's ``fit:`` section and
+    :func:`~lightfield_jax.fit_images` give them: ``FitOptions(method="grid", n_theta=32,
+    g_grid=21)``; each goes to its group, or to the method. :meth:`replace` changes flat
+    settings the same way.
 
     Attributes:
-        method: ``joint`` (default), ``gradient`` or ``grid``, or a fit method
+        method: the fit method (:mod:`lightfield_jax.inverse.methods`), given as
+            ``joint`` (default), ``gradient`` or ``grid`` or as a method
             (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
-            :class:`~lightfield_jax.GridSearch`: :mod:`lightfield_jax.inverse.methods`)
-            whose own settings (its solver, start, grid size) replace these.
-        phase: phase convention of the model (``paper`` or ``normalized``).
-        bounces: K, or ``"auto"`` from the tail bound at the starting estimate. K is
-            marched as given, so it cannot go with a named ``tail`` (whose explicit
-            bounces are ``tail_bounces``).
-        tolerance: relative tail tolerance for ``bounces: auto``.
-        max_bounces: cap on ``auto`` without a tail (the paper series near ρ = 1 needs
-            many).
-        tail: (``joint``) how the bounce series is summed past its explicit bounces:
-            ``"auto"`` (default: the plane's series is marched while ``bounces: auto``
-            asks for at most ``max_bounces`` bounces, else ``tail_bounces`` explicit
-            bounces and a BiCGStab solve of the rest), ``None`` (always marched, capped
-            at ``max_bounces``), or ``"gmres"`` / ``"bicgstab"`` (always that solve
-            after ``tail_bounces``; :mod:`lightfield_jax.forward.tail`). The tail's
-            relative tolerance is ``tolerance``. Plane and slab alike.
-        tail_bounces: K0, the explicit bounces kept before a tail solve.
-        coarse_after: (``joint``, plane) the bounces after this many are marched on the
-            native grid where the model the answer needs is refined (|g| > 0.65) and
-            marches more: later bounces are smooth in space, and this changes the image
-            of the series by 5e-5 (g 0.7) to 6e-4 (g 0.8) of its peak at 0.4–0.5× the
-            render's cost (docs/tail_acceleration.md); ``None``: every bounce on the
-            model's grid. The error term's finer model marches twice as many bounces
-            refined before its coarse tail, so its term sees the coarse grid's error
-            where most of the coarse bounces' light is.
-        tail_max_steps: iteration limit of a tail solve; one that stops there makes
-            the result not trustworthy.
-        n_theta: direction bins, or ``None`` to choose them from the starting g.
-        refine: spatial refinement, or ``None`` to choose it from the starting g.
-        g_grid: number of g values of the ``grid`` method's search on (−0.95, 0.95).
-        start_grid: number of g values of the coarse search that starts ``gradient``.
-        max_cells: cap on the model's working size (W·H·n_theta·refine²): the
-            refinement, then n_theta, are lowered to fit it; never values the options
-            fix, nor n_theta below 32 (8 on the slab): a model left larger is said in
-            a note (the progress callback's ``note: ...``).
-        crop: crop the model along the propagation direction to where the signal is
-            above ``crop_fraction`` of its peak.
-        crop_fraction: see ``crop``.
-        max_steps: iteration limit of the optimistix solves.
-        geometry: the model's geometry: ``None`` or :class:`Plane` (the paper's 2-D
-            model), a :class:`Slab` (the tank's depth, docs/model.md §7; its 3-D phase
-            function is normalised on the sphere, so ``phase`` is ``normalized``), or
-            :class:`AutoGeometry` (the plane where its misfit is below the capture's
-            noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
-        rtol, atol: solver tolerances (relative, absolute on the unconstrained values
-            and on the residual's components; the joint fit's residual is solved
-            normalised, Σ(w·I)² = 1e3: :data:`~lightfield_jax.inverse.joint.RESIDUAL_GAIN`);
-            ``None`` picks them from the data's
-            dtype (float32: 1e-4, 1e-4; float64: 1e-8, 1e-10). float32 cannot resolve
-            changes of the residual much below 1e-4 of its scale: with tighter
-            tolerances LM converges within a few steps and then spends ten more
-            shrinking its step in rounding noise (same answer to 1e-6).
-        basin_search: (``joint``) solve every basin the global scan keeps, not only
-            its best (:mod:`lightfield_jax.inverse.basins`).
-        max_basins: at most this many basins are solved.
-        basin_tolerance: a local minimum of the scan is kept when its misfit is at most
-            (1 + tolerance) × the best.
-        start: (σs, g) to start the joint fit from instead of the scan's basins (σt
-            from the decay fit); the scan still runs, to report a worse basin.
-        model_error: (``joint``) estimate the model's error at the solution from one
-            render with a finer model (in ``uncertainty_model``).
-        correct: (``joint``) reach the model the answer needs by defect correction
-            (:mod:`lightfield_jax.inverse.correction`: primal renders of that model
-            with the cheap model's Jacobian, its own by forward differences where
-            those steps stop shrinking) instead of solving on it; where the iteration does not
-            converge the fit solves on that model as capped by ``max_cells``.
-        stripe_cell: (``joint``, plane) render stripes entering a side wall from one
-            stripe period (:class:`~lightfield_jax.forward.cell.CellRenderer`, within
-            0.2 % of the full render) in the final model and the error term where they
-            are refined (refine ≥ 2): a warm fit of a dense forward capture about 3×
-            faster; the first fit of a process compiles more (docs/periodic_cell.md).
-            ``False``: those models render the whole tank.
-        extrapolate: (``joint``, plane) where the error term's finer model is finer in
-            space (a refined model: forward media), report the answer extrapolated to
-            the continuum: the model's discretisation error is first order in the cell
-            size, so the answer steps r_f/(r_f − r) times the finer model's shift
-            (Richardson) and the model term is that shift (dense forward Monte Carlo
-            captures: σt within 1 %, where the model's own answer is 2.5–3 % high).
-            ``False``: the model's own answer, with that whole step as its model term
-            (a capture rendered on the model's own grid is fitted exactly this way).
-        max_render_cells: cap on the corrected model's working size (as ``max_cells``,
-            for primal renders, which need no tangents).
-        correction_renders: at most this many renders at iterates in the correction
-            (besides one per parameter for the Jacobian); it stops sooner where its
-            steps, shrinking at their last rate, would not converge within them.
-        max_chi2: χ²/dof against the capture's noise above which a joint fit is not
-            trustworthy (its misfit is far above the noise).
-        offset_stop: (``joint``) where one constant added to every image value would
-            leave less than this share of the basin scan's best misfit (a camera
-            pedestal or a dark level that subtracts too much: light the model does not
-            have), the fit stops after the scan and one solve on the cheap model, not
-            trusted, and names the constant; ``0`` never stops there (the constant is
-            then named after the full fit). At most 0.25.
-        solver: any optimistix least-squares solver (default: Levenberg-Marquardt with
-            ``rtol``, ``atol``).
+            :class:`~lightfield_jax.GridSearch`).
+        model, trust, solve: the groups of settings (each field also a flat keyword).
+
+    The flat keywords of the methods' own settings: ``g_grid`` (the grid's
+    ``GridSearch.g_values``: g values searched on (−0.95, 0.95)), ``start_grid``
+    (``TwoStep.start_grid``: g values of the coarse search that starts ``gradient``),
+    ``start`` (``Joint.start``: (σs, g) to start the joint fit from instead of the
+    scan's basins, σt from the decay fit; the scan still runs, to report a worse basin)
+    and ``solver`` (``Joint.solver``, ``TwoStep.solver``: any optimistix least-squares
+    solver; default Levenberg-Marquardt with the ``solve`` tolerances). A method given
+    as a value keeps its own where it sets one. ``start`` or ``solver`` for a method that
+    does not use them is refused; ``g_grid`` and ``start_grid`` are checked and then
+    apply only to the method that takes them.
     """
 
-    method: str | FitMethod = "joint"
-    phase: str = "paper"
-    bounces: int | str = "auto"
-    tolerance: float = 1e-4
-    max_bounces: int = 80
-    tail: str | None = "auto"
-    tail_bounces: int = 8
-    tail_max_steps: int = 200
-    coarse_after: int | None = 8
-    n_theta: int | None = None
-    refine: int | None = None
-    g_grid: int = 39
-    start_grid: int = 9
-    max_cells: int = 2_000_000
-    crop: bool = True
-    crop_fraction: float = 1e-4
-    max_steps: int = 100
-    rtol: float | None = None
-    atol: float | None = None
-    geometry: Plane | Slab | AutoGeometry | None = None
-    basin_search: bool = True
-    max_basins: int = 3
-    basin_tolerance: float = 1.0
-    start: tuple[float, float] | None = None
-    model_error: bool = True
-    correct: bool = True
-    extrapolate: bool = True
-    stripe_cell: bool = True
-    max_render_cells: int = 8_000_000
-    correction_renders: int = 16
-    max_chi2: float = 100.0
-    offset_stop: float = 0.05
-    solver: optx.AbstractLeastSquaresSolver | None = None
+    method: FitMethod = METHODS["joint"]
 
-    def __post_init__(self):
-        method = check_method(self.method)  # a known name or a FitMethod's
-        if self.tail is not None and not (
-            isinstance(self.tail, str) and (self.tail == "auto" or self.tail in TAIL_METHODS)
-        ):
-            raise ValueError(
-                f"tail: must be auto, None or one of {', '.join(TAIL_METHODS)}, got {self.tail!r}"
+    def __init__(
+        self,
+        method: str | FitMethod = "joint",
+        *,
+        model: ModelOptions | None = None,
+        trust: TrustOptions | None = None,
+        solve: SolverOptions | None = None,
+        **settings,
+    ):
+        unknown = [k for k in settings if k not in GROUP_OF and k not in METHOD_KEYS]
+        if unknown:
+            raise TypeError(
+                f"FitOptions: unknown setting {unknown[0]!r} (the settings: {', '.join(FLAT_KEYS)})"
             )
-        if number_problem(self.bounces, integer=True) is None and self.tail in TAIL_METHODS:
-            # A named tail keeps tail_bounces explicit bounces: a count given as
-            # ``bounces`` as well would be silently replaced.
+        method = method_for(method)  # a known name or a FitMethod
+        groups = grouped(
+            {k: v for k, v in settings.items() if k in GROUP_OF},
+            model=model,
+            trust=trust,
+            solve=solve,
+        )
+        for group, record in groups.items():
+            object.__setattr__(self, group, record)
+        for key in METHOD_KEYS:
+            if key in settings:
+                method = _routed(method, key, check_method_setting(key, settings[key]))
+        object.__setattr__(self, "method", method)
+
+    def flat(self) -> dict:
+        """Every setting as a flat keyword (the method as itself, its own settings as
+        their flat keywords where it sets them): ``FitOptions(**options.flat())``
+        equals ``options``."""
+        out = {"method": self.method}
+        for group in GROUPS:
+            record = getattr(self, group)  # shallow: a Slab stays a Slab
+            out.update({f.name: getattr(record, f.name) for f in dataclasses.fields(record)})
+        out.update(self.method.own_options())
+        return out
+
+    def replace(self, **settings) -> FitOptions:
+        """These options with flat ``settings`` changed (the keywords of
+        :class:`FitOptions`). A method given by name takes the settings of the method
+        it replaces that it uses (``start`` for a method that does not use it is
+        refused, as when given)."""
+        return FitOptions(**{**self.flat(), **settings})
+
+
+def _routed(method: FitMethod, key: str, value) -> FitMethod:
+    """``method`` with the flat setting ``key`` where it takes it and does not set its
+    own; a ``start`` or ``solver`` it does not use refused, a ``g_grid`` or
+    ``start_grid`` it does not take (another method's, checked) not kept."""
+    field = method.option_names.get(key)
+    if field is None:
+        if key in ("start", "solver") and value is not None:
+            # Refused, not ignored silently: a start with the grid search, which
+            # searches g; a solver with it, which solves nothing.
             raise ValueError(
-                f"bounces: {self.bounces} marches exactly that many bounces, but tail: "
-                f"{self.tail} keeps tail_bounces ({self.tail_bounces}) explicit bounces "
-                "before its solve: give tail_bounces instead (or tail: null to march)"
+                f"{key}: the {method.name} method does not use it (start: the joint "
+                "fit's; solver: the joint and gradient fits'): drop it, or choose a "
+                "method that does"
             )
-        # Every number is one (True, "8", 8.5 or None refused: lightfield_jax.checks);
-        # every switch a bool ("no" is true).
-        for name, least in (
-            ("tail_bounces", 2),
-            ("tail_max_steps", 1),
-            ("max_basins", 1),
-            ("correction_renders", 1),
-            ("max_cells", 1),
-            ("max_render_cells", 1),
-        ):
-            check_int(getattr(self, name), name, low=least)
-        check_int(self.tail_max_steps, "tail_max_steps", high=MAX_ITERATIONS)
-        if self.coarse_after is not None:
-            check_int(self.coarse_after, "coarse_after", low=2, high=MAX_BOUNCES)
-        check_int(self.g_grid, "g_grid", low=3, high=MAX_G_VALUES)
-        check_number(self.basin_tolerance, "basin_tolerance", low=0.0, allow_inf=True)
-        check_number(self.offset_stop, "offset_stop", low=0.0, high=OFFSET_EXPLAINS)
-        flags = ("crop", "basin_search", "model_error", "correct", "extrapolate", "stripe_cell")
-        for name in flags:
-            check_flag(getattr(self, name), name)
-        if self.geometry is not None:
-            as_geometry(self.geometry)
-        if not self.max_render_cells >= self.max_cells:
-            raise ValueError(
-                f"max_render_cells: must be at least max_cells ({self.max_cells}), got "
-                f"{self.max_render_cells!r}"
-            )
-        self._check_ranges()
-        object.__setattr__(self, "start", check_start(self.start))  # a tuple of floats
-        check_solver(self.solver)
-        # A setting the chosen method does not use is refused, not ignored silently (a
-        # start with the grid search, which searches g; a solver with it, which solves
-        # nothing).
-        unused = {"start": self.start is not None and method != "joint"}
-        unused["solver"] = self.solver is not None and method == "grid"
-        for name, is_unused in unused.items():
-            if is_unused:
-                raise ValueError(
-                    f"{name}: the {method} method does not use it (start: the joint "
-                    "fit's; solver: the joint and gradient fits'): drop it, or choose a "
-                    "method that does"
-                )
-        # NumPy numbers (np.int64(20), a 0-d array) are numbers here, stored as Python's:
-        # optimistix took max_steps=np.int64(20) only after the scan ("`max_steps` must
-        # be a Python integer", seconds into the fit).
-        for field in dataclasses.fields(self):
-            value = getattr(self, field.name)
-            if isinstance(value, np.generic) or (isinstance(value, np.ndarray) and value.ndim == 0):
-                object.__setattr__(self, field.name, value.item())
-
-    def _check_ranges(self) -> None:
-        """Refuse settings the fit would otherwise ignore or quietly replace (a bounce
-        count below 1 taken as 2, ``max_cells: 0`` or ``crop_fraction: 5`` ignored, a
-        negative tolerance)."""
-
-        def is_int(v) -> bool:
-            return number_problem(v, integer=True) is None
-
-        def is_number(v) -> bool:
-            return number_problem(v, allow_inf=True) is None
-
-        if not isinstance(self.phase, str) or self.phase not in PHASE_CONVENTIONS:
-            raise ValueError(
-                f"phase: must be one of {', '.join(PHASE_CONVENTIONS)}, got {self.phase!r}"
-            )
-        if (
-            self.bounces != "auto"
-            if isinstance(self.bounces, str)
-            else not (is_int(self.bounces) and self.bounces >= 1)
-        ):
-            raise ValueError(f"bounces: must be an integer >= 1 or 'auto', got {self.bounces!r}")
-        for name in ("bounces", "tail_bounces", "max_bounces"):
-            value = getattr(self, name)
-            if is_int(value) and value > MAX_BOUNCES:
-                raise ValueError(too_many_bounces(name, value))
-
-        if not (is_number(self.tolerance) and 0.0 < self.tolerance < 1.0):
-            raise ValueError(f"tolerance: must lie in (0, 1), got {self.tolerance!r}")
-        check_n_theta(self.n_theta, "n_theta")
-        check_refine(self.refine, "refine")
-        if not (is_int(self.start_grid) and self.start_grid >= 3):
-            raise ValueError(f"start_grid: must be at least 3, got {self.start_grid!r}")
-        for name in ("max_bounces", "max_cells", "max_steps"):
-            value = getattr(self, name)
-            if not (is_int(value) and value >= 1):
-                raise ValueError(f"{name}: must be an integer >= 1, got {value!r}")
-        check_int(self.start_grid, "start_grid", high=MAX_G_VALUES)
-        check_int(self.max_steps, "max_steps", high=MAX_ITERATIONS)
-        if not (is_number(self.crop_fraction) and 0.0 <= self.crop_fraction < 1.0):
-            raise ValueError(
-                f"crop_fraction: must lie in [0, 1) (a fraction of the peak), "
-                f"got {self.crop_fraction!r}"
-            )
-        for name in ("rtol", "atol"):
-            value = getattr(self, name)
-            if value is not None and not (is_number(value) and 0.0 <= value <= MAX_TOLERANCE):
-                # Looser, Levenberg-Marquardt stops at its start (measured: rtol = atol =
-                # 0.1 returned the scan's start point, sigma_t 38 sigma off, "converged").
-                raise ValueError(
-                    f"{name}: must lie in [0, {MAX_TOLERANCE:g}] or be None, got {value!r}"
-                )
-        if not (is_number(self.max_chi2) and self.max_chi2 > 0):
-            raise ValueError(f"max_chi2: must be > 0, got {self.max_chi2!r}")
+        return method
+    if key in method.own_options():
+        return method  # the method's own setting
+    return dataclasses.replace(method, **{field: value})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -449,7 +279,7 @@ def check_options(options, where: str) -> None:
     if options is not None and not isinstance(options, FitOptions):
         raise ValueError(
             f"{where}: options: must be a FitOptions or None, got {type(options).__name__} "
-            f"(its fields can also be given as keywords: {where}(..., max_steps=20))"
+            f"(its settings can also be given as keywords: {where}(..., max_steps=20))"
         )
 
 

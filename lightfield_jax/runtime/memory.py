@@ -169,32 +169,33 @@ def correction_bytes(samples: int, n_images: int, cells: int) -> int:
 
 
 # Direction bins assumed for a fit's memory estimate: the fewest the fit chooses
-# (g <= 0.5); more are capped by FitOptions.max_cells.
+# (g <= 0.5); more are capped by the fit option max_cells.
 FIT_N_THETA = 32
 # Cells per pixel of the largest primal render a fit may make (a forward medium's
 # error-term model: 128 θ bins at refinement 2); more are capped at twice
-# FitOptions.max_render_cells.
+# the fit option max_render_cells.
 RENDER_CELLS_PER_PIXEL = 128 * 2**2
 
 
-def fit_memory(samples: int, n_images: int, height: int, width: int, options) -> int:
+def fit_memory(samples: int, n_images: int, height: int, width: int, model) -> int:
     """The memory a fit of ``n_images`` images of ``height`` × ``width`` (``samples``
-    values loaded, every channel) needs under ``options`` (a FitOptions): the larger of
-    the solve (:func:`fit_bytes` and a fixed series' :func:`series_bytes`) and the
-    primal renders (:func:`correction_bytes`)."""
+    values loaded, every channel) needs under the fit's ``model`` settings (a
+    :class:`~lightfield_jax.ModelOptions`): the larger of the solve (:func:`fit_bytes`
+    and a fixed series' :func:`series_bytes`) and the primal renders
+    (:func:`correction_bytes`)."""
     # θ bins or a refinement fixed by the options are never lowered to max_cells, so
     # they bound the model from below.
     h, w = height, width
     fixed = 0
-    if options.n_theta is not None or options.refine is not None:
-        fixed = h * w * (options.n_theta or FIT_N_THETA) * (options.refine or 1) ** 2
-    cells = max(min(h * w * FIT_N_THETA, options.max_cells), fixed)
-    rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * options.max_render_cells), fixed)
+    if model.n_theta is not None or model.refine is not None:
+        fixed = h * w * (model.n_theta or FIT_N_THETA) * (model.refine or 1) ** 2
+    cells = max(min(h * w * FIT_N_THETA, model.max_cells), fixed)
+    rendered = max(min(h * w * RENDER_CELLS_PER_PIXEL, 2 * model.max_render_cells), fixed)
     # A fixed bounce count keeps every bounce's field, as does a march capped by a
     # max_bounces raised above its default (the default cap is within the estimates).
-    fixed_series = options.bounces if isinstance(options.bounces, int) else 0
-    if options.max_bounces > type(options)().max_bounces:
-        fixed_series = max(fixed_series, options.max_bounces)
+    fixed_series = model.bounces if isinstance(model.bounces, int) else 0
+    if model.max_bounces > type(model)().max_bounces:
+        fixed_series = max(fixed_series, model.max_bounces)
     return max(
         fit_bytes(samples, n_images, cells) + series_bytes(n_images, cells, fixed_series),
         correction_bytes(samples, n_images, rendered),

@@ -109,4 +109,9 @@ def _check_asymmetry(g, where: str) -> None:
     raise ValueError(f"{where}: g: must satisfy -1 < g < 1, got {got}")
 
 
-__all__ = ["hg", "phase_function", "phase_integral"]
+# A(g) of a Python float, compiled once (op by op, its dozen operations would each
+# compile on first use).
+phase_integral_at = jax.jit(phase_integral)
+
+
+__all__ = ["hg", "phase_function", "phase_integral", "phase_integral_at"]

@@ -16,7 +16,7 @@ from lightfield_jax.inverse.joint_fit.fit import fit_once
 from lightfield_jax.inverse.joint_fit.stage import Stage
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import FitSettings
 
 
 # Values whose fitted light lies within this many noise σ below the clip are masked too:
@@ -57,7 +57,7 @@ def stage_sigma(stage: Stage, noise: float) -> np.ndarray:
         return np.sqrt(noise) / np.where(stage.weights > 0, stage.weights, np.nan)
 
 
-def joint_fit(problem, options: FitOptions, say, solver=None, start=None):
+def joint_fit(problem, options: FitSettings, say, solver=None, start=None):
     """The joint fit of a :class:`~lightfield_jax.inverse.data.FitProblem`: the model,
     the seconds and the values of its :class:`~lightfield_jax.inverse.data.FitSolution`.
     Where values were clipped, the values the answer puts within ``CLIP_SIGMAS`` of the

@@ -16,7 +16,7 @@ from lightfield_jax.inverse.model_size import ModelSpec
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import FitSettings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,7 +39,7 @@ class FitContext:
 
     data: FitData
     pattern: Stripes
-    options: FitOptions
+    options: FitSettings
     black: float | None
     weights: np.ndarray
     images: np.ndarray

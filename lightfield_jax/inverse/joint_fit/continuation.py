@@ -100,7 +100,9 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
             ctx.pattern,
             albedo=min(albedo, 0.98),
             g=v["g"],
-            options=dataclasses.replace(options, max_cells=max_cells),
+            options=dataclasses.replace(
+                options, model=dataclasses.replace(options.model, max_cells=max_cells)
+            ),
             margin=1.03,
             sigma_t=v["sigma_t"],
             crop=coarse.crop,
@@ -109,7 +111,7 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
 
     # The solve's model is capped by max_cells (the forward-mode Jacobian's memory);
     # the corrected one, reached by primal renders, by max_render_cells.
-    need = at_least(needed(options.max_cells), ctx.floor)
+    need = at_least(needed(options.model.max_cells), ctx.floor)
     if not first.ok and not tail_failed(first) and not need.converges:
         # Measured: the stability map's divergent truth (ω 0.8, g 0.85 under paper, an
         # explicit 12-bounce truncation, 48×36): the cheap solve ran out of steps at
@@ -120,8 +122,8 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
             f"(rho {need.rho:.3g} >= 1): not refined"
         )
         return first
-    correct = options.correct and first.ok
-    target = at_least(needed(options.max_render_cells), need) if correct else need
+    correct = options.trust.correct and first.ok
+    target = at_least(needed(options.model.max_render_cells), need) if correct else need
     if covers(coarse, target):
         # The cheap model is already as large as the answer needs: refit it with the
         # model's weights, and that is the answer.
@@ -205,7 +207,7 @@ def corrected(ctx: FitContext, first: Stage, target: ModelSpec) -> tuple[Stage |
     its answer and Jacobian, model weights from its answer; :mod:`.correction`): the
     stage (``None`` where the iteration did not converge) and its record."""
     data, pattern, options = ctx.data, ctx.pattern, ctx.options
-    renderer, full = joint_parts(pattern, target, options.phase)
+    renderer, full = joint_parts(pattern, target, options.model.phase)
     dtype = first.y.dtype
     weights = model_weights(data, first)
 
@@ -220,7 +222,7 @@ def corrected(ctx: FitContext, first: Stage, target: ModelSpec) -> tuple[Stage |
             first.values,
             first.jac_unit,
             ctx.black_range,
-            options.correction_renders,
+            options.trust.correction_renders,
             noise_scale(data.images, weights, pattern, first.values["gain"] * first.unit),
         )
     for step in c.steps:

@@ -14,10 +14,10 @@ from lightfield_jax.inverse.model_size import ModelSpec
 from lightfield_jax.runtime.timing import stopwatch
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import FitSettings
 
 
-def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
+def finer(model: ModelSpec, options: FitSettings, g: float) -> ModelSpec:
     """A finer model than ``model`` for its error term, never coarser in any dimension:
     its geometry's finer discretisation
     (:meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer`: the plane's
@@ -46,7 +46,7 @@ def finer(model: ModelSpec, options: FitOptions, g: float) -> ModelSpec:
         model,
         grid=grid,
         geometry=geometry,
-        extrapolate=not isinstance(options.bounces, int),
+        extrapolate=not isinstance(options.model.bounces, int),
         coarse_after=None if model.coarse is None else 2 * model.coarse,
         cell=cell,
     )
@@ -57,7 +57,7 @@ def model_shift(ctx: FitContext, stage: Stage) -> tuple:
     tail solve's steps and convergence (``None`` without a tail) and its seconds."""
     pattern = ctx.pattern
     fine = finer(stage.model, ctx.options, stage.values["g"])
-    renderer, full = joint_parts(pattern, fine, ctx.options.phase)
+    renderer, full = joint_parts(pattern, fine, ctx.options.model.phase)
     v = stage.values
     with stopwatch() as timing:
         unit, fine_tail = render_model(renderer, full, pattern, fine, v, jnp.result_type(float))

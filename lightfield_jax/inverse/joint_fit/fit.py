@@ -31,7 +31,7 @@ from lightfield_jax.inverse.model_size import (
 from lightfield_jax.inverse.noise import noise_floor, noise_scale
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import FitSettings
 
 # The cheap models' stripe cell: the walls' term of the shifts' mean alone (2: no order
 # of every shift's own), the fastest (docs/periodic_cell.md).
@@ -53,7 +53,7 @@ class Answer:
 def fit_once(
     problem: FitProblem,
     data: FitData,
-    options: FitOptions,
+    options: FitSettings,
     say,
     start=None,
     *,
@@ -114,7 +114,7 @@ def fit_once(
     if the_scan.ratios is not None:
         say(f"  measured per-bounce ratio {ratio:.3f}")
     say(f"  the solve's model: {orders(coarse)}")
-    rescans = from_scan and options.basin_search and not stop
+    rescans = from_scan and options.trust.basin_search and not stop
     search = search_basins(
         ctx,
         Search(scan=the_scan, coarse=coarse, stop=stop),
@@ -136,12 +136,12 @@ def _answer(ctx: FitContext, search: Search, scanned: list, peak: float, seconds
     names = ["sigma_t", "sigma_s", "g", "gain"] + (["black_level"] if ctx.fit_black else [])
     noise = noise_scale(data.images, last.weights, ctx.pattern, last.values["gain"] * last.unit)
     shift, fine, fine_tail = None, None, None
-    if options.model_error and not stop:
+    if options.trust.model_error and not stop:
         shift, fine, fine_tail, t = model_shift(ctx, last)
         seconds.add_from(t)
     groups = split_groups(data.images.shape, ctx.pattern)
     kappa = None if fine is None else richardson_factor(last.model, fine)
-    step = kappa if options.extrapolate else None
+    step = kappa if options.trust.extrapolate else None
     if kappa is not None and step is None:
         # Not extrapolated: the model's error is κ × its step to the finer model, and
         # the model term holds all of it.

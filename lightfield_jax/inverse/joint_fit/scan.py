@@ -15,8 +15,8 @@ from lightfield_jax.inverse.basins import Scan, basin_of, basins, nearest_point,
 from lightfield_jax.inverse.joint_fit.context import FitContext, Seconds
 from lightfield_jax.inverse.joint_fit.stage import joint_parts
 from lightfield_jax.inverse.model_size import SCAN_TAIL_BOUNCES, ModelSpec
-from lightfield_jax.inverse.options import phase_integral_at
 from lightfield_jax.runtime.timing import stopwatch
+from lightfield_jax.scene.phase import phase_integral_at
 
 # An answer whose σt is more than this factor from the scan's (the direct light's decay
 # estimate) is checked by a second scan at its σt (:func:`rescan`). Measured on 32x24
@@ -53,7 +53,7 @@ def run_scan(ctx: FitContext, model: ModelSpec, sigma_t0: float) -> Scan:
     extrapolate = model.tail is not None
     if extrapolate:
         model = dataclasses.replace(model, bounces=SCAN_TAIL_BOUNCES, tail=None)
-    renderer, full = joint_parts(ctx.pattern, model, options.phase)
+    renderer, full = joint_parts(ctx.pattern, model, options.model.phase)
     dtype = jnp.result_type(float)
     with stopwatch() as timing:
         cost, black_map, gs, albedos, ratios, refs, offset = scan(
@@ -62,13 +62,15 @@ def run_scan(ctx: FitContext, model: ModelSpec, sigma_t0: float) -> Scan:
             jnp.asarray(ctx.data.images, dtype),
             jnp.asarray(ctx.weights, dtype),
             sigma_t0,
-            phase=options.phase,
+            phase=options.model.phase,
             lit=ctx.pattern.lit,
             black_level=ctx.black,
-            rho_limit=rho_of(options.phase),
+            rho_limit=rho_of(options.model.phase),
             extrapolate=extrapolate,
         )
-    found = basins(cost, black_map, gs, albedos, options.basin_tolerance, options.max_basins)
+    found = basins(
+        cost, black_map, gs, albedos, options.trust.basin_tolerance, options.trust.max_basins
+    )
     return Scan(
         gs=gs,
         albedos=albedos,
@@ -142,7 +144,7 @@ def rescan(ctx: FitContext, model: ModelSpec, the_scan: Scan, found: dict, n_fou
     again = run_scan(ctx, model, found["sigma_t"])
     home = home_basin(again, found)
     others = [(i, b) for i, b in enumerate(again.basins) if b.index != home]
-    others = others[: max(ctx.options.max_basins - n_found, 1)]
+    others = others[: max(ctx.options.trust.max_basins - n_found, 1)]
     return starts_of("rescan basin", again, others, ctx.black), again
 
 

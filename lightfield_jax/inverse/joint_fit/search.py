@@ -64,7 +64,7 @@ def starts_for(ctx: FitContext, the_scan: Scan, start, stop: list[str]) -> list:
     if ctx.start is not None:
         ss, g = ctx.start
         return [("given", (ctx.data.sigma_t0, ss, g, 0.0 if black is None else black))]
-    found = the_scan.basins if ctx.options.basin_search else the_scan.basins[:1]
+    found = the_scan.basins if ctx.options.trust.basin_search else the_scan.basins[:1]
     if not found:
         raise ValueError(
             "the basin scan found no valid model for this capture (every albedo's "

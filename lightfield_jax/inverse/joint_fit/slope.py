@@ -75,7 +75,7 @@ def off_course(ctx: FitContext, v: dict, the_scan: Scan) -> bool:
     than its best."""
     albedo = v["sigma_s"] / v["sigma_t"]
     return bool(at_bound(v, ctx.black_range)) or (
-        worse_basin(the_scan, v["g"], albedo, ctx.options.basin_tolerance) is not None
+        worse_basin(the_scan, v["g"], albedo, ctx.options.trust.basin_tolerance) is not None
     )
 
 

@@ -27,17 +27,17 @@ from lightfield_jax.runtime.timing import stopwatch
 from lightfield_jax.scene.illumination import Stripes
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import SolverOptions
 
 
-def least_squares_solver(solver, options: FitOptions, dtype):
-    """The optimistix least-squares solver: ``solver`` (a fit method's, or the options'),
-    else Levenberg-Marquardt with tolerances from ``options`` or the dtype."""
+def least_squares_solver(solver, limits: SolverOptions, dtype):
+    """The optimistix least-squares solver: ``solver`` (a fit method's), else
+    Levenberg-Marquardt with the tolerances of ``limits`` or the dtype."""
     if solver is not None:
         return solver
     wide = jnp.finfo(dtype).bits > 32
-    rtol = options.rtol if options.rtol is not None else (1e-8 if wide else 1e-4)
-    atol = options.atol if options.atol is not None else (1e-10 if wide else 1e-4)
+    rtol = limits.rtol if limits.rtol is not None else (1e-8 if wide else 1e-4)
+    atol = limits.atol if limits.atol is not None else (1e-10 if wide else 1e-4)
     return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
 
@@ -120,9 +120,9 @@ def solve_stage(ctx: FitContext, model: ModelSpec, weights, y0) -> Stage:
     """One compiled joint solve (:func:`lightfield_jax.inverse.joint.solve`) of ``model``
     from ``y0`` with ``weights``."""
     data, pattern, options, black = ctx.data, ctx.pattern, ctx.options, ctx.black
-    renderer, full = joint_parts(pattern, model, options.phase)
+    renderer, full = joint_parts(pattern, model, options.model.phase)
     fit_black = black is None
-    settings = JointSettings(fit_black, pattern.lit, options.max_steps, model.extrapolate)
+    settings = JointSettings(fit_black, pattern.lit, options.solve.max_steps, model.extrapolate)
     dtype = y0.dtype
     obs = jnp.asarray(data.images, dtype)
     black_fixed = jnp.asarray(0.0 if fit_black else black, dtype)
@@ -142,7 +142,7 @@ def solve_stage(ctx: FitContext, model: ModelSpec, weights, y0) -> Stage:
                 y, result, steps, unit, jac_r, tail = jax.block_until_ready(
                     solve_joint(
                         settings,
-                        least_squares_solver(ctx.solver, options, dtype),
+                        least_squares_solver(ctx.solver, options.solve, dtype),
                         renderer,
                         full,
                         obs,
@@ -210,7 +210,7 @@ def model_weights(data: FitData, stage: Stage):
 def usable_render(ctx: FitContext, model: ModelSpec, v: dict, dtype):
     """:func:`render_model` of ``model`` at ``v`` (its renderers for the fit's pattern),
     or ``None`` where its tail solve did not converge or the render is not finite."""
-    renderer, full = joint_parts(ctx.pattern, model, ctx.options.phase)
+    renderer, full = joint_parts(ctx.pattern, model, ctx.options.model.phase)
     unit, tail = render_model(renderer, full, ctx.pattern, model, v, dtype)
     if (tail is not None and not tail["converged"]) or not np.all(np.isfinite(unit)):
         return None

@@ -22,7 +22,7 @@ from lightfield_jax.inverse.verdict import (
 from lightfield_jax.scene.medium import bounces_for_tolerance
 
 if TYPE_CHECKING:
-    from lightfield_jax.inverse.options import FitOptions
+    from lightfield_jax.inverse.settings import FitSettings
 
 
 # A marched series whose left-out orders exceed this share of I_1 is not a model of the
@@ -32,16 +32,16 @@ CUT_LIMIT = 0.01
 
 
 def offset_stop(
-    the_scan: Scan, options: FitOptions, peak: float, from_start: bool = False
+    the_scan: Scan, options: FitSettings, peak: float, from_start: bool = False
 ) -> list[str]:
     """The reason to stop after the basin scan (``[]``: go on): a constant offset in
-    every image value leaves less than ``options.offset_stop`` of the scan's best
+    every image value leaves less than ``options.trust.offset_stop`` of the scan's best
     misfit. The scan's misfit then is mostly that constant, many times the noise and the
     cheap model's own error, and the full model's solves would chase it (g toward its
     bound, the model growing with it) for minutes to end not trusted. ``from_start``:
     the fit solves a start it was given, not the scan's basins."""
     found = the_scan.offset
-    if found is None or not found.fraction < options.offset_stop:
+    if found is None or not found.fraction < options.trust.offset_stop:
         return []
     hint = offset_hint(found.value, found.fraction, "basin scan's", peak)
     if not hint:
@@ -49,7 +49,7 @@ def offset_stop(
     solved = "the given start's" if from_start else "its best basin's"
     return [
         f"{hint[0]}; the fit stopped after the scan and {solved} cheap solve "
-        f"(offset_stop: {options.offset_stop:g})"
+        f"(offset_stop: {options.trust.offset_stop:g})"
     ]
 
 
@@ -78,7 +78,7 @@ def offset_hint_below_far(far: bool, reasons: list[str], chi2_dof: float) -> boo
     return (not far) and bool(reasons) and math.isfinite(chi2_dof) and chi2_dof >= OFFSET_HINT_CHI2
 
 
-def cut_series(model: ModelSpec, the_scan, v: dict, options: FitOptions) -> list[str]:
+def cut_series(model: ModelSpec, the_scan, v: dict, options: FitSettings) -> list[str]:
     """A reason where the model marched a series (no tail solve, no extrapolation) whose
     per-bounce ratio measured by the scan, at the answer, says the orders past its
     ``bounces`` are not negligible: r^K/(1 − r) of I_1 above :data:`CUT_LIMIT`, or r ≥ 1.
@@ -102,7 +102,7 @@ def cut_series(model: ModelSpec, the_scan, v: dict, options: FitOptions) -> list
         "the orders left out are not negligible; "
     )
     if r >= 1 or not model.converges:
-        if options.phase == "paper":
+        if options.model.phase == "paper":
             return [
                 cut + "under phase: paper this medium gains light at every bounce and no "
                 "count of bounces sums it: fit with fit: {phase: normalized} (--phase "
@@ -110,11 +110,13 @@ def cut_series(model: ModelSpec, the_scan, v: dict, options: FitOptions) -> list
             ]
         return [cut + f"fit: {{bounces: {max(2 * model.bounces, 8)}}} marches more of them"]
     need = bucket_bounces(
-        bounces_for_tolerance(min(r + RATIO_MARGIN, 0.995), options.tolerance, 10**9)
+        bounces_for_tolerance(min(r + RATIO_MARGIN, 0.995), options.model.tolerance, 10**9)
     )
-    if options.tail is None:  # the march is capped at max_bounces
+    if options.model.tail is None:  # the march is capped at max_bounces
         return [cut + f"fit: {{max_bounces: {need}}} marches the bounces this ratio needs"]
-    solve = "" if isinstance(options.bounces, int) else " or fit: {tail: bicgstab} (a tail solve)"
+    solve = (
+        "" if isinstance(options.model.bounces, int) else " or fit: {tail: bicgstab} (a tail solve)"
+    )
     return [cut + f"fit: {{bounces: {need}}} marches the bounces this ratio needs{solve}"]
 
 
@@ -125,14 +127,16 @@ def verdict(
     (:func:`untrustworthy`), a constant offset that explains its misfit, a tail solve or
     a march that did not converge, a worse basin than the scan's best."""
     options, v = ctx.options, last.values
-    reasons = untrustworthy(v, budget, options.max_chi2, ctx.black_range)
-    far = math.isfinite(budget.chi2_model) and budget.chi2_model > options.max_chi2
+    reasons = untrustworthy(v, budget, options.trust.max_chi2, ctx.black_range)
+    far = math.isfinite(budget.chi2_model) and budget.chi2_model > options.trust.max_chi2
     if far:
         reasons += offset_reason(the_scan, last, peak)
     reasons += tail_unconverged(last.tail, last.model.tail_max_steps, "the model")
     reasons += tail_unconverged(fine_tail, fine.tail_max_steps if fine else 0, "the finer model")
     reasons += cut_series(last.model, the_scan, v, options)
-    other = worse_basin(the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.basin_tolerance)
+    other = worse_basin(
+        the_scan, v["g"], v["sigma_s"] / v["sigma_t"], options.trust.basin_tolerance
+    )
     if other is not None:
         reasons.append(
             f"in a worse basin than the scan's best (g {other.g:.2f}, albedo "
