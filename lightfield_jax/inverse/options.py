@@ -52,7 +52,8 @@ class FitOptions(FitSettings):
             ``joint`` (default), ``gradient`` or ``grid`` or as a method
             (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
             :class:`~lightfield_jax.GridSearch`).
-        model, trust, solve: the groups of settings (each field also a flat keyword).
+        model, trust, solve: the groups of settings (each field also a flat keyword and
+            a read-only attribute: ``options.n_theta`` is ``options.model.n_theta``).
 
     The flat keywords of the methods' own settings: ``g_grid`` (the grid's
     ``GridSearch.g_values``: g values searched on (−0.95, 0.95)), ``start_grid``
@@ -95,6 +96,14 @@ class FitOptions(FitSettings):
             if key in settings:
                 method = _routed(method, key, check_method_setting(key, settings[key]))
         object.__setattr__(self, "method", method)
+
+    def __getattr__(self, name: str):
+        # A flat setting reads from its group (``options.n_theta`` is
+        # ``options.model.n_theta``), as it is given.
+        group = GROUP_OF.get(name)
+        if group is None:
+            raise AttributeError(f"FitOptions has no setting {name!r}")
+        return getattr(getattr(self, group), name)
 
     def flat(self) -> dict:
         """Every setting as a flat keyword (the method as itself, its own settings as
