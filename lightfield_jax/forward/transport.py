@@ -144,29 +144,57 @@ def _advance(l_prev, q_prev, q_cur, w, wrap: bool = False):
     return w["mid"] * v + w["lo"] * v_lo + w["hi"] * v_hi + w["current"] * q_cur
 
 
+# The most steps of the longer group per step of the shorter in one scan step (the
+# loop body holds that many copies of the longer group's step). Measured (64 θ bins, six
+# patterns, min of 5 calls): 4 makes the sweep of a 24×256 grid 1.9× and of a 12×128 one
+# 1.5× faster; 16 made the 12×128 one slower (0.6×) than one step each.
+_MAX_STEPS_PER_STEP = 4
+
+
+def _steps_per_step(n_long: int, n_short: int) -> int:
+    return max(1, min(_MAX_STEPS_PER_STEP, (n_long - 1) // max(n_short - 1, 1)))
+
+
 def _sweep_both(qx, qy, wx, wy, wrap_x: bool = False):
     """March both groups in one ``lax.scan`` (one loop, not two: XLA's CPU runtime runs
     two independent loops in one program several times slower than one).
 
     qx: (W, ..., n_x, H), qy: (H, ..., n_y, W): march axis first, transverse axis last
-    (contiguous; ~3x faster on CPU than directions last). The shorter group is padded
-    with zero steps at its end. ``wrap_x``: the x group's rows are periodic.
+    (contiguous; ~3x faster on CPU than directions last). Where one group marches many
+    more steps than the other (a short wide tank: W ≫ H), each scan step advances it
+    that many steps for one of the other, so the shorter group is not padded to the
+    longer one's length (a 12-row tank 128 columns wide: its y group's zero steps
+    would be ten times its work). Padding zero steps go at the end.
     """
     n_x, n_y = qx.shape[0], qy.shape[0]
-    n = max(n_x, n_y)
-    qx_p = jnp.pad(qx, [(0, n - n_x)] + [(0, 0)] * (qx.ndim - 1))
-    qy_p = jnp.pad(qy, [(0, n - n_y)] + [(0, 0)] * (qy.ndim - 1))
+    kx = _steps_per_step(n_x, n_y) if n_x >= n_y else 1
+    ky = 1 if n_x >= n_y else _steps_per_step(n_y, n_x)
+    m = max(-(-(n_x - 1) // kx), -(-(n_y - 1) // ky), 1)
+
+    def blocks(q, k):
+        rest = q[1:]
+        rest = jnp.pad(rest, [(0, m * k - rest.shape[0])] + [(0, 0)] * (q.ndim - 1))
+        return rest.reshape((m, k) + q.shape[1:])
+
     first_x = qx[0] * wx["first"]
     first_y = qy[0] * wy["first"]
 
     def advance(carry, q_cur):
         lx, qx_prev, ly, qy_prev = carry
         qx_cur, qy_cur = q_cur
-        lx = _advance(lx, qx_prev, qx_cur, wx, wrap_x)
-        ly = _advance(ly, qy_prev, qy_cur, wy)
-        return (lx, qx_cur, ly, qy_cur), (lx, ly)
+        out_x, out_y = [], []
+        for i in range(kx):
+            lx, qx_prev = _advance(lx, qx_prev, qx_cur[i], wx, wrap_x), qx_cur[i]
+            out_x.append(lx)
+        for i in range(ky):
+            ly, qy_prev = _advance(ly, qy_prev, qy_cur[i], wy), qy_cur[i]
+            out_y.append(ly)
+        return (lx, qx_prev, ly, qy_prev), (jnp.stack(out_x), jnp.stack(out_y))
 
-    _, (lx, ly) = jax.lax.scan(advance, (first_x, qx[0], first_y, qy[0]), (qx_p[1:], qy_p[1:]))
+    init = (first_x, qx[0], first_y, qy[0])
+    _, (lx, ly) = jax.lax.scan(advance, init, (blocks(qx, kx), blocks(qy, ky)))
+    lx = lx.reshape((m * kx,) + lx.shape[2:])
+    ly = ly.reshape((m * ky,) + ly.shape[2:])
     lx = jnp.concatenate([first_x[None], lx[: n_x - 1]], axis=0)
     ly = jnp.concatenate([first_y[None], ly[: n_y - 1]], axis=0)
     return lx, ly
