@@ -31,9 +31,10 @@ NEAR_WALL_GRIDS = ((64, 48, 3), (64, 24, 3), (64, 24, 2), (32, 24, 2))
 # The most light-field values (W·H·refine²·n_theta·n_mu·n_z·profile coefficients) a
 # render may get from the automatic refinement: the kernels' spectra are about 72 bytes
 # per value in float32 with 2 linear layers (18 kernels of 2H × (W + 1) complex per
-# 4 values of a pixel and direction), so about 3.4 GiB here, the blocked working set
-# (forward.slab_memory, at most 0.75 GiB) on top. The 24×17 beam of the measurement at
-# the first rung has 45.1 million.
+# 4 values of a pixel and direction), so about 3.2 GiB here (twice in float64), the
+# blocked working set (forward.slab_memory, at most 0.75 GiB) on top. The 24×17 beam of
+# the measurement at the first rung has 45.1 million; its render is estimated at
+# 4.3 GiB (slab_render_bytes, one pattern, float32).
 SLAB_REFINE_CELLS = 48_000_000
 
 # Albedo below which the orders the finer grid corrects (k ≥ 3) carry little light
