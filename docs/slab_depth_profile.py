@@ -11,12 +11,25 @@ average.
    refractive, 32 × 24 angles, 2 × 1e6 photons), per depth model; then, at 2 linear
    layers, per in-plane discretisation (azimuth bins, μ nodes, spatial refinement).
 
-Run: .venv/bin/python docs/slab_depth_profile.py [--mc]  (about 2 minutes on 2 cores;
-4 more with --mc)
+4. With ``--near-wall`` (alone: the other tables are skipped): the in-plane grid next
+   to the entry wall, the same beam against the 3-D slab Monte Carlo at g 0.9, ω 0.99
+   (8 × 5e6 photons) and at g 0.8, ω 0.95 (4 × 5e6), per (azimuth bins, μ nodes,
+   refinement), 2 linear layers, float32: the errors of orders 2–6 in the image sums,
+   the off-beam rows next to the wall (rows 0–6 and 10–16, columns 0–5) and the beam's
+   rows there (7–9, columns 0–5), the Monte Carlo's σ of the mean from the spread of its
+   runs; the settings, errors, times and the machine's load go to
+   docs/slab_near_wall.json.
+
+Run: .venv/bin/python docs/slab_depth_profile.py [--mc | --near-wall]  (about 2 minutes
+on 2 cores; 4 more with --mc; about 8 on a shared 2-core machine with --near-wall)
 """
 
+import json
+import os
+import platform
 import sys
 import time
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -130,7 +143,81 @@ def against_monte_carlo():
         )
 
 
+NEAR_WALL = {
+    (0.99, 0.9): (8, ["32x24x1", "32x48x1", "32x24x2", "32x48x2", "32x24x3", "32x48x3",
+                      "64x24x2", "32x24x4", "64x24x3", "64x48x3", "64x24x4"]),
+    (0.95, 0.8): (4, ["16x16x1", "32x16x2", "64x24x3", "64x48x3"]),
+}  # fmt: skip
+ON = np.r_[7:10]
+
+
+def near_wall_groups(image):
+    """Orders 2–6: image sums, off-beam rows next to the wall, the beam's rows there."""
+    return np.stack(
+        [image[1:].sum((1, 2)), image[1:, OFF, 0:6].sum((1, 2)), image[1:, ON, 0:6].sum((1, 2))]
+    )
+
+
+def near_wall():
+    st, record = 0.2, {"scenes": [], "load_before": os.getloadavg()}
+    record["machine"] = {"cpus": os.cpu_count(), "platform": platform.platform()}
+    for (albedo, g), (runs, settings) in NEAR_WALL.items():
+        start = time.perf_counter()
+        images = np.stack(
+            [
+                np.asarray(
+                    monte_carlo_slab(
+                        W, H, 6.4, st, albedo * st, g, BEAM, K, boundary="refractive",
+                        photons=5_000_000, seed=seed, camera_sampling=0.3,
+                    ).images[0]
+                )
+                for seed in range(31, 31 + runs)
+            ]
+        )  # fmt: skip
+        mc = np.stack([near_wall_groups(image) for image in images])
+        ref = mc.mean(0)
+        mc_columns = images.mean(0)[3, OFF, :12].sum(0)
+        sigma = 100 * mc.std(0, ddof=1) / np.sqrt(runs) / ref
+        scene = {"albedo": albedo, "g": g, "photons": 5_000_000 * runs, "rows": []}
+        scene["mc_seconds"] = time.perf_counter() - start
+        scene["mc_sigma_percent"] = np.round(sigma, 3).tolist()
+        print(f"\nω {albedo}, g {g}: Monte Carlo σ % (sums; off-beam; beam rows, k 2–6):")
+        print("  " + " | ".join(" / ".join(f"{v:.2f}" for v in row) for row in sigma))
+        print("| θ × μ × refine | image sums | off-beam rows | beam rows | s |")
+        for setting in settings:
+            n_theta, n_mu, refine = map(int, setting.split("x"))
+            start = time.perf_counter()
+            slab = Slab(6.4, "refractive", n=1.33, n_mu=n_mu, n_z=2)
+            renderer = SlabRenderer(lfj.Grid(W, H, n_theta, refine), BEAM, K, slab)
+            image = np.asarray(renderer(st, albedo * st, g)[0], np.float64)[0]
+            seconds = time.perf_counter() - start
+            err = 100 * (near_wall_groups(image) / ref - 1)
+            cells = " | ".join(" / ".join(f"{v:+.1f}" for v in row) for row in err)
+            print(f"| {n_theta} × {n_mu} × {refine} | {cells} | {seconds:.0f} |", flush=True)
+            columns = 100 * (image[3, OFF, :12].sum(0) / mc_columns - 1)
+            scene["rows"].append(
+                {
+                    "n_theta": n_theta,
+                    "n_mu": n_mu,
+                    "refine": refine,
+                    "error_percent": np.round(err, 3).tolist(),
+                    "seconds": seconds,
+                    "off_beam_k4_error_percent_by_column": np.round(columns, 2).tolist(),
+                }
+            )
+        record["scenes"].append(scene)
+    record["load_after"] = os.getloadavg()
+    record["groups"] = "image sums; off-beam rows 0-6, 10-16 x columns 0-5; rows 7-9 x 0-5"
+    record["orders"] = [2, 3, 4, 5, 6]
+    out = Path(__file__).with_name("slab_near_wall.json")
+    out.write_text(json.dumps(record, indent=1) + "\n")
+    print(f"wrote {out}")
+
+
 if __name__ == "__main__":
+    if "--near-wall" in sys.argv:
+        near_wall()
+        sys.exit()
     with jax.enable_x64(True):
         convergence()
         if "--mc" in sys.argv:

@@ -21,12 +21,19 @@ from lightfield_jax.forward.slab import slab_bounce_ratio
 from lightfield_jax.inverse.settings import FitSettings
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import REFINE_LIMIT, Grid, default_n_theta, default_refine
+from lightfield_jax.scene.slab_grid import NEAR_WALL_G, near_wall_grid, needs_near_wall_grid
 
 # The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
 MIN_CAPPED_MU = 4
 # The slab's cheap model for a second try (:meth:`GeometryModel.finer_cheap`): azimuth
 # bins and elevation nodes.
 RETRY_SLAB = (16, 8)
+# No cap on the near-wall grid when a fit sizes its model: the cell cap comes after
+# (:meth:`SlabModel.capped` lowers the refinement first).
+NEAR_WALL_UNCAPPED = 1 << 62
+# The elevation nodes the cap lowers a near-wall model's to before its azimuth bins:
+# the default's at g ≥ 0.85 (scene.geometry.default_n_mu).
+NEAR_WALL_MU_FLOOR = 24
 
 
 def plane_cells(grid: Grid) -> int:
@@ -50,9 +57,9 @@ class GeometryModel(abc.ABC):
         σt), before the cell cap."""
 
     def capped(self, width: int, height: int, n_theta: int, refine: int, options: FitSettings):
-        """``(n_theta, geometry)`` within ``max_cells`` where the plane's cap
+        """``(n_theta, refine, geometry)`` within ``max_cells`` where the plane's cap
         (θ bins and refinement) left it above (the slab's fields are larger)."""
-        return n_theta, self
+        return n_theta, refine, self
 
     def bounce_ratio(self, rho: float, sigma_t, albedo: float, g: float, w: int, h: int):
         """The per-bounce ratio of the series at the estimate (``rho``: ω·A(g))."""
@@ -113,6 +120,11 @@ class GeometryModel(abc.ABC):
 
     def record(self) -> dict:
         """This geometry's discretisation in a result's record."""
+        return {}
+
+    def sizing(self) -> dict:
+        """What a sizing rule of this geometry asked for beyond its defaults, for the
+        model's record (``{}``: nothing)."""
         return {}
 
     def deeper(self, than: GeometryModel) -> bool:
@@ -233,6 +245,10 @@ class SlabModel(GeometryModel):
     within four times the plane's cell cap (its fields span the 2H × 2W FFT domain)."""
 
     slab: Slab
+    # The (azimuth bins, elevation nodes, refinement) the near-wall rule asked for
+    # (|g| ≥ 0.9), before the cap; ``None`` where it did not apply. Recorded with the
+    # model.
+    near_wall: tuple[int, int, int] | None = None
 
     @property
     def scene(self) -> Slab:
@@ -242,12 +258,19 @@ class SlabModel(GeometryModel):
         # Less sensitive to g than the plane: a smaller margin. Depth layers, elevation
         # nodes and azimuth bins from the estimate (the albedo and σt·h decide how much
         # the depth must be resolved).
+        # A forward lobe (|g| ≥ 0.9 with the margin) asks for the finer in-plane grid
+        # (scene.slab_grid: 64 bins, 48 μ nodes, refine 3); the cap (:meth:`capped`)
+        # lowers what it added first.
         g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
-        n_theta = options.model.n_theta or default_slab_n_theta(
-            g_slab, self.slab.boundary, albedo_slab
-        )
-        slab = self.slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
-        return n_theta, options.model.refine or 1, SlabModel(slab)
+        slab, n_theta, refine = self.slab, options.model.n_theta, options.model.refine
+        asked = None
+        if needs_near_wall_grid(g_slab, albedo_slab):
+            asked = near_wall_grid(1, 1, 1, n_theta, slab.n_mu, refine, cap=NEAR_WALL_UNCAPPED)
+            n_theta, n_mu, refine = asked
+            slab = dataclasses.replace(slab, n_mu=n_mu)
+        slab = slab.resolve(g_slab, sigma_t=sigma_t, albedo=albedo_slab)
+        n_theta = n_theta or default_slab_n_theta(g_slab, self.slab.boundary, albedo_slab)
+        return n_theta, refine or 1, SlabModel(slab, near_wall=asked)
 
     def over(self, width, height, n_theta, refine, max_cells: int) -> bool:
         """Whether the slab passes a cap of ``max_cells`` (a plane's cell count): it
@@ -262,16 +285,24 @@ class SlabModel(GeometryModel):
         user_mu = options.model.geometry.n_mu is not None
         model = self
         while model.over(width, height, n_theta, refine, options.model.max_cells):
-            if n_theta > 8 and options.model.n_theta is None:
+            near_wall_mu = model.near_wall is not None and model.slab.n_mu > NEAR_WALL_MU_FLOOR
+            if refine > 1 and options.model.refine is None:
+                # The near-wall grid's additions first: its refinement costs refine² of
+                # every field, its elevation nodes twice the default's.
+                refine -= 1
+            elif near_wall_mu and not user_mu:
+                n_mu = max(NEAR_WALL_MU_FLOOR, model.slab.n_mu // 2)
+                model = dataclasses.replace(model, slab=dataclasses.replace(model.slab, n_mu=n_mu))
+            elif n_theta > 8 and options.model.n_theta is None:
                 n_theta //= 2
             elif model.slab.n_mu > MIN_CAPPED_MU and not user_mu:
                 # Never below 4 nodes: refractive faces need 2 on each side of the
                 # critical angle (24 halves to 12, 6, then 4).
                 n_mu = max(MIN_CAPPED_MU, model.slab.n_mu // 2)
-                model = SlabModel(dataclasses.replace(model.slab, n_mu=n_mu))
+                model = dataclasses.replace(model, slab=dataclasses.replace(model.slab, n_mu=n_mu))
             else:
                 break
-        return n_theta, model
+        return n_theta, refine, model
 
     def bounce_ratio(self, rho, sigma_t, albedo, g, w, h):
         if sigma_t is None:
@@ -295,7 +326,7 @@ class SlabModel(GeometryModel):
         )
 
     def at_least(self, floor):
-        return SlabModel(floor.grown(self.slab))
+        return dataclasses.replace(self, slab=floor.grown(self.slab))
 
     def grown(self, slab):
         floor = self.slab
@@ -373,6 +404,13 @@ class SlabModel(GeometryModel):
     def record(self):
         slab = self.slab
         return {"n_mu": slab.n_mu, "n_z": slab.n_z, "depth_profile": slab.profile}
+
+    def sizing(self):
+        if self.near_wall is None:
+            return {}
+        n_theta, n_mu, refine = self.near_wall
+        asked = {"n_theta": n_theta, "n_mu": n_mu, "refine": refine}
+        return {"near_wall_grid": {"g_from": NEAR_WALL_G, "asked": asked}}
 
     def deeper(self, than):
         # A slab's depth layers and elevation nodes too (g decides the nodes, the

@@ -75,6 +75,7 @@ class ModelSpec:
     def as_dict(self) -> dict:
         return {
             "geometry": self.geometry.scene.as_dict(),
+            **self.geometry.sizing(),
             "width": self.grid.width,
             "height": self.grid.height,
             "n_theta": self.grid.n_theta,
@@ -171,7 +172,7 @@ def size_model(
             n_theta //= 2
         else:
             break
-    n_theta, geometry = geometry.capped(width, height, n_theta, refine, options)
+    n_theta, refine, geometry = geometry.capped(width, height, n_theta, refine, options)
     grid = Grid(width, height, n_theta, refine)
     a = float(phase_integral_at(g)) if options.model.phase == "paper" else 1.0
     rho = geometry.bounce_ratio(min(albedo, 1.0) * a, sigma_t, albedo, g, width, height)

@@ -25,6 +25,7 @@ import numpy as np
 
 from lightfield_jax.checks import check_number, number_problem
 from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.slab_grid import near_wall_grid, needs_near_wall_grid
 
 Boundary = Literal["absorbing", "refractive"]
 
@@ -357,15 +358,22 @@ def resolve_slab_grid(
     albedo: float | None = None,
 ) -> tuple[Grid, Slab]:
     """Grid and slab with the discretisation the slab model needs for the medium filled
-    in: ``n_theta`` from :func:`default_slab_n_theta`, ``refine`` 1 (the FFT transport
-    does not smear thin beams), ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the
-    albedo ``None``: what their worst case needs)."""
-    if grid.n_theta is None:
+    in: ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the albedo ``None``: what
+    their worst case needs); for |g| ≥ 0.9 the finer in-plane grid
+    (:func:`~lightfield_jax.scene.slab_grid.near_wall_grid`: 64 azimuth bins, 48
+    elevation nodes and refine 3, or the finest rung that fits its cap), else
+    ``n_theta`` from :func:`default_slab_n_theta` and ``refine`` 1."""
+    n, r = grid.n_theta, grid.refine
+    if needs_near_wall_grid(g, albedo):
+        depth = slab.resolve(g, sigma_t, albedo)
+        depth_values = depth.n_z * depth.depth_coefficients
+        n, n_mu, r = near_wall_grid(grid.width, grid.height, depth_values, n, slab.n_mu, r)
+        slab = dataclasses.replace(slab, n_mu=n_mu)
+    slab = slab.resolve(g, sigma_t, albedo)
+    if n is None:
         n = default_slab_n_theta(g, slab.boundary, albedo)
-    else:
-        n = grid.n_theta
-    r = 1 if grid.refine is None else grid.refine
-    return dataclasses.replace(grid, n_theta=n, refine=r), slab.resolve(g, sigma_t, albedo)
+    r = 1 if r is None else r
+    return dataclasses.replace(grid, n_theta=n, refine=r), slab
 
 
 def default_n_mu(
