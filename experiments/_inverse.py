@@ -7,9 +7,11 @@
 - Errors: σt and σs relative, g absolute; ``error`` (the charts' one number) is the
   largest of the three, |Δσt|/σt, |Δσs|/σs and |Δg|.
 - :func:`fit_record`: one :func:`~lightfield_jax.fit_images` call as a JSON-ready record
-  (an exception becomes a record with ``error_message``), and :func:`failure`, why a fit
-  failed: ``timeout``, ``exception``, ``non-finite``, ``divergent`` (ρ = ω·A(g) ≥ 1
-  under ``phase: paper``), ``not converged``, ``ill-conditioned``, ``biased``, or ``ok``;
+  (an exception becomes a record with ``error_message``; :data:`OWN_MODEL`: the
+  captures are the model's own renders, so the fit reports the model's own answer),
+  and :func:`failure`, why a fit failed: ``timeout``, ``exception``, ``non-finite``,
+  ``divergent`` (ρ = ω·A(g) ≥ 1 under ``phase: paper``), ``not converged``,
+  ``ill-conditioned``, ``biased``, or ``ok``;
   :func:`fit_record_limited` runs a fit on a Dask worker with a time limit.
 - :func:`camera`: a capture scaled to peak 1 with the package's noise model, so that
   photon counts and read noise are relative to the brightest pixel.
@@ -226,9 +228,19 @@ def result_record(res: lfj.FitResult, truth: dict) -> dict:
     }
 
 
+# The fit keywords for a capture that :func:`simulate` rendered on the grid the fit's
+# model uses (θ bins and refinement from g): that model's own answer is its truth, so
+# the answer is not extrapolated to the continuum (the default for refined models,
+# checked against Monte Carlo captures instead, tests/test_dense_media.py).
+OWN_MODEL = {"extrapolate": False}
+
+
 def fit_record(images, pattern, truth: dict, **kwargs) -> dict:
-    """:func:`~lightfield_jax.fit_images` on ``images`` as a record; an exception is
-    recorded (``error_message``), not raised: failures are data here."""
+    """:func:`~lightfield_jax.fit_images` on ``images`` as a record (with
+    :data:`OWN_MODEL` unless ``kwargs`` give ``options`` or ``extrapolate``); an
+    exception is recorded (``error_message``), not raised: failures are data here."""
+    if "options" not in kwargs:
+        kwargs = {**OWN_MODEL, **kwargs}
     t = time.perf_counter()
     load = os.getloadavg()[0]
     try:

@@ -20,6 +20,7 @@ uncertainty to check.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 import warnings
@@ -30,7 +31,15 @@ import numpy as np
 
 import lightfield_jax as lfj
 from lightfield_jax.app.experiment import load_helper
-from lightfield_jax.app.experiment_config import Count, Pixels, Positive, Range, Seed, typed_config
+from lightfield_jax.app.experiment_config import (
+    Count,
+    Pixels,
+    Positive,
+    Range,
+    Seed,
+    fit_keywords,
+    typed_config,
+)
 from lightfield_jax.app.experiment_records import provenance, pyplot, save_figure
 
 inv = load_helper("_inverse")
@@ -42,7 +51,8 @@ CHI2_3_95 = 7.814727903251178  # χ²₃'s 95 % point
 @dataclasses.dataclass(frozen=True)
 class Config:
     """configs/coverage.yaml: the media (name, sigma_t, sigma_s, g, phase), the
-    capture's size (pixels), its noise (photons at the peak, read σ) and the seeds."""
+    capture's size (pixels), its noise (photons at the peak, read σ), the seeds and
+    extra :func:`~lightfield_jax.fit_images` keywords (a capture file's ``fit:`` keys)."""
 
     media: tuple[Annotated[dict, inv.NamedMedium], ...]
     width: Pixels
@@ -51,8 +61,10 @@ class Config:
     read: Annotated[float, Range(0)]
     seeds: Count
     seed0: Seed = 0
+    fit: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
+        fit_keywords("coverage", "fit", self.fit)
         if not self.media:
             raise ValueError("coverage: media: at least one")
         names = [m["name"] for m in self.media]
@@ -63,12 +75,12 @@ class Config:
             inv.check_simulation_config(cfg, f"coverage: media {m['name']}")
 
 
-def _fit(images: np.ndarray, medium: dict, truth: dict) -> dict:
+def _fit(images: np.ndarray, medium: dict, truth: dict, fit: dict) -> dict:
     t = time.perf_counter()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
-            res = lfj.fit_images(images, lfj.Stripes(), phase=medium.get("phase", "paper"))
+            res = lfj.fit_images(images, lfj.Stripes(), phase=medium.get("phase", "paper"), **fit)
     except (ValueError, FloatingPointError, RuntimeError) as e:  # data, not a crash
         return {"error_message": f"{type(e).__name__}: {e}", "converged": False}
     sigma = np.array([res.uncertainty[k] for k in PARAMS])
@@ -145,10 +157,12 @@ def run(config: dict, out: Path, ctx) -> dict:
         for seed in range(cfg.seed0, cfg.seed0 + cfg.seeds):
             ctx.progress(f"{m['name']}: seed {seed}")
             key = f"coverage {m} {cfg.width}x{cfg.height} {cfg.photons} {cfg.read} {seed}"
+            if cfg.fit:
+                key += f" {json.dumps(cfg.fit, sort_keys=True)}"
 
             def compute(seed=seed, m=m, truth=truth, clean=clean):
                 images = inv.camera(clean, (cfg.photons, cfg.read), seed)
-                return {"seed": seed, **_fit(images, m, truth)}
+                return {"seed": seed, **_fit(images, m, truth, cfg.fit)}
 
             fits.append(ctx.cached(key, compute))
         records[m["name"]] = fits

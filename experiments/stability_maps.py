@@ -631,7 +631,9 @@ def _start_solve(medium: dict, start: tuple, images, config: Config) -> dict:
     """One joint fit from ``start``'s (σs, g) (σt from the decay fit, as always), the
     basin search off: where the solve from there ends, and whether it is trusted."""
     t0 = time.perf_counter()
-    fit = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, start=tuple(start[1:3]))
+    fit = lfj.fit_images(
+        images, lfj.Stripes(), black_level=0.0, start=tuple(start[1:3]), **inv.OWN_MODEL
+    )
     values = {k: getattr(fit, k) for k in inv.PARAMS}
     finite = all(math.isfinite(v) for v in values.values())
     rec = {
