@@ -381,10 +381,10 @@ def test_matplotlibs_own_warnings_are_not_shown_as_the_packages(capsys):
     """A figure's layout warning printed as "lightfield-jax: warning: ..."."""
     import warnings
 
-    from lightfield_jax.app.cli import _warnings_to_stderr
+    from lightfield_jax.app.cli import warnings_to_stderr
 
     collected = []
-    with _warnings_to_stderr(collected), warnings.catch_warnings():
+    with warnings_to_stderr(collected), warnings.catch_warnings():
         warnings.simplefilter("always")
         where = str(Path("site-packages") / "matplotlib" / "layout_engine.py")
         warnings.warn_explicit("constrained_layout not applied", UserWarning, where, 1)

@@ -75,9 +75,9 @@ def test_the_gradient_programs_residual_and_jacobian_are_those_at_its_answer(max
     from lightfield_jax.inverse.programs import jitted
     from lightfield_jax.inverse.two_step import (
         TwoStepSettings,
-        _two_step_run,
         rendered_and_g_slope,
         two_step_residual,
+        two_step_run,
     )
 
     direct, multiple = _split()  # with 2 % noise: a residual well above rounding
@@ -88,7 +88,7 @@ def test_the_gradient_programs_residual_and_jacobian_are_those_at_its_answer(max
     st, scale = jnp.asarray(MILK.sigma_t), jnp.asarray(float(np.sqrt(np.mean(m**2))))
     lm = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
     arrays, static = eqx.partition(lm, eqx.is_array)
-    s, g, _a, r, jac, _result, steps = jitted(_two_step_run, ("settings", "solver_static"))(
+    s, g, _a, r, jac, _result, steps = jitted(two_step_run, ("settings", "solver_static"))(
         TwoStepSettings(True, "paper", max_steps),
         static,
         arrays,

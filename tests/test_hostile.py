@@ -2282,7 +2282,7 @@ def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, m
     staged folder (render's R/bounces.npy) read "view: write failed ([Errno None] write
     failed (8400 requested and 7648 written): '.../.view.tmp-164f67c5/R/bounces.npy')",
     naming the temporary. Now "view: write failed (8400 requested and 7648 written)"."""
-    from lightfield_jax.app.cli import _describe
+    from lightfield_jax.app.cli import describe_error
     from lightfield_jax.files import atomic_directory, atomic_write_npy
 
     def short_write(*_, **__):
@@ -2292,7 +2292,7 @@ def test_a_short_write_inside_an_output_folder_names_the_folder_once(tmp_path, m
     view = tmp_path / "view"
     with pytest.raises(OSError) as e, atomic_directory(view) as staging:
         atomic_write_npy(staging / "R" / "bounces.npy", np.zeros(3))
-    assert _describe(e.value) == f"{view}: write failed (8400 requested and 7648 written)"
+    assert describe_error(e.value) == f"{view}: write failed (8400 requested and 7648 written)"
     assert os.listdir(tmp_path) == []
 
 

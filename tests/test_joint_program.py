@@ -14,7 +14,7 @@ import lightfield_jax as lfj
 from lightfield_jax.forward.render import renderer_for
 from lightfield_jax.inverse.joint import (
     JointSettings,
-    _model_and_jacobian,
+    model_and_jacobian,
     pack,
     solve,
 )
@@ -42,7 +42,7 @@ def test_the_returned_model_and_jacobian_are_those_at_the_answer(tail, max_steps
     )
     assert 2 <= int(steps) <= max_steps
     assert not np.allclose(np.asarray(y), np.asarray(y0))  # it moved
-    fresh_model, fresh_jac = _model_and_jacobian(settings, renderer, None, black, y)
+    fresh_model, fresh_jac = model_and_jacobian(settings, renderer, None, black, y)
     scale = float(jnp.max(jnp.abs(fresh_model)))
     np.testing.assert_allclose(model, fresh_model, rtol=0, atol=1e-5 * scale)
     jac_scale = np.max(np.abs(np.asarray(fresh_jac)), axis=(0, 1, 2))

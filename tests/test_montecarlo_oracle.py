@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from lightfield_jax.reference.montecarlo import (
-    _phase_table,
-    _sample_deflection,
     monte_carlo_render,
     phase_function,
     phase_integral,
+    phase_table,
+    sample_deflection,
 )
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
 
@@ -62,8 +62,8 @@ def test_phase_integral_matches_model_table():
 def test_deflection_sampler_follows_the_phase_function(g):
     # Bin probabilities of p/A(g) from a fine midpoint rule, written here independently.
     n, bins = 400_000, 48
-    nodes, cdf, _ = _phase_table(g)
-    delta = _sample_deflection(np.random.default_rng(0), n, nodes, cdf)
+    nodes, cdf, _ = phase_table(g)
+    delta = sample_deflection(np.random.default_rng(0), n, nodes, cdf)
     assert np.all(np.abs(delta) <= math.pi)
     edges = np.linspace(-math.pi, math.pi, bins + 1)
     fine = (np.arange(bins * 200) + 0.5) * (2 * math.pi / (bins * 200)) - math.pi

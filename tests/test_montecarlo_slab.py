@@ -15,8 +15,8 @@ import pytest
 
 from lightfield_jax.reference.montecarlo import launch_photons, wall_source
 from lightfield_jax.reference.montecarlo_slab import (
-    _fly,
-    _Slab,
+    OracleSlab,
+    fly,
     fresnel_reflectance,
     monte_carlo_slab,
     phase_function_cos,
@@ -197,14 +197,14 @@ def test_guided_light_is_total_internal_reflection():
     # A photon launched inside, beyond the critical angle, with no medium in the way
     # (one flight of a huge free path) bounces between the faces without loss until
     # it reaches a side wall; below the critical angle it loses 1 − R at each face.
-    slab = _Slab(width=100, height=100, thickness=2.0, boundary="refractive", n=1.33)
+    slab = OracleSlab(width=100, height=100, thickness=2.0, boundary="refractive", n=1.33)
     critical = math.asin(1 / 1.33)
     angles = np.array([critical + 0.05, critical + 0.3, critical - 0.05, 0.5])
     u = np.stack([np.sin(angles), np.zeros(4), np.cos(angles)])
     pos = np.array([[1.0] * 4, [50.0] * 4, [1.0] * 4])
     w = np.ones(4)
     escaped, faces = np.zeros(1), np.zeros(1)
-    collided = _fly(slab, pos, u, w, np.full(4, 1e9), np.zeros(4, np.int64), escaped, faces)
+    collided = fly(slab, pos, u, w, np.full(4, 1e9), np.zeros(4, np.int64), escaped, faces)
     assert not collided.any()
     assert np.all(w[:2] == 1.0)  # guided to the side wall at full power
     reflections = np.ceil((99.0 / np.tan(angles[2:]) - 1.0) / 2.0)  # faces met
@@ -222,7 +222,7 @@ def test_next_event_camera_matches_analog_exits():
     width, height, depth, st, ss, g, k = 16, 12, 3.0, 0.25, 0.25, 0.5, 3
     illum, cone, batch, batches = Full(), math.radians(12.0), 300_000, 7
     res = monte_carlo_slab(width, height, depth, st, ss, g, illum, k, photons=500_000)
-    slab = _Slab(width, height, depth, "absorbing", 1.0)
+    slab = OracleSlab(width, height, depth, "absorbing", 1.0)
     src = wall_source(illum, width, height)
     rng = np.random.default_rng(1)
     exits = np.zeros(k)
@@ -234,7 +234,7 @@ def test_next_event_camera_matches_analog_exits():
             m = pos.shape[1]
             start, heading = pos.copy(), u.copy()
             free = rng.standard_exponential(m) / st
-            hit = _fly(
+            hit = fly(
                 slab, pos, u, np.ones(m), free, np.zeros(m, np.int64), np.zeros(1), np.zeros(1)
             )
             if j:

@@ -154,7 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.warnings = []
     try:
         with (
-            _warnings_to_stderr(args.warnings),
+            warnings_to_stderr(args.warnings),
             stop_on_signals(PROG),
             memory_limit(args.max_memory),
         ):
@@ -163,7 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as e:
         if args.debug:
             raise
-        print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
+        print(f"{PROG}: error: {describe_error(e)}", file=sys.stderr)
         return 2
     except (RecursionError, OverflowError, MemoryError) as e:
         if args.debug:
@@ -173,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OSError as e:  # writing an output failed: a full disk, an I/O error
         if args.debug:
             raise
-        print(f"{PROG}: error: {_describe(e)}", file=sys.stderr)
+        print(f"{PROG}: error: {describe_error(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted", file=sys.stderr)
@@ -222,14 +222,14 @@ def _describe_limit(error: BaseException) -> str:
     return "out of memory (MemoryError): reduce the input's size, or free memory"
 
 
-def _describe(error: BaseException) -> str:
+def describe_error(error: BaseException) -> str:
     if isinstance(error, OSError) and error.filename is not None and error.strerror:
         return one_line(f"{error.filename}: {error.strerror}")
     return one_line(str(error)) or type(error).__name__
 
 
 @contextlib.contextmanager
-def _warnings_to_stderr(collected: list[str]) -> Iterator[None]:
+def warnings_to_stderr(collected: list[str]) -> Iterator[None]:
     """Show the package's warnings as one line each on stderr, every time, and collect
     them; other warnings keep the filters in force."""
     from lightfield_jax.capture.capture import CaptureWarning

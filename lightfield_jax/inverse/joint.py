@@ -177,7 +177,7 @@ def _orders_and_slopes(renderer, full, sigma_t, sigma_s, g):
     return _bounces_and_slopes(x, jax.lax.stop_gradient(sigma_s), renderer, full)
 
 
-def _model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y, rendered=None):
+def model_and_jacobian(settings: JointSettings, renderer, full, black_fixed, y, rendered=None):
     """At y: the model at unit gain R (P, h, w) and ∂R/∂θ (P, h, w, n) in the physical
     parameters θ = (σt, σs, g[, b]), from one forward-mode pass (along σt and g, or σt,
     σs and g with a tail; b in closed form), or from ``rendered``: that pass's
@@ -251,7 +251,7 @@ def _solve(
     # any other solver's answer gets its own forward-mode pass (a second copy of the
     # render in the compiled program: about 1.5 s more to compile).
     at_answer = sol.state.aux if isinstance(solver, optx.AbstractGaussNewton) else None
-    model, jac = _model_and_jacobian(settings, renderer, full, black_fixed, sol.value, at_answer)
+    model, jac = model_and_jacobian(settings, renderer, full, black_fixed, sol.value, at_answer)
     st, ss, g, _ = unpack(sol.value, settings.fit_black, black_fixed)
     tail = tail_status(renderer, full, st, ss, g)
     return sol.value, sol.result, sol.stats["num_steps"], model, jac, tail
@@ -291,6 +291,7 @@ __all__ = [
     "JointSettings",
     "TailStatus",
     "bounces_at",
+    "model_and_jacobian",
     "model_at",
     "pack",
     "solve",

@@ -206,7 +206,7 @@ class TwoStepSettings:
     search: bool = True
 
 
-def _two_step_run(
+def two_step_run(
     settings: TwoStepSettings,
     solver_static,
     solver_arrays,
@@ -309,7 +309,7 @@ def problem_arrays(data: FitData, renderer, n_g: int) -> tuple:
 def solve_two_step(
     data: FitData, renderer, solver, settings: TwoStepSettings, n_g: int, start=None
 ) -> TwoStepSolution:
-    """Run the two-step program (:func:`_two_step_run`) on ``data`` at its σt estimate:
+    """Run the two-step program (:func:`two_step_run`) on ``data`` at its σt estimate:
     ``renderer`` renders full illumination on the model, ``solver`` is the optimistix
     least-squares solver of the gradient method, ``n_g`` values of g on (−0.95, 0.95)
     are searched (not with ``settings.search`` false: the solve then starts at
@@ -325,7 +325,7 @@ def solve_two_step(
         if not settings.solve or start is None:
             raise ValueError("solve_two_step: without the search, a solve and its start")
         args = (*args, jnp.asarray(start, args[1].dtype))
-    run = jitted(_two_step_run, ("settings", "solver_static"))
+    run = jitted(two_step_run, ("settings", "solver_static"))
     arrays, static = eqx.partition(solver, eqx.is_array)
     with stopwatch() as timing:
         out = jax.block_until_ready(run(settings, static, arrays, *args))
@@ -359,4 +359,5 @@ __all__ = [
     "start_y",
     "to_params",
     "two_step_residual",
+    "two_step_run",
 ]

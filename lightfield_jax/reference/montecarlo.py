@@ -92,7 +92,7 @@ def phase_function(theta: np.ndarray | float, g: float) -> np.ndarray:
     return (1.0 - g * g) / (4.0 * math.pi * (1.0 + g * g - 2.0 * g * np.cos(theta)) ** 1.5)
 
 
-def _phase_table(g: float) -> tuple[np.ndarray, np.ndarray, float]:
+def phase_table(g: float) -> tuple[np.ndarray, np.ndarray, float]:
     """(nodes, normalised CDF, A(g)) for the relative angle Δ ∈ [−π, π].
 
     The trapezoid rule on the periodic integrand is spectrally accurate, so the table's
@@ -108,7 +108,7 @@ def _phase_table(g: float) -> tuple[np.ndarray, np.ndarray, float]:
 
 def phase_integral(g: float) -> float:
     """A(g) = ∫_{−π}^{π} p(θ) dθ (docs/model.md section 2; A(0) = 0.5)."""
-    return _phase_table(g)[2]
+    return phase_table(g)[2]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -238,7 +238,7 @@ def _tally_tracks(x, y, c, s, length, score, slot, width, height, tally) -> None
         t = t_next[keep]
 
 
-def _sample_deflection(rng, n: int, nodes: np.ndarray, cdf: np.ndarray) -> np.ndarray:
+def sample_deflection(rng, n: int, nodes: np.ndarray, cdf: np.ndarray) -> np.ndarray:
     """n relative scattering angles Δ drawn from p(Δ)/A(g) by inverse CDF."""
     return np.interp(rng.random(n), cdf, nodes)
 
@@ -323,7 +323,7 @@ def monte_carlo_render(
     """
     _check(width, height, sigma_t, sigma_s, g, bounces, phase, photons, batch, estimator)
     src = wall_source(illumination, width, height)
-    nodes, cdf, a_g = _phase_table(g)
+    nodes, cdf, a_g = phase_table(g)
     factor = sigma_s / sigma_t * (a_g if phase == "paper" else 1.0)
     camera = sigma_s * float(phase_function(math.pi / 2, g))
     n_px = height * width
@@ -357,7 +357,7 @@ def monte_carlo_render(
                 break
             x, y = x[hit] + t[hit] * c[hit], y[hit] + t[hit] * s[hit]
             klass, w = klass[hit], w[hit] * factor
-            theta = theta[hit] + _sample_deflection(rng, x.size, nodes, cdf)
+            theta = theta[hit] + sample_deflection(rng, x.size, nodes, cdf)
     # Photon i scores X_i = P·(tally) for pattern p iff its class is lit in p.
     lit = src.lit.astype(np.float64)  # (classes, patterns)
     m1, m2, hits = np.einsum("tkcq,cp->tpkq", tally.reshape(3, bounces, src.period, n_px), lit)

@@ -208,7 +208,7 @@ def _distance_to_face(z, uz, thickness: float) -> np.ndarray:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Slab:
+class OracleSlab:
     width: int
     height: int
     thickness: float
@@ -216,7 +216,7 @@ class _Slab:
     n: float
 
 
-def _fly(slab: _Slab, pos, u, w, free, klass, escaped, escaped_faces):
+def fly(slab: OracleSlab, pos, u, w, free, klass, escaped, escaped_faces):
     """Move every photon along its flight of optical length σt·``free``.
 
     ``pos``, ``u`` (3, N), ``w`` are updated in place (reflections at the faces flip
@@ -326,7 +326,7 @@ def monte_carlo_slab(
         positive_int("depth_layers", depth_layers)
     if not 0.0 <= camera_sampling < 1.0:
         raise ValueError(f"camera_sampling: must be in [0, 1), got {camera_sampling!r}")
-    slab = _Slab(width, height, float(thickness), boundary, float(n))
+    slab = OracleSlab(width, height, float(thickness), boundary, float(n))
     src = wall_source(illumination, width, height)
     power = src.power * slab.thickness
     albedo = sigma_s / sigma_t
@@ -349,7 +349,7 @@ def monte_carlo_slab(
         w = np.ones(m)
         for j in range(bounces):  # flight j carries light scattered exactly j times
             free = rng.standard_exponential(w.size) / sigma_t
-            hit = _fly(slab, pos, u, w, free, klass, escaped[j], escaped_faces[j])
+            hit = fly(slab, pos, u, w, free, klass, escaped[j], escaped_faces[j])
             pos, u, w, klass = pos[:, hit], u[:, hit], w[hit], klass[hit]
             collided[j] += np.bincount(klass, w, minlength=src.period)
             score = (
