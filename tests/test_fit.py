@@ -61,7 +61,9 @@ def _perfect_split(name: str, grid: lfj.Grid) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.cache
 def _fit(name: str, grid: lfj.Grid, method: str, split: bool = False) -> lfj.FitResult:
-    """Fit a noiseless stripe capture with a model of the data's own resolution."""
+    """Fit a noiseless stripe capture with a model of the data's own resolution: its
+    truth is that model's own answer (``extrapolate`` off: the finer model the forward
+    medium's g asks for, refine 2, would step it on toward the continuum's)."""
     return lfj.fit_images(
         _stripe_images(name, grid),
         lfj.Stripes(),
@@ -71,6 +73,7 @@ def _fit(name: str, grid: lfj.Grid, method: str, split: bool = False) -> lfj.Fit
         n_theta=grid.n_theta,
         refine=grid.refine,
         max_cells=grid.width * grid.height * grid.n_theta * grid.refine**2,
+        extrapolate=False,
     )
 
 
