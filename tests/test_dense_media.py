@@ -94,7 +94,8 @@ def test_fitted_images_render_the_models_own_answer_of_an_extrapolated_fit():
     got = lfj.fitted_images(result(reported, extrapolated), pattern, (24, 32))
     for a, b in zip(got, want, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-6)
-    assert not np.allclose(lfj.fitted_images(result(reported, model), pattern, (24, 32))[0], want[0])
+    as_reported = lfj.fitted_images(result(reported, model), pattern, (24, 32))
+    assert not np.allclose(as_reported[0], want[0])
 
 
 @pytest.mark.slow  # a Monte Carlo capture (about 40 s) and ten fits (minutes)
