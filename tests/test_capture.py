@@ -295,6 +295,26 @@ def test_fit_settings_reach_the_fit_options(tmp_path, monkeypatch):
     assert seen[0].max_steps == 7 and seen[0].bounces == 12
 
 
+def test_a_files_method_settings_reach_the_method_the_call_chooses(tmp_path, monkeypatch):
+    """The file's g_grid / start_grid go to the method fit_capture is told to use (the
+    command line's --method), not to the joint fit's options, which drop them."""
+    names = _images(tmp_path)
+    text = f"images: {names}\npattern: {{period: 6, lit: 3}}\nfit: {{g_grid: 5, start_grid: 7}}\n"
+    capture = _capture(tmp_path, text=text)
+    seen = []
+
+    def fake_fit(images, pattern, options, *args, **kwargs):
+        seen.append(options.method)
+        raise StopIteration
+
+    monkeypatch.setattr(capture_fit, "_capture_floor", lambda *a: None)
+    monkeypatch.setattr(capture_fit, "fit_one", fake_fit)
+    for method in ("grid", "gradient", "joint"):
+        with pytest.raises(StopIteration):
+            lfj.fit_capture(capture, method)
+    assert seen == [lfj.GridSearch(5), lfj.TwoStep(start_grid=7), lfj.Joint()]
+
+
 @pytest.mark.parametrize(("fit", "phase"), [("", "normalized"), ("fit: {phase: paper}\n", "paper")])
 def test_a_capture_is_fitted_in_its_files_phase_convention_normalized_by_default(
     tmp_path, monkeypatch, fit, phase

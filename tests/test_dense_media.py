@@ -70,6 +70,34 @@ def _mc_capture(width, height, photons, seed):
     return images / images.max()
 
 
+def test_fitted_images_render_the_models_own_answer_of_an_extrapolated_fit():
+    """An extrapolated answer is the continuum's; the model's grid fits the capture at
+    its own answer (the reported one less the step), which fitted_images renders (the
+    fit's plots and geometry auto's plane misfit read it)."""
+    from lightfield_jax.inverse.options import FitResult
+
+    model = {"width": 32, "height": 24, "n_theta": 8, "refine": 1, "bounces": 3,
+             "crop": [0, 0, 32, 24]}  # fmt: skip
+    step = {"sigma_t": 0.006, "sigma_s": 0.004, "g": 0.01, "gain": 0.02, "black_level": 0.01}
+    extrapolated = {**model, "finer_model": {"extrapolation": {"factor": 3.0, "step": step}}}
+
+    def result(values, model):
+        return FitResult(
+            method="joint", **values, uncertainty={}, correlation={}, converged=True,
+            message="m", iterations=1, residual=0.0, seconds={}, model=model,
+        )  # fmt: skip
+
+    own = {"sigma_t": 0.2, "sigma_s": 0.1, "g": 0.4, "gain": 1.0, "black_level": 0.05}
+    reported = {k: v + step[k] for k, v in own.items()}
+    pattern = lfj.Stripes()
+    want = lfj.fitted_images(result(own, model), pattern, (24, 32))
+    got = lfj.fitted_images(result(reported, extrapolated), pattern, (24, 32))
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    as_reported = lfj.fitted_images(result(reported, model), pattern, (24, 32))
+    assert not np.allclose(as_reported[0], want[0])
+
+
 @pytest.mark.slow  # a Monte Carlo capture (about 40 s) and ten fits (minutes)
 @pytest.mark.parametrize("extrapolate", [True, False])
 def test_noisy_dense_forward_fits_of_a_monte_carlo_capture_hold_the_truth(extrapolate):

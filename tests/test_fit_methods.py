@@ -201,6 +201,14 @@ def test_flat_settings_go_to_their_group_or_to_the_method_that_owns_them():
     # g_grid / start_grid are checked for every method (a capture file's fit: keys are
     # read before the command chooses one), then apply to the method that takes them.
     assert lfj.FitOptions(g_grid=21).method == lfj.Joint()
+    # A method's setting given to replace() replaces the method's own; it reads back
+    # from the method that takes it.
+    grid = lfj.FitOptions(method="grid", g_grid=30)
+    assert grid.replace(g_grid=21).method == lfj.GridSearch(21) and grid.g_grid == 30
+    assert grid.replace(n_theta=16).method == lfj.GridSearch(30)
+    assert lfj.FitOptions(start=(0.03, 0.4)).replace(start=(0.05, 0.5)).start == (0.05, 0.5)
+    with pytest.raises(AttributeError, match="'g_grid' .the joint method does not take it"):
+        _ = lfj.FitOptions().g_grid
     with pytest.raises(ValueError, match=r"^g_grid: must be an integer in \[3, 100000\]"):
         lfj.FitOptions(g_grid=2)
     with pytest.raises(

@@ -53,6 +53,17 @@ def test_the_render_refines_the_grid_from_g_0_9_within_its_cap():
     assert near_wall_grid(W, H, 4, cap=10) == (None, None, None)
 
 
+def test_a_float32_medium_at_g_0_9_gets_the_refined_grid():
+    """JAX's default float32 stores g 0.9 as 0.89999998: still the rule's medium."""
+    from lightfield_jax.forward.render import resolve_model
+
+    with jax.enable_x64(False):
+        medium = lfj.Medium(0.2, 0.198, 0.9, "normalized")
+        assert float(medium.g) < 0.9
+        grid, slab, _ = resolve_model(medium, lfj.Grid(W, H), TANK)
+    assert (grid.n_theta, slab.n_mu, grid.refine) == (64, 48, 3)
+
+
 def test_the_render_reports_the_refined_grid():
     res = lfj.render(
         lfj.Medium(0.2, 0.198, 0.9), lfj.Grid(12, 9), lfj.Beam(0, 4.5), 2, geometry=TANK

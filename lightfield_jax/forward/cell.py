@@ -191,12 +191,10 @@ def cell_problem(grid: Grid, illumination) -> str | None:
 # the high orders over the whole tank: the shifts' mean alone (2) is 2–6 % off.
 SHIFT_ORDERS = 10
 WALL_BAND = 2
-# The orders the wall bands correct: the refined grid's detail next to the walls is made
-# in the first orders. Against the full render (128×96, six shifts, min of 3 calls), the
-# band's orders 3–5 instead of 3–10: worst row 0.061 → 0.068 % (dense forward, σt .2,
-# σs .16, g .7) and 0.18 → 0.23 % (milk-like), the render 1.3× and 1.2× faster (the
-# short tank's refined march of every shift is the cell's largest part after the
-# shifts' walls' term).
+# The orders the wall bands correct (the refined grid's detail next to the walls is made
+# in the first ones). Against the full render (128×96, six shifts, min of 3 calls): 3–5
+# leaves a worst row of 0.068 % (dense forward, σt .2, σs .16, g .7) and 0.23 % (milk-
+# like), 3–10 0.061 % and 0.18 %, for 1.3× and 1.2× slower renders.
 BAND_ORDERS = 5
 
 
@@ -260,11 +258,10 @@ class CellRenderer(AbstractRenderer):
     ``shift_orders``: the orders whose walls' term is every shift's own (``None``:
     every order's); ``walls_coarsen``: the walls' term is marched on a grid this many
     times coarser than the native one (it must divide the grid's width and height);
-    ``band_orders``: the wall bands correct orders 3 to this one (``None``: to
-    ``shift_orders``);
     ``wall_band``: the native rows next to each wall whose walls' term is corrected to
     the refined grid (refined grids, ``walls_coarsen`` 1, a tank at least twice the
-    short tank's height; 0: none).
+    short tank's height; 0: none) in orders 3 to ``band_orders`` (``None``: to
+    ``shift_orders``).
     """
 
     cell: PeriodicCell

@@ -157,7 +157,9 @@ def fit_capture(
         from lightfield_jax.capture.keys import fit_phase
 
         settings = getattr(capture, "fit_options", None) or {}
-        options = FitOptions(**{**settings, "phase": fit_phase(capture)})
+        # Made with the call's method: the file's g_grid or start_grid goes to the
+        # method that takes it (options made for the joint fit would not keep them).
+        options = FitOptions(method, **{**settings, "phase": fit_phase(capture)})
     opts = options.replace(method=method, **overrides)
     if opts.model.geometry is None and "geometry" not in overrides:
         geometry = parse_geometry(getattr(capture, "geometry", None), "geometry", allow_auto=True)

@@ -376,11 +376,25 @@ def model_from(d: dict) -> ModelSpec:
     )
 
 
+def _own_answer(result: FitResult) -> dict:
+    """The model's own answer of ``result``: its values less the step an extrapolated
+    answer took to the continuum (``extrapolate``)."""
+    extrapolation = (result.model.get("finer_model") or {}).get("extrapolation") or {}
+    step = extrapolation.get("step") or {}
+    out = {k: getattr(result, k) - step.get(k, 0.0) for k in ("sigma_t", "sigma_s", "g", "gain")}
+    black = result.black_level
+    out["black_level"] = None if black is None else black - step.get("black_level", 0.0)
+    return out
+
+
 def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
     """The fitted model's per-bounce images of every pattern and under full illumination,
     gain and black level included, over the cropped model region placed in an image of
     ``shape`` (zeros outside): ``(stripes [P, K, H, W], full [K, H, W])``. A model with
-    a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k."""
+    a tail has K = K0 + 1: the last slice holds the tail Σ_{k>K0} I_k. Rendered at the
+    model's own answer: where the reported one is extrapolated to the continuum
+    (``model["finer_model"]["extrapolation"]["step"]``), less that step, since the
+    model's grid fits the capture at its own answer, not at the continuum's."""
     # Checked first: unchecked, another result (a to_dict()) or pattern raises an
     # AttributeError, a shape of strings or negative sizes numpy's errors, one of
     # 10**6 x 10**6 a MemoryError.
@@ -407,14 +421,16 @@ def fitted_images(result: FitResult, pattern: Stripes, shape: tuple[int, int]):
         f"fitted_images: {pattern.n_patterns + 1} x {k} images of {dims[1]}x{dims[0]}",
     )
 
+    own = _own_answer(result)
+
     def render(illumination):
         renderer = model_renderer(model, illumination, result.phase)
-        out = renderer.unchecked(result.sigma_t, result.sigma_s, result.g)
+        out = renderer.unchecked(own["sigma_t"], own["sigma_s"], own["g"])
         if model.tail is None:
             return np.asarray(out[0])
         return np.concatenate([np.asarray(out[0]), np.asarray(out[2].image)[:, None]], axis=1)
 
-    c, b = result.gain, result.black_level or 0.0
+    c, b = own["gain"], own["black_level"] or 0.0
     stripes, full = render(pattern), render(_full_for(pattern))[0]
     stripes = c * ((1 - b) * stripes + b * full[None])
     full = c * full

@@ -225,7 +225,7 @@ class PlaneModel(GeometryModel):
         return None if r_f <= r else r_f / (r_f - r)
 
     def stripe_cell(self, grid, options):
-        """On a refined grid, the cell with its defaults: within 0.2 % of the full
+        """On a refined grid, the cell with its defaults: within 0.25 % of the full
         render in every row and several times faster (docs/periodic_cell.md), where the
         model's own discretisation error is percents (the error term's refine + 1). On
         the native grid it is no faster than the full render."""

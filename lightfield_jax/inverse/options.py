@@ -53,7 +53,9 @@ class FitOptions(FitSettings):
             (:class:`~lightfield_jax.Joint`, :class:`~lightfield_jax.TwoStep`,
             :class:`~lightfield_jax.GridSearch`).
         model, trust, solve: the groups of settings (each field also a flat keyword and
-            a read-only attribute: ``options.n_theta`` is ``options.model.n_theta``).
+            a read-only attribute: ``options.n_theta`` is ``options.model.n_theta``;
+            a method's own setting reads from the method that takes it:
+            ``options.start`` is ``options.method.start``).
 
     The flat keywords of the methods' own settings: ``g_grid`` (the grid's
     ``GridSearch.g_values``: g values searched on (−0.95, 0.95)), ``start_grid``
@@ -99,11 +101,19 @@ class FitOptions(FitSettings):
 
     def __getattr__(self, name: str):
         # A flat setting reads from its group (``options.n_theta`` is
-        # ``options.model.n_theta``), as it is given.
+        # ``options.model.n_theta``), or from the method that takes it
+        # (``options.start`` is ``options.method.start``), as it is given.
         group = GROUP_OF.get(name)
-        if group is None:
-            raise AttributeError(f"FitOptions has no setting {name!r}")
-        return getattr(getattr(self, group), name)
+        if group is not None:
+            return getattr(getattr(self, group), name)
+        if name in METHOD_KEYS:
+            method = self.__dict__.get("method")
+            field = None if method is None else method.option_names.get(name)
+            if field is not None:
+                return getattr(method, field)
+            taken = "" if method is None else f" (the {method.name} method does not take it)"
+            raise AttributeError(f"FitOptions has no setting {name!r}{taken}")
+        raise AttributeError(f"FitOptions has no setting {name!r}")
 
     def flat(self) -> dict:
         """Every setting as a flat keyword (the method as itself, its own settings as
@@ -118,10 +128,24 @@ class FitOptions(FitSettings):
 
     def replace(self, **settings) -> FitOptions:
         """These options with flat ``settings`` changed (the keywords of
-        :class:`FitOptions`). A method given by name takes the settings of the method
-        it replaces that it uses (``start`` for a method that does not use it is
-        refused, as when given)."""
-        return FitOptions(**{**self.flat(), **settings})
+        :class:`FitOptions`). A method's own setting given here replaces the method's
+        (``replace(g_grid=21)`` of a grid search on 30 values searches 21). A method
+        given by name takes the settings of the method it replaces that it uses
+        (``start`` for a method that does not use it is refused, as when given)."""
+        flat = self.flat()
+        if "method" not in settings:
+            # The method's own settings travel in ``flat`` as keywords: on its defaults,
+            # the method lets one given here win (a method keeps its own over a keyword).
+            flat["method"] = _without_own(self.method)
+        return FitOptions(**{**flat, **settings})
+
+
+def _without_own(method: FitMethod) -> FitMethod:
+    """``method`` with its own flat settings (:meth:`FitMethod.own_options`) back at its
+    defaults."""
+    defaults = {f.name: f.default for f in dataclasses.fields(method)}
+    fields = [method.option_names[key] for key in method.own_options()]
+    return dataclasses.replace(method, **{f: defaults[f] for f in fields}) if fields else method
 
 
 def _routed(method: FitMethod, key: str, value) -> FitMethod:

@@ -97,7 +97,7 @@ class ModelOptions:
             noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
         stripe_cell: (``joint``, plane) render stripes entering a side wall from one
             stripe period (:class:`~lightfield_jax.forward.cell.CellRenderer`, within
-            0.2 % of the full render) in the final model and the error term where they
+            0.25 % of the full render) in the final model and the error term where they
             are refined (refine ≥ 2): a warm fit of a dense forward capture about 3×
             faster; the first fit of a process compiles more (docs/periodic_cell.md).
             ``False``: those models render the whole tank.

@@ -45,9 +45,13 @@ def _data_limits(ax, image, mask):
 
 def _truth_result(result: FitResult, truth: dict) -> FitResult:
     """The fit's model at the true values (the fitted gain and black level where the
-    truth has none: a merged or rescaled capture's units are not the simulation's)."""
+    truth has none: a merged or rescaled capture's units are not the simulation's),
+    rendered at these values: without the fit's step to the continuum, which
+    fitted_images takes back from a fitted answer."""
+    model = {k: v for k, v in result.model.items() if k != "finer_model"}
     return dataclasses.replace(
         result,
+        model=model,
         sigma_t=float(truth["sigma_t"]),
         sigma_s=float(truth["sigma_s"]),
         g=float(truth["g"]),
