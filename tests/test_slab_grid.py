@@ -23,6 +23,13 @@ W, H = 24, 17
 TANK = Slab(6.4, "refractive")
 
 
+@pytest.fixture(autouse=True)
+def _ample_memory(monkeypatch):
+    # The rung a render gets depends on the memory it may take: these tests fix it
+    # well above the ladder's own cap, whatever this machine has free.
+    monkeypatch.setenv("LIGHTFIELD_JAX_MAX_MEMORY", "64G")
+
+
 def resolved(g, albedo, width=W, height=H, n_mu=None, **grid):
     tank = Slab(6.4, "refractive", n_mu=n_mu)
     grid, slab = resolve_slab_grid(lfj.Grid(width, height, **grid), tank, g, 0.2, albedo)
@@ -51,6 +58,17 @@ def test_the_render_refines_the_grid_from_g_0_9_within_its_cap():
     assert resolved(0.9, 0.99, n_mu=8) == (64, 8, 3)
     assert resolved(0.9, 0.99, n_theta=16, refine=2) == (16, 48, 2)
     assert near_wall_grid(W, H, 4, cap=10) == (None, None, None)
+
+
+def test_a_render_takes_the_finest_rung_within_its_memory(monkeypatch):
+    """Under ``--max-memory 2G`` the beam gets a lower rung, whose render passes that
+    limit, instead of the finest one and a refusal."""
+    from lightfield_jax.forward.render import model_memory
+
+    monkeypatch.setenv("LIGHTFIELD_JAX_MAX_MEMORY", "2G")
+    grid, slab = resolve_slab_grid(lfj.Grid(W, H), TANK, 0.9, 0.2, 0.99)
+    assert (grid.n_theta, slab.n_mu, grid.refine) in NEAR_WALL_GRIDS[1:]
+    assert model_memory(1, grid, slab, 6) <= 2 * 1024**3
 
 
 def test_a_float32_medium_at_g_0_9_gets_the_refined_grid():
@@ -89,7 +107,7 @@ def test_the_fit_asks_for_the_finer_grid_and_its_cap_lowers_the_refinement_first
     assert (capped.grid.n_theta, capped.grid.refine) == (16, 1)
     assert capped.geometry.slab.n_mu == 24
     assert capped.as_dict()["near_wall_grid"]["asked"] == asked  # recorded as asked
-    # g 0.8 (0.85 with the margin) is sized as before: no refinement, nothing recorded.
+    # g 0.8 (0.85 with the margin) gets the unrefined grid: no refinement, nothing recorded.
     milk = size_model(images, lfj.Stripes(), 0.95, 0.8, big, 1.03, 0.2, crop)
     assert (milk.grid.n_theta, milk.grid.refine) == (32, 1)
     assert "near_wall_grid" not in milk.as_dict()
@@ -121,7 +139,7 @@ def test_near_the_entry_wall_at_g_0_9_against_the_true_slab():
     refractive faces, the default slab model's orders 2–6 within 2 % (plus twice the
     Monte Carlo's standard error) of the 3-D Monte Carlo, in the image sums and in the
     rows next to the entry wall, off the beam and on it; the unrefined 32 × 24 grid
-    (the former default) misses the off-beam rows by more than 5 % (the control). The
+    (the unrefined grid) misses the off-beam rows by more than 5 % (the control). The
     Monte Carlo is the one of docs/slab_depth.md §7 (8 runs of 5e6 photons: σ of the
     off-beam rows ≤ 0.45 %, of the beam's rows 0.48 / 1.11 % at k 5 / 6)."""
     st, albedo, g, k = 0.2, 0.99, 0.9, 6

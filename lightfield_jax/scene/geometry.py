@@ -25,7 +25,7 @@ import numpy as np
 
 from lightfield_jax.checks import check_number, number_problem
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.slab_grid import near_wall_grid, needs_near_wall_grid
+from lightfield_jax.scene.slab_grid import near_wall_grid, needs_near_wall_grid, render_cap
 
 Boundary = Literal["absorbing", "refractive"]
 
@@ -361,13 +361,16 @@ def resolve_slab_grid(
     in: ``n_mu`` and ``n_z`` by :meth:`Slab.resolve` (σt or the albedo ``None``: what
     their worst case needs); for |g| ≥ 0.9 the finer in-plane grid
     (:func:`~lightfield_jax.scene.slab_grid.near_wall_grid`: 64 azimuth bins, 48
-    elevation nodes and refine 3, or the finest rung that fits its cap), else
+    elevation nodes and refine 3, or the finest rung within its cap and the memory a
+    render may take), else
     ``n_theta`` from :func:`default_slab_n_theta` and ``refine`` 1."""
     n, r = grid.n_theta, grid.refine
     if needs_near_wall_grid(g, albedo):
         depth = slab.resolve(g, sigma_t, albedo)
         depth_values = depth.n_z * depth.depth_coefficients
-        n, n_mu, r = near_wall_grid(grid.width, grid.height, depth_values, n, slab.n_mu, r)
+        n, n_mu, r = near_wall_grid(
+            grid.width, grid.height, depth_values, n, slab.n_mu, r, cap=render_cap()
+        )
         slab = dataclasses.replace(slab, n_mu=n_mu)
     slab = slab.resolve(g, sigma_t, albedo)
     if n is None:

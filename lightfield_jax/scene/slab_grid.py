@@ -2,7 +2,7 @@
 
 At g 0.9 the slab model spreads the light of a narrow beam sideways too much: against
 the 3-D slab Monte Carlo (a 1-px beam at the entry wall, ω 0.99, refractive faces,
-σt·h 1.3) the off-beam rows next to the entry wall were +10.8 % off at order 3 with 32
+σt·h 1.3) the off-beam rows next to the entry wall are +10.8 % off at order 3 with 32
 azimuth bins on the native grid, in every column, not only the first (the beam's
 lateral spread, not the wall). The error is the in-plane discretisation, space and
 azimuth together (docs/slab_depth.md §7): refine 2 leaves +3.9 %, refine 3 +2.5 %, 64
@@ -16,6 +16,8 @@ The choice is data-only (numpy-free): :func:`~lightfield_jax.scene.geometry.reso
 """
 
 from __future__ import annotations
+
+from lightfield_jax.runtime.memory import current_limit
 
 # |g| from which the slab's in-plane grid is refined.
 NEAR_WALL_G = 0.9
@@ -39,6 +41,20 @@ NEAR_WALL_GRIDS = ((64, 48, 3), (64, 24, 3), (64, 24, 2), (32, 24, 2))
 # the measurement at the first rung has 45.1 million; its render is estimated at
 # 4.3 GiB (slab_render_bytes, one pattern, float32).
 SLAB_REFINE_CELLS = 48_000_000
+# A render's bytes per light-field value on those grids, everything counted (float32):
+# the 24×17 beam's 45.1 million values at the first rung are estimated at 4.3 GiB.
+RENDER_BYTES_PER_VALUE = 104
+
+
+def render_cap() -> int:
+    """The light-field values a render may get from the automatic refinement: within
+    :data:`SLAB_REFINE_CELLS` and within the memory a render may take
+    (:func:`~lightfield_jax.runtime.memory.current_limit`: ``--max-memory``,
+    ``$LIGHTFIELD_JAX_MAX_MEMORY`` or the machine's free memory), so that a lower rung
+    is taken where the finest would be refused."""
+    limit, _ = current_limit()
+    return min(SLAB_REFINE_CELLS, limit // RENDER_BYTES_PER_VALUE)
+
 
 # Albedo below which the orders the finer grid corrects (k ≥ 3) carry little light
 # (as the depth layers' DIM_ALBEDO).
@@ -82,4 +98,5 @@ __all__ = [
     "SLAB_REFINE_CELLS",
     "near_wall_grid",
     "needs_near_wall_grid",
+    "render_cap",
 ]
