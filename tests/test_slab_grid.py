@@ -139,7 +139,7 @@ def test_near_the_entry_wall_at_g_0_9_against_the_true_slab():
     refractive faces, the default slab model's orders 2–6 within 2 % (plus twice the
     Monte Carlo's standard error) of the 3-D Monte Carlo, in the image sums and in the
     rows next to the entry wall, off the beam and on it; the unrefined 32 × 24 grid
-    (the unrefined grid) misses the off-beam rows by more than 5 % (the control). The
+    misses the off-beam rows by more than 5 % (the control). The
     Monte Carlo is the one of docs/slab_depth.md §7 (8 runs of 5e6 photons: σ of the
     off-beam rows ≤ 0.45 %, of the beam's rows 0.48 / 1.11 % at k 5 / 6)."""
     st, albedo, g, k = 0.2, 0.99, 0.9, 6
