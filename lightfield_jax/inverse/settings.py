@@ -212,7 +212,8 @@ class TrustOptions:
             those steps stop shrinking) instead of solving on it; where the iteration
             does not converge the fit solves on that model as capped by ``max_cells``.
         extrapolate: (``joint``, plane) where the error term's finer model is finer in
-            space (a refined model: forward media), report the answer extrapolated to
+            space (forward media: a refined model, or one kept coarser by ``refine``
+            or the cap), report the answer extrapolated to
             the continuum: the model's discretisation error is first order in the cell
             size, so the answer steps r_f/(r_f − r) times the finer model's shift
             (Richardson) and the model term is that shift (dense forward Monte Carlo
