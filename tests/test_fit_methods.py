@@ -201,6 +201,11 @@ def test_flat_settings_go_to_their_group_or_to_the_method_that_owns_them():
     # g_grid / start_grid are checked for every method (a capture file's fit: keys are
     # read before the command chooses one), then apply to the method that takes them.
     assert lfj.FitOptions(g_grid=21).method == lfj.Joint()
+    # ... and are kept for a method chosen later (fit_images(options=..., method=...)).
+    assert lfj.FitOptions(g_grid=21).replace(method="grid").method == lfj.GridSearch(21)
+    kept = lfj.FitOptions(g_grid=21, start_grid=5)
+    assert kept.replace(method="gradient").method == lfj.TwoStep(start_grid=5)
+    assert kept == lfj.FitOptions(**kept.flat()) and kept != lfj.FitOptions()
     # A method's setting given to replace() replaces the method's own; it reads back
     # from the method that takes it.
     grid = lfj.FitOptions(method="grid", g_grid=30)

@@ -65,11 +65,16 @@ class FitOptions(FitSettings):
     and ``solver`` (``Joint.solver``, ``TwoStep.solver``: any optimistix least-squares
     solver; default Levenberg-Marquardt with the ``solve`` tolerances). A method given
     as a value keeps its own where it sets one. ``start`` or ``solver`` for a method that
-    does not use them is refused; ``g_grid`` and ``start_grid`` are checked and then
-    apply only to the method that takes them.
+    does not use them is refused; ``g_grid`` and ``start_grid`` are checked, apply to
+    the method that takes them and, given with one that does not, are kept for a method
+    chosen later (``FitOptions(g_grid=21).replace(method="grid")`` searches 21 values).
     """
 
     method: FitMethod = METHODS["joint"]
+    # ``g_grid`` / ``start_grid`` given with a method that does not take them, as
+    # (key, value) pairs, for a method chosen later (:meth:`replace`, ``fit_images``'s
+    # ``method``).
+    kept: tuple[tuple[str, int], ...] = ()
 
     def __init__(
         self,
@@ -78,8 +83,10 @@ class FitOptions(FitSettings):
         model: ModelOptions | None = None,
         trust: TrustOptions | None = None,
         solve: SolverOptions | None = None,
+        kept: tuple[tuple[str, int], ...] = (),
         **settings,
     ):
+        settings = {**dict(kept), **settings}  # dataclasses.replace passes ``kept`` on
         unknown = [k for k in settings if k not in GROUP_OF and k not in METHOD_KEYS]
         if unknown:
             raise TypeError(
@@ -94,10 +101,15 @@ class FitOptions(FitSettings):
         )
         for group, record in groups.items():
             object.__setattr__(self, group, record)
+        kept = []
         for key in METHOD_KEYS:
             if key in settings:
-                method = _routed(method, key, check_method_setting(key, settings[key]))
+                value = check_method_setting(key, settings[key])
+                method = _routed(method, key, value)
+                if key not in method.option_names and key in ("g_grid", "start_grid"):
+                    kept.append((key, value))
         object.__setattr__(self, "method", method)
+        object.__setattr__(self, "kept", tuple(kept))
 
     def __getattr__(self, name: str):
         # A flat setting reads from its group (``options.n_theta`` is
@@ -124,6 +136,7 @@ class FitOptions(FitSettings):
             record = getattr(self, group)  # shallow: a Slab stays a Slab
             out.update({f.name: getattr(record, f.name) for f in dataclasses.fields(record)})
         out.update(self.method.own_options())
+        out.update(self.kept)
         return out
 
     def replace(self, **settings) -> FitOptions:
