@@ -60,12 +60,13 @@ def test_an_extrapolated_budget_steps_kappa_shifts_and_keeps_one_as_its_term():
     assert steps.chi2_model < plain.chi2_model
 
 
-def _mc_capture(width, height, photons, seed):
-    """The Monte Carlo's six stripe images of the dense forward medium (60 bounces:
-    0.71^60 of I_1 left), summed over bounces, scaled to peak 1."""
+def _mc_capture(width, height, photons, seed, medium=DENSE, bounces=60):
+    """The Monte Carlo's six stripe images of ``medium`` (the dense forward one: 60
+    bounces, 0.71^60 of I_1 left), summed over bounces, scaled to peak 1."""
     mc = monte_carlo_render(
-        width, height, *DENSE, lfj.Stripes(), 60, phase="normalized", photons=photons, seed=seed
-    )
+        width, height, *medium, lfj.Stripes(), bounces, phase="normalized", photons=photons,
+        seed=seed,
+    )  # fmt: skip
     images = mc.images.sum(axis=1)
     return images / images.max()
 
@@ -98,16 +99,25 @@ def test_fitted_images_render_the_models_own_answer_of_an_extrapolated_fit():
     assert not np.allclose(as_reported[0], want[0])
 
 
+MILK_LIKE = (0.2, 0.19, 0.8)  # milk as users have it: albedo 0.95
+
+
 @pytest.mark.slow  # a Monte Carlo capture (about 40 s) and ten fits (minutes)
-@pytest.mark.parametrize("extrapolate", [True, False])
-def test_noisy_dense_forward_fits_of_a_monte_carlo_capture_hold_the_truth(extrapolate):
+@pytest.mark.parametrize(
+    ("medium", "bounces", "extrapolate"),
+    [(DENSE, 60, True), (DENSE, 60, False), (MILK_LIKE, 150, True)],
+    ids=["dense", "dense-own-answer", "milk-like"],
+)
+def test_noisy_forward_fits_of_a_monte_carlo_capture_hold_the_truth(medium, bounces, extrapolate):
     """Ten noisy captures (Poisson, 2·10⁴ photons at the peak) of one Monte Carlo
-    capture of the dense forward medium (48×36): every fit converged and the truth is
-    inside the reported total 2σ for at least 90 % of the (seed, parameter) pairs; the
-    answer extrapolated to the continuum is within σt 1 %, σs 3 %, g 0.02 (the model's
-    own answer at refine 2 sat σt +3.2 %, σs +3.8 %, g +0.011 off this capture)."""
-    clean = _mc_capture(48, 36, 600_000, 21)
-    truth = dict(zip(NAMES, DENSE, strict=True))
+    capture (48×36): every fit converged and the truth is inside the reported total 2σ
+    for at least 90 % of the (seed, parameter) pairs; the dense forward medium's answer
+    extrapolated to the continuum is within σt 1 %, σs 3 %, g 0.02 (the model's own
+    answer at refine 2 sat σt +3.2 %, σs +3.8 %, g +0.011 off this capture; the
+    milk-like medium's extrapolated answer is σt −1.3 % off a capture of two such
+    Monte Carlo runs, docs/model.md §6)."""
+    clean = _mc_capture(48, 36, 600_000, 21, medium, bounces)
+    truth = dict(zip(NAMES, medium, strict=True))
     inside, pairs = 0, 0
     for seed in range(10):
         rng = np.random.default_rng(seed)
@@ -116,7 +126,7 @@ def test_noisy_dense_forward_fits_of_a_monte_carlo_capture_hold_the_truth(extrap
             warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
             res = lfj.fit_images(noisy, lfj.Stripes(), phase="normalized", extrapolate=extrapolate)
         assert res.converged, res.message
-        if extrapolate:
+        if extrapolate and medium == DENSE:
             assert abs(res.sigma_t / truth["sigma_t"] - 1) < 0.01, res.sigma_t
             assert abs(res.sigma_s / truth["sigma_s"] - 1) < 0.03, res.sigma_s
             assert abs(res.g - truth["g"]) < 0.02, res.g
