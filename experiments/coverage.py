@@ -80,7 +80,9 @@ def _fit(images: np.ndarray, medium: dict, truth: dict, fit: dict) -> dict:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lfj.DivergentSeriesWarning)
-            res = lfj.fit_images(images, lfj.Stripes(), phase=medium.get("phase", "paper"), **fit)
+            # The captures are the model's own renders (inv.OWN_MODEL), unless fit says.
+            kwargs = {"phase": medium.get("phase", "paper"), **inv.OWN_MODEL, **fit}
+            res = lfj.fit_images(images, lfj.Stripes(), **kwargs)
     except (ValueError, FloatingPointError, RuntimeError) as e:  # data, not a crash
         return {"error_message": f"{type(e).__name__}: {e}", "converged": False}
     sigma = np.array([res.uncertainty[k] for k in PARAMS])

@@ -120,6 +120,7 @@ def _fit_kwargs(cfg: Config, medium: dict) -> dict:
     kwargs = {
         "black_level": 0.0,
         "phase": medium.get("phase", "paper"),
+        **load_helper("_inverse").OWN_MODEL,  # the captures are the model's own renders
         **cfg.fit,
         **(medium.get("fit") or {}),
     }
