@@ -192,3 +192,29 @@ def test_sized_refined_plane_models_render_side_wall_stripes_from_one_period(
     assert model.cell == expected
     assert model.as_dict()["stripe_cell"] == (None if expected is None else {"shift_orders": 10})
     assert finer(model, options, 0.7).cell == (10 if stripe_cell else None)
+
+
+def test_a_models_record_says_what_its_renderer_does_with_the_fits_stripes():
+    # The cell marches every bounce on the model's grid: where it renders the fit's
+    # stripes, the record's coarse tail is full light's alone; where it does not
+    # (stripes entering the top wall, full light), no cell. Without the stripes, both
+    # as the model asks; a result's model read back renders as the fit did.
+    from lightfield_jax.inverse.fit import model_from
+    from lightfield_jax.inverse.model_size import ModelSpec
+    from lightfield_jax.scene.illumination import Full
+
+    grid = Grid(24, 18, 8, 2)
+    model = ModelSpec(
+        grid, 12, (0, 0, 24, 18), converges=True, rho=0.5, cell=10, coarse_after=4
+    )
+    asked = model.as_dict()
+    assert asked["stripe_cell"] == {"shift_orders": 10} and asked["coarse_tail"]["after"] == 4
+    assert "stripes" not in asked["coarse_tail"]
+    side = model.as_dict(Stripes())
+    assert side["stripe_cell"] == {"shift_orders": 10}
+    assert side["coarse_tail"]["after"] == 4 and side["coarse_tail"]["stripes"] is False
+    for light in (Stripes(entry="top"), Full()):
+        record = model.as_dict(light)
+        assert record["stripe_cell"] is None and record["coarse_tail"] == asked["coarse_tail"]
+    back = model_from(side)
+    assert (back.cell, back.coarse_after) == (10, 4)

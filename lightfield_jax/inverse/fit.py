@@ -373,6 +373,7 @@ def model_from(d: dict) -> ModelSpec:
         ratio=d.get("ratio_measured"),
         extrapolate=bool(d.get("extrapolated", False)),
         coarse_after=(d.get("coarse_tail") or {}).get("after"),
+        cell=(d.get("stripe_cell") or {}).get("shift_orders"),
     )
 
 

@@ -141,6 +141,12 @@ class GeometryModel(abc.ABC):
         render."""
         return None
 
+    def renders_cell(self, model, illumination) -> bool:
+        """Whether :meth:`renderer` renders ``illumination`` from one stripe period
+        (then ``model``'s coarse tail does not apply: the cell marches every bounce on
+        the model's grid)."""
+        return False
+
     def renderer(self, model, illumination, phase: str, **solve):
         """``model``'s renderer for ``illumination`` (its cell where ``model.cell``)."""
         return renderer_for(
@@ -231,8 +237,11 @@ class PlaneModel(GeometryModel):
         the native grid it is no faster than the full render."""
         return SHIFT_ORDERS if options.model.stripe_cell and grid.refine > 1 else None
 
+    def renders_cell(self, model, illumination) -> bool:
+        return model.cell is not None and cell_problem(model.grid, illumination) is None
+
     def renderer(self, model, illumination, phase, **solve):
-        if model.cell is not None and cell_problem(model.grid, illumination) is None:
+        if self.renders_cell(model, illumination):
             return cell_renderer_for(
                 model.grid, illumination, model.bounces, phase, shift_orders=model.cell, **solve
             )

@@ -72,7 +72,18 @@ class ModelSpec:
         r = self.rho if self.ratio is None else self.ratio
         return r**self.bounces / (1 - r)
 
-    def as_dict(self) -> dict:
+    def as_dict(self, illumination=None) -> dict:
+        """The model's record; for ``illumination`` (the fit's stripes), what its
+        renderer does with them: the stripe cell where it renders them (the coarse tail
+        then applies to full light alone: ``coarse_tail.stripes`` false), else no cell
+        (``None``: both as the model asks)."""
+        cell, coarse = self.cell, self.coarse
+        stripes = {}
+        if illumination is not None:
+            if self.geometry.renders_cell(self, illumination):
+                stripes = {"stripes": False}  # the cell marches every bounce on the grid
+            else:
+                cell = None
         return {
             "geometry": self.geometry.scene.as_dict(),
             **self.geometry.sizing(),
@@ -88,13 +99,14 @@ class ModelSpec:
             "tail_bound": self.tail_bound,
             "extrapolated": self.extrapolate,
             # Stripes entering a side wall, rendered from one period (CellRenderer).
-            "stripe_cell": None if self.cell is None else {"shift_orders": self.cell},
+            "stripe_cell": None if cell is None else {"shift_orders": cell},
             "coarse_tail": None
-            if self.coarse is None
+            if coarse is None
             else {
-                "after": self.coarse,
+                "after": coarse,
                 "n_theta": coarse_plane_grid(self.grid).n_theta,
                 "refine": coarse_plane_grid(self.grid).refine,
+                **stripes,
             },
             "tail": None
             if self.tail is None

@@ -183,20 +183,21 @@ def _answer(ctx: FitContext, search: Search, scanned: list, peak: float, seconds
             residual=last.rms,
             basins=scan_dict,
             reasons=tuple(reasons),
-            model_dict=_model_record(data, last, fine, fine_tail, kappa, budget),
+            model_dict=_model_record(ctx, last, fine, fine_tail, kappa, budget),
         ),
         last=last,
     )
 
 
 def _model_record(
-    data: FitData, last: Stage, fine: ModelSpec | None, fine_tail, kappa, budget
+    ctx: FitContext, last: Stage, fine: ModelSpec | None, fine_tail, kappa, budget
 ) -> dict:
     """The record of the answer's model: its size, tail, correction and refit, the
     noise floor of its weights and the finer model of its error term (with κ, the
     continuum's distance past it in model-to-finer steps, and the answer's step there
     where it took it)."""
-    model_dict = last.model.as_dict()
+    data = ctx.data
+    model_dict = last.model.as_dict(ctx.pattern)
     if last.tail is not None:
         model_dict["tail"].update(last.tail)
     if last.correction is not None:
