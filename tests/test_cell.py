@@ -204,9 +204,7 @@ def test_a_models_record_says_what_its_renderer_does_with_the_fits_stripes():
     from lightfield_jax.scene.illumination import Full
 
     grid = Grid(24, 18, 8, 2)
-    model = ModelSpec(
-        grid, 12, (0, 0, 24, 18), converges=True, rho=0.5, cell=10, coarse_after=4
-    )
+    model = ModelSpec(grid, 12, (0, 0, 24, 18), converges=True, rho=0.5, cell=10, coarse_after=4)
     asked = model.as_dict()
     assert asked["stripe_cell"] == {"shift_orders": 10} and asked["coarse_tail"]["after"] == 4
     assert "stripes" not in asked["coarse_tail"]
