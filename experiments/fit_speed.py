@@ -207,6 +207,15 @@ def _child(request_path: str) -> None:
         Path(request_path).with_suffix(".out.json").write_text(json.dumps(inv.jsonable(out)))
 
 
+def _marched_how(model: dict) -> str:
+    """How a marched model's stripes were rendered: from one period (the stripe cell,
+    every bounce on the model's grid), after a coarse tail's K0, or neither."""
+    coarse, cell = model.get("coarse_tail"), model.get("stripe_cell")
+    if cell:
+        return f" (stripe cell, shift_orders {cell['shift_orders']})"
+    return f" (coarse after {coarse['after']})" if coarse else ""
+
+
 def _summary_row(name: str, height: int, rec: dict) -> dict:
     if "error_message" in rec:
         return {"medium": name, "height": height, "error_message": rec["error_message"]}
@@ -225,12 +234,7 @@ def _summary_row(name: str, height: int, rec: dict) -> dict:
         "errors": cold["errors"],
         "iterations": cold["iterations"],
         "model": (
-            f"K = {model['bounces']}"
-            + (
-                f" (coarse after {model['coarse_tail']['after']})"
-                if model.get("coarse_tail")
-                else ""
-            )
+            f"K = {model['bounces']}" + _marched_how(model)
             if tail is None
             else f"K0 = {tail['K0']} + {tail['method']} ({tail.get('steps')} steps)"
         ),
