@@ -83,3 +83,42 @@ def test_stages_are_reported():
     stages = []
     simulate_capture(_config(illumination={"kind": "full"}), stage=stages.append)
     assert stages == ["render full (3 bounces)", "camera"]
+
+
+def test_a_tail_solve_sums_the_bounces_a_march_would(tmp_path):
+    # Albedo .95 marches 200+ bounces; with tail: gmres, 4 explicit ones and the solve's
+    # sum as the last slice give the same captured images, light fields and files.
+    import json
+
+    import pytest
+
+    from lightfield_jax.forward.simulate import write_simulation
+    from lightfield_jax.schema import ConfigError
+
+    dense = {
+        "grid": {"width": 20, "height": 12, "n_theta": 16, "refine": 1},
+        "medium": {"sigma_t": 0.3, "sigma_s": 0.285, "g": 0.5, "phase": "normalized"},
+        "illumination": {"kind": "stripes", "period": 4, "lit": 2},
+        "black_level": 0.1,
+    }
+    marched = simulate_capture(parse_simulation_config(dense), lightfield=True)
+    solved = simulate_capture(parse_simulation_config({**dense, "tail": "gmres"}), lightfield=True)
+    assert marched.n_bounces > 100 and marched.tail is None
+    assert solved.n_bounces == 4 and solved.tail["method"] == "gmres"
+    assert solved.bounces.shape[1] == 5 and solved.lightfields.shape[1] == 6
+    np.testing.assert_allclose(solved.bounces[:, :4], marched.bounces[:, :4], rtol=1e-5)
+    np.testing.assert_allclose(solved.images, marched.images, rtol=1e-4)
+    np.testing.assert_allclose(
+        solved.lightfields.sum(1), marched.lightfields.sum(1), rtol=1e-3, atol=1e-7
+    )
+    write_simulation(solved, tmp_path)
+    meta = json.loads((tmp_path / "metadata.json").read_text())
+    assert meta["bounces"] == 4 and meta["tail"]["method"] == "gmres"
+    assert "I4, tail" in meta["files"]["bounces_00.exr"]
+    # A tail is refused where nothing converges, and named in one line otherwise.
+    for bad, words in (
+        ({"tail": "cg"}, "tail: must be one of gmres, bicgstab"),
+        ({"tail": "gmres", "medium": {**dense["medium"], "phase": "paper", "g": 0.8}}, "diverges"),
+    ):
+        with pytest.raises(ConfigError, match=words):
+            parse_simulation_config({**dense, **bad})

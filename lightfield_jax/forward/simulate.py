@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from lightfield_jax.checks import check_flag
-from lightfield_jax.forward.render import RenderResult, render, render_memory
+from lightfield_jax.forward.render import render, render_memory
 from lightfield_jax.forward.simulate_config import SimulationConfig, load_simulation_config
 from lightfield_jax.runtime.memory import check_memory
 from lightfield_jax.runtime.progress import Stage, quiet
@@ -43,15 +43,15 @@ class SimulatedCapture:
     Attributes:
         config: the simulation config.
         bounces: per-bounce images, index k−1 holds I_k: [K, H, W], or [P, K, H, W] for
-            stripes (one row per phase). Gain and black level included; no dark level,
-            no noise.
+            stripes (one row per phase); with a tail solve, one more, last: Σ_{k>K} I_k.
+            Gain and black level included; no dark level, no noise.
         images: the captured images: [H, W] (beam, full), or [P, H, W] for stripes:
             Σ_k I_k + dark level, with noise.
         dark: the dark frame (dark level with noise) [H, W], or ``None`` without a
             ``dark_level``.
         lightfields: L_0..L_K, radiance per radian, gain and black level included:
-            [K+1, H, W, n_theta], or [P, K+1, H, W, n_theta] for stripes; ``None``
-            unless requested.
+            [K+1, H, W, n_theta], or [P, K+1, H, W, n_theta] for stripes (with a tail,
+            one more, last: Σ_{k>K} L_k); ``None`` unless requested.
         n_bounces: K.
         rho: ω·A(g) (``paper``) or ω (``normalized``).
         converges: whether the bounce series converges (ρ < 1).
@@ -61,6 +61,8 @@ class SimulatedCapture:
             (``"sum of shifts / lit"`` or ``"rendered"``), else ``None``.
         timing: seconds: ``compile`` (tracing and XLA compilation), ``run`` (the
             rest), ``total``.
+        tail: with a tail solve, its ``method`` and ``steps`` (of the stripes' render;
+            ``None`` without one).
     """
 
     config: SimulationConfig
@@ -75,6 +77,7 @@ class SimulatedCapture:
     refine: int
     full_illumination: str | None
     timing: dict[str, float]
+    tail: dict | None = None
 
     @property
     def is_stripes(self) -> bool:
@@ -107,6 +110,7 @@ class SimulatedCapture:
             "dark_level": c.dark_level,
             "noise": None if c.noise is None else dataclasses.asdict(c.noise),
             "full_illumination": self.full_illumination,
+            "tail": self.tail,
             "timings": {f"{k}_s": v for k, v in self.timing.items()},
             "versions": _versions(),
             "device": _device(),
@@ -135,8 +139,11 @@ def _full_from_shifts(stripes: Stripes) -> bool:
     return sorted(p % stripes.period for p in stripes.phases) == list(range(stripes.period))
 
 
-def _render(config: SimulationConfig, illumination, k: int, lightfield: bool) -> RenderResult:
-    return render(
+def _render(config: SimulationConfig, illumination, k: int, lightfield: bool):
+    """The render's result and its per-bounce images and light fields as numpy arrays,
+    a tail solve's sum appended last on the bounce axis (refused where it did not
+    converge: a capture short of its light would be written without a word)."""
+    result = render(
         config.medium.medium(),
         config.grid,
         illumination,
@@ -144,7 +151,23 @@ def _render(config: SimulationConfig, illumination, k: int, lightfield: bool) ->
         gain=config.gain,
         lightfield=lightfield,
         geometry=config.geometry,
+        tail=config.tail,
+        tail_tol=config.tolerance,
     )
+    images = np.asarray(result.images, dtype=np.float64)
+    fields = None if not lightfield else np.asarray(result.lightfields, dtype=np.float32)
+    if config.tail is not None:
+        if not bool(result.tail_converged):
+            raise ValueError(
+                f"{config.source}: tail: the {config.tail} solve did not reach tolerance "
+                f"{config.tolerance:g} within {int(result.tail_steps)} iterations: more "
+                "explicit bounces (bounces: K) leave it less to sum"
+            )
+        images = np.concatenate([images, np.asarray(result.tail)[..., None, :, :]], axis=-3)
+        if fields is not None:
+            last = np.asarray(result.tail_lightfield, dtype=np.float32)[..., None, :, :, :]
+            fields = np.concatenate([fields, last], axis=-4)
+    return result, images, fields
 
 
 def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: Stage):
@@ -158,9 +181,9 @@ def _add_black_level(config: SimulationConfig, k: int, bounces, fields, stage: S
     else:
         how = "rendered"
         stage("render full illumination (black level)")
-        result = _render(config, Full(illum.direction_deg, illum.entry), k, fields is not None)
-        full = np.asarray(result.images, dtype=np.float64)
-        full_field = None if fields is None else np.asarray(result.lightfields)
+        _, full, full_field = _render(
+            config, Full(illum.direction_deg, illum.entry), k, fields is not None
+        )
     bounces = (1.0 - b) * bounces + b * full[None]
     if fields is not None:
         fields = ((1.0 - b) * fields + b * full_field[None]).astype(np.float32)
@@ -172,7 +195,13 @@ def memory_estimate(config: SimulationConfig, k: int, lightfield: bool) -> int:
     :func:`~lightfield_jax.forward.render.render_memory`), from the sizes alone."""
     patterns = config.illumination.n_patterns + (1 if config.black_level else 0)
     return render_memory(
-        patterns, config.grid, config.geometry, config.medium.medium(), k, lightfield
+        patterns,
+        config.grid,
+        config.geometry,
+        config.medium.medium(),
+        k,
+        lightfield,
+        config.tail is not None,
     )
 
 
@@ -214,11 +243,7 @@ def simulate_capture(
     stripes = isinstance(illum, Stripes)
     with stopwatch() as timing:
         stage(f"render {type(illum).__name__.lower()} ({k} bounces)")
-        result = _render(config, illum, k, lightfield)
-        bounces = np.asarray(result.images, dtype=np.float64)
-        fields = None
-        if lightfield:
-            fields = np.asarray(result.lightfields, dtype=np.float32)
+        result, bounces, fields = _render(config, illum, k, lightfield)
         full_how = None
         if stripes and config.black_level:
             bounces, fields, full_how = _add_black_level(config, k, bounces, fields, stage)
@@ -237,6 +262,9 @@ def simulate_capture(
         refine=result.refine,
         full_illumination=full_how,
         timing={"compile": timing.compile, "run": timing.run, "total": timing.total},
+        tail=None
+        if config.tail is None
+        else {"method": config.tail, "steps": int(result.tail_steps)},
     )
 
 
@@ -262,8 +290,9 @@ def shift_names(n: int, stem: str) -> list[str]:
     return [f"{stem}_{i:0{width}d}.exr" for i in range(n)]
 
 
-def _bounce_channels(bounces: np.ndarray) -> dict[str, np.ndarray]:
-    return {f"I{k + 1}": plane for k, plane in enumerate(bounces)}
+def _bounce_channels(bounces: np.ndarray, k: int) -> dict[str, np.ndarray]:
+    """Channels I1..IK, and ``tail`` (Σ_{k>K} I_k) where a tail solve added it."""
+    return {f"I{i + 1}" if i < k else "tail": plane for i, plane in enumerate(bounces)}
 
 
 def write_simulation(
@@ -300,35 +329,38 @@ def write_simulation(
 
     folder = Path(folder)
     k = sim.n_bounces
-    shape = "[P, K, H, W]" if sim.is_stripes else "[K, H, W]"
+    kk = "K+1" if sim.tail else "K"
+    shape = f"[P, {kk}, H, W]" if sim.is_stripes else f"[{kk}, H, W]"
+    tail = ", tail (the sum of the bounces past K)" if sim.tail else ""
     files = {}
     if not compact:
-        files["bounces.npy"] = f"float32 {shape} per-bounce images, index k-1 holds I_k"
+        files["bounces.npy"] = f"float32 {shape} per-bounce images, index k-1 holds I_k{tail}"
         atomic_write_npy(folder / "bounces.npy", sim.bounces)
     if sim.is_stripes:
         n = len(sim.images)
         per_bounce = [] if compact else zip(shift_names(n, "bounces"), sim.bounces, strict=True)
         for name, bounces in per_bounce:
-            write_exr(folder / name, _bounce_channels(bounces))
-            files[name] = f"channels I1..I{k}: per-bounce images of one shift"
+            write_exr(folder / name, _bounce_channels(bounces, k))
+            files[name] = f"channels I1..I{k}{tail}: per-bounce images of one shift"
         shifts = shift_names(n, "shift")
         for name, image in zip(shifts, sim.images, strict=True):
             write_exr(folder / name, {"Y": image})
             files[name] = "channel Y: the captured image of one shift"
     else:
         if not compact:
-            write_exr(folder / "bounces.exr", _bounce_channels(sim.bounces))
-            files["bounces.exr"] = f"channels I1..I{k}: per-bounce images"
+            write_exr(folder / "bounces.exr", _bounce_channels(sim.bounces, k))
+            files["bounces.exr"] = f"channels I1..I{k}{tail}: per-bounce images"
         write_exr(folder / "total.exr", {"Y": sim.images})
         files["total.exr"] = "channel Y: the captured image (sum of bounces, dark level, noise)"
     if sim.dark is not None:
         write_exr(folder / "dark.exr", {"Y": sim.dark})
         files["dark.exr"] = "channel Y: dark frame (dark level with noise)"
     if sim.lightfields is not None:
-        lf_shape = "[P, K+1, H, W, n_theta]" if sim.is_stripes else "[K+1, H, W, n_theta]"
+        kk = "K+2" if sim.tail else "K+1"
+        lf_shape = f"[P, {kk}, H, W, n_theta]" if sim.is_stripes else f"[{kk}, H, W, n_theta]"
         atomic_write_npy(folder / "lightfield.npy", sim.lightfields)
         unit = sim.config.geometry.lightfield_unit
-        files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K, {unit}"
+        files["lightfield.npy"] = f"float32 {lf_shape} L_0..L_K{tail}, {unit}"
     if sim.is_stripes:
         illum = sim.config.illumination
         slab = sim.config.geometry.slab_or_none
