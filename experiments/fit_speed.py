@@ -2,9 +2,9 @@
 
 Each medium of ``media`` is rendered as a noiseless six-shift stripe capture
 (:func:`~lightfield_jax.simulate_capture`, period 6, gain 1, black level 0; the plain
-series marched to ``bounces``, no tail in the data) and fitted by the default joint fit
-(``fit`` holds extra :func:`~lightfield_jax.fit_images` keywords, e.g. ``tail``) in a
-fresh Python process, twice:
+series marched to ``bounces``, or a medium's ``tail`` solve past 4 of them) and fitted
+by the default joint fit (``fit`` holds extra :func:`~lightfield_jax.fit_images`
+keywords, e.g. ``tail``) in a fresh Python process, twice:
 
 - ``cold``: the first fit of the process, nothing compiled (no persistent XLA cache):
   what ``lightfield-jax fit`` costs a user, split into XLA compile and run seconds
@@ -36,7 +36,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 
@@ -50,8 +50,10 @@ from lightfield_jax.scene.geometry_spec import parse_geometry
 @dataclasses.dataclass(frozen=True)
 class MediumSpec:
     """One medium: its name, σt, σs (per pixel), g; optional phase, geometry (a slab),
-    the truth's bounces (default: auto) and its own fit keywords (over the config's
-    ``fit``: the same medium fitted two ways in one run)."""
+    the truth's bounces (default: auto), its own fit keywords (over the config's
+    ``fit``: the same medium fitted two ways in one run) and the truth's tail solve
+    (``simulate``'s ``tail``: a slab near albedo 1, whose march takes most of an hour at
+    128×96)."""
 
     name: str
     sigma_t: float
@@ -61,6 +63,7 @@ class MediumSpec:
     geometry: dict | None = None
     bounces: int | str | None = None
     fit: dict | None = None
+    tail: Literal["gmres", "bicgstab"] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,6 +111,8 @@ def _capture_config(cfg: Config, medium: dict, height: int | None = None) -> dic
     )
     if medium.get("geometry"):
         sim_cfg["geometry"] = dict(medium["geometry"])
+    if medium.get("tail"):
+        sim_cfg["tail"] = medium["tail"]
     return sim_cfg
 
 
