@@ -2651,3 +2651,16 @@ def test_a_hangup_ignored_by_nohup_stays_ignored():
         preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN),
     )
     assert done.returncode == 0 and done.stdout == "still here\n", done.stderr
+
+
+# ------------------------------------------------- round four: numbers, addresses, arrays
+
+
+def test_an_integer_past_pythons_digit_limit_is_one_line_naming_the_file(tmp_path, capsys):
+    """Before: 'lightfield-jax: error: Exceeds the limit (4300 digits) for integer string
+    conversion ...', Python's own words, naming neither the file nor the line."""
+    path = tmp_path / "sim.yaml"
+    path.write_text(SIMULATE.replace("period: 6", "period: " + "9" * 5000))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=str(path))
+    assert "an integer of 5000 digits (line 3)" in line and len(line) < 400
+    assert not (tmp_path / "o").exists()
