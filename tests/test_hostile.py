@@ -2664,3 +2664,17 @@ def test_an_integer_past_pythons_digit_limit_is_one_line_naming_the_file(tmp_pat
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=str(path))
     assert "an integer of 5000 digits (line 3)" in line and len(line) < 400
     assert not (tmp_path / "o").exists()
+
+
+def test_a_memory_size_past_float64_is_one_line(tmp_path, capsys, monkeypatch):
+    """Before: --max-memory of 400 digits ended in argparse's traceback of an
+    OverflowError (the size as a float is inf), and so did the environment variable."""
+    from lightfield_jax.runtime.memory import current_limit
+
+    huge = "9" * 400
+    status, _, err = _run(capsys, "inspect", tmp_path / "c.yaml", "--max-memory", huge)
+    assert status == 2 and "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert "--max-memory: memory size: expected a size such as 8G" in err and len(err) < 300
+    monkeypatch.setenv(MAX_MEMORY_ENV, huge + "G")
+    with pytest.raises(ValueError, match=rf"^\${MAX_MEMORY_ENV}: memory size: expected"):
+        current_limit()
