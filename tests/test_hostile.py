@@ -2678,3 +2678,21 @@ def test_a_memory_size_past_float64_is_one_line(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv(MAX_MEMORY_ENV, huge + "G")
     with pytest.raises(ValueError, match=rf"^\${MAX_MEMORY_ENV}: memory size: expected"):
         current_limit()
+
+
+@pytest.mark.parametrize("address", ["nonsense", "http://host:8786"])
+def test_a_malformed_scheduler_address_is_named_and_makes_no_folder(
+    capture, capsys, tmp_path, address
+):
+    """Before: 'missing port number in address ...' or 'unknown address scheme ...',
+    Dask's words naming no option, and the batch's --out folder was left made, empty."""
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    out = tmp_path / "new" / "res"
+    _refused(
+        capsys,
+        *("fit", capture / "capture.yaml", other / "capture.yaml", "--out", out),
+        *("--scheduler", address),
+        match=f"--scheduler {address}: not a scheduler's address (",
+    )
+    assert not (tmp_path / "new").exists()
