@@ -2696,3 +2696,20 @@ def test_a_malformed_scheduler_address_is_named_and_makes_no_folder(
         match=f"--scheduler {address}: not a scheduler's address (",
     )
     assert not (tmp_path / "new").exists()
+
+
+def test_a_medium_denser_than_the_renders_hold_is_refused(tmp_path, capsys):
+    """Before: σt 1e4 per pixel rendered the light within the first pixel 46 % low and
+    1e6 rendered it 0, without a word; a slab's σt 1e25 wrote NaN images with exit
+    status 0 (its second bounce's σs² beyond float32)."""
+    lfj.Medium(100.0, 50.0, 0.4)
+    for sigma_t in (1e3, 1e25):
+        with pytest.raises(ValueError, match=r"medium.sigma_t: must be at most 100 per pixel"):
+            lfj.Medium(sigma_t, sigma_t / 2, 0.4)
+    config = yaml.safe_load(SIMULATE)
+    config["medium"] = {"sigma_t": 1e25, "sigma_s": 1e24, "g": 0.4}
+    config["geometry"] = {"kind": "slab", "thickness": 3.0}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="at most 100 per")
+    assert str(path) in line and not (tmp_path / "o").exists()
