@@ -2713,3 +2713,16 @@ def test_a_medium_denser_than_the_renders_hold_is_refused(tmp_path, capsys):
     path.write_text(yaml.safe_dump(config))
     line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="at most 100 per")
     assert str(path) in line and not (tmp_path / "o").exists()
+
+
+def test_a_json_output_named_like_a_yaml_file_is_refused(capture, capsys, tmp_path):
+    """Before: ``fit --out sim.yaml`` replaced the user's simulate config with the JSON
+    results (exit 0), and ``bench --out``, ``inspect --json`` did alike."""
+    config = tmp_path / "sim.yaml"
+    config.write_text(SIMULATE)
+    yaml_file = capture / "capture.yaml"
+    line = _refused(capsys, "fit", yaml_file, "--out", config, match="--out")
+    assert "a .yaml name is a capture file's or a config's" in line and "--plot" in line
+    _refused(capsys, "inspect", yaml_file, "--json", tmp_path / "i.YML", match="a .yml name")
+    _refused(capsys, "bench", "--out", config, match="a .yaml name")
+    assert config.read_text() == SIMULATE and sorted(tmp_path.iterdir()) == [capture, config]
