@@ -2726,3 +2726,22 @@ def test_a_json_output_named_like_a_yaml_file_is_refused(capture, capsys, tmp_pa
     _refused(capsys, "inspect", yaml_file, "--json", tmp_path / "i.YML", match="a .yml name")
     _refused(capsys, "bench", "--out", config, match="a .yaml name")
     assert config.read_text() == SIMULATE and sorted(tmp_path.iterdir()) == [capture, config]
+
+
+def test_a_medium_absorbing_nothing_is_not_blamed_on_the_paper_convention(tmp_path, capsys):
+    """Before: σs = σt under phase: normalized (or in a slab) was refused as 'the bounce
+    series of the paper phase convention diverges ... Use phase: normalized', the
+    convention the user had given, and render warned alike."""
+    config = yaml.safe_load(SIMULATE)
+    config["medium"] = {"sigma_t": 0.2, "sigma_s": 0.2, "g": 0.4, "phase": "normalized"}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="rho = albedo = 1")
+    assert "absorbs nothing" in line and "paper" not in line
+    normalized, grid = lfj.Medium(0.2, 0.2, 0.4, "normalized"), lfj.Grid(16, 16, 8, 1)
+    for geometry, medium in [(None, normalized), (lfj.Slab(3.0), lfj.Medium(0.2, 0.2, 0.4))]:
+        with pytest.raises(ValueError, match="absorbs nothing") as refused:
+            lfj.render(medium, grid, lfj.Full(), geometry=geometry)
+        assert "paper" not in str(refused.value)
+    with pytest.raises(ValueError, match="tail: rho = albedo = 1.0000 >= 1: .* sigma_s < sigma_t"):
+        lfj.render(normalized, grid, lfj.Full(), 3, tail="gmres")

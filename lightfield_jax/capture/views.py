@@ -31,6 +31,7 @@ from lightfield_jax.forward.render import (
     resolve_bounces,
     resolve_model,
 )
+from lightfield_jax.scene.geometry import paper_bound
 from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
@@ -57,7 +58,7 @@ def render_transport(
     from lightfield_jax.runtime.memory import check_memory
 
     resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
-    k = resolve_bounces(float(rho), bounces)
+    k = resolve_bounces(float(rho), bounces, paper=paper_bound(medium, model_geometry))
     size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
     fields = size <= MAX_LIGHTFIELD_FLOATS
     check_memory(model_memory(1, resolved, model_geometry, k, fields), what)

@@ -53,7 +53,7 @@ import numpy as np
 
 from lightfield_jax.checks import check_int, check_number, gain_problem
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, rho_bound
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, paper_bound, rho_bound
 from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
@@ -239,8 +239,10 @@ class SimulationConfig:
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
         if self.bounces == "auto":
-            rho = rho_bound(self.medium.medium(), self.geometry)
-            return bounces_for_tolerance(float(rho), self.tolerance)
+            medium = self.medium.medium()
+            rho = rho_bound(medium, self.geometry)
+            paper = paper_bound(medium, self.geometry)
+            return bounces_for_tolerance(float(rho), self.tolerance, paper=paper)
         return self.bounces
 
 
@@ -430,7 +432,9 @@ def _bounces(top: Section, medium: MediumConfig, geometry=None) -> tuple[int | s
         top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
     if bounces == "auto":
         try:
-            bounces_for_tolerance(float(rho_bound(medium.medium(), geometry)), tolerance)
+            model = medium.medium()
+            rho, paper = rho_bound(model, geometry), paper_bound(model, geometry)
+            bounces_for_tolerance(float(rho), tolerance, paper=paper)
         except ValueError as e:
             top.fail("bounces", str(e).removeprefix("bounces: "))
     return bounces, tolerance

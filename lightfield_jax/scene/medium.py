@@ -141,17 +141,26 @@ class Medium(eqx.Module):
         return self.albedo
 
 
-def bounces_for_tolerance(rho: float, tolerance: float = 1e-4, max_bounces: int = 500) -> int:
+def bounces_for_tolerance(
+    rho: float, tolerance: float = 1e-4, max_bounces: int = 500, *, paper: bool = True
+) -> int:
     """Smallest K whose neglected tail Σ_{k>K} I_k is at most ``tolerance`` of the total.
 
     In-plane energy of bounce k is at most ρ^{k−1} times that of the single scatter, so
     the relative tail after K bounces is at most ρ^K / (1 − ρ). Raises ``ValueError``
-    when ρ ≥ 1 (the series does not converge: there is no such K).
+    when ρ ≥ 1 (the series does not converge: there is no such K), with advice for ρ
+    the paper's ω·A(g) (``paper``) or the albedo ω (``phase: normalized``, a slab).
     """
     # rho = albedo*A(g) >= 0 (a negative rho would give one bounce)
     rho = check_number(rho, "rho", low=0.0, allow_inf=True)
     if number_problem(tolerance, low=0.0, high=1.0, low_open=True, high_open=True) is not None:
         raise ValueError(f"bounce tolerance must be in (0, 1), got {tolerance!r}")
+    if rho >= 1.0 and not paper:
+        raise ValueError(
+            f"bounces: auto is impossible: rho = albedo = {rho:.4f}: a medium that absorbs "
+            "nothing (sigma_s = sigma_t) has no bound on its bounce series' tail; give an "
+            "explicit bounce count, or sigma_s < sigma_t"
+        )
     if rho >= 1.0:
         raise ValueError(
             f"bounces: auto is impossible: rho = albedo*A(g) = {rho:.4f} >= 1, so the "
