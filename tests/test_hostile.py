@@ -2745,3 +2745,15 @@ def test_a_medium_absorbing_nothing_is_not_blamed_on_the_paper_convention(tmp_pa
         assert "paper" not in str(refused.value)
     with pytest.raises(ValueError, match="tail: rho = albedo = 1.0000 >= 1: .* sigma_s < sigma_t"):
         lfj.render(normalized, grid, lfj.Full(), 3, tail="gmres")
+
+
+def test_a_decay_fit_of_light_that_does_not_decay_is_not_converged():
+    """Before: fit_decay of light growing away from the entry wall (the wrong wall
+    named) or flat returned sigma_t 1e-6, its start's floor, said converged, with a
+    standard error 30 times smaller than that."""
+    decay = np.exp(-0.2 * np.arange(16))[None, :].repeat(8, 0)
+    for direct in (decay[:, ::-1].copy(), np.ones_like(decay)):
+        fit = lfj.fit_decay(direct)
+        assert float(fit.sigma_t) < 2e-6 and not bool(fit.converged)
+    fit = lfj.fit_decay(decay)
+    assert float(fit.sigma_t) == pytest.approx(0.2, rel=1e-5) and bool(fit.converged)
