@@ -1475,6 +1475,10 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ),
         ({"gain": "400"}, "channel Y: no usable gain"),
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        # Before: "model.crop: [0, 0, 32, 24] is 32x24 pixels, but model.width x height is
+        # 32x'24'", blaming the crop for the size's type.
+        ({"model": {"height": "24"}}, "channel Y: model.height: must be an integer, got '24'"),
+        ({"model": {"width": 0}}, "channel Y: model.width: must be an integer >= 2, got 0"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         # Before: a hand-edited "no" (or 0, null) warned "did not converge (converged)".
         ({"converged": "no"}, "channel Y: converged: must be true or false, got 'no'"),

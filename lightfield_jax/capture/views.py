@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.checks import gain_problem, one_path_part, shown
+from lightfield_jax.checks import gain_problem, number_problem, one_path_part, shown
 from lightfield_jax.forward.render import (
     RenderResult,
     model_memory,
@@ -142,6 +142,9 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
                 f"{source}: channel {name}: converged: must be true or false, got "
                 f"{shown(converged)}"
             )
+        for key in ("width", "height"):  # before the crop is compared with them
+            if (problem := number_problem(model[key], integer=True, low=2)) is not None:
+                raise ValueError(f"{source}: channel {name}: model.{key}: {problem}")
         crop = model["crop"]
         if not (
             isinstance(crop, list)
