@@ -2761,3 +2761,16 @@ def test_a_decay_fit_of_light_that_does_not_decay_is_not_converged():
         assert float(fit.sigma_t) < 2e-6 and not bool(fit.converged)
     fit = lfj.fit_decay(decay)
     assert float(fit.sigma_t) == pytest.approx(0.2, rel=1e-5) and bool(fit.converged)
+
+
+def test_fit_images_refuses_phases_the_images_contradict(capture):
+    """Before: fit_images with the phases declared one shift off (1, ..., 5, 0) fitted
+    sigma_s 27 % high and said nothing; a capture file's phases were already checked."""
+    images = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    for phases, given in [((1, 2, 3, 4, 5, 0), images), ((0, 1, 2), images[::2])]:
+        with pytest.raises(ValueError, match=r"^pattern.phases: \[.*\] contradict the images"):
+            lfj.fit_images(given, lfj.Stripes(phases=phases))
+    from lightfield_jax.capture.auto import phases_contradiction
+
+    assert phases_contradiction(images, lfj.Stripes()) is None
+    assert phases_contradiction(images[::2], lfj.Stripes(phases=(0, 2, 4))) is None
