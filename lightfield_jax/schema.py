@@ -89,6 +89,19 @@ class _Loader(yaml.SafeLoader):
             seen.add(key)
         return super().construct_mapping(node, deep)
 
+    def construct_yaml_int(self, node):
+        try:
+            return super().construct_yaml_int(node)
+        except ValueError:  # past Python's 4300 digits: a bare ValueError naming no file
+            mark, digits = node.start_mark, len(node.value.lstrip("+-"))
+            raise yaml.constructor.ConstructorError(
+                None,
+                None,
+                f"an integer of {digits} digits (line {mark.line + 1}) is beyond any value "
+                "a config takes",
+                mark,
+            ) from None
+
 
 def _expanded_size(root: yaml.Node) -> tuple[int, int]:
     """The number of values ``root`` holds with every alias expanded, counted once per
@@ -124,6 +137,7 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
 # The floats YAML 1.1 (PyYAML's default loader) reads as strings: 1e-4, 2E5.
 _YAML11_FLOAT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
 _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML11_FLOAT, list("-+0123456789"))
+_Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
 
 
 def load_yaml(

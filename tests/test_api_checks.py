@@ -590,9 +590,10 @@ def test_separate_and_fit_decay_skip_a_masked_arrays_masked_values():
 
 def _decaying_stripes(pattern, height=12, width=32) -> np.ndarray:
     """Noise-free stripe images: a direct light decaying at σt 0.2 per px under the lit
-    rows, plus a smooth multiple light."""
+    rows (row y lit in phase p where (y + p) mod period < lit, as Stripes renders),
+    plus a smooth multiple light."""
     x, y = np.arange(width) + 0.5, np.arange(height)[:, None]
-    lit = [((y - p) % pattern.period) < pattern.lit for p in pattern.phases]
+    lit = [((y + p) % pattern.period) < pattern.lit for p in pattern.phases]
     return np.stack([np.exp(-0.2 * x) * on + 0.05 * np.exp(-0.1 * x) for on in lit])
 
 

@@ -1475,6 +1475,10 @@ def _results(capture: Path, tmp_path: Path, **changes) -> Path:
         ),
         ({"gain": "400"}, "channel Y: no usable gain"),
         ({"crop": [50, 50, 10, 10]}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
+        # Before: "model.crop: [0, 0, 32, 24] is 32x24 pixels, but model.width x height is
+        # 32x'24'", blaming the crop for the size's type.
+        ({"model": {"height": "24"}}, "channel Y: model.height: must be an integer, got '24'"),
+        ({"model": {"width": 0}}, "channel Y: model.width: must be an integer >= 2, got 0"),
         ({"crop": "all"}, "channel Y: model.crop: must be [x0, y0, x1, y1]"),
         # Before: a hand-edited "no" (or 0, null) warned "did not converge (converged)".
         ({"converged": "no"}, "channel Y: converged: must be true or false, got 'no'"),
@@ -2651,3 +2655,122 @@ def test_a_hangup_ignored_by_nohup_stays_ignored():
         preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN),
     )
     assert done.returncode == 0 and done.stdout == "still here\n", done.stderr
+
+
+# ------------------------------------------------- round four: numbers, addresses, arrays
+
+
+def test_an_integer_past_pythons_digit_limit_is_one_line_naming_the_file(tmp_path, capsys):
+    """Before: 'lightfield-jax: error: Exceeds the limit (4300 digits) for integer string
+    conversion ...', Python's own words, naming neither the file nor the line."""
+    path = tmp_path / "sim.yaml"
+    path.write_text(SIMULATE.replace("period: 6", "period: " + "9" * 5000))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match=str(path))
+    assert "an integer of 5000 digits (line 3)" in line and len(line) < 400
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_memory_size_past_float64_is_one_line(tmp_path, capsys, monkeypatch):
+    """Before: --max-memory of 400 digits ended in argparse's traceback of an
+    OverflowError (the size as a float is inf), and so did the environment variable."""
+    from lightfield_jax.runtime.memory import current_limit
+
+    huge = "9" * 400
+    status, _, err = _run(capsys, "inspect", tmp_path / "c.yaml", "--max-memory", huge)
+    assert status == 2 and "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert "--max-memory: memory size: expected a size such as 8G" in err and len(err) < 300
+    monkeypatch.setenv(MAX_MEMORY_ENV, huge + "G")
+    with pytest.raises(ValueError, match=rf"^\${MAX_MEMORY_ENV}: memory size: expected"):
+        current_limit()
+
+
+@pytest.mark.parametrize("address", ["nonsense", "http://host:8786"])
+def test_a_malformed_scheduler_address_is_named_and_makes_no_folder(
+    capture, capsys, tmp_path, address
+):
+    """Before: 'missing port number in address ...' or 'unknown address scheme ...',
+    Dask's words naming no option, and the batch's --out folder was left made, empty."""
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    out = tmp_path / "new" / "res"
+    _refused(
+        capsys,
+        *("fit", capture / "capture.yaml", other / "capture.yaml", "--out", out),
+        *("--scheduler", address),
+        match=f"--scheduler {address}: not a scheduler's address (",
+    )
+    assert not (tmp_path / "new").exists()
+
+
+def test_a_medium_denser_than_the_renders_hold_is_refused(tmp_path, capsys):
+    """Before: σt 1e4 per pixel rendered the light within the first pixel 46 % low and
+    1e6 rendered it 0, without a word; a slab's σt 1e25 wrote NaN images with exit
+    status 0 (its second bounce's σs² beyond float32)."""
+    lfj.Medium(100.0, 50.0, 0.4)
+    for sigma_t in (1e3, 1e25):
+        with pytest.raises(ValueError, match=r"medium.sigma_t: must be at most 100 per pixel"):
+            lfj.Medium(sigma_t, sigma_t / 2, 0.4)
+    config = yaml.safe_load(SIMULATE)
+    config["medium"] = {"sigma_t": 1e25, "sigma_s": 1e24, "g": 0.4}
+    config["geometry"] = {"kind": "slab", "thickness": 3.0}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="at most 100 per")
+    assert str(path) in line and not (tmp_path / "o").exists()
+
+
+def test_a_json_output_named_like_a_yaml_file_is_refused(capture, capsys, tmp_path):
+    """Before: ``fit --out sim.yaml`` replaced the user's simulate config with the JSON
+    results (exit 0), and ``bench --out``, ``inspect --json`` did alike."""
+    config = tmp_path / "sim.yaml"
+    config.write_text(SIMULATE)
+    yaml_file = capture / "capture.yaml"
+    line = _refused(capsys, "fit", yaml_file, "--out", config, match="--out")
+    assert "a .yaml name is a capture file's or a config's" in line and "--plot" in line
+    _refused(capsys, "inspect", yaml_file, "--json", tmp_path / "i.YML", match="a .yml name")
+    _refused(capsys, "bench", "--out", config, match="a .yaml name")
+    assert config.read_text() == SIMULATE and sorted(tmp_path.iterdir()) == [capture, config]
+
+
+def test_a_medium_absorbing_nothing_is_not_blamed_on_the_paper_convention(tmp_path, capsys):
+    """Before: σs = σt under phase: normalized (or in a slab) was refused as 'the bounce
+    series of the paper phase convention diverges ... Use phase: normalized', the
+    convention the user had given, and render warned alike."""
+    config = yaml.safe_load(SIMULATE)
+    config["medium"] = {"sigma_t": 0.2, "sigma_s": 0.2, "g": 0.4, "phase": "normalized"}
+    path = tmp_path / "sim.yaml"
+    path.write_text(yaml.safe_dump(config))
+    line = _refused(capsys, "simulate", path, "--out", tmp_path / "o", match="rho = albedo = 1")
+    assert "absorbs nothing" in line and "paper" not in line
+    normalized, grid = lfj.Medium(0.2, 0.2, 0.4, "normalized"), lfj.Grid(16, 16, 8, 1)
+    for geometry, medium in [(None, normalized), (lfj.Slab(3.0), lfj.Medium(0.2, 0.2, 0.4))]:
+        with pytest.raises(ValueError, match="absorbs nothing") as refused:
+            lfj.render(medium, grid, lfj.Full(), geometry=geometry)
+        assert "paper" not in str(refused.value)
+    with pytest.raises(ValueError, match="tail: rho = albedo = 1.0000 >= 1: .* sigma_s < sigma_t"):
+        lfj.render(normalized, grid, lfj.Full(), 3, tail="gmres")
+
+
+def test_a_decay_fit_of_light_that_does_not_decay_is_not_converged():
+    """Before: fit_decay of light growing away from the entry wall (the wrong wall
+    named) or flat returned sigma_t 1e-6, its start's floor, said converged, with a
+    standard error 30 times smaller than that."""
+    decay = np.exp(-0.2 * np.arange(16))[None, :].repeat(8, 0)
+    for direct in (decay[:, ::-1].copy(), np.ones_like(decay)):
+        fit = lfj.fit_decay(direct)
+        assert float(fit.sigma_t) < 2e-6 and not bool(fit.converged)
+    fit = lfj.fit_decay(decay)
+    assert float(fit.sigma_t) == pytest.approx(0.2, rel=1e-5) and bool(fit.converged)
+
+
+def test_fit_images_refuses_phases_the_images_contradict(capture):
+    """Before: fit_images with the phases declared one shift off (1, ..., 5, 0) fitted
+    sigma_s 27 % high and said nothing; a capture file's phases were already checked."""
+    images = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    for phases, given in [((1, 2, 3, 4, 5, 0), images), ((0, 1, 2), images[::2])]:
+        with pytest.raises(ValueError, match=r"^pattern.phases: \[.*\] contradict the images"):
+            lfj.fit_images(given, lfj.Stripes(phases=phases))
+    from lightfield_jax.capture.auto import phases_contradiction
+
+    assert phases_contradiction(images, lfj.Stripes()) is None
+    assert phases_contradiction(images[::2], lfj.Stripes(phases=(0, 2, 4))) is None

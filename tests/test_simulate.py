@@ -118,7 +118,8 @@ def test_a_tail_solve_sums_the_bounces_a_march_would(tmp_path):
     # A tail is refused where nothing converges, and named in one line otherwise.
     for bad, words in (
         ({"tail": "cg"}, "tail: must be one of gmres, bicgstab"),
-        ({"tail": "gmres", "medium": {**dense["medium"], "phase": "paper", "g": 0.8}}, "diverges"),
+        ({"tail": "gmres", "medium": {**dense["medium"], "phase": "paper", "g": 0.8}}, "phase: n"),
+        ({"tail": "gmres", "medium": {**dense["medium"], "sigma_s": 0.3}}, "absorbs nothing"),
     ):
         with pytest.raises(ConfigError, match=words):
             parse_simulation_config({**dense, **bad})

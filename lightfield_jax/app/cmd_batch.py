@@ -251,7 +251,6 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         for path, key in zip(paths, keys, strict=True)
     ]
     where = {t.key: (name, path) for t, name, path in zip(tasks, names, paths, strict=True)}
-    out.mkdir(parents=True, exist_ok=True)
 
     def load(task: Task):
         try:
@@ -262,6 +261,8 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         return stored if isinstance(batch, dict) and batch.get("key") == task.key else None
 
     def save(task: Task, record: dict) -> None:
+        # made at the first result: a cluster that cannot start leaves no empty folder
+        out.mkdir(parents=True, exist_ok=True)
         atomic_write_json(out / f"{where[task.key][0]}.json", record)
 
     workers = args.workers if args.workers is not None else default_workers()
@@ -305,6 +306,7 @@ def fit_batch(args: argparse.Namespace) -> int | None:
                 say(args, f"{path}: {line}")
             for line in record["batch"]["warnings"]:
                 warn(args, f"{path}: {line}")
+    out.mkdir(parents=True, exist_ok=True)
     write_csv(
         out / "summary.csv",
         SUMMARY_COLUMNS,

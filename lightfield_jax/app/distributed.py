@@ -102,10 +102,15 @@ def cluster(
 
     address = scheduler_address(scheduler)
     if address is not None:
+        given = "--scheduler" if scheduler is not None else f"${SCHEDULER_ENV}"
         try:
             client = Client(address, timeout="10s")
         except OSError as e:  # (a TimeoutError too)
-            raise ValueError(f"--scheduler {address}: cannot connect ({e})") from None
+            raise ValueError(f"{given} {address}: cannot connect ({e})") from None
+        except ValueError as e:  # no port, an unknown scheme: Dask's words name no option
+            raise ValueError(
+                f"{given} {address}: not a scheduler's address ({e}); e.g. tcp://host:8786"
+            ) from None
         with client:
             yield client
         return

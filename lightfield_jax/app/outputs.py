@@ -113,13 +113,20 @@ def check_plot_format(given: str) -> None:
 def check_json_name(given: str, option: str, hint: str = "") -> None:
     """Refuse a JSON output (``option``, e.g. ``--out``) named like an image, an array
     or a figure (``results.png``: the figure was meant, or the file would be misread as
-    an image); ``hint`` is added to the message (where the figure goes)."""
+    an image), or like a capture or config file (``.yaml``: ``fit --out sim.yaml``
+    replaced the user's config); ``hint`` is added to the message (where the figure
+    goes)."""
 
     suffix = Path(given).suffix.lower()
     if suffix in IMAGE_EXTENSIONS or suffix.lstrip(".") in plot_formats():
         raise OutputError(
             f"{option} {given}: the results are written as JSON, which a {suffix} name "
             f"would hide; name it .json{hint}"
+        )
+    if suffix in (".yaml", ".yml"):  # a slip for the capture or config beside it
+        raise OutputError(
+            f"{option} {given}: a {suffix} name is a capture file's or a config's, which "
+            f"the JSON results would replace or be taken for; name it .json{hint}"
         )
 
 

@@ -159,6 +159,37 @@ def check_stripes(
     top.fail("pattern.phases", message)
 
 
+def phases_contradiction(images, pattern: Stripes) -> str | None:
+    """What to say of ``pattern.phases`` (after its key) that the stripes of
+    ``images`` (``(P, H, W)``, cropped to the medium, dark frame subtracted) contradict
+    where the stripe detector is sure of them (:data:`_SURE_PHASES`); ``None`` where
+    they agree or the stripes are too faint to measure. ``fit_images``' check, said as
+    the capture file's is (:func:`check_stripes`)."""
+    height, width = np.shape(images)[1:3]
+    if len(pattern.phases) < 2:
+        return None
+    try:
+        found = detect_geometry(
+            images,
+            period=pattern.period,
+            lit=pattern.lit,
+            floor=0.0,
+            roi=(0, 0, width, height),
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+        )
+    except ValueError:
+        return None  # no stripes the detector sees: nothing to compare
+    sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
+    if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
+        return None
+    return (
+        f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
+        f"{list(found.phases)} (measured by the stripe detector, phase confidence "
+        f"{found.parts['phases']:.2f}); correct them"
+    )
+
+
 # A given entry wall, direction or lit width is compared with what the stripe detector
 # measures (every part measured: the wall, the heading, the lit width next to the wall)
 # only where it is sure of the stripes (their period found within 2 %, _SURE_PHASES:

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lightfield_jax.checks import gain_problem, one_path_part, shown
+from lightfield_jax.checks import gain_problem, number_problem, one_path_part, shown
 from lightfield_jax.forward.render import (
     RenderResult,
     model_memory,
@@ -31,6 +31,7 @@ from lightfield_jax.forward.render import (
     resolve_bounces,
     resolve_model,
 )
+from lightfield_jax.scene.geometry import paper_bound
 from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Stripes
@@ -57,7 +58,7 @@ def render_transport(
     from lightfield_jax.runtime.memory import check_memory
 
     resolved, model_geometry, rho = resolve_model(medium, grid, geometry)
-    k = resolve_bounces(float(rho), bounces)
+    k = resolve_bounces(float(rho), bounces, paper=paper_bound(medium, model_geometry))
     size = (k + 1) * resolved.height * resolved.width * resolved.n_theta
     fields = size <= MAX_LIGHTFIELD_FLOATS
     check_memory(model_memory(1, resolved, model_geometry, k, fields), what)
@@ -141,6 +142,9 @@ def _channel_results(data: dict[str, Any], source: Path) -> dict[str, dict[str, 
                 f"{source}: channel {name}: converged: must be true or false, got "
                 f"{shown(converged)}"
             )
+        for key in ("width", "height"):  # before the crop is compared with them
+            if (problem := number_problem(model[key], integer=True, low=2)) is not None:
+                raise ValueError(f"{source}: channel {name}: model.{key}: {problem}")
         crop = model["crop"]
         if not (
             isinstance(crop, list)

@@ -39,7 +39,7 @@ from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.forward.slab_memory import slab_render_bytes
 from lightfield_jax.forward.tail import TailNotConvergedWarning, TailSolution, check_tail
 from lightfield_jax.runtime.memory import check_memory, render_bytes
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, paper_bound
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Beam, Full, Illumination, Stripes, period_problem
 from lightfield_jax.scene.medium import Medium, bounces_for_tolerance
@@ -283,11 +283,12 @@ def render_memory(
 
 
 def resolve_bounces(
-    rho: float, bounces: int | str, tolerance: float = 1e-4, tail: str | None = None
+    rho: float, bounces: int | str, tolerance: float = 1e-4, tail: str | None = None, *, paper=True
 ) -> int:
     """An explicit bounce count, or ``"auto"``: the tail bound ρ^K/(1 − ρ) ≤ tolerance,
-    with ρ the model's per-bounce energy ratio bound (see :func:`resolve_model`); with a
-    ``tail`` solve, at most :data:`EXPLICIT_WITH_TAIL` of them (the solve does the rest)."""
+    with ρ the model's per-bounce energy ratio bound (see :func:`resolve_model`; ``paper``:
+    it is ω·A(g), :func:`~lightfield_jax.scene.geometry.paper_bound`); with a ``tail``
+    solve, at most :data:`EXPLICIT_WITH_TAIL` of them (the solve does the rest)."""
     if isinstance(bounces, str):
         if bounces != "auto":
             raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
@@ -295,7 +296,7 @@ def resolve_bounces(
             if rho >= 1.0:
                 return EXPLICIT_WITH_TAIL  # refused by the caller with the reason
             return min(bounces_for_tolerance(float(rho), tolerance, math.inf), EXPLICIT_WITH_TAIL)
-        return bounces_for_tolerance(float(rho), tolerance)
+        return bounces_for_tolerance(float(rho), tolerance, paper=paper)
     if number_problem(bounces, integer=True, low=1) is not None:
         raise ValueError(f"bounces: must be a positive integer or 'auto', got {bounces!r}")
     return check_bounces(bounces)
@@ -370,23 +371,25 @@ def render(
                 "with (sigma_t, sigma_s, g, gain)"
             )
     grid, geometry, rho = resolve_model(medium, grid, geometry)
-    k = resolve_bounces(float(rho), bounces, tolerance, tail)
+    paper = paper_bound(medium, geometry)
+    k = resolve_bounces(float(rho), bounces, tolerance, tail, paper=paper)
     if coarse_after is not None:  # before the renderer's tables
         check_int(coarse_after, "coarse_after", low=2, high=MAX_BOUNCES)
         coarse = geometry.slab_or_none is None and coarse_plane_grid(grid) is not None
         if lightfield and coarse and k > coarse_after:
             raise ValueError(coarse_lightfield_refusal(coarse_after))
     converges = bool(rho < 1.0)
+    bound = f"albedo*A(g) = {float(rho):.4f}" if paper else f"albedo = {float(rho):.4f}"
     if tail is not None and not converges:
         raise ValueError(
-            f"tail: rho = albedo*A(g) = {float(rho):.4f} >= 1: the bounce series diverges "
-            "and has no tail to sum; use phase: normalized or tail: None"
+            f"tail: rho = {bound} >= 1: the bounce series diverges and has no tail to sum; "
+            f"use {'phase: normalized' if paper else 'sigma_s < sigma_t'} or tail: None"
         )
     if not converges:
         warnings.warn(
-            f"rho = albedo*A(g) = {float(rho):.4f} >= 1: the bounce series of the 'paper' "
-            f"phase convention does not converge; the {k} rendered bounces are a truncation "
-            "of a divergent series",
+            f"rho = {bound} >= 1: the bounce series "
+            f"{'of the paper phase convention ' if paper else ''}does not converge; the "
+            f"{k} rendered bounces are a truncation of a divergent series",
             DivergentSeriesWarning,
             stacklevel=2,
         )

@@ -60,7 +60,7 @@ from lightfield_jax.checks import check_int, check_number, gain_problem
 from lightfield_jax.forward.base import MAX_BOUNCES, too_many_bounces
 from lightfield_jax.forward.render import resolve_bounces
 from lightfield_jax.forward.tail import TAIL_METHODS, check_tail
-from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, rho_bound
+from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, paper_bound, rho_bound
 from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
@@ -237,9 +237,10 @@ class SimulationConfig:
         check_number(self.tolerance, "tolerance", low=0.0, high=1.0, low_open=True, high_open=True)
         check_tail(self.tail, self.tolerance, 1)
         if self.tail is not None:
-            rho = float(rho_bound(self.medium.medium(), self.geometry))
+            medium = self.medium.medium()
+            rho = float(rho_bound(medium, self.geometry))
             if not rho < 1.0:
-                raise ValueError(f"tail: {diverges(rho)}")
+                raise ValueError(f"tail: {diverges(rho, paper_bound(medium, self.geometry))}")
         if gain_problem(self.gain) is not None:
             raise ValueError(f"gain: {gain_problem(self.gain)}")
         if self.dark_level is not None:
@@ -255,8 +256,10 @@ class SimulationConfig:
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
         if self.bounces == "auto":
-            rho = rho_bound(self.medium.medium(), self.geometry)
-            return resolve_bounces(float(rho), "auto", self.tolerance, self.tail)
+            medium = self.medium.medium()
+            rho = rho_bound(medium, self.geometry)
+            paper = paper_bound(medium, self.geometry)
+            return resolve_bounces(float(rho), "auto", self.tolerance, self.tail, paper=paper)
         return self.bounces
 
 
@@ -431,12 +434,13 @@ def _camera(top: Section, illumination: Illumination) -> dict:
     return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
 
 
-def diverges(rho: float) -> str:
-    """Why a tail solve is refused where the series gains light per bounce."""
-    return (
-        f"the bounce series diverges (per-bounce ratio bound {rho:.4g} >= 1): no solve sums "
-        "it; phase: normalized (or a slab) keeps it convergent"
-    )
+def diverges(rho: float, paper: bool) -> str:
+    """Why a tail solve is refused where the series does not converge (``paper``: ρ is
+    the paper convention's ω·A(g), else the albedo)."""
+    said = f"the bounce series does not converge (per-bounce ratio bound {rho:.4g} >= 1)"
+    if paper:
+        return f"{said}: no solve sums it; phase: normalized (or a slab) keeps it convergent"
+    return f"{said}: a medium that absorbs nothing (sigma_s = sigma_t) sends its light on forever"
 
 
 def _tail(top: Section, medium: MediumConfig, geometry) -> str | None:
@@ -445,9 +449,10 @@ def _tail(top: Section, medium: MediumConfig, geometry) -> str | None:
         return None
     if not (isinstance(tail, str) and tail in TAIL_METHODS):
         top.fail("tail", f"must be one of {', '.join(TAIL_METHODS)}, got {brief(tail)}")
-    rho = float(rho_bound(medium.medium(), geometry))
+    model = medium.medium()
+    rho = float(rho_bound(model, geometry))
     if not rho < 1.0:
-        top.fail("tail", diverges(rho))
+        top.fail("tail", diverges(rho, paper_bound(model, geometry)))
     return tail
 
 
@@ -473,7 +478,9 @@ def _bounces(
         top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
     if bounces == "auto" and not tail:
         try:
-            bounces_for_tolerance(float(rho_bound(medium.medium(), geometry)), tolerance)
+            model = medium.medium()
+            rho, paper = rho_bound(model, geometry), paper_bound(model, geometry)
+            bounces_for_tolerance(float(rho), tolerance, paper=paper)
         except ValueError as e:
             top.fail("bounces", str(e).removeprefix("bounces: "))
     return bounces, tolerance

@@ -78,7 +78,8 @@ class DecayFit(eqx.Module):
             with no usable pixel.
         initial_sigma_t: the weighted log-linear estimate the solve started from.
         converged: whether the solve succeeded (``result`` is successful) on an
-            identifiable problem.
+            identifiable problem, with σt above its floor (light that does not decay
+            away from the wall leaves it there).
         result: the optimistix result (``optx.RESULTS[fit.result]`` is its message).
         iterations: Levenberg–Marquardt steps taken.
         residual: root-mean-square of D − model over the usable pixels (image units).
@@ -221,7 +222,10 @@ def _fit(
 
     amplitude = jnp.where(per_line > 0, amp * jnp.exp(sigma_t * s_ref) * peak, jnp.nan)
     residual = peak * jnp.sqrt(jnp.sum(jnp.where(used, (dn - model) ** 2, 0.0)) / n_pixels)
-    converged = (sol.result == optx.RESULTS.successful) & (n_pixels > n_used_lines)
+    # σt at its floor is no answer: light that grows away from the wall (or stays flat)
+    # ends there, a step from the start, in a "successful" solve
+    at_floor = sigma_t < 2 * _SIGMA_T_FLOOR
+    converged = (sol.result == optx.RESULTS.successful) & (n_pixels > n_used_lines) & ~at_floor
     return DecayFit(
         sigma_t=sigma_t,
         sigma_t_stderr=stderr,

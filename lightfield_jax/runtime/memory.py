@@ -19,6 +19,8 @@ import os
 import re
 from collections.abc import Iterator
 
+from lightfield_jax.checks import shown
+
 MAX_MEMORY_ENV = "LIGHTFIELD_JAX_MAX_MEMORY"
 _UNITS = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
 _override: list[int] = []
@@ -31,9 +33,11 @@ class MemoryLimitError(ValueError):
 def parse_size(text: str) -> int:
     """``"8G"``, ``"512M"``, ``"2.5GiB"``, ``"1000000"`` (bytes) → bytes."""
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*([KMGT]?)(?:I?B)?\s*", str(text).upper())
-    nbytes = 0 if m is None else int(float(m.group(1)) * _UNITS[m.group(2)])
+    size = 0.0 if m is None else float(m.group(1)) * _UNITS[m.group(2)]
+    # past float64 (400 digits) the size is inf, which int() raises as an OverflowError
+    nbytes = int(size) if math.isfinite(size) else 0
     if nbytes < 1:  # also a fraction of a byte
-        raise ValueError(f"memory size: expected a size such as 8G or 512M, got {text!r}")
+        raise ValueError(f"memory size: expected a size such as 8G or 512M, got {shown(text)}")
     return nbytes
 
 

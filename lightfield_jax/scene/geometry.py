@@ -326,6 +326,13 @@ def rho_bound(medium, geometry=None):
     return as_geometry(geometry).rho_bound(medium)
 
 
+def paper_bound(medium, geometry=None) -> bool:
+    """Whether :func:`rho_bound` is the paper's ω·A(g), which passes 1 for media of any
+    albedo (the plane under ``phase: paper``), rather than ω (1 only where nothing is
+    absorbed): the two need different advice when ρ ≥ 1."""
+    return medium.phase == "paper" and as_geometry(geometry).slab_or_none is None
+
+
 def _guides_light(boundary: str, albedo: float | None) -> bool:
     """Refractive faces guide light far (total internal reflection) and, unless the
     medium is dim (ω < 0.3, or unknown), the high orders that carry it matter."""
@@ -467,6 +474,7 @@ __all__ = [
     "default_n_z",
     "default_slab_n_theta",
     "fresnel_reflectance",
+    "paper_bound",
     "positive_finite",
     "resolve_slab_grid",
     "rho_bound",
