@@ -199,14 +199,17 @@ def test_a_dense_forward_capture_is_recovered_through_the_correction():
     correction = result.model["correction"]
     assert correction["converged"] and correction["renders"] >= 2, correction
     assert result.model["refine"] == 2 and result.model["n_theta"] >= 64
-    # Its bounces after the eighth on the native grid (coarse_after), and the error
-    # term's finer model marching twice as many refined before its own.
-    coarse = {"after": 8, "n_theta": result.model["n_theta"], "refine": 1}
+    # Its full light's bounces after the eighth on the native grid (coarse_after; its
+    # side-wall stripes the cell marches refined throughout), and the error term's finer
+    # model marching twice as many refined before its own.
+    coarse = {"after": 8, "n_theta": result.model["n_theta"], "refine": 1, "stripes": False}
     assert result.model["coarse_tail"] == coarse
+    assert result.model["stripe_cell"] == {"shift_orders": 10}
     fine = result.model["finer_model"]
     assert fine["coarse_after"] == (16 if fine["bounces"] > 16 else None)
-    # The model a result names renders as fitted (fitted_images), coarse tail included.
-    assert model_from(result.model).coarse == 8
+    # The model a result names renders as fitted (fitted_images): the cell, the coarse
+    # tail for full light.
+    assert model_from(result.model).coarse == 8 and model_from(result.model).cell == 10
     assert result.converged, result.message
     st, ss, g = DENSE
     assert abs(result.sigma_t / st - 1) < 0.005
