@@ -159,51 +159,34 @@ def check_stripes(
     top.fail("pattern.phases", message)
 
 
-def pattern_contradiction(images, pattern: Stripes) -> tuple[str, str] | None:
-    """``(key, what to say after it)`` where the stripes of ``images`` (``(P, H, W)``,
-    cropped to the medium, dark frame subtracted) contradict ``pattern``'s entry wall,
-    heading or phases, judged as a capture file's are (:func:`check_stripes`,
-    :func:`_check_geometry_seen`: only where the stripe detector is sure of what it
-    measures); ``None`` where they agree or the stripes are too faint to measure.
-    ``fit_images``' check: a heading 30 deg off fits σt 15 % low, phases one shift off
-    σs 27 % high, without a word."""
+def phases_contradiction(images, pattern: Stripes) -> str | None:
+    """What to say of ``pattern.phases`` (after its key) that the stripes of
+    ``images`` (``(P, H, W)``, cropped to the medium, dark frame subtracted) contradict
+    where the stripe detector is sure of them (:data:`_SURE_PHASES`); ``None`` where
+    they agree or the stripes are too faint to measure. ``fit_images``' check, said as
+    the capture file's is (:func:`check_stripes`)."""
     height, width = np.shape(images)[1:3]
     if len(pattern.phases) < 2:
         return None
-    roi = (0, 0, width, height)
-    seen = _measured(images, pattern, roi, True, None, entry=False)
-    if seen is not None and seen.parts.get("period", 0.0) >= _SURE_PHASES:
-        if seen.entry != pattern.entry:
-            if _sure(seen, "entry", "orientation", "roi"):
-                return (
-                    "pattern.entry",
-                    f"{pattern.entry} contradicts the images, whose light enters through the "
-                    f"{seen.entry} wall heading {seen.direction_deg:.1f} deg (measured by the "
-                    f"stripe detector, confidence {seen.confidence:.2f}); correct it (and "
-                    "pattern.direction_deg)",
-                )
-        else:
-            off = abs((seen.direction_deg - pattern.direction_deg + 180.0) % 360.0 - 180.0)
-            tolerance = max(DIRECTION_OFF, DIRECTION_SIGMAS * seen.direction_stderr_deg)
-            if _sure(seen, "direction") and off > tolerance:
-                return (
-                    "pattern.direction_deg",
-                    f"{pattern.direction_deg:g} contradicts the images, whose stripes run at "
-                    f"{seen.direction_deg:.2f} ± {seen.direction_stderr_deg:.2f} deg from the "
-                    f"{pattern.entry} wall (measured by the stripe detector; {tolerance:.1f} "
-                    "deg tolerated); correct it",
-                )
-    found = _measured(images, pattern, roi, True, pattern.direction_deg)
-    if found is None:
+    try:
+        found = detect_geometry(
+            images,
+            period=pattern.period,
+            lit=pattern.lit,
+            floor=0.0,
+            roi=(0, 0, width, height),
+            entry=pattern.entry,
+            direction_deg=pattern.direction_deg,
+        )
+    except ValueError:
         return None  # no stripes the detector sees: nothing to compare
     sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
     if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
         return None
     return (
-        "pattern.phases",
         f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
         f"{list(found.phases)} (measured by the stripe detector, phase confidence "
-        f"{found.parts['phases']:.2f}); correct them",
+        f"{found.parts['phases']:.2f}); correct them"
     )
 
 
