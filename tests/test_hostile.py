@@ -2774,3 +2774,11 @@ def test_fit_images_refuses_phases_the_images_contradict(capture):
 
     assert phases_contradiction(images, lfj.Stripes()) is None
     assert phases_contradiction(images[::2], lfj.Stripes(phases=(0, 2, 4))) is None
+
+
+def test_fit_options_kept_that_is_no_pairs_is_named():
+    """Before: FitOptions(kept=5) raised Python's "'int' object is not iterable"."""
+    for bad in (5, "ab", [("n_theta", 3)], [("g_grid",)]):
+        with pytest.raises(TypeError, match=r"^FitOptions: kept: must be \(key, value\) pairs"):
+            lfj.FitOptions(kept=bad)
+    assert lfj.FitOptions(kept=(("g_grid", 21),)).replace(method="grid").method.g_values == 21

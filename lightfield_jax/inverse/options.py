@@ -34,6 +34,15 @@ PARAMS = ("sigma_t", "sigma_s", "g", "gain", "black_level")
 FLAT_KEYS = ("method", *GROUP_OF, *METHOD_KEYS)
 
 
+def _is_kept(kept) -> bool:
+    """Whether ``kept`` is what :class:`FitOptions` keeps: (key, value) pairs of the
+    method settings a later method takes."""
+    return isinstance(kept, (tuple, list)) and all(
+        isinstance(p, (tuple, list)) and len(p) == 2 and p[0] in ("g_grid", "start_grid")
+        for p in kept
+    )
+
+
 @dataclasses.dataclass(frozen=True, init=False)
 class FitOptions(FitSettings):
     """Settings of a fit (all optional): the fit ``method`` with its own settings, and
@@ -86,6 +95,11 @@ class FitOptions(FitSettings):
         kept: tuple[tuple[str, int], ...] = (),
         **settings,
     ):
+        if not _is_kept(kept):  # else dict() raises Python's own, naming nothing
+            raise TypeError(
+                f"FitOptions: kept: must be (key, value) pairs of g_grid or start_grid, got "
+                f"{kept!r:.80}"
+            )
         settings = {**dict(kept), **settings}  # dataclasses.replace passes ``kept`` on
         unknown = [k for k in settings if k not in GROUP_OF and k not in METHOD_KEYS]
         if unknown:
