@@ -144,16 +144,10 @@ def check_stripes(
     if phases_from == "auto" or len(names) < 2:
         return None
     found = _measured(images, pattern, (x0, y0, x1, y1), dark_removed, pattern.direction_deg)
-    if found is None:
-        return None  # stripes too faint to measure: nothing to compare
-    sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
-    if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
+    message = _phases_contradicted(found, pattern)
+    if message is None:
         return None
-    message = (
-        f"{list(pattern.phases)} contradict the images, whose stripes are at phases "
-        f"{list(found.phases)} (measured by the stripe detector, phase confidence "
-        f"{found.parts['phases']:.2f}); correct them, or set pattern.phases: auto"
-    )
+    message += ", or set pattern.phases: auto"
     if phases_from == "default":
         return f"pattern.phases (absent: the default) {message}"
     top.fail("pattern.phases", message)
@@ -165,21 +159,19 @@ def phases_contradiction(images, pattern: Stripes) -> str | None:
     where the stripe detector is sure of them (:data:`_SURE_PHASES`); ``None`` where
     they agree or the stripes are too faint to measure. ``fit_images``' check, said as
     the capture file's is (:func:`check_stripes`)."""
-    height, width = np.shape(images)[1:3]
     if len(pattern.phases) < 2:
         return None
-    try:
-        found = detect_geometry(
-            images,
-            period=pattern.period,
-            lit=pattern.lit,
-            floor=0.0,
-            roi=(0, 0, width, height),
-            entry=pattern.entry,
-            direction_deg=pattern.direction_deg,
-        )
-    except ValueError:
-        return None  # no stripes the detector sees: nothing to compare
+    height, width = np.shape(images)[1:3]
+    found = _measured(images, pattern, (0, 0, width, height), True, pattern.direction_deg)
+    return _phases_contradicted(found, pattern)
+
+
+def _phases_contradicted(found: Geometry | None, pattern: Stripes) -> str | None:
+    """The message (up to its advice) where the detector's ``found`` stripes are sure
+    of other phases than ``pattern``'s; ``None`` where they agree, or the stripes are
+    too faint to measure (``found`` ``None``) or to be sure of."""
+    if found is None:
+        return None
     sure = min(found.parts.get("phases", 0.0), found.parts.get("period", 0.0))
     if sure < _SURE_PHASES or list(found.phases) == list(pattern.phases):
         return None

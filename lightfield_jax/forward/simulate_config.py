@@ -237,10 +237,9 @@ class SimulationConfig:
         check_number(self.tolerance, "tolerance", low=0.0, high=1.0, low_open=True, high_open=True)
         check_tail(self.tail, self.tolerance, 1)
         if self.tail is not None:
-            medium = self.medium.medium()
-            rho = float(rho_bound(medium, self.geometry))
+            rho, paper = series_bound(self.medium, self.geometry)
             if not rho < 1.0:
-                raise ValueError(f"tail: {diverges(rho, paper_bound(medium, self.geometry))}")
+                raise ValueError(f"tail: {diverges(rho, paper)}")
         if gain_problem(self.gain) is not None:
             raise ValueError(f"gain: {gain_problem(self.gain)}")
         if self.dark_level is not None:
@@ -256,10 +255,8 @@ class SimulationConfig:
     def n_bounces(self) -> int:
         """The bounce count K, with ``"auto"`` resolved from ρ and the tolerance."""
         if self.bounces == "auto":
-            medium = self.medium.medium()
-            rho = rho_bound(medium, self.geometry)
-            paper = paper_bound(medium, self.geometry)
-            return resolve_bounces(float(rho), "auto", self.tolerance, self.tail, paper=paper)
+            rho, paper = series_bound(self.medium, self.geometry)
+            return resolve_bounces(rho, "auto", self.tolerance, self.tail, paper=paper)
         return self.bounces
 
 
@@ -434,6 +431,13 @@ def _camera(top: Section, illumination: Illumination) -> dict:
     return {"gain": gain, "noise": noise, "black_level": black_level, "dark_level": dark_level}
 
 
+def series_bound(medium: MediumConfig, geometry) -> tuple[float, bool]:
+    """The medium's per-bounce ratio bound ρ in ``geometry`` and whether it is the paper
+    convention's ω·A(g) (:func:`~lightfield_jax.scene.geometry.paper_bound`)."""
+    model = medium.medium()
+    return float(rho_bound(model, geometry)), paper_bound(model, geometry)
+
+
 def diverges(rho: float, paper: bool) -> str:
     """Why a tail solve is refused where the series does not converge (``paper``: ρ is
     the paper convention's ω·A(g), else the albedo)."""
@@ -449,10 +453,9 @@ def _tail(top: Section, medium: MediumConfig, geometry) -> str | None:
         return None
     if not (isinstance(tail, str) and tail in TAIL_METHODS):
         top.fail("tail", f"must be one of {', '.join(TAIL_METHODS)}, got {brief(tail)}")
-    model = medium.medium()
-    rho = float(rho_bound(model, geometry))
+    rho, paper = series_bound(medium, geometry)
     if not rho < 1.0:
-        top.fail("tail", diverges(rho, paper_bound(model, geometry)))
+        top.fail("tail", diverges(rho, paper))
     return tail
 
 
@@ -478,9 +481,8 @@ def _bounces(
         top.fail("tolerance", f"must lie in (0, 1), got {tolerance!r}")
     if bounces == "auto" and not tail:
         try:
-            model = medium.medium()
-            rho, paper = rho_bound(model, geometry), paper_bound(model, geometry)
-            bounces_for_tolerance(float(rho), tolerance, paper=paper)
+            rho, paper = series_bound(medium, geometry)
+            bounces_for_tolerance(rho, tolerance, paper=paper)
         except ValueError as e:
             top.fail("bounces", str(e).removeprefix("bounces: "))
     return bounces, tolerance

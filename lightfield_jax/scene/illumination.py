@@ -361,8 +361,9 @@ def source_moments(
         m2 = lit * (d0**2).sum(axis=-1)
         cnt = np.broadcast_to(lit * supersample, m1.shape)
     else:
-        lit = _lit_measure(illum, wall, lo := k - d0[None] * slope, lo + 1.0, extent)
-        cnt = lit.sum(axis=-1)  # lit: (P, along, normal, sub)
+        lo = k - d0[None] * slope
+        lit = _lit_measure(illum, wall, lo, lo + 1.0, extent)  # (P, along, normal, sub)
+        cnt = lit.sum(axis=-1)
         m1 = (lit * d0).sum(axis=-1)
         m2 = (lit * d0**2).sum(axis=-1)
     safe = np.where(cnt > 0, cnt, 1.0)
