@@ -2770,10 +2770,39 @@ def test_fit_images_refuses_phases_the_images_contradict(capture):
     for phases, given in [((1, 2, 3, 4, 5, 0), images), ((0, 1, 2), images[::2])]:
         with pytest.raises(ValueError, match=r"^pattern.phases: \[.*\] contradict the images"):
             lfj.fit_images(given, lfj.Stripes(phases=phases))
-    from lightfield_jax.capture.auto import phases_contradiction
+    from lightfield_jax.capture.auto import pattern_contradiction
 
-    assert phases_contradiction(images, lfj.Stripes()) is None
-    assert phases_contradiction(images[::2], lfj.Stripes(phases=(0, 2, 4))) is None
+    assert pattern_contradiction(images, lfj.Stripes()) is None
+    assert pattern_contradiction(images[::2], lfj.Stripes(phases=(0, 2, 4))) is None
+
+
+def test_fit_images_refuses_a_heading_or_wall_the_images_contradict(capture):
+    """Before: fit_images of 0 deg stripes declared at 30 deg fitted sigma_t 15 % low and
+    said nothing (a capture file's heading was already checked), and images transposed
+    (light entering the top, declared left) were taken with a decay start of sigma_t 0.
+    A mask per value does
+    not make a right heading look wrong: values clipped at a tenth of the peak, zeroed
+    where masked, measured -11.7 deg on a 48x32 render with every line counted."""
+    from lightfield_jax.capture.auto import pattern_contradiction
+
+    images = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    with pytest.raises(ValueError, match=r"^pattern.direction_deg: 30 contradicts the images"):
+        lfj.fit_images(images, lfj.Stripes(direction_deg=30))
+    with pytest.raises(ValueError, match=r"^pattern.entry: left contradicts .* the top wall"):
+        lfj.fit_images(np.swapaxes(images, 1, 2), lfj.Stripes())
+    clip = 0.1 * images.max()
+    valid = images < clip
+    zeroed = np.where(valid, images, 0.0)
+    assert pattern_contradiction(zeroed, lfj.Stripes(), valid) is None
+    assert pattern_contradiction(zeroed, lfj.Stripes(direction_deg=30), valid)[0] == (
+        "pattern.direction_deg"
+    )
+    for bad, match in [
+        (valid[0, :3], "must have the images'"),
+        (1 * valid, "must be an array of booleans"),
+    ]:
+        with pytest.raises(ValueError, match=f"^detect_geometry: valid: {match}"):
+            lfj.detect_geometry(zeroed, valid=bad)
 
 
 def test_fit_options_kept_that_is_no_pairs_is_named():

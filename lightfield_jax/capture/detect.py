@@ -200,7 +200,7 @@ def _clip01(v: float) -> float:
     return float(min(max(v, 0.0), 1.0))
 
 
-def _checked(images, period, lit, reference, floor, roi, entry, direction_deg):
+def _checked(images, period, lit, reference, floor, roi, entry, direction_deg, valid):
     """``(images, reference)`` as float64 arrays, every argument of
     :func:`detect_geometry` checked (ValueError naming it). Unchecked, period 0 would
     raise a ZeroDivisionError, 6.0 a TypeError, an unknown entry a KeyError, a NaN
@@ -237,7 +237,18 @@ def _checked(images, period, lit, reference, floor, roi, entry, direction_deg):
         raise ValueError(f"{key}: entry: must be one of {', '.join(WALLS)}, got {shown(entry)}")
     if direction_deg is not None:
         check_number(direction_deg, f"{key}: direction_deg", low=-360.0, high=360.0)
-    return a, reference
+    if valid is not None:
+        v = np.asarray(valid)
+        if v.dtype != bool:
+            raise ValueError(f"{key}: valid: must be an array of booleans, got dtype {v.dtype}")
+        try:
+            valid = np.broadcast_to(v, a.shape[:3])
+        except ValueError:
+            raise ValueError(
+                f"{key}: valid: must have the images' (P, H, W) {a.shape[:3]} or (H, W) "
+                f"shape, got {v.shape}"
+            ) from None
+    return a, reference, valid
 
 
 def detect_geometry(
@@ -250,6 +261,7 @@ def detect_geometry(
     roi: tuple[int, int, int, int] | None = None,
     entry: str | None = None,
     direction_deg: float | None = None,
+    valid=None,
 ) -> Geometry:
     """Find the medium's ROI, the entry wall, the light's direction and the stripes'
     phases in a stripe capture (see the module docstring for how).
@@ -265,6 +277,12 @@ def detect_geometry(
         floor: the signal level of an unlit pixel (0 after a dark frame); default: the
             median of the image's dimmest border band.
         roi, entry, direction_deg: known values, used instead of measured ones.
+        valid: booleans ``(P, H, W)`` or ``(H, W)``, false where a value is not to be
+            trusted (masked, clipped, or zeroed by a mask): each image's lines along the
+            light that hold one are left out of the heading's and the phases' fit (a
+            mask's zeros in the stripes of one shift and not another turned a 0 deg
+            heading into -11.7 deg). An image with no line left has no phase measured
+            (the ``phases`` part's confidence 0).
 
     Returns:
         A :class:`Geometry`.
@@ -273,7 +291,9 @@ def detect_geometry(
         ValueError: no lit medium, no visible stripes, or given values that contradict
             each other; the message says which.
     """
-    a, reference = _checked(images, period, lit, reference, floor, roi, entry, direction_deg)
+    a, reference, valid = _checked(
+        images, period, lit, reference, floor, roi, entry, direction_deg, valid
+    )
     if a.ndim == 4:
         a = np.where(np.isfinite(a), a, 0.0).sum(axis=-1)
     a = np.where(np.isfinite(a), a, 0.0)
@@ -334,6 +354,10 @@ def detect_geometry(
     stack = across_first(crop, entry)
     u0, along0 = (y0, x0) if across == "rows" else (x0, y0)
     c = stripe_coefficients(stack, u0, 1.0 / period)
+    lines = None
+    if valid is not None:
+        lines = across_first(valid[:, y0:y1, x0:x1], entry).all(axis=1)  # (P, along)
+        c = np.where(lines, c, 0.0)
     x = along0 + np.arange(stack.shape[-1]) + 0.5
     fixed = None
     if direction_deg is not None:
@@ -355,6 +379,8 @@ def detect_geometry(
     offset = float(np.max(np.abs(raw - whole))) if raw.size else 0.0
     phases = tuple(int(v) % period for v in whole)
     parts["phases"] = _clip01(1.0 - 2.0 * offset)
+    if lines is not None and not lines.any(axis=1).all():
+        parts["phases"] = 0.0
     period_px = measured_period(stack, u0, period)
     parts["period"] = _clip01(1.0 - abs(period_px / period - 1.0) / 0.1)
     lit_px = measured_lit(stack, entry, period)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.capture.auto import phases_contradiction
+from lightfield_jax.capture.auto import pattern_contradiction
 from lightfield_jax.capture.stripe_phase import across_first as _across_first
 from lightfield_jax.capture.stripe_phase import period_contradiction
 from lightfield_jax.checks import (
@@ -252,8 +252,8 @@ def prepare_data(
     across = _across_first(images, pattern.entry)  # else: a long fit that does not converge
     if (problem := period_contradiction(across, 0, pattern.period, pattern.entry)) is not None:
         raise ValueError(f"pattern.period: {problem}")
-    if (problem := phases_contradiction(images, pattern)) is not None:  # else a wrong answer
-        raise ValueError(f"pattern.phases: {problem}")
+    if (problem := pattern_contradiction(images, pattern, samples)) is not None:
+        raise ValueError(f"{problem[0]}: {problem[1]}")  # else a wrong answer
     if split is None:
         sep = separate(
             jnp.asarray(images),
