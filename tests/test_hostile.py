@@ -2811,3 +2811,15 @@ def test_fit_options_kept_that_is_no_pairs_is_named():
         with pytest.raises(TypeError, match=r"^FitOptions: kept: must be \(key, value\) pairs"):
             lfj.FitOptions(kept=bad)
     assert lfj.FitOptions(kept=(("g_grid", 21),)).replace(method="grid").method.g_values == 21
+
+
+def test_a_frame_without_a_value_above_zero_among_lit_ones_is_refused(capture, capsys):
+    """Before: a float shift with an offset of 10 subtracted (every value negative) was
+    inspected without a word and fitted for a minute (gain -387, not converged)."""
+    pixels = read_image(capture / "shift_02.exr").pixels[..., 0]
+    for bad in (pixels - 10.0, -pixels):
+        write_exr(capture / "shift_02.exr", {"Y": bad})
+        _refused(
+            capsys, "inspect", capture / "capture.yaml",
+            match="images: shift_02.exr: no pixel value is above 0 (the largest is -",
+        )  # fmt: skip

@@ -278,9 +278,11 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
 def check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
     """Refuse a stripe image (``(key, name, pixels)`` each: a single exposure or one
     exposure of a bracket) that holds no image: NaN and Inf only (checked first in every
-    frame: an image of nothing else is no image), or one value ≤ 0 among frames that vary
-    (a dropped frame: before, fitted as a shift, not converged without a word of it).
-    Every frame alike is said later, with its cause."""
+    frame: an image of nothing else is no image), one value ≤ 0 among frames that vary
+    (a dropped frame: before, fitted as a shift, not converged without a word of it), or
+    no value above 0 among frames with light (a float frame with an offset subtracted
+    twice: fitted for a minute to a gain of -387). Every frame alike is said later, with
+    its cause."""
     for key, name, pixels in frames:
         if not np.isfinite(pixels).any():
             top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
@@ -292,6 +294,18 @@ def check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> 
                 f"{name}: every pixel value is {level:.6g}, unlike the other images (a "
                 "dropped frame, or the projector or camera off?)",
             )
+    largest = [
+        float(np.max(pixels, initial=-np.inf, where=np.isfinite(pixels))) for *_, pixels in frames
+    ]
+    if max(largest) > 0:
+        for (key, name, _), top_value in zip(frames, largest, strict=True):
+            if top_value <= 0:
+                top.fail(
+                    key,
+                    f"{name}: no pixel value is above 0 (the largest is {top_value:.6g}), "
+                    "unlike the other images: images of light are not negative (an offset "
+                    "subtracted from this one twice, or the projector or camera off?)",
+                )
 
 
 def check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
