@@ -2823,3 +2823,24 @@ def test_a_frame_without_a_value_above_zero_among_lit_ones_is_refused(capture, c
             capsys, "inspect", capture / "capture.yaml",
             match="images: shift_02.exr: no pixel value is above 0 (the largest is -",
         )  # fmt: skip
+
+
+def test_a_shift_holding_other_light_than_the_others_is_refused(capture, capsys):
+    """Before: one shift taken at 10 times the exposure, or with 0.3 added, was inspected
+    without a word (the fit takes every shift at one exposure); fit_images took it too."""
+    pixels = read_image(capture / "shift_02.exr").pixels[..., 0]
+    for bad, ratio in [(10.0 * pixels, "11.3"), (pixels + 0.3, "5.47")]:
+        write_exr(capture / "shift_02.exr", {"Y": bad})
+        _refused(
+            capsys, "inspect", capture / "capture.yaml",
+            match=f"images: shift_02.exr holds {ratio} times the light of the shifts' median",
+        )  # fmt: skip
+    write_exr(capture / "shift_02.exr", {"Y": pixels})
+    images = np.stack([read_image(capture / f"shift_{i:02d}.exr").pixels[..., 0] for i in range(P)])
+    images[4] *= 2.0
+    with pytest.raises(ValueError, match=r"^images: images\[4\] holds 2 times the light"):
+        lfj.fit_images(images, lfj.Stripes())
+    from lightfield_jax.capture.auto import light_contradiction
+
+    images[4] /= 2.0
+    assert light_contradiction(images, 0, lfj.Stripes()) is None  # 1 % apart

@@ -133,6 +133,7 @@ def check_stripes(
         contrast = np.median(stripes / amplitude(1.5 * pattern.period))
         relative = stripes / np.median(stripes)
     if not contrast >= STRIPED:
+        _check_light_alike(top, stack, u0, pattern, names)
         return None  # no stripes to compare with
     for name, r in zip(names, relative, strict=True):
         if not r >= _UNSTRIPED:
@@ -142,6 +143,7 @@ def check_stripes(
                 f"{r:.2g} times the other images'): a white or black frame listed as a "
                 "stripe image? (give it as white_frame or black_frame)",
             )
+    _check_light_alike(top, stack, u0, pattern, names)
     if phases_from == "auto" or len(names) < 2:
         return None
     found = _measured(images, pattern, (x0, y0, x1, y1), dark_removed, pattern.direction_deg)
@@ -154,12 +156,52 @@ def check_stripes(
     top.fail("pattern.phases", message)
 
 
+# Shifts of one stripe pattern light the medium alike: the light summed over it differs
+# between them by 1 % (renders of 32x24 media, period 6), 5 % (oblique at 20 deg), up
+# to 2x where the shifts light 1 or 2 of the rows across a narrow medium. An image
+# whose sum is off the shifts' median by more than LIGHT_OFF times the ratio of the
+# most to the fewest rows a shift lights is refused: one taken at another exposure or
+# gain (a camera's auto exposure), or with an offset left in or taken out twice.
+LIGHT_OFF = 1.5
+
+
+def light_contradiction(stack, u0: int, pattern: Stripes, valid=None) -> tuple[int, str] | None:
+    """``(index, what to say)`` of the image of a (P, across, along) stack
+    (:func:`~lightfield_jax.capture.stripe_phase.across_first` of dark-subtracted
+    images, non-finite values 0; the first row across at ``u0``) whose light summed
+    over the pixels ``valid`` (booleans (across, along): in every shift; ``None``: all)
+    is off the shifts' median (see :data:`LIGHT_OFF`); ``None`` where none is, or with
+    fewer than 3 images (two cannot say which one is off)."""
+    if stack.shape[0] < 3:
+        return None
+    rows = u0 + np.arange(stack.shape[1])
+    lit = [int(np.sum((rows + p) % pattern.period < pattern.lit)) for p in pattern.phases]
+    if min(lit) < 1:
+        return None  # a shift lighting no row of the medium: no sum to compare
+    sums = (stack if valid is None else np.where(valid, stack, 0.0)).sum(axis=(1, 2))
+    median = float(np.median(sums))
+    if not median > 0:
+        return None
+    ratio = sums / median
+    tolerance = LIGHT_OFF * max(lit) / min(lit)
+    off = np.abs(np.log(np.where(ratio > 0, ratio, 1e-300)))  # no light: the farthest off
+    worst = int(np.argmax(off))
+    if off[worst] <= math.log(tolerance):
+        return None
+    return worst, (
+        f"holds {ratio[worst]:.3g} times the light of the shifts' median (summed over the "
+        f"medium; {tolerance:.2g}x tolerated): every shift needs the same exposure and gain "
+        "(the camera's auto exposure on?) and the same dark frame or offset subtracted"
+    )
+
+
 def pattern_contradiction(images, pattern: Stripes, valid=None) -> tuple[str, str] | None:
     """``(key, what to say after it)`` where the stripes of ``images`` (``(P, H, W)``,
     cropped to the medium, dark frame subtracted) contradict ``pattern``'s entry wall,
     heading or phases (judged as a capture file's are, :func:`_check_geometry_seen`,
-    :func:`check_stripes`: only where the stripe detector is sure of what it measures);
-    ``None`` where they agree or the stripes are too faint to measure. ``valid``
+    :func:`check_stripes`: only where the stripe detector is sure of what it measures),
+    or its shifts lighting the medium alike (:func:`light_contradiction`); ``None``
+    where they agree or the stripes are too faint to measure. ``valid``
     (booleans like ``images``): the values to trust; each image's lines along the light
     holding another are left out (a mask's zeros bend the measured heading).
     ``fit_images``' check: unchecked, a heading 30 deg off fitted σt 15 % low, phases
@@ -180,6 +222,10 @@ def pattern_contradiction(images, pattern: Stripes, valid=None) -> tuple[str, st
     found = _measured(images, pattern, roi, True, pattern.direction_deg, valid=valid)
     if (problem := _phases_contradicted(found, pattern)) is not None:
         return "pattern.phases", problem
+    every = None if valid is None else across_first(np.all(valid, axis=0), pattern.entry)
+    stack = across_first(np.where(np.isfinite(images), images, 0.0), pattern.entry)
+    if (off := light_contradiction(stack, 0, pattern, every)) is not None:
+        return "images", f"images[{off[0]}] {off[1]}"
     return None
 
 
@@ -221,6 +267,11 @@ DIRECTION_OFF, DIRECTION_SIGMAS = 2.0, 5.0
 # from it by more than LIT_OFF rows: another integer width differs by 1 or more, and a
 # renders' measure is within 0.15 row (partial pixels of oblique stripes).
 LIT_OFF = 0.6
+
+
+def _check_light_alike(top, stack, u0: int, pattern: Stripes, names) -> None:
+    if (problem := light_contradiction(stack, u0, pattern)) is not None:
+        top.fail("images", f"{names[problem[0]]} {problem[1]}")
 
 
 def _check_period(top, pattern: Stripes, stack, u0: int) -> None:
