@@ -90,6 +90,7 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
     def construct_yaml_int(self, node):
+        _refuse_yaml11_only(node)
         try:
             return super().construct_yaml_int(node)
         except ValueError:  # past Python's 4300 digits: a bare ValueError naming no file
@@ -101,6 +102,38 @@ class _Loader(yaml.SafeLoader):
                 "a config takes",
                 mark,
             ) from None
+
+    def construct_yaml_float(self, node):
+        _refuse_yaml11_only(node)
+        return super().construct_yaml_float(node)
+
+
+def _refuse_yaml11_only(node) -> None:
+    """Refuse the numbers YAML 1.1 (PyYAML) reads otherwise than YAML 1.2 and people
+    do: base 60 (``1:30`` is 90, ``1:30.5`` 90.5) and a leading zero that makes another
+    octal number (``010`` is 8; ``07`` is 7 either way and kept). A ROI written
+    ``[010, 020, 310, 220]`` was read as ``[8, 16, 310, 220]`` without a word."""
+    text = str(node.value).replace("_", "")
+    digits = text.lstrip("+-")
+    mark = node.start_mark
+    where = f"{node.value} (line {mark.line + 1})"
+    if ":" in text:
+        raise yaml.constructor.ConstructorError(
+            None,
+            None,
+            f"{where} is read by YAML 1.1 as a base-60 number: write it in decimal (or "
+            "quote it for a name)",
+            mark,
+        )
+    octal = len(digits) > 1 and digits.startswith("0") and digits.isdigit()
+    if octal and set(digits) <= set("01234567") and int(digits, 8) != int(digits, 10):
+        raise yaml.constructor.ConstructorError(
+            None,
+            None,
+            f"{where} is read by YAML 1.1 as the octal number {int(text, 8)}: write "
+            f"{int(text, 10)} without its leading zero (or quote it for a name)",
+            mark,
+        )
 
 
 def _expanded_size(root: yaml.Node) -> tuple[int, int]:
@@ -138,6 +171,7 @@ def _children(node: yaml.Node) -> list[yaml.Node]:
 _YAML11_FLOAT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
 _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _YAML11_FLOAT, list("-+0123456789"))
 _Loader.add_constructor("tag:yaml.org,2002:int", _Loader.construct_yaml_int)
+_Loader.add_constructor("tag:yaml.org,2002:float", _Loader.construct_yaml_float)
 
 
 def load_yaml(

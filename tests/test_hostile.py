@@ -2844,3 +2844,25 @@ def test_a_shift_holding_other_light_than_the_others_is_refused(capture, capsys)
 
     images[4] /= 2.0
     assert light_contradiction(images, 0, lfj.Stripes()) is None  # 1 % apart
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "match"),
+    [
+        (
+            "medium_roi: auto",
+            "medium_roi: [02, 010, 30, 22]",
+            "010 (line 13) is read by YAML 1.1 as the octal number 8",
+        ),
+        ("direction_deg: 0.0", "direction_deg: 1:30", "1:30 (line 7) is read by YAML 1.1 as a"),
+    ],
+)
+def test_numbers_yaml_reads_otherwise_than_written_are_refused(capture, capsys, old, new, match):
+    """Before: YAML 1.1 read ``010`` as the octal 8 (a ROI [02, 010, 30, 22] cropped two
+    rows off, without a word) and ``1:30`` as 90 in base 60; ``07`` is 7 either way."""
+    path = capture / "capture.yaml"
+    path.write_text(path.read_text() + "medium_roi: auto\n")
+    path.write_text(path.read_text().replace(old, new))
+    _refused(capsys, "inspect", path, match=match)
+    path.write_text(path.read_text().replace(new, old.replace("auto", "[00, 07, 32, 24]")))
+    assert _run(capsys, "inspect", path)[0] == 0
