@@ -178,7 +178,8 @@ def light_contradiction(stack, u0: int, pattern: Stripes, valid=None) -> tuple[i
     lit = [int(np.sum((rows + p) % pattern.period < pattern.lit)) for p in pattern.phases]
     if min(lit) < 1:
         return None  # a shift lighting no row of the medium: no sum to compare
-    sums = (stack if valid is None else np.where(valid, stack, 0.0)).sum(axis=(1, 2))
+    kept = stack if valid is None else np.where(valid, stack, 0.0)
+    sums = kept.sum(axis=(1, 2), dtype=np.float64)
     median = float(np.median(sums))
     if not median > 0:
         return None
@@ -188,10 +189,11 @@ def light_contradiction(stack, u0: int, pattern: Stripes, valid=None) -> tuple[i
     worst = int(np.argmax(off))
     if off[worst] <= math.log(tolerance):
         return None
+    held = f"{ratio[worst]:.3g} times" if ratio[worst] > 0 else "less than none of"
     return worst, (
-        f"holds {ratio[worst]:.3g} times the light of the shifts' median (summed over the "
-        f"medium; {tolerance:.2g}x tolerated): every shift needs the same exposure and gain "
-        "(the camera's auto exposure on?) and the same dark frame or offset subtracted"
+        f"holds {held} the light of the shifts' median (summed over the medium; "
+        f"{tolerance:.2g}x tolerated): every shift needs the same exposure and gain (the "
+        "camera's auto exposure on?) and the same dark frame or offset subtracted"
     )
 
 
