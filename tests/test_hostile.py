@@ -2869,3 +2869,16 @@ def test_numbers_yaml_reads_otherwise_than_written_are_refused(capture, capsys, 
     _refused(capsys, "inspect", path, match=match)
     path.write_text(path.read_text().replace(new, old.replace("auto", "[00, 07, 32, 24]")))
     assert _run(capsys, "inspect", path)[0] == 0
+
+
+@pytest.mark.parametrize("key", ["dark_frame", "flat_field", "white_frame"])
+def test_a_stripe_image_listed_as_a_calibration_frame_is_refused(capture, capsys, key):
+    """Before: a copy of a stripe image as the dark frame was inspected without a word
+    and fitted for a minute (albedo at 0, not converged); as the flat field, the stripe
+    image it divided was blamed ("shift_00.exr shows no stripes")."""
+    shutil.copy(capture / "shift_00.exr", capture / "frame.exr")
+    _edit(capture, **{key: "frame.exr"})
+    _refused(
+        capsys, "inspect", capture / "capture.yaml",
+        match=f"{key}: frame.exr shows the stripes of period 6 (1 times the stripe images'",
+    )  # fmt: skip

@@ -108,7 +108,16 @@ _SURE_PHASES = 0.8
 
 
 def check_stripes(
-    top, pattern, images, roi, names, phases_from: str, dark_removed: bool, auto=(), notes=None
+    top,
+    pattern,
+    images,
+    roi,
+    names,
+    phases_from: str,
+    dark_removed: bool,
+    auto=(),
+    notes=None,
+    frames=None,
 ) -> str | None:
     """Refuse a capture whose images contradict its pattern: an image without stripes
     of the period in a capture that has them, or given phases that differ from those
@@ -116,7 +125,10 @@ def check_stripes(
     with confidence. Default phases (``pattern.phases`` absent) that differ are
     returned as a note's text instead. ``images`` and ``roi``: the full frame's;
     ``phases_from``: ``given``, ``default`` or ``auto``; ``auto``: the pattern keys
-    measured (see :func:`_check_geometry_seen`, run after the period's check)."""
+    measured (see :func:`_check_geometry_seen`, run after the period's check);
+    ``frames``: ``(stripe images, calibration frames)``, the files as read (a list of
+    ``ImageData``; ``{key: ImageData or None}``): a calibration frame that shows the
+    stripes is refused (:func:`_check_frames_unstriped`)."""
     x0, y0, x1, y1 = roi if roi is not None else (0, 0, images.shape[2], images.shape[1])
     crop = np.where(np.isfinite(images), images, 0.0).sum(axis=-1)[:, y0:y1, x0:x1]
     stack = across_first(crop, pattern.entry)
@@ -125,6 +137,8 @@ def check_stripes(
     def amplitude(period):
         return np.abs(stripe_coefficients(stack, u0, 1.0 / period)).sum(axis=-1)
 
+    if frames is not None:
+        _check_frames_unstriped(top, *frames, (x0, y0, x1, y1), pattern, u0)
     _check_period(top, pattern, stack, u0)
     if len(names) >= 2:
         _check_geometry_seen(top, pattern, images, roi, dark_removed, auto, notes)
@@ -269,6 +283,43 @@ DIRECTION_OFF, DIRECTION_SIGMAS = 2.0, 5.0
 # from it by more than LIT_OFF rows: another integer width differs by 1 or more, and a
 # renders' measure is within 0.15 row (partial pixels of oblique stripes).
 LIT_OFF = 0.6
+
+
+# A calibration frame (dark, black, white, flat) shows no projected stripes: one whose
+# stripe contrast (its Fourier amplitude at the period over its total, against that at
+# 1.5 times the period: STRIPED) is clear and at least FRAME_STRIPED of the stripe
+# images' is a stripe image listed in its place (a copy of one: 1.0; a dark frame's
+# noise has no contrast at the period).
+FRAME_STRIPED = 0.25
+
+
+def _stripe_share(frame, roi, pattern: Stripes, u0: int, period: float) -> float:
+    """A file's stripes (channels summed, inside ``roi``): their Fourier amplitude at
+    ``period`` over the sum of the absolute values."""
+    x0, y0, x1, y1 = roi
+    pixels = frame.pixels[y0:y1, x0:x1]
+    pixels = np.where(np.isfinite(pixels), pixels, 0.0).sum(axis=-1, dtype=np.float64)
+    one = across_first(pixels[None], pattern.entry)
+    amplitude = float(np.abs(stripe_coefficients(one, u0, 1.0 / period)).sum())
+    return amplitude / max(float(np.abs(one).sum()), np.finfo(float).tiny)
+
+
+def _check_frames_unstriped(top, images, frames, roi, pattern: Stripes, u0: int) -> None:
+    period = pattern.period
+    shares = [_stripe_share(f, roi, pattern, u0, period) for f in images]
+    reference = float(np.median(shares))
+    for key, frame in frames.items():
+        if frame is None:
+            continue
+        share = _stripe_share(frame, roi, pattern, u0, period)
+        elsewhere = _stripe_share(frame, roi, pattern, u0, 1.5 * period)
+        if share >= STRIPED * elsewhere and share >= FRAME_STRIPED * reference > 0:
+            top.fail(
+                key,
+                f"{frame.path.name} shows the stripes of period {period} ({share / reference:.2g} "
+                "times the stripe images' contrast): a stripe image listed as the "
+                f"{key.replace('_', ' ')}? (it is taken without stripes)",
+            )
 
 
 def _check_light_alike(top, stack, u0: int, pattern: Stripes, names) -> None:

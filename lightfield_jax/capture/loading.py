@@ -408,8 +408,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
     phases_from = "auto" if spec["phases"] == AUTO else spec["phases_from"]
     auto = [k for k in ("entry", "direction_deg") if spec[k] == AUTO]
     contradiction = check_stripes(
-        top, full_pattern, calibrated, full_roi, names, phases_from, dark_removed, auto, notes
-    )
+        top, full_pattern, calibrated, full_roi, names, phases_from, dark_removed, auto, notes,
+        (frames, aux),
+    )  # fmt: skip
     if contradiction:
         notes.append(contradiction)
     # After the pattern's checks: a refusal there is the one line said (not a warning of
