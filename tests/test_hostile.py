@@ -2882,3 +2882,12 @@ def test_a_stripe_image_listed_as_a_calibration_frame_is_refused(capture, capsys
         capsys, "inspect", capture / "capture.yaml",
         match=f"{key}: frame.exr shows the stripes of period 6 (1 times the stripe images'",
     )  # fmt: skip
+
+
+def test_a_truncated_exr_is_named_once(capture, capsys):
+    """Before: a header cut short was said as OpenEXR's "EXR Error (PATH): ..." three
+    times after the file's name (a 380-character line)."""
+    path = capture / "shift_01.exr"
+    path.write_bytes(path.read_bytes()[:100])
+    line = _refused(capsys, "inspect", capture / "capture.yaml", match="shift_01.exr: cannot read")
+    assert line.count(str(path)) == 1 and line.count("EXR_ERR_READ_IO") == 1, line

@@ -392,6 +392,12 @@ def _library_stderr() -> Iterator[None]:
                     os.write(2, b"".join(kept))
 
 
+def _said_once(message: str, path: Path) -> str:
+    """The library's ``message``, each line once, without "EXR Error (PATH): " (said 3 times)."""
+    lines = [x.strip().removeprefix(f"EXR Error ({path}):").strip() for x in message.splitlines()]
+    return "; ".join(dict.fromkeys(x for x in lines if x)) or "unknown error"
+
+
 def _open_oiio(path: Path):
     """An open OpenImageIO reader of ``path`` at its first subimage, from its header
     alone. A file that holds several subimages (the pages of a multi-page TIFF, the parts
@@ -402,7 +408,7 @@ def _open_oiio(path: Path):
     with _library_stderr():
         inp = oiio.ImageInput.open(oiio_name(path))
     if inp is None:
-        raise CaptureError(f"{path}: cannot read image ({oiio.geterror() or 'unknown error'})")
+        raise CaptureError(f"{path}: cannot read image ({_said_once(oiio.geterror(), path)})")
     try:
         count = 1
         while count <= _MAX_SUBIMAGES and inp.seek_subimage(count, 0):
@@ -416,7 +422,7 @@ def _open_oiio(path: Path):
                 f"read: save each {word} as a file of its own and list each file"
             )
         if not inp.seek_subimage(0, 0):
-            why = inp.geterror() or oiio.geterror() or "unknown error"
+            why = _said_once(inp.geterror() or oiio.geterror(), path)
             raise CaptureError(f"{path}: cannot read image ({why})")
     except BaseException:
         inp.close()
@@ -458,7 +464,8 @@ def _read_oiio(path: Path) -> ImageData:
         with _library_stderr():
             pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if pixels is None:
-            raise CaptureError(f"{path}: cannot read pixels ({inp.geterror() or oiio.geterror()})")
+            why = _said_once(inp.geterror() or oiio.geterror(), path)
+            raise CaptureError(f"{path}: cannot read pixels ({why})")
         bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or spec.format.size() * 8
         sample_type = str(spec.format)
         names = tuple(spec.channelnames)
