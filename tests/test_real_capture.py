@@ -205,7 +205,7 @@ def test_pattern_command_writes_stripes_white_black_and_template(tmp_path, capsy
 
 def test_pattern_refuses_shifts_that_cannot_separate(tmp_path, capsys):
     assert pattern_phases(6, 3, 2) == (0, 3)
-    with pytest.raises(ValueError, match=r"leave rows never lit \(phases \[0, 2, 4\]\)"):
+    with pytest.raises(ValueError, match=r"leave rows 1, 3, 5 never lit \(phases \[0, 2, 4\]\)"):
         stripe_patterns(12, 12, period=6, lit=1, shifts=3)
     status = main(
         ["pattern", "--width", "8", "--height", "8", "--shifts", "7", "--out", str(tmp_path / "p")]

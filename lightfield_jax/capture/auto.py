@@ -18,7 +18,7 @@ from lightfield_jax.capture.stripe_phase import (
     period_contradiction,
     stripe_coefficients,
 )
-from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.scene.illumination import Stripes, unseparated_rows
 from lightfield_jax.schema import Section
 
 
@@ -139,6 +139,15 @@ def check_stripes(
 
     if frames is not None:
         _check_frames_unstriped(top, *frames, (x0, y0, x1, y1), pattern, u0)
+    if notes is not None and (
+        rows := unseparated_rows(pattern.period, pattern.lit, pattern.phases)
+    ):
+        notes.append(
+            f"pattern.phases {list(pattern.phases)} leave {rows} (period {pattern.period}, lit "
+            f"{pattern.lit}): the direct light is not separated there (the SNR inspect "
+            "measures of it is not the capture's); the joint fit models the raw images and takes them, the two-step "
+            "methods (gradient, grid) need each row lit in one shift and dark in another"
+        )
     _check_period(top, pattern, stack, u0)
     if len(names) >= 2:
         _check_geometry_seen(top, pattern, images, roi, dark_removed, auto, notes)

@@ -25,6 +25,7 @@ from lightfield_jax.capture.capture import Capture
 from lightfield_jax.capture.loading import load_capture
 from lightfield_jax.inverse.decay import entry_coordinates
 from lightfield_jax.inverse.separate import separate
+from lightfield_jax.scene.illumination import unseparated_rows
 
 SNR_USABLE = 10.0
 _BIN_PX = 2.0
@@ -148,7 +149,7 @@ class Inspection:
     def problems(self) -> list[str]:
         """What makes a channel unusable for a fit (its statistics undefined), one line
         each; empty for a usable capture."""
-        found = []
+        found, p = [], self.capture.pattern  # rows left unseparated: a note of the capture
         for i, name in enumerate(self.capture.channel_names):
             peak, ratio, snr0, _ = self._wall(i)
             if not peak > 0 or math.isnan(ratio):
@@ -157,7 +158,7 @@ class Inspection:
                     "image is not positive on the valid pixels nearest it): check the "
                     "pattern and medium_roi"
                 )
-            elif self.reach[i] <= 0:
+            elif self.reach[i] <= 0 and not unseparated_rows(p.period, p.lit, p.phases):
                 found.append(
                     f"[{name}] the direct light's SNR never reaches {SNR_USABLE:g} "
                     f"(at the wall: {snr0:.3g}): too dark or too noisy to fit"

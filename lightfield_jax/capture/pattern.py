@@ -27,6 +27,7 @@ import numpy as np
 from lightfield_jax.capture.image_write import write_png
 from lightfield_jax.files import atomic_write_text
 from lightfield_jax.runtime.memory import check_memory
+from lightfield_jax.scene.illumination import unseparated_rows
 
 ORIENTATIONS: tuple[str, ...] = ("rows", "columns")
 
@@ -45,14 +46,10 @@ def pattern_phases(period: int = 6, lit: int = 3, shifts: int | None = None) -> 
             f"pattern.shifts: must be an integer in [2, period] = [2, {period}], got {shifts!r}"
         )
     phases = tuple(int(round(k * period / n)) % period for k in range(n))
-    lit_rows = (np.arange(period)[:, None] + np.array(phases)[None]) % period < lit
-    never = np.flatnonzero(~lit_rows.any(axis=1))
-    always = np.flatnonzero(lit_rows.all(axis=1))
-    if never.size or always.size:
-        which = "never lit" if never.size else "never dark"
+    if (rows := unseparated_rows(period, lit, phases)) is not None:
         raise ValueError(
             f"pattern.shifts: {n} shifts of a period-{period} pattern with {lit} lit rows "
-            f"leave rows {which} (phases {list(phases)}): direct and multiple light cannot "
+            f"leave {rows} (phases {list(phases)}): direct and multiple light cannot "
             f"be separated there; use more shifts (up to {period})"
         )
     return phases

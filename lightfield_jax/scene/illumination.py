@@ -393,6 +393,22 @@ def shifts_problem(n_shifts: int, same: bool) -> str | None:
     return None
 
 
+def unseparated_rows(period: int, lit: int, phases) -> str | None:
+    """What rows of the period the ``phases`` leave never lit or never dark (the
+    separation of the direct light needs each row lit in one shift and dark in
+    another), e.g. ``"rows 3, 4 never lit and rows 0, 1 never dark"``; ``None``: none."""
+    lit_rows = (np.arange(period)[:, None] + np.asarray(phases)[None]) % period < lit
+    parts = [
+        f"row{'s' if len(rows) > 1 else ''} {', '.join(map(str, rows))} never {how}"
+        for rows, how in (
+            (np.flatnonzero(~lit_rows.any(1)), "lit"),
+            (np.flatnonzero(lit_rows.all(1)), "dark"),
+        )
+        if len(rows)
+    ]
+    return " and ".join(parts) or None
+
+
 def period_problem(illumination, width: int, height: int, what: str = "grid") -> str | None:
     """What is wrong with stripes whose period is longer than a ``width``x``height``
     grid (``None``: nothing, or not stripes; ``illumination`` may be the period
