@@ -2905,3 +2905,20 @@ def test_phases_leaving_rows_unseparated_are_a_note_not_a_dark_capture(capture, 
     status, out, err = _run(capsys, "inspect", path)
     assert status == 0 and "too dark" not in err, (status, err)
     assert "pattern.phases [0, 1] leave rows 3, 4 never lit and rows 0, 1 never dark" in out
+
+
+def test_a_half_float_exr_among_float_ones_is_read(capture, capsys):
+    """Before: one shift saved as 16-bit half floats among 32-bit float EXRs was refused
+    as "integer samples are scaled by their type's maximum, so the images would not
+    share units": float samples of any precision hold one unit."""
+    import OpenImageIO as oiio
+
+    pixels = read_image(capture / "shift_03.exr").pixels
+    out = oiio.ImageOutput.create(str(capture / "shift_03.exr"))
+    spec = oiio.ImageSpec(W, H, 1, "half")
+    spec.channelnames = ("Y",)
+    assert out.open(str(capture / "shift_03.exr"), spec) and out.write_image(pixels)
+    out.close()
+    assert read_image(capture / "shift_03.exr").sample_type == "half"
+    status, out_text, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status == 0, err

@@ -62,7 +62,8 @@ _MOSAIC_LOG_RATIO = math.log(1.1)
 
 
 def check_sample_formats(frames: Sequence[tuple[str, ImageData]], aux) -> None:
-    """Every image has the first image's sample format; an integer calibration frame
+    """Every image has the first image's sample format (or, a float one, any float
+    format: half, float and double hold one unit alike); an integer calibration frame
     (dark, black, white) has it too (a float one is taken as given; a flat field's
     units do not matter).
 
@@ -75,7 +76,9 @@ def check_sample_formats(frames: Sequence[tuple[str, ImageData]], aux) -> None:
         return f"{image.bit_depth}-bit {kind} ({image.sample_type})"
 
     for key, image in frames[1:]:
-        if (image.sample_type, image.bit_depth) != (first.sample_type, first.bit_depth):
+        # Float samples (half, float, double) are taken as they are: one unit in any.
+        integer = image.is_integer or first.is_integer
+        if integer and (image.sample_type, image.bit_depth) != (first.sample_type, first.bit_depth):
             raise CaptureError(
                 f"{key}: {image.path.name} is {fmt(image)} but {key0} ({first.path.name}) is "
                 f"{fmt(first)}; integer samples are scaled by their type's maximum, so the "
