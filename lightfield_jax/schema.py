@@ -111,8 +111,8 @@ class _Loader(yaml.SafeLoader):
 def _refuse_yaml11_only(node) -> None:
     """Refuse the numbers YAML 1.1 (PyYAML) reads otherwise than YAML 1.2 and people
     do: base 60 (``1:30`` is 90, ``1:30.5`` 90.5) and a leading zero that makes another
-    octal number (``010`` is 8; ``07`` is 7 either way and kept). A ROI written
-    ``[010, 020, 310, 220]`` was read as ``[8, 16, 310, 220]`` without a word."""
+    octal number (``010`` is 8; ``07`` is 7 either way and kept): a ROI written
+    ``[010, 020, 310, 220]`` would be read as ``[8, 16, 310, 220]`` without a word."""
     text = str(node.value).replace("_", "")
     digits = text.lstrip("+-")
     mark = node.start_mark

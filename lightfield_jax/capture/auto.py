@@ -143,10 +143,11 @@ def check_stripes(
         rows := unseparated_rows(pattern.period, pattern.lit, pattern.phases)
     ):
         notes.append(
-            f"pattern.phases {list(pattern.phases)} leave {rows} (period {pattern.period}, lit "
-            f"{pattern.lit}): the direct light is not separated there (the SNR inspect "
-            "measures of it is not the capture's); the joint fit models the raw images and takes them, the two-step "
-            "methods (gradient, grid) need each row lit in one shift and dark in another"
+            f"pattern.phases {list(pattern.phases)} leave {rows} (period "
+            f"{pattern.period}, lit {pattern.lit}): the direct light is not separated "
+            "there (the SNR inspect measures of it is not the capture's); the joint fit "
+            "models the raw images and takes them, the two-step methods (gradient, grid) "
+            "need each row lit in one shift and dark in another"
         )
     _check_period(top, pattern, stack, u0)
     if len(names) >= 2:
@@ -229,9 +230,9 @@ def pattern_contradiction(images, pattern: Stripes, valid=None) -> tuple[str, st
     where they agree or the stripes are too faint to measure. ``valid``
     (booleans like ``images``): the values to trust; each image's lines along the light
     holding another are left out (a mask's zeros bend the measured heading).
-    ``fit_images``' check: unchecked, a heading 30 deg off fitted σt 15 % low, phases
-    one shift off σs 27 % high, and images transposed (light entering the top, declared
-    left) gave a decay start of σt 0, without a word."""
+    ``fit_images``' check: unchecked, a heading 30 deg off fits σt 15 % low, phases one
+    shift off σs 27 % high, and images transposed (light entering the top, declared
+    left) give a decay start of σt 0, without a word."""
     if len(pattern.phases) < 2:
         return None
     height, width = np.shape(images)[1:3]

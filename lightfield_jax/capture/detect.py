@@ -280,8 +280,8 @@ def detect_geometry(
         valid: booleans ``(P, H, W)`` or ``(H, W)``, false where a value is not to be
             trusted (masked, clipped, or zeroed by a mask): each image's lines along the
             light that hold one are left out of the heading's and the phases' fit (a
-            mask's zeros in the stripes of one shift and not another turned a 0 deg
-            heading into -11.7 deg). An image with no line left has no phase measured
+            mask's zeros in the stripes of one shift and not another, counted, measure a
+            0 deg heading at -11.7 deg). An image with no line left has no phase measured
             (the ``phases`` part's confidence 0).
 
     Returns:

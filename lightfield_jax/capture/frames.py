@@ -281,8 +281,8 @@ def check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> 
     frame: an image of nothing else is no image), one value ≤ 0 among frames that vary
     (a dropped frame: before, fitted as a shift, not converged without a word of it), or
     no value above 0 among frames with light (a float frame with an offset subtracted
-    twice: fitted for a minute to a gain of -387). Every frame alike is said later, with
-    its cause."""
+    twice, which a fit takes for a minute to a gain of -387). Every frame alike is said
+    later, with its cause."""
     for key, name, pixels in frames:
         if not np.isfinite(pixels).any():
             top.fail(key, f"{name}: every pixel value is NaN or Inf (a corrupt file?)")
