@@ -177,8 +177,12 @@ def test_bad_method_settings_are_refused():
     # A billion g values ran until killed (the API's twin of fit: {g_grid: 1e9}).
     with pytest.raises(ValueError, match=r"g_values: must be an integer in \[3, 100000\]"):
         lfj.GridSearch(10**9)
-    with pytest.raises(ValueError, match=r"start_grid: must be an integer in \[3, 100000\]"):
+    with pytest.raises(ValueError, match=r"start_grid: must be an integer <= 100000"):
         lfj.TwoStep(start_grid=10**7)
+    with pytest.raises(
+        ValueError, match=r"start_grid: must be 0 \(no search\) or at least 3, got 2"
+    ):
+        lfj.TwoStep(start_grid=2)
     with pytest.raises(ValueError, match="start: must be"):
         lfj.Joint(start=(0.03, 1.2))
 
@@ -266,13 +270,15 @@ def test_two_step_methods_march_where_the_joint_fit_gets_a_tail(method):
     assert "truncated" not in long.message
 
 
+@pytest.mark.parametrize("start_grid", [0, pytest.param(9, marks=pytest.mark.slow)])
 def test_the_gradient_solves_a_larger_model_from_its_first_answer_without_searching_again(
-    monkeypatch,
+    monkeypatch, start_grid
 ):
     """Where the first answer needs a much larger model (a forward medium: 4× the θ
-    bins), the gradient method solves on it from that answer: the search over g is
-    compiled once (on the first model), not again on the larger one, and the answer is
-    the larger model's own, the one a search and solve there finds."""
+    bins), the gradient method solves on it from that answer: a search over g for the
+    start (``start_grid`` values) is compiled once (on the first model), not again on
+    the larger one; by default none is, and the answer is the larger model's own, the
+    one a search and solve there finds."""
     import jax.numpy as jnp
 
     from lightfield_jax.forward.render import renderer_for
@@ -292,7 +298,7 @@ def test_the_gradient_solves_a_larger_model_from_its_first_answer_without_search
     result = lfj.fit_images(
         images,
         lfj.Stripes(),
-        method="gradient",
+        method=lfj.TwoStep(start_grid=start_grid),
         split=split,
         black_level=0.0,
         model_error=False,
@@ -301,7 +307,7 @@ def test_the_gradient_solves_a_larger_model_from_its_first_answer_without_search
     assert any("again with the model the estimate needs" in m for m in said), said
     assert result.converged, result.message
     assert result.model["n_theta"] >= 4 * grid.n_theta
-    assert len(searched) == 1, "the search was compiled again for the larger model"
+    assert len(searched) == (start_grid > 0), "a search was compiled for the larger model"
     # The same minimum as a search (9 values of g) and solve on the larger model.
     model = result.model
     larger = lfj.Grid(30, 22, model["n_theta"], model["refine"])
