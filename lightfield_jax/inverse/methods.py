@@ -53,7 +53,7 @@ from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
     centre_start,
     full_for,
-    sigma_s_max,
+    sigma_s_bound,
     solve_two_step,
 )
 from lightfield_jax.inverse.verdict import untrustworthy
@@ -232,7 +232,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     # capture does not determine, a gain that is not positive); no misfit test here.
     found = {"sigma_t": data.sigma_t0, "sigma_s": sol.sigma_s, "g": sol.g, "gain": sol.gain}
     reasons = untrustworthy(found, budget, math.inf)
-    cap = float(sigma_s_max(data.sigma_t0, sol.g, options.model.phase))
+    cap = sigma_s_bound(data.sigma_t0, sol.g, phase)
     if math.isfinite(sol.g) and sol.sigma_s >= (1 - 1e-3) * cap:
         reasons.append(
             f"sigma_s = {sol.sigma_s:.4g} is at the two-step's bound {cap:.4g} (sigma_t, "
