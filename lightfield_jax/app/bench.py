@@ -217,9 +217,9 @@ import_s = time.perf_counter() - t0
 capture = load_capture(sys.argv[1])
 out = {"import_s": import_s}
 for name in ("cold", "warm"):
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     r = fit_capture(capture, sys.argv[2]).results[0]
-    out[name] = dict(r.seconds, wall=time.perf_counter() - t)
+    out[name] = dict(r.seconds, wall=time.perf_counter() - t, cpu=time.process_time() - cpu)
 out["values"] = {k: getattr(r, k) for k in ("sigma_t", "sigma_s", "g")}
 out["converged"], out["iterations"] = bool(r.converged), r.iterations
 print("RESULT " + json.dumps(out))
@@ -287,6 +287,15 @@ def bench_fits(
                         for r, f in zip(runs, first, strict=True)
                     )
                 ),
+                # the process's CPU seconds (all its threads): on a machine shared with
+                # other work they change less with the load than the wall time does
+                "cold_cpu_s": median(lambda r: r["cold"]["cpu"]),
+                "cold_cpu_vs_first": float(
+                    statistics.median(
+                        r["cold"]["cpu"] / f["cold"]["cpu"]
+                        for r, f in zip(runs, first, strict=True)
+                    )
+                ),
                 "warm_s": median(lambda r: r["warm"]["total"]),
                 "import_s": median(lambda r: r["import_s"]),
                 "load_avg": median(lambda r: r["load_avg"]),
@@ -306,7 +315,8 @@ def bench_fits(
                 f"{method:<9} cold {row['cold_s']:6.2f} s (compile {row['cold_compile_s']:5.2f} s, "
                 f"run {row['cold_run_s']:5.2f} s), warm {row['warm_s']:5.2f} s; sigma_t "
                 f"{100 * e['sigma_t']:+.2f} %, sigma_s {100 * e['sigma_s']:+.1f} %, g "
-                f"{e['g']:+.3f}; cold {row['cold_vs_first']:.2f}x {methods[0]}'s; load "
+                f"{e['g']:+.3f}; cold {row['cold_vs_first']:.2f}x {methods[0]}'s (CPU seconds "
+                f"{row['cold_cpu_vs_first']:.2f}x); load "
                 f"{row['load_avg']:.1f}"
             )
     return {
