@@ -63,7 +63,7 @@ from lightfield_jax.inverse.verdict import untrustworthy
 # one smooth valley in g (the demo capture's 39 values fall to one minimum), and a solve
 # from g = 0 lands on the searched start's answer (to the solver's tolerance) in as
 # few steps, while a search adds a second copy of the render to the compiled program
-# (about 40 % of its compile time, docs/fit_speed.md).
+# (a third of its compile time, docs/fit_speed.md).
 G_VALUES = 39
 START_GRID = 0
 
