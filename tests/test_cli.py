@@ -266,6 +266,7 @@ def test_bench_fits_runs_each_fit_in_a_fresh_process():
     ("argv", "message"),
     [
         (["bench", "--fits", "--slab"], "--fits and --slab are separate benchmarks"),
+        (["bench", "--fits", "--methods", "grid,fly"], "--methods: must be distinct names"),
         (["bench", "--sizes", "16x16"], "argument --sizes: '16x16' is not WIDTHxHEIGHTxN_THETA"),
         (["bench", "--sizes", "16x16x12"], "grid.n_theta: must be a multiple of 8"),
         (["bench", "--repeats", "0"], "argument --repeats: must be a positive integer"),

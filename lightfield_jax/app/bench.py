@@ -211,15 +211,15 @@ _FIT_CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import lightfield_jax
-from lightfield_jax.capture.capture import load_capture
+from lightfield_jax.capture.loading import load_capture
 from lightfield_jax.inverse.capture_fit import fit_capture
 import_s = time.perf_counter() - t0
 capture = load_capture(sys.argv[1])
 out = {"import_s": import_s}
 for name in ("cold", "warm"):
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     r = fit_capture(capture, sys.argv[2]).results[0]
-    out[name] = dict(r.seconds, wall=time.perf_counter() - t)
+    out[name] = dict(r.seconds, wall=time.perf_counter() - t, cpu=time.process_time() - cpu)
 out["values"] = {k: getattr(r, k) for k in ("sigma_t", "sigma_s", "g")}
 out["converged"], out["iterations"] = bool(r.converged), r.iterations
 print("RESULT " + json.dumps(out))
@@ -236,7 +236,10 @@ def bench_fits(
     fit in a fresh Python process with no compilation cache (what a first fit costs:
     tracing, XLA compilation and the run), then once more in that process (``warm``:
     its compiled programs reused, as for a second channel or the next capture of the
-    size). Medians over ``repeats`` processes; errors against the simulated truth."""
+    size). The methods take turns (one process of each, ``repeats`` times), so a change
+    in the machine's load falls on all of them alike. Medians over ``repeats``
+    processes; errors against the simulated truth; each process's 1-minute load average
+    at its start is in its run's record."""
 
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
     from lightfield_jax.forward.simulate_config import parse_simulation_config
@@ -248,9 +251,9 @@ def bench_fits(
     with tempfile.TemporaryDirectory() as tmp:
         write_simulation(sim, Path(tmp))
         capture = str(Path(tmp) / "capture.yaml")
-        for method in methods:
-            runs = []
-            for _ in range(repeats):
+        all_runs: dict[str, list] = {method: [] for method in methods}
+        for _ in range(repeats):
+            for method in methods:
                 load = os.getloadavg()[0]
                 done = subprocess.run(
                     [sys.executable, "-c", _FIT_CHILD, capture, method],
@@ -263,7 +266,10 @@ def bench_fits(
                     raise RuntimeError(
                         f"bench --fits: the {method} fit failed: {done.stderr.strip()[-2000:]}"
                     )
-                runs.append({**json.loads(lines[-1][len("RESULT ") :]), "load_avg": load})
+                result = json.loads(lines[-1][len("RESULT ") :])
+                all_runs[method].append({**result, "load_avg": load})
+        first = all_runs[methods[0]]
+        for method, runs in all_runs.items():
 
             def median(get, runs=runs):
                 return float(statistics.median(get(r) for r in runs))
@@ -274,6 +280,22 @@ def bench_fits(
                 "cold_s": median(lambda r: r["cold"]["total"]),
                 "cold_compile_s": median(lambda r: r["cold"]["compile"]),
                 "cold_run_s": median(lambda r: r["cold"]["run"]),
+                # cold time over the first method's in the same round (the same load)
+                "cold_vs_first": float(
+                    statistics.median(
+                        r["cold"]["total"] / f["cold"]["total"]
+                        for r, f in zip(runs, first, strict=True)
+                    )
+                ),
+                # the process's CPU seconds (all its threads): on a machine shared with
+                # other work they change less with the load than the wall time does
+                "cold_cpu_s": median(lambda r: r["cold"]["cpu"]),
+                "cold_cpu_vs_first": float(
+                    statistics.median(
+                        r["cold"]["cpu"] / f["cold"]["cpu"]
+                        for r, f in zip(runs, first, strict=True)
+                    )
+                ),
                 "warm_s": median(lambda r: r["warm"]["total"]),
                 "import_s": median(lambda r: r["import_s"]),
                 "load_avg": median(lambda r: r["load_avg"]),
@@ -293,7 +315,9 @@ def bench_fits(
                 f"{method:<9} cold {row['cold_s']:6.2f} s (compile {row['cold_compile_s']:5.2f} s, "
                 f"run {row['cold_run_s']:5.2f} s), warm {row['warm_s']:5.2f} s; sigma_t "
                 f"{100 * e['sigma_t']:+.2f} %, sigma_s {100 * e['sigma_s']:+.1f} %, g "
-                f"{e['g']:+.3f}; load {row['load_avg']:.1f}"
+                f"{e['g']:+.3f}; cold {row['cold_vs_first']:.2f}x {methods[0]}'s (CPU seconds "
+                f"{row['cold_cpu_vs_first']:.2f}x); load "
+                f"{row['load_avg']:.1f}"
             )
     return {
         "benchmark": "fit methods, each in a fresh process (no compilation cache)",

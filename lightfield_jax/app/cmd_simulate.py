@@ -161,6 +161,17 @@ def _repeats(text: str) -> int:
     return value
 
 
+def _fit_methods(text: str) -> tuple[str, ...]:
+    names = tuple(x.strip() for x in text.split(","))
+    known = ("grid", "gradient", "joint")
+    bad = [x for x in names if x not in known]
+    if bad or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"must be distinct names among {', '.join(known)}, comma-separated, got {text!r}"
+        )
+    return names
+
+
 @command(
     "bench",
     "time the forward model on a few grid sizes",
@@ -193,6 +204,13 @@ def _repeats(text: str) -> int:
         "in a fresh process with no compilation cache, then once more warm (--repeats "
         "processes per method, default 3 here)",
     ),
+    arg(
+        "--methods",
+        type=_fit_methods,
+        default="grid,gradient,joint",
+        metavar="M,...",
+        help="with --fits: the fit methods, in turn (default: %(default)s)",
+    ),
 )
 def _bench(args: argparse.Namespace) -> None:
     """Measure compile time, time per bounce, gradient time and peak memory of the
@@ -211,7 +229,10 @@ def _bench(args: argparse.Namespace) -> None:
         with command_progress(args, "bench", 1) as stage:
             stage("fit methods, each in a fresh process")
             result = bench_fits(
-                DEMO_CONFIG, repeats=args.repeats or 3, progress=lambda m: say(args, m)
+                DEMO_CONFIG,
+                methods=args.methods,
+                repeats=args.repeats or 3,
+                progress=lambda m: say(args, m),
             )
         atomic_write_json(out, result)
         say(args, f"wrote {shown_path(out)}")

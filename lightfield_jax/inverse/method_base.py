@@ -99,6 +99,14 @@ class FitMethod(eqx.Module):
 MAX_G_VALUES = 100_000
 
 
+def check_start_grid(value) -> int:
+    """``start_grid``, the gradient method's search for its start: 0 (none) or its
+    number of g values (3 to :data:`MAX_G_VALUES`), as an int, or ``ValueError``."""
+    if not (number_problem(value, integer=True) is None and (value == 0 or value >= 3)):
+        raise ValueError(f"start_grid: must be 0 (no search) or at least 3, got {value!r}")
+    return check_int(value, "start_grid", high=MAX_G_VALUES)
+
+
 # The flat settings that are a fit method's own (FitOptions(g_grid=...), a capture file's
 # fit: keys): each method names those it takes (FitMethod.option_names).
 METHOD_KEYS = ("g_grid", "start_grid", "start", "solver")
@@ -113,9 +121,7 @@ def check_method_setting(key: str, value):
     if key == "g_grid":
         check_int(value, "g_grid", low=3, high=MAX_G_VALUES)
     elif key == "start_grid":
-        if not (number_problem(value, integer=True) is None and value >= 3):
-            raise ValueError(f"start_grid: must be at least 3, got {value!r}")
-        check_int(value, "start_grid", high=MAX_G_VALUES)
+        check_start_grid(value)
     elif key == "start":
         value = check_start(value)  # a tuple of floats
     else:
@@ -144,4 +150,5 @@ __all__ = [
     "check_method_setting",
     "check_solver",
     "check_start",
+    "check_start_grid",
 ]

@@ -10,7 +10,8 @@ settings, and reads the others (model, trust, solver limits) from the
   image, then g searched on a grid with σs from eq. 10 at each g
   (:mod:`lightfield_jax.inverse.two_step`).
 - :class:`TwoStep` (``gradient``): the same residual solved over (σs, g) by an
-  optimistix least-squares solver from a coarse search's best point.
+  optimistix least-squares solver from g = 0 and σs half its bound (or from a coarse
+  search's best point, ``start_grid``).
 - :class:`Joint` (``joint``): σt, σs, g, gain (and the black level) fitted to the raw
   shifted images from the basin scan's starts (:mod:`lightfield_jax.inverse.basins`,
   :mod:`lightfield_jax.inverse.joint`).
@@ -45,20 +46,26 @@ from lightfield_jax.inverse.method_base import (
     check_method,
     check_solver,
     check_start,
+    check_start_grid,
 )
 from lightfield_jax.inverse.model_size import at_least, size_model
 from lightfield_jax.inverse.two_step import (
     TwoStepSettings,
+    centre_start,
     full_for,
-    sigma_s_max,
+    sigma_s_bound,
     solve_two_step,
 )
 from lightfield_jax.inverse.verdict import untrustworthy
 
 # The default numbers of g values of the grid search (the paper's method) and of the
-# coarse search that starts the gradient method.
+# coarse search that starts the gradient method: none. The two-step residual's misfit is
+# one smooth valley in g (the demo capture's 39 values fall to one minimum), and a solve
+# from g = 0 lands on the searched start's answer (to the solver's tolerance) in as
+# few steps, while a search adds a second copy of the render to the compiled program
+# (a third of its compile time, docs/fit_speed.md).
 G_VALUES = 39
-START_GRID = 9
+START_GRID = 0
 
 
 class GridSearch(FitMethod):
@@ -80,7 +87,8 @@ class GridSearch(FitMethod):
 
 class TwoStep(FitMethod):
     """The two-step residual solved over (σs, g) by ``solver`` (see the module), started
-    from a search over ``start_grid`` values of g."""
+    at g = 0 and σs half its bound there (``start_grid`` 0), or from the best point of a
+    search over ``start_grid`` (at least 3) values of g."""
 
     solver: optx.AbstractLeastSquaresSolver | None = None
     start_grid: int = START_GRID
@@ -90,11 +98,14 @@ class TwoStep(FitMethod):
 
     def __check_init__(self):
         check_solver(self.solver)
-        check_int(self.start_grid, "start_grid", low=3, high=MAX_G_VALUES)
+        check_start_grid(self.start_grid)
 
     def solve(self, problem, options, say):
         solver = least_squares_solver(self.solver, options.solve, jnp.result_type(float))
-        say(f"{self.name}: search over g and {type(solver).__name__} over (sigma_s, g)")
+        start = (
+            f"search over {self.start_grid} values of g and" if self.start_grid else "from g = 0,"
+        )
+        say(f"{self.name}: {start} {type(solver).__name__} over (sigma_s, g)")
         return _two_step_fit(self.name, problem, options, say, solver, self.start_grid)
 
 
@@ -176,16 +187,20 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     known, g = 0); where the estimate needs a much larger one (:func:`_grown`), once more
     on that one: the grid searches again, the gradient method solves from its first
     answer without the search (its program then holds one copy of the render, not two,
-    and renders no search on the larger model)."""
+    and renders no search on the larger model). The gradient method's first solve
+    starts at :func:`centre_start` where ``n_g`` is 0 (no search), else at the best of
+    a search over ``n_g`` values of g."""
     data = problem.data
-    settings = TwoStepSettings(solver is not None, options.model.phase, options.solve.max_steps)
+    phase = options.model.phase
+    solve = solver is not None
+    settings = TwoStepSettings(solve, phase, options.solve.max_steps, search=not solve or n_g > 0)
 
     def on(model, settings=settings, start=None):
-        renderer = model_renderer(model, full_for(problem.pattern), options.model.phase)
+        renderer = model_renderer(model, full_for(problem.pattern), phase)
         return solve_two_step(data, renderer, solver, settings, n_g, start)
 
     model = _marched(at_least(problem.model, problem.floor))
-    sol = on(model)
+    sol = on(model, start=None if settings.search else centre_start(data.sigma_t0, phase))
     compile_s = sol.compile
     bigger = _grown(problem, options, model, sol.sigma_s, sol.g)
     if bigger is not None:
@@ -217,7 +232,7 @@ def _two_step_fit(name: str, problem: FitProblem, options, say, solver, n_g: int
     # capture does not determine, a gain that is not positive); no misfit test here.
     found = {"sigma_t": data.sigma_t0, "sigma_s": sol.sigma_s, "g": sol.g, "gain": sol.gain}
     reasons = untrustworthy(found, budget, math.inf)
-    cap = float(sigma_s_max(data.sigma_t0, sol.g, options.model.phase))
+    cap = sigma_s_bound(data.sigma_t0, sol.g, phase)
     if math.isfinite(sol.g) and sol.sigma_s >= (1 - 1e-3) * cap:
         reasons.append(
             f"sigma_s = {sol.sigma_s:.4g} is at the two-step's bound {cap:.4g} (sigma_t, "

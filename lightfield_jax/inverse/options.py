@@ -68,7 +68,8 @@ class FitOptions(FitSettings):
 
     The flat keywords of the methods' own settings: ``g_grid`` (the grid's
     ``GridSearch.g_values``: g values searched on (−0.95, 0.95)), ``start_grid``
-    (``TwoStep.start_grid``: g values of the coarse search that starts ``gradient``),
+    (``TwoStep.start_grid``: g values of the coarse search that starts ``gradient``;
+    0, the default, none: its solve starts at g = 0),
     ``start`` (``Joint.start``: (σs, g) to start the joint fit from instead of the
     scan's basins, σt from the decay fit; the scan still runs, to report a worse basin)
     and ``solver`` (``Joint.solver``, ``TwoStep.solver``: any optimistix least-squares

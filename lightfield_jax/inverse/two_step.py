@@ -6,11 +6,11 @@ image M against the series Σ_{k≥2} I_k, the gain from the single scatter, ove
 - :func:`two_step_residual`: the residual at (σs, g) with its Jacobian written out,
   the images' slope along g from :func:`rendered_and_g_slope`; what a least-squares
   solver (the package's, or an outside one) is handed.
-- :func:`solve_two_step`: one compiled program: the search over g and, for the
-  gradient method, an optimistix least-squares solve over (σs, g) from the search's
-  best point (on a larger model, from a given start instead: no search); the residual
-  and its Jacobian at the answer for the error budget. The fit methods
-  (:mod:`lightfield_jax.inverse.methods`) call it.
+- :func:`solve_two_step`: one compiled program: the search over g (the grid method),
+  or an optimistix least-squares solve over (σs, g) (the gradient method) from a given
+  start (:func:`centre_start`, or on a larger model the first model's answer) or from
+  a search's best point; the residual and its Jacobian at the answer for the error
+  budget. The fit methods (:mod:`lightfield_jax.inverse.methods`) call it.
 """
 
 from __future__ import annotations
@@ -168,6 +168,13 @@ def sigma_s_max(sigma_t, g, phase: str):
     return ref * u_max
 
 
+def sigma_s_bound(sigma_t: float, g: float, phase: str) -> float:
+    """:func:`sigma_s_max` at concrete values, as a float: one small compiled program
+    (op by op, its phase integral compiled some ten programs: about 0.5 s of a cold
+    fit)."""
+    return float(jitted(sigma_s_max, ("phase",))(sigma_t, g, phase))
+
+
 def to_params(y, sigma_t, phase: str):
     """Unconstrained y → p = (σs, g): 0 < σs < :func:`sigma_s_max`, |g| < 1."""
     g = jnp.tanh(y[1])
@@ -184,6 +191,13 @@ def search_start(gs, s_all, cost, sigma_t, phase: str):
     return start_y(jnp.stack([s_vertex, g_vertex]), sigma_t, phase)
 
 
+def centre_start(sigma_t, phase: str) -> tuple[float, float]:
+    """The gradient method's start without a search, (σs, g): g = 0 and σs half its
+    bound there (:func:`sigma_s_max`), the solve's unconstrained y = 0
+    (:func:`to_params`)."""
+    return 0.5 * sigma_s_bound(sigma_t, 0.0, phase), 0.0
+
+
 def start_y(start, sigma_t, phase: str):
     """The solve's start y (see :func:`to_params`) at ``start`` = (σs, g), kept off the
     bounds (σs within 0.1 % of them, |g| ≤ 0.95)."""
@@ -195,10 +209,11 @@ def start_y(start, sigma_t, phase: str):
 @dataclasses.dataclass(frozen=True)
 class TwoStepSettings:
     """Static settings of the two-step program: ``solve`` false, the search over g
-    alone (the grid method); true, the search then the solve over (σs, g) from its best
-    point (the gradient method), or, with ``search`` false, the solve alone from a given
-    start (the gradient method on a larger model, from the answer on the first: one copy
-    of the render in the program, not two); the phase convention, the step limit."""
+    alone (the grid method); true, the solve over (σs, g) (the gradient method): with
+    ``search`` false from a given start (:func:`centre_start`, or on a larger model the
+    answer on the first: one copy of the render in the program), with ``search`` true
+    from the best point of a search over g (two copies: the search's and the solve's);
+    the phase convention, the step limit."""
 
     solve: bool
     phase: str
@@ -347,6 +362,7 @@ def solve_two_step(
 __all__ = [
     "TwoStepSettings",
     "TwoStepSolution",
+    "centre_start",
     "full_for",
     "masked_dot",
     "poly_fit_sigma_s",
@@ -354,6 +370,7 @@ __all__ = [
     "rendered_and_g_slope",
     "search_g",
     "search_start",
+    "sigma_s_bound",
     "sigma_s_max",
     "solve_two_step",
     "start_y",
