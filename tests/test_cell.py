@@ -173,6 +173,16 @@ def test_the_fits_cheap_models_render_stripes_from_one_period():
     slab = Slab(3.0, "absorbing", n_mu=4, n_z=1)
     on_slab = model_renderer(dataclasses.replace(cheap, geometry=SlabModel(slab)), stripes, "paper")
     assert not isinstance(on_slab, CellRenderer)
+    # A sized slab model (the slab's shift orders, more bounces) renders its cell; the
+    # cheap one (the shifts' mean alone) the whole tank.
+    from lightfield_jax.forward.slab import SlabRenderer
+    from lightfield_jax.forward.slab_cell import SLAB_SHIFT_ORDERS, SlabCellRenderer
+
+    sized = dataclasses.replace(cheap, geometry=SlabModel(slab), cell=SLAB_SHIFT_ORDERS)
+    assert isinstance(model_renderer(sized, stripes, "paper"), SlabCellRenderer)
+    assert isinstance(on_slab, SlabRenderer)
+    short = dataclasses.replace(sized, bounces=SLAB_SHIFT_ORDERS)  # no order left to the cell
+    assert isinstance(model_renderer(short, stripes, "paper"), SlabRenderer)
 
 
 @pytest.mark.parametrize(
@@ -216,3 +226,17 @@ def test_a_models_record_says_what_its_renderer_does_with_the_fits_stripes():
         assert record["stripe_cell"] is None and record["coarse_tail"] == asked["coarse_tail"]
     back = model_from(side)
     assert (back.cell, back.coarse_after) == (10, 4)
+
+
+@pytest.mark.parametrize("stripe_cell", [True, False])
+def test_sized_slab_models_render_side_wall_stripes_from_one_period(stripe_cell):
+    import lightfield_jax as lfj
+    from lightfield_jax.forward.slab_cell import SLAB_SHIFT_ORDERS
+    from lightfield_jax.inverse.joint_fit.finer import finer
+    from lightfield_jax.inverse.model_size import size_model
+
+    slab = lfj.Slab(6.4, "refractive", n=1.33)
+    options = lfj.FitOptions(phase="normalized", geometry=slab, stripe_cell=stripe_cell)
+    model = size_model(np.zeros((6, 18, 24)), Stripes(), 0.95, 0.8, options, 1.03, 0.2)
+    expected = SLAB_SHIFT_ORDERS if stripe_cell else None
+    assert model.cell == expected and finer(model, options, 0.8).cell == expected

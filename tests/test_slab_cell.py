@@ -40,3 +40,74 @@ def test_the_cell_refuses_light_through_the_top_wall():
         SlabPeriodicCell(
             Grid(12, 6, 8, 1), Full(270.0, "bottom"), 3, Slab(2.0, n_mu=4, n_z=1), tank_height=24
         )
+
+
+def _slab_case(**kw):
+    height, width, k = 24, 16, 6
+    slab = Slab(3.0, "refractive", n=1.33, n_mu=4, n_z=2)
+    stripes = Stripes(6, 3, (0, 1, 2, 3, 4, 5))
+    grid = Grid(width, height, 8, 1)
+    full = SlabRenderer(grid, stripes, k, slab, **kw)
+    return grid, stripes, k, slab, full
+
+
+def _row_error(images, reference):
+    """Per row, the worst |Δ| over shifts and columns over the row's largest value."""
+    return np.max(np.abs(images - reference), axis=(0, 2)) / np.max(reference, axis=(0, 2))
+
+
+def test_the_slab_stripe_cell_is_the_full_render_with_walls():
+    from lightfield_jax.forward.slab_cell import SlabCellRenderer
+
+    grid, stripes, k, slab, full = _slab_case()
+    values = (0.4, 0.38, 0.8)  # ω .95, g .8: the walls' deficit reaches every row
+    reference = np.asarray(full(*values)[0])
+    errors = {}
+    for deviation in (None, (8, 4)):
+        cell = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=deviation)
+        images = np.asarray(cell(*values)[0])
+        assert images.shape == reference.shape
+        # The first orders are every shift's own: the full render's.
+        np.testing.assert_allclose(images[:, :3], reference[:, :3], rtol=1e-5, atol=1e-9)
+        errors[deviation] = _row_error(images.sum(1), reference.sum(1))
+    # Each shift's deviation from the mean walls' term, on the model's own bins and
+    # nodes in one layer, takes most of what the mean alone leaves next to the walls.
+    assert errors[None].max() > 2e-3
+    assert errors[(8, 4)].max() < 0.3 * errors[None].max()
+
+
+@pytest.mark.slow
+def test_the_slab_stripe_cells_tail_and_g_slope_are_the_full_renders():
+    from lightfield_jax.forward.slab_cell import SlabCellRenderer
+
+    grid, stripes, k, slab, full = _slab_case(tail="gmres", tail_tol=1e-6)
+    values = (0.4, 0.3, 0.5)
+    reference = full(*values)
+    cell = SlabCellRenderer(
+        grid, stripes, k, slab, shift_orders=3, deviation=(8, 4), tail="gmres", tail_tol=1e-6
+    )
+    images, fields, tail = cell(*values)
+    assert fields is None and bool(tail.converged)
+    series = np.asarray(images.sum(1) + tail.image)
+    exact = np.asarray(reference[0].sum(1) + reference[2].image)
+    assert float(_row_error(series, exact).max()) < 2e-3
+    # The slope along g is the derivative of the same images.
+    marched = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=(8, 4))
+    _, slope = marched.images_and_g_slope(*values)
+    h = 1e-2
+    up, down = (np.asarray(marched(0.4, 0.3, 0.5 + d)[0]) for d in (h, -h))
+    slope = np.asarray(slope)
+    scale = np.max(np.abs(slope), axis=(0, 2, 3), keepdims=True)
+    np.testing.assert_allclose(slope / scale, (up - down) / (2 * h) / scale, atol=2e-3)
+
+
+def test_the_slab_stripe_cell_refuses_what_it_cannot_render():
+    from lightfield_jax.forward.slab_cell import SlabCellRenderer
+
+    grid, stripes, _, slab, _ = _slab_case()
+    with pytest.raises(ValueError, match="no order to the cell"):
+        SlabCellRenderer(grid, stripes, 3, slab, shift_orders=3)
+    with pytest.raises(ValueError, match="period is not shorter"):
+        SlabCellRenderer(Grid(16, 6, 8, 1), stripes, 5, slab)
+    with pytest.raises(ValueError, match="lightfield"):
+        SlabCellRenderer(grid, stripes, 5, slab)(0.4, 0.3, 0.5, lightfield=True)

@@ -27,6 +27,7 @@ walls' terms and the short tank's first orders, instead of every shift over ever
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import functools
 import math
@@ -248,7 +249,64 @@ class WallsTerm(eqx.Module):
         return orders, tail, free[0]
 
 
-class CellRenderer(AbstractRenderer):
+class ComposedRenderer(AbstractRenderer):
+    """A renderer of stripes composed from other renderers (the stripe cell's parts):
+    the call signature and outputs of
+    :class:`~lightfield_jax.forward.base.AbstractRenderer`, per-bounce images of every
+    shift on the native grid, no light fields and no coarse tail. Subclasses give
+    :meth:`_compose`: ``(images (patterns, K, H, W) at ``gain``, the tail's
+    :class:`~lightfield_jax.forward.tail.TailSolution` or ``None``)``."""
+
+    # What AbstractRenderer asks of a geometry: the parts render.
+    def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
+        raise NotImplementedError(f"{type(self).__name__} renders through its parts")
+
+    def integrate(self, field):
+        return field
+
+    @property
+    def direct_depth(self) -> float:
+        return 1.0
+
+    @property
+    def field_scale(self) -> float:
+        return 1.0
+
+    @abc.abstractmethod
+    def _compose(self, sigma_t, sigma_s, g, gain):
+        """(images, tail or ``None``) at these physical values."""
+
+    def unchecked(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
+        if lightfield:
+            raise ValueError(
+                "lightfield: a stripe cell renders images only; render light fields on the "
+                "whole grid (cell: false)"
+            )
+        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
+        images, tail = self._images(sigma_t, sigma_s, g, gain)
+        return (images, None) if tail is None else (images, None, tail)
+
+    def images_and_g_slope(self, sigma_t, sigma_s, g, gain=1.0):
+        if self.tail is not None:
+            raise ValueError(
+                f"images_and_g_slope: per-bounce images only; this renderer has tail "
+                f"{self.tail!r} (use jax.jvp through the call)"
+            )
+        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
+        return self._g_slope(sigma_t, sigma_s, g, gain)
+
+    @eqx.filter_jit
+    def _g_slope(self, sigma_t, sigma_s, g, gain):
+        return jax.jvp(
+            lambda g: self._compose(sigma_t, sigma_s, g, gain)[0], (g,), (jnp.ones_like(g),)
+        )
+
+    @eqx.filter_jit
+    def _images(self, sigma_t, sigma_s, g, gain):
+        return self._compose(sigma_t, sigma_s, g, gain)
+
+
+class CellRenderer(ComposedRenderer):
     """Stripes on the plane rendered from one period (the module's scheme): the call
     signature and outputs of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
     per-bounce images of every shift on the whole grid; no light fields (those of a
@@ -338,53 +396,9 @@ class CellRenderer(AbstractRenderer):
         phases = np.asarray(illumination.phases)[:, None]
         self.rows = jnp.asarray(np.mod(np.arange(grid.height)[None] + phases, period), jnp.int32)
 
-    # What AbstractRenderer asks of a geometry: the cell renders through its parts.
-    def first_orders(self, sigma_t, sigma_s, g, source, scattered: bool) -> FirstOrders:
-        raise NotImplementedError("CellRenderer renders through its cell")
-
-    def integrate(self, field):
-        return field
-
-    @property
-    def direct_depth(self) -> float:
-        return 1.0
-
     @property
     def image_scale(self) -> float:
         return self.refine
-
-    @property
-    def field_scale(self) -> float:
-        return 1.0
-
-    def unchecked(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
-        if lightfield:
-            raise ValueError(
-                "lightfield: a stripe cell renders images only; render light fields on the "
-                "whole grid (cell: false)"
-            )
-        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
-        images, tail = self._images(sigma_t, sigma_s, g, gain)
-        return (images, None) if tail is None else (images, None, tail)
-
-    def images_and_g_slope(self, sigma_t, sigma_s, g, gain=1.0):
-        if self.tail is not None:
-            raise ValueError(
-                f"images_and_g_slope: per-bounce images only; this renderer has tail "
-                f"{self.tail!r} (use jax.jvp through the call)"
-            )
-        sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
-        return self._g_slope(sigma_t, sigma_s, g, gain)
-
-    @eqx.filter_jit
-    def _g_slope(self, sigma_t, sigma_s, g, gain):
-        return jax.jvp(
-            lambda g: self._compose(sigma_t, sigma_s, g, gain)[0], (g,), (jnp.ones_like(g),)
-        )
-
-    @eqx.filter_jit
-    def _images(self, sigma_t, sigma_s, g, gain):
-        return self._compose(sigma_t, sigma_s, g, gain)
 
     def _first_two(self, sigma_t, sigma_s, g):
         """I_1 and I_2 of every shift on the whole tank (native grid, unit gain)."""

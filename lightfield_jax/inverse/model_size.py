@@ -384,10 +384,11 @@ def extrapolated(model: ModelSpec, options: FitSettings) -> ModelSpec:
 SCAN_TAIL_BOUNCES = 24
 
 
-def orders(model: ModelSpec) -> str:
-    """The model's bounce series in a progress line (stripes from one period, where it
-    renders them so, march every order on the refined grid: no coarse tail)."""
-    if model.cell is not None:
+def orders(model: ModelSpec, illumination) -> str:
+    """The model's bounce series in a progress line (stripes from one period, where its
+    geometry renders ``illumination`` so, march every order on the model's grid: no
+    coarse tail)."""
+    if model.geometry.renders_cell(model, illumination):
         coarse = f" (side-wall stripes from one period: shift_orders {model.cell})"
     elif model.coarse is not None:
         coarse = f" (after {model.coarse} on the coarse grid)"

@@ -137,7 +137,7 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
     if correct:
         say(
             f"  defect correction to the final model n_theta {target.grid.n_theta}, refine "
-            f"{target.grid.refine}, {orders(target)}"
+            f"{target.grid.refine}, {orders(target, ctx.pattern)}"
         )
         done, record = corrected(ctx, first, target)
         if done is not None:
@@ -147,7 +147,8 @@ def continuation(ctx: FitContext, first: Stage, the_scan: Scan, best=None) -> St
     if covers(coarse, need):
         last = refit(ctx, first)
     else:
-        say(f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {orders(need)}")
+        series = orders(need, ctx.pattern)
+        say(f"  final model n_theta {need.grid.n_theta}, refine {need.grid.refine}, {series}")
         mid = solve_stage(ctx, need, first.weights, first.y)
         last = refit(ctx, mid)
         last.steps += mid.steps

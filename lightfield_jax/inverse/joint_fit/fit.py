@@ -113,7 +113,7 @@ def fit_once(
         coarse = dataclasses.replace(coarse, cell=CHEAP_CELL)
     if the_scan.ratios is not None:
         say(f"  measured per-bounce ratio {ratio:.3f}")
-    say(f"  the solve's model: {orders(coarse)}")
+    say(f"  the solve's model: {orders(coarse, ctx.pattern)}")
     rescans = from_scan and options.trust.basin_search and not stop
     search = search_basins(
         ctx,
