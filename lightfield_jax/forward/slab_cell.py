@@ -128,6 +128,33 @@ def deviation_grid(n_theta: int, n_mu: int) -> tuple[int, int]:
     return max(8, n_theta // 2 // 8 * 8), max(4, n_mu // 2)
 
 
+class SlabWalls(eqx.Module):
+    """A light's walls' term on the slab: its render on the tank less its render on the
+    periodic grid (``rows`` rows, periodic in y; its rows repeat down the tank), per
+    pattern and order (native grid, unit gain)."""
+
+    tank: SlabRenderer
+    free: SlabPeriodicCell
+
+    def __init__(self, grid: Grid, light, rows: int, bounces: int, slab: Slab, phase, solve):
+        self.tank = SlabRenderer(grid, light, bounces, slab, phase, **solve)
+        free_grid = dataclasses.replace(grid, height=rows)
+        self.free = SlabPeriodicCell(
+            free_grid, light, bounces, slab, phase, tank_height=grid.height, **solve
+        )
+
+    def __call__(self, sigma_t, sigma_s, g):
+        """(the term (patterns, K, H, W), the tail's term (patterns, H, W) or ``None``,
+        the two tail solutions or ``None``)."""
+        tank = self.tank.unchecked(sigma_t, sigma_s, g)
+        free = self.free.unchecked(sigma_t, sigma_s, g)
+        rows = np.arange(self.tank.height // self.tank.refine) % free[0].shape[-2]
+        term = tank[0] - free[0][..., rows, :]
+        if len(tank) == 2:
+            return term, None, None
+        return term, tank[2].image - free[2].image[..., rows, :], (tank[2], free[2])
+
+
 class SlabCellRenderer(ComposedRenderer):
     """A slab's stripes rendered from one period (the module's scheme): the call
     signature and outputs of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
@@ -135,16 +162,15 @@ class SlabCellRenderer(ComposedRenderer):
     rendered exactly for every shift; ``bounces`` must exceed it (or a ``tail`` be
     given). ``deviation`` (azimuth bins, elevation nodes), or ``None``: each shift's
     walls' term less the shifts' mean, for the orders past S, rendered on that coarser
-    discretisation in one depth layer (the stripes' tank and periodic grid, full
-    light's tank and periodic grid) and added to the mean's; near albedo 1 the walls'
+    discretisation in one depth layer and added to the mean's; near albedo 1 the walls'
     deficit keeps the stripes' phase for many orders."""
 
     first: SlabRenderer
     cell: SlabPeriodicCell
-    tank: SlabRenderer
-    free: SlabPeriodicCell
+    mean_walls: SlabWalls
+    # Each shift's walls' term and the mean's on the coarse discretisation, or None.
+    deviation: tuple[SlabWalls, SlabWalls] | None
     rows: Int[Array, "patterns H"]
-    deviation: tuple | None
     shift_orders: int = eqx.field(static=True)
     weight: float = eqx.field(static=True)
 
@@ -176,46 +202,28 @@ class SlabCellRenderer(ComposedRenderer):
         period, k = illumination.period, self.bounces
         self.first = SlabRenderer(grid, illumination, min(s, k), slab, phase)
         one = dataclasses.replace(illumination, phases=(0,))
-        cell_grid = Grid(grid.width, period, grid.n_theta, self.refine)
         self.cell = SlabPeriodicCell(
-            cell_grid, one, k, slab, phase, tank_height=grid.height, **solve
+            dataclasses.replace(grid, height=period),
+            one,
+            k,
+            slab,
+            phase,
+            tank_height=grid.height,
+            **solve,
         )
-        full = Full(illumination.direction_deg, illumination.entry)
-        self.tank = SlabRenderer(grid, full, k, slab, phase, **solve)
         # Full light is uniform in y: two rows of the periodic grid hold it.
-        free_grid = Grid(grid.width, 2, grid.n_theta, self.refine)
-        self.free = SlabPeriodicCell(
-            free_grid, full, k, slab, phase, tank_height=grid.height, **solve
-        )
+        full = Full(illumination.direction_deg, illumination.entry)
+        self.mean_walls = SlabWalls(grid, full, 2, k, slab, phase, solve)
         self.weight = illumination.lit / period
         self.deviation = None
         if deviation is not None:
-            # Each shift's walls' term less the shifts' mean, on a coarse discretisation
-            # (azimuth bins, elevation nodes; one layer): the stripes' and full light's
-            # tanks and periodic grids.
             # (never finer than the model's own)
             n_theta, n_mu = min(deviation[0], grid.n_theta), min(deviation[1], slab.n_mu)
             coarse = dataclasses.replace(slab, n_mu=n_mu, n_z=1, depth_profile=None)
             cg = dataclasses.replace(grid, n_theta=n_theta)
             self.deviation = (
-                SlabRenderer(cg, illumination, k, coarse, phase),
-                SlabPeriodicCell(
-                    dataclasses.replace(cell_grid, n_theta=n_theta),
-                    illumination,
-                    k,
-                    coarse,
-                    phase,
-                    tank_height=grid.height,
-                ),
-                SlabRenderer(cg, full, k, coarse, phase),
-                SlabPeriodicCell(
-                    dataclasses.replace(free_grid, n_theta=n_theta),
-                    full,
-                    k,
-                    coarse,
-                    phase,
-                    tank_height=grid.height,
-                ),
+                SlabWalls(cg, illumination, period, k, coarse, phase, {}),
+                SlabWalls(cg, full, 2, k, coarse, phase, {}),
             )
         self.rows = jnp.asarray(shift_rows(illumination, grid.height), jnp.int32)
 
@@ -224,31 +232,21 @@ class SlabCellRenderer(ComposedRenderer):
         return 1.0
 
     def _compose(self, sigma_t, sigma_s, g, gain):
-        s = self.shift_orders
+        s, a = self.shift_orders, self.weight
         first = self.first.unchecked(sigma_t, sigma_s, g)[0]  # (patterns, S, H, W)
         cell = self.cell.unchecked(sigma_t, sigma_s, g)
-        tank = self.tank.unchecked(sigma_t, sigma_s, g)
-        free = self.free.unchecked(sigma_t, sigma_s, g)
-        walls = self.weight * (tank[0][0] - free[0][0][:, :1])  # (K, H, W)
+        walls, walls_tail, walls_solves = self.mean_walls(sigma_t, sigma_s, g)
         later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
-        later = later[:, s:] + walls[None, s:]
+        later = later[:, s:] + a * walls[:, s:]
         if self.deviation is not None:
-            t, p, f, fp = (r.unchecked(sigma_t, sigma_s, g)[0] for r in self.deviation)
-            period = p.shape[-2]
-            own = t - p[:, :, np.arange(t.shape[-2]) % period]
-            mean = self.weight * (f - fp[:, :, :1])
-            later = later + (own - mean)[:, s:]
-        images = jnp.concatenate([first, later], axis=1)
-        images = gain * images[:, : self.bounces]
+            own, mean = (part(sigma_t, sigma_s, g)[0] for part in self.deviation)
+            later = later + (own - a * mean)[:, s:]
+        images = gain * jnp.concatenate([first, later], axis=1)[:, : self.bounces]
         if self.tail is None:
             return images, None
-        solves = (cell[2], tank[2], free[2])
+        solves = (cell[2], *walls_solves)
         tail = TailSolution(
-            image=gain
-            * (
-                cell[2].image[0][self.rows]
-                + self.weight * (tank[2].image[0] - free[2].image[0][:1])
-            ),
+            image=gain * (cell[2].image[0][self.rows] + a * walls_tail),
             lightfield=None,
             steps=jnp.max(jnp.stack([t.steps for t in solves])),
             converged=jnp.all(jnp.stack([t.converged for t in solves])),
@@ -265,6 +263,7 @@ __all__ = [
     "SLAB_SHIFT_ORDERS",
     "SlabCellRenderer",
     "SlabPeriodicCell",
+    "SlabWalls",
     "deviation_grid",
     "shift_rows",
     "slab_cell_renderer_for",
