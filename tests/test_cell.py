@@ -173,16 +173,24 @@ def test_the_fits_cheap_models_render_stripes_from_one_period():
     slab = Slab(3.0, "absorbing", n_mu=4, n_z=1)
     on_slab = model_renderer(dataclasses.replace(cheap, geometry=SlabModel(slab)), stripes, "paper")
     assert not isinstance(on_slab, CellRenderer)
-    # A sized slab model (the slab's shift orders, more bounces) renders its cell; the
-    # cheap one (the shifts' mean alone) the whole tank.
+    # A sized slab model (the slab's shift orders, a long series, a deviation grid
+    # coarser than its own) renders its cell; the cheap one (the shifts' mean alone), a
+    # short series or a model as coarse as the deviation grid, the whole tank.
     from lightfield_jax.forward.slab import SlabRenderer
     from lightfield_jax.forward.slab_cell import SLAB_SHIFT_ORDERS, SlabCellRenderer
+    from lightfield_jax.inverse.geometry_model import SLAB_CELL_BOUNCES
 
-    sized = dataclasses.replace(cheap, geometry=SlabModel(slab), cell=SLAB_SHIFT_ORDERS)
-    assert isinstance(model_renderer(sized, stripes, "paper"), SlabCellRenderer)
     assert isinstance(on_slab, SlabRenderer)
-    short = dataclasses.replace(sized, bounces=SLAB_SHIFT_ORDERS)  # no order left to the cell
-    assert isinstance(model_renderer(short, stripes, "paper"), SlabRenderer)
+    layered = SlabModel(Slab(3.0, "absorbing", n_mu=8, n_z=2))
+    sized = dataclasses.replace(
+        cheap, geometry=layered, cell=SLAB_SHIFT_ORDERS, bounces=SLAB_CELL_BOUNCES
+    )
+    assert isinstance(model_renderer(sized, stripes, "paper"), SlabCellRenderer)
+    for other in (
+        dataclasses.replace(sized, bounces=SLAB_CELL_BOUNCES - 1),
+        dataclasses.replace(sized, geometry=SlabModel(slab)),  # 4 nodes, 1 layer
+    ):
+        assert type(model_renderer(other, stripes, "paper")) is SlabRenderer
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lightfield_jax.forward.slab import SlabRenderer
-from lightfield_jax.forward.slab_cell import SlabPeriodicCell, shift_rows
+from lightfield_jax.forward.slab_cell import SlabCellRenderer, SlabPeriodicCell, shift_rows
 from lightfield_jax.scene.geometry import Slab
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Stripes
@@ -56,32 +56,37 @@ def _row_error(images, reference):
     return np.max(np.abs(images - reference), axis=(0, 2)) / np.max(reference, axis=(0, 2))
 
 
-def test_the_slab_stripe_cell_is_the_full_render_with_walls():
-    from lightfield_jax.forward.slab_cell import SlabCellRenderer
+# ω .95, g .8: the walls' deficit keeps the stripes' phase for many orders.
+DEEP = (0.4, 0.38, 0.8)
 
+
+def test_the_slab_stripe_cell_is_the_full_render_with_walls():
     grid, stripes, k, slab, full = _slab_case()
-    values = (0.4, 0.38, 0.8)  # ω .95, g .8: the walls' deficit reaches every row
-    reference = np.asarray(full(*values)[0])
-    errors = {}
-    for deviation in (None, (8, 4)):
-        cell = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=deviation)
-        images = np.asarray(cell(*values)[0])
-        assert images.shape == reference.shape
-        # The first orders are every shift's own: the full render's.
-        np.testing.assert_allclose(images[:, :3], reference[:, :3], rtol=1e-5, atol=1e-9)
-        errors[deviation] = _row_error(images.sum(1), reference.sum(1))
-    # Each shift's deviation from the mean walls' term, on the model's own bins and
-    # nodes in one layer, takes most of what the mean alone leaves next to the walls.
-    assert errors[None].max() > 2e-3
-    assert errors[(8, 4)].max() < 0.3 * errors[None].max()
+    reference = np.asarray(full(*DEEP)[0])
+    cell = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=(8, 4))
+    images = np.asarray(cell(*DEEP)[0])
+    assert images.shape == reference.shape
+    # The first orders are every shift's own: the full render's.
+    np.testing.assert_allclose(images[:, :3], reference[:, :3], rtol=1e-5, atol=1e-9)
+    # Measured 0.31 % next to the walls (the shifts' mean alone: 4.5 %).
+    assert float(_row_error(images.sum(1), reference.sum(1)).max()) < 5e-3
 
 
 @pytest.mark.slow
-def test_the_slab_stripe_cells_tail_and_g_slope_are_the_full_renders():
-    from lightfield_jax.forward.slab_cell import SlabCellRenderer
+def test_the_coarse_deviation_takes_most_of_what_the_mean_leaves_next_to_the_walls():
+    grid, stripes, k, slab, full = _slab_case()
+    reference = np.asarray(full(*DEEP)[0]).sum(1)
+    errors = {}
+    for deviation in (None, (8, 4)):
+        cell = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=deviation)
+        errors[deviation] = _row_error(np.asarray(cell(*DEEP)[0]).sum(1), reference).max()
+    assert errors[None] > 2e-2 and errors[(8, 4)] < 0.2 * errors[None]
 
+
+@pytest.mark.slow
+@pytest.mark.parametrize("values", [(0.4, 0.3, 0.5), DEEP])
+def test_the_slab_stripe_cells_tail_and_g_slope_are_the_full_renders(values):
     grid, stripes, k, slab, full = _slab_case(tail="gmres", tail_tol=1e-6)
-    values = (0.4, 0.3, 0.5)
     reference = full(*values)
     cell = SlabCellRenderer(
         grid, stripes, k, slab, shift_orders=3, deviation=(8, 4), tail="gmres", tail_tol=1e-6
@@ -90,24 +95,28 @@ def test_the_slab_stripe_cells_tail_and_g_slope_are_the_full_renders():
     assert fields is None and bool(tail.converged)
     series = np.asarray(images.sum(1) + tail.image)
     exact = np.asarray(reference[0].sum(1) + reference[2].image)
-    assert float(_row_error(series, exact).max()) < 2e-3
+    # The tail carries each shift's deviation too (without it, 0.7 % at ω .95, g .8).
+    assert float(_row_error(series, exact).max()) < 5e-3
     # The slope along g is the derivative of the same images.
     marched = SlabCellRenderer(grid, stripes, k, slab, shift_orders=3, deviation=(8, 4))
     _, slope = marched.images_and_g_slope(*values)
     h = 1e-2
-    up, down = (np.asarray(marched(0.4, 0.3, 0.5 + d)[0]) for d in (h, -h))
+    st, ss, g = values
+    up, down = (np.asarray(marched(st, ss, g + d)[0]) for d in (h, -h))
     slope = np.asarray(slope)
     scale = np.max(np.abs(slope), axis=(0, 2, 3), keepdims=True)
     np.testing.assert_allclose(slope / scale, (up - down) / (2 * h) / scale, atol=2e-3)
 
 
 def test_the_slab_stripe_cell_refuses_what_it_cannot_render():
-    from lightfield_jax.forward.slab_cell import SlabCellRenderer
-
     grid, stripes, _, slab, _ = _slab_case()
-    with pytest.raises(ValueError, match="no order to the cell"):
-        SlabCellRenderer(grid, stripes, 3, slab, shift_orders=3)
+    for kw in ({}, {"tail": "gmres"}):  # a tail's orders too would be the cell's
+        with pytest.raises(ValueError, match="no order to the cell"):
+            SlabCellRenderer(grid, stripes, 3, slab, shift_orders=3, **kw)
     with pytest.raises(ValueError, match="period is not shorter"):
         SlabCellRenderer(Grid(16, 6, 8, 1), stripes, 5, slab)
+    for bad in ((8, 2), (0, 4), 8, (8.0, 4), [12, 4]):
+        with pytest.raises(ValueError, match="deviation: must be"):
+            SlabCellRenderer(grid, stripes, 5, slab, deviation=bad)
     with pytest.raises(ValueError, match="lightfield"):
         SlabCellRenderer(grid, stripes, 5, slab)(0.4, 0.3, 0.5, lightfield=True)

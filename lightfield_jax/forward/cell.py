@@ -254,7 +254,7 @@ class ComposedRenderer(AbstractRenderer):
     the call signature and outputs of
     :class:`~lightfield_jax.forward.base.AbstractRenderer`, per-bounce images of every
     shift on the native grid, no light fields and no coarse tail. Subclasses give
-    :meth:`_compose`: ``(images (patterns, K, H, W) at ``gain``, the tail's
+    :meth:`compose`: ``(images (patterns, K, H, W) at ``gain``, the tail's
     :class:`~lightfield_jax.forward.tail.TailSolution` or ``None``)``."""
 
     # What AbstractRenderer asks of a geometry: the parts render.
@@ -273,14 +273,14 @@ class ComposedRenderer(AbstractRenderer):
         return 1.0
 
     @abc.abstractmethod
-    def _compose(self, sigma_t, sigma_s, g, gain):
+    def compose(self, sigma_t, sigma_s, g, gain):
         """(images, tail or ``None``) at these physical values."""
 
     def unchecked(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
         if lightfield:
             raise ValueError(
                 "lightfield: a stripe cell renders images only; render light fields on the "
-                "whole grid (cell: false)"
+                "whole grid (stripe_cell: false)"
             )
         sigma_t, sigma_s, g, gain = as_physical(sigma_t, sigma_s, g, gain)
         images, tail = self._images(sigma_t, sigma_s, g, gain)
@@ -298,12 +298,12 @@ class ComposedRenderer(AbstractRenderer):
     @eqx.filter_jit
     def _g_slope(self, sigma_t, sigma_s, g, gain):
         return jax.jvp(
-            lambda g: self._compose(sigma_t, sigma_s, g, gain)[0], (g,), (jnp.ones_like(g),)
+            lambda g: self.compose(sigma_t, sigma_s, g, gain)[0], (g,), (jnp.ones_like(g),)
         )
 
     @eqx.filter_jit
     def _images(self, sigma_t, sigma_s, g, gain):
-        return self._compose(sigma_t, sigma_s, g, gain)
+        return self.compose(sigma_t, sigma_s, g, gain)
 
 
 class CellRenderer(ComposedRenderer):
@@ -434,7 +434,7 @@ class CellRenderer(ComposedRenderer):
             terms.append(jnp.broadcast_to(mean, (n,) + mean.shape[1:])[:, self.shift_orders :])
         return jnp.concatenate(terms, axis=1), tail, free
 
-    def _compose(self, sigma_t, sigma_s, g, gain):
+    def compose(self, sigma_t, sigma_s, g, gain):
         count_trace()
         first = self._first_two(sigma_t, sigma_s, g)
         if self.bounces <= 2 and self.tail is None:

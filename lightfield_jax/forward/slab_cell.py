@@ -17,10 +17,11 @@ walls need the walls' term.
         orders on the whole tank (the walls' deficit of the low orders depends on the
         stripes' phase);
     I_k, k > S:  the cell's I_k rolled to each shift's phase and tiled over the rows,
-        plus the walls' term of the shifts' mean, a·(F_k − F̃_k): F the full light of
-        the tank with its walls, F̃ the same light on the periodic grid, a = lit/period;
-        plus, with ``deviation``, each shift's own walls' term less that mean on a
-        coarse discretisation.
+        plus the walls' term of the mean over the period's phases, a·(F_k − F̃_k): F
+        the full light of the tank with its walls, F̃ the same light on the periodic
+        grid, a = lit/period; plus, with ``deviation``, each shift's own walls' term
+        less that mean on a coarse discretisation (which also carries shifts that do
+        not tile the period).
 
 The approximation against the full render: after S orders each shift's walls' term is
 the mean's and its deviation from it on the coarse discretisation.
@@ -121,11 +122,26 @@ SLAB_SHIFT_ORDERS = 3
 def deviation_grid(n_theta: int, n_mu: int) -> tuple[int, int]:
     """The coarse discretisation of each shift's deviation from the shifts' mean walls'
     term past the first orders, for a model of ``n_theta`` azimuth bins and ``n_mu``
-    elevation nodes: half of each (at least 8 and 4), in one depth layer. Against the
-    full render (48×36, ω .95, g .8, 32 bins × 16 nodes × 2 layers, 24 orders, three
-    orders exact): the worst row 0.34 % (the middle half 0.06 %) with 16 × 8, 1.0 %
-    (0.22 %) with 8 × 4, 3.8 % (0.63 %) with none (docs/slab_memory.md)."""
-    return max(8, n_theta // 2 // 8 * 8), max(4, n_mu // 2)
+    elevation nodes: its bins and half its nodes (at least 4), in one depth layer. The
+    azimuth bins matter most: against the full render (48×36, ω .99, g .85, 32 bins ×
+    16 nodes × 2 layers, 24 orders, three orders exact) the worst row is 0.15 % with
+    32 × 8, 0.72 % with 16 × 16 or 16 × 8, 2.0 % with 8 × 4 and 5.4 % with none
+    (docs/slab_memory.md)."""
+    return n_theta, max(4, n_mu // 2)
+
+
+def check_deviation(deviation, n_theta: int, slab: Slab) -> tuple[int, int]:
+    """``deviation`` as (azimuth bins, elevation nodes), never finer than the model's
+    own (``n_theta``, ``slab.n_mu``); a one-line ValueError naming it otherwise."""
+    ok = isinstance(deviation, (tuple, list)) and len(deviation) == 2
+    ok = ok and all(isinstance(v, int) and not isinstance(v, bool) for v in deviation)
+    least_mu = 4 if slab.boundary == "refractive" else 1
+    if not ok or deviation[0] < 8 or deviation[0] % 8 or deviation[1] < least_mu:
+        raise ValueError(
+            f"deviation: must be (azimuth bins, a multiple of 8; elevation nodes, at least "
+            f"{least_mu}), got {deviation!r}"
+        )
+    return min(deviation[0], n_theta), min(deviation[1], slab.n_mu)
 
 
 class SlabWalls(eqx.Module):
@@ -191,16 +207,19 @@ class SlabCellRenderer(ComposedRenderer):
         problem = cell_problem(grid, illumination)
         if problem is not None:
             raise ValueError(f"SlabCellRenderer: {problem}")
+        if deviation is not None:
+            n_theta, n_mu = check_deviation(deviation, grid.n_theta, slab)
         self._setup(grid, illumination, bounces, phase, tail, tail_tol, tail_max_steps)
         s = self.shift_orders = check_int(shift_orders, "shift_orders", low=2)
-        if s >= self.bounces and tail is None:
+        # I_1..I_S are every shift's own, every later order (a tail's too) the cell's.
+        if s >= self.bounces:
             raise ValueError(
                 f"SlabCellRenderer: shift_orders {s} leaves no order to the cell "
                 f"({self.bounces} bounces): render the whole tank"
             )
         solve = {"tail": tail, "tail_tol": tail_tol, "tail_max_steps": tail_max_steps}
         period, k = illumination.period, self.bounces
-        self.first = SlabRenderer(grid, illumination, min(s, k), slab, phase)
+        self.first = SlabRenderer(grid, illumination, s, slab, phase)
         one = dataclasses.replace(illumination, phases=(0,))
         self.cell = SlabPeriodicCell(
             dataclasses.replace(grid, height=period),
@@ -217,13 +236,11 @@ class SlabCellRenderer(ComposedRenderer):
         self.weight = illumination.lit / period
         self.deviation = None
         if deviation is not None:
-            # (never finer than the model's own)
-            n_theta, n_mu = min(deviation[0], grid.n_theta), min(deviation[1], slab.n_mu)
             coarse = dataclasses.replace(slab, n_mu=n_mu, n_z=1, depth_profile=None)
             cg = dataclasses.replace(grid, n_theta=n_theta)
             self.deviation = (
-                SlabWalls(cg, illumination, period, k, coarse, phase, {}),
-                SlabWalls(cg, full, 2, k, coarse, phase, {}),
+                SlabWalls(cg, illumination, period, k, coarse, phase, solve),
+                SlabWalls(cg, full, 2, k, coarse, phase, solve),
             )
         self.rows = jnp.asarray(shift_rows(illumination, grid.height), jnp.int32)
 
@@ -231,22 +248,28 @@ class SlabCellRenderer(ComposedRenderer):
     def image_scale(self) -> float:
         return 1.0
 
-    def _compose(self, sigma_t, sigma_s, g, gain):
+    def compose(self, sigma_t, sigma_s, g, gain):
         s, a = self.shift_orders, self.weight
         first = self.first.unchecked(sigma_t, sigma_s, g)[0]  # (patterns, S, H, W)
         cell = self.cell.unchecked(sigma_t, sigma_s, g)
         walls, walls_tail, walls_solves = self.mean_walls(sigma_t, sigma_s, g)
         later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
         later = later[:, s:] + a * walls[:, s:]
+        tail_image = None if self.tail is None else cell[2].image[0][self.rows] + a * walls_tail
+        solves = [] if self.tail is None else [cell[2], *walls_solves]
         if self.deviation is not None:
-            own, mean = (part(sigma_t, sigma_s, g)[0] for part in self.deviation)
+            (own, own_tail, own_solves), (mean, mean_tail, mean_solves) = (
+                part(sigma_t, sigma_s, g) for part in self.deviation
+            )
             later = later + (own - a * mean)[:, s:]
+            if self.tail is not None:
+                tail_image = tail_image + own_tail - a * mean_tail
+                solves += [*own_solves, *mean_solves]
         images = gain * jnp.concatenate([first, later], axis=1)[:, : self.bounces]
         if self.tail is None:
             return images, None
-        solves = (cell[2], *walls_solves)
         tail = TailSolution(
-            image=gain * (cell[2].image[0][self.rows] + a * walls_tail),
+            image=gain * tail_image,
             lightfield=None,
             steps=jnp.max(jnp.stack([t.steps for t in solves])),
             converged=jnp.all(jnp.stack([t.converged for t in solves])),
@@ -264,6 +287,7 @@ __all__ = [
     "SlabCellRenderer",
     "SlabPeriodicCell",
     "SlabWalls",
+    "check_deviation",
     "deviation_grid",
     "shift_rows",
     "slab_cell_renderer_for",

@@ -49,9 +49,10 @@ class ModelSpec:
     ratio: float | None = None  # per-bounce ratio measured at the estimate (sized K)
     extrapolate: bool = False  # the orders past ``bounces`` summed geometrically
     coarse_after: int | None = None  # the plane's bounces after it on its coarse grid
-    # Plane stripes rendered from one period (CellRenderer's shift_orders; its geometry's
-    # stripe_cell for a sized model, the shifts' mean alone for the scan's and an
-    # extrapolated solve's, whose answers are corrected), or None: the full render.
+    # Stripes rendered from one period (the shift orders of the geometry's cell renderer:
+    # its stripe_cell for a sized model, the shifts' mean alone for the scan's and an
+    # extrapolated solve's, whose answers are corrected; the geometry decides where it
+    # renders them so), or None: the full render.
     cell: int | None = None
 
     @property
@@ -98,8 +99,10 @@ class ModelSpec:
             "ratio_measured": self.ratio,
             "tail_bound": self.tail_bound,
             "extrapolated": self.extrapolate,
-            # Stripes entering a side wall, rendered from one period (CellRenderer).
-            "stripe_cell": None if cell is None else {"shift_orders": cell},
+            # Stripes entering a side wall, rendered from one period (the geometry's cell).
+            "stripe_cell": None
+            if cell is None
+            else {"shift_orders": cell, **self.geometry.cell_record(self)},
             "coarse_tail": None
             if coarse is None
             else {

@@ -95,12 +95,15 @@ class ModelOptions:
             function is normalised on the sphere, so ``phase`` is ``normalized``), or
             :class:`AutoGeometry` (the plane where its misfit is below the capture's
             noise, else the slab: :mod:`lightfield_jax.inverse.model_choice`).
-        stripe_cell: (``joint``, plane) render stripes entering a side wall from one
-            stripe period (:class:`~lightfield_jax.forward.cell.CellRenderer`, within
-            0.25 % of the full render) in the final model and the error term where they
-            are refined (refine ≥ 2): a warm fit of a dense forward capture about 3×
-            faster; the first fit of a process compiles more (docs/periodic_cell.md).
-            ``False``: those models render the whole tank.
+        stripe_cell: (``joint``) render stripes entering a side wall from one stripe
+            period in the final model and the error term: on the plane where they are
+            refined (refine ≥ 2; :class:`~lightfield_jax.forward.cell.CellRenderer`,
+            within 0.25 % of the full render, a warm fit of a dense forward capture
+            about 3× faster, docs/periodic_cell.md), on the slab where the series is
+            long (:class:`~lightfield_jax.forward.slab_cell.SlabCellRenderer`, 3–5×
+            faster renders, within 0.15–0.35 % of the full render next to the walls,
+            docs/slab_memory.md); the first fit of a process compiles more. ``False``:
+            those models render the whole tank.
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
             for primal renders, which need no tangents).
     """
