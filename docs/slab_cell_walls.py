@@ -37,7 +37,7 @@ MEDIA = {  # σt, σs, g (per pixel)
     "ω .95, g .8": (0.2, 0.19, 0.8),
     "ω .99, g .85": (0.2, 0.198, 0.85),
 }
-SCHEMES = [(3, None), (3, (8, 4)), (3, (16, 8))]
+SCHEMES = [(3, None), (3, (16, 8)), (3, (32, 8))]
 
 
 def seconds(renderer, values) -> tuple[np.ndarray, float]:

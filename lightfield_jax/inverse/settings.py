@@ -100,8 +100,8 @@ class ModelOptions:
             refined (refine ≥ 2; :class:`~lightfield_jax.forward.cell.CellRenderer`,
             within 0.25 % of the full render, a warm fit of a dense forward capture
             about 3× faster, docs/periodic_cell.md), on the slab where the series is
-            long (:class:`~lightfield_jax.forward.slab_cell.SlabCellRenderer`, 3–5×
-            faster renders, within 0.15–0.35 % of the full render next to the walls,
+            long (:class:`~lightfield_jax.forward.slab_cell.SlabCellRenderer`, about 3×
+            faster renders, within 0.2 % of the full render in every row,
             docs/slab_memory.md); the first fit of a process compiles more. ``False``:
             those models render the whole tank.
         max_render_cells: cap on the corrected model's working size (as ``max_cells``,
