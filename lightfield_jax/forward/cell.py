@@ -82,6 +82,13 @@ def cell_moments(illumination, width: int, rows: int):
     return tuple(m[:, tall - rows :] for m in moments)
 
 
+def shift_rows(illumination: Stripes, height: int) -> np.ndarray:
+    """(patterns, H): the cell's row of each shift's row (a shift by phase φ is the
+    cell rolled by φ rows)."""
+    phases = np.asarray(illumination.phases)[:, None]
+    return np.mod(np.arange(height)[None] + phases, illumination.period)
+
+
 class PeriodicCell(PlaneRenderer):
     """The plane on a grid periodic in y, for one period of stripes or full light
     (:class:`~lightfield_jax.forward.plane.PlaneRenderer`'s loop and bounce step; its
@@ -393,8 +400,7 @@ class CellRenderer(ComposedRenderer):
         # The θ-summed kernel on the whole (refined) tank: the same nodes as the cell's.
         nodes = kernel_nodes(self.width, self.height, grid.n_theta)
         self.sum_index = jnp.asarray(np.mod(nodes["index"], 4 * self.height * self.width))
-        phases = np.asarray(illumination.phases)[:, None]
-        self.rows = jnp.asarray(np.mod(np.arange(grid.height)[None] + phases, period), jnp.int32)
+        self.rows = jnp.asarray(shift_rows(illumination, grid.height), jnp.int32)
 
     @property
     def image_scale(self) -> float:

@@ -46,6 +46,7 @@ from lightfield_jax.forward.cell import (
     cell_moments,
     cell_problem,
     folded_index,
+    shift_rows,
 )
 from lightfield_jax.forward.slab import SlabRenderer, slab_nodes
 from lightfield_jax.forward.tail import TailSolution
@@ -104,13 +105,6 @@ class SlabPeriodicCell(SlabRenderer):
         self.index = jnp.asarray(folded_index(nodes["index"], tank, width, rows))
         self.splat = jnp.asarray(nodes["splat"])
         self.fft_rows = rows  # periodic in y: no padding
-
-
-def shift_rows(illumination: Stripes, height: int) -> np.ndarray:
-    """(patterns, H): the cell's row of each shift's row (a shift by phase φ is the
-    cell rolled by φ rows)."""
-    phases = np.asarray(illumination.phases)[:, None]
-    return np.mod(np.arange(height)[None] + phases, illumination.period)
 
 
 # The orders whose images are every shift's own (the full render's): past them the
