@@ -30,6 +30,7 @@ from lightfield_jax.forward.simulate import simulate_capture as simulate_capture
 from lightfield_jax.forward.simulate_config import SimulationConfig as SimulationConfig
 from lightfield_jax.forward.simulate_config import load_simulation_config as load_simulation_config
 from lightfield_jax.forward.slab import SlabRenderer as SlabRenderer
+from lightfield_jax.forward.slab_cell import SlabCellRenderer as SlabCellRenderer
 from lightfield_jax.forward.tail import TailNotConvergedWarning as TailNotConvergedWarning
 from lightfield_jax.forward.tail import TailSolution as TailSolution
 from lightfield_jax.inverse.capture_fit import CaptureFit as CaptureFit
