@@ -25,8 +25,10 @@ walls need the walls' term.
 
 The approximation against the full render: after S orders each shift's walls' term is
 the mean's and its deviation from it on the coarse discretisation.
-The cost is S orders of the full render, one pattern's march on the tank and the
-cell's (P rows, one pattern), instead of every shift's march over every row.
+The cost is S orders of the full render, full light's march on the tank, the cell's
+(P rows, one pattern) and the deviation's (every shift, one layer, fewer nodes), instead
+of every shift's march over every row in every layer: about 3× less
+(docs/slab_memory.md).
 """
 
 from __future__ import annotations
@@ -169,8 +171,8 @@ class SlabCellRenderer(ComposedRenderer):
     """A slab's stripes rendered from one period (the module's scheme): the call
     signature and outputs of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
     images only (light fields: the full render). ``shift_orders`` S ≥ 2: the orders
-    rendered exactly for every shift; ``bounces`` must exceed it (or a ``tail`` be
-    given). ``deviation`` (azimuth bins, elevation nodes), or ``None``: each shift's
+    rendered exactly for every shift; ``bounces`` must exceed it (a tail's orders are
+    the cell's). ``deviation`` (azimuth bins, elevation nodes), or ``None``: each shift's
     walls' term less the shifts' mean, for the orders past S, rendered on that coarser
     discretisation in one depth layer and added to the mean's; near albedo 1 the walls'
     deficit keeps the stripes' phase for many orders."""

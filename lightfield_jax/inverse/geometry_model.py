@@ -440,11 +440,10 @@ class SlabModel(GeometryModel):
         return SLAB_SHIFT_ORDERS if options.model.stripe_cell else None
 
     def renders_cell(self, model, illumination) -> bool:
-        # The cheap models (the shifts' mean alone, shift_orders 2) render the whole
-        # tank: that walls' term is 7 % off next to the walls at ω .95, g .8 (48×36),
-        # and their Jacobian guides the correction. So do short series and models whose
-        # deviation grid is not coarser than their own: the cell's parts then cost more
-        # than the full render (48×36: K 4 and 6 measured 1.6–2.2× slower).
+        # The whole tank for the cheap models (the shifts' mean alone is 7 % off next
+        # to the walls at ω .95, g .8; their Jacobian guides the correction), short
+        # series and models no finer than the deviation grid (the cell's parts then
+        # cost more than the full render: K 4 and 6 at 48×36 1.6–2.2× slower).
         if model.cell is None or model.cell < SLAB_SHIFT_ORDERS:
             return False
         slab = self.slab
