@@ -274,28 +274,23 @@ def bench_fits(
             def median(get, runs=runs):
                 return float(statistics.median(get(r) for r in runs))
 
+            def vs_first(get, runs=runs):  # over the first method's in the same round
+                return float(
+                    statistics.median(get(r) / get(f) for r, f in zip(runs, first, strict=True))
+                )
+
             values = runs[0]["values"]
             row = {
                 "method": method,
                 "cold_s": median(lambda r: r["cold"]["total"]),
                 "cold_compile_s": median(lambda r: r["cold"]["compile"]),
                 "cold_run_s": median(lambda r: r["cold"]["run"]),
-                # cold time over the first method's in the same round (the same load)
-                "cold_vs_first": float(
-                    statistics.median(
-                        r["cold"]["total"] / f["cold"]["total"]
-                        for r, f in zip(runs, first, strict=True)
-                    )
-                ),
+                # (the same round: the same load)
+                "cold_vs_first": vs_first(lambda r: r["cold"]["total"]),
                 # the process's CPU seconds (all its threads): on a machine shared with
                 # other work they change less with the load than the wall time does
                 "cold_cpu_s": median(lambda r: r["cold"]["cpu"]),
-                "cold_cpu_vs_first": float(
-                    statistics.median(
-                        r["cold"]["cpu"] / f["cold"]["cpu"]
-                        for r, f in zip(runs, first, strict=True)
-                    )
-                ),
+                "cold_cpu_vs_first": vs_first(lambda r: r["cold"]["cpu"]),
                 "warm_s": median(lambda r: r["warm"]["total"]),
                 "import_s": median(lambda r: r["import_s"]),
                 "load_avg": median(lambda r: r["load_avg"]),

@@ -53,10 +53,11 @@ def _demo(args: argparse.Namespace) -> int | None:
     from lightfield_jax.forward.simulate import simulate_capture, write_simulation
     from lightfield_jax.forward.simulate_config import parse_simulation_config
     from lightfield_jax.inverse.capture_fit import fit_capture
+    from lightfield_jax.inverse.method_base import METHOD_NAMES
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     for m in methods:
-        if m not in ("grid", "gradient", "joint"):
+        if m not in METHOD_NAMES:
             raise ValueError(f"--methods: unknown method {m!r} (grid, gradient, joint)")
     if not methods:
         raise ValueError(f"--methods: names no method (grid, gradient, joint): {args.methods!r}")

@@ -162,12 +162,13 @@ def _repeats(text: str) -> int:
 
 
 def _fit_methods(text: str) -> tuple[str, ...]:
+    from lightfield_jax.inverse.method_base import METHOD_NAMES
+
     names = tuple(x.strip() for x in text.split(","))
-    known = ("grid", "gradient", "joint")
-    bad = [x for x in names if x not in known]
+    bad = [x for x in names if x not in METHOD_NAMES]
     if bad or len(set(names)) != len(names):
         raise argparse.ArgumentTypeError(
-            f"must be distinct names among {', '.join(known)}, comma-separated, got {text!r}"
+            f"must be distinct names among {', '.join(METHOD_NAMES)}, comma-separated, got {text!r}"
         )
     return names
 

@@ -51,7 +51,7 @@ from lightfield_jax.forward.base import (
 from lightfield_jax.forward.first_scatter import kernel_nodes
 from lightfield_jax.forward.kernels import fft_convolve, padded_spectrum, splat
 from lightfield_jax.forward.plane import PlaneRenderer, theta_groups
-from lightfield_jax.forward.tail import TailSolution, check_tail
+from lightfield_jax.forward.tail import check_tail, joined_tail
 from lightfield_jax.forward.transport import transport_tables
 from lightfield_jax.forward.wall_bands import WallBands, short_tank_height
 from lightfield_jax.scene.grid import Grid
@@ -463,14 +463,8 @@ class CellRenderer(ComposedRenderer):
             return images, None
         tail_image, tank_tail, free_tail = walls_tail
         cell_tail = cell[2]
-        solves = (cell_tail, tank_tail, free_tail)
-        tail = TailSolution(
-            image=gain * (cell_tail.image[0][self.rows] + tail_image),
-            lightfield=None,
-            steps=jnp.max(jnp.stack([s.steps for s in solves])),
-            converged=jnp.all(jnp.stack([s.converged for s in solves])),
-        )
-        return images, tail
+        image = gain * (cell_tail.image[0][self.rows] + tail_image)
+        return images, joined_tail(image, (cell_tail, tank_tail, free_tail))
 
 
 # A cached CellRenderer (its tables built once per static configuration), as

@@ -51,7 +51,7 @@ from lightfield_jax.forward.cell import (
     shift_rows,
 )
 from lightfield_jax.forward.slab import SlabRenderer, slab_nodes
-from lightfield_jax.forward.tail import TailSolution
+from lightfield_jax.forward.tail import joined_tail
 from lightfield_jax.scene.geometry import Slab
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Stripes, along_x, scaled
@@ -264,13 +264,7 @@ class SlabCellRenderer(ComposedRenderer):
         images = gain * jnp.concatenate([first, later], axis=1)[:, : self.bounces]
         if self.tail is None:
             return images, None
-        tail = TailSolution(
-            image=gain * tail_image,
-            lightfield=None,
-            steps=jnp.max(jnp.stack([t.steps for t in solves])),
-            converged=jnp.all(jnp.stack([t.converged for t in solves])),
-        )
-        return images, tail
+        return images, joined_tail(gain * tail_image, solves)
 
 
 # A cached SlabCellRenderer (its tables built once per static configuration), as

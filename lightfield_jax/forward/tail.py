@@ -83,6 +83,18 @@ class TailSolution(eqx.Module):
     converged: Bool[Array, ""]
 
 
+def joined_tail(image, solves) -> TailSolution:
+    """The tail of a render composed from several renderers' tail ``solves`` whose
+    images make ``image``: images only, the most Krylov iterations of any and whether
+    every one met its tolerance."""
+    return TailSolution(
+        image=image,
+        lightfield=None,
+        steps=jnp.max(jnp.stack([t.steps for t in solves])),
+        converged=jnp.all(jnp.stack([t.converged for t in solves])),
+    )
+
+
 def check_tail(tail, tol, max_steps) -> None:
     """Validate the tail settings of a renderer (a one-line error naming the value)."""
     if tail is not None and not (isinstance(tail, str) and tail in TAIL_METHODS):
