@@ -332,8 +332,9 @@ def test_the_second_cheap_slab_model_is_finer_and_within_the_users_settings():
 
 def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
     """A 128×96 capture of a g 0.9 medium behind refractive faces passes the cell cap at
-    its 24 elevation nodes: the cap halves them to 12 and 6, then stops at 4 (refractive
-    faces need 4: it used to go to 3 and raise). The depth keeps its 2 linear layers."""
+    its elevation nodes: the cap lowers them and the azimuth bins in turn, and stops at 4
+    nodes (refractive faces need 4: it used to go to 3 and raise). The depth keeps its 2
+    linear layers."""
     from lightfield_jax.inverse.model_size import size_model
 
     opts = FitOptions(geometry=Slab(6.4, "refractive", 1.33), phase="normalized")
@@ -345,17 +346,20 @@ def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
 @pytest.mark.parametrize(
     "slab, n_theta, finer",
     [
-        (Slab(6.4), None, (16, 48, 8)),  # absorbing: 8 bins, 24 nodes, 4 linear layers
-        # The user's 16 layers stay (linear: the cap left the model 12 nodes).
-        (Slab(6.4, n_z=16), None, (16, 12, 16)),
+        # Absorbing: the cap left 16 bins, 16 nodes, 4 linear layers; the bins are below
+        # g 0.9's 32, so they are doubled first, then the layers, then the nodes.
+        (Slab(6.4), None, (32, 32, 8)),
+        # The user's 16 layers stay (linear: the cap left the model 8 bins, 8 nodes).
+        (Slab(6.4, n_z=16), None, (16, 16, 16)),
         # Already past the cap: nothing finer fits, and nothing coarser is taken.
         (Slab(6.4, "refractive", 1.33, n_mu=64), 128, (128, 64, 2)),
     ],
 )
 def test_the_error_terms_slab_model_is_finer_and_never_coarser(slab, n_theta, finer):
-    """The model error term's model doubles the layers, then the nodes, then the bins,
-    each within the memory cap, and never goes below the fit's model (it capped layers at
-    8 and nodes at 32: the depth error of an 8-layer model went unseen)."""
+    """The model error term's model doubles the layers, then the nodes, then the bins (the
+    bins first where the cap left fewer than the answer's g asks for), each within the
+    memory cap, and never goes below the fit's model (it capped layers at 8 and nodes at
+    32: the depth error of an 8-layer model went unseen)."""
     from lightfield_jax.inverse.joint_fit import finer as error_term
     from lightfield_jax.inverse.model_size import size_model
 

@@ -24,12 +24,16 @@ from lightfield_jax.forward.slab_cell import (
     slab_cell_renderer_for,
 )
 from lightfield_jax.inverse.settings import FitSettings
+from lightfield_jax.inverse.slab_caps import (
+    ACCURATE_MU,
+    MIN_CAPPED_MU,
+    capped_sizes,
+    slab_cells,
+)
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import REFINE_LIMIT, Grid, default_n_theta, default_refine
 from lightfield_jax.scene.slab_grid import NEAR_WALL_G, near_wall_grid, needs_near_wall_grid
 
-# The fewest elevation nodes the cell cap leaves a slab (the cheap model's count).
-MIN_CAPPED_MU = 4
 # The slab's cheap model for a second try (:meth:`GeometryModel.finer_cheap`): azimuth
 # bins and elevation nodes.
 RETRY_SLAB = (16, 8)
@@ -38,9 +42,6 @@ RETRY_SLAB = (16, 8)
 NEAR_WALL_UNCAPPED = 1 << 62
 # The fewest bounces a slab model renders with its stripe cell (4 × its shift orders).
 SLAB_CELL_BOUNCES = 4 * SLAB_SHIFT_ORDERS
-# The elevation nodes the cap lowers a near-wall model's to before its azimuth bins:
-# the default's at g ≥ 0.85 (scene.geometry.default_n_mu).
-NEAR_WALL_MU_FLOOR = 24
 
 
 def plane_cells(grid: Grid) -> int:
@@ -296,33 +297,17 @@ class SlabModel(GeometryModel):
         """Whether the slab passes a cap of ``max_cells`` (a plane's cell count): it
         works on azimuth × elevation × depth fields over the 2H × 2W FFT domain,
         allowed 4 × ``max_cells``."""
-        slab = self.slab
-        cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
-        cells *= slab.depth_coefficients
-        return cells > 4 * max_cells
+        return slab_cells(width, height, n_theta, refine, self.slab) > 4 * max_cells
 
     def capped(self, width, height, n_theta, refine, options):
-        user_mu = options.model.geometry.n_mu is not None
-        model = self
-        while model.over(width, height, n_theta, refine, options.model.max_cells):
-            near_wall_mu = model.near_wall is not None and model.slab.n_mu > NEAR_WALL_MU_FLOOR
-            if refine > 1 and options.model.refine is None:
-                # The near-wall grid's additions first: its refinement costs refine² of
-                # every field, its elevation nodes twice the default's.
-                refine -= 1
-            elif near_wall_mu and not user_mu:
-                n_mu = max(NEAR_WALL_MU_FLOOR, model.slab.n_mu // 2)
-                model = dataclasses.replace(model, slab=dataclasses.replace(model.slab, n_mu=n_mu))
-            elif n_theta > 8 and options.model.n_theta is None:
-                n_theta //= 2
-            elif model.slab.n_mu > MIN_CAPPED_MU and not user_mu:
-                # Never below 4 nodes: refractive faces need 2 on each side of the
-                # critical angle (24 halves to 12, 6, then 4).
-                n_mu = max(MIN_CAPPED_MU, model.slab.n_mu // 2)
-                model = dataclasses.replace(model, slab=dataclasses.replace(model.slab, n_mu=n_mu))
-            else:
-                break
-        return n_theta, refine, model
+        n_theta, refine, n_mu = capped_sizes(
+            width, height, n_theta, refine, self.slab, self.near_wall is not None, options
+        )
+        return (
+            n_theta,
+            refine,
+            dataclasses.replace(self, slab=dataclasses.replace(self.slab, n_mu=n_mu)),
+        )
 
     def bounce_ratio(self, rho, sigma_t, albedo, g, w, h):
         if sigma_t is None:
@@ -401,19 +386,27 @@ class SlabModel(GeometryModel):
     def finer(self, grid, options, g):
         """Twice its depth layers (at most 16), elevation nodes (64) and azimuth bins
         (128), in that order of priority, each only within four times
-        ``max_render_cells``."""
+        ``max_render_cells``; first the azimuth bins where they are fewer than
+        :func:`~lightfield_jax.scene.geometry.default_slab_n_theta` asks for at ``g``,
+        and the elevation nodes where they are fewer than 16 (a model the cap lowered:
+        those are then its largest errors, docs/slab_depth.md section 8)."""
 
         def doubled(n: int, limit: int) -> int:
             return max(n, min(2 * n, limit))  # never below the model's own
 
         cap = 4 * options.model.max_render_cells
         model = self
-        for name, limit in (("n_z", 16), ("n_mu", 64), ("n_theta", 128)):
+        below = [grid.n_theta < default_slab_n_theta(g, self.slab.boundary)]
+        below.append(self.slab.n_mu < ACCURATE_MU)
+        order = [k for k, low in zip(("n_theta", "n_mu"), below, strict=True) if low]
+        order += [k for k in ("n_z", "n_mu", "n_theta") if k not in order]
+        limits = {"n_z": 16, "n_mu": 64, "n_theta": 128}
+        for name in order:
             g2, m2 = grid, model
             if name == "n_theta":
-                g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limit))
+                g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limits[name]))
             else:
-                n = doubled(getattr(model.slab, name), limit)
+                n = doubled(getattr(model.slab, name), limits[name])
                 m2 = SlabModel(dataclasses.replace(model.slab, **{name: n}))
             # (a cap of four times the render's cells, as the slab's own cap is of the
             # plane's: sixteen times max_render_cells in all)

@@ -340,17 +340,24 @@ def _guides_light(boundary: str, albedo: float | None) -> bool:
 
 
 def default_slab_n_theta(g: float, boundary: str = "absorbing", albedo: float | None = None) -> int:
-    """Azimuth bins of the slab model for asymmetry g. The first scatter's kernels keep
-    the phase function at every quadrature node, so only the phase matrix of the later
-    bounces is binned: against 128 bins, 8 bins change I_3..I_5 by ≤ 0.11 % for g 0.4
-    and by ≤ 0.34 % at g 0.7, 16 bins by ≤ 0.11 % there (measured on a 48×32 beam).
-    Light guided by refractive faces travels far between scatterings and needs at least
-    16 (measured, σt·h 0.3, g −0.3, ω 0.9, n_z 2: I_5 −2.2 % with 8 bins and 8 μ nodes
+    """Azimuth bins of the slab model for asymmetry g: 8 for |g| ≤ 0.3, 16 to 0.6, 32
+    beyond (64 from 0.9 on the near-wall grid, :mod:`~lightfield_jax.scene.slab_grid`).
+    The first scatter's kernels keep the phase function at every quadrature node; only
+    the phase matrix of the later bounces is binned, and its error grows with the path
+    the light has scattered along: a forward lobe spread over a bin sends light sideways
+    at every bounce, so the far half of the tank is dim. Measured (docs/slab_depth.md
+    section 8: full light on a 48×36 refractive slab, σt 0.2, the whole series against
+    64 bins), the far half's light with 8 / 16 / 32 bins: g 0.5 −4.7 / −1.3 / −0.3 %,
+    g 0.7 −7.7 / −2.5 / −0.5 %, g 0.8 −9.0 / −3.4 / −0.8 %, alike at albedo 0.8, 0.95
+    and 0.99. A fit reads such a shortfall as a shorter mean free path: a capture
+    rendered with 16 bins at g 0.8, ω 0.95 fitted with 32 bins gave σt −6.7 %. Light
+    guided by refractive faces travels far between scatterings and needs at least 16
+    (measured, σt·h 0.3, g −0.3, ω 0.9, n_z 2: I_5 −2.2 % with 8 bins and 8 μ nodes
     against the 3-D Monte Carlo, −1.0 % with 16)."""
     a = abs(float(g))
-    if a <= 0.6:
+    if a <= 0.3:
         n = 8
-    elif a <= 0.85:
+    elif a <= 0.6:
         n = 16
     else:
         n = 32

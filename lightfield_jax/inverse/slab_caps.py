@@ -1,0 +1,71 @@
+"""The slab model under the cell cap: which of its angles and its refinement the cap
+lowers first (:meth:`~lightfield_jax.inverse.geometry_model.SlabModel.capped`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from lightfield_jax.inverse.settings import FitSettings
+    from lightfield_jax.scene.geometry import Slab
+
+# The fewest elevation nodes the cell cap leaves a slab (the cheap model's count; a
+# refractive face needs 2 on each side of the critical angle).
+MIN_CAPPED_MU = 4
+# The elevation nodes the cap lowers a near-wall model's to first: the default's at
+# g ≥ 0.85 (scene.geometry.default_n_mu).
+NEAR_WALL_MU_FLOOR = 24
+# The elevation nodes the cap lowers any model's to before its azimuth bins: far from
+# the entry wall 16 nodes are within 0.1 % of 24 at g 0.8, where 16 azimuth bins instead
+# of 32 lose 2.6 % (docs/slab_depth.md section 8).
+ACCURATE_MU = 16
+
+
+def slab_cells(width: int, height: int, n_theta: int, refine: int, slab: Slab) -> int:
+    """The slab's light-field values over the 2H × 2W FFT domain: azimuth × elevation ×
+    depth (layers × profile coefficients) × refined pixels."""
+    cells = width * height * 4 * n_theta * slab.n_mu * slab.n_z * refine**2
+    return cells * slab.depth_coefficients
+
+
+def capped_sizes(
+    width: int,
+    height: int,
+    n_theta: int,
+    refine: int,
+    slab: Slab,
+    near_wall: bool,
+    options: FitSettings,
+) -> tuple[int, int, int]:
+    """``(n_theta, refine, n_mu)`` lowered until the slab is within four times
+    ``max_cells`` (a plane's cell count), or as far as the floors go. What each step
+    costs in accuracy decides the order (docs/slab_depth.md section 8: full light on a
+    48×36 refractive slab at g 0.8, the far half's light against 64 azimuth bins × 16
+    nodes: 32 × 24 −0.7 %, 32 × 16 −0.8 %, 16 × 16 −3.4 %, 32 × 8 −2.9 %, 16 × 8 −5.4 %,
+    32 × 4 −9.9 %): the near-wall grid's refinement (refine² of every field) and its
+    nodes (``near_wall``) first, then nodes down to 16, then bins down to 16 and nodes
+    to 8 alternately, then bins to 8 and nodes to 4. A count the options fix is never
+    lowered."""
+    model = options.model
+    fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": model.geometry.n_mu}
+    sizes = {"refine": refine, "n_theta": n_theta, "n_mu": slab.n_mu}
+    floors = [("refine", 1)] + ([("n_mu", NEAR_WALL_MU_FLOOR)] if near_wall else [])
+    floors += [("n_mu", ACCURATE_MU), ("n_theta", 16), ("n_mu", 8), ("n_theta", 8)]
+    floors += [("n_mu", MIN_CAPPED_MU)]
+
+    def over() -> bool:
+        at = dataclasses.replace(slab, n_mu=sizes["n_mu"])
+        cells = slab_cells(width, height, sizes["n_theta"], sizes["refine"], at)
+        return cells > 4 * model.max_cells
+
+    while over():
+        step = next(((k, f) for k, f in floors if fixed[k] is None and sizes[k] > f), None)
+        if step is None:
+            break
+        name, floor = step
+        sizes[name] = sizes[name] - 1 if name == "refine" else max(floor, sizes[name] // 2)
+    return sizes["n_theta"], sizes["refine"], sizes["n_mu"]
+
+
+__all__ = ["ACCURATE_MU", "MIN_CAPPED_MU", "NEAR_WALL_MU_FLOOR", "capped_sizes", "slab_cells"]
