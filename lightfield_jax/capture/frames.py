@@ -31,6 +31,7 @@ from lightfield_jax.capture.pixels import (
     float_clip,
     one_value,
 )
+from lightfield_jax.capture.response import RESPONSES
 from lightfield_jax.runtime.memory import capture_bytes, check_memory
 from lightfield_jax.schema import Section, brief
 
@@ -347,3 +348,57 @@ def check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
                 f"{name}: every pixel value is {level:.6g}: not a camera image of the "
                 "projector showing all white (that varies over the medium)",
             )
+
+
+# The name of a grey image's one channel (OpenEXR's, and simulate's).
+GREY = "Y"
+
+
+def read_calibration_frames(
+    top: Section, base: Path, channel, frames: list[ImageData], notes: list[str]
+) -> tuple[list[ImageData], dict[str, ImageData | None]]:
+    """The calibration frames of single exposures (``None`` for a key not given), and
+    the stripe images; where no ``channel`` is chosen and every channel of every image
+    and calibration frame holds the same values (a grey image saved as colour), the
+    images and frames reduced to one channel :data:`GREY` (noted): each channel would be
+    fitted alike, three times the work for one answer listed three times. A file that
+    gives values per channel (``dark_level`` by channel, a ``truth`` list, a response
+    table) keeps the channels, with a note."""
+    aux = {key: read_aux_frame(top, key, base, channel, frames[0]) for key in AUX_FRAMES}
+    names = frames[0].channel_names
+    given = [f for f in aux.values() if f is not None]
+    if channel is not None or len(names) < 2:
+        return frames, aux
+    if not all(_one_value_per_pixel(f.pixels) for f in [*frames, *given]):
+        return frames, aux
+    where = "every image" + (" and calibration frame" if given else "")
+    same = f"images: the channels {', '.join(names)} hold the same values in {where}"
+    truth = top.data.get("truth")
+    if (
+        isinstance(top.data.get("dark_level"), dict)
+        or isinstance(truth, list)
+        or (isinstance(truth, dict) and any(isinstance(v, list) for v in truth.values()))
+        or top.data.get("response", "linear") not in RESPONSES
+    ):
+        notes.append(
+            f"{same}, but the file gives values per channel: each is fitted (channel: "
+            f"{names[0]} fits one)"
+        )
+        return frames, aux
+    notes.append(f"{same} (a grey image saved as colour): loaded as one channel {GREY}")
+
+    def grey(frame: ImageData | None) -> ImageData | None:
+        if frame is None or frame.pixels.shape[-1] == 1:
+            return frame
+        return dataclasses.replace(
+            frame, pixels=np.ascontiguousarray(frame.pixels[..., :1]), channel_names=(GREY,)
+        )
+
+    return [grey(f) for f in frames], {k: grey(f) for k, f in aux.items()}
+
+
+def _one_value_per_pixel(pixels: np.ndarray) -> bool:
+    """Every channel of (height, width, channels) ``pixels`` holds the first's values
+    (NaN where it has NaN)."""
+    first = pixels[..., :1]
+    return bool(np.all((pixels == first) | (np.isnan(pixels) & np.isnan(first))))

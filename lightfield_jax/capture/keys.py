@@ -15,6 +15,7 @@ import numpy as np
 
 from lightfield_jax.capture.detect import Geometry
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
+from lightfield_jax.capture.paths import capture_folder
 from lightfield_jax.capture.response import RESPONSES
 from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
@@ -478,15 +479,21 @@ def capture_files(path: str | os.PathLike) -> list[Path]:
     are skipped (:func:`~lightfield_jax.capture.loading.load_capture` reports them)."""
     path = Path(path)
     data = load_yaml(path, CaptureError, CaptureFileNotFoundError)
-    if not isinstance(data, dict):
-        return [path]
+    return [path] + [capture_folder(path) / v for v in listed_files(data)]
+
+
+def listed_files(data: Any) -> list[str]:
+    """The file names a capture file's YAML ``data`` lists (images, calibration frames, a
+    response table), relative to :func:`~lightfield_jax.capture.paths.capture_folder`."""
 
     def names(value) -> list:  # a file, a list of files, or brackets (lists of lists)
         if isinstance(value, list):
             return [name for v in value for name in names(v)]
         return [value]
 
+    if not isinstance(data, dict):
+        return []
     listed = names(data.get("images")) + names([data.get(key) for key in AUX_FRAMES])
     if data.get("response") not in RESPONSES:
         listed.append(data.get("response"))
-    return [path] + [path.parent / v for v in listed if isinstance(v, str) and v]
+    return [v for v in listed if isinstance(v, str) and v and "\0" not in v]

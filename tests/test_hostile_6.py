@@ -1,0 +1,190 @@
+"""Hostile inputs, round six: each case is refused in one line naming what is wrong,
+before the work (or, where the input is usable, taken as a user would expect), and
+leaves every file as it was. The earlier rounds: tests/test_hostile.py."""
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+import lightfield_jax as lfj
+from lightfield_jax.app.arguments import XLA_CACHE_ENV
+from lightfield_jax.app.cli import main
+from lightfield_jax.capture.image_write import write_exr
+from lightfield_jax.capture.io import read_image
+from lightfield_jax.capture.keys import capture_files
+from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
+
+H, W = 24, 32
+SIMULATE = f"""\
+grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
+medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}}
+illumination: {{kind: stripes, period: 6, lit: 3}}
+gain: 400.0
+black_level: 0.02
+dark_level: 0.01
+noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
+"""
+
+
+@pytest.fixture(autouse=True)
+def _environment(monkeypatch):
+    monkeypatch.setenv(XLA_CACHE_ENV, "off")
+    monkeypatch.delenv(MAX_MEMORY_ENV, raising=False)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """The milk as a 32x24 six-shift stripe capture with a dark frame."""
+    folder = tmp_path_factory.mktemp("hostile6")
+    (folder / "sim.yaml").write_text(SIMULATE)
+    assert main(["simulate", str(folder / "sim.yaml"), "--out", str(folder / "cap"), "-q"]) == 0
+    return folder / "cap"
+
+
+@pytest.fixture
+def capture(simulated, tmp_path):
+    """A fresh copy of the simulated capture folder."""
+    folder = tmp_path / "cap"
+    shutil.copytree(simulated, folder)
+    return folder
+
+
+def _run(capsys, *argv):
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def _refused(capsys, *argv, match: str) -> str:
+    """The command exits 2 with one error line containing ``match``."""
+    status, out, err = _run(capsys, *argv)
+    lines = err.splitlines()
+    assert status == 2, (status, out, err)
+    assert len(lines) == 1 and lines[0].startswith("lightfield-jax: error: "), err
+    assert match in lines[0], lines[0]
+    assert "Traceback" not in err and "Warning" not in err
+    return lines[0]
+
+
+def _edit(folder: Path, **changes) -> Path:
+    path = folder / "capture.yaml"
+    data = yaml.safe_load(path.read_text())
+    data.update(changes)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+# ------------------------------------------------------------------- the three leftovers
+
+
+def test_a_linked_capture_file_reads_the_images_beside_the_file_it_links(
+    capture, capsys, tmp_path
+):
+    """Before: a capture.yaml linked from another folder looked for its images in the
+    link's folder ("other/shift_00.exr: file not found"), though README says image paths
+    are relative to the file, and the file was written beside them."""
+    other = tmp_path / "other"
+    other.mkdir()
+    link = other / "capture.yaml"
+    link.symlink_to(os.path.relpath(capture / "capture.yaml", other))
+    status, out, err = _run(capsys, "inspect", link)
+    assert status == 0, err
+    assert lfj.load_capture(link).image_paths[0].resolve() == capture / "shift_00.exr"
+    # The inputs an output must not replace are the linked capture's.
+    assert capture.resolve() / "shift_00.exr" in [p.resolve() for p in capture_files(link)]
+    # A link whose own folder holds another file of a listed name: which is meant
+    # cannot be told (a template linked into several captures' folders).
+    shutil.copy(capture / "shift_01.exr", other / "shift_03.exr")
+    before = _snapshot(other)
+    line = _refused(capsys, "inspect", link, match=f"{link}: a link to ")
+    assert f"the link's folder {other} holds another shift_03.exr" in line
+    assert _snapshot(other) == before
+    # The same file under both names (a link to it) is one file: taken.
+    (other / "shift_03.exr").unlink()
+    (other / "shift_03.exr").symlink_to(capture / "shift_03.exr")
+    assert _run(capsys, "inspect", link)[0] == 0
+    # A link beside its target reads the same folder, as before.
+    (capture / "alias.yaml").symlink_to("capture.yaml")
+    assert _run(capsys, "inspect", capture / "alias.yaml")[0] == 0
+
+
+def _grey_as_rgb(capture: Path, dark=None) -> None:
+    """Each shift and the dark frame rewritten as RGB with three equal channels."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    for name in [*data["images"], data["dark_frame"]]:
+        y = read_image(capture / name).pixels[..., 0]
+        planes = (y, y, y) if name != data["dark_frame"] or dark is None else dark(y)
+        write_exr(capture / name, dict(zip("RGB", planes, strict=True)))
+
+
+def test_a_grey_image_saved_as_rgb_is_one_channel_with_a_note(capture, capsys):
+    """Before: a grey capture saved as RGB (three equal channels) loaded as R, G, B and
+    was fitted three times, three times the time for three identical answers."""
+    _grey_as_rgb(capture)
+    loaded = lfj.load_capture(capture / "capture.yaml")
+    assert loaded.channel_names == ("Y",) and loaded.images.shape[-1] == 1
+    assert loaded.mask.shape[-1] == 1 and loaded.sample_mask.shape[-1] == 1
+    assert any(
+        "channels R, G, B hold the same values in every image and calibration frame" in n
+        and "loaded as one channel Y" in n
+        for n in loaded.notes
+    ), loaded.notes
+    status, out, err = _run(capsys, "inspect", capture / "capture.yaml")
+    assert status == 0 and "loaded as one channel Y" in out, (out, err)
+    # A channel chosen by the file is that channel, by its name.
+    _edit(capture, channel="G")
+    assert lfj.load_capture(capture / "capture.yaml").channel_names == ("G",)
+    # Values per channel in the file keep the channels, with a note.
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    truth = {k: [v] * 3 if k != "phase" else v for k, v in data["truth"].items()}
+    _edit(capture, channel="all", truth=truth)
+    kept = lfj.load_capture(capture / "capture.yaml")
+    assert kept.channel_names == ("R", "G", "B")
+    assert any("gives values per channel: each is fitted" in n for n in kept.notes)
+
+
+def test_a_colour_dark_frame_keeps_equal_image_channels_apart(capture):
+    """Equal channels in the images, but a dark frame that differs per channel: the
+    calibrated channels differ, so they stay three."""
+    _grey_as_rgb(capture, dark=lambda y: (y, 1.5 * y, 0.5 * y))
+    loaded = lfj.load_capture(capture / "capture.yaml")
+    assert loaded.channel_names == ("R", "G", "B")
+    assert not any("hold the same values" in n for n in loaded.notes)
+
+
+@pytest.mark.parametrize("method", ["gradient", "grid"])
+def test_two_step_fits_name_the_rows_their_phases_leave_unseparated(
+    capture, capsys, tmp_path, method
+):
+    """Before: phases [0, 1] of period 6 ran the two-step fit to a bound (4-10 s) and
+    ended "sigma_s is not identifiable from this capture" without naming the cause: the
+    separation they fit needs each row lit in one shift and dark in another."""
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    path = _edit(
+        capture, images=["shift_00.exr", "shift_01.exr"], pattern={**pattern, "phases": [0, 1]}
+    )
+    out = tmp_path / "results.json"
+    line = _refused(
+        capsys, "fit", path, "--method", method, "--out", out,
+        match=f"method {method}: the stripes' phases [0, 1] (period 6, lit 3) leave rows 3, 4 "
+        "never lit and rows 0, 1 never dark",
+    )  # fmt: skip
+    assert "use the joint method" in line and not out.exists()
+    # The API alike; a split given instead of the separation needs none.
+    from lightfield_jax.inverse.fit import check_separable
+
+    images = np.stack([read_image(capture / f"shift_0{i}.exr").pixels[..., 0] for i in (0, 1)])
+    stripes = lfj.Stripes(phases=(0, 1))
+    with pytest.raises(ValueError, match=f"^method {method}: the stripes' phases"):
+        lfj.fit_images(images, stripes, method=method)
+    options = lfj.FitOptions(method)
+    assert check_separable(options, stripes, (images[0], images[1])) is None
+    assert check_separable(lfj.FitOptions("joint"), stripes, None) is None
