@@ -85,9 +85,7 @@ def _snapshot(folder: Path) -> dict[str, bytes]:
 # ------------------------------------------------------------------- the three leftovers
 
 
-def test_a_linked_capture_file_reads_the_images_beside_the_file_it_links(
-    capture, capsys, tmp_path
-):
+def test_a_linked_capture_file_reads_the_images_beside_the_file_it_links(capture, capsys, tmp_path):
     """Before: a capture.yaml linked from another folder looked for its images in the
     link's folder ("other/shift_00.exr: file not found"), though README says image paths
     are relative to the file, and the file was written beside them."""
