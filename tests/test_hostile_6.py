@@ -186,3 +186,63 @@ def test_two_step_fits_name_the_rows_their_phases_leave_unseparated(
     options = lfj.FitOptions(method)
     assert check_separable(options, stripes, (images[0], images[1])) is None
     assert check_separable(lfj.FitOptions("joint"), stripes, None) is None
+
+
+# ------------------------------------------------------------------------ new inputs
+
+
+def _rgb(capture: Path, order=lambda i: "RGB", dark="RGB") -> None:
+    """Each shift as R, G, B of 1, 0.7, 0.4 times its grey (channels in ``order(i)``), the
+    dark frame as R, G, B of 1, 2, 3 times its grey (in ``dark``)."""
+    data = yaml.safe_load((capture / "capture.yaml").read_text())
+    for i, name in enumerate(data["images"]):
+        y = read_image(capture / name).pixels[..., 0]
+        planes = {"R": y, "G": 0.7 * y, "B": 0.4 * y}
+        write_exr(capture / name, {c: planes[c] for c in order(i)})
+    y = read_image(capture / "dark.exr").pixels[..., 0]
+    planes = {"R": y, "G": 2 * y, "B": 3 * y}
+    write_exr(capture / "dark.exr", {c: planes[c] for c in dark})
+
+
+def test_channels_are_matched_by_name_across_files(capture, capsys):
+    """Before: one shift saved B, G, R among R, G, B files (or a dark frame so saved) was
+    taken by position: its blue was fitted as the others' red, and a dark frame's blue
+    subtracted from the red, without a word; files of other channel names alike."""
+    _rgb(capture)
+    plain = lfj.load_capture(capture / "capture.yaml")
+    _rgb(capture, order=lambda i: "BGR" if i == 2 else "RGB", dark="BGR")
+    assert read_image(capture / "shift_02.exr").channel_names == ("B", "G", "R")
+    assert read_image(capture / "dark.exr").channel_names == ("B", "G", "R")
+    swapped = lfj.load_capture(capture / "capture.yaml")
+    assert swapped.channel_names == ("R", "G", "B")
+    np.testing.assert_array_equal(swapped.images, plain.images)
+    # channel: an index picks the same position of each file: by name, it is refused.
+    _edit(capture, channel=0)
+    _refused(
+        capsys, "inspect", capture / "capture.yaml",
+        match="images[2]: shift_02.exr has the channels B, but images[0] (shift_00.exr) has R: "
+        "channels are matched by name",
+    )  # fmt: skip
+    _edit(capture, channel="R")
+    assert lfj.load_capture(capture / "capture.yaml").images.shape[-1] == 1
+    # Channels of other names: which is which cannot be told.
+    y = read_image(capture / "shift_04.exr").channel("R")
+    write_exr(capture / "shift_04.exr", {"X": y, "Y": y, "Z": y})
+    _edit(capture, channel="all")
+    _refused(
+        capsys, "inspect", capture / "capture.yaml",
+        match="images[4]: shift_04.exr has the channels X, Y, Z, but images[0] (shift_00.exr) "
+        "has R, G, B",
+    )  # fmt: skip
+
+
+def test_a_max_steps_past_the_solvers_count_is_named_as_the_option(capture, capsys, tmp_path):
+    """Before: --max-steps 1000000000000 was refused after the capture's load, as the
+    capture file's error ("capture.yaml: max_steps: must be an integer <= 1e+09")."""
+    status, out, err = _run(
+        capsys, "fit", capture / "capture.yaml", "--max-steps", "1000000000000",
+        "--out", tmp_path / "r.json",
+    )  # fmt: skip
+    assert status == 2 and "capture.yaml" not in err, err
+    assert "argument --max-steps: must be at most 1e+09, got '1000000000000'" in err
+    assert not (tmp_path / "r.json").exists()

@@ -231,7 +231,40 @@ def read_frames(top: Section, base: Path, channel) -> list[ImageData]:
                 f"{f.path.name} is {size_text(f)}, but images[0] ({first.path.name}) is "
                 f"{size_text(first)}; every image must have the same size and channels",
             )
-    return frames
+    by_index = isinstance(channel, int)
+    return [first] + [
+        matched_channels(top, f"images[{i}]", f, first, by_index)
+        for i, f in enumerate(frames[1:], 1)
+    ]
+
+
+def matched_channels(
+    top: Section, key: str, frame: ImageData, first: ImageData, by_index: bool = False
+) -> ImageData:
+    """``frame``'s channels in the order of ``first``'s (images[0]'s), matched by name
+    (a layer's prefix, ``rgb.R``, aside): one file saved B, G, R among R, G, B ones had
+    its blue fitted as the others' red. Channels of other names are refused (which is
+    which cannot be told); one channel is one, whatever its name, unless ``by_index``
+    (``channel:`` an index) chose it from a file of several."""
+    names, order = frame.channel_names, first.channel_names
+    if len(names) < (1 if by_index else 2) or len(names) != len(order):
+        return frame
+    bare, wanted = [n.rsplit(".", 1)[-1] for n in names], [n.rsplit(".", 1)[-1] for n in order]
+    if bare == wanted:
+        return frame
+    if sorted(bare) != sorted(wanted) or len(set(bare)) != len(bare):
+        top.fail(
+            key,
+            f"{frame.path.name} has the channels {', '.join(names)}, but images[0] "
+            f"({first.path.name}) has {', '.join(order)}: channels are matched by name; save "
+            "every file with the same channels, or choose one by name with the channel key",
+        )
+    index = [bare.index(n) for n in wanted]
+    return dataclasses.replace(
+        frame,
+        pixels=np.ascontiguousarray(frame.pixels[..., index]),
+        channel_names=tuple(names[i] for i in index),
+    )
 
 
 def size_text(image: ImageData) -> str:
@@ -271,6 +304,7 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
             f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
             "they have)",
         )
+    frame = matched_channels(top, key, frame, first)
     if not np.isfinite(frame.pixels).any():  # said here, not as "images: no usable pixel"
         top.fail(key, f"{value}: every pixel value is NaN or Inf (a corrupt file?)")
     return frame
