@@ -246,3 +246,19 @@ def test_a_max_steps_past_the_solvers_count_is_named_as_the_option(capture, caps
     assert status == 2 and "capture.yaml" not in err, err
     assert "argument --max-steps: must be at most 1e+09, got '1000000000000'" in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_solver_tolerances_that_can_never_be_met_are_refused(capture, capsys):
+    """Before: fit: {rtol: 0, atol: 0} (or 1e-300 each) was taken: the solve ran to
+    max_steps (14 s on this capture) and ended "not converged"."""
+    for rtol, atol in [(0.0, 0.0), (1e-300, 1e-300)]:
+        with pytest.raises(ValueError, match=r"^rtol, atol: .* can never be met \(below"):
+            lfj.FitOptions(rtol=rtol, atol=atol)
+        _edit(capture, fit={"phase": "paper", "rtol": rtol, "atol": atol})
+        _refused(
+            capsys, "inspect", capture / "capture.yaml",
+            match=f"fit: rtol, atol: {rtol!r} and {atol!r} can never be met",
+        )  # fmt: skip
+    # Either one alone may be 0: the other (or its default) is met.
+    assert lfj.FitOptions(rtol=0.0, atol=1e-10).solve.rtol == 0.0
+    assert lfj.FitOptions(rtol=0.0).solve.atol is None
