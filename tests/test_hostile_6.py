@@ -262,3 +262,28 @@ def test_solver_tolerances_that_can_never_be_met_are_refused(capture, capsys):
     # Either one alone may be 0: the other (or its default) is met.
     assert lfj.FitOptions(rtol=0.0, atol=1e-10).solve.rtol == 0.0
     assert lfj.FitOptions(rtol=0.0).solve.atol is None
+
+
+def test_write_capture_yaml_never_replaces_a_file_it_lists(capture):
+    """Before: write_capture_yaml(cap / "shift_00.exr", images=[...shift_00.exr...])
+    replaced the image with the YAML, and an empty or short image list was written into
+    a file load_capture then refused."""
+    names = [f"shift_0{i}.exr" for i in range(6)]
+    before = _snapshot(capture)
+    for target, kwargs in [
+        ("shift_00.exr", {}),
+        ("dark.exr", {"dark_frame": "dark.exr"}),
+    ]:
+        with pytest.raises(ValueError, match=f"is the listed file {target}, which the capture"):
+            lfj.write_capture_yaml(capture / target, images=names, pattern=lfj.Stripes(), **kwargs)
+    for images, match in [
+        ([], r"images: 0 listed for the pattern's 6 phases"),
+        (names[:2], r"images: 2 listed for the pattern's 6 phases \[0, 1, 2, 3, 4, 5\]"),
+        ([1, 2, 3, 4, 5, 6], r"images: must be image file names"),
+    ]:
+        with pytest.raises(ValueError, match=f"^write_capture_yaml: {match}"):
+            lfj.write_capture_yaml(capture / "new.yaml", images=images, pattern=lfj.Stripes())
+    assert _snapshot(capture) == before
+    # A stack, and brackets (one list per shift), are written.
+    lfj.write_capture_yaml(capture / "new.yaml", images="stack.npy", pattern=lfj.Stripes())
+    lfj.write_capture_yaml(capture / "new.yaml", images=[[n] for n in names], pattern=lfj.Stripes())
