@@ -287,3 +287,20 @@ def test_write_capture_yaml_never_replaces_a_file_it_lists(capture):
     # A stack, and brackets (one list per shift), are written.
     lfj.write_capture_yaml(capture / "new.yaml", images="stack.npy", pattern=lfj.Stripes())
     lfj.write_capture_yaml(capture / "new.yaml", images=[[n] for n in names], pattern=lfj.Stripes())
+
+
+def test_a_copied_shift_is_said_like_a_shift_listed_twice(capture, capsys):
+    """Before: with phases: auto, a shift saved over by a copy of another (the same
+    pixels under another file name) was taken as two shifts at one phase without a word,
+    where the same file listed twice is warned of."""
+    shutil.copy(capture / "shift_02.exr", capture / "shift_03.exr")
+    pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
+    _edit(capture, pattern={**pattern, "phases": "auto"})
+    with pytest.warns(lfj.CaptureWarning) as caught:
+        lfj.load_capture(capture / "capture.yaml")
+    said = [str(w.message) for w in caught]
+    assert any(
+        "images[3] (shift_03.exr) holds the same pixels as images[2] (shift_02.exr): one "
+        "image counted as two shifts" in s
+        for s in said
+    ), said

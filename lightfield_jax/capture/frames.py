@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import math
 import os
 from collections.abc import Sequence
@@ -121,13 +122,17 @@ def _file_identity(base: Path, value: str) -> Any:
     return path
 
 
-def images_listed_twice(top: Section, base: Path) -> str | None:
+def images_listed_twice(
+    top: Section, base: Path, frames: Sequence[ImageData] = (), names: Sequence[str] = ()
+) -> str | None:
     """What to say of stripe images listed again under ``images`` (refused by the
     phases' checks where the phases are given and differ; with ``phases: auto``, a
-    warning: one image counted as two shifts, its noise twice), or ``None``."""
+    warning: one image counted as two shifts, its noise twice), or of ``frames`` (named
+    ``names``) that hold the same pixels (a copied file, a stack's repeated frame: no
+    two exposures of a camera are alike), or ``None``."""
     images = top.get("images", None)
     if not isinstance(images, list):
-        return None
+        return _same_pixels(frames, names)
     seen: dict[Any, int] = {}
     again = []
     for i, value in enumerate(images):
@@ -140,7 +145,7 @@ def images_listed_twice(top: Section, base: Path) -> str | None:
             again.append((i, seen[ident]))
         seen.setdefault(ident, i)
     if not again:
-        return None
+        return _same_pixels(frames, names)
     i, j = again[0]
     more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
     bracket = isinstance(images[i], list)
@@ -148,6 +153,24 @@ def images_listed_twice(top: Section, base: Path) -> str | None:
     return (
         f"images[{i}] ({shown}) is the {'bracket' if bracket else 'file'} of images[{j}] "
         f"listed again{more}: one image counted as two shifts (a slip in the list?)"
+    )
+
+
+def _same_pixels(frames: Sequence[ImageData], names: Sequence[str]) -> str | None:
+    seen: dict[bytes, int] = {}
+    again = []
+    for i, frame in enumerate(frames):
+        pixels = np.ascontiguousarray(frame.pixels)
+        key = hashlib.sha256(pixels.tobytes()).digest() + str(pixels.shape).encode()
+        if key in seen:
+            again.append((i, seen[key]))
+        seen.setdefault(key, i)
+    if not again:
+        return None
+    (i, j), more = again[0], f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    return (
+        f"images[{i}] ({names[i]}) holds the same pixels as images[{j}] ({names[j]}){more}: "
+        "one image counted as two shifts (a copied file?)"
     )
 
 

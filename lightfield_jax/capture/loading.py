@@ -421,7 +421,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     # After the phases' checks, which refuse a repeated image where phases are given.
-    if (again := images_listed_twice(top, base)) is not None:
+    if (again := images_listed_twice(top, base, frames, names)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated
