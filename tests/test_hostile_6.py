@@ -304,3 +304,24 @@ def test_a_copied_shift_is_said_like_a_shift_listed_twice(capture, capsys):
         "image counted as two shifts" in s
         for s in said
     ), said
+
+
+def test_fit_capture_refuses_a_capture_whose_parts_disagree(capture):
+    """Before: a Capture changed by hand (dataclasses.replace) with a channel name too
+    many raised an IndexError, a mask of other shifts numpy's broadcast error, a pattern
+    of None an AttributeError, and a negative pixel pitch was fitted and reported as
+    negative coefficients per mm."""
+    import dataclasses
+
+    loaded = lfj.load_capture(capture / "capture.yaml")
+    for change, match in [
+        ({"channel_names": ("Y", "Z")}, r"capture\.channel_names: \('Y', 'Z'\) must name each"),
+        ({"sample_mask": loaded.sample_mask[:2]}, r"capture\.sample_mask: must have the shape"),
+        ({"images": loaded.images[:3]}, r"capture\.pattern: must be the Stripes of the 3 shifts"),
+        ({"pattern": None}, r"capture\.pattern: must be the Stripes of the 6 shifts, got None"),
+        ({"mask": loaded.mask[:5]}, r"capture\.mask: must have the shape \(24, 32, 1\)"),
+        ({"pixel_size_mm": -1.0}, r"capture\.pixel_size_mm: must lie in"),
+        ({"images": loaded.images.astype(int)}, r"capture\.images: must be floats"),
+    ]:
+        with pytest.raises(ValueError, match="^fit_capture: " + match):
+            lfj.fit_capture(dataclasses.replace(loaded, **change))

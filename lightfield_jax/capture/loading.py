@@ -420,8 +420,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     # the detector's low confidence for a wrong period first).
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
-    # After the phases' checks, which refuse a repeated image where phases are given.
-    if (again := images_listed_twice(top, base, frames, names)) is not None:
+    # After the phases' checks, which refuse a repeated image where phases are given
+    # (a copy's pixels are compared where the phases are measured: auto).
+    copies = frames if phases_from == "auto" else ()
+    if (again := images_listed_twice(top, base, copies, names)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated
