@@ -325,3 +325,32 @@ def test_fit_capture_refuses_a_capture_whose_parts_disagree(capture):
     ]:
         with pytest.raises(ValueError, match="^fit_capture: " + match):
             lfj.fit_capture(dataclasses.replace(loaded, **change))
+
+
+def test_more_worker_processes_than_the_memory_holds_are_refused(
+    capture, capsys, tmp_path, monkeypatch
+):
+    """Before: --workers 100000 started a local cluster of 100000 processes (each about
+    240 MB before any task): the memory and the process table ran out first."""
+    import distributed as dask_distributed
+
+    from lightfield_jax.app import distributed
+
+    def started(*_args, **_kwargs):
+        raise AssertionError("a cluster was started")
+
+    monkeypatch.setattr(dask_distributed, "LocalCluster", started)
+    monkeypatch.setenv(MAX_MEMORY_ENV, "1G")
+    other = tmp_path / "other"
+    shutil.copytree(capture, other)
+    out = tmp_path / "results"
+    _refused(
+        capsys, "fit", capture / "capture.yaml", other / "capture.yaml", "--workers", 8,
+        "--out", out,
+        match="--workers 8: 8 worker processes (about 256.0 MiB each before any task) needs "
+        "about 2.0 GiB of memory, more than the 1.0 GiB",
+    )  # fmt: skip
+    assert not out.exists()
+    with pytest.raises(ValueError, match="--workers 100000: 100000 worker processes"):
+        with distributed.cluster(workers=100000):
+            pass
