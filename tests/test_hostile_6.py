@@ -15,7 +15,7 @@ from lightfield_jax.app.arguments import XLA_CACHE_ENV
 from lightfield_jax.app.cli import main
 from lightfield_jax.capture.image_write import write_exr
 from lightfield_jax.capture.io import read_image
-from lightfield_jax.capture.keys import capture_files
+from lightfield_jax.capture.paths import capture_files
 from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
 
 H, W = 24, 32
@@ -354,3 +354,21 @@ def test_more_worker_processes_than_the_memory_holds_are_refused(
     with pytest.raises(ValueError, match="--workers 100000: 100000 worker processes"):
         with distributed.cluster(workers=100000):
             pass
+
+
+def test_a_word_for_a_number_is_not_called_a_quoted_number(capture, capsys):
+    """Before: black_level: 'auto ' (a space) or 'x' was refused as "must be a number,
+    got 'auto ' (str) (a quoted number: remove the quotes)": no number was quoted."""
+    for value, match in [
+        ("auto ", "black_level: must be a number in [0, 1) or 'auto', got 'auto '"),
+        ("Auto", "black_level: must be a number in [0, 1) or 'auto', got 'Auto'"),
+        ("x", "black_level: must be a number, got 'x' (str)"),
+    ]:
+        _edit(capture, black_level=value)
+        line = _refused(capsys, "inspect", capture / "capture.yaml", match=match)
+        assert "quoted" not in line, line
+    _edit(capture, black_level="0.02")
+    _refused(
+        capsys, "inspect", capture / "capture.yaml",
+        match="black_level: must be a number, got '0.02' (str) (a quoted number: remove the",
+    )  # fmt: skip

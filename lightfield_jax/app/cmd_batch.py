@@ -188,8 +188,8 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         scheduler_address,
     )
     from lightfield_jax.app.experiment_records import provenance, write_csv
-    from lightfield_jax.capture.keys import capture_files
     from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.capture.paths import capture_files
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions
     from lightfield_jax.runtime.memory import check_memory, fit_memory

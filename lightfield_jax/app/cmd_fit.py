@@ -119,8 +119,9 @@ def _fit(args: argparse.Namespace) -> int | None:
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
     from lightfield_jax.app.outputs import staged_files
-    from lightfield_jax.capture.keys import capture_files, fit_phase
+    from lightfield_jax.capture.keys import fit_phase
     from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.capture.paths import capture_files
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions

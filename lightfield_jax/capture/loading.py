@@ -192,7 +192,6 @@ from lightfield_jax.capture.keys import (
     check_integer_saturation,
     crop_pattern,
     dark_level_text,
-    listed_files,
     pixel_size_problem,
     read_black_level,
     read_channel,
@@ -207,7 +206,7 @@ from lightfield_jax.capture.keys import (
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
-from lightfield_jax.capture.paths import capture_folder, check_link_folder
+from lightfield_jax.capture.paths import capture_folder, check_link_folder, listed_files
 from lightfield_jax.capture.pixels import (
     calibrate,
     corrupt_to_nan,
