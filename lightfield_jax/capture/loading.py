@@ -91,7 +91,8 @@ Keys:
   pixels at their top code (255 or 65535, i.e. 1.0, or a 16-bit file's sensor top
   code, see ``images``), float frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
-  (default: every channel, fitted separately).
+  (default: every channel, fitted separately; matched by name across files; channels
+  equal in every file load as one, ``Y``).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
   depth modelled in 3-D (docs/model.md section 7): ``{kind: slab, thickness: 6.4,
   boundary: absorbing}`` (thickness in pixels; ``boundary: refractive`` with ``n:
