@@ -372,3 +372,20 @@ def test_a_word_for_a_number_is_not_called_a_quoted_number(capture, capsys):
         capsys, "inspect", capture / "capture.yaml",
         match="black_level: must be a number, got '0.02' (str) (a quoted number: remove the",
     )  # fmt: skip
+
+
+def test_stripes_take_a_jax_arrays_phases_and_refuse_a_table_of_them():
+    """Before: Stripes(phases=jnp.arange(6)) was refused as "must be a sequence of
+    integers" (a NumPy array was taken), and a 2x2 array of phases was flattened into
+    four phases without a word."""
+    import jax
+    import jax.numpy as jnp
+
+    assert lfj.Stripes(phases=jnp.arange(6)).phases == (0, 1, 2, 3, 4, 5)
+    assert lfj.Stripes(phases=np.arange(3)).phases == (0, 1, 2)
+    with pytest.raises(ValueError, match=r"^illumination.phases: .* array of shape \(2, 2\)$"):
+        lfj.Stripes(phases=np.arange(4).reshape(2, 2))
+    with pytest.raises(ValueError, match=r"^illumination.phases: .* got np.int64\(3\)$"):
+        lfj.Stripes(phases=np.int64(3))
+    with pytest.raises(ValueError, match=r"^illumination.phases: .* got a traced value"):
+        jax.jit(lambda p: lfj.Stripes(phases=p).period)(jnp.arange(6))
