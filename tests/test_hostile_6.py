@@ -389,3 +389,13 @@ def test_stripes_take_a_jax_arrays_phases_and_refuse_a_table_of_them():
         lfj.Stripes(phases=np.int64(3))
     with pytest.raises(ValueError, match=r"^illumination.phases: .* got a traced value"):
         jax.jit(lambda p: lfj.Stripes(phases=p).period)(jnp.arange(6))
+
+
+def test_bench_sizes_given_twice_are_refused(capsys, tmp_path):
+    """Before: --sizes 16x16x8,16x16X8 measured the one grid twice (26 s) and wrote two
+    rows of it, where --methods refuses a name given twice."""
+    status, out, err = _run(
+        capsys, "bench", "--sizes", "16x16x8,16X16x8", "--no-fits", "--out", tmp_path / "b.json"
+    )
+    assert status == 2 and "argument --sizes: '16X16x8' is given twice" in err, err
+    assert not (tmp_path / "b.json").exists()
