@@ -287,14 +287,21 @@ def show(value: Any) -> str:
     return f"{brief(value)} ({type(value).__name__})"
 
 
+def _is_float_text(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def as_float(section: Section, where: str, value: Any) -> float:
     # A string is a number only in the form YAML 1.1 leaves unread (a config parsed by
     # PyYAML's default loader); a quoted '0.01' is a string, refused as integer keys
     # refuse a quoted '6'.
     if isinstance(value, str) and not _YAML11_FLOAT.match(value):
-        section.fail(
-            where, f"must be a number, got {show(value)} (a quoted number: remove the quotes)"
-        )
+        quoted = " (a quoted number: remove the quotes)" if _is_float_text(value) else ""
+        section.fail(where, f"must be a number, got {show(value)}{quoted}")
     if isinstance(value, bool) or not isinstance(value, (int, float, str)):
         section.fail(where, f"must be a number, got {show(value)}")
     try:

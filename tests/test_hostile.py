@@ -1088,7 +1088,9 @@ def test_a_constant_alpha_is_dropped_from_any_channel_count(capture, capsys):
     for f in [*data["images"], data["dark_frame"]]:
         y = read_image(capture / f).pixels[..., 0]
         names = ("R", "G", "B", "A", "Z")
-        write_exr(capture / f, {n: np.ones_like(y) if n == "A" else y for n in names})
+        # Channels that differ (equal ones would load as one grey channel Y).
+        scale = dict(zip(names, (1.0, 0.9, 0.8, 0.0, 0.7), strict=True))
+        write_exr(capture / f, {n: np.ones_like(y) if n == "A" else scale[n] * y for n in names})
     c = lfj.load_capture(capture / "capture.yaml")
     assert c.channel_names == ("R", "G", "B", "Z")
     assert "dropped the constant alpha channel A of the 5-channel images" in " ".join(c.notes)

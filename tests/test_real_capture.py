@@ -500,7 +500,8 @@ def test_bayer_mosaic_and_four_channels_are_refused(tmp_path):
     rows = smooth * np.where(y % 2 == 0, 1.0, 0.4)
     assert mosaic_score(rows)[0] < 0.01
 
-    rgba = np.stack([smooth] * 3 + [np.ones_like(smooth)], axis=-1)
+    # Three channels that differ (equal ones would load as one grey channel Y).
+    rgba = np.stack([smooth, 0.8 * smooth, 0.6 * smooth, np.ones_like(smooth)], axis=-1)
     write_png(tmp_path / "rgba.png", rgba, bits=16)
     write_png(tmp_path / "rgba2.png", rgba, bits=16)
     (tmp_path / "capture.yaml").write_text(f"images: [rgba.png, rgba2.png]\n{STRIPES}")

@@ -179,10 +179,17 @@ def _rows(name: str, path: Path, record: dict | None, error: str | None) -> list
 def fit_batch(args: argparse.Namespace) -> int | None:
     """``fit`` of several captures (see the module docstring); exit status 1 when a fit
     failed or did not converge (the others' results written)."""
-    from lightfield_jax.app.distributed import Task, check_count, default_workers, run_tasks
+    from lightfield_jax.app.distributed import (
+        Task,
+        check_count,
+        check_workers,
+        default_workers,
+        run_tasks,
+        scheduler_address,
+    )
     from lightfield_jax.app.experiment_records import provenance, write_csv
-    from lightfield_jax.capture.keys import capture_files
     from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.capture.paths import capture_files
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.options import FitOptions
     from lightfield_jax.runtime.memory import check_memory, fit_memory
@@ -191,6 +198,8 @@ def fit_batch(args: argparse.Namespace) -> int | None:
         raise ValueError("--plot: one capture at a time (several write results and summaries)")
     paths = capture_list(args.capture)
     check_count(len(paths), args.allow_large, "captures")
+    if scheduler_address(args.scheduler) is None:  # a local cluster: before the loads
+        check_workers(args.workers)
     out = Path("results" if args.out is None else args.out)
     if out.suffix.lower() == ".json":
         raise ValueError(

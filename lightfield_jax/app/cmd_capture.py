@@ -152,8 +152,8 @@ def _inspect_command(args: argparse.Namespace) -> int | None:
     the entry wall, or its SNR never usable)."""
     from lightfield_jax.app.outputs import staged_files
     from lightfield_jax.capture.inspect import inspect_capture
-    from lightfield_jax.capture.keys import capture_files
     from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.capture.paths import capture_files
     from lightfield_jax.files import atomic_write_json
 
     check_command_outputs(

@@ -43,6 +43,17 @@ from lightfield_jax.runtime.memory import FIT_N_THETA as FIT_N_THETA
 from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS_PER_PIXEL
 
 
+def _max_steps(text: str) -> int:
+    """``--max-steps``: a positive integer within the solvers' count (else the refusal
+    named the capture file, after its load, for the command line's value)."""
+    from lightfield_jax.inverse.settings import MAX_ITERATIONS
+
+    value = positive_int(text)
+    if value > MAX_ITERATIONS:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_ITERATIONS:.0e}, got {text!r}")
+    return value
+
+
 @command(
     "fit",
     "recover sigma_t, sigma_s and g from a stripe capture",
@@ -87,7 +98,7 @@ from lightfield_jax.runtime.memory import RENDER_CELLS_PER_PIXEL as RENDER_CELLS
     ),
     arg(
         "--max-steps",
-        type=positive_int,
+        type=_max_steps,
         metavar="N",
         help="iteration limit of the solves (default: the fit setting max_steps)",
     ),
@@ -108,8 +119,9 @@ def _fit(args: argparse.Namespace) -> int | None:
     seconds, model; per channel when several). Exit status 1, with the results
     written and a warning, when a solve does not converge."""
     from lightfield_jax.app.outputs import staged_files
-    from lightfield_jax.capture.keys import capture_files, fit_phase
+    from lightfield_jax.capture.keys import fit_phase
     from lightfield_jax.capture.loading import load_capture
+    from lightfield_jax.capture.paths import capture_files
     from lightfield_jax.files import atomic_write_json
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.options import FitOptions

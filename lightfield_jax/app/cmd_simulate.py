@@ -145,6 +145,8 @@ def _grid_sizes(text: str) -> tuple[tuple[int, int, int], ...]:
             Grid(*size)
         except ValueError as e:
             raise argparse.ArgumentTypeError(f"{item.strip()!r}: {e}") from None
+        if size in sizes:  # else measured twice, two rows of one size in the results
+            raise argparse.ArgumentTypeError(f"{item.strip()!r} is given twice")
         sizes.append(size)
     return tuple(sizes)
 

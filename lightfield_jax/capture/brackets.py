@@ -29,6 +29,7 @@ from lightfield_jax.capture.exposure_checks import (
 from lightfield_jax.capture.frames import (
     check_distinct_files,
     check_not_blank,
+    matched_channels,
     read_aux_frame,
     read_frame,
     resolve_file,
@@ -110,6 +111,9 @@ def read_brackets(top: Section, base: Path, channel, notes: list[str]):
                 f"{f.path.name} is {size_text(f)}, but images[0][0] ({first.path.name}) is "
                 f"{size_text(first)}; every image must have the same size and channels",
             )
+    # By name (one exposure saved B, G, R), as the shifts are rebuilt from listed below.
+    by_index = isinstance(channel, int)
+    listed = [(key, matched_channels(top, key, f, first, by_index)) for key, f in listed]
     try:
         kept = iter(drop_constant_alpha([f for _, f in listed], notes))
     except CaptureError as e:

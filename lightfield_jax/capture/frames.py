@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import math
 import os
 from collections.abc import Sequence
@@ -31,6 +32,7 @@ from lightfield_jax.capture.pixels import (
     float_clip,
     one_value,
 )
+from lightfield_jax.capture.response import RESPONSES
 from lightfield_jax.runtime.memory import capture_bytes, check_memory
 from lightfield_jax.schema import Section, brief
 
@@ -120,13 +122,17 @@ def _file_identity(base: Path, value: str) -> Any:
     return path
 
 
-def images_listed_twice(top: Section, base: Path) -> str | None:
+def images_listed_twice(
+    top: Section, base: Path, frames: Sequence[ImageData] = (), names: Sequence[str] = ()
+) -> str | None:
     """What to say of stripe images listed again under ``images`` (refused by the
     phases' checks where the phases are given and differ; with ``phases: auto``, a
-    warning: one image counted as two shifts, its noise twice), or ``None``."""
+    warning: one image counted as two shifts, its noise twice), or of ``frames`` (named
+    ``names``) that hold the same pixels (a copied file, a stack's repeated frame: no
+    two exposures of a camera are alike), or ``None``."""
     images = top.get("images", None)
     if not isinstance(images, list):
-        return None
+        return _same_pixels(frames, names)
     seen: dict[Any, int] = {}
     again = []
     for i, value in enumerate(images):
@@ -139,7 +145,7 @@ def images_listed_twice(top: Section, base: Path) -> str | None:
             again.append((i, seen[ident]))
         seen.setdefault(ident, i)
     if not again:
-        return None
+        return _same_pixels(frames, names)
     i, j = again[0]
     more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
     bracket = isinstance(images[i], list)
@@ -147,6 +153,24 @@ def images_listed_twice(top: Section, base: Path) -> str | None:
     return (
         f"images[{i}] ({shown}) is the {'bracket' if bracket else 'file'} of images[{j}] "
         f"listed again{more}: one image counted as two shifts (a slip in the list?)"
+    )
+
+
+def _same_pixels(frames: Sequence[ImageData], names: Sequence[str]) -> str | None:
+    seen: dict[bytes, int] = {}
+    again = []
+    for i, frame in enumerate(frames):
+        pixels = np.ascontiguousarray(frame.pixels)
+        key = hashlib.sha256(pixels.tobytes()).digest() + str(pixels.shape).encode()
+        if key in seen:
+            again.append((i, seen[key]))
+        seen.setdefault(key, i)
+    if not again:
+        return None
+    (i, j), more = again[0], f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    return (
+        f"images[{i}] ({names[i]}) holds the same pixels as images[{j}] ({names[j]}){more}: "
+        "one image counted as two shifts (a copied file?)"
     )
 
 
@@ -230,7 +254,40 @@ def read_frames(top: Section, base: Path, channel) -> list[ImageData]:
                 f"{f.path.name} is {size_text(f)}, but images[0] ({first.path.name}) is "
                 f"{size_text(first)}; every image must have the same size and channels",
             )
-    return frames
+    by_index = isinstance(channel, int)
+    return [first] + [
+        matched_channels(top, f"images[{i}]", f, first, by_index)
+        for i, f in enumerate(frames[1:], 1)
+    ]
+
+
+def matched_channels(
+    top: Section, key: str, frame: ImageData, first: ImageData, by_index: bool = False
+) -> ImageData:
+    """``frame``'s channels in the order of ``first``'s (images[0]'s), matched by name
+    (a layer's prefix, ``rgb.R``, aside): one file saved B, G, R among R, G, B ones had
+    its blue fitted as the others' red. Channels of other names are refused (which is
+    which cannot be told); one channel is one, whatever its name, unless ``by_index``
+    (``channel:`` an index) chose it from a file of several."""
+    names, order = frame.channel_names, first.channel_names
+    if len(names) < (1 if by_index else 2) or len(names) != len(order):
+        return frame
+    bare, wanted = [n.rsplit(".", 1)[-1] for n in names], [n.rsplit(".", 1)[-1] for n in order]
+    if bare == wanted:
+        return frame
+    if sorted(bare) != sorted(wanted) or len(set(bare)) != len(bare):
+        top.fail(
+            key,
+            f"{frame.path.name} has the channels {', '.join(names)}, but images[0] "
+            f"({first.path.name}) has {', '.join(order)}: channels are matched by name; save "
+            "every file with the same channels, or choose one by name with the channel key",
+        )
+    index = [bare.index(n) for n in wanted]
+    return dataclasses.replace(
+        frame,
+        pixels=np.ascontiguousarray(frame.pixels[..., index]),
+        channel_names=tuple(names[i] for i in index),
+    )
 
 
 def size_text(image: ImageData) -> str:
@@ -270,6 +327,7 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
             f"{key.replace('_', ' ')} has the images' size and one channel or as many as "
             "they have)",
         )
+    frame = matched_channels(top, key, frame, first)
     if not np.isfinite(frame.pixels).any():  # said here, not as "images: no usable pixel"
         top.fail(key, f"{value}: every pixel value is NaN or Inf (a corrupt file?)")
     return frame
@@ -347,3 +405,57 @@ def check_projector_frames(top: Section, aux: dict, merged: bool) -> None:
                 f"{name}: every pixel value is {level:.6g}: not a camera image of the "
                 "projector showing all white (that varies over the medium)",
             )
+
+
+# The name of a grey image's one channel (OpenEXR's, and simulate's).
+GREY = "Y"
+
+
+def read_calibration_frames(
+    top: Section, base: Path, channel, frames: list[ImageData], notes: list[str]
+) -> tuple[list[ImageData], dict[str, ImageData | None]]:
+    """The calibration frames of single exposures (``None`` for a key not given), and
+    the stripe images; where no ``channel`` is chosen and every channel of every image
+    and calibration frame holds the same values (a grey image saved as colour), the
+    images and frames reduced to one channel :data:`GREY` (noted): each channel would be
+    fitted alike, three times the work for one answer listed three times. A file that
+    gives values per channel (``dark_level`` by channel, a ``truth`` list, a response
+    table) keeps the channels, with a note."""
+    aux = {key: read_aux_frame(top, key, base, channel, frames[0]) for key in AUX_FRAMES}
+    names = frames[0].channel_names
+    given = [f for f in aux.values() if f is not None]
+    if channel is not None or len(names) < 2:
+        return frames, aux
+    if not all(_one_value_per_pixel(f.pixels) for f in [*frames, *given]):
+        return frames, aux
+    where = "every image" + (" and calibration frame" if given else "")
+    same = f"images: the channels {', '.join(names)} hold the same values in {where}"
+    truth = top.data.get("truth")
+    if (
+        isinstance(top.data.get("dark_level"), dict)
+        or isinstance(truth, list)
+        or (isinstance(truth, dict) and any(isinstance(v, list) for v in truth.values()))
+        or top.data.get("response", "linear") not in RESPONSES
+    ):
+        notes.append(
+            f"{same}, but the file gives values per channel: each is fitted (channel: "
+            f"{names[0]} fits one)"
+        )
+        return frames, aux
+    notes.append(f"{same} (a grey image saved as colour): loaded as one channel {GREY}")
+
+    def grey(frame: ImageData | None) -> ImageData | None:
+        if frame is None or frame.pixels.shape[-1] == 1:
+            return frame
+        return dataclasses.replace(
+            frame, pixels=np.ascontiguousarray(frame.pixels[..., :1]), channel_names=(GREY,)
+        )
+
+    return [grey(f) for f in frames], {k: grey(f) for k, f in aux.items()}
+
+
+def _one_value_per_pixel(pixels: np.ndarray) -> bool:
+    """Every channel of (height, width, channels) ``pixels`` holds the first's values
+    (NaN where it has NaN)."""
+    first = pixels[..., :1]
+    return bool(np.all((pixels == first) | (np.isnan(pixels) & np.isnan(first))))

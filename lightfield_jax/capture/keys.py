@@ -7,19 +7,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from lightfield_jax.capture.detect import Geometry
-from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
-from lightfield_jax.capture.response import RESPONSES
+from lightfield_jax.capture.io import CaptureError
 from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.illumination import WALLS, Stripes
 from lightfield_jax.scene.medium import FILE_PHASE, PHASE_CONVENTIONS
-from lightfield_jax.schema import REQUIRED, Section, as_float, as_int, at_most, brief, load_yaml
+from lightfield_jax.schema import REQUIRED, Section, as_float, as_int, at_most, brief
 
 CAPTURE_KEYS: tuple[str, ...] = (
     "images",
@@ -181,8 +178,11 @@ def crop_pattern(pattern: Stripes, x0: int, y0: int) -> Stripes:
 
 
 def read_black_level(top: Section) -> float | str | None:
-    if top.get("black_level", None) == AUTO:
+    given = top.get("black_level", None)
+    if given == AUTO:
         return AUTO
+    if isinstance(given, str) and given.strip().lower() == AUTO:  # else "must be a number"
+        top.fail("black_level", f"must be a number in [0, 1) or 'auto', got {brief(given)}")
     value = top.float("black_level", None)
     if value is not None and not 0.0 <= value < 1.0:
         top.fail("black_level", f"must lie in [0, 1), got {brief(value)} (or 'auto': measured)")
@@ -470,23 +470,3 @@ def _check_truth(s: Section, truth: dict[str, Any]) -> None:
         s.fail(s.key("gain"), f"must be > 0, got {truth['gain']!r}")
     if "black_level" in truth and not 0 <= truth["black_level"] < 1:
         s.fail(s.key("black_level"), f"must lie in [0, 1), got {truth['black_level']!r}")
-
-
-def capture_files(path: str | os.PathLike) -> list[Path]:
-    """The capture file and every file it lists (images, calibration frames), from the
-    YAML alone: the inputs an output must not replace. Values that are not file names
-    are skipped (:func:`~lightfield_jax.capture.loading.load_capture` reports them)."""
-    path = Path(path)
-    data = load_yaml(path, CaptureError, CaptureFileNotFoundError)
-    if not isinstance(data, dict):
-        return [path]
-
-    def names(value) -> list:  # a file, a list of files, or brackets (lists of lists)
-        if isinstance(value, list):
-            return [name for v in value for name in names(v)]
-        return [value]
-
-    listed = names(data.get("images")) + names([data.get(key) for key in AUX_FRAMES])
-    if data.get("response") not in RESPONSES:
-        listed.append(data.get("response"))
-    return [path] + [path.parent / v for v in listed if isinstance(v, str) and v]

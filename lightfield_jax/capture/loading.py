@@ -23,10 +23,11 @@ inverse pipeline reads it)::
 
 Keys:
 
-- ``images``: a list of image files (paths relative to the capture file; OpenEXR,
-  TIFF, PNG or ``.npy``, all the same size, channel count and sample format), one per
-  phase; or one ``.npy`` stack of shape [P, H, W] or [P, H, W, C]. Integer samples are
-  scaled to [0, 1] by their type's maximum (see :func:`~lightfield_jax.capture.io.read_image`).
+- ``images``: a list of image files (paths relative to the capture file's folder: for
+  a symbolic link, the folder of the file it points to; OpenEXR, TIFF, PNG or
+  ``.npy``, all the same size, channel count and sample format), one per phase; or one
+  ``.npy`` stack of shape [P, H, W] or [P, H, W, C]. Integer samples are scaled to
+  [0, 1] by their type's maximum (see :func:`~lightfield_jax.capture.io.read_image`).
   Camera files: 16-bit TIFF or PNG from a raw converter (linear, demosaiced), or float
   EXR from an HDR merge. Refused with a clear error: images of different sample
   formats (8- and 16-bit, integer and float), 1-channel images that are an
@@ -90,7 +91,8 @@ Keys:
   pixels at their top code (255 or 65535, i.e. 1.0, or a 16-bit file's sensor top
   code, see ``images``), float frames mask nothing.
 - ``channel``: which channel to use: a name (R, G, B, Y, ...), an index, or ``all``
-  (default: every channel, fitted separately).
+  (default: every channel, fitted separately; matched by name across files; channels
+  equal in every file load as one, ``Y``).
 - ``geometry``: ``{kind: plane}``, the paper's 2-D model (default), or the tank's
   depth modelled in 3-D (docs/model.md section 7): ``{kind: slab, thickness: 6.4,
   boundary: absorbing}`` (thickness in pixels; ``boundary: refractive`` with ``n:
@@ -181,13 +183,12 @@ from lightfield_jax.capture.frames import (
     check_not_blank,
     check_projector_frames,
     images_listed_twice,
-    read_aux_frame,
+    read_calibration_frames,
     read_frames,
 )
 from lightfield_jax.capture.io import CaptureError, CaptureFileNotFoundError
 from lightfield_jax.capture.keys import (
     AUTO,
-    AUX_FRAMES,
     CAPTURE_KEYS,
     check_integer_saturation,
     crop_pattern,
@@ -206,6 +207,7 @@ from lightfield_jax.capture.keys import (
 )
 from lightfield_jax.capture.keys import FIT_KEYS as FIT_KEYS
 from lightfield_jax.capture.keys import GEOMETRY_KINDS as GEOMETRY_KINDS
+from lightfield_jax.capture.paths import capture_folder, check_link_folder, listed_files
 from lightfield_jax.capture.pixels import (
     calibrate,
     corrupt_to_nan,
@@ -243,7 +245,8 @@ def load_capture(path: str | os.PathLike) -> Capture:
         CAPTURE_KEYS,
         error=CaptureError,
     )
-    base = path.parent
+    base = capture_folder(path)  # after links: where the file was written, beside its images
+    check_link_folder(path, listed_files(top.data), CaptureError)
     channel = read_channel(top)
     fit_options = read_fit_options(top)  # before any image is read
     notes: list[str] = []  # what was measured or decided: Capture.notes
@@ -254,10 +257,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
         frames = drop_constant_alpha(frames, notes)
     except CaptureError as e:
         raise CaptureError(f"{top.source}: images: {e}") from None
-    height, width, n_channels = frames[0].pixels.shape
+    height, width, _ = frames[0].pixels.shape
     spec = read_pattern_spec(top, len(frames), height, width)
     if merged is None:
-        aux = {key: read_aux_frame(top, key, base, channel, frames[0]) for key in AUX_FRAMES}
+        frames, aux = read_calibration_frames(top, base, channel, frames, notes)
     else:
         aux, brackets = merged[1], merged[2]
     try:
@@ -277,7 +280,7 @@ def load_capture(path: str | os.PathLike) -> Capture:
     saturation = read_positive(top, "saturation") if merged is None else None
     check_integer_saturation(top, saturation, frames[0])
     geometry = read_geometry(top)
-    truth = read_truth(top, n_channels)
+    truth = read_truth(top, frames[0].pixels.shape[2])  # after a grey image's merge
 
     names = [f.path.name for f in frames]
     if len(set(f.path for f in frames)) == 1 and len(frames) > 1:
@@ -417,8 +420,10 @@ def load_capture(path: str | os.PathLike) -> Capture:
     # the detector's low confidence for a wrong period first).
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
-    # After the phases' checks, which refuse a repeated image where phases are given.
-    if (again := images_listed_twice(top, base)) is not None:
+    # After the phases' checks, which refuse a repeated image where phases are given
+    # (a copy's pixels are compared where the phases are measured: auto).
+    copies = frames if phases_from == "auto" else ()
+    if (again := images_listed_twice(top, base, copies, names)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
     del calibrated

@@ -264,7 +264,7 @@ def render_inputs(data: dict[str, Any], source: Path) -> list[Path]:
     """The capture file that the results ``data`` (read from ``source``) name and every
     file it lists (the inputs render's outputs must not replace); none for results or a
     capture that :func:`render_results` cannot use (it says why)."""
-    from lightfield_jax.capture.keys import capture_files
+    from lightfield_jax.capture.paths import capture_files
 
     try:
         return capture_files(_capture_path(data, source))

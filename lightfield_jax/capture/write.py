@@ -54,6 +54,7 @@ def write_capture_yaml(
             "write_capture_yaml: images: must be a list of image files or one .npy stack, "
             f"got {shown(images)}"
         )
+    _check_files(path, images, pattern, [dark_frame, black_frame, white_frame, flat_field])
     check_pixel_size(pixel_size_mm, "write_capture_yaml: pixel_size_mm")
     if saturation is not None:
         check_number(saturation, "write_capture_yaml: saturation", low=0.0, low_open=True)
@@ -103,3 +104,47 @@ def write_capture_yaml(
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
     header = "# lightfield_jax capture file (format: lightfield_jax.capture.capture)\n"
     return atomic_write_text(path, header + text)
+
+
+def _check_files(path, images, pattern: Stripes, frames: list) -> None:
+    """Refuse an image list that load_capture refuses (empty, not one image or bracket
+    per phase, entries that are not file names) and a capture file that would replace
+    a file it lists: unchecked, the file was written and the loading said what was
+    wrong, or an image was replaced by the YAML."""
+
+    def name(value) -> bool:
+        return isinstance(value, (str, os.PathLike)) and os.fspath(value) not in ("", ".")
+
+    if not isinstance(images, (str, os.PathLike)):
+        shifts = list(images)
+        if not all(name(v) or (isinstance(v, list) and v and all(map(name, v))) for v in shifts):
+            raise ValueError(
+                "write_capture_yaml: images: must be image file names (or a list of "
+                f"exposures' files per shift), got {shown(shifts)}"
+            )
+        if len(shifts) != pattern.n_patterns:
+            raise ValueError(
+                f"write_capture_yaml: images: {len(shifts)} listed for the pattern's "
+                f"{pattern.n_patterns} phases {list(pattern.phases)}: give one per phase"
+            )
+    else:
+        shifts = [images]
+    listed = [v for item in [*shifts, *frames] if item is not None for v in _files(item)]
+    folder = Path(path).parent
+    for value in listed:
+        if os.path.abspath(folder / value) == os.path.abspath(path) or _same(folder / value, path):
+            raise ValueError(
+                f"write_capture_yaml: {path}: is the listed file {os.fspath(value)}, which "
+                "the capture file would replace; write it under another name"
+            )
+
+
+def _files(item) -> list:
+    return list(item) if isinstance(item, list) else [item]
+
+
+def _same(a: Path, b) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False

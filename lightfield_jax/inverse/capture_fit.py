@@ -23,6 +23,7 @@ from lightfield_jax.inverse.options import FitOptions, FitResult, check_options,
 from lightfield_jax.scene.geometry import as_geometry
 from lightfield_jax.scene.geometry_spec import parse_geometry
 from lightfield_jax.scene.grid import Grid
+from lightfield_jax.scene.illumination import Stripes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,6 +139,7 @@ def fit_capture(
             f"fit_capture: expected a capture (lightfield_jax.load_capture) or a capture "
             f"file's path, got {type(capture).__name__}"
         )
+    check_capture(capture)
     names = tuple(capture.channel_names)
     chosen = names if channels is None else tuple(channels)
     for c in chosen:
@@ -200,6 +202,45 @@ def fit_capture(
             # serves every channel whose need it covers.
             floor = at_least(floor, model_from(result.model))
     return CaptureFit(channels=chosen, results=tuple(results))
+
+
+def check_capture(capture) -> None:
+    """Refuse a capture whose parts disagree (one made or changed by hand, e.g. with
+    ``dataclasses.replace``): unchecked, a channel name too many was an IndexError, a
+    mask of other shifts numpy's broadcast error, a pattern of None an AttributeError,
+    and a negative pixel pitch was reported as negative coefficients per mm."""
+    from lightfield_jax.capture.keys import check_pixel_size
+
+    images = np.asarray(capture.images)
+    names = capture.channel_names
+    if images.ndim != 4 or 0 in images.shape or images.dtype.kind != "f":
+        raise ValueError(
+            "fit_capture: capture.images: must be floats [shifts, height, width, channels], "
+            f"got {images.dtype} of shape {images.shape}"
+        )
+    if not (isinstance(names, (tuple, list)) and all(isinstance(n, str) for n in names)):
+        raise ValueError(f"fit_capture: capture.channel_names: must be names, got {shown(names)}")
+    if len(names) != images.shape[-1] or len(set(names)) != len(names):
+        raise ValueError(
+            f"fit_capture: capture.channel_names: {shown(tuple(names))} must name each of the "
+            f"images' {images.shape[-1]} channel(s) once"
+        )
+    pattern = capture.pattern
+    if not isinstance(pattern, Stripes) or pattern.n_patterns != images.shape[0]:
+        raise ValueError(
+            f"fit_capture: capture.pattern: must be the Stripes of the {images.shape[0]} "
+            f"shifts, got {shown(pattern)}"
+        )
+    shapes = {"mask": images.shape[1:]} | dict.fromkeys(
+        ("sample_mask", "clipped", "floored", "exposure"), images.shape
+    )
+    for key, shape in shapes.items():
+        value = getattr(capture, key, None)
+        if (value is not None or key == "mask") and np.shape(value) != shape:
+            raise ValueError(
+                f"fit_capture: capture.{key}: must have the shape {shape}, got {np.shape(value)}"
+            )
+    check_pixel_size(getattr(capture, "pixel_size_mm", None), "fit_capture: capture.pixel_size_mm")
 
 
 @contextlib.contextmanager

@@ -70,7 +70,7 @@ from lightfield_jax.runtime.memory import check_memory, fit_memory
 from lightfield_jax.scene.geometry import AutoGeometry, as_geometry
 from lightfield_jax.scene.geometry_spec import parse_fitted_geometry
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import INWARD_DEG, Stripes
+from lightfield_jax.scene.illumination import INWARD_DEG, Stripes, unseparated_rows
 
 
 def fit_images(
@@ -217,6 +217,7 @@ def fit_one(
         clipped=clipped,
         floored=floored,
     )
+    check_separable(options, pattern, split)  # after the images' checks, before any solve
     # A first model. Σ M / Σ D ≈ Σ_{k≥2} I_k / I_1 ≈ ρ/(1 − ρ) sizes the bounces (with
     # margin: the separation biases M low).
     ratio = max(whole.multiple_ratio, 0.0)
@@ -251,6 +252,24 @@ def fit_one(
         pixel_size_mm=pixel_size_mm,
         **solution.values,
     )
+
+
+def check_separable(options: FitOptions, pattern, split) -> None:
+    """Refuse a two-step method (``per_bounce``: it fits the separated direct and multiple
+    light) on stripes whose phases leave rows never lit or never dark, where the
+    separation has no value to take (unless a ``split`` is given): its fit ran to a
+    bound and a flag "not identifiable" that did not name the cause."""
+    method = options.method
+    if not method.per_bounce or split is not None or not isinstance(pattern, Stripes):
+        return
+    rows = unseparated_rows(pattern.period, pattern.lit, pattern.phases)
+    if rows is not None:
+        raise ValueError(
+            f"method {method.name}: the stripes' phases {list(pattern.phases)} (period "
+            f"{pattern.period}, lit {pattern.lit}) leave {rows}: the two-step methods fit "
+            "the separated direct light, which needs each row lit in one shift and dark in "
+            "another; use the joint method (it fits the raw images), or take more shifts"
+        )
 
 
 def _finish(options: FitOptions, t_start: float, seconds: dict, model: ModelSpec, **values):

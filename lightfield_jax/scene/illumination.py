@@ -26,7 +26,7 @@ from typing import Literal
 
 import numpy as np
 
-from lightfield_jax.checks import check_int, check_number, number_problem, shown
+from lightfield_jax.checks import as_array, check_int, check_number, number_problem, shown
 
 Wall = Literal["left", "right", "top", "bottom"]
 WALLS: tuple[str, ...] = ("left", "right", "top", "bottom")
@@ -162,12 +162,24 @@ class Stripes:
                 f"got {shown(self.lit)}"
             )
         object.__setattr__(self, "lit", int(self.lit))
-        if isinstance(self.phases, (str, bytes)) or not isinstance(
-            self.phases, (tuple, list, range, np.ndarray)
+        given = self.phases
+        if hasattr(given, "__array__") and not isinstance(given, np.ndarray):
+            # A JAX array (jnp.arange(6)): its values, as a NumPy array's; traced, refused.
+            given = as_array(given, "illumination.phases", "a sequence of integers")
+        if (
+            isinstance(given, (str, bytes))
+            or not isinstance(given, (tuple, list, range, np.ndarray))
+            or (isinstance(given, np.ndarray) and given.ndim == 0)
         ):
             raise ValueError(
                 f"illumination.phases: must be a sequence of integers, got {shown(self.phases)}"
             )
+        if isinstance(given, np.ndarray) and given.ndim != 1:  # else flattened into phases
+            raise ValueError(
+                "illumination.phases: must be a sequence of integers (one per image), got an "
+                f"array of shape {given.shape}"
+            )
+        object.__setattr__(self, "phases", given)
         count = np.size(self.phases) if isinstance(self.phases, np.ndarray) else len(self.phases)
         if count > MAX_PHASES:  # range(10**12) as a tuple: out of memory
             raise ValueError(
