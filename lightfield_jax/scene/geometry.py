@@ -376,8 +376,8 @@ def resolve_slab_grid(
     their worst case needs); for |g| ≥ 0.9 the finer in-plane grid
     (:func:`~lightfield_jax.scene.slab_grid.near_wall_grid`: 64 azimuth bins, 48
     elevation nodes and refine 3, or the finest rung within its cap and the memory a
-    render may take), else
-    ``n_theta`` from :func:`default_slab_n_theta` and ``refine`` 1."""
+    render may take), else ``n_theta`` from :func:`default_slab_n_theta` (halved, not
+    below 16, where more than 16 bins would pass that cap) and ``refine`` 1."""
     n, r = grid.n_theta, grid.refine
     if needs_near_wall_grid(g, albedo):
         depth = slab.resolve(g, sigma_t, albedo)
@@ -387,9 +387,15 @@ def resolve_slab_grid(
         )
         slab = dataclasses.replace(slab, n_mu=n_mu)
     slab = slab.resolve(g, sigma_t, albedo)
+    r = 1 if r is None else r
     if n is None:
         n = default_slab_n_theta(g, slab.boundary, albedo)
-    r = 1 if r is None else r
+        # Beyond 16 bins only within the memory a render may take, as the near-wall
+        # grid's rungs (32 bins double the kernels: a 128×128 refractive tank at g 0.8
+        # is estimated at 3.4 GiB with 32, 1.7 GiB with 16).
+        values = grid.width * grid.height * r * r * slab.n_mu * slab.n_z * slab.depth_coefficients
+        while n > 16 and n * values > render_cap():
+            n //= 2
     return dataclasses.replace(grid, n_theta=n, refine=r), slab
 
 
