@@ -41,7 +41,7 @@ def test_the_render_refines_the_grid_from_g_0_9_within_its_cap():
     assert resolved(0.9, 0.99) == NEAR_WALL_GRIDS[0] == (64, 48, 3)
     assert resolved(-0.95, 0.99) == (64, 48, 3)
     # Below 0.9, and a dim medium at 0.9, keep the unrefined defaults.
-    assert resolved(0.8, 0.95) == (16, 16, 1)
+    assert resolved(0.8, 0.95) == (32, 16, 1)
     assert resolved(0.89, 0.95) == (32, 24, 1)
     assert resolved(0.9, 0.2) == (32, 24, 1)
     # Larger tanks step down the ladder within the cap, then fall back to the
