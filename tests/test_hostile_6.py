@@ -289,6 +289,29 @@ def test_write_capture_yaml_never_replaces_a_file_it_lists(capture):
     lfj.write_capture_yaml(capture / "new.yaml", images=[[n] for n in names], pattern=lfj.Stripes())
 
 
+def test_write_capture_yaml_refuses_frames_that_are_not_file_names(tmp_path):
+    """A calibration frame of 5 was a TypeError of the check that the capture file
+    replaces none of its files, and a name holding a NUL byte its "embedded null
+    byte"; a bracketed capture's frames, one per exposure time, are written."""
+    names = [f"shift_0{i}.exr" for i in range(6)]
+    path = tmp_path / "capture.yaml"
+    for kwargs, match in [
+        ({"dark_frame": 5}, r"dark_frame: must be an image file name \(with brackets"),
+        ({"flat_field": ["a.exr", 3]}, r"flat_field: must be an image file name"),
+        ({"white_frame": "w\0.exr"}, r"white_frame: must be an image file name"),
+        ({"images": ["a\0.exr", *names[1:]]}, r"images: must be image file names"),
+        ({"images": "stack\0.npy"}, r"images: must be image file names or one .npy stack"),
+    ]:
+        with pytest.raises(ValueError, match="^write_capture_yaml: " + match):
+            lfj.write_capture_yaml(path, **{"images": names, "pattern": lfj.Stripes(), **kwargs})
+    assert not path.exists()
+    brackets = [[n, n.replace(".exr", "_long.exr")] for n in names]
+    lfj.write_capture_yaml(
+        path, images=brackets, pattern=lfj.Stripes(), dark_frame=["d.exr", "d_long.exr"]
+    )
+    assert yaml.safe_load(path.read_text())["dark_frame"] == ["d.exr", "d_long.exr"]
+
+
 def test_a_copied_shift_is_said_like_a_shift_listed_twice(capture, capsys):
     """Before: with phases: auto, a shift saved over by a copy of another (the same
     pixels under another file name) was taken as two shifts at one phase without a word,

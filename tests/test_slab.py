@@ -158,14 +158,15 @@ def test_render_api_lightfields_and_auto_bounces():
     # Slab: ρ = ω (3-D phase normalised on the sphere), not ω·A(g).
     assert float(res.rho) == pytest.approx(0.5)
     assert res.bounces == lfj.bounces_for_tolerance(0.5, 1e-4)
-    assert res.n_theta == 16 and res.refine == 1  # g 0.4: 16 azimuth bins
+    # g 0.4: 16 azimuth bins (default_slab_n_theta: 8 only to |g| 0.3).
+    assert res.n_theta == 16 and res.refine == 1
     assert res.images.shape == (res.bounces, H, W)
     assert res.lightfields.shape == (res.bounces + 1, H, W, 16)
     # L_0 is the sheet: depth-integrated fluence h·e^{−σt d} per radian in θ0's bin.
     l0 = np.asarray(res.lightfields[0])
     assert np.count_nonzero(l0[..., 1:]) == 0
     # The camera sees I_1 = T σs p(90°) (1 − e^{−σt h})/σt · fluence.
-    fluence = l0[..., 0] * (2 * math.pi / 16) / 6.4
+    fluence = l0[..., 0] * (2 * math.pi / res.n_theta) / 6.4
     i1 = 0.1 * hg(0.0, 0.4) * (-math.expm1(-0.2 * 6.4)) / 0.2 * fluence
     np.testing.assert_allclose(np.asarray(res.images[0]), i1, rtol=1e-5, atol=1e-9)
     # Light fields fall with the bounce's energy.

@@ -37,8 +37,9 @@ def test_the_default_azimuth_bins_keep_the_far_half_of_a_forward_medium():
 
 def test_the_cell_cap_lowers_elevation_nodes_to_16_before_azimuth_bins():
     """A 128×96 capture of a g 0.8 medium: the correction's cap (max_render_cells) leaves
-    16 bins and 8 nodes, not 8 bins and 12 nodes (far half −5.4 % against −9 %); a 48×36
-    capture keeps 32 bins."""
+    16 bins and 8 nodes, not 8 bins and 12 nodes (far half −5.4 % at 16 × 8 in
+    docs/slab_depth.md section 8; 8 bins lose 9 % even at 16 nodes); a 48×36 capture keeps
+    32 bins."""
     opts = FitOptions(geometry=TANK, phase="normalized")
     render_cap = FitOptions(
         geometry=TANK, phase="normalized", max_cells=opts.model.max_render_cells
@@ -60,3 +61,16 @@ def test_the_cell_cap_lowers_elevation_nodes_to_16_before_azimuth_bins():
     )
     kept = size_model(images, lfj.Stripes(), 0.95, 0.8, fixed, 1.03, 0.2, (0, 0, 128, 96))
     assert kept.geometry.slab.n_mu == 24 and kept.grid.n_theta == 8
+
+
+def test_the_finer_model_doubles_the_layers_first_where_the_nodes_are_the_rules():
+    """Behind absorbing faces at g 0.2 the rule's own 4 elevation nodes are enough (no
+    cap lowered them): on a 256×192 capture, where the finer model has room for one of
+    nodes and layers, it doubles the layers (4 to 8), not the nodes."""
+    opts = FitOptions(geometry=Slab(6.4), phase="normalized")
+    images = np.zeros((6, 192, 256))
+    model = size_model(images, lfj.Stripes(), 0.9, 0.2, opts, 1.03, 0.2, (0, 0, 256, 192))
+    slab = model.geometry.slab
+    assert (model.grid.n_theta, slab.n_mu, slab.n_z) == (8, 4, 4)
+    fine = error_term.finer(model, opts, 0.2)
+    assert (fine.grid.n_theta, fine.geometry.slab.n_mu, fine.geometry.slab.n_z) == (8, 4, 8)

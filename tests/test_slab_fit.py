@@ -49,7 +49,8 @@ def test_joint_recovers_a_slab_capture_rendered_by_the_slab_model():
 def test_a_one_layer_model_does_not_cover_a_need_of_four():
     """The cheap slab model (8 bins, 4 nodes, 1 constant layer) stands in for the model
     the answer needs only where it is as large in every dimension: behind absorbing faces
-    at ω 0.8, g 0.2 the need is 8 bins (what it has) but 4 layers, linear in depth."""
+    at ω 0.8, g 0.2 the need is 8 bins (what it has; 16 from |g| 0.3 with the margin) but
+    4 layers, linear in depth."""
     from lightfield_jax.inverse.model_size import covers, size_model
 
     opts = FitOptions(geometry=Slab(6.4), phase="normalized")
@@ -74,10 +75,10 @@ def test_a_one_layer_model_does_not_cover_a_need_of_four():
 
 @pytest.mark.slow  # a minute on 2 cores
 def test_the_fit_ends_on_the_depth_layers_its_answer_needs():
-    """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 8 azimuth bins (what the
-    cheap model has) but 4 linear depth layers (it has one constant one): the cheap
-    model does not stand in for the layered one (the depth average is off by 1 % on σs
-    here), the fit corrects its answer to the layers."""
+    """Behind absorbing faces at ω 0.8, g 0.4 the slab needs 4 linear depth layers (the
+    cheap model has one constant one) and 16 azimuth bins (it has 8): the cheap model
+    does not stand in for the layered one (the depth average is off by 1 % on σs here),
+    the fit corrects its answer to the layers."""
     st, ss, g = 0.2, 0.16, 0.4
     slab = Slab(6.4)  # layers and nodes from the medium, as a user gives it
     fit = fit_images(

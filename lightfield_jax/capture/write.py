@@ -54,7 +54,13 @@ def write_capture_yaml(
             "write_capture_yaml: images: must be a list of image files or one .npy stack, "
             f"got {shown(images)}"
         )
-    _check_files(path, images, pattern, [dark_frame, black_frame, white_frame, flat_field])
+    frames = {
+        "dark_frame": dark_frame,
+        "black_frame": black_frame,
+        "white_frame": white_frame,
+        "flat_field": flat_field,
+    }
+    _check_files(path, images, pattern, frames)
     check_pixel_size(pixel_size_mm, "write_capture_yaml: pixel_size_mm")
     if saturation is not None:
         check_number(saturation, "write_capture_yaml: saturation", low=0.0, low_open=True)
@@ -106,18 +112,34 @@ def write_capture_yaml(
     return atomic_write_text(path, header + text)
 
 
-def _check_files(path, images, pattern: Stripes, frames: list) -> None:
+def _check_files(path, images, pattern: Stripes, frames: dict[str, Any]) -> None:
     """Refuse an image list that load_capture refuses (empty, not one image or bracket
-    per phase, entries that are not file names) and a capture file that would replace
-    a file it lists: unchecked, the file was written and the loading said what was
-    wrong, or an image was replaced by the YAML."""
+    per phase, entries that are not file names), calibration frames that are not file
+    names, and a capture file that would replace a file it lists: unchecked, the file
+    was written and the loading said what was wrong, an image was replaced by the YAML,
+    or a frame of 5 a TypeError of the path check below."""
 
     def name(value) -> bool:
-        return isinstance(value, (str, os.PathLike)) and os.fspath(value) not in ("", ".")
+        text = os.fspath(value) if isinstance(value, (str, os.PathLike)) else None
+        return isinstance(text, str) and text not in ("", ".") and "\0" not in text
 
+    def names(value) -> bool:  # a file, or a bracketed capture's one per exposure
+        return name(value) or (isinstance(value, list) and bool(value) and all(map(name, value)))
+
+    for key, value in frames.items():
+        if value is not None and not names(value):
+            raise ValueError(
+                f"write_capture_yaml: {key}: must be an image file name (with brackets, a "
+                f"list of one per exposure time), got {shown(value)}"
+            )
+    if isinstance(images, (str, os.PathLike)) and not name(images):
+        raise ValueError(
+            f"write_capture_yaml: images: must be image file names or one .npy stack, got "
+            f"{shown(images)}"
+        )
     if not isinstance(images, (str, os.PathLike)):
         shifts = list(images)
-        if not all(name(v) or (isinstance(v, list) and v and all(map(name, v))) for v in shifts):
+        if not all(names(v) for v in shifts):
             raise ValueError(
                 "write_capture_yaml: images: must be image file names (or a list of "
                 f"exposures' files per shift), got {shown(shifts)}"
@@ -129,7 +151,7 @@ def _check_files(path, images, pattern: Stripes, frames: list) -> None:
             )
     else:
         shifts = [images]
-    listed = [v for item in [*shifts, *frames] if item is not None for v in _files(item)]
+    listed = [v for item in [*shifts, *frames.values()] if item is not None for v in _files(item)]
     folder = Path(path).parent
     for value in listed:
         if os.path.abspath(folder / value) == os.path.abspath(path) or _same(folder / value, path):

@@ -25,9 +25,9 @@ from lightfield_jax.forward.slab_cell import (
 )
 from lightfield_jax.inverse.settings import FitSettings
 from lightfield_jax.inverse.slab_caps import (
-    ACCURATE_MU,
     MIN_CAPPED_MU,
     capped_sizes,
+    finer_order,
     slab_cells,
 )
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
@@ -386,22 +386,16 @@ class SlabModel(GeometryModel):
     def finer(self, grid, options, g):
         """Twice its depth layers (at most 16), elevation nodes (64) and azimuth bins
         (128), in that order of priority, each only within four times
-        ``max_render_cells``; first the azimuth bins where they are fewer than
-        :func:`~lightfield_jax.scene.geometry.default_slab_n_theta` asks for at ``g``,
-        and the elevation nodes where they are fewer than 16 (a model the cap lowered:
-        those are then its largest errors, docs/slab_depth.md section 8)."""
+        ``max_render_cells``; first what the cap left below the rule at ``g``
+        (:func:`~lightfield_jax.inverse.slab_caps.finer_order`)."""
 
         def doubled(n: int, limit: int) -> int:
             return max(n, min(2 * n, limit))  # never below the model's own
 
         cap = 4 * options.model.max_render_cells
         model = self
-        below = [grid.n_theta < default_slab_n_theta(g, self.slab.boundary)]
-        below.append(self.slab.n_mu < ACCURATE_MU)
-        order = [k for k, low in zip(("n_theta", "n_mu"), below, strict=True) if low]
-        order += [k for k in ("n_z", "n_mu", "n_theta") if k not in order]
         limits = {"n_z": 16, "n_mu": 64, "n_theta": 128}
-        for name in order:
+        for name in finer_order(grid.n_theta, self.slab, g):
             g2, m2 = grid, model
             if name == "n_theta":
                 g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limits[name]))

@@ -6,9 +6,10 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
+from lightfield_jax.scene.geometry import Slab, default_n_mu, default_slab_n_theta
+
 if TYPE_CHECKING:
     from lightfield_jax.inverse.settings import FitSettings
-    from lightfield_jax.scene.geometry import Slab
 
 # The fewest elevation nodes the cell cap leaves a slab (the cheap model's count; a
 # refractive face needs 2 on each side of the critical angle).
@@ -68,4 +69,30 @@ def capped_sizes(
     return sizes["n_theta"], sizes["refine"], sizes["n_mu"]
 
 
-__all__ = ["ACCURATE_MU", "MIN_CAPPED_MU", "NEAR_WALL_MU_FLOOR", "capped_sizes", "slab_cells"]
+def finer_order(n_theta: int, slab: Slab, g: float) -> list[str]:
+    """The order in which the error term's finer model doubles a slab model's sizes
+    (:meth:`~lightfield_jax.inverse.geometry_model.SlabModel.finer`): depth layers,
+    elevation nodes, azimuth bins; but first the azimuth bins where they are fewer than
+    :func:`~lightfield_jax.scene.geometry.default_slab_n_theta` asks for at ``g``, and
+    the elevation nodes where they are fewer than 16 and than
+    :func:`~lightfield_jax.scene.geometry.default_n_mu` asks for: what the cap lowered,
+    then the model's largest errors (docs/slab_depth.md section 8). The rule's own 4
+    nodes at |g| ≤ 0.5 (measured enough there, docs/slab_design.md section 6) leave
+    the layers first."""
+    rule_mu = min(ACCURATE_MU, default_n_mu(g, slab.thickness, slab.boundary))
+    below = {
+        "n_theta": n_theta < default_slab_n_theta(g, slab.boundary),
+        "n_mu": slab.n_mu < rule_mu,
+    }
+    first = [name for name, low in below.items() if low]
+    return first + [name for name in ("n_z", "n_mu", "n_theta") if name not in first]
+
+
+__all__ = [
+    "ACCURATE_MU",
+    "MIN_CAPPED_MU",
+    "NEAR_WALL_MU_FLOOR",
+    "capped_sizes",
+    "finer_order",
+    "slab_cells",
+]
