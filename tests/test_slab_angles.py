@@ -35,7 +35,7 @@ def test_the_default_azimuth_bins_keep_the_far_half_of_a_forward_medium():
     assert far_half(n // 2, 0.8) / finer - 1 < -0.03
 
 
-def test_the_cell_cap_lowers_elevation_nodes_to_16_before_azimuth_bins():
+def test_the_cell_cap_keeps_16_azimuth_bins_before_it_takes_nodes_below_8():
     """A 128×96 capture of a g 0.8 medium: the correction's cap (max_render_cells) leaves
     16 bins and 8 nodes, not 8 bins and 12 nodes (far half −5.4 % at 16 × 8 in
     docs/slab_depth.md section 8; 8 bins lose 9 % even at 16 nodes); a 48×36 capture keeps

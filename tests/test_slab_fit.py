@@ -347,9 +347,9 @@ def test_the_cell_cap_leaves_a_refractive_slab_its_four_elevation_nodes():
 @pytest.mark.parametrize(
     "slab, n_theta, finer",
     [
-        # Absorbing: the cap left 16 bins, 16 nodes, 4 linear layers; the bins are below
-        # g 0.9's 32, so they are doubled first, then the layers, then the nodes.
-        (Slab(6.4), None, (32, 32, 8)),
+        # Absorbing: the cap left 16 bins, 12 nodes, 4 linear layers; the bins and the
+        # nodes are below what g 0.9 asks for, so they are doubled first, then the layers.
+        (Slab(6.4), None, (32, 24, 8)),
         # The user's 16 layers stay (linear: the cap left the model 8 bins, 8 nodes).
         (Slab(6.4, n_z=16), None, (16, 16, 16)),
         # Already past the cap: nothing finer fits, and nothing coarser is taken.

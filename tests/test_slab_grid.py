@@ -101,11 +101,11 @@ def test_the_fit_asks_for_the_finer_grid_and_its_cap_lowers_the_refinement_first
     asked = {"n_theta": 64, "n_mu": 48, "refine": 3}
     assert record["near_wall_grid"] == {"g_from": 0.9, "asked": asked}
     assert record["refine"] == 3 and record["geometry"]["n_mu"] == 48
-    # Under the default cap (32×24 px) the near-wall additions go first, then elevation
-    # nodes down to 16 before the azimuth bins (they cost least far from the wall).
+    # Under the default cap (32×24 px) the near-wall additions go before the azimuth
+    # bins, and the nodes the unrefined rule asks for (24) stay: 64 bins halved twice.
     capped = size_model(images, lfj.Stripes(), 0.99, 0.88, opts, 1.03, 0.2, crop)
-    assert (capped.grid.n_theta, capped.grid.refine) == (32, 1)
-    assert capped.geometry.slab.n_mu == 16
+    assert (capped.grid.n_theta, capped.grid.refine) == (16, 1)
+    assert capped.geometry.slab.n_mu == 24
     assert capped.as_dict()["near_wall_grid"]["asked"] == asked  # recorded as asked
     # g 0.8 (0.85 with the margin) gets the unrefined grid: no refinement, nothing recorded.
     milk = size_model(images, lfj.Stripes(), 0.95, 0.8, big, 1.03, 0.2, crop)

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import lightfield_jax.forward.slab as slab_module
-from lightfield_jax.forward.simulate import memory_estimate
 from lightfield_jax.forward.render import resolve_model
+from lightfield_jax.forward.simulate import memory_estimate
 from lightfield_jax.forward.simulate_config import parse_simulation_config
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.forward.slab_memory import (

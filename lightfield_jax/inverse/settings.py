@@ -87,8 +87,8 @@ class ModelOptions:
         refine: spatial refinement, or ``None`` to choose it from the starting g.
         max_cells: cap on the model's working size (W·H·n_theta·refine²): the
             refinement, then n_theta, are lowered to fit it (on the slab, whose fields
-            are allowed 4 × this, its elevation nodes to 16 before n_theta, then both in
-            turn: :mod:`~lightfield_jax.inverse.slab_caps`); never values the options
+            are allowed 4 × this, n_theta to 16 before the elevation nodes, then both
+            in turn: :mod:`~lightfield_jax.inverse.slab_caps`); never values the options
             fix, nor n_theta below 32 (8 on the slab, with 4 elevation nodes): a model
             left larger is said in a note (the progress callback's ``note: ...``).
         crop: crop the model along the propagation direction to where the signal is
