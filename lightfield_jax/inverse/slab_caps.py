@@ -46,10 +46,10 @@ def capped_sizes(
     nodes: 32 × 24 −0.7 %, 32 × 16 −0.8 %, 16 × 16 −3.4 %, 32 × 8 −2.9 %, 16 × 8 −5.4 %,
     32 × 4 −9.9 %): the near-wall grid's refinement (refine² of every field) and its
     nodes (``near_wall``) first, then bins down to 16, nodes down to 8, bins to 8 and
-    nodes to 4. The nodes the rule asked for stay until the bins are down to 16: at g
-    0.9 the fit of a Monte Carlo capture (ω 0.99, 32×24, tests/test_slab_fit.py) moved
-    from σt +0.8 % to +3.8 % when the solve's model took 32 bins × 16 nodes instead of
-    16 × 24. A count the options fix is never lowered."""
+    nodes to 4. The nodes the rule asked for (16 to |g| 0.85, 24 beyond:
+    :func:`~lightfield_jax.scene.geometry.default_n_mu`) stay until the bins are down
+    to 16: the table is of g 0.8, and does not say that fewer than 24 suffice beyond.
+    A count the options fix is never lowered."""
     model = options.model
     fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": model.geometry.n_mu}
     sizes = {"refine": refine, "n_theta": n_theta, "n_mu": slab.n_mu}
