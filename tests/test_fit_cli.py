@@ -11,6 +11,8 @@ import jax
 import numpy as np
 import pytest
 import yaml
+from cli_support import SIMULATE, H, W
+from cli_support import run as _run
 
 import lightfield_jax as lfj
 from lightfield_jax.app.arguments import XLA_CACHE_ENV, xla_cache_folder
@@ -20,17 +22,8 @@ from lightfield_jax.capture.io import read_image
 from lightfield_jax.capture.write import write_capture_yaml
 from lightfield_jax.inverse.fit import clear_compiled
 
-H, W, P = 24, 32, 6
+P = 6
 MILK = {"sigma_t": 0.2051, "sigma_s": 0.0366, "g": 0.4}
-SIMULATE = f"""\
-grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
-medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}}
-illumination: {{kind: stripes, period: 6, lit: 3}}
-gain: 400.0
-black_level: 0.02
-dark_level: 0.01
-noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
-"""
 RESULT_KEYS = {
     "sigma_t",
     "sigma_s",
@@ -53,12 +46,6 @@ ESTIMATES = ("sigma_t", "sigma_s", "sigma_a", "g", "albedo", "gain")
 def _no_xla_cache(monkeypatch):
     """Tests do not write compiled programs to the user's cache folder."""
     monkeypatch.setenv(XLA_CACHE_ENV, "off")
-
-
-def _run(capsys, *argv):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 @pytest.fixture(scope="module")

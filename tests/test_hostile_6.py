@@ -9,6 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from cli_support import SIMULATE
+from cli_support import refused as _refused
+from cli_support import run as _run
 
 import lightfield_jax as lfj
 from lightfield_jax.app.arguments import XLA_CACHE_ENV
@@ -17,17 +20,6 @@ from lightfield_jax.capture.image_write import write_exr
 from lightfield_jax.capture.io import read_image
 from lightfield_jax.capture.paths import capture_files
 from lightfield_jax.runtime.memory import MAX_MEMORY_ENV
-
-H, W = 24, 32
-SIMULATE = f"""\
-grid: {{width: {W}, height: {H}, n_theta: 16, refine: 1}}
-medium: {{sigma_t: 0.2051, sigma_s: 0.0366, g: 0.4, phase: paper}}
-illumination: {{kind: stripes, period: 6, lit: 3}}
-gain: 400.0
-black_level: 0.02
-dark_level: 0.01
-noise: {{photons: 1.0e5, read: 0.0005, seed: 3}}
-"""
 
 
 @pytest.fixture(autouse=True)
@@ -51,23 +43,6 @@ def capture(simulated, tmp_path):
     folder = tmp_path / "cap"
     shutil.copytree(simulated, folder)
     return folder
-
-
-def _run(capsys, *argv):
-    status = main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def _refused(capsys, *argv, match: str) -> str:
-    """The command exits 2 with one error line containing ``match``."""
-    status, out, err = _run(capsys, *argv)
-    lines = err.splitlines()
-    assert status == 2, (status, out, err)
-    assert len(lines) == 1 and lines[0].startswith("lightfield-jax: error: "), err
-    assert match in lines[0], lines[0]
-    assert "Traceback" not in err and "Warning" not in err
-    return lines[0]
 
 
 def _edit(folder: Path, **changes) -> Path:
