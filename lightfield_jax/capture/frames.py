@@ -9,7 +9,7 @@ import dataclasses
 import hashlib
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -133,21 +133,18 @@ def images_listed_twice(
     images = top.get("images", None)
     if not isinstance(images, list):
         return _same_pixels(frames, names)
-    seen: dict[Any, int] = {}
-    again = []
-    for i, value in enumerate(images):
+
+    def identity(value) -> Any:
         # A bracket (a list of exposures) is one shift too: its files, in order.
         files = value if isinstance(value, list) else [value]
         if not all(isinstance(v, str) and v and "\0" not in v for v in files):
-            continue
-        ident = tuple(_file_identity(base, v) for v in files)
-        if ident in seen:
-            again.append((i, seen[ident]))
-        seen.setdefault(ident, i)
+            return None
+        return tuple(_file_identity(base, v) for v in files)
+
+    again = _repeats(identity(value) for value in images)
     if not again:
         return _same_pixels(frames, names)
-    i, j = again[0]
-    more = f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    (i, j), more = again[0], _and_more(again)
     bracket = isinstance(images[i], list)
     shown = ", ".join(images[i]) if bracket else images[i]
     return (
@@ -156,18 +153,33 @@ def images_listed_twice(
     )
 
 
-def _same_pixels(frames: Sequence[ImageData], names: Sequence[str]) -> str | None:
-    seen: dict[bytes, int] = {}
+def _repeats(keys: Iterable[Any]) -> list[tuple[int, int]]:
+    """``(i, j)`` for each key equal to an earlier one's, j the first with it (``None``
+    keys skipped)."""
+    seen: dict[Any, int] = {}
     again = []
-    for i, frame in enumerate(frames):
-        pixels = np.ascontiguousarray(frame.pixels)
-        key = hashlib.sha256(pixels.tobytes()).digest() + str(pixels.shape).encode()
+    for i, key in enumerate(keys):
+        if key is None:
+            continue
         if key in seen:
             again.append((i, seen[key]))
         seen.setdefault(key, i)
+    return again
+
+
+def _and_more(again: list) -> str:
+    return f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+
+
+def _same_pixels(frames: Sequence[ImageData], names: Sequence[str]) -> str | None:
+    def key(frame: ImageData) -> bytes:
+        pixels = np.ascontiguousarray(frame.pixels)
+        return hashlib.sha256(pixels.tobytes()).digest() + str(pixels.shape).encode()
+
+    again = _repeats(key(frame) for frame in frames)
     if not again:
         return None
-    (i, j), more = again[0], f" (and {len(again) - 1} more)" if len(again) > 1 else ""
+    (i, j), more = again[0], _and_more(again)
     return (
         f"images[{i}] ({names[i]}) holds the same pixels as images[{j}] ({names[j]}){more}: "
         "one image counted as two shifts (a copied file?)"
