@@ -26,6 +26,7 @@ from lightfield_jax.capture.io import (
     read_npy_stack,
 )
 from lightfield_jax.capture.keys import AUX_FRAMES
+from lightfield_jax.capture.paths import is_file_name
 from lightfield_jax.capture.pixels import (
     CLIPPED_MIN,
     CLIPPED_SHARE,
@@ -105,7 +106,7 @@ def _check_float32_range(top: Section, key: str, image: ImageData) -> None:
 
 
 def resolve_file(top: Section, key: str, value: Any, base: Path) -> Path:
-    if not isinstance(value, str) or not value or "\0" in value:
+    if not is_file_name(value):
         top.fail(key, f"must be a file path, got {brief(value)}")
     return base / value
 
@@ -137,7 +138,7 @@ def images_listed_twice(
     def identity(value) -> Any:
         # A bracket (a list of exposures) is one shift too: its files, in order.
         files = value if isinstance(value, list) else [value]
-        if not all(isinstance(v, str) and v and "\0" not in v for v in files):
+        if not all(map(is_file_name, files)):
             return None
         return tuple(_file_identity(base, v) for v in files)
 
@@ -210,7 +211,7 @@ def check_distinct_files(top: Section, base: Path) -> None:
     ]
     seen: dict[Any, str] = {}
     for key, value in roles:
-        if not isinstance(value, str) or not value or "\0" in value:
+        if not is_file_name(value):
             continue  # not a path: resolve_file names its key
         ident = _file_identity(base, value)
         # A stripe image listed twice is left to the phases' checks (and, within a

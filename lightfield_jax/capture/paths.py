@@ -31,10 +31,17 @@ def capture_folder(path: str | os.PathLike) -> Path:
     return path.parent
 
 
-def _same_file(a: Path, b: Path) -> bool:
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Whether ``a`` and ``b`` name one existing file (False where either is missing)."""
     with contextlib.suppress(OSError):
         return os.path.samefile(a, b)
     return False
+
+
+def is_file_name(value: Any) -> bool:
+    """Whether a capture file's ``value`` can name a file: a non-empty string without a
+    NUL byte (what is not is refused where its key is read)."""
+    return isinstance(value, str) and bool(value) and "\0" not in value
 
 
 def check_link_folder(path: Path, names: Iterable[str], error: type[Exception]) -> None:
@@ -44,11 +51,11 @@ def check_link_folder(path: Path, names: Iterable[str], error: type[Exception]) 
     folder of another capture would read the others; which are meant cannot be told."""
     base = capture_folder(path)
     here = path.parent
-    if base == here or _same_file(base, here):
+    if base == here or same_file(base, here):
         return
     for name in names:
         beside, linked = here / name, base / name
-        if os.path.lexists(beside) and not _same_file(beside, linked):
+        if os.path.lexists(beside) and not same_file(beside, linked):
             raise error(
                 f"{path}: a link to {os.path.realpath(path)}, whose listed files are read "
                 f"beside it in {base}, but the link's folder {here} holds another {name}: "
@@ -80,4 +87,4 @@ def listed_files(data: Any) -> list[str]:
     listed = names(data.get("images")) + names([data.get(key) for key in AUX_FRAMES])
     if data.get("response") not in RESPONSES:
         listed.append(data.get("response"))
-    return [v for v in listed if isinstance(v, str) and v and "\0" not in v]
+    return [v for v in listed if is_file_name(v)]

@@ -11,6 +11,7 @@ import numpy as np
 import yaml
 
 from lightfield_jax.capture.keys import check_pixel_size
+from lightfield_jax.capture.paths import same_file
 from lightfield_jax.checks import check_number, shown
 from lightfield_jax.files import atomic_write_text
 from lightfield_jax.scene.geometry import Plane, Slab
@@ -154,7 +155,8 @@ def _check_files(path, images, pattern: Stripes, frames: dict[str, Any]) -> None
     listed = [v for item in [*shifts, *frames.values()] if item is not None for v in _files(item)]
     folder = Path(path).parent
     for value in listed:
-        if os.path.abspath(folder / value) == os.path.abspath(path) or _same(folder / value, path):
+        target = folder / value
+        if os.path.abspath(target) == os.path.abspath(path) or same_file(target, path):
             raise ValueError(
                 f"write_capture_yaml: {path}: is the listed file {os.fspath(value)}, which "
                 "the capture file would replace; write it under another name"
@@ -163,10 +165,3 @@ def _check_files(path, images, pattern: Stripes, frames: dict[str, Any]) -> None
 
 def _files(item) -> list:
     return list(item) if isinstance(item, list) else [item]
-
-
-def _same(a: Path, b) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
