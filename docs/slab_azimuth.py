@@ -14,13 +14,13 @@ docs/data/slab_azimuth.json and prints the table.
 
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from lightfield_jax.app.experiment_records import provenance
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.scene.geometry import Slab
 from lightfield_jax.scene.grid import Grid
@@ -99,9 +99,7 @@ def main() -> None:
             "slab": "refractive, h 6.4, n 1.33",
             "dtype": "float32",
         },
-        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
-        "versions": {"jax": jax.__version__, "numpy": np.__version__},
-        "date": time.strftime("%Y-%m-%d"),
+        **provenance(),
     }
     path = Path(__file__).parent / "data" / "slab_azimuth.json"
     path.write_text(json.dumps(out, indent=1))
