@@ -45,16 +45,16 @@ from jaxtyping import Array, Int
 from lightfield_jax.checks import check_int
 from lightfield_jax.forward.cell import (
     ComposedRenderer,
-    cell_moments,
     cell_problem,
     folded_index,
     shift_rows,
 )
+from lightfield_jax.forward.pattern_basis import PatternBasis, shift_basis
 from lightfield_jax.forward.slab import SlabRenderer, slab_nodes
 from lightfield_jax.forward.tail import joined_tail
 from lightfield_jax.scene.geometry import Slab
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Full, Stripes, along_x, scaled
+from lightfield_jax.scene.illumination import Full, Stripes, along_x, cell_moments, scaled
 
 
 class SlabPeriodicCell(SlabRenderer):
@@ -157,14 +157,15 @@ class SlabWalls(eqx.Module):
 
     def __call__(self, sigma_t, sigma_s, g):
         """(the term (patterns, K, H, W), the tail's term (patterns, H, W) or ``None``,
-        the two tail solutions or ``None``)."""
+        the two tail solutions or ``None``, the tank's own images (patterns, K, H, W))."""
         tank = self.tank.unchecked(sigma_t, sigma_s, g)
         free = self.free.unchecked(sigma_t, sigma_s, g)
         rows = np.arange(self.tank.height // self.tank.refine) % free[0].shape[-2]
         term = tank[0] - free[0][..., rows, :]
         if len(tank) == 2:
-            return term, None, None
-        return term, tank[2].image - free[2].image[..., rows, :], (tank[2], free[2])
+            return term, None, None, tank[0]
+        tail = tank[2].image - free[2].image[..., rows, :]
+        return term, tail, (tank[2], free[2]), tank[0]
 
 
 class SlabCellRenderer(ComposedRenderer):
@@ -185,6 +186,10 @@ class SlabCellRenderer(ComposedRenderer):
     rows: Int[Array, "patterns H"]
     shift_orders: int = eqx.field(static=True)
     weight: float = eqx.field(static=True)
+    # Every shift from fewer of them and full light, where that is exact
+    # (:mod:`lightfield_jax.forward.pattern_basis`): the first orders and the deviation
+    # render those; ``None``: every shift.
+    basis: PatternBasis | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -215,7 +220,11 @@ class SlabCellRenderer(ComposedRenderer):
             )
         solve = {"tail": tail, "tail_tol": tail_tol, "tail_max_steps": tail_max_steps}
         period, k = illumination.period, self.bounces
-        self.first = SlabRenderer(grid, illumination, s, slab, phase)
+        full = Full(illumination.direction_deg, illumination.entry)
+        self.basis = shift_basis(grid, illumination, full)
+        # Every shift, or the kept ones.
+        shifts = illumination if self.basis is None else self.basis.kept_shifts(illumination)
+        self.first = SlabRenderer(grid, shifts, s, slab, phase)
         one = dataclasses.replace(illumination, phases=(0,))
         self.cell = SlabPeriodicCell(
             dataclasses.replace(grid, height=period),
@@ -227,7 +236,6 @@ class SlabCellRenderer(ComposedRenderer):
             **solve,
         )
         # Full light is uniform in y: two rows of the periodic grid hold it.
-        full = Full(illumination.direction_deg, illumination.entry)
         self.mean_walls = SlabWalls(grid, full, 2, k, slab, phase, solve)
         self.weight = illumination.lit / period
         self.deviation = None
@@ -235,7 +243,7 @@ class SlabCellRenderer(ComposedRenderer):
             coarse = dataclasses.replace(slab, n_mu=n_mu, n_z=1, depth_profile=None)
             cg = dataclasses.replace(grid, n_theta=n_theta)
             self.deviation = (
-                SlabWalls(cg, illumination, period, k, coarse, phase, solve),
+                SlabWalls(cg, shifts, period, k, coarse, phase, solve),
                 SlabWalls(cg, full, 2, k, coarse, phase, solve),
             )
         self.rows = jnp.asarray(shift_rows(illumination, grid.height), jnp.int32)
@@ -248,15 +256,20 @@ class SlabCellRenderer(ComposedRenderer):
         s, a = self.shift_orders, self.weight
         first = self.first.unchecked(sigma_t, sigma_s, g)[0]  # (patterns, S, H, W)
         cell = self.cell.unchecked(sigma_t, sigma_s, g)
-        walls, walls_tail, walls_solves = self.mean_walls(sigma_t, sigma_s, g)
+        walls, walls_tail, walls_solves, full = self.mean_walls(sigma_t, sigma_s, g)
+        if self.basis is not None:  # the kept shifts and full light → every shift
+            first = self.basis.combine(first, full[0, :s])
         later = jnp.moveaxis(cell[0][0][:, self.rows], 0, 1)  # (patterns, K, H, W)
         later = later[:, s:] + a * walls[:, s:]
         tail_image = None if self.tail is None else cell[2].image[0][self.rows] + a * walls_tail
         solves = [] if self.tail is None else [cell[2], *walls_solves]
         if self.deviation is not None:
-            (own, own_tail, own_solves), (mean, mean_tail, mean_solves) = (
+            (own, own_tail, own_solves, _), (mean, mean_tail, mean_solves, _) = (
                 part(sigma_t, sigma_s, g) for part in self.deviation
             )
+            if self.basis is not None:
+                own = self.basis.combine(own, mean[0])
+                own_tail = None if own_tail is None else self.basis.combine(own_tail, mean_tail[0])
             later = later + (own - a * mean)[:, s:]
             if self.tail is not None:
                 tail_image = tail_image + own_tail - a * mean_tail

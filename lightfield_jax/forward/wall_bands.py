@@ -10,9 +10,24 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.forward.pattern_basis import PatternBasis
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Stripes
+from lightfield_jax.scene.illumination import Full, Stripes, scaled, source_moments
+
+
+def _moments(light, grid: Grid):
+    f = grid.refine or 1
+    return source_moments(scaled(light, f), grid.width * f, grid.height * f)
+
+
+def _joined(kept: Stripes, full: Full, grid: Grid):
+    """The source moments of the kept shifts then full light, on ``grid``'s working
+    grid."""
+    return tuple(
+        np.concatenate(pair, axis=0)
+        for pair in zip(_moments(kept, grid), _moments(full, grid), strict=True)
+    )
 
 
 def short_tank_height(height: int, period: int, band: int) -> int:
@@ -35,13 +50,35 @@ class WallBands(eqx.Module):
     native: PlaneRenderer
     band: int = eqx.field(static=True)
     rows: int = eqx.field(static=True)
+    # Every shift from fewer of them and full light (the renderers' last pattern), or
+    # ``None``: every shift rendered.
+    basis: PatternBasis | None = eqx.field(static=True)
 
-    def __init__(self, grid: Grid, stripes: Stripes, orders: int, phase: str, band: int):
+    def __init__(
+        self,
+        grid: Grid,
+        stripes: Stripes,
+        orders: int,
+        phase: str,
+        band: int,
+        basis: PatternBasis | None = None,
+    ):
         self.band = band
         self.rows = short_tank_height(grid.height, stripes.period, band)
         short = Grid(grid.width, self.rows, grid.n_theta, grid.refine)
-        self.fine = PlaneRenderer(short, stripes, orders, phase)
-        self.native = PlaneRenderer(dataclasses.replace(short, refine=1), stripes, orders, phase)
+        native = dataclasses.replace(short, refine=1)
+        full = Full(stripes.direction_deg, stripes.entry)
+        if basis is not None and not all(  # the kept shifts and full light, exact here
+            basis.holds(_moments(stripes, on), _moments(full, on)) for on in (short, native)
+        ):
+            basis = None
+        self.basis = basis
+        fine_moments = native_moments = None  # None: every shift's
+        if basis is not None:
+            kept = basis.kept_shifts(stripes)
+            fine_moments, native_moments = (_joined(kept, full, on) for on in (short, native))
+        self.fine = PlaneRenderer(short, stripes, orders, phase, moments=fine_moments)
+        self.native = PlaneRenderer(native, stripes, orders, phase, moments=native_moments)
 
     def __call__(self, sigma_t, sigma_s, g, cell, free, rows):
         """(patterns, orders − 2, 2·band, W): the correction of orders 3.. in the bottom
@@ -50,11 +87,13 @@ class WallBands(eqx.Module):
         rows, ``free`` every shift's periodic grid on the native grid (the shifts' walls'
         term's, (patterns, K, period, W))."""
         k, b, n = self.fine.bounces, self.band, self.rows
-        fine = self.fine.unchecked(sigma_t, sigma_s, g)[0]
-        native = self.native.unchecked(sigma_t, sigma_s, g)[0]
+        detail = self.fine.unchecked(sigma_t, sigma_s, g)[0]
+        detail = detail - self.native.unchecked(sigma_t, sigma_s, g)[0]
+        if self.basis is not None:  # (kept shifts, full light) → every shift
+            detail = self.basis.combine(detail[:-1], detail[-1])
         refined = jnp.moveaxis(cell[:k][:, rows], 0, 1)
         unrefined = free[:, :k][:, :, np.arange(n) % free.shape[2]]
-        e = fine - native - (refined - unrefined)
+        e = detail - (refined - unrefined)
         return jnp.concatenate([e[:, 2:, :b], e[:, 2:, n - b :]], axis=2)
 
 

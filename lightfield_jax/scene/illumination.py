@@ -438,3 +438,15 @@ def period_problem(illumination, width: int, height: int, what: str = "grid") ->
     return (
         f"{period} rows is longer than the {width}x{height} {what}: a stripe period is a few rows"
     )
+
+
+def cell_moments(illumination, width: int, rows: int):
+    """Source moments of one period of ``illumination`` (phase 0, working grid) on a
+    grid periodic in y: those of the last ``rows`` rows of a grid tall enough that no
+    pixel there sees the top wall (an oblique sheet's backward ray climbs |tan θ0| rows
+    per column)."""
+    t0 = math.radians(illumination.direction_deg)
+    climb = abs(math.tan(t0)) * width
+    tall = rows * (math.ceil(climb / rows) + 2)
+    moments = source_moments(illumination, width, tall)
+    return tuple(m[:, tall - rows :] for m in moments)

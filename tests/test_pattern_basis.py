@@ -1,0 +1,110 @@
+"""Stripe shifts as fewer patterns and full light (lightfield_jax.forward.pattern_basis)."""
+
+import numpy as np
+import pytest
+
+from lightfield_jax import Full, Grid, Slab, Stripes
+from lightfield_jax.forward.cell import CellRenderer
+from lightfield_jax.forward.pattern_basis import pattern_basis, shift_basis
+from lightfield_jax.forward.plane import PlaneRenderer
+from lightfield_jax.forward.slab import SlabRenderer
+from lightfield_jax.forward.slab_cell import SlabCellRenderer
+from lightfield_jax.scene.illumination import source_moments
+
+
+def _basis(stripes, width=40, height=30):
+    full = Full(stripes.direction_deg, stripes.entry)
+    moments = (source_moments(light, width, height) for light in (stripes, full))
+    return pattern_basis(*moments)
+
+
+def test_six_shifts_of_half_lit_stripes_are_three_of_them_and_full_light():
+    basis = _basis(Stripes(6, 3, (0, 1, 2, 3, 4, 5)))
+    assert basis.kept == (0, 1, 2)
+    # A shift and the one half a period on add up to full light.
+    expected = np.zeros((6, 4))
+    expected[:3, :3] = np.eye(3)
+    expected[3:, :3] = -np.eye(3)
+    expected[3:, 3] = 1.0
+    np.testing.assert_array_equal(np.array(basis.coef), expected)
+    assert hash(basis) == hash(_basis(Stripes(6, 3, (0, 1, 2, 3, 4, 5))))
+
+
+@pytest.mark.parametrize(
+    "stripes",
+    [
+        Stripes(6, 3, (0, 1, 2, 3, 4, 5), direction_deg=30.0),  # lit parts at their own depth
+        Stripes(8, 3, tuple(range(8))),  # every shift independent
+        Stripes(6, 2, (0, 2, 4)),  # two of them and full light: no pattern saved
+        Stripes(6, 3, (0, 1, 2)),  # independent
+    ],
+)
+def test_no_basis_where_it_is_not_exact_or_saves_no_pattern(stripes):
+    assert _basis(stripes) is None
+
+
+@pytest.mark.parametrize("geometry", ["plane", "slab"])
+def test_every_shifts_render_is_the_kept_shifts_and_full_lights(geometry):
+    # Linearity in the unscattered light: the combination of renders is the render of
+    # the combination, order by order, to float32 rounding.
+    grid = Grid(30, 24, 16, 1)
+    stripes = Stripes(6, 3, (0, 1, 2, 3, 4, 5))
+    basis = shift_basis(grid, stripes, Full())
+    assert basis is not None
+
+    def render(light):
+        if geometry == "plane":
+            r = PlaneRenderer(grid, light, 5, "normalized")
+        else:
+            r = SlabRenderer(grid, light, 5, Slab(4.0, "refractive", n=1.33, n_mu=4, n_z=1))
+        return np.asarray(r(0.3, 0.25, 0.6)[0])
+
+    every = render(stripes)
+    kept = render(Stripes(6, 3, tuple(stripes.phases[i] for i in basis.kept)))
+    combined = np.asarray(basis.combine(kept, render(Full())[0]))
+    np.testing.assert_allclose(combined, every, rtol=0, atol=2e-6 * every.max())
+
+
+def test_cell_renderers_use_the_basis_only_where_it_holds():
+    grid = Grid(48, 36, 16, 2)
+    straight, oblique = Stripes(), Stripes(direction_deg=20.0)
+    # Full light comes from the shifts' mean walls' term, marched past shift_orders.
+    cell = CellRenderer(grid, straight, 12, "normalized", shift_orders=5)
+    assert cell.basis.kept == (0, 1, 2) and cell.wall_bands.basis is not None
+    assert CellRenderer(grid, oblique, 12, "normalized", shift_orders=5).basis is None
+    assert CellRenderer(grid, straight, 6, "normalized", shift_orders=None).basis is None
+    slab = Slab(4.0, "refractive", n=1.33, n_mu=4, n_z=1)
+    assert SlabCellRenderer(Grid(48, 36, 8, 1), straight, 6, slab).basis.kept == (0, 1, 2)
+    assert SlabCellRenderer(Grid(48, 36, 8, 1), oblique, 6, slab).basis is None
+
+
+def test_two_renderers_of_one_configuration_share_their_compiled_program():
+    # The basis is a static field: two equal renderers compare equal (a jit cache hit),
+    # not an error comparing arrays.
+    grid = Grid(24, 18, 8, 2)
+    a, b = (CellRenderer(grid, Stripes(), 8, "normalized", shift_orders=5) for _ in range(2))
+    assert a.basis == b.basis
+    np.testing.assert_array_equal(np.asarray(a(0.3, 0.2, 0.5)[0]), np.asarray(b(0.3, 0.2, 0.5)[0]))
+
+
+@pytest.mark.parametrize("geometry", ["plane", "slab"])
+def test_stripe_cells_render_the_same_with_and_without_the_basis(geometry, monkeypatch):
+    # The basis changes what is rendered, not the images: every shift's walls' terms,
+    # wall bands and (slab) first orders and deviation as without it.
+    stripes = Stripes()
+
+    def cell():
+        if geometry == "plane":
+            r = CellRenderer(Grid(36, 24, 16, 2), stripes, 10, "normalized", shift_orders=5)
+        else:
+            slab = Slab(4.0, "refractive", n=1.33, n_mu=4, n_z=1)
+            r = SlabCellRenderer(Grid(36, 24, 8, 1), stripes, 8, slab, deviation=(8, 4))
+        return r, np.asarray(r(0.25, 0.22, 0.7)[0])
+
+    with_basis, a = cell()
+    assert with_basis.basis is not None
+    module = "cell" if geometry == "plane" else "slab_cell"
+    monkeypatch.setattr(f"lightfield_jax.forward.{module}.shift_basis", lambda *_: None)
+    without, b = cell()
+    assert without.basis is None
+    np.testing.assert_allclose(a, b, rtol=0, atol=3e-6 * b.max())
