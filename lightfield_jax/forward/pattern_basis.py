@@ -6,8 +6,9 @@ alone where every pattern's lit part of a pixel lies at full light's depth (ligh
 the entry wall's normal). Where the shifts' lit fractions are then combinations of a
 few of them and of full light, so is every image of every shift. Six shifts of a
 period-6 pattern with 3 rows lit are three of them and full light (a shift and the one
-half a period on add up to full light): the stripe cell's walls' terms
-(:mod:`lightfield_jax.forward.cell`) render those instead of all six.
+half a period on add up to full light): the stripe cells' every-shift parts (the plane's
+walls' term and wall bands, :mod:`lightfield_jax.forward.cell`; the slab's first orders
+and deviation, :mod:`lightfield_jax.forward.slab_cell`) render those instead of all six.
 """
 
 from __future__ import annotations
