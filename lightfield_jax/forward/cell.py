@@ -380,8 +380,11 @@ class CellRenderer(ComposedRenderer):
         full = Full(illumination.direction_deg, illumination.entry)
         # Past K, only with a tail: its term is every shift's own too.
         every = self.shift_orders > k
-        self.basis = None if every or c > 1 else shift_basis(grid, illumination, full)
-        if marched and self.shift_orders >= 3:
+        own_terms = marched and self.shift_orders >= 3
+        # Fewer shifts and full light (the mean's) where those give every shift's.
+        usable = own_terms and not every and c == 1
+        self.basis = shift_basis(grid, illumination, full) if usable else None
+        if own_terms:
             # Every shift, or fewer of them whose walls' terms and full light's give
             # every shift's.
             shifts = illumination if self.basis is None else self.basis.kept_shifts(illumination)
@@ -443,24 +446,20 @@ class CellRenderer(ComposedRenderer):
         """The walls' term per shift and order ≥ 3 (native grid, unit gain): every
         shift's own up to ``shift_orders``, the shifts' mean after; the tail's; and every
         shift's periodic grid on the native grid (``None`` without the shifts' own)."""
-        terms, tail, free, own = [], None, None, None
+        terms, tail, free, mean = [], None, None, None
         if self.shift_walls is not None:
             own, tail, free = self.shift_walls(sigma_t, sigma_s, g)
-            own = own[:, 2 : self.shift_orders]
+            terms.append(own[:, 2 : self.shift_orders])
         if self.mean_walls is not None:
             mean, tail, free_full = self.mean_walls(sigma_t, sigma_s, g)
-            if own is not None and self.basis is not None:
+            if self.basis is not None:
                 # Every shift from the kept ones' and full light's (the mean over the lit
                 # fraction), their periodic grids (the same rows) likewise.
                 full = mean[0, 2 : self.shift_orders] / self.mean_walls.weight
-                own = self.basis.combine(own, full)
+                terms[0] = self.basis.combine(terms[0], full)
                 free = self.basis.combine(free, free_full[0, : free.shape[1]])
             n = self.n_patterns
-            if own is not None:
-                terms.append(own)
             terms.append(jnp.broadcast_to(mean, (n,) + mean.shape[1:])[:, self.shift_orders :])
-        elif own is not None:
-            terms.append(own)
         return jnp.concatenate(terms, axis=1), tail, free
 
     def compose(self, sigma_t, sigma_s, g, gain):

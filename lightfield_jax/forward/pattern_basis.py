@@ -110,6 +110,13 @@ def pattern_basis(moments, full_moments) -> PatternBasis | None:
     return PatternBasis(tuple(kept), coef) if _exact(coef, basis, cov) else None
 
 
+def working_moments(light, grid: Grid):
+    """``light``'s source moments on ``grid``'s working (refined) grid, as a renderer
+    of that grid builds them."""
+    f = grid.refine or 1
+    return source_moments(scaled(light, f), grid.width * f, grid.height * f)
+
+
 def shift_basis(grid: Grid, stripes: Stripes, full: Full) -> PatternBasis | None:
     """The shifts of ``stripes`` on ``grid`` as fewer of them and full light, exact on
     the native tank, on its refined working grid and on a grid periodic in y (the
@@ -120,13 +127,12 @@ def shift_basis(grid: Grid, stripes: Stripes, full: Full) -> PatternBasis | None
     )
     if basis is None:
         return None
-    f, rows = grid.refine or 1, 2 * stripes.period
-    fine = (scaled(stripes, f), scaled(full, f))
+    rows = 2 * stripes.period
     checks = (
         [cell_moments(light, grid.width, rows) for light in (stripes, full)],
-        [source_moments(light, grid.width * f, grid.height * f) for light in fine],
+        [working_moments(light, grid) for light in (stripes, full)],
     )
     return basis if all(basis.holds(*pair) for pair in checks) else None
 
 
-__all__ = ["PatternBasis", "pattern_basis", "shift_basis"]
+__all__ = ["PatternBasis", "pattern_basis", "shift_basis", "working_moments"]

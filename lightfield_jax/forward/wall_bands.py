@@ -10,15 +10,10 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from lightfield_jax.forward.pattern_basis import PatternBasis
+from lightfield_jax.forward.pattern_basis import PatternBasis, working_moments
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Full, Stripes, scaled, source_moments
-
-
-def _moments(light, grid: Grid):
-    f = grid.refine or 1
-    return source_moments(scaled(light, f), grid.width * f, grid.height * f)
+from lightfield_jax.scene.illumination import Full, Stripes
 
 
 def _joined(kept: Stripes, full: Full, grid: Grid):
@@ -26,7 +21,7 @@ def _joined(kept: Stripes, full: Full, grid: Grid):
     grid."""
     return tuple(
         np.concatenate(pair, axis=0)
-        for pair in zip(_moments(kept, grid), _moments(full, grid), strict=True)
+        for pair in zip(working_moments(kept, grid), working_moments(full, grid), strict=True)
     )
 
 
@@ -69,7 +64,8 @@ class WallBands(eqx.Module):
         native = dataclasses.replace(short, refine=1)
         full = Full(stripes.direction_deg, stripes.entry)
         if basis is not None and not all(  # the kept shifts and full light, exact here
-            basis.holds(_moments(stripes, on), _moments(full, on)) for on in (short, native)
+            basis.holds(*(working_moments(light, on) for light in (stripes, full)))
+            for on in (short, native)
         ):
             basis = None
         self.basis = basis
