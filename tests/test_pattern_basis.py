@@ -9,7 +9,7 @@ from lightfield_jax.forward.pattern_basis import pattern_basis, shift_basis
 from lightfield_jax.forward.plane import PlaneRenderer
 from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.forward.slab_cell import SlabCellRenderer
-from lightfield_jax.scene.illumination import source_moments
+from lightfield_jax.scene.illumination import scaled, source_moments
 
 
 def _basis(stripes, width=40, height=30):
@@ -43,6 +43,20 @@ def test_no_basis_where_it_is_not_exact_or_saves_no_pattern(stripes):
     assert _basis(stripes) is None
 
 
+def _renderer_type(geometry):
+    """The full renderer of ``geometry`` and its arguments after the bounces."""
+    if geometry == "plane":
+        return PlaneRenderer, ("normalized",)
+    return SlabRenderer, (Slab(4.0, "refractive", n=1.33, n_mu=4, n_z=1),)
+
+
+def _every_pattern_marched(renderer_type, grid, light, *args, **kw):
+    """A renderer that marches every pattern (the source moments given: no basis)."""
+    f = grid.refine or 1
+    moments = source_moments(scaled(light, f), grid.width * f, grid.height * f)
+    return renderer_type(grid, light, *args, moments=moments, **kw)
+
+
 @pytest.mark.parametrize("geometry", ["plane", "slab"])
 def test_every_shifts_render_is_the_kept_shifts_and_full_lights(geometry):
     # Linearity in the unscattered light: the combination of renders is the render of
@@ -51,18 +65,52 @@ def test_every_shifts_render_is_the_kept_shifts_and_full_lights(geometry):
     stripes = Stripes(6, 3, (0, 1, 2, 3, 4, 5))
     basis = shift_basis(grid, stripes, Full())
     assert basis is not None
+    kind, args = _renderer_type(geometry)
 
     def render(light):
-        if geometry == "plane":
-            r = PlaneRenderer(grid, light, 5, "normalized")
-        else:
-            r = SlabRenderer(grid, light, 5, Slab(4.0, "refractive", n=1.33, n_mu=4, n_z=1))
-        return np.asarray(r(0.3, 0.25, 0.6)[0])
+        return np.asarray(_every_pattern_marched(kind, grid, light, 5, *args)(0.3, 0.25, 0.6)[0])
 
     every = render(stripes)
     kept = render(Stripes(6, 3, tuple(stripes.phases[i] for i in basis.kept)))
     combined = np.asarray(basis.combine(kept, render(Full())[0]))
     np.testing.assert_allclose(combined, every, rtol=0, atol=2e-6 * every.max())
+
+
+@pytest.mark.parametrize(
+    ("geometry", "refine", "options"),
+    [
+        ("plane", 1, {"tail": "gmres"}),
+        ("plane", 2, {}),
+        ("plane", 2, {"coarse_after": 3}),
+        ("slab", 1, {"tail": "gmres"}),
+    ],
+)
+def test_full_renders_march_the_kept_shifts_and_full_light(geometry, refine, options):
+    # The full-domain renderers march three shifts and full light for the six shifts
+    # and return every shift's images, light fields, tail and slope along g as a march
+    # of all six does.
+    grid = Grid(24, 18, 8, refine)
+    kind, args = _renderer_type(geometry)
+    fewer = kind(grid, Stripes(), 4, *args, **options)
+    every = _every_pattern_marched(kind, grid, Stripes(), 4, *args, **options)
+    assert fewer.marched_basis.kept == (0, 1, 2) and every.marched_basis is None
+    assert fewer.coverage.shape[0] == 4 and fewer.n_patterns == every.n_patterns == 6
+    fields = "coarse_after" not in options
+    a, b = (r(0.3, 0.25, 0.6, lightfield=fields) for r in (fewer, every))
+    pairs = [(a[0], b[0]), (a[1], b[1])]
+    if "tail" in options:
+        pairs += [(a[2].image, b[2].image), (a[2].lightfield, b[2].lightfield)]
+    else:
+        slopes = (r.images_and_g_slope(0.3, 0.25, 0.6) for r in (fewer, every))
+        pairs += list(zip(*slopes, strict=True))
+    for x, y in pairs:
+        if y is None:
+            assert x is None
+            continue
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.shape == y.shape
+        np.testing.assert_allclose(x, y, rtol=0, atol=3e-6 * np.abs(y).max())
+    assert not kind(grid, Stripes(direction_deg=20.0), 4, *args).marched_basis
 
 
 def test_cell_renderers_use_the_basis_only_where_it_holds():

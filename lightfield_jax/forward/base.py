@@ -39,9 +39,14 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from lightfield_jax.checks import check_int, number_problem
+from lightfield_jax.forward.pattern_basis import (
+    PatternBasis,
+    every_pattern_output,
+    marched_patterns,
+)
 from lightfield_jax.forward.tail import TailSolution, check_tail, solve_tail
 from lightfield_jax.scene.grid import Grid
-from lightfield_jax.scene.illumination import Illumination, scaled, source_moments
+from lightfield_jax.scene.illumination import Illumination, Stripes, scaled, source_moments
 
 _TRACES = {"renderer": 0}
 
@@ -216,6 +221,9 @@ class AbstractRenderer(eqx.Module):
     coverage: Float[Array, "patterns H W"]
     mean_depth: Float[Array, "patterns H W"]
     var_depth: Float[Array, "patterns H W"]
+    # Stripes marched as fewer shifts and full light (the source moments'), every shift
+    # combined from them at the end; ``None``: every pattern marched.
+    marched_basis: PatternBasis | None = eqx.field(static=True)
 
     def _setup(
         self,
@@ -228,11 +236,14 @@ class AbstractRenderer(eqx.Module):
         tail_max_steps: int,
         coarse_after: int | None = None,
         moments=None,
+        basis: bool = False,
     ) -> None:
         """The fields every geometry fills alike (called from a subclass's ``__init__``).
         ``moments``: the source moments ``(coverage, mean, var)`` of the working grid,
         given instead of those of ``illumination`` (a coarser grid's restriction of a
-        finer one's, :func:`restrict_moments`)."""
+        finer one's, :func:`restrict_moments`). ``basis``: march stripes as fewer shifts
+        and full light where that is exact (:mod:`~lightfield_jax.forward.pattern_basis`;
+        only for ``moments`` not given)."""
         if grid.n_theta is None:
             raise ValueError(
                 f"{type(self).__name__} needs grid.n_theta: call Grid.resolve(g) first"
@@ -251,8 +262,11 @@ class AbstractRenderer(eqx.Module):
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.phase = phase
         illumination.entry_wall(grid.width, grid.height)  # validates the entry point
+        self.marched_basis = None
         if moments is None:
-            moments = source_moments(scaled(illumination, f), self.width, self.height)
+            moments = tuple(source_moments(scaled(illumination, f), self.width, self.height))
+            if basis and isinstance(illumination, Stripes):  # (the render is linear in them)
+                self.marched_basis, moments = marched_patterns(illumination, moments, f)
         cov, mean, var = moments
         self.coverage = jnp.asarray(cov)
         self.mean_depth = jnp.asarray(mean)
@@ -309,6 +323,9 @@ class AbstractRenderer(eqx.Module):
 
     @property
     def n_patterns(self) -> int:
+        """The patterns rendered (the marched ones are fewer with :attr:`marched_basis`)."""
+        if self.marched_basis is not None:
+            return len(self.marched_basis.coef)
         return self.coverage.shape[0]
 
     def __call__(self, sigma_t, sigma_s, g, gain=1.0, lightfield: bool = False):
@@ -378,7 +395,8 @@ class AbstractRenderer(eqx.Module):
 
     @eqx.filter_jit
     def _render(self, sigma_t, sigma_s, g, gain, lightfield: bool):
-        return self._march(sigma_t, sigma_s, g, gain, lightfield)
+        out = self._march(sigma_t, sigma_s, g, gain, lightfield)
+        return every_pattern_output(self.marched_basis, out)
 
     def _march(self, sigma_t, sigma_s, g, gain, lightfield: bool):
         count_trace()
@@ -450,7 +468,7 @@ class AbstractRenderer(eqx.Module):
     def images_and_g_slope(self, sigma_t, sigma_s, g, gain=1.0):
         """Per-bounce images and their derivative in g, ``(images, d images/dg)``, each
         Float[Array, "patterns bounces H W"] (forward mode; a geometry may give it in one
-        pass of its own code, see :meth:`_render_g_slope`)."""
+        pass of its own code, see :meth:`_march_g_slope`)."""
         if self.tail is not None:
             raise ValueError(
                 f"images_and_g_slope: per-bounce images only; this renderer has tail "
@@ -466,7 +484,13 @@ class AbstractRenderer(eqx.Module):
 
     @eqx.filter_jit
     def _render_g_slope(self, sigma_t, sigma_s, g, gain):
-        """``jax.jvp`` of the march along g (working grid)."""
+        """The images and their slope along g, every pattern (working grid)."""
+        out = self._march_g_slope(sigma_t, sigma_s, g, gain)
+        return out if self.marched_basis is None else tuple(map(self.marched_basis.expand, out))
+
+    def _march_g_slope(self, sigma_t, sigma_s, g, gain):
+        """``jax.jvp`` of the march along g (working grid, the marched patterns); a
+        geometry may give it in one pass of its own code."""
         return self._march_g_jvp(sigma_t, sigma_s, g, gain)
 
     def _march_g_jvp(self, sigma_t, sigma_s, g, gain):

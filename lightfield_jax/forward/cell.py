@@ -119,6 +119,7 @@ class PeriodicCell(PlaneRenderer):
         self.height, self.width, self.n_theta = grid.height * f, grid.width * f, grid.n_theta
         self.phase = phase
         self.coarse_after = None
+        self.marched_basis = None
         if moments is None:
             moments = cell_moments(scaled(illumination, f), self.width, self.height)
         cov, mean, var = moments

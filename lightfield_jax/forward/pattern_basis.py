@@ -56,9 +56,16 @@ class PatternBasis:
         full = jnp.broadcast_to(full, kept.shape[1:])
         return jnp.tensordot(c, jnp.concatenate([kept, full[None]], axis=0), axes=1)
 
+    def expand(self, a, axis: int = 0):
+        """An array over the kept patterns then full light (along ``axis``) as one over
+        every pattern."""
+        a = jnp.moveaxis(a, axis, 0)
+        return jnp.moveaxis(self.combine(a[:-1], a[-1]), 0, axis)
+
     def holds(self, moments, full_moments) -> bool:
         """Whether the combination is exact for these source moments (each (patterns,
         H, W)) and full light's ((1, H, W))."""
+        moments, full_moments = tuple(moments), tuple(full_moments)
         if not _same_depth(moments, full_moments):
             return False
         cov = np.asarray(moments[0], np.float64)
@@ -91,6 +98,7 @@ def pattern_basis(moments, full_moments) -> PatternBasis | None:
     pattern of ``moments`` (coverage, mean, var, each (patterns, H, W); full light's
     each (1, H, W)), exactly; ``None`` where that saves no pattern or is not exact
     (oblique light, whose lit part of a pixel lies at each pattern's own depth)."""
+    moments, full_moments = tuple(moments), tuple(full_moments)
     if not _same_depth(moments, full_moments):
         return None
     cov = np.asarray(moments[0], np.float64)
@@ -108,6 +116,45 @@ def pattern_basis(moments, full_moments) -> PatternBasis | None:
     coef = np.linalg.lstsq(basis.T, rows.T, rcond=None)[0].T  # (patterns, kept + 1)
     coef = np.where(np.abs(coef) < _TOL, 0.0, np.round(coef, 12))
     return PatternBasis(tuple(kept), coef) if _exact(coef, basis, cov) else None
+
+
+def marched_patterns(stripes: Stripes, moments, refine: int):
+    """``(basis, moments)``: the kept shifts' then full light's source moments where
+    every shift of ``stripes`` is their combination on this working grid (``moments``
+    the shifts', each (patterns, H, W), on a grid ``refine`` times finer than the
+    native one), else ``(None, moments)``. A full render marches those."""
+    full = Full(stripes.direction_deg, stripes.entry)
+    height, width = np.shape(moments[0])[1:]
+    full = tuple(source_moments(scaled(full, refine), width, height))
+    basis = pattern_basis(moments, full)
+    if basis is None:
+        return None, moments
+    kept = list(basis.kept)
+    return basis, tuple(
+        np.concatenate([np.asarray(a)[kept], b], axis=0) for a, b in zip(moments, full, strict=True)
+    )
+
+
+def every_pattern_output(basis: PatternBasis | None, out):
+    """A march's ``(images, light fields[, tail])`` over the marched patterns (images
+    and the tail's arrays patterns first, light fields patterns second) as over every
+    pattern; ``basis`` ``None``: ``out`` as it is."""
+    if basis is None:
+        return out
+    images = basis.expand(out[0])
+    fields = None if out[1] is None else basis.expand(out[1], 1)
+    if len(out) == 2:
+        return images, fields
+    tail = out[2]
+    return (
+        images,
+        fields,
+        dataclasses.replace(
+            tail,
+            image=basis.expand(tail.image),
+            lightfield=None if tail.lightfield is None else basis.expand(tail.lightfield),
+        ),
+    )
 
 
 def working_moments(light, grid: Grid):
@@ -135,4 +182,11 @@ def shift_basis(grid: Grid, stripes: Stripes, full: Full) -> PatternBasis | None
     return basis if all(basis.holds(*pair) for pair in checks) else None
 
 
-__all__ = ["PatternBasis", "pattern_basis", "shift_basis", "working_moments"]
+__all__ = [
+    "PatternBasis",
+    "every_pattern_output",
+    "marched_patterns",
+    "pattern_basis",
+    "shift_basis",
+    "working_moments",
+]

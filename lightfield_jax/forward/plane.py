@@ -156,6 +156,7 @@ class PlaneRenderer(AbstractRenderer):
             tail_max_steps,
             coarse_after,
             moments,
+            basis=True,
         )
         Medium(1.0, 0.5, 0.0, phase)  # validates the phase name
         theta0 = math.radians(illumination.direction_deg)
@@ -262,8 +263,7 @@ class PlaneRenderer(AbstractRenderer):
         )
         return p_camera, node_p, mixing
 
-    @eqx.filter_jit
-    def _render_g_slope(self, sigma_t, sigma_s, g, gain):
+    def _march_g_slope(self, sigma_t, sigma_s, g, gain):
         """The slope along g in about the cost of one render of twice the patterns,
         and, unlike ``jax.jvp``, in one copy of the render's code (half the XLA compile
         of a JVP).

@@ -188,6 +188,7 @@ class SlabRenderer(AbstractRenderer):
             tail_max_steps,
             coarse_after,
             moments,
+            basis=True,
         )
         f = self.refine
         self.n_mu = int(slab.n_mu)
@@ -211,7 +212,7 @@ class SlabRenderer(AbstractRenderer):
         self.refl = jnp.asarray(slab.reflectance(mu))
         self.fft_rows = 2 * self.height
         self.pattern_block, self.mu_block = slab_blocks(
-            self.n_patterns,
+            self.coverage.shape[0],  # the marched patterns
             self.height,
             self.width,
             self.n_theta,
@@ -424,7 +425,7 @@ class SlabRenderer(AbstractRenderer):
         """The march of :class:`~lightfield_jax.forward.base.AbstractRenderer`,
         ``pattern_block`` patterns at a time (each block builds its own kernels: only one
         block's fields are alive at once)."""
-        n, size = self.n_patterns, self.pattern_block
+        n, size = self.coverage.shape[0], self.pattern_block  # the marched patterns
         if size == n:
             return super()._march(sigma_t, sigma_s, g, gain, lightfield)
         moments = tuple(

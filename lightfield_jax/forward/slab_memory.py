@@ -127,7 +127,13 @@ def slab_render_bytes(
     more, the images' copies after the render (float64, two, and the march's): the
     kernels are gone by then. Sizes are those of the working grid (× ``refine``)."""
     h, w = height * refine, width * refine
-    patterns, mu = slab_blocks(n_patterns, h, w, n_theta, n_mu, n_z, n_m)
+    # A render may march fewer patterns than it returns (stripes as fewer shifts and
+    # full light, forward/pattern_basis.py), whose blocks may be larger: the largest
+    # working set of any count up to n_patterns.
+    patterns, mu = max(
+        (slab_blocks(m, h, w, n_theta, n_mu, n_z, n_m) for m in range(1, n_patterns + 1)),
+        key=lambda b: working_bytes(*b, h, w, n_theta, n_mu, n_z, n_m),
+    )
     c = n_m * n_z
     kernels = KERNEL_COPIES * kernel_count(n_z, n_m) * spectrum_bytes(h, w, n_theta, n_mu, 1)
     working = working_bytes(patterns, mu, h, w, n_theta, n_mu, n_z, n_m)
