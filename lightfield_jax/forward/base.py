@@ -44,7 +44,7 @@ from lightfield_jax.forward.pattern_basis import (
     every_pattern_output,
     marched_patterns,
 )
-from lightfield_jax.forward.tail import TailSolution, check_tail, solve_tail
+from lightfield_jax.forward.tail import TailSolution, check_tail, mapped_output, solve_tail
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Illumination, Stripes, scaled, source_moments
 
@@ -342,22 +342,11 @@ class AbstractRenderer(eqx.Module):
         out = self._render(sigma_t / f, sigma_s / f, g, gain, lightfield)
         if f == 1:
             return out
-        images = self.image_scale * block_mean(out[0], f, (-2, -1))
-        fields = None if out[1] is None else self._refined_field(out[1])
-        if len(out) == 2:
-            return images, fields
-        tail = out[2]
-        return (
-            images,
-            fields,
-            TailSolution(
-                image=self.image_scale * block_mean(tail.image, f, (-2, -1)),
-                lightfield=None
-                if tail.lightfield is None
-                else self._refined_field(tail.lightfield),
-                steps=tail.steps,
-                converged=tail.converged,
-            ),
+        return mapped_output(
+            out,
+            lambda a: self.image_scale * block_mean(a, f, (-2, -1)),
+            self._refined_field,
+            self._refined_field,
         )
 
     def _refined_field(self, field):

@@ -18,6 +18,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from lightfield_jax.forward.tail import mapped_output
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import (
     Full,
@@ -141,20 +142,7 @@ def every_pattern_output(basis: PatternBasis | None, out):
     pattern; ``basis`` ``None``: ``out`` as it is."""
     if basis is None:
         return out
-    images = basis.expand(out[0])
-    fields = None if out[1] is None else basis.expand(out[1], 1)
-    if len(out) == 2:
-        return images, fields
-    tail = out[2]
-    return (
-        images,
-        fields,
-        dataclasses.replace(
-            tail,
-            image=basis.expand(tail.image),
-            lightfield=None if tail.lightfield is None else basis.expand(tail.lightfield),
-        ),
-    )
+    return mapped_output(out, basis.expand, lambda a: basis.expand(a, 1), basis.expand)
 
 
 def working_moments(light, grid: Grid):

@@ -71,7 +71,7 @@ from lightfield_jax.forward.slab_layers import (
     transport_weights,
 )
 from lightfield_jax.forward.slab_memory import slab_blocks
-from lightfield_jax.forward.tail import TailSolution
+from lightfield_jax.forward.tail import TailSolution, mapped_output
 from lightfield_jax.scene.grid import Grid
 from lightfield_jax.scene.illumination import Full, Illumination
 from lightfield_jax.scene.phase import hg
@@ -442,24 +442,15 @@ class SlabRenderer(AbstractRenderer):
         def patterns_first(a):  # (blocks, size, …) → (n, …)
             return a.reshape((n,) + a.shape[2:])
 
-        images = patterns_first(out[0])
-        fields = None
-        if out[1] is not None:  # (blocks, K+1, size, …) → (K+1, n, …)
-            fields = jnp.moveaxis(out[1], 0, 1)
-            fields = fields.reshape((fields.shape[0], n) + fields.shape[3:])
+        def fields_first(a):  # (blocks, K+1, size, …) → (K+1, n, …)
+            a = jnp.moveaxis(a, 0, 1)
+            return a.reshape((a.shape[0], n) + a.shape[3:])
+
+        out = mapped_output(out, patterns_first, fields_first, patterns_first)
         if len(out) == 2:
-            return images, fields
-        tail = out[2]
-        return (
-            images,
-            fields,
-            TailSolution(
-                image=patterns_first(tail.image),
-                lightfield=None if tail.lightfield is None else patterns_first(tail.lightfield),
-                steps=jnp.max(tail.steps),
-                converged=jnp.all(tail.converged),
-            ),
-        )
+            return out
+        steps, converged = jnp.max(out[2].steps), jnp.all(out[2].converged)
+        return out[:2] + (TailSolution(out[2].image, out[2].lightfield, steps, converged),)
 
 
 @functools.lru_cache(maxsize=64)

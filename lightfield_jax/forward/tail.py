@@ -83,6 +83,27 @@ class TailSolution(eqx.Module):
     converged: Bool[Array, ""]
 
 
+def mapped_output(out, image, field, tail_field):
+    """A render's ``(images, light fields[, tail])`` with ``image`` applied to its
+    images and its tail's image, ``field`` to its light fields and ``tail_field`` to its
+    tail's light field (``None`` stays ``None``; the tail's steps and convergence kept)."""
+
+    def maybe(fn, a):
+        return None if a is None else fn(a)
+
+    images, fields = image(out[0]), maybe(field, out[1])
+    if len(out) == 2:
+        return images, fields
+    tail = out[2]
+    return (
+        images,
+        fields,
+        TailSolution(
+            image(tail.image), maybe(tail_field, tail.lightfield), tail.steps, tail.converged
+        ),
+    )
+
+
 def joined_tail(image, solves) -> TailSolution:
     """The tail of a render composed from several renderers' tail ``solves`` whose
     images make ``image``: images only, the most Krylov iterations of any and whether
