@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING
 
-from lightfield_jax.scene.geometry import Slab, default_n_mu, default_slab_n_theta
+from lightfield_jax.scene.geometry import Slab, as_geometry, default_n_mu, default_slab_n_theta
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.settings import FitSettings
@@ -51,7 +51,8 @@ def capped_sizes(
     to 16: the table is of g 0.8, and does not say that fewer than 24 suffice beyond.
     A count the options fix is never lowered."""
     model = options.model
-    fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": model.geometry.n_mu}
+    user = as_geometry(model.geometry).slab_or_none  # the nodes a user's slab fixes
+    fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": user and user.n_mu}
     sizes = {"refine": refine, "n_theta": n_theta, "n_mu": slab.n_mu}
     floors = [("refine", 1)] + ([("n_mu", NEAR_WALL_MU_FLOOR)] if near_wall else [])
     floors += [("n_theta", 16), ("n_mu", 8), ("n_theta", 8), ("n_mu", MIN_CAPPED_MU)]
