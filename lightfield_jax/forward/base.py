@@ -359,7 +359,8 @@ class AbstractRenderer(eqx.Module):
 
     def scattered_orders(self, sigma_t, sigma_s, g) -> FirstOrders:
         """:meth:`first_orders` of this renderer's source at these values (working-grid
-        units): the bounce step, I_1, I_2, L_1 and Q_2."""
+        units): the bounce step, I_1, I_2, L_1 and Q_2, of the marched patterns (with
+        :attr:`marched_basis`, the kept shifts then full light)."""
         return self.first_orders(sigma_t, sigma_s, g, self.unscattered(sigma_t), True)
 
     def unscattered(self, sigma_t) -> Float[Array, "patterns H W"]:
