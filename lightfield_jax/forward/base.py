@@ -475,8 +475,10 @@ class AbstractRenderer(eqx.Module):
     @eqx.filter_jit
     def _render_g_slope(self, sigma_t, sigma_s, g, gain):
         """The images and their slope along g, every pattern (working grid)."""
-        out = self._march_g_slope(sigma_t, sigma_s, g, gain)
-        return out if self.marched_basis is None else tuple(map(self.marched_basis.expand, out))
+        images, slopes = self._march_g_slope(sigma_t, sigma_s, g, gain)
+        if self.marched_basis is None:
+            return images, slopes
+        return self.marched_basis.expand(images, light=True), self.marched_basis.expand(slopes)
 
     def _march_g_slope(self, sigma_t, sigma_s, g, gain):
         """``jax.jvp`` of the march along g (working grid, the marched patterns); a

@@ -57,11 +57,15 @@ class PatternBasis:
         full = jnp.broadcast_to(full, kept.shape[1:])
         return jnp.tensordot(c, jnp.concatenate([kept, full[None]], axis=0), axes=1)
 
-    def expand(self, a, axis: int = 0):
+    def expand(self, a, axis: int = 0, light: bool = False):
         """An array over the kept patterns then full light (along ``axis``) as one over
-        every pattern."""
+        every pattern; ``light``: of light (images, light fields), which is never
+        negative: the combination's rounding below 0 is clipped (a shift half a period
+        on is full light less a kept shift, and the slab clips its own rounding in the
+        march, which is then not exactly linear: −1e-10 of the peak, not 0)."""
         a = jnp.moveaxis(a, axis, 0)
-        return jnp.moveaxis(self.combine(a[:-1], a[-1]), 0, axis)
+        every = jnp.moveaxis(self.combine(a[:-1], a[-1]), 0, axis)
+        return jnp.maximum(every, 0.0) if light else every
 
     def holds(self, moments, full_moments) -> bool:
         """Whether the combination is exact for these source moments (each (patterns,
@@ -142,7 +146,11 @@ def every_pattern_output(basis: PatternBasis | None, out):
     pattern; ``basis`` ``None``: ``out`` as it is."""
     if basis is None:
         return out
-    return mapped_output(out, basis.expand, lambda a: basis.expand(a, 1), basis.expand)
+
+    def light(axis):
+        return lambda a: basis.expand(a, axis, light=True)
+
+    return mapped_output(out, light(0), light(1), light(0))
 
 
 def working_moments(light, grid: Grid):

@@ -127,22 +127,24 @@ def slab_render_bytes(
     more, the images' copies after the render (float64, two, and the march's): the
     kernels are gone by then. Sizes are those of the working grid (× ``refine``)."""
     h, w = height * refine, width * refine
-    # A render may march fewer patterns than it returns (stripes as fewer shifts and
-    # full light, forward/pattern_basis.py), whose blocks may be larger: the largest
-    # working set of any count up to n_patterns.
-    patterns, mu = max(
-        (slab_blocks(m, h, w, n_theta, n_mu, n_z, n_m) for m in range(1, n_patterns + 1)),
-        key=lambda b: working_bytes(*b, h, w, n_theta, n_mu, n_z, n_m),
-    )
     c = n_m * n_z
+
+    def blocked(blocks) -> int:
+        """The blocked working set and, with ``tail``, the Krylov vectors of a block."""
+        patterns, mu = blocks
+        krylov = (GMRES_RESTART + 3) * patterns * field_bytes(h, w, n_theta, n_mu, c)
+        return working_bytes(patterns, mu, h, w, n_theta, n_mu, n_z, n_m) + (krylov if tail else 0)
+
+    # A render may march fewer patterns than it returns (stripes as fewer shifts and
+    # full light, forward/pattern_basis.py), whose blocks may differ: the most any count
+    # up to n_patterns takes.
+    most = max(
+        blocked(slab_blocks(m, h, w, n_theta, n_mu, n_z, n_m)) for m in range(1, n_patterns + 1)
+    )
     kernels = KERNEL_COPIES * kernel_count(n_z, n_m) * spectrum_bytes(h, w, n_theta, n_mu, 1)
-    working = working_bytes(patterns, mu, h, w, n_theta, n_mu, n_z, n_m)
     images = bounces * n_patterns * height * width * 4
     stored = 2 * (bounces + 1) * n_patterns * h * w * n_theta * 4 if lightfield else 0
-    krylov = 0
-    if tail:
-        krylov = (GMRES_RESTART + 3) * patterns * field_bytes(h, w, n_theta, n_mu, c)
-    return max(kernels + working + images + stored + krylov, 5 * images + stored)
+    return max(kernels + most + images + stored, 5 * images + stored)
 
 
 __all__ = [
