@@ -12,6 +12,7 @@ from lightfield_jax.forward.slab import SlabRenderer
 from lightfield_jax.inverse.joint_fit import finer as error_term
 from lightfield_jax.inverse.model_size import size_model
 from lightfield_jax.inverse.options import FitOptions
+from lightfield_jax.inverse.slab_caps import finer_order
 from lightfield_jax.scene.geometry import Slab, default_slab_n_theta
 
 TANK = Slab(6.4, "refractive", 1.33)
@@ -74,3 +75,15 @@ def test_the_finer_model_doubles_the_layers_first_where_the_nodes_are_the_rules(
     assert (model.grid.n_theta, slab.n_mu, slab.n_z) == (8, 4, 4)
     fine = error_term.finer(model, opts, 0.2)
     assert (fine.grid.n_theta, fine.geometry.slab.n_mu, fine.geometry.slab.n_z) == (8, 4, 8)
+
+
+def test_the_finer_models_order_reads_the_rules_as_the_sizing_does():
+    """The order read the rules at |g| without the sizing's margin and with no albedo:
+    at g 0.58 the sizing asks 32 azimuth bins (0.63 with the margin), so a model with 16
+    doubles them first, not the layers; a dim medium (albedo 0.1) behind refractive
+    faces is sized with 8 bins at g 0.2, so its 8 are not doubled first."""
+    slab = Slab(6.4, "refractive", 1.33, n_mu=16, n_z=2)
+    assert finer_order(16, slab, 0.58, 0.9)[0] == "n_theta"
+    assert finer_order(16, slab, 0.5, 0.9)[0] == "n_z"
+    assert finer_order(8, slab, 0.2, 0.1)[0] == "n_z"
+    assert finer_order(8, slab, 0.2, 0.9)[0] == "n_theta"  # light guided: 16 bins

@@ -29,6 +29,7 @@ from lightfield_jax.inverse.slab_caps import (
     capped_sizes,
     finer_order,
     slab_cells,
+    slab_rule_inputs,
 )
 from lightfield_jax.scene.geometry import Plane, Slab, as_geometry, default_slab_n_theta
 from lightfield_jax.scene.grid import REFINE_LIMIT, Grid, default_n_theta, default_refine
@@ -117,8 +118,11 @@ class GeometryModel(abc.ABC):
         return {}
 
     @abc.abstractmethod
-    def finer(self, grid: Grid, options: FitSettings, g: float) -> tuple[Grid, GeometryModel]:
-        """The grid and geometry of the error term's finer model, never coarser."""
+    def finer(
+        self, grid: Grid, options: FitSettings, g: float, albedo: float | None = None
+    ) -> tuple[Grid, GeometryModel]:
+        """The grid and geometry of the error term's finer model at the answer's ``g``
+        and ``albedo`` (``None``: unknown), never coarser."""
 
     def richardson_factor(self, grid: Grid, fine_grid: Grid) -> float | None:
         """How far past the finer model (``fine_grid``) the continuum lies, in units of
@@ -203,7 +207,7 @@ class PlaneModel(GeometryModel):
         cells = plane_cells(grid)
         return None if cells <= max_cells else f"{cells} cells"
 
-    def finer(self, grid, options, g):
+    def finer(self, grid, options, g, albedo=None):
         """One spatial refinement more than a refined model's (the size rule's at the
         answer's ``g`` where larger, as for an unrefined one), within twice
         ``max_render_cells`` (the memory a render may take), and twice the θ bins (past
@@ -282,7 +286,7 @@ class SlabModel(GeometryModel):
         # A forward lobe (|g| ≥ 0.9 with the margin) asks for the finer in-plane grid
         # (scene.slab_grid: 64 bins, 48 μ nodes, refine 3); the cap (:meth:`capped`)
         # lowers what it added first.
-        g_slab, albedo_slab = min(0.99, abs(g) + 0.05), min(max(albedo, 0.0), 1.0)
+        g_slab, albedo_slab = slab_rule_inputs(g, albedo)
         slab, n_theta, refine = self.slab, options.model.n_theta, options.model.refine
         asked = None
         if needs_near_wall_grid(g_slab, albedo_slab):
@@ -383,7 +387,7 @@ class SlabModel(GeometryModel):
         slab = self.slab
         return {"n_mu": slab.n_mu, "n_z": slab.n_z, "depth_order": slab.depth_coefficients - 1}
 
-    def finer(self, grid, options, g):
+    def finer(self, grid, options, g, albedo=None):
         """Twice its depth layers (at most 16), elevation nodes (64) and azimuth bins
         (128), in that order of priority, each only within four times
         ``max_render_cells``; first what the cap left below the rule at ``g``
@@ -395,7 +399,7 @@ class SlabModel(GeometryModel):
         cap = 4 * options.model.max_render_cells
         model = self
         limits = {"n_z": 16, "n_mu": 64, "n_theta": 128}
-        for name in finer_order(grid.n_theta, self.slab, g):
+        for name in finer_order(grid.n_theta, self.slab, g, albedo):
             g2, m2 = grid, model
             if name == "n_theta":
                 g2 = dataclasses.replace(grid, n_theta=doubled(grid.n_theta, limits[name]))

@@ -71,7 +71,19 @@ def capped_sizes(
     return sizes["n_theta"], sizes["refine"], sizes["n_mu"]
 
 
-def finer_order(n_theta: int, slab: Slab, g: float) -> list[str]:
+# The sizing rules' margin on |g| for a slab (less sensitive to g than the plane).
+SLAB_G_MARGIN = 0.05
+
+
+def slab_rule_inputs(g: float, albedo: float | None) -> tuple[float, float | None]:
+    """The (g, albedo) a slab's sizing rules read for an estimate's: |g| with
+    :data:`SLAB_G_MARGIN` (at most 0.99) and the albedo within [0, 1] (``None`` kept:
+    unknown)."""
+    a = None if albedo is None else min(max(float(albedo), 0.0), 1.0)
+    return min(0.99, abs(float(g)) + SLAB_G_MARGIN), a
+
+
+def finer_order(n_theta: int, slab: Slab, g: float, albedo: float | None = None) -> list[str]:
     """The order in which the error term's finer model doubles a slab model's sizes
     (:meth:`~lightfield_jax.inverse.geometry_model.SlabModel.finer`): depth layers,
     elevation nodes, azimuth bins; but first the azimuth bins where they are fewer than
@@ -80,10 +92,12 @@ def finer_order(n_theta: int, slab: Slab, g: float) -> list[str]:
     :func:`~lightfield_jax.scene.geometry.default_n_mu` asks for: what the cap lowered,
     then the model's largest errors (docs/slab_depth.md section 8). The rule's own 4
     nodes at |g| ≤ 0.5 (measured enough there, docs/slab_design.md section 6) leave
-    the layers first."""
-    rule_mu = min(ACCURATE_MU, default_n_mu(g, slab.thickness, slab.boundary))
+    the layers first. The rules read ``g`` and ``albedo`` as the sizing does
+    (:func:`slab_rule_inputs`)."""
+    g, albedo = slab_rule_inputs(g, albedo)
+    rule_mu = min(ACCURATE_MU, default_n_mu(g, slab.thickness, slab.boundary, albedo))
     below = {
-        "n_theta": n_theta < default_slab_n_theta(g, slab.boundary),
+        "n_theta": n_theta < default_slab_n_theta(g, slab.boundary, albedo),
         "n_mu": slab.n_mu < rule_mu,
     }
     first = [name for name, low in below.items() if low]
@@ -95,6 +109,8 @@ __all__ = [
     "MIN_CAPPED_MU",
     "NEAR_WALL_MU_FLOOR",
     "capped_sizes",
+    "SLAB_G_MARGIN",
     "finer_order",
+    "slab_rule_inputs",
     "slab_cells",
 ]

@@ -17,8 +17,11 @@ if TYPE_CHECKING:
     from lightfield_jax.inverse.settings import FitSettings
 
 
-def finer(model: ModelSpec, options: FitSettings, g: float) -> ModelSpec:
-    """A finer model than ``model`` for its error term, never coarser in any dimension:
+def finer(
+    model: ModelSpec, options: FitSettings, g: float, albedo: float | None = None
+) -> ModelSpec:
+    """A finer model than ``model`` for its error term at the answer's ``g`` and
+    ``albedo`` (``None``: unknown), never coarser in any dimension:
     its geometry's finer discretisation
     (:meth:`~lightfield_jax.inverse.geometry_model.GeometryModel.finer`: the plane's
     θ bins and refinement, the slab's depth layers, elevation nodes and azimuth bins,
@@ -29,7 +32,7 @@ def finer(model: ModelSpec, options: FitSettings, g: float) -> ModelSpec:
     tail (the plane's ``coarse_after``), twice as many bounces on the refined grid
     before it, so that the term also sees the coarse grid's error where most of the
     coarse bounces' light is."""
-    grid, geometry = model.geometry.finer(model.grid, options, g)
+    grid, geometry = model.geometry.finer(model.grid, options, g, albedo)
     # Rendered as its geometry renders a sized model on that grid (the stripe cell on a
     # refined plane): the cell's own error, 0.2 % at most, is a tenth of the term's.
     cell = geometry.stripe_cell(grid, options)
@@ -56,9 +59,10 @@ def model_shift(ctx: FitContext, stage: Stage) -> tuple:
     """r_fine − r at the solution (one render of :func:`finer`'s model), that model, its
     tail solve's steps and convergence (``None`` without a tail) and its seconds."""
     pattern = ctx.pattern
-    fine = finer(stage.model, ctx.options, stage.values["g"])
-    renderer, full = joint_parts(pattern, fine, ctx.options.model.phase)
     v = stage.values
+    albedo = v["sigma_s"] / v["sigma_t"] if v["sigma_t"] > 0 else None
+    fine = finer(stage.model, ctx.options, v["g"], albedo)
+    renderer, full = joint_parts(pattern, fine, ctx.options.model.phase)
     with stopwatch() as timing:
         unit, fine_tail = render_model(renderer, full, pattern, fine, v, jnp.result_type(float))
     shift = (stage.weights * v["gain"] * (unit - stage.unit)).reshape(-1)
