@@ -1,4 +1,5 @@
 import os
+from pathlib import Path
 
 import jax
 import pytest
@@ -9,6 +10,41 @@ os.environ["LIGHTFIELD_JAX_PROGRESS"] = "none"
 
 # Tests check convergence and gradients: float64 unless a test asks for float32.
 jax.config.update("jax_enable_x64", True)
+
+# A persistent compilation cache for the tests, shared by the run's processes and kept
+# across runs beside the commands' own cache and never in it: most of a cold run is
+# compiling, and a program compiled again (another renderer of the same model, a fit
+# after its programs were forgotten, the next run) loads instead. With a size limit JAX
+# locks each read and write (filelock), so no process reads another's half-written
+# entry, and drops the entries used least long ago past it. The commands run here,
+# in-process and as subprocesses, use the same folder rather than turning the user's
+# cache on. LIGHTFIELD_JAX_TEST_XLA_CACHE=off: a cold run; =DIR: another folder.
+_CACHE_BYTES = 2 * 2**30
+
+
+def _test_xla_cache() -> Path | None:
+    chosen = os.environ.get("LIGHTFIELD_JAX_TEST_XLA_CACHE", "")
+    if chosen.strip().lower() in ("off", "0", "no", "false"):
+        return None
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lightfield_jax"
+    folder = Path(chosen) if chosen else base / "tests-xla"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return folder
+
+
+_XLA_CACHE = _test_xla_cache()
+if _XLA_CACHE is not None:
+    jax.config.update("jax_compilation_cache_dir", str(_XLA_CACHE))
+    jax.config.update("jax_compilation_cache_max_size", _CACHE_BYTES)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # (the commands run as subprocesses lock it too: JAX reads this at import)
+    os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(_CACHE_BYTES)
+# (XLA_CACHE_ENV; tests of it set it themselves)
+os.environ["LIGHTFIELD_JAX_XLA_CACHE"] = "off" if _XLA_CACHE is None else str(_XLA_CACHE)
 
 
 def pytest_collection_modifyitems(config, items):

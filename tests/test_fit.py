@@ -21,6 +21,7 @@ import re
 import jax
 import numpy as np
 import pytest
+from programs_support import programs_built
 
 import lightfield_jax as lfj
 
@@ -290,23 +291,6 @@ def test_float32_two_step_on_a_high_albedo_medium():
 # ------------------------------------------------- compiled programs kept in the process
 
 
-def _backend_compiles(fn) -> int:
-    from jax import monitoring
-
-    count = []
-
-    def listener(name, secs, **kwargs):
-        if name == "/jax/core/compile/backend_compile_duration":
-            count.append(secs)
-
-    monitoring.register_event_duration_secs_listener(listener)
-    try:
-        fn()
-    finally:
-        monitoring.unregister_event_duration_listener(listener)
-    return len(count)
-
-
 # The gradient method's reuse is slow-marked: the joint fit's covers the same machinery.
 @pytest.mark.forgets_compiled
 @pytest.mark.parametrize("method", [pytest.param("gradient", marks=pytest.mark.slow), "joint"])
@@ -323,8 +307,7 @@ def test_a_second_fit_of_the_same_shape_reuses_the_compiled_program(method):
     other = 0.8 * images
     results = []
     assert (
-        _backend_compiles(lambda: results.append(lfj.fit_images(other, lfj.Stripes(), **kwargs)))
-        == 0
+        programs_built(lambda: results.append(lfj.fit_images(other, lfj.Stripes(), **kwargs))) == 0
     )
     again = results[0]
     assert again.seconds["compile"] == 0.0
@@ -336,9 +319,7 @@ def test_a_second_fit_of_the_same_shape_reuses_the_compiled_program(method):
     assert again.gain == pytest.approx(0.8 * first.gain, rel=1e-4)
     # What the program was built from besides its arguments is part of its key: other
     # solver settings compile a new one.
-    assert (
-        _backend_compiles(lambda: lfj.fit_images(other, lfj.Stripes(), **kwargs, max_steps=50)) > 0
-    )
+    assert programs_built(lambda: lfj.fit_images(other, lfj.Stripes(), **kwargs, max_steps=50)) > 0
 
 
 # -------------------------------------------- the two-step residual's written-out Jacobian
@@ -787,7 +768,7 @@ def test_a_second_channel_with_other_values_compiles_nothing_new():
     kwargs = dict(n_theta=16, refine=1, phase="paper")  # the renders' convention
     lfj.fit_capture(capture, channels=["R"], **kwargs)  # compiles, and sizes the floor
     fits = []
-    count = _backend_compiles(lambda: fits.append(lfj.fit_capture(capture, **kwargs)))
+    count = programs_built(lambda: fits.append(lfj.fit_capture(capture, **kwargs)))
     # Fitting both channels again: R's programs serve G as well.
     assert count == 0
     assert fits[0]["G"].seconds["compile"] == 0.0

@@ -9,6 +9,7 @@ import equinox as eqx
 import numpy as np
 import optimistix as optx
 import pytest
+from programs_support import programs_built
 
 import lightfield_jax as lfj
 from lightfield_jax.inverse.data import prepare_data
@@ -110,23 +111,6 @@ def test_the_gradient_programs_residual_and_jacobian_are_those_at_its_answer(max
     np.testing.assert_allclose(jac, fresh_jac, rtol=1e-9, atol=1e-12)
 
 
-def _backend_compiles(fn) -> int:
-    from jax import monitoring
-
-    count = []
-
-    def listener(name, secs, **kwargs):
-        if name == "/jax/core/compile/backend_compile_duration":
-            count.append(secs)
-
-    monitoring.register_event_duration_secs_listener(listener)
-    try:
-        fn()
-    finally:
-        monitoring.unregister_event_duration_listener(listener)
-    return len(count)
-
-
 def test_a_solver_passed_as_a_value_is_compiled_once():
     """The solver is a static part of the two-step program: a second capture of the
     same shape with the same (equal, newly built) solver compiles nothing."""
@@ -135,7 +119,7 @@ def test_a_solver_passed_as_a_value_is_compiled_once():
     lfj.fit_images(_images(), lfj.Stripes(), split=split, **kwargs)
     other = dict(kwargs, method=lfj.TwoStep(solver=optx.Dogleg(rtol=1e-8, atol=1e-10)))
     fits = []
-    count = _backend_compiles(
+    count = programs_built(
         lambda: fits.append(
             lfj.fit_images(
                 0.8 * _images(), lfj.Stripes(), split=(0.8 * split[0], 0.8 * split[1]), **other
