@@ -16,7 +16,7 @@ jax.config.update("jax_enable_x64", True)
 # compiling, and a program compiled again (another renderer of the same model, a fit
 # after its programs were forgotten, the next run) loads instead. With a size limit JAX
 # locks each read and write (filelock), so no process reads another's half-written
-# entry, and drops the entries used least long ago past it. The commands run here,
+# entry, and past it drops the entries least recently used. The commands run here,
 # in-process and as subprocesses, use the same folder rather than turning the user's
 # cache on. LIGHTFIELD_JAX_TEST_XLA_CACHE=off: a cold run; =DIR: another folder.
 _CACHE_BYTES = 2 * 2**30
