@@ -28,6 +28,7 @@ from lightfield_jax.inverse.slab_caps import (
     MIN_CAPPED_MU,
     capped_sizes,
     finer_order,
+    fixed_n_mu,
     slab_cells,
     slab_rule_inputs,
 )
@@ -354,10 +355,7 @@ class SlabModel(GeometryModel):
         return f"{slab.n_mu} elevation nodes: {slab_cells} slab cells, 4 x max_cells allowed"
 
     def fixed_by(self, options):
-        user_slab = as_geometry(options.model.geometry).slab_or_none
-        if user_slab is not None and user_slab.n_mu is not None:
-            return [f"{self.slab.n_mu} elevation nodes"]
-        return []
+        return [] if fixed_n_mu(options) is None else [f"{self.slab.n_mu} elevation nodes"]
 
     least = f"8 (nor elevation nodes below {MIN_CAPPED_MU})"
 
@@ -369,11 +367,10 @@ class SlabModel(GeometryModel):
         on 16 × 8 it converged and the correction reached σt +1.8 %, σs +1.7 %, g
         +0.011. ``None`` where the user fixed the bins or nodes, where the model has them
         already, or where it would pass ``max_cells``."""
-        user_slab = as_geometry(options.model.geometry).slab_or_none
         n_theta, n_mu = RETRY_SLAB
         if (
             options.model.n_theta is not None
-            or (user_slab is not None and user_slab.n_mu is not None)
+            or fixed_n_mu(options) is not None
             or (grid.n_theta >= n_theta and self.slab.n_mu >= n_mu)
         ):
             return None

@@ -30,6 +30,12 @@ def slab_cells(width: int, height: int, n_theta: int, refine: int, slab: Slab) -
     return cells * slab.depth_coefficients
 
 
+def fixed_n_mu(options: FitSettings) -> int | None:
+    """The elevation nodes the fit's own slab geometry fixes, or ``None``."""
+    user = as_geometry(options.model.geometry).slab_or_none
+    return None if user is None else user.n_mu
+
+
 def capped_sizes(
     width: int,
     height: int,
@@ -51,8 +57,7 @@ def capped_sizes(
     to 16: the table is of g 0.8, and does not say that fewer than 24 suffice beyond.
     A count the options fix is never lowered."""
     model = options.model
-    user = as_geometry(model.geometry).slab_or_none  # the nodes a user's slab fixes
-    fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": user and user.n_mu}
+    fixed = {"refine": model.refine, "n_theta": model.n_theta, "n_mu": fixed_n_mu(options)}
     sizes = {"refine": refine, "n_theta": n_theta, "n_mu": slab.n_mu}
     floors = [("refine", 1)] + ([("n_mu", NEAR_WALL_MU_FLOOR)] if near_wall else [])
     floors += [("n_theta", 16), ("n_mu", 8), ("n_theta", 8), ("n_mu", MIN_CAPPED_MU)]
@@ -109,6 +114,7 @@ __all__ = [
     "MIN_CAPPED_MU",
     "NEAR_WALL_MU_FLOOR",
     "capped_sizes",
+    "fixed_n_mu",
     "SLAB_G_MARGIN",
     "finer_order",
     "slab_rule_inputs",

@@ -60,8 +60,7 @@ def model_shift(ctx: FitContext, stage: Stage) -> tuple:
     tail solve's steps and convergence (``None`` without a tail) and its seconds."""
     pattern = ctx.pattern
     v = stage.values
-    albedo = v["sigma_s"] / v["sigma_t"] if v["sigma_t"] > 0 else None
-    fine = finer(stage.model, ctx.options, v["g"], albedo)
+    fine = finer(stage.model, ctx.options, v["g"], v["sigma_s"] / v["sigma_t"])
     renderer, full = joint_parts(pattern, fine, ctx.options.model.phase)
     with stopwatch() as timing:
         unit, fine_tail = render_model(renderer, full, pattern, fine, v, jnp.result_type(float))
