@@ -31,6 +31,7 @@ import os
 import time
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -74,17 +75,16 @@ def xla_cache(folder) -> Iterator[None]:
         return
     from jax.experimental.compilation_cache import compilation_cache
 
+    from lightfield_jax.inverse.programs import use_compilation_cache
+
     names = (
         "jax_compilation_cache_dir",
+        "jax_compilation_cache_max_size",
         "jax_persistent_cache_min_compile_time_secs",
         "jax_persistent_cache_min_entry_size_bytes",
     )
     before = {n: getattr(jax.config, n) for n in names}
-    os.makedirs(folder, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    compilation_cache.reset_cache()  # the cache is set up once per process otherwise
+    use_compilation_cache(Path(folder))  # (locked: the sweep's processes share it)
     try:
         yield
     finally:

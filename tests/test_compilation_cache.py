@@ -1,6 +1,7 @@
 """The persistent compilation cache: unreadable entries are replaced, not warned about
 on every run."""
 
+import os
 import subprocess
 import sys
 import warnings
@@ -72,3 +73,44 @@ def test_a_damaged_cache_is_repaired_by_the_next_run(tmp_path):
     assert len(said) == 1 and said[0].startswith("WARNING CompilationCacheWarning"), said
     assert "unreadable entries" in said[0]
     assert run() == []
+
+
+_OLD_WRITER = r"""
+import sys
+import jax, jax.numpy as jnp
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+print(float(jax.jit(lambda x: jnp.cos(x) + 3)(jnp.float32(1.0))))
+"""
+
+
+def test_the_cache_is_locked_and_bounded_and_takes_entries_written_without_a_limit(tmp_path):
+    """Processes sharing the folder (a batch's workers) lock each read and write: JAX
+    does only with a size limit, which also keeps the folder from growing without end.
+    Such a limit reads every entry's last-use file when it stores a program: a folder
+    filled without one (an earlier version of this package) made every store fail."""
+    cache = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_MAX_SIZE"}
+    subprocess.run([sys.executable, "-c", _OLD_WRITER, str(cache)], env=env, check=True)
+    old = sorted(cache.glob("*-cache"))
+    assert old and not list(cache.glob("*-atime"))  # (written without a limit)
+
+    done = subprocess.run(
+        [sys.executable, "-c", _RUN + _LIMIT, str(cache)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "WARNING" not in done.stdout, done.stdout
+    assert f"limit {programs.CACHE_MAX_BYTES}" in done.stdout
+    entries = sorted(p.name.removesuffix("-cache") for p in cache.glob("*-cache"))
+    assert len(entries) > len(old) and all(p.exists() for p in old)  # new ones beside
+    assert sorted(p.name.removesuffix("-atime") for p in cache.glob("*-atime")) == entries
+    assert (cache / ".lockfile").exists()
+
+
+_LIMIT = r"""
+print("limit", jax.config.jax_compilation_cache_max_size)
+"""

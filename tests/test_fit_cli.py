@@ -581,6 +581,7 @@ def restore_jax_cache_config():
 
     names = (
         "jax_compilation_cache_dir",
+        "jax_compilation_cache_max_size",
         "jax_persistent_cache_min_compile_time_secs",
         "jax_persistent_cache_min_entry_size_bytes",
     )

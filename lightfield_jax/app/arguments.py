@@ -115,13 +115,9 @@ def use_xla_cache(args: argparse.Namespace) -> None:
     except OSError as e:
         warn(args, f"XLA compilation cache off: cannot create {folder} ({e.strerror})")
         return
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
+    from lightfield_jax.inverse.programs import use_compilation_cache
 
-    jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    compilation_cache.reset_cache()  # set up once per process, at the first compilation
+    use_compilation_cache(folder)
 
 
 __all__ = [

@@ -112,9 +112,10 @@ def batch_fit(
     from lightfield_jax.capture.loading import load_capture
     from lightfield_jax.forward.render import DivergentSeriesWarning
     from lightfield_jax.inverse.capture_fit import fit_capture
+    from lightfield_jax.inverse.programs import use_compilation_cache
 
-    if xla_folder is not None:
-        _use_cache(xla_folder)
+    if xla_folder is not None:  # (once per worker process: nothing after the first)
+        use_compilation_cache(Path(xla_folder))
     notes: list[str] = []
 
     def staged(message: str) -> None:
@@ -139,19 +140,6 @@ def batch_fit(
         "warnings": [" ".join(str(w.message).split()) for w in caught],
     }
     return result
-
-
-def _use_cache(folder: str) -> None:
-    """JAX's persistent compilation cache in ``folder`` (a worker: once per process)."""
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    if jax.config.jax_compilation_cache_dir == folder:
-        return
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    compilation_cache.reset_cache()
 
 
 def _rows(name: str, path: Path, record: dict | None, error: str | None) -> list[dict]:

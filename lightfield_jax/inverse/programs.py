@@ -90,11 +90,12 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
     """Keep compiled XLA programs in ``path`` (created if missing) across processes.
 
     Every program is cached however quick it was to compile (a fit's programs compile
-    in seconds each on a CPU and run in a fraction of that). Call it before the first
-    fit of the process; returns the folder. Raises ``OSError`` naming the folder when
-    it cannot be created."""
-    from jax.experimental.compilation_cache import compilation_cache
-
+    in seconds each on a CPU and run in a fraction of that). The folder is locked for
+    each read and write, so processes sharing it (a batch's workers) never read each
+    other's half-written entry, and it keeps at most :data:`CACHE_MAX_BYTES` (or
+    ``$JAX_COMPILATION_CACHE_MAX_SIZE``), dropping the programs used least recently.
+    Call it before the first fit of the process; returns the folder. Raises
+    ``OSError`` naming the folder when it cannot be created."""
     # Checked here: unchecked, "" caches into the current folder silently, None or bytes
     # raise Python's bare TypeError, a NUL "embedded null byte", none naming the argument.
     text = os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
@@ -103,16 +104,49 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
             f"enable_compilation_cache: path: must be a folder's path (a non-empty str or "
             f"os.PathLike without NUL), got {shown(path)}"
         )
-    folder = Path(text).expanduser()
+    return use_compilation_cache(Path(text).expanduser())
+
+
+# The persistent cache's size limit: a fit's programs take tens of MB; thousands of
+# programs (fits of many capture sizes and models) stay below it.
+CACHE_MAX_BYTES = 2 * 2**30
+
+
+def use_compilation_cache(folder: Path) -> Path:
+    """JAX's persistent compilation cache in ``folder``, created if missing (``OSError``
+    naming it where it cannot be), for every program; locked and bounded where the
+    folder is writable (:func:`enable_compilation_cache`). The one set-up of the API,
+    the commands and a batch's workers; nothing is done where it is already on there."""
+    from jax.experimental.compilation_cache import compilation_cache
+
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise OSError(f"compilation cache: cannot create {folder} ({e.strerror})") from e
+    if jax.config.jax_compilation_cache_dir == str(folder):
+        return folder
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # JAX locks the folder (filelock) only with a size limit; a read-only folder, which
+    # it never writes, could not be locked: every read would fail and be "repaired".
+    if os.access(folder, os.W_OK):
+        if jax.config.jax_compilation_cache_max_size == -1:  # (not set by the user)
+            jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+        _date_unlimited_entries(folder)
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
     return folder
+
+
+def _date_unlimited_entries(folder: Path) -> None:
+    """Entries written without a size limit (by an earlier version) have no last-use
+    file, and JAX's limit reads one for every entry each time it stores a program:
+    without them every store would fail. Each gets its own modification time."""
+    for entry in folder.glob("*-cache"):
+        used = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
+        if not used.exists():
+            with contextlib.suppress(OSError):
+                used.write_bytes(entry.stat().st_mtime_ns.to_bytes(8, "little"))
 
 
 class CompilationCacheWarning(UserWarning):
@@ -193,6 +227,7 @@ def repairing_compilation_cache():
 
 
 __all__ = [
+    "CACHE_MAX_BYTES",
     "CompilationCacheWarning",
     "clear_compiled",
     "enable_compilation_cache",
@@ -200,4 +235,5 @@ __all__ = [
     "jitted",
     "memory_maps",
     "repairing_compilation_cache",
+    "use_compilation_cache",
 ]
