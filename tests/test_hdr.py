@@ -552,7 +552,8 @@ def test_a_bracket_off_by_a_pedestal_is_said_to_be(tmp_path, level, said):
     rows = []
     for i in range(6):
         for j, t in enumerate((1.0, 4.0)):
-            write_png(tmp_path / f"s{i}_{j}.png", np.clip(t * radiance + 0.05, 0, 1), bits=16)
+            shift = (1 + 0.01 * i) * radiance  # (each its own exposure: no copies)
+            write_png(tmp_path / f"s{i}_{j}.png", np.clip(t * shift + 0.05, 0, 1), bits=16)
         rows.append([f"s{i}_0.png", f"s{i}_1.png"])
     data = {"images": rows, "exposure_times": [0.01, 0.04], "pattern": {"period": 6, "lit": 3}}
     if level is not None:

@@ -287,13 +287,16 @@ def test_write_capture_yaml_refuses_frames_that_are_not_file_names(tmp_path):
     assert yaml.safe_load(path.read_text())["dark_frame"] == ["d.exr", "d_long.exr"]
 
 
-def test_a_copied_shift_is_said_like_a_shift_listed_twice(capture, capsys):
+@pytest.mark.parametrize("phases", ["auto", None])
+def test_a_copied_shift_is_said_like_a_shift_listed_twice(capture, phases):
     """Before: with phases: auto, a shift saved over by a copy of another (the same
     pixels under another file name) was taken as two shifts at one phase without a word,
-    where the same file listed twice is warned of."""
+    where the same file listed twice is warned of; under the default phases (none
+    given) only a note said that the measured phases differ from the default."""
     shutil.copy(capture / "shift_02.exr", capture / "shift_03.exr")
     pattern = yaml.safe_load((capture / "capture.yaml").read_text())["pattern"]
-    _edit(capture, pattern={**pattern, "phases": "auto"})
+    pattern.pop("phases", None)
+    _edit(capture, pattern=pattern if phases is None else {**pattern, "phases": phases})
     with pytest.warns(lfj.CaptureWarning) as caught:
         lfj.load_capture(capture / "capture.yaml")
     said = [str(w.message) for w in caught]

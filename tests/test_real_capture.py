@@ -438,8 +438,8 @@ def test_mixed_bit_depths_are_refused(tmp_path):
     a = np.full((12, 16), 0.3)
     write_png(tmp_path / "a.png", a, bits=16)
     write_png(tmp_path / "b.png", a, bits=8)
-    # Each shift its own file (one file listed twice is a warning of its own).
-    shutil.copy(tmp_path / "a.png", tmp_path / "a2.png")
+    # Each shift its own exposure (one file listed twice, or a copied one, is a warning).
+    write_png(tmp_path / "a2.png", a + 0.01, bits=16)
     (tmp_path / "capture.yaml").write_text(f"images: [a.png, b.png, a2.png]\n{STRIPES}")
     with pytest.raises(
         CaptureError,
@@ -448,7 +448,7 @@ def test_mixed_bit_depths_are_refused(tmp_path):
     ):
         load_capture(tmp_path / "capture.yaml")
     write_exr(tmp_path / "c.exr", {"Y": a})
-    shutil.copy(tmp_path / "c.exr", tmp_path / "c2.exr")
+    write_exr(tmp_path / "c2.exr", {"Y": a + 0.01})
     (tmp_path / "capture.yaml").write_text(f"images: [a.png, c.exr]\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"c\.exr is 32-bit float"):
         load_capture(tmp_path / "capture.yaml")
@@ -503,7 +503,7 @@ def test_bayer_mosaic_and_four_channels_are_refused(tmp_path):
     # Three channels that differ (equal ones would load as one grey channel Y).
     rgba = np.stack([smooth, 0.8 * smooth, 0.6 * smooth, np.ones_like(smooth)], axis=-1)
     write_png(tmp_path / "rgba.png", rgba, bits=16)
-    write_png(tmp_path / "rgba2.png", rgba, bits=16)
+    write_png(tmp_path / "rgba2.png", rgba * [1.01, 1.01, 1.01, 1.0], bits=16)
     (tmp_path / "capture.yaml").write_text(f"images: [rgba.png, rgba2.png]\n{STRIPES}")
     c = load_capture(tmp_path / "capture.yaml")
     assert c.channel_names == ("R", "G", "B") and any("alpha" in n for n in c.notes)
@@ -512,7 +512,7 @@ def test_bayer_mosaic_and_four_channels_are_refused(tmp_path):
     with pytest.raises(CaptureError, match=r"rgba\.png has a varying alpha channel"):
         load_capture(tmp_path / "capture.yaml")
     write_exr(tmp_path / "planes.exr", {n: smooth for n in ("R", "G1", "G2", "B")})
-    shutil.copy(tmp_path / "planes.exr", tmp_path / "planes2.exr")
+    write_exr(tmp_path / "planes2.exr", {n: 1.01 * smooth for n in ("R", "G1", "G2", "B")})
     (tmp_path / "capture.yaml").write_text(f"images: [planes.exr, planes2.exr]\n{STRIPES}")
     with pytest.raises(CaptureError, match=r"planes\.exr has 4 channels .* Bayer"):
         load_capture(tmp_path / "capture.yaml")

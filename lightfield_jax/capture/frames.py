@@ -127,7 +127,7 @@ def images_listed_twice(
     top: Section, base: Path, frames: Sequence[ImageData] = (), names: Sequence[str] = ()
 ) -> str | None:
     """What to say of stripe images listed again under ``images`` (refused by the
-    phases' checks where the phases are given and differ; with ``phases: auto``, a
+    phases' checks where the phases are given and differ; measured or the default, a
     warning: one image counted as two shifts, its noise twice), or of ``frames`` (named
     ``names``) that hold the same pixels (a copied file, a stack's repeated frame: no
     two exposures of a camera are alike), or ``None``."""

@@ -421,8 +421,9 @@ def load_capture(path: str | os.PathLike) -> Capture:
     for issue in issues:
         warnings.warn(f"{path}: {issue}", CaptureWarning, stacklevel=2)
     # After the phases' checks, which refuse a repeated image where phases are given
-    # (a copy's pixels are compared where the phases are measured: auto).
-    copies = frames if phases_from == "auto" else ()
+    # (a copy's pixels are compared where the phases are not given: measured or the
+    # default, where a copy only makes the measured phases differ, a note).
+    copies = frames if phases_from != "given" else ()
     if (again := images_listed_twice(top, base, copies, names)) is not None:
         issues.append(again)
         warnings.warn(f"{path}: {again}", CaptureWarning, stacklevel=2)
