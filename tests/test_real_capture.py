@@ -13,7 +13,6 @@ import dataclasses
 import json
 import math
 import re
-import shutil
 import subprocess
 import sys
 import warnings
