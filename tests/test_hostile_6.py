@@ -211,6 +211,28 @@ def test_channels_are_matched_by_name_across_files(capture, capsys):
     )  # fmt: skip
 
 
+def test_a_calibration_frame_gives_the_channel_an_index_chose_in_the_images(capture):
+    """Before: with channel: 0, a dark frame saved B, G, R among R, G, B images had its
+    blue subtracted from the images' red (each file's position 0) without a word, and a
+    grey dark frame was refused for channel: 2 ("channel index 2 out of range")."""
+    _rgb(capture, dark="BGR")
+    for index, name in enumerate("RGB"):
+        _edit(capture, channel=name)
+        by_name = lfj.load_capture(capture / "capture.yaml")
+        _edit(capture, channel=index)
+        by_index = lfj.load_capture(capture / "capture.yaml")
+        assert by_index.channel_names == (name,)
+        np.testing.assert_array_equal(by_index.images, by_name.images)
+    grey = read_image(capture / "dark.exr").channel("R")
+    write_exr(capture / "dark.exr", {"Y": grey})
+    _edit(capture, channel=2)
+    by_index = lfj.load_capture(capture / "capture.yaml")
+    _edit(capture, channel="B")
+    np.testing.assert_array_equal(
+        by_index.images, lfj.load_capture(capture / "capture.yaml").images
+    )
+
+
 def test_a_max_steps_past_the_solvers_count_is_named_as_the_option(capture, capsys, tmp_path):
     """Before: --max-steps 1000000000000 was refused after the capture's load, as the
     capture file's error ("capture.yaml: max_steps: must be an integer <= 1e+09")."""

@@ -314,7 +314,9 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
     value = top.get(key, None) if value is None else value
     if value is None:
         return None
-    frame = read_frame(top, key, resolve_file(top, key, value, base), channel)
+    frame = read_frame(top, key, resolve_file(top, key, value, base), None)
+    if channel is not None:
+        frame = _chosen_channel(top, key, frame, channel, first)
     h, w, c = first.pixels.shape
     fh, fw, fc = frame.pixels.shape
     names = frame.channel_names
@@ -344,6 +346,28 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
     if not np.isfinite(frame.pixels).any():  # said here, not as "images: no usable pixel"
         top.fail(key, f"{value}: every pixel value is NaN or Inf (a corrupt file?)")
     return frame
+
+
+def _chosen_channel(top: Section, key: str, frame: ImageData, channel, first: ImageData):
+    """The channel of a calibration frame (all of its channels read) that the images'
+    ``channel`` key chose: one grey channel applies to every channel; a channel of the
+    name the images' chosen one has, wherever it is in the frame (``channel: 0`` chose
+    the images' R, and the R of a frame saved B, G, R is its third: before, its B was
+    subtracted); else the key's name or index as in the images."""
+    names = frame.channel_names
+    if len(names) == 1 or (alpha_index(names) is not None and len(names) == 2):
+        return frame
+    bare = [n.rsplit(".", 1)[-1] for n in names]
+    chosen = first.channel_names[0].rsplit(".", 1)[-1]
+    try:
+        index = bare.index(chosen) if chosen in bare else channel_index(names, channel, frame.path)
+    except CaptureError as e:
+        top.fail(key, str(e))
+    return dataclasses.replace(
+        frame,
+        pixels=np.ascontiguousarray(frame.pixels[..., [index]]),
+        channel_names=(names[index],),
+    )
 
 
 def check_not_blank(top: Section, frames: list[tuple[str, str, np.ndarray]]) -> None:
