@@ -37,6 +37,22 @@ def test_an_unreadable_entry_is_deleted_and_said_once(tmp_path, monkeypatch):
     ]
 
 
+def test_a_read_while_another_process_holds_the_lock_deletes_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(programs, "_cache_folder", lambda: str(tmp_path))
+    (tmp_path / "jit__solve-1f6c-cache").write_bytes(b"x")
+    locked = READ_ERROR.format("jit__solve").replace(
+        "error: Error -3", f"The file lock '{tmp_path}/.lockfile' could not be acquired."
+    )
+    with pytest.warns(CompilationCacheWarning) as seen:
+        with repairing_compilation_cache():
+            warnings.warn(locked, stacklevel=1)
+    assert [p.name for p in tmp_path.iterdir()] == ["jit__solve-1f6c-cache"]
+    assert [str(w.message) for w in seen] == [
+        f"the compilation cache {tmp_path} stayed locked by another process: 1 program(s) "
+        "compiled instead of loaded"
+    ]
+
+
 _RUN = r"""
 import sys, warnings
 import jax, jax.numpy as jnp

@@ -160,6 +160,8 @@ _UNREADABLE = "Error reading persistent compilation cache entry for '"
 # JAX's warning for a program it could not store (a full disk, a read-only folder): one
 # per program, tens per fit, all of one cause.
 _UNWRITABLE = "Error writing persistent compilation cache entry for '"
+# filelock's timeout (JAX waits 10 s for the folder's lock: use_compilation_cache).
+_LOCKED = "could not be acquired"
 
 
 def _cache_folder() -> str | None:
@@ -189,6 +191,7 @@ def repairing_compilation_cache():
     previous = warnings.showwarning
     deleted: list[str] = []
     unstored: list[str] = []  # the reason of each program JAX could not store
+    locked: list[str] = []  # programs not read: the folder's lock was not acquired
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = str(message)
@@ -199,6 +202,9 @@ def repairing_compilation_cache():
             previous(message, category, filename, lineno, file, line)
             return
         name = text[len(_UNREADABLE) :].split("'", 1)[0]
+        if _LOCKED in text:  # another process held the folder's lock: the entry is fine
+            locked.append(name)
+            return
         _delete_entries(name)
         deleted.append(name)
 
@@ -211,6 +217,14 @@ def repairing_compilation_cache():
                 f"the compilation cache {_cache_folder()} could not store "
                 f"{len(unstored)} compiled program(s) ({unstored[0]}): they are compiled "
                 "again by the next run"
+            ),
+            stacklevel=3,
+        )
+    if locked:
+        warnings.warn(
+            CompilationCacheWarning(
+                f"the compilation cache {_cache_folder()} stayed locked by another process: "
+                f"{len(locked)} program(s) compiled instead of loaded"
             ),
             stacklevel=3,
         )
