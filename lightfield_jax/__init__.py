@@ -5,6 +5,8 @@ Media" (CVPR 2010) in JAX. Pipeline: medium & grid → illumination → render
 (bounce propagator) → separate → fit → report.
 """
 
+# First: JAX imported with its environment checked (a JAX_* variable it cannot read).
+import lightfield_jax._jax_environment  # noqa: F401  # isort: skip
 from lightfield_jax.capture.calibration import BlackLevel as BlackLevel
 from lightfield_jax.capture.calibration import estimate_black_level as estimate_black_level
 from lightfield_jax.capture.capture import Capture as Capture

@@ -2,6 +2,7 @@
 on every run."""
 
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -39,6 +40,8 @@ def test_an_unreadable_entry_is_deleted_and_said_once(tmp_path, monkeypatch):
 
 def test_a_read_while_another_process_holds_the_lock_deletes_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(programs, "_cache_folder", lambda: str(tmp_path))
+    stopped = []
+    monkeypatch.setattr(programs, "_stop_cache", lambda: stopped.append(True))
     (tmp_path / "jit__solve-1f6c-cache").write_bytes(b"x")
     locked = READ_ERROR.format("jit__solve").replace(
         "error: Error -3", f"The file lock '{tmp_path}/.lockfile' could not be acquired."
@@ -47,10 +50,72 @@ def test_a_read_while_another_process_holds_the_lock_deletes_nothing(tmp_path, m
         with repairing_compilation_cache():
             warnings.warn(locked, stacklevel=1)
     assert [p.name for p in tmp_path.iterdir()] == ["jit__solve-1f6c-cache"]
+    assert stopped == [True]
     assert [str(w.message) for w in seen] == [
-        f"the compilation cache {tmp_path} stayed locked by another process: 1 program(s) "
-        "compiled instead of loaded"
+        f"the compilation cache {tmp_path} stayed locked by another process for 10 s: turned "
+        "off for the rest of this process (1 program(s) compiled instead of loaded)"
     ]
+
+
+_LOCKED_RUN = r"""
+import sys, warnings
+import jax, jax.numpy as jnp
+import lightfield_jax as lfj
+from lightfield_jax.inverse.programs import repairing_compilation_cache
+lfj.enable_compilation_cache(sys.argv[1])
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    with repairing_compilation_cache():
+        for k in range(3):
+            float(jax.jit(lambda x: jnp.sin(x) * k)(jnp.float32(1.0)))
+print("enabled", jax.config.jax_enable_compilation_cache)
+for w in seen:
+    print("WARNING", w.category.__name__, str(w.message).splitlines()[0])
+"""
+
+
+def test_a_cache_another_process_keeps_locked_is_turned_off_after_one_wait(tmp_path):
+    """Before: each program waited 10 s for the lock to read and 10 s to store (a fit's
+    48 programs: minutes idle) while another process held it (stopped with Ctrl-Z)."""
+    import filelock
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_MAX_SIZE"}
+    with filelock.FileLock(cache / ".lockfile"):
+        done = subprocess.run(
+            [sys.executable, "-c", _LOCKED_RUN, str(cache)],
+            env=env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    said = done.stdout.splitlines()
+    assert "enabled False" in said, said
+    warned = [s for s in said if s.startswith("WARNING")]
+    assert warned == [
+        f"WARNING CompilationCacheWarning the compilation cache {cache} stayed locked by "
+        "another process for 10 s: turned off for the rest of this process (1 program(s) "
+        "compiled instead of loaded)"
+    ], said
+    assert not list(cache.glob("*-cache"))
+
+
+def test_a_size_limit_below_every_program_is_said_once(tmp_path):
+    """Before: JAX_COMPILATION_CACHE_MAX_SIZE=0 (or 1, or -5) gave one warning per
+    program (48 lines for a fit)."""
+    env = {**os.environ, "JAX_COMPILATION_CACHE_MAX_SIZE": "0"}
+    done = subprocess.run(
+        [sys.executable, "-c", _LOCKED_RUN, str(tmp_path / "cache")],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    warned = [s for s in done.stdout.splitlines() if s.startswith("WARNING")]
+    assert len(warned) == 1, warned
+    said = r"could not store \d+ compiled program\(s\) \(larger than the cache's size limit of 0"
+    assert re.search(said, warned[0]), warned
 
 
 _RUN = r"""

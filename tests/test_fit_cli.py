@@ -6,6 +6,7 @@ import math
 import os
 import re
 import shutil
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -573,6 +574,8 @@ def test_xla_cache_folder_follows_the_environment(tmp_path):
     assert xla_cache_folder({**home, XLA_CACHE_ENV: str(tmp_path / "c")}) == tmp_path / "c"
     for off in ("off", "0", "", "OFF"):
         assert xla_cache_folder({**home, XLA_CACHE_ENV: off}) is None
+    # "~" not expanded by the shell (quoted, an env file): the home's, not a folder "~".
+    assert xla_cache_folder({**home, XLA_CACHE_ENV: "~/c"}) == Path.home() / "c"
 
 
 @pytest.fixture

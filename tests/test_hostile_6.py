@@ -422,3 +422,46 @@ def test_bench_sizes_given_twice_are_refused(capsys, tmp_path):
     )
     assert status == 2 and "argument --sizes: '16X16x8' is given twice" in err, err
     assert not (tmp_path / "b.json").exists()
+
+
+@pytest.mark.parametrize(
+    "variable, said",
+    [
+        ("JAX_COMPILATION_CACHE_MAX_SIZE=2G", 'Invalid value "2G" for JAX flag'),
+        ("JAX_ENABLE_X64=maybe", "invalid truth value 'maybe'"),
+    ],
+)
+def test_a_jax_variable_jax_cannot_read_is_one_line(variable, said):
+    """Before: a traceback from JAX's import on every command, --help included."""
+    import subprocess
+    import sys
+
+    name, value = variable.split("=")
+    env = {**os.environ, name: value}
+    for argv in (["-m", "lightfield_jax", "--help"], ["-c", "import lightfield_jax"]):
+        done = subprocess.run([sys.executable, *argv], env=env, capture_output=True, text=True)
+        err = done.stderr.strip().splitlines()
+        if argv[0] == "-m":  # the command: one line, exit status 2
+            assert done.returncode == 2 and len(err) == 1, err
+            assert err[0].startswith("lightfield-jax: error: JAX cannot start: ")
+        else:  # the API: an ImportError naming the variable
+            assert err[-1].startswith("ImportError: lightfield_jax: JAX cannot start: ")
+        assert said in err[-1] and f"{name}='{value}'" in err[-1], err
+
+
+def test_a_jax_backend_that_cannot_start_is_one_line(capsys, monkeypatch, tmp_path):
+    """Before: JAX_PLATFORMS=tpu on a machine without one: a traceback at the first
+    computation."""
+    import jax
+
+    def unavailable(*_a, **_k):
+        raise RuntimeError("Unable to initialize backend 'tpu': INTERNAL: no libtpu.so")
+
+    monkeypatch.setattr(jax.numpy, "asarray", unavailable)
+    monkeypatch.setattr(jax.numpy, "array", unavailable)
+    status, _, err = _run(capsys, "demo", "--out", tmp_path / "d")
+    assert status == 2 and err.strip() == (
+        "lightfield-jax: error: JAX cannot start: Unable to initialize backend 'tpu': "
+        "INTERNAL: no libtpu.so"
+    ), err
+    assert not (tmp_path / "d").exists()

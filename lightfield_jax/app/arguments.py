@@ -96,7 +96,8 @@ def xla_cache_folder(environ=None) -> Path | None:
     env = os.environ if environ is None else environ
     value = env.get(XLA_CACHE_ENV)
     if value is not None:
-        return None if value.strip().lower() in ("", "0", "off", "no", "false") else Path(value)
+        off = value.strip().lower() in ("", "0", "off", "no", "false")
+        return None if off else Path(value).expanduser()
     base = env.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "lightfield_jax" / "xla"
 

@@ -141,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# JAX's error for a backend it cannot start (JAX_PLATFORMS=tpu on a machine without one).
+_BACKEND_FAILED = "Unable to initialize backend"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 success, 1 a result that
     cannot be trusted or an experiment that failed while it ran, 2 bad input or an
@@ -179,6 +183,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: interrupted", file=sys.stderr)
         return 130
     except Exception as e:  # XLA's allocation failure past the memory estimate
+        if not args.debug and _BACKEND_FAILED in str(e):  # JAX_PLATFORMS naming none here
+            print(f"{PROG}: error: JAX cannot start: {one_line(str(e))}", file=sys.stderr)
+            return 2
         if args.debug or "RESOURCE_EXHAUSTED" not in str(e):
             raise
         print(f"{PROG}: error: {_describe_limit(MemoryError())}", file=sys.stderr)

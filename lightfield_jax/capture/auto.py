@@ -213,11 +213,16 @@ def light_contradiction(stack, u0: int, pattern: Stripes, valid=None) -> tuple[i
     worst = int(np.argmax(off))
     if off[worst] <= math.log(tolerance):
         return None
-    held = f"{ratio[worst]:.3g} times" if ratio[worst] > 0 else "less than none of"
+    held = (
+        f"{ratio[worst]:.3g} times the light of the shifts' median (summed over the "
+        f"medium; {tolerance:.2g}x tolerated)"
+        if ratio[worst] > 0
+        else "no light: its values summed over the medium are at or below 0, the other "
+        "shifts' above"
+    )
     return worst, (
-        f"holds {held} the light of the shifts' median (summed over the medium; "
-        f"{tolerance:.2g}x tolerated): every shift needs the same exposure and gain (the "
-        "camera's auto exposure on?) and the same dark frame or offset subtracted"
+        f"holds {held}: every shift needs the same exposure and gain (the camera's auto "
+        "exposure on?) and the same dark frame or offset subtracted"
     )
 
 

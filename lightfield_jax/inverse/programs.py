@@ -131,7 +131,7 @@ def use_compilation_cache(folder: Path) -> Path:
     # JAX locks the folder (filelock) only with a size limit; a read-only folder, which
     # it never writes, could not be locked: every read would fail and be "repaired".
     if os.access(folder, os.W_OK):
-        if jax.config.jax_compilation_cache_max_size == -1:  # (not set by the user)
+        if "JAX_COMPILATION_CACHE_MAX_SIZE" not in os.environ:  # (the user's: kept)
             jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
         _date_unlimited_entries(folder)
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
@@ -162,6 +162,16 @@ _UNREADABLE = "Error reading persistent compilation cache entry for '"
 _UNWRITABLE = "Error writing persistent compilation cache entry for '"
 # filelock's timeout (JAX waits 10 s for the folder's lock: use_compilation_cache).
 _LOCKED = "could not be acquired"
+# JAX's warning for a program larger than the cache's size limit (one per program).
+_TOO_LARGE = "Cache value for key '"
+
+
+def _stop_cache() -> None:
+    """The persistent cache off for the rest of the process (the folder kept)."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()
 
 
 def _cache_folder() -> str | None:
@@ -195,16 +205,24 @@ def repairing_compilation_cache():
 
     def show(message, category, filename, lineno, file=None, line=None):
         text = str(message)
+        if text.startswith((_UNREADABLE, _UNWRITABLE)) and _LOCKED in text:
+            # Another process holds the folder's lock (stopped, or on a hung network
+            # file system): the entry is fine, but every program would wait 10 s to
+            # read and 10 s to store. The cache is off for the rest of the process.
+            locked.append(text.split("'", 2)[1])
+            _stop_cache()
+            return
         if text.startswith(_UNWRITABLE):
             unstored.append(text[len(_UNWRITABLE) :].split("': ", 1)[-1])
+            return
+        if text.startswith(_TOO_LARGE):  # a size limit below the program (0: none)
+            limit = text.rsplit(" of ", 1)[-1]
+            unstored.append(f"larger than the cache's size limit of {limit}")
             return
         if not text.startswith(_UNREADABLE):
             previous(message, category, filename, lineno, file, line)
             return
         name = text[len(_UNREADABLE) :].split("'", 1)[0]
-        if _LOCKED in text:  # another process held the folder's lock: the entry is fine
-            locked.append(name)
-            return
         _delete_entries(name)
         deleted.append(name)
 
@@ -223,8 +241,9 @@ def repairing_compilation_cache():
     if locked:
         warnings.warn(
             CompilationCacheWarning(
-                f"the compilation cache {_cache_folder()} stayed locked by another process: "
-                f"{len(locked)} program(s) compiled instead of loaded"
+                f"the compilation cache {_cache_folder()} stayed locked by another process "
+                f"for 10 s: turned off for the rest of this process ({len(locked)} program(s) "
+                "compiled instead of loaded)"
             ),
             stacklevel=3,
         )
