@@ -80,6 +80,7 @@ def xla_cache(folder) -> Iterator[None]:
     names = (
         "jax_compilation_cache_dir",
         "jax_compilation_cache_max_size",
+        "jax_enable_compilation_cache",
         "jax_persistent_cache_min_compile_time_secs",
         "jax_persistent_cache_min_entry_size_bytes",
     )

@@ -13,15 +13,27 @@ import sys
 def _command_line() -> bool:
     """Whether this process is the ``lightfield-jax`` command (or ``python -m``)."""
     name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
-    orig = list(getattr(sys, "orig_argv", []))
-    module = "-m" in orig and orig[orig.index("-m") + 1 :][:1] == ["lightfield_jax"]
-    return module or name.startswith("lightfield-jax")
+    if name.startswith("lightfield-jax"):
+        return True
+    # python -m lightfield_jax (sys.argv[0] is "-m" while the package is imported): the
+    # module named by -m, or -mlightfield_jax, before any script.
+    orig = list(getattr(sys, "orig_argv", []))[1:]
+    for i, arg in enumerate(orig):
+        if arg == "-m":
+            return orig[i + 1 : i + 2] == ["lightfield_jax"]
+        if arg.startswith("-m"):
+            return arg == "-mlightfield_jax"
+        if not arg.startswith("-"):
+            return False  # a script
+    return False
 
 
 def _import_jax() -> None:
     try:
         import jax  # noqa: F401
     except ValueError as e:
+        if not any(k.startswith("JAX_") for k in os.environ):
+            raise  # (not the environment's: a broken installation)
         given = ", ".join(
             f"{k}={v!r}" for k, v in sorted(os.environ.items()) if k.startswith("JAX_")
         )

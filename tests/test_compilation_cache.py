@@ -195,3 +195,73 @@ def test_the_cache_is_locked_and_bounded_and_takes_entries_written_without_a_lim
 _LIMIT = r"""
 print("limit", jax.config.jax_compilation_cache_max_size)
 """
+
+
+def test_an_entry_unread_for_the_file_systems_error_is_kept(tmp_path, monkeypatch):
+    """A read that failed on the folder (a full disk writing the last-use file, another
+    user's file) is no damaged entry: nothing is deleted."""
+    monkeypatch.setattr(programs, "_cache_folder", lambda: str(tmp_path))
+    (tmp_path / "jit__solve-1f6c-cache").write_bytes(b"x")
+    failed = READ_ERROR.format("jit__solve").replace(
+        "error: Error -3", "PermissionError: [Errno 13] Permission denied: 'x-atime'"
+    )
+    with pytest.warns(CompilationCacheWarning) as seen:
+        with repairing_compilation_cache():
+            warnings.warn(failed, stacklevel=1)
+    assert [p.name for p in tmp_path.iterdir()] == ["jit__solve-1f6c-cache"]
+    assert [str(w.message) for w in seen] == [
+        f"the compilation cache {tmp_path} could not read 1 compiled program(s) "
+        "(PermissionError: [Errno 13] Permission denied: 'x-atime'): compiled instead of "
+        "loaded, their entries kept"
+    ]
+
+
+def test_entries_another_writer_left_undated_are_dated_when_a_store_fails(tmp_path, monkeypatch):
+    monkeypatch.setattr(programs, "_cache_folder", lambda: str(tmp_path))
+    (tmp_path / "jit_other-12-cache").write_bytes(b"x")
+    failed = (
+        "Error writing persistent compilation cache entry for 'jit_f': FileNotFoundError: "
+        f"[Errno 2] No such file or directory: '{tmp_path}/jit_other-12-atime'"
+    )
+    with pytest.warns(CompilationCacheWarning, match="could not store 1 compiled"):
+        with repairing_compilation_cache():
+            warnings.warn(failed, stacklevel=1)
+    assert (tmp_path / "jit_other-12-atime").exists()  # the next store succeeds
+
+
+_SET_UP = r"""
+import sys
+import jax
+from lightfield_jax.inverse import programs
+a, b = sys.argv[1:]
+jax.config.update("jax_compilation_cache_dir", a)  # the user's own, before the package's
+programs.use_compilation_cache(programs.Path(a))
+print("min", jax.config.jax_persistent_cache_min_compile_time_secs)
+print("limit", jax.config.jax_compilation_cache_max_size)
+programs._stop_cache()  # (a lock another process kept)
+programs.use_compilation_cache(programs.Path(a))  # a batch worker's next fit
+print("stopped", jax.config.jax_enable_compilation_cache)
+programs.use_compilation_cache(programs.Path(b))
+print("other folder", jax.config.jax_enable_compilation_cache)
+programs._stop_cache()
+programs.enable_compilation_cache(a)  # asked for again by the API
+print("asked again", jax.config.jax_enable_compilation_cache)
+"""
+
+
+def test_the_set_up_is_its_own_and_a_stopped_cache_stays_off_until_asked_for(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_MAX_SIZE"}
+    done = subprocess.run(
+        [sys.executable, "-c", _SET_UP, str(tmp_path / "a"), str(tmp_path / "b")],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert done.stdout.splitlines() == [
+        "min 0.0",
+        f"limit {programs.CACHE_MAX_BYTES}",
+        "stopped False",
+        "other folder True",
+        "asked again True",
+    ], done.stderr

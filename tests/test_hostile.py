@@ -2822,7 +2822,8 @@ def test_a_shift_holding_other_light_than_the_others_is_refused(capture, capsys)
         capsys,
         "inspect",
         capture / "capture.yaml",
-        match="holds no light: its values summed over the medium are at or below 0",
+        match="holds no light: its values summed over the medium are at or below 0, the "
+        "shifts' median above",
     )
     images[4] *= 2.0
     with pytest.raises(ValueError, match=r"^images: images\[4\] holds 2 times the light"):

@@ -223,7 +223,31 @@ def test_a_calibration_frame_gives_the_channel_an_index_chose_in_the_images(capt
         by_index = lfj.load_capture(capture / "capture.yaml")
         assert by_index.channel_names == (name,)
         np.testing.assert_array_equal(by_index.images, by_name.images)
-    grey = read_image(capture / "dark.exr").channel("R")
+    # Layers: the images' chosen name, a layer's prefix included; several layers of the
+    # chosen colour and none of its name cannot be told apart.
+    dark = read_image(capture / "dark.exr")
+    layered = {f"{layer}.{c}": (k + 1) * dark.channel(c) for k, layer in
+               enumerate(("diffuse", "specular")) for c in "BGR"}  # fmt: skip
+    images = yaml.safe_load((capture / "capture.yaml").read_text())["images"]
+    for name in images:
+        y = read_image(capture / name)
+        write_exr(capture / name, {f"{layer}.{c}": y.channel(c) for layer in
+                                   ("diffuse", "specular") for c in "RGB"})  # fmt: skip
+    write_exr(capture / "dark.exr", layered)
+    for channel, chosen in [(5, "specular.B"), ("specular.R", "specular.R"), (0, "diffuse.R")]:
+        _edit(capture, channel=channel)
+        loaded = lfj.load_capture(capture / "capture.yaml")
+        assert loaded.channel_names == (chosen,)
+        y = read_image(capture / images[0]).channel(chosen)
+        lit = np.isfinite(y)
+        np.testing.assert_allclose(loaded.images[0, ..., 0][lit], (y - layered[chosen])[lit])
+    for name in images:  # plain R, G, B images against the layered dark frame
+        y = read_image(capture / name)
+        write_exr(capture / name, {c: y.channel(f"diffuse.{c}") for c in "RGB"})
+    _edit(capture, channel=0)
+    with pytest.raises(lfj.CaptureError, match=r"dark\.exr has diffuse\.R, specular\.R, none"):
+        lfj.load_capture(capture / "capture.yaml")
+    grey = dark.channel("R")
     write_exr(capture / "dark.exr", {"Y": grey})
     _edit(capture, channel=2)
     by_index = lfj.load_capture(capture / "capture.yaml")

@@ -114,9 +114,12 @@ def batch_fit(
     from lightfield_jax.inverse.capture_fit import fit_capture
     from lightfield_jax.inverse.programs import use_compilation_cache
 
-    if xla_folder is not None:  # (once per worker process: nothing after the first)
-        use_compilation_cache(Path(xla_folder))
     notes: list[str] = []
+    if xla_folder is not None:  # (once per worker process: nothing after the first)
+        try:
+            use_compilation_cache(Path(xla_folder))
+        except OSError as e:  # a worker elsewhere, its home laid out otherwise
+            notes.append(f"note: XLA compilation cache off on this worker: {e}")
 
     def staged(message: str) -> None:
         if message.startswith("note: ") or re.match(r"\[[^]]*\] note: ", message):

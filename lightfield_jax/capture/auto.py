@@ -217,8 +217,8 @@ def light_contradiction(stack, u0: int, pattern: Stripes, valid=None) -> tuple[i
         f"{ratio[worst]:.3g} times the light of the shifts' median (summed over the "
         f"medium; {tolerance:.2g}x tolerated)"
         if ratio[worst] > 0
-        else "no light: its values summed over the medium are at or below 0, the other "
-        "shifts' above"
+        else "no light: its values summed over the medium are at or below 0, the shifts' "
+        "median above"
     )
     return worst, (
         f"holds {held}: every shift needs the same exposure and gain (the camera's auto "

@@ -174,8 +174,8 @@ def _and_more(again: list) -> str:
 
 def _same_pixels(frames: Sequence[ImageData], names: Sequence[str]) -> str | None:
     def key(frame: ImageData) -> bytes:
-        pixels = np.ascontiguousarray(frame.pixels)
-        return hashlib.sha256(pixels.tobytes()).digest() + str(pixels.shape).encode()
+        pixels = np.ascontiguousarray(frame.pixels)  # (hashed in place: no copy)
+        return hashlib.sha256(memoryview(pixels).cast("B")).digest() + str(pixels.shape).encode()
 
     again = _repeats(key(frame) for frame in frames)
     if not again:
@@ -350,17 +350,31 @@ def read_aux_frame(top: Section, key: str, base: Path, channel, first: ImageData
 
 def _chosen_channel(top: Section, key: str, frame: ImageData, channel, first: ImageData):
     """The channel of a calibration frame (all of its channels read) that the images'
-    ``channel`` key chose: one grey channel applies to every channel; a channel of the
-    name the images' chosen one has, wherever it is in the frame (``channel: 0`` chose
-    the images' R, and the R of a frame saved B, G, R is its third: before, its B was
-    subtracted); else the key's name or index as in the images."""
-    names = frame.channel_names
-    if len(names) == 1 or (alpha_index(names) is not None and len(names) == 2):
-        return frame
+    ``channel`` key chose: one grey channel (Y) applies to every channel; else the
+    channel of the name the images' chosen one has, wherever it is in the frame
+    (``channel: 0`` chose the images' R, and the R of a frame saved B, G, R is its
+    third: before, its B was subtracted), a layer's prefix aside where one layer has
+    it; else the key's name or index as in the images."""
+    names, chosen = frame.channel_names, first.channel_names[0]
     bare = [n.rsplit(".", 1)[-1] for n in names]
-    chosen = first.channel_names[0].rsplit(".", 1)[-1]
+    colours = [n for i, n in enumerate(bare) if i != alpha_index(names)]
+    if colours in (["Y"], [chosen.rsplit(".", 1)[-1]]):  # grey, or the chosen one alone
+        return frame
+    matches = [i for i, n in enumerate(bare) if n == chosen.rsplit(".", 1)[-1]]
     try:
-        index = bare.index(chosen) if chosen in bare else channel_index(names, channel, frame.path)
+        if chosen in names:  # the same name, a layer's prefix included
+            index = names.index(chosen)
+        elif len(matches) == 1:  # the same colour of another layer's name
+            index = matches[0]
+        elif matches:
+            top.fail(
+                key,
+                f"{frame.path.name} has {', '.join(names[i] for i in matches)}, none of them "
+                f"the images' {chosen}: which one is theirs cannot be told (save the frame "
+                "with the images' channel names)",
+            )
+        else:  # none of that name: the key's own name or index, as in the images
+            index = channel_index(names, channel, frame.path)
     except CaptureError as e:
         top.fail(key, str(e))
     return dataclasses.replace(

@@ -14,6 +14,7 @@ instead of compiling them.
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import functools
 import glob
@@ -104,44 +105,62 @@ def enable_compilation_cache(path: str | os.PathLike) -> Path:
             f"enable_compilation_cache: path: must be a folder's path (a non-empty str or "
             f"os.PathLike without NUL), got {shown(path)}"
         )
+    global _stopped
+    _stopped = None  # asked for again: a folder an earlier lock timeout turned off too
     return use_compilation_cache(Path(text).expanduser())
 
 
 # The persistent cache's size limit: a fit's programs take tens of MB; thousands of
 # programs (fits of many capture sizes and models) stay below it.
 CACHE_MAX_BYTES = 2 * 2**30
+_LIMIT_ENV = "JAX_COMPILATION_CACHE_MAX_SIZE"
+# The folder this module set up, and the one a lock timeout turned off (for the rest of
+# the process: a batch's worker sets the cache up again before each fit).
+_configured: str | None = None
+_stopped: str | None = None
 
 
 def use_compilation_cache(folder: Path) -> Path:
     """JAX's persistent compilation cache in ``folder``, created if missing (``OSError``
     naming it where it cannot be), for every program; locked and bounded where the
     folder is writable (:func:`enable_compilation_cache`). The one set-up of the API,
-    the commands and a batch's workers; nothing is done where it is already on there."""
+    the commands and a batch's workers; nothing is done where this function already set
+    it up there, or where a lock another process kept turned it off."""
     from jax.experimental.compilation_cache import compilation_cache
 
+    global _configured
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise OSError(f"compilation cache: cannot create {folder} ({e.strerror})") from e
-    if jax.config.jax_compilation_cache_dir == str(folder):
+    same = jax.config.jax_compilation_cache_dir == str(folder)
+    if str(folder) == _stopped or (same and _configured == str(folder)):
         return folder
     jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_enable_compilation_cache", True)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     # JAX locks the folder (filelock) only with a size limit; a read-only folder, which
-    # it never writes, could not be locked: every read would fail and be "repaired".
-    if os.access(folder, os.W_OK):
-        if "JAX_COMPILATION_CACHE_MAX_SIZE" not in os.environ:  # (the user's: kept)
-            jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    # it never writes, could not be locked: every read would fail. A limit the user set
+    # (the environment, or jax.config to another value) is kept.
+    writable = os.access(folder, os.W_OK)
+    if _LIMIT_ENV not in os.environ and jax.config.jax_compilation_cache_max_size in (
+        -1,
+        CACHE_MAX_BYTES,
+    ):
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES if writable else -1)
+    if writable:
         _date_unlimited_entries(folder)
     compilation_cache.reset_cache()  # set up once per process, at the first compilation
+    _configured = str(folder)
     return folder
 
 
 def _date_unlimited_entries(folder: Path) -> None:
-    """Entries written without a size limit (by an earlier version) have no last-use
-    file, and JAX's limit reads one for every entry each time it stores a program:
-    without them every store would fail. Each gets its own modification time."""
+    """Entries written without a size limit (an earlier version, or a process sharing
+    the folder without one) have no last-use file, and JAX's limit reads one for every
+    entry each time it stores a program: without them every store would fail. Each gets
+    its own modification time."""
     for entry in folder.glob("*-cache"):
         used = entry.with_name(entry.name.removesuffix("-cache") + "-atime")
         if not used.exists():
@@ -150,12 +169,14 @@ def _date_unlimited_entries(folder: Path) -> None:
 
 
 class CompilationCacheWarning(UserWarning):
-    """Entries of the persistent compilation cache could not be read: they were deleted
-    and their programs compiled anew (:func:`repairing_compilation_cache`)."""
+    """What the persistent compilation cache could not do in a fit, said once
+    (:func:`repairing_compilation_cache`): entries it could not read (deleted, their
+    programs compiled anew), programs it could not store, a lock another process kept."""
 
 
 # JAX's warning for an entry of the persistent cache it cannot read (a file cut short
-# by a crash or a full disk, or written by another version); it names the program.
+# by a crash or a full disk, or written by another version); it names the program and
+# the exception's type.
 _UNREADABLE = "Error reading persistent compilation cache entry for '"
 # JAX's warning for a program it could not store (a full disk, a read-only folder): one
 # per program, tens per fit, all of one cause.
@@ -170,6 +191,8 @@ def _stop_cache() -> None:
     """The persistent cache off for the rest of the process (the folder kept)."""
     from jax.experimental.compilation_cache import compilation_cache
 
+    global _stopped
+    _stopped = _cache_folder()
     jax.config.update("jax_enable_compilation_cache", False)
     compilation_cache.reset_cache()
 
@@ -178,15 +201,26 @@ def _cache_folder() -> str | None:
     return jax.config.jax_compilation_cache_dir
 
 
-def _delete_entries(name: str) -> None:
+def _delete_entries(name: str) -> bool:
     """Delete the persistent cache's files of the program ``name`` (a module name such
-    as ``jit__solve``, or one entry's key)."""
+    as ``jit__solve``, or one entry's key); whether any entry was deleted."""
     folder = _cache_folder()
     if not folder:
-        return
+        return False
+    deleted = False
     for path in Path(folder).glob(glob.escape(name) + "-*"):
         with contextlib.suppress(OSError):
             path.unlink()
+            deleted = deleted or path.name.endswith("-cache")
+    return deleted
+
+
+def _failed_on_the_folder(text: str) -> bool:
+    """Whether JAX's warning ``text`` names an error of the file system (``OSError`` and
+    its kinds: a full disk, a file of another user), not of the entry's content."""
+    kind = text.split("': ", 1)[-1].split(":", 1)[0].strip()
+    error = getattr(builtins, kind, None)
+    return isinstance(error, type) and issubclass(error, OSError)
 
 
 @contextlib.contextmanager
@@ -196,11 +230,15 @@ def repairing_compilation_cache():
     again (measured: 31 lines per fit from a cache whose files were damaged). Inside
     this context such an entry is deleted when JAX warns about it (the program it then
     compiles is stored in its place), and one :class:`CompilationCacheWarning` at the
-    end says so; JAX's warning for each program it could not store (a full disk) is
-    said in one too; other warnings are shown as before. Usable as a decorator."""
+    end says so. Said in one warning each too, nothing deleted: the programs JAX could
+    not store (a full disk, a size limit below them) or read for an error of the file
+    system, and a lock another process kept (the cache is then off for the rest of the
+    process: every program would wait 10 s for it). Other warnings are shown as before.
+    Usable as a decorator."""
     previous = warnings.showwarning
     deleted: list[str] = []
     unstored: list[str] = []  # the reason of each program JAX could not store
+    unread: list[str] = []  # ... could not read (its entry kept)
     locked: list[str] = []  # programs not read: the folder's lock was not acquired
 
     def show(message, category, filename, lineno, file=None, line=None):
@@ -212,8 +250,13 @@ def repairing_compilation_cache():
             locked.append(text.split("'", 2)[1])
             _stop_cache()
             return
+        if text.startswith(_UNREADABLE) and _failed_on_the_folder(text):
+            unread.append(text.split("': ", 1)[-1])
+            return
         if text.startswith(_UNWRITABLE):
-            unstored.append(text[len(_UNWRITABLE) :].split("': ", 1)[-1])
+            unstored.append(text.split("': ", 1)[-1])
+            if "-atime" in text and "FileNotFoundError" in text and _cache_folder():
+                _date_unlimited_entries(Path(_cache_folder()))  # (a writer without a limit)
             return
         if text.startswith(_TOO_LARGE):  # a size limit below the program (0: none)
             limit = text.rsplit(" of ", 1)[-1]
@@ -223,8 +266,10 @@ def repairing_compilation_cache():
             previous(message, category, filename, lineno, file, line)
             return
         name = text[len(_UNREADABLE) :].split("'", 1)[0]
-        _delete_entries(name)
-        deleted.append(name)
+        if _delete_entries(name):
+            deleted.append(name)
+        else:  # (nothing there to delete, or a file the process cannot delete)
+            unread.append(text.split("': ", 1)[-1])
 
     with warnings.catch_warnings():
         warnings.showwarning = show
@@ -235,6 +280,15 @@ def repairing_compilation_cache():
                 f"the compilation cache {_cache_folder()} could not store "
                 f"{len(unstored)} compiled program(s) ({unstored[0]}): they are compiled "
                 "again by the next run"
+            ),
+            stacklevel=3,
+        )
+    if unread:
+        warnings.warn(
+            CompilationCacheWarning(
+                f"the compilation cache {_cache_folder()} could not read {len(unread)} "
+                f"compiled program(s) ({unread[0]}): compiled instead of loaded, their "
+                "entries kept"
             ),
             stacklevel=3,
         )
