@@ -137,7 +137,8 @@ def use_compilation_cache(folder: Path) -> Path:
     if str(folder) == _stopped or (same and _configured == str(folder)):
         return folder
     jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_enable_compilation_cache", True)
+    if "JAX_ENABLE_COMPILATION_CACHE" not in os.environ:  # (the user's off is kept)
+        jax.config.update("jax_enable_compilation_cache", True)  # (after a lock's stop)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     # JAX locks the folder (filelock) only with a size limit; a read-only folder, which
