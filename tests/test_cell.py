@@ -220,7 +220,9 @@ def test_sized_refined_plane_models_render_side_wall_stripes_from_one_period(
     options = lfj.FitOptions(phase="normalized", refine=refine, stripe_cell=stripe_cell)
     model = size_model(np.zeros((6, 18, 24)), Stripes(), 0.8, 0.7, options, 1.03, 0.2)
     assert model.cell == expected
-    assert model.as_dict()["stripe_cell"] == (None if expected is None else {"shift_orders": 10})
+    assert model.as_dict()["stripe_cell"] == (
+        None if expected is None else {"shift_orders": 10, "walls_coarsen": 1}
+    )
     assert finer(model, options, 0.7).cell == (10 if stripe_cell else None)
 
 
@@ -236,10 +238,13 @@ def test_a_models_record_says_what_its_renderer_does_with_the_fits_stripes():
     grid = Grid(24, 18, 8, 2)
     model = ModelSpec(grid, 12, (0, 0, 24, 18), converges=True, rho=0.5, cell=10, coarse_after=4)
     asked = model.as_dict()
-    assert asked["stripe_cell"] == {"shift_orders": 10} and asked["coarse_tail"]["after"] == 4
+    assert (
+        asked["stripe_cell"] == {"shift_orders": 10, "walls_coarsen": 1}
+        and asked["coarse_tail"]["after"] == 4
+    )
     assert "stripes" not in asked["coarse_tail"]
     side = model.as_dict(Stripes())
-    assert side["stripe_cell"] == {"shift_orders": 10}
+    assert side["stripe_cell"] == {"shift_orders": 10, "walls_coarsen": 1}
     assert side["coarse_tail"]["after"] == 4 and side["coarse_tail"]["stripes"] is False
     for light in (Stripes(entry="top"), Full()):
         record = model.as_dict(light)

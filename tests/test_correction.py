@@ -204,7 +204,7 @@ def test_a_dense_forward_capture_is_recovered_through_the_correction():
     # model marching twice as many refined before its own.
     coarse = {"after": 8, "n_theta": result.model["n_theta"], "refine": 1, "stripes": False}
     assert result.model["coarse_tail"] == coarse
-    assert result.model["stripe_cell"] == {"shift_orders": 10}
+    assert result.model["stripe_cell"] == {"shift_orders": 10, "walls_coarsen": 1}
     fine = result.model["finer_model"]
     assert fine["coarse_after"] == (16 if fine["bounces"] > 16 else None)
     # The model a result names renders as fitted (fitted_images): the cell, the coarse

@@ -23,6 +23,7 @@ from lightfield_jax.forward.slab_cell import (
     deviation_grid,
     slab_cell_renderer_for,
 )
+from lightfield_jax.inverse.cheap_cell import walls_coarsen
 from lightfield_jax.inverse.settings import FitSettings
 from lightfield_jax.inverse.slab_caps import (
     MIN_CAPPED_MU,
@@ -257,10 +258,19 @@ class PlaneModel(GeometryModel):
     def renders_cell(self, model, illumination) -> bool:
         return model.cell is not None and cell_problem(model.grid, illumination) is None
 
+    def cell_record(self, model):
+        return {"walls_coarsen": walls_coarsen(model)}
+
     def renderer(self, model, illumination, phase, **solve):
         if self.renders_cell(model, illumination):
             return cell_renderer_for(
-                model.grid, illumination, model.bounces, phase, shift_orders=model.cell, **solve
+                model.grid,
+                illumination,
+                model.bounces,
+                phase,
+                shift_orders=model.cell,
+                walls_coarsen=walls_coarsen(model),
+                **solve,
             )
         return super().renderer(model, illumination, phase, **solve)
 

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lightfield_jax.inverse.budget import error_budget, split_groups
+from lightfield_jax.inverse.cheap_cell import CHEAP_CELL
 from lightfield_jax.inverse.data import FitData, FitProblem
 from lightfield_jax.inverse.joint_fit.context import FitContext, Seconds
 from lightfield_jax.inverse.joint_fit.finer import model_shift
@@ -32,10 +33,6 @@ from lightfield_jax.inverse.noise import noise_floor, noise_scale
 
 if TYPE_CHECKING:
     from lightfield_jax.inverse.settings import FitSettings
-
-# The cheap models' stripe cell: the walls' term of the shifts' mean alone (2: no order
-# of every shift's own), the fastest (docs/periodic_cell.md).
-CHEAP_CELL = 2
 
 
 @dataclasses.dataclass(frozen=True)
