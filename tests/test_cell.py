@@ -265,3 +265,24 @@ def test_sized_slab_models_render_side_wall_stripes_from_one_period(stripe_cell)
     model = size_model(np.zeros((6, 18, 24)), Stripes(), 0.95, 0.8, options, 1.03, 0.2)
     expected = SLAB_SHIFT_ORDERS if stripe_cell else None
     assert model.cell == expected and finer(model, options, 0.8).cell == expected
+
+
+def test_the_cheap_models_cell_marches_its_walls_term_twice_as_coarse():
+    """The basin scan's and the cheap solve's cell (the shifts' mean alone: their answers
+    are corrected to the final model) marches the walls' term on a grid twice as coarse
+    where 2 divides the model; the final models' cells on their own grid."""
+    from lightfield_jax.inverse.cheap_cell import CHEAP_CELL
+    from lightfield_jax.inverse.model_size import ModelSpec
+
+    for (width, height), cell, coarsen in [
+        ((24, 18), CHEAP_CELL, 2),
+        ((25, 18), CHEAP_CELL, 1),  # 2 does not divide the width
+        ((24, 18), 10, 1),
+    ]:
+        model = ModelSpec(
+            Grid(width, height, 8, 1), 12, (0, 0, width, height), converges=True, rho=0.5,
+            cell=cell,
+        )  # fmt: skip
+        assert model.as_dict()["stripe_cell"] == {"shift_orders": cell, "walls_coarsen": coarsen}
+        renderer = model.geometry.renderer(model, Stripes(), "paper")
+        assert renderer.mean_walls.coarsen == coarsen
