@@ -232,7 +232,11 @@ def test_the_truth_is_inside_the_total_two_sigma_in_nine_fits_of_ten(name):
     """Coverage over noise seeds (not one run): Poisson noise, 2·10⁴ photons at the
     brightest pixel; the truth inside the reported total 2σ for at least 90 % of the
     (seed, parameter) pairs, and every fit converged. The dense forward medium goes
-    through the cheap solve and its correction, the milk through the marched model."""
+    through the cheap solve and its correction, the milk through the marched model.
+    The captures are the model's own renders: fitted without the extrapolation to the
+    continuum (on by default), whose answer is not theirs (the dense medium's moves
+    σt by -1.7 % here, its discretisation error; the Monte Carlo captures' coverage is
+    tests/test_dense_media.py's)."""
     if name == "milk":
         truth, phase = (0.2051, 0.0366, 0.4), "paper"
         medium = lfj.Medium(*truth, phase)
@@ -244,7 +248,9 @@ def test_the_truth_is_inside_the_total_two_sigma_in_nine_fits_of_ten(name):
     for seed in range(10):
         rng = np.random.default_rng(seed)
         images = rng.poisson(clean * 2e4) / 2e4
-        result = lfj.fit_images(images, lfj.Stripes(), black_level=0.0, phase=phase)
+        result = lfj.fit_images(
+            images, lfj.Stripes(), black_level=0.0, phase=phase, extrapolate=False
+        )
         assert result.converged, (seed, result.message)
         for key, value in zip(("sigma_t", "sigma_s", "g"), truth, strict=True):
             inside += abs(getattr(result, key) - value) <= 2 * result.uncertainty[key]
