@@ -18,8 +18,9 @@ jax.config.update("jax_enable_x64", True)
 # locks each read and write (filelock), so no process reads another's half-written
 # entry, and past it drops the entries least recently used. The commands run here,
 # in-process and as subprocesses, use the same folder rather than turning the user's
-# cache on. LIGHTFIELD_JAX_TEST_XLA_CACHE=off: a cold run; =DIR: another folder.
-_CACHE_BYTES = 2 * 2**30
+# cache on. The set-up is the package's own (programs.use_compilation_cache: every
+# program, locked, at most 2 GiB). LIGHTFIELD_JAX_TEST_XLA_CACHE=off: a cold run; =DIR:
+# another folder.
 
 
 def _test_xla_cache() -> Path | None:
@@ -37,12 +38,12 @@ def _test_xla_cache() -> Path | None:
 
 _XLA_CACHE = _test_xla_cache()
 if _XLA_CACHE is not None:
-    jax.config.update("jax_compilation_cache_dir", str(_XLA_CACHE))
-    jax.config.update("jax_compilation_cache_max_size", _CACHE_BYTES)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    from lightfield_jax.inverse.programs import use_compilation_cache
+
+    use_compilation_cache(_XLA_CACHE)
     # (the commands run as subprocesses lock it too: JAX reads this at import)
-    os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(_CACHE_BYTES)
+    limit = jax.config.jax_compilation_cache_max_size
+    os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(limit)
 # (XLA_CACHE_ENV; tests of it set it themselves)
 os.environ["LIGHTFIELD_JAX_XLA_CACHE"] = "off" if _XLA_CACHE is None else str(_XLA_CACHE)
 

@@ -356,11 +356,11 @@ def _chosen_channel(top: Section, key: str, frame: ImageData, channel, first: Im
     third: before, its B was subtracted), a layer's prefix aside where one layer has
     it; else the key's name or index as in the images."""
     names, chosen = frame.channel_names, first.channel_names[0]
-    bare = [n.rsplit(".", 1)[-1] for n in names]
+    bare, colour = [n.rsplit(".", 1)[-1] for n in names], chosen.rsplit(".", 1)[-1]
     colours = [n for i, n in enumerate(bare) if i != alpha_index(names)]
-    if colours in (["Y"], [chosen.rsplit(".", 1)[-1]]):  # grey, or the chosen one alone
+    if colours in (["Y"], [colour]):  # grey, or the chosen one alone
         return frame
-    matches = [i for i, n in enumerate(bare) if n == chosen.rsplit(".", 1)[-1]]
+    matches = [i for i, n in enumerate(bare) if n == colour]
     try:
         if chosen in names:  # the same name, a layer's prefix included
             index = names.index(chosen)

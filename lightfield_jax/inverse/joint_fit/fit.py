@@ -227,4 +227,4 @@ def _model_record(
     return model_dict
 
 
-__all__ = ["CHEAP_CELL", "Answer", "fit_once"]
+__all__ = ["Answer", "fit_once"]
